@@ -1,0 +1,118 @@
+r"""Closed loops and Lie derivatives as CasADi expressions (one graph for every consumer).
+
+For a Lyapunov candidate :math:`V`, feedback :math:`\kappa` and vector field :math:`g`
+(the true :math:`f` or a learned :math:`\varphi`), the Lie derivative is
+
+.. math:: \dot V(x) = \nabla V(x) \cdot g(x, \kappa(x)).
+
+Everything is built on one ``MX`` state symbol so that network layers stay matrix nodes;
+the system's SX right-hand side enters as a call node.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from .errors import DimensionError, EquilibriumError, EquilibriumWarning
+from .network import Network
+
+__all__ = ["ClosedLoop", "closed_loop", "lie_derivative"]
+
+
+@dataclass
+class ClosedLoop:
+    """Symbolic closed loop ``x' = g(x, κ(x))`` on an MX state ``x``.
+
+    Attributes
+    ----------
+    x : casadi.MX (nx, 1)
+    u : casadi.MX (nu, 1)          the feedback expression κ(x) (``u_eq`` if no controller)
+    rhs : casadi.MX (nx, 1)        g(x, κ(x))
+    """
+
+    x: ca.MX
+    u: ca.MX
+    rhs: ca.MX
+
+    def function(self, name: str = "closed_loop") -> ca.Function:
+        return ca.Function(name, [self.x], [self.rhs])
+
+
+def closed_loop(system, controller: Network | None = None, dynamics: Network | None = None,
+                *, x: ca.MX | None = None, strict: bool = True) -> ClosedLoop:
+    """Compose the closed loop of ``system`` under ``controller``.
+
+    Parameters
+    ----------
+    system : systems.System
+    controller : Network, optional
+        ``κ: R^nx -> R^nu``; ``None`` applies the constant equilibrium input.
+    dynamics : Network, optional
+        Learned ``φ(x, u)`` (input ``nx + nu``, output ``nx``) that replaces ``f``.
+        A network with ``meta["learned_components"]`` outputs only those state
+        derivatives; the others are taken from ``system`` (known exactly).
+    strict : bool
+        If the origin is not an equilibrium of the closed loop, raise
+        :class:`EquilibriumError` (training) or only warn (verification of user networks).
+    """
+    x = ca.MX.sym("x", system.nx) if x is None else x
+    if controller is None:
+        u = ca.MX(ca.DM(system.u_eq)) if system.nu else ca.MX(0, 1)
+    else:
+        if controller.n_in != system.nx or controller.n_out != system.nu:
+            raise DimensionError(
+                f"controller maps R^{controller.n_in} -> R^{controller.n_out}; system "
+                f"{system.name!r} needs R^{system.nx} -> R^{system.nu}"
+            )
+        u = controller.casadi(x)
+    if dynamics is None:
+        rhs = system.f_fun(x, u)
+    else:
+        rhs = learned_rhs(system, dynamics, x, u)
+    cl = ClosedLoop(x, u, rhs)
+    at0 = np.array(ca.Function("r", [x], [rhs])(np.zeros(system.nx)), dtype=float).ravel()
+    if np.max(np.abs(at0), initial=0.0) > 1e-8:
+        msg = (f"the origin is not an equilibrium of the closed loop of {system.name!r}: "
+               f"rhs(0) = {at0}; solve the controller bias from f(0, κ(0)) = 0 "
+               "(baselines.lqr.saturated_controller does)")
+        if strict:
+            raise EquilibriumError(msg)
+        warnings.warn(msg, EquilibriumWarning, stacklevel=2)
+    return cl
+
+
+def learned_rhs(system, dynamics: Network, x, u):
+    """``φ(x, u)``, completed with the exactly known components of ``f`` if needed."""
+    learned = dynamics.meta.get("learned_components")
+    if dynamics.n_in != system.nx + system.nu:
+        raise DimensionError(
+            f"dynamics network takes {dynamics.n_in} inputs; system {system.name!r} needs "
+            f"nx + nu = {system.nx + system.nu}"
+        )
+    phi = dynamics.casadi(ca.vertcat(x, u))
+    if learned is None:
+        if dynamics.n_out != system.nx:
+            raise DimensionError(
+                f"dynamics network has {dynamics.n_out} outputs, expected nx = {system.nx} "
+                "(or set meta['learned_components'])"
+            )
+        return phi
+    learned = [int(i) for i in learned]
+    if len(learned) != dynamics.n_out:
+        raise DimensionError("meta['learned_components'] must list one state per output")
+    f = system.f_fun(x, u)
+    parts = []
+    for i in range(system.nx):
+        parts.append(phi[learned.index(i)] if i in learned else f[i])
+    return ca.vertcat(*parts)
+
+
+def lie_derivative(V: ca.MX, x: ca.MX, rhs: ca.MX) -> ca.MX:
+    r"""Lie derivative :math:`\nabla V(x) \cdot g(x)` of a scalar expression ``V``."""
+    if V.shape != (1, 1):
+        raise DimensionError(f"V must be scalar, got shape {V.shape}")
+    return ca.dot(ca.gradient(V, x), rhs)

@@ -1,0 +1,628 @@
+"""One walker over CasADi instruction lists, with pluggable arithmetic.
+
+A CasADi ``Function`` (``SXFunction`` or ``MXFunction``) is compiled once into a
+list of small Python steps, one per instruction (``instruction_id``,
+``instruction_input``, ``instruction_output``, ``instruction_constant`` /
+``instruction_MX``). Evaluating the program with an *arithmetic* object gives:
+
+- :class:`ArrayArithmetic` (numpy): many points at once, float64;
+- :class:`ArrayArithmetic` (torch): differentiable evaluation for training;
+- ``verification.interval.IntervalArithmetic``: rigorous enclosures over many boxes;
+- the dReal and SMT-LIB arithmetics of the verifier (on the SX expansion).
+
+Conventions
+-----------
+Inputs and outputs are *nonzero vectors* with a leading batch shape: an input of
+sparsity ``(r, c)`` with ``nnz`` nonzeros is passed as an array of shape
+``(..., nnz)`` (column-major nonzero order, as CasADi stores it). In SX programs
+every register holds a batch of scalars, shape ``(...)``; in MX programs every
+register holds a dense batch of matrices, shape ``(..., r, c)``, so network layers
+evaluate as matrix products, not scalar by scalar.
+
+Facts relied on (casadi 3.8): output slots are reused registers, not node ids;
+``OP_SQ`` and ``OP_TWICE`` appear; ``str(SX)`` prints 6 significant digits, so
+constants are read from ``instruction_constant`` (SX) or ``evalf`` (MX).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from .errors import UnsupportedOperationError
+
+__all__ = ["ArrayArithmetic", "Program", "compile_function", "evaluate", "op_name", "NUMPY"]
+
+OP_NAMES: dict[int, str] = {getattr(ca, a): a for a in dir(ca) if a.startswith("OP_")}
+
+
+def op_name(op: int) -> str:
+    """Return the ``OP_...`` name of a CasADi operation code."""
+    return OP_NAMES.get(op, f"op#{op}")
+
+
+UNARY_OPS = {
+    ca.OP_NEG, ca.OP_SQ, ca.OP_TWICE, ca.OP_SQRT, ca.OP_EXP, ca.OP_LOG, ca.OP_SIN, ca.OP_COS,
+    ca.OP_TAN, ca.OP_TANH, ca.OP_ATAN, ca.OP_FABS, ca.OP_INV, ca.OP_ASSIGN, ca.OP_SINH,
+    ca.OP_COSH, ca.OP_SIGN, ca.OP_EXPM1, ca.OP_LOG1P, ca.OP_ASIN, ca.OP_ACOS, ca.OP_ERF,
+    ca.OP_FLOOR, ca.OP_CEIL, ca.OP_ASINH, ca.OP_ACOSH, ca.OP_ATANH, ca.OP_NOT,
+}
+BINARY_OPS = {
+    ca.OP_ADD, ca.OP_SUB, ca.OP_MUL, ca.OP_DIV, ca.OP_POW, ca.OP_CONSTPOW, ca.OP_FMIN,
+    ca.OP_FMAX, ca.OP_ATAN2, ca.OP_HYPOT, ca.OP_LT, ca.OP_LE, ca.OP_EQ, ca.OP_NE, ca.OP_AND,
+    ca.OP_OR, ca.OP_COPYSIGN, ca.OP_FMOD,
+}
+
+
+# --------------------------------------------------------------------------- arithmetic
+class ArrayArithmetic:
+    """Plain floating-point arithmetic on numpy arrays or torch tensors.
+
+    Parameters
+    ----------
+    lib : {"numpy", "torch"}
+        Array library. ``"torch"`` keeps autograd graphs (used in training).
+
+    Examples
+    --------
+    >>> import casadi as ca, numpy as np
+    >>> x = ca.SX.sym("x")
+    >>> f = ca.Function("f", [x], [ca.sin(x) * x])
+    >>> evaluate(f, [np.array([[0.5], [1.0]])])[0].ravel().round(6)
+    array([0.239713, 0.841471])
+    """
+
+    def __init__(self, lib: str = "numpy"):
+        if lib == "numpy":
+            xp = np
+            self.asarray = lambda v: np.asarray(v, dtype=float)
+            self._sum = lambda a, axis: np.sum(a, axis=axis)
+            atan, atan2 = np.arctan, np.arctan2
+        elif lib == "torch":
+            import torch
+
+            xp = torch
+            self.asarray = lambda v: torch.as_tensor(np.asarray(v, dtype=float))
+            self._sum = lambda a, axis: torch.sum(a, dim=axis)
+            atan, atan2 = torch.atan, torch.atan2
+        else:
+            raise ValueError(f"lib must be 'numpy' or 'torch', got {lib!r}")
+        self.name = lib
+        self.lib = xp
+        self._unary: dict[int, Callable] = {
+            ca.OP_NEG: lambda a: -a,
+            ca.OP_SQ: lambda a: a * a,
+            ca.OP_TWICE: lambda a: a + a,
+            ca.OP_SQRT: xp.sqrt, ca.OP_EXP: xp.exp, ca.OP_LOG: xp.log, ca.OP_SIN: xp.sin,
+            ca.OP_COS: xp.cos, ca.OP_TAN: xp.tan, ca.OP_TANH: xp.tanh, ca.OP_ATAN: atan,
+            ca.OP_FABS: xp.abs, ca.OP_INV: lambda a: 1.0 / a, ca.OP_ASSIGN: lambda a: a,
+            ca.OP_SINH: xp.sinh, ca.OP_COSH: xp.cosh, ca.OP_SIGN: xp.sign,
+            ca.OP_EXPM1: xp.expm1, ca.OP_LOG1P: xp.log1p,
+        }
+        self._binary: dict[int, Callable] = {
+            ca.OP_ADD: lambda a, b: a + b,
+            ca.OP_SUB: lambda a, b: a - b,
+            ca.OP_MUL: lambda a, b: a * b,
+            ca.OP_DIV: lambda a, b: a / b,
+            ca.OP_POW: lambda a, b: a**b,
+            ca.OP_CONSTPOW: lambda a, b: a**b,
+            ca.OP_FMIN: xp.fmin, ca.OP_FMAX: xp.fmax, ca.OP_ATAN2: atan2,
+            # comparisons give 0.0 / 1.0 (they appear in derivatives of relu / fmax)
+            ca.OP_LT: lambda a, b: self._bool(a < b),
+            ca.OP_LE: lambda a, b: self._bool(a <= b),
+            ca.OP_EQ: lambda a, b: self._bool(a == b),
+            ca.OP_NE: lambda a, b: self._bool(a != b),
+        }
+        self._bool = ((lambda m: m.astype(float)) if lib == "numpy"
+                      else (lambda m: m.to(torch.float64)))
+
+    def constant(self, value: np.ndarray) -> Any:
+        """Return a constant (exact float64 value) as an array of this library."""
+        return self.asarray(value)
+
+    def unary(self, op: int, a: Any) -> Any:
+        """Apply unary CasADi operation ``op`` elementwise."""
+        try:
+            return self._unary[op](a)
+        except KeyError:
+            raise _unsupported(op, self.name, list(self._unary)) from None
+
+    def binary(self, op: int, a: Any, b: Any) -> Any:
+        """Apply binary CasADi operation ``op`` elementwise (with broadcasting)."""
+        try:
+            return self._binary[op](a, b)
+        except KeyError:
+            raise _unsupported(op, self.name, list(self._binary)) from None
+
+    def matmul(self, a: Any, b: Any) -> Any:
+        """Batched matrix product ``a @ b``."""
+        return a @ b
+
+    def sum(self, a: Any, axis: int | tuple[int, ...]) -> Any:
+        """Sum over ``axis``."""
+        return self._sum(a, axis)
+
+    def structural(self, fn: Callable, *args: Any) -> Any:
+        """Apply an exact rearrangement ``fn`` (indexing, reshape, transpose, concatenation)."""
+        return fn(*args)
+
+
+NUMPY = ArrayArithmetic("numpy")
+
+
+def _unsupported(op: int, arith: str, supported) -> UnsupportedOperationError:
+    names = ", ".join(sorted(op_name(o) for o in supported))
+    return UnsupportedOperationError(
+        f"CasADi operation {op_name(op)} is not supported by the {arith!r} arithmetic; "
+        f"supported: {names}. Rewrite the expression with supported operations."
+    )
+
+
+# --------------------------------------------------------------------------- array helpers
+def _is_torch(a) -> bool:
+    return type(a).__module__.startswith("torch")
+
+
+def _zeros_like_batch(a, shape):
+    if _is_torch(a):
+        return a.new_zeros(shape)
+    return np.zeros(shape, dtype=np.result_type(a, float))
+
+
+def _broadcast_batch(arrays: Sequence, tail_dims: Sequence[int]):
+    """Broadcast the leading (batch) dimensions of arrays with given trailing ranks."""
+    batches = [tuple(a.shape[: a.ndim - t]) for a, t in zip(arrays, tail_dims)]
+    batch = np.broadcast_shapes(*batches)
+    out = []
+    for a, t in zip(arrays, tail_dims):
+        shape = batch + tuple(a.shape[a.ndim - t:])
+        if tuple(a.shape) != shape:
+            a = a.expand(shape) if _is_torch(a) else np.broadcast_to(a, shape)
+        out.append(a)
+    return out, batch
+
+
+def _concat(arrays: Sequence, axis: int):
+    arrays, _ = _broadcast_batch(arrays, [2] * len(arrays))
+    if _is_torch(arrays[0]):
+        import torch
+
+        return torch.cat(list(arrays), dim=axis)
+    return np.concatenate(arrays, axis=axis)
+
+
+def _scatter(v, rows, cols, shape):
+    """Dense ``(..., r, c)`` array with ``v[..., k]`` at ``(rows[k], cols[k])``."""
+    out = _zeros_like_batch(v, tuple(v.shape[:-1]) + tuple(shape))
+    out[..., rows, cols] = v
+    return out
+
+
+class _Sp:
+    """Sparsity pattern: shape and nonzero positions in CasADi's (column-major) order."""
+
+    __slots__ = ("shape", "rows", "cols", "nnz", "dense")
+
+    def __init__(self, sp: ca.Sparsity):
+        self.shape = (sp.size1(), sp.size2())
+        r, c = sp.get_triplet()
+        self.rows = np.asarray(r, dtype=np.intp)
+        self.cols = np.asarray(c, dtype=np.intp)
+        self.nnz = sp.nnz()
+        self.dense = sp.is_dense()
+
+    def to_nz(self, arith, a):
+        rows, cols = self.rows, self.cols
+        return arith.structural(lambda x: x[..., rows, cols], a)
+
+    def from_nz(self, arith, v):
+        rows, cols, shape = self.rows, self.cols, self.shape
+        if self.dense:  # column-major nonzeros -> C-order dense matrix
+            r, c = shape
+            return arith.structural(
+                lambda x: x.reshape(tuple(x.shape[:-1]) + (c, r)).swapaxes(-1, -2), v
+            )
+        return arith.structural(lambda x: _scatter(x, rows, cols, shape), v)
+
+
+def _slice_indices(info: dict, n_hint: int | None = None) -> np.ndarray:
+    """Nonzero index vector of a Get/SetNonzeros node from its ``info()``."""
+    if "nz" in info:
+        return np.asarray(info["nz"], dtype=np.intp)
+    if "slice" in info and "inner" not in info:
+        s = info["slice"]
+        return np.arange(s["start"], s["stop"], s["step"], dtype=np.intp)
+    if "inner" in info and "outer" in info:
+        i, o = info["inner"], info["outer"]
+        inner = np.arange(i["start"], i["stop"], i["step"], dtype=np.intp)
+        outer = np.arange(o["start"], o["stop"], o["step"], dtype=np.intp)
+        return (outer[:, None] + inner[None, :]).ravel()
+    raise UnsupportedOperationError(f"cannot read nonzero indices from node info {info!r}")
+
+
+# --------------------------------------------------------------------------- programs
+class Program:
+    """A CasADi Function compiled into walker steps (built once, evaluated many times)."""
+
+    def __init__(self, fun: ca.Function):
+        if not isinstance(fun, ca.Function):
+            raise TypeError(f"expected a casadi.Function, got {type(fun).__name__}")
+        self.fun = fun
+        self.is_sx = fun.is_a("SXFunction")
+        if not (self.is_sx or fun.is_a("MXFunction")):
+            raise UnsupportedOperationError(
+                f"Function {fun.name()!r} is a {fun.class_name()}; the walker evaluates "
+                "SXFunction and MXFunction only (call .expand() or wrap it in an MX Function)."
+            )
+        self.n_in = fun.n_in()
+        self.n_out = fun.n_out()
+        self.sp_in = [_Sp(fun.sparsity_in(i)) for i in range(self.n_in)]
+        self.sp_out = [_Sp(fun.sparsity_out(i)) for i in range(self.n_out)]
+        self.n_registers = fun.sz_w()
+        self.ops: list[int] = []
+        self.steps = self._compile_sx() if self.is_sx else self._compile_mx()
+
+    # -- SX: every register a batch of scalars
+    def _compile_sx(self):
+        f = self.fun
+        steps = []
+        for k in range(f.n_instructions()):
+            op = f.instruction_id(k)
+            self.ops.append(op)
+            i = f.instruction_input(k)
+            o = f.instruction_output(k)
+            if op == ca.OP_CONST:
+                steps.append(_sx_const(o[0], float(f.instruction_constant(k))))
+            elif op == ca.OP_INPUT:
+                steps.append(_sx_input(o[0], i[0], i[1]))
+            elif op == ca.OP_OUTPUT:
+                steps.append(_sx_output(o[0], o[1], i[0]))
+            elif op in UNARY_OPS:
+                steps.append(_unary(op, o[0], i[0]))
+            elif op in BINARY_OPS:
+                steps.append(_binary(op, o[0], i[0], i[1]))
+            else:
+                raise UnsupportedOperationError(
+                    f"SX operation {op_name(op)} in Function {f.name()!r} is not supported "
+                    "by the instruction walker."
+                )
+        return steps
+
+    # -- MX: every register a batch of dense matrices
+    def _compile_mx(self):
+        f = self.fun
+        steps = []
+        prims = [e.primitives() for e in f.call(f.mx_in())]  # symbolic re-evaluation
+        self.n_segments = [len(p) for p in prims]
+        seen_out: dict[int, int] = {}
+        for k in range(f.n_instructions()):
+            op = f.instruction_id(k)
+            self.ops.append(op)
+            i = list(f.instruction_input(k))
+            o = list(f.instruction_output(k))
+            if op == ca.OP_OUTPUT:  # outputs may be written in several primitive segments
+                seg = seen_out.get(o[0], 0)
+                seen_out[o[0]] = seg + 1
+                prim = prims[o[0]][seg]
+                steps.append(_mx_output(o[0], seg, i[0], _Sp(prim.sparsity())))
+                continue
+            node = f.instruction_MX(k)
+            if op == ca.OP_CONST:
+                val = np.array(ca.evalf(node), dtype=float).reshape(node.size1(), node.size2())
+                steps.append(_sx_const(o[0], val))
+            elif op == ca.OP_INPUT:
+                off = int(node.info().get("offset", 0))
+                steps.append(_mx_input(o[0], i[0], off, _Sp(node.sparsity())))
+            elif op in UNARY_OPS:
+                steps.append(_unary(op, o[0], i[0]))
+            elif op in BINARY_OPS:
+                steps.append(_binary(op, o[0], i[0], i[1]))
+            elif op == ca.OP_MTIMES:
+                steps.append(_mx_mtimes(o[0], i[0], i[1], i[2]))
+            elif op == ca.OP_DOT:
+                steps.append(_mx_dot(o[0], i[0], i[1]))
+            elif op == ca.OP_TRANSPOSE:
+                steps.append(_mx_struct(o[0], [i[0]], lambda a: a.swapaxes(-1, -2)))
+            elif op == ca.OP_RESHAPE:
+                steps.append(_mx_reshape(o[0], i[0], _Sp(node.dep(0).sparsity()),
+                                         _Sp(node.sparsity())))
+            elif op in (ca.OP_PROJECT, ca.OP_SPARSITY_CAST):
+                if node.size() != node.dep(0).size():
+                    raise UnsupportedOperationError("sparsity cast that changes the shape")
+                steps.append(_mx_struct(o[0], [i[0]], lambda a: a))
+            elif op == ca.OP_VERTCAT:
+                steps.append(_mx_struct(o[0], i, lambda *a: _concat(a, -2)))
+            elif op == ca.OP_HORZCAT:
+                steps.append(_mx_struct(o[0], i, lambda *a: _concat(a, -1)))
+            elif op in (ca.OP_HORZSPLIT, ca.OP_VERTSPLIT):
+                offs = node.info()["offset"]
+                sp_in = _Sp(node.dep(0).sparsity())
+                outs = [(o[j], offs[j], offs[j + 1], _Sp(node.get_output(j).sparsity()))
+                        for j in range(len(o)) if o[j] >= 0]
+                steps.append(_mx_split(i[0], sp_in, outs))
+            elif op == ca.OP_GETNONZEROS:
+                nz = _slice_indices(node.info())
+                steps.append(_mx_getnz(o[0], i[0], nz, _Sp(node.dep(0).sparsity()),
+                                       _Sp(node.sparsity())))
+            elif op in (ca.OP_SETNONZEROS, ca.OP_ADDNONZEROS):
+                info = node.info()
+                nz = _slice_indices(info)
+                add = bool(info.get("add", op == ca.OP_ADDNONZEROS))
+                steps.append(_mx_setnz(o[0], i[0], i[1], nz, add, _Sp(node.sparsity()),
+                                       _Sp(node.dep(1).sparsity())))
+            elif op == ca.OP_CALL:
+                callee = node.which_function()
+                prog = compile_function(callee)
+                steps.append(_mx_call(prog, i, o))
+            else:
+                raise UnsupportedOperationError(
+                    f"MX operation {op_name(op)} in Function {f.name()!r} is not supported by "
+                    "the instruction walker; supported are elementwise ops, mtimes, dot, "
+                    "transpose, reshape, concatenation, splits, (get/set)nonzeros and calls."
+                )
+        for j, n in enumerate(self.n_segments):
+            if seen_out.get(j, 0) != n:
+                raise UnsupportedOperationError(
+                    f"output {j} of {f.name()!r} is written in {seen_out.get(j, 0)} segments, "
+                    f"expected {n}; wrap the outputs in a fresh Function"
+                )
+        return steps
+
+    def __call__(self, args: Sequence, arith=NUMPY) -> list:
+        """Evaluate with ``args[i]`` of shape ``(..., nnz_in_i)``; return ``(..., nnz_out_j)``."""
+        if len(args) != self.n_in:
+            raise ValueError(
+                f"Function {self.fun.name()!r} takes {self.n_in} inputs, got {len(args)}"
+            )
+        regs: list = [None] * self.n_registers
+        outs: list = [None] * self.n_out
+        ctx = (arith, args, outs)
+        for step in self.steps:
+            step(regs, ctx)
+        if self.is_sx:
+            return _finish_sx_outputs(self, outs, arith)
+        return [_finish_mx_output(parts, n, arith) for parts, n in zip(outs, self.n_segments)]
+
+
+# step factories (closures keep evaluation free of dispatch)
+def _sx_const(o, value):
+    def step(r, ctx):
+        r[o] = ctx[0].constant(value)
+    return step
+
+
+def _sx_input(o, ind, nz):
+    def step(r, ctx):
+        r[o] = ctx[1][ind][..., nz]
+    return step
+
+
+def _sx_output(ind, nz, src):
+    def step(r, ctx):
+        outs = ctx[2]
+        if outs[ind] is None:
+            outs[ind] = {}
+        outs[ind][nz] = r[src]
+    return step
+
+
+def _unary(op, o, a):
+    def step(r, ctx):
+        r[o] = ctx[0].unary(op, r[a])
+    return step
+
+
+def _binary(op, o, a, b):
+    def step(r, ctx):
+        r[o] = ctx[0].binary(op, r[a], r[b])
+    return step
+
+
+def _mx_input(o, ind, off, sp):
+    whole = off == 0
+
+    def step(r, ctx):
+        v = ctx[1][ind]
+        if not (whole and v.shape[-1] == sp.nnz):
+            v = ctx[0].structural(lambda a: a[..., off:off + sp.nnz], v)
+        r[o] = sp.from_nz(ctx[0], v)
+    return step
+
+
+def _mx_output(ind, seg, src, sp):
+    def step(r, ctx):
+        outs = ctx[2]
+        if outs[ind] is None:
+            outs[ind] = {}
+        outs[ind][seg] = sp.to_nz(ctx[0], r[src])
+    return step
+
+
+def _mx_mtimes(o, z, x, y):
+    def step(r, ctx):
+        ar = ctx[0]
+        r[o] = ar.binary(ca.OP_ADD, r[z], ar.matmul(r[x], r[y]))
+    return step
+
+
+def _mx_dot(o, a, b):
+    def step(r, ctx):
+        ar = ctx[0]
+        prod = ar.binary(ca.OP_MUL, r[a], r[b])
+        r[o] = ar.structural(lambda v: v[..., None, None], ar.sum(prod, (-2, -1)))
+    return step
+
+
+def _mx_struct(o, ins, fn):
+    def step(r, ctx):
+        r[o] = ctx[0].structural(fn, *[r[j] for j in ins])
+    return step
+
+
+def _mx_reshape(o, a, sp_in, sp_out):
+    def step(r, ctx):
+        ar = ctx[0]
+        r[o] = sp_out.from_nz(ar, sp_in.to_nz(ar, r[a]))
+    return step
+
+
+def _mx_split(a, sp_in, outs):
+    def step(r, ctx):
+        ar = ctx[0]
+        nz = sp_in.to_nz(ar, r[a])
+        for reg, lo, hi, sp in outs:
+            part = ar.structural(lambda v, lo=lo, hi=hi: v[..., lo:hi], nz)
+            r[reg] = sp.from_nz(ar, part)
+    return step
+
+
+def _mx_getnz(o, a, nz, sp_in, sp_out):
+    valid = nz >= 0
+    if valid.all():
+        def pick(v):
+            return v[..., nz]
+    else:
+        safe = np.where(valid, nz, 0)
+
+        def pick(v):
+            return v[..., safe] * valid
+
+    def step(r, ctx):
+        ar = ctx[0]
+        r[o] = sp_out.from_nz(ar, ar.structural(pick, sp_in.to_nz(ar, r[a])))
+    return step
+
+
+def _mx_setnz(o, y, x, nz, add, sp_out, sp_x):
+    valid = nz >= 0
+    dst = nz[valid]
+    src = np.nonzero(valid)[0]
+
+    def put(base, val):
+        (base, val), _ = _broadcast_batch([base, val], [1, 1])
+        out = base.clone() if _is_torch(base) else np.array(base, dtype=float)
+        if add:
+            out[..., dst] = out[..., dst] + val[..., src]
+        else:
+            out[..., dst] = val[..., src]
+        return out
+
+    def step(r, ctx):
+        ar = ctx[0]
+        base = sp_out.to_nz(ar, r[y])
+        val = sp_x.to_nz(ar, r[x])
+        if add:  # adding is arithmetic: do it with the arithmetic (rounding matters)
+            picked = ar.structural(lambda b: b[..., dst], base)
+            summed = ar.binary(ca.OP_ADD, picked, ar.structural(lambda v: v[..., src], val))
+
+            def put_sum(b, s):
+                (b, s), _ = _broadcast_batch([b, s], [1, 1])
+                out = b.clone() if _is_torch(b) else np.array(b, dtype=float)
+                out[..., dst] = s
+                return out
+            res = ar.structural(put_sum, base, summed)
+        else:
+            res = ar.structural(put, base, val)
+        r[o] = sp_out.from_nz(ar, res)
+    return step
+
+
+def _mx_call(prog: Program, ins, outs):
+    def step(r, ctx):
+        ar = ctx[0]
+        args = [prog.sp_in[j].to_nz(ar, r[ins[j]]) for j in range(prog.n_in)]
+        res = prog(args, ar)
+        for j, reg in enumerate(outs):
+            if reg >= 0:
+                r[reg] = prog.sp_out[j].from_nz(ar, res[j])
+    return step
+
+
+# --------------------------------------------------------------------------- public API
+_CACHE: dict[int, tuple[ca.Function, Program]] = {}
+
+
+def compile_function(fun: ca.Function) -> Program:
+    """Compile (once, cached per Function object) a CasADi Function into a :class:`Program`."""
+    key = id(fun)
+    hit = _CACHE.get(key)
+    if hit is not None and hit[0] is fun:
+        return hit[1]
+    prog = Program(fun)
+    _CACHE[key] = (fun, prog)
+    return prog
+
+
+def _finish_sx_outputs(prog: Program, outs: list, arith) -> list:
+    res = []
+    for j, parts in enumerate(outs):
+        n = prog.sp_out[j].nnz
+        if n == 0:
+            res.append(None)
+            continue
+        cols = [parts.get(k) if parts else None for k in range(n)]
+        if any(c is None for c in cols):  # structurally constant outputs never written
+            raise UnsupportedOperationError(f"output {j} has unwritten nonzeros")
+        res.append(arith.structural(_stack_last, *cols))
+    return res
+
+
+def _finish_mx_output(parts, n, arith):
+    if n == 0 or parts is None:
+        return None
+    if n == 1:
+        return parts[0]
+    return arith.structural(_concat_last, *[parts[k] for k in range(n)])
+
+
+def _concat_last(*parts):
+    b = np.broadcast_shapes(*[tuple(p.shape[:-1]) for p in parts])
+    if _is_torch(parts[0]):
+        import torch
+
+        return torch.cat([p.expand(b + (p.shape[-1],)) for p in parts], dim=-1)
+    return np.concatenate([np.broadcast_to(p, b + (p.shape[-1],)) for p in parts], axis=-1)
+
+
+def _stack_last(*cols):
+    b = np.broadcast_shapes(*[tuple(c.shape) for c in cols])
+    if _is_torch(cols[0]):
+        import torch
+
+        return torch.stack([c.expand(b) for c in cols], dim=-1)
+    return np.stack([np.broadcast_to(c, b) for c in cols], axis=-1)
+
+
+def evaluate(fun: ca.Function | Program, args: Sequence, arith=NUMPY) -> list:
+    """Evaluate a CasADi Function on a batch of points with the given arithmetic.
+
+    Parameters
+    ----------
+    fun : casadi.Function or Program
+        An ``SXFunction`` or ``MXFunction``.
+    args : sequence of arrays
+        ``args[i]`` has shape ``(..., nnz_in_i)``: the nonzeros of input ``i``
+        (for a column vector input of size ``n``: shape ``(..., n)``).
+    arith : arithmetic, optional
+        :data:`NUMPY` (default), ``ArrayArithmetic("torch")``, an interval
+        arithmetic, ... Each input must be a value of that arithmetic.
+
+    Returns
+    -------
+    list
+        One value per output, of shape ``(..., nnz_out_j)``.
+    """
+    prog = fun if isinstance(fun, Program) else compile_function(fun)
+    if arith is NUMPY or getattr(arith, "name", "") == "numpy":
+        args = [np.asarray(a, dtype=float) for a in args]
+    for a, sp in zip(args, prog.sp_in):
+        if a.shape[-1] != sp.nnz:
+            raise ValueError(
+                f"input of Function {prog.fun.name()!r} needs a trailing dimension of "
+                f"{sp.nnz} (nonzeros of a {sp.shape[0]}x{sp.shape[1]} input), got shape "
+                f"{tuple(a.shape)}"
+            )
+    return prog(args, arith)

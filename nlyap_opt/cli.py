@@ -57,6 +57,40 @@ def cmd_lqr(args) -> int:
     return 0
 
 
+def cmd_verify(args) -> int:
+    import systems
+    from verification import closed_loop_problem, verify
+
+    from .network import Network
+
+    s = systems.get(args.system)
+    V = Network.load(args.lyapunov)
+    ctrl = Network.load(args.controller) if args.controller else None
+    dyn = Network.load(args.dynamics) if args.dynamics else None
+    if args.margin and dyn is None:
+        print("note: --margin without --dynamics tightens the true-f condition", file=sys.stderr)
+    problem = closed_loop_problem(s, V, ctrl, dyn, inner=args.inner, outer=args.outer,
+                                  level=args.level, margin=args.margin, strict=False)
+    opts = {}
+    if args.backend == "interval":
+        opts = {"resolution": args.resolution, "progress": args.progress}
+    elif args.precision is not None:
+        opts = {"precision": args.precision}
+    res = verify(problem, backend=args.backend, **opts)
+    region = f"{args.inner:g} <= |x| <= {args.outer:g}" + (
+        f" and V <= {args.level:g}" if args.level is not None else "")
+    print(f"{res.status}: V > 0 and dV/dt < -{args.margin:g} on {region} "
+          f"({res.boxes} boxes, depth {res.depth}, {res.seconds:.3f} s, {res.backend})")
+    if res.counterexample is not None:
+        c = res.counterexample
+        print(f"  counterexample x = {c.point.tolist()} violates {c.property}: "
+              f"value in [{c.value_lower:.6g}, {c.value_upper:.6g}]")
+    if res.status == "unknown":
+        print(f"  {len(res.undecided)} boxes undecided at resolution {args.resolution}")
+    _write_json(args.json, res.to_dict())
+    return {"verified": 0, "counterexample": 1}.get(res.status, 2)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="nlyap", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -70,6 +104,24 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--R", help="input weight: scalar or rows (default I)")
     sp.add_argument("--json", help="write K, P, eigenvalues to this file")
     sp.set_defaults(func=cmd_lqr)
+
+    sp = sub.add_parser(
+        "verify", help="verify V > 0 and the decrease condition on an annulus",
+        description="Exit code 0 verified, 1 counterexample, 2 unknown.")
+    sp.add_argument("--system", required=True)
+    sp.add_argument("--lyapunov", required=True, help="V network JSON")
+    sp.add_argument("--controller", help="controller network JSON (feeds the inputs)")
+    sp.add_argument("--dynamics", help="learned dynamics network JSON (replaces f)")
+    sp.add_argument("--margin", type=float, default=0.0, help="beta: require dV/dt < -beta")
+    sp.add_argument("--inner", type=float, required=True, help="inner radius epsilon")
+    sp.add_argument("--outer", type=float, required=True, help="outer radius r")
+    sp.add_argument("--level", type=float, help="restrict to V(x) <= level")
+    sp.add_argument("--backend", default="interval", choices=["interval", "dreal"])
+    sp.add_argument("--resolution", type=float, help="smallest box width (interval backend)")
+    sp.add_argument("--precision", type=float, help="delta of the dreal backend")
+    sp.add_argument("--progress", action="store_true")
+    sp.add_argument("--json", help="write status, seconds, boxes, counterexample here")
+    sp.set_defaults(func=cmd_verify)
 
     for register in _EXTRA:
         register(sub)

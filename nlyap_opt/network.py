@@ -38,6 +38,10 @@ __all__ = [
 
 FORMAT = "nlyap-network"
 
+#: output heads: ``sum_of_squares`` makes a Lyapunov candidate
+#: ``V(z) = ||N(z) - N(0)||² + eps·||z||²`` (V(0) = 0 and V ≥ eps||z||² by construction)
+HEADS = ("sum_of_squares",)
+
 
 def _sigmoid(z):
     return 1.0 / (1.0 + ca.exp(-z))
@@ -100,8 +104,19 @@ class Network:
     layers: list[Layer]
     output_scale: float | np.ndarray = 1.0
     meta: dict = field(default_factory=dict)
+    head: dict | None = None
 
     def __post_init__(self):
+        if self.head is not None:
+            kind = self.head.get("type")
+            if kind not in HEADS:
+                raise UnsupportedLayerError(
+                    f"network head {kind!r} is not supported; use one of {', '.join(HEADS)}"
+                )
+            eps = float(self.head.get("eps", 0.0))
+            if not (math.isfinite(eps) and eps >= 0):
+                raise NetworkFileError(f"head eps must be finite and >= 0, got {eps}")
+            self.head = {"type": kind, "eps": eps}
         if not self.layers:
             raise DimensionError("a network needs at least one layer")
         for k in range(1, len(self.layers)):
@@ -124,13 +139,27 @@ class Network:
 
     @property
     def n_out(self) -> int:
-        return self.layers[-1].weight.shape[0]
+        return 1 if self.head else self.layers[-1].weight.shape[0]
 
     # ---------------------------------------------------------------- evaluation
     def casadi(self, z):
         """The network as a CasADi expression of ``z`` (SX or MX column of size ``n_in``)."""
         if z.shape != (self.n_in, 1):
             raise DimensionError(f"network input must have shape ({self.n_in}, 1), got {z.shape}")
+        h = self._casadi_body(z)
+        if self.head is None:
+            return h
+        # centred sum of squares: V(z) = ||N(z) - N(0)||² + eps ||z||², V(0) = 0 exactly.
+        # N(0) is part of the graph (not a folded float), so V(0) = 0 in real arithmetic.
+        zero = type(z)(ca.DM.zeros(self.n_in, 1)) if isinstance(z, ca.MX) else ca.SX.zeros(
+            self.n_in, 1)
+        y = h - self._casadi_body(zero)
+        V = ca.sumsqr(y)
+        if self.head["eps"]:
+            V = V + self.head["eps"] * ca.sumsqr(z)
+        return V
+
+    def _casadi_body(self, z):
         h = z
         for layer in self.layers:
             h = ACTIVATIONS[layer.activation][0](ca.mtimes(ca.DM(layer.weight), h)
@@ -149,7 +178,14 @@ class Network:
 
     def numpy(self, z) -> np.ndarray:
         """Evaluate on a batch ``(N, n_in)`` in float64 numpy."""
-        h = np.asarray(z, dtype=float)
+        z = np.asarray(z, dtype=float)
+        h = self._numpy_body(z)
+        if self.head is None:
+            return h
+        y = h - self._numpy_body(np.zeros((1, self.n_in)))
+        return (np.sum(y * y, axis=-1) + self.head["eps"] * np.sum(z * z, axis=-1))[..., None]
+
+    def _numpy_body(self, h):
         for layer in self.layers:
             h = h @ layer.weight.T + layer.bias
             h = {"tanh": np.tanh, "relu": lambda v: np.maximum(v, 0.0),
@@ -176,7 +212,10 @@ class Network:
                 mods.append(act())
         if self.output_scale.ndim > 0 or float(self.output_scale) != 1.0:
             mods.append(_Scale(torch.as_tensor(self.output_scale, dtype=dtype)))
-        return nn.Sequential(*mods)
+        body = nn.Sequential(*mods)
+        if self.head is None:
+            return body
+        return _make_head()(body, self.head["eps"])
 
     # ---------------------------------------------------------------- files
     def to_dict(self) -> dict:
@@ -190,6 +229,7 @@ class Network:
                 for layer in self.layers
             ],
             "output_scale": self.output_scale.tolist(),
+            "head": self.head,
             "meta": self.meta,
         }
 
@@ -218,7 +258,8 @@ class Network:
                 if not (np.all(np.isfinite(w)) and np.all(np.isfinite(b))):
                     raise NetworkFileError(f"{source}: layer {k} has NaN or inf weights")
                 layers.append(Layer(w, b, ld.get("activation", "linear")))
-            net = cls(layers, d.get("output_scale", 1.0), dict(d.get("meta", {})))
+            net = cls(layers, d.get("output_scale", 1.0), dict(d.get("meta", {})),
+                      d.get("head"))
         except (KeyError, TypeError) as err:
             raise NetworkFileError(f"{source}: malformed layer entry ({err})") from None
         if "input_dim" in d and int(d["input_dim"]) != net.n_in:
@@ -265,6 +306,30 @@ def _make_scale():
             return h * self.scale
 
     return Scale
+
+
+def _make_head():
+    import torch
+    from torch import nn
+
+    class CentredSumOfSquares(nn.Module):
+        """``V(z) = ||body(z) - body(0)||² + eps ||z||²`` (the ``sum_of_squares`` head)."""
+
+        def __init__(self, body, eps):
+            super().__init__()
+            self.body = body
+            self.eps = float(eps)
+
+        def forward(self, z):
+            y = self.body(z) - self.body(torch.zeros_like(z[..., :1, :]))
+            return (y * y).sum(-1, keepdim=True) + self.eps * (z * z).sum(-1, keepdim=True)
+
+        def to_network(self):
+            net = from_torch(self.body)
+            return Network(net.layers, net.output_scale, {}, {"type": "sum_of_squares",
+                                                                 "eps": self.eps})
+
+    return CentredSumOfSquares
 
 
 def _Scale(scale):  # noqa: N802 - behaves as a class

@@ -324,6 +324,8 @@ class Program:
                 steps.append(_mx_mtimes(o[0], i[0], i[1], i[2]))
             elif op == ca.OP_DOT:
                 steps.append(_mx_dot(o[0], i[0], i[1]))
+            elif op == ca.OP_BILIN:  # xᵀ A y with inputs [A, x, y]
+                steps.append(_mx_bilin(o[0], i[0], i[1], i[2]))
             elif op == ca.OP_TRANSPOSE:
                 steps.append(_mx_struct(o[0], [i[0]], lambda a: a.swapaxes(-1, -2)))
             elif op == ca.OP_RESHAPE:
@@ -456,6 +458,14 @@ def _mx_dot(o, a, b):
     return step
 
 
+def _mx_bilin(o, A, x, y):
+    def step(r, ctx):
+        ar = ctx[0]
+        prod = ar.binary(ca.OP_MUL, r[x], ar.matmul(r[A], r[y]))
+        r[o] = ar.structural(lambda v: v[..., None, None], ar.sum(prod, (-2, -1)))
+    return step
+
+
 def _mx_struct(o, ins, fn):
     def step(r, ctx):
         r[o] = ctx[0].structural(fn, *[r[j] for j in ins])
@@ -566,7 +576,10 @@ def _finish_sx_outputs(prog: Program, outs: list, arith) -> list:
         cols = [parts.get(k) if parts else None for k in range(n)]
         if any(c is None for c in cols):  # structurally constant outputs never written
             raise UnsupportedOperationError(f"output {j} has unwritten nonzeros")
-        res.append(arith.structural(_stack_last, *cols))
+        if getattr(arith, "symbolic", False):  # symbolic arithmetics (dReal, SMT-LIB): lists
+            res.append(cols)
+        else:
+            res.append(arith.structural(_stack_last, *cols))
     return res
 
 

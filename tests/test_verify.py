@@ -1,0 +1,247 @@
+"""The verifier: acceptance cases, a mutation soundness suite, executors, SMT-LIB, dReal."""
+
+from concurrent.futures import ThreadPoolExecutor
+
+import casadi as ca
+import numpy as np
+import pytest
+from certcheck import assert_confirmed, assert_no_sample_contradicts
+
+import systems
+from baselines.lqr import lqr, saturated_controller
+from nlyap_opt.errors import BackendUnavailableError, UnknownNameError
+from nlyap_opt.network import Layer, Network
+from verification import (
+    BACKENDS,
+    VerificationProblem,
+    closed_loop_problem,
+    evaluate_smtlib,
+    to_smtlib,
+    verify,
+)
+
+P_VDP = np.array([[1.5, -0.5], [-0.5, 1.0]])
+
+
+def quadratic_V(P) -> Network:
+    """V(x) = xᵀPx as a network: ||Lᵀx||² with P = L Lᵀ (sum-of-squares head)."""
+    L = np.linalg.cholesky(np.asarray(P, dtype=float))
+    return Network([Layer(L.T, np.zeros(len(P)), "linear")], head={"type": "sum_of_squares"})
+
+
+def test_van_der_pol_quadratic_verified_and_refuted():
+    s = systems.get("van_der_pol")
+    V = quadratic_V(P_VDP)
+    ok = verify(closed_loop_problem(s, V, inner=0.1, outer=1.0))
+    assert ok.status == "verified", ok
+    bad_problem = closed_loop_problem(s, V, inner=0.1, outer=1.2)
+    bad = verify(bad_problem)
+    assert bad.status == "counterexample"
+    assert bad.counterexample.property == "decrease"
+    assert_confirmed(bad_problem, bad.counterexample)
+    # the true maximum of the Lie derivative on |x| = 1.2 is about +0.165
+    th = np.linspace(0, 2 * np.pi, 20001)
+    X = 1.2 * np.stack([np.cos(th), np.sin(th)], 1)
+    F = s.evaluate(X)
+    lie = 2 * np.sum((X @ P_VDP) * F, axis=1)
+    assert abs(lie.max() - 0.165) < 0.005
+    assert bad.counterexample.value_lower <= lie.max() + 1e-9
+
+
+def test_verified_case_survives_a_million_samples():
+    s = systems.get("van_der_pol")
+    problem = closed_loop_problem(s, quadratic_V(P_VDP), inner=0.1, outer=1.0)
+    assert verify(problem).status == "verified"
+    assert_no_sample_contradicts(problem, 1_000_000)
+
+
+# ----------------------------------------------------------------------------- base certificates
+def _pf():
+    s = systems.get("unicycle_path_following")
+    res = lqr(s)
+    return s, quadratic_V(res.P), saturated_controller(s, res.K, 5.0)
+
+
+def _ip():
+    s = systems.get("inverted_pendulum")
+    res = lqr(s)
+    return s, quadratic_V(res.P), saturated_controller(s, res.K, 20.0)
+
+
+BASES = {
+    "vdp": (lambda: (systems.get("van_der_pol"), quadratic_V(P_VDP), None), 0.1, 1.0),
+    "pf": (_pf, 0.05, 0.5),
+    "ip": (_ip, 0.05, 0.5),
+}
+
+
+@pytest.mark.parametrize("base", list(BASES))
+def test_base_certificates_verify(base):
+    make, inner, outer = BASES[base]
+    s, V, k = make()
+    problem = closed_loop_problem(s, V, k, inner=inner, outer=outer)
+    res = verify(problem)
+    assert res.status == "verified", res
+    assert_no_sample_contradicts(problem, 200_000, seed=1)
+
+
+def _flip_gain(k, factor):
+    L = k.layers[0]
+    return Network([Layer(L.weight * factor, L.bias.copy(), L.activation)], k.output_scale)
+
+
+MUTATIONS = [
+    # (label, base, mutate(s, V, k) -> (V, k, inner, outer, margin))
+    ("vdp widen outer 1.2", "vdp", lambda s, V, k: (V, k, 0.1, 1.2, 0.0)),
+    ("vdp widen outer 1.5", "vdp", lambda s, V, k: (V, k, 0.1, 1.5, 0.0)),
+    ("vdp margin 0.5", "vdp", lambda s, V, k: (V, k, 0.1, 1.0, 0.5)),
+    ("vdp margin 0.1 inner 0.4", "vdp", lambda s, V, k: (V, k, 0.4, 1.0, 0.3)),
+    ("vdp rotate P", "vdp", lambda s, V, k: (quadratic_V([[1.5, 0.5], [0.5, 1.0]]), k,
+                                             0.1, 1.0, 0.0)),
+    ("vdp stretch P", "vdp", lambda s, V, k: (quadratic_V([[10.0, 0.0], [0.0, 0.1]]), k,
+                                              0.1, 1.0, 0.0)),
+    ("vdp skewed P", "vdp", lambda s, V, k: (quadratic_V([[1.0, 0.8], [0.8, 1.0]]), k,
+                                             0.1, 1.0, 0.0)),
+    ("vdp swap P diagonal", "vdp", lambda s, V, k: (quadratic_V([[1.0, -0.5], [-0.5, 1.5]]),
+                                                    k, 0.1, 1.0, 0.0)),
+    ("pf flip gain", "pf", lambda s, V, k: (V, _flip_gain(k, -1.0), 0.05, 0.5, 0.0)),
+    ("pf tiny gain", "pf", lambda s, V, k: (V, _flip_gain(k, 0.05), 0.05, 0.5, 0.0)),
+    ("pf margin 1.0", "pf", lambda s, V, k: (V, k, 0.05, 0.5, 1.0)),
+    ("pf widen to 3", "pf", lambda s, V, k: (V, k, 0.05, 3.0, 0.0)),
+    ("pf identity P", "pf", lambda s, V, k: (quadratic_V(np.eye(2)), k, 0.05, 0.5, 0.0)),
+    ("pf stretch P", "pf", lambda s, V, k: (quadratic_V([[0.1, 0.0], [0.0, 10.0]]), k,
+                                            0.05, 0.5, 0.0)),
+    ("pf gain column swap", "pf", lambda s, V, k: (
+        V, Network([Layer(k.layers[0].weight[:, ::-1].copy(), k.layers[0].bias.copy(), "tanh")],
+                   k.output_scale), 0.05, 0.5, 0.0)),
+    ("ip flip gain", "ip", lambda s, V, k: (V, _flip_gain(k, -1.0), 0.05, 0.5, 0.0)),
+    ("ip tiny gain", "ip", lambda s, V, k: (V, _flip_gain(k, 0.1), 0.05, 0.5, 0.0)),
+    ("ip zero damping gain", "ip", lambda s, V, k: (
+        V, Network([Layer(k.layers[0].weight * np.array([[1.0, 0.0]]), k.layers[0].bias.copy(),
+                          "tanh")], k.output_scale), 0.05, 0.5, 0.0)),
+    ("ip margin 5", "ip", lambda s, V, k: (V, k, 0.05, 0.5, 5.0)),
+    ("ip identity P", "ip", lambda s, V, k: (quadratic_V(np.eye(2)), k, 0.05, 0.5, 0.0)),
+    ("ip stretch P", "ip", lambda s, V, k: (quadratic_V([[0.01, 0.0], [0.0, 1.0]]), k,
+                                            0.05, 0.5, 0.0)),
+    ("ip weak actuator", "ip", lambda s, V, k: (
+        V, Network([Layer(k.layers[0].weight * 20.0 / 0.2, k.layers[0].bias.copy(), "tanh")],
+                   0.2), 0.05, 1.0, 0.0)),
+]
+
+
+@pytest.mark.parametrize("label,base,mutate", MUTATIONS, ids=[m[0] for m in MUTATIONS])
+def test_mutated_certificates_are_refuted(label, base, mutate):
+    make, _, _ = BASES[base]
+    s, V, k = make()
+    V2, k2, inner, outer, margin = mutate(s, V, k)
+    problem = closed_loop_problem(s, V2, k2, inner=inner, outer=outer, margin=margin)
+    res = verify(problem)
+    assert res.status == "counterexample", (label, res.status)
+    assert_confirmed(problem, res.counterexample)
+
+
+def test_shifted_V_fails_positivity():
+    """V(x) - c is negative near the inner ring: a confirmed V>0 counterexample."""
+    x = ca.MX.sym("x", 2)
+    V = ca.bilin(ca.DM(P_VDP), x, x) - 0.05
+    s = systems.get("van_der_pol")
+    lie = ca.dot(ca.gradient(V, x), s.f_fun(x, ca.MX(0, 1)))
+    r2 = ca.sumsqr(x)
+    problem = VerificationProblem(x, [[-1, 1], [-1, 1]], [r2 - 1.0, 0.01 - r2], [-V, lie],
+                                  ["outer", "inner"], ["V>0", "decrease"])
+    res = verify(problem)
+    assert res.status == "counterexample" and res.counterexample.property == "V>0"
+    assert_confirmed(problem, res.counterexample)
+
+
+# ----------------------------------------------------------------------------- mechanics
+def test_executor_split_gives_same_verdicts():
+    s = systems.get("van_der_pol")
+    V = quadratic_V(P_VDP)
+    for outer, expected in ((1.0, "verified"), (1.2, "counterexample")):
+        problem = closed_loop_problem(s, V, inner=0.1, outer=outer)
+        serial = verify(problem)
+        with ThreadPoolExecutor(2) as ex:
+            split = verify(problem, executor=ex, n_tasks=4)
+        assert serial.status == split.status == expected
+
+
+def test_process_pool_executor_pickles_problem():
+    from concurrent.futures import ProcessPoolExecutor
+
+    s = systems.get("van_der_pol")
+    problem = closed_loop_problem(s, quadratic_V(P_VDP), inner=0.1, outer=1.0)
+    with ProcessPoolExecutor(2) as ex:
+        res = verify(problem, executor=ex, n_tasks=2)
+    assert res.status == "verified"
+
+
+def test_tiny_resolution_budget_reports_unknown_not_verified():
+    """A problem that is true but not provable at a coarse resolution is 'unknown'."""
+    x = ca.MX.sym("x", 1)
+    # p(x) = -(x - 0.3)(x - 0.3) - 1e-12 < 0 is true, but interval products need boxes of
+    # width ~1e-6 around 0.3 to show it
+    problem = VerificationProblem(x, [[-1, 1]], [], [(x - 0.3) * (0.3 - x) - 1e-12])
+    res = verify(problem, resolution=0.1, presearch=0)
+    assert res.status == "unknown" and len(res.undecided) > 0
+
+
+def test_empty_region_is_verified_vacuously():
+    x = ca.MX.sym("x", 2)
+    problem = VerificationProblem(x, [[-1, 1], [-1, 1]], [ca.sumsqr(x) + 1.0], [x[0]])
+    assert verify(problem).status == "verified"
+
+
+def test_leaves_can_be_rechecked():
+    s = systems.get("van_der_pol")
+    problem = closed_loop_problem(s, quadratic_V(P_VDP), inner=0.1, outer=1.0)
+    res = verify(problem, keep_leaves=True)
+    assert res.status == "verified" and res.leaves
+    # the decided leaves cover the root box (areas add up)
+    area = sum(np.prod(leaf["hi"] - leaf["lo"], axis=1).sum() for leaf in res.leaves)
+    assert abs(area - 4.0) < 1e-9
+
+
+def test_unknown_backend_and_missing_dreal():
+    s = systems.get("van_der_pol")
+    problem = closed_loop_problem(s, quadratic_V(P_VDP), inner=0.1, outer=1.0)
+    with pytest.raises(UnknownNameError, match="available"):
+        verify(problem, backend="z3")
+    if not BACKENDS["dreal"].is_available():
+        with pytest.raises(BackendUnavailableError, match="optional"):
+            verify(problem, backend="dreal")
+
+
+# ----------------------------------------------------------------------------- SMT-LIB / dReal
+def test_smtlib_export_evaluates_back_to_casadi():
+    s, V, k = _pf()
+    problem = closed_loop_problem(s, V, k, inner=0.05, outer=0.5)
+    text = to_smtlib(problem)
+    assert text.count("(let ") > 10 and "(check-sat)" in text
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-0.5, 0.5, (50, 2))
+    F = np.array(problem.function.map(50)(pts.T)).T
+    for p, f in zip(pts, F):
+        truth, atoms = evaluate_smtlib(text, p)
+        np.testing.assert_allclose(atoms, f, rtol=1e-12, atol=1e-12)
+        m = problem.n_constraints
+        assert truth == (bool(np.all(f[:m] <= 0)) and bool(np.any(f[m:] >= 0)))
+
+
+def test_smtlib_constants_are_exact():
+    x = ca.MX.sym("x", 1)
+    problem = VerificationProblem(x, [[-1, 1]], [], [x * 0.1 - 0.3])
+    text = to_smtlib(problem)
+    assert "0.1000000000000000055511151231257827021181583404541015625" in text
+
+
+@pytest.mark.skipif(not BACKENDS["dreal"].is_available(),
+                    reason="dreal not importable (optional backend; not installable here)")
+def test_dreal_backend_agrees_with_interval():
+    s = systems.get("van_der_pol")
+    V = quadratic_V(P_VDP)
+    ok = verify(closed_loop_problem(s, V, inner=0.1, outer=1.0), backend="dreal",
+                precision=1e-4)
+    assert ok.status == "verified"
+    bad = verify(closed_loop_problem(s, V, inner=0.1, outer=1.2), backend="dreal")
+    assert bad.status in ("counterexample", "unknown")

@@ -1,0 +1,232 @@
+r"""Verification problems and results.
+
+A problem asks: on the region :math:`R = \{x \in B : g_i(x) \le 0\ \forall i\}` inside the
+root box :math:`B`, do all properties hold strictly, :math:`p_j(x) < 0\ \forall j`?
+The falsification formula is :math:`x \in R \wedge \exists j: p_j(x) \ge 0`.
+
+Outcomes (never blurred):
+
+- ``verified``: no point of ``R`` violates a property (rigorous, interval arithmetic with
+  outward rounding);
+- ``counterexample``: a concrete point, inside ``R`` and violating a property, both
+  *confirmed* by rigorous evaluation at that point;
+- ``unknown``: some boxes narrower than the resolution could be decided neither way.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from nlyap_opt.errors import DimensionError
+
+__all__ = [
+    "VerificationProblem", "VerificationResult", "Counterexample", "lyapunov_problem",
+    "closed_loop_problem",
+]
+
+
+@dataclass
+class VerificationProblem:
+    """Region constraints ``g_i(x) ≤ 0`` and properties ``p_j(x) < 0`` over a root box.
+
+    Parameters
+    ----------
+    x : casadi.MX or casadi.SX, shape (n, 1)
+        The variables (one symbol).
+    box : (n, 2) array_like
+        Root box, rows ``(lower, upper)``.
+    constraints : sequence of scalar casadi expressions
+        Region ``g_i(x) ≤ 0`` (a ball, an annulus, ``V(x) - level``, ...).
+    properties : sequence of scalar casadi expressions
+        Must hold strictly on the region: ``p_j(x) < 0``.
+    constraint_names, property_names : sequence of str, optional
+
+    Notes
+    -----
+    Builds once the CasADi Functions ``F(x) = (g, p)`` and its Jacobian, which the
+    verifier evaluates with interval arithmetic (natural extension intersected with the
+    mean-value form).
+    """
+
+    x: ca.MX
+    box: np.ndarray
+    constraints: Sequence
+    properties: Sequence
+    constraint_names: Sequence[str] | None = None
+    property_names: Sequence[str] | None = None
+
+    def __post_init__(self):
+        self.box = np.asarray(self.box, dtype=float)
+        n = self.x.numel()
+        if self.box.shape != (n, 2) or np.any(self.box[:, 0] > self.box[:, 1]):
+            raise DimensionError(
+                f"box must have shape ({n}, 2) with lower <= upper, got {self.box.shape}"
+            )
+        if not self.properties:
+            raise ValueError("a verification problem needs at least one property p(x) < 0")
+        exprs = list(self.constraints) + list(self.properties)
+        for e in exprs:
+            if e.shape != (1, 1):
+                raise DimensionError(f"constraints and properties must be scalars, got {e.shape}")
+        self.n_constraints = len(self.constraints)
+        self.n_properties = len(self.properties)
+        self.constraint_names = list(self.constraint_names
+                                     or [f"g{i}" for i in range(self.n_constraints)])
+        self.property_names = list(self.property_names
+                                   or [f"p{j}" for j in range(self.n_properties)])
+        F = ca.vertcat(*exprs)
+        self.function = ca.Function("F", [self.x], [F])
+        self.jacobian = ca.Function("J", [self.x], [ca.densify(ca.jacobian(F, self.x))])
+        self.constraints = list(self.constraints)
+        self.properties = list(self.properties)
+
+    @property
+    def n(self) -> int:
+        return self.x.numel()
+
+    def restricted(self, box) -> VerificationProblem:
+        """The same problem on a sub-box (used to split work across executors)."""
+        return VerificationProblem(self.x, box, self.constraints, self.properties,
+                                   self.constraint_names, self.property_names)
+
+    def __getstate__(self):  # casadi Functions serialise; MX expressions are rebuilt
+        return {"function": self.function.serialize(), "jacobian": self.jacobian.serialize(),
+                "box": self.box, "n_constraints": self.n_constraints,
+                "n_properties": self.n_properties,
+                "constraint_names": self.constraint_names,
+                "property_names": self.property_names, "n": self.n}
+
+    def __setstate__(self, st):
+        self.function = ca.Function.deserialize(st["function"])
+        self.jacobian = ca.Function.deserialize(st["jacobian"])
+        self.box = st["box"]
+        self.n_constraints = st["n_constraints"]
+        self.n_properties = st["n_properties"]
+        self.constraint_names = st["constraint_names"]
+        self.property_names = st["property_names"]
+        self.x = ca.MX.sym("x", st["n"])
+        self.constraints = self.properties = None
+
+
+@dataclass
+class Counterexample:
+    """A confirmed violation: ``point`` lies in the region and ``property`` fails there."""
+
+    point: np.ndarray
+    property: str
+    value_lower: float  # rigorous lower bound of p(point) (>= 0: the property fails)
+    value_upper: float
+
+    def to_dict(self) -> dict:
+        return {"point": self.point.tolist(), "property": self.property,
+                "value": [self.value_lower, self.value_upper]}
+
+
+@dataclass
+class VerificationResult:
+    """Outcome of :func:`verification.verify`.
+
+    Attributes
+    ----------
+    status : {"verified", "counterexample", "unknown"}
+    counterexample : Counterexample or None
+    counterexamples : list of Counterexample   all confirmed ones found (for CEGIS)
+    undecided : (k, n, 2) ndarray   boxes at the resolution that stayed undecided
+    boxes : int                     boxes processed
+    depth : int                     deepest bisection level
+    seconds : float
+    leaves : list of dict or None   decided leaf boxes with their enclosures (``keep_leaves``)
+    """
+
+    status: str
+    counterexample: Counterexample | None = None
+    counterexamples: list = field(default_factory=list)
+    undecided: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2)))
+    boxes: int = 0
+    depth: int = 0
+    seconds: float = 0.0
+    leaves: list | None = None
+    backend: str = "interval"
+
+    @property
+    def success(self) -> bool:
+        return self.status == "verified"
+
+    def to_dict(self) -> dict:
+        return {
+            "status": self.status,
+            "seconds": self.seconds,
+            "boxes": self.boxes,
+            "depth": self.depth,
+            "backend": self.backend,
+            "counterexample": None if self.counterexample is None
+            else self.counterexample.to_dict(),
+            "undecided": int(len(self.undecided)),
+        }
+
+
+def lyapunov_problem(x, V, lie, *, inner: float, outer: float, level: float | None = None,
+                     margin: float = 0.0, box=None, check_positive: bool = True
+                     ) -> VerificationProblem:
+    r"""The Lyapunov falsification problem on :math:`\{\varepsilon \le \|x\|_2 \le r\}`.
+
+    Properties: :math:`V(x) > 0` (as ``-V < 0``) and
+    :math:`\nabla V \cdot g(x) < -\beta` (as ``lie + margin < 0``); region: the annulus,
+    intersected with :math:`V(x) \le c` when ``level`` is given.
+    """
+    if not (0 <= inner < outer):
+        raise ValueError(f"need 0 <= inner < outer, got inner={inner}, outer={outer}")
+    if margin < 0:
+        raise ValueError(f"margin must be >= 0, got {margin}")
+    n = x.numel()
+    r2 = ca.sumsqr(x)
+    cons = [r2 - outer**2]
+    names = ["outer"]
+    if inner > 0:
+        cons.append(inner**2 - r2)
+        names.append("inner")
+    if level is not None:
+        cons.append(V - level)
+        names.append("level")
+    props, pnames = [], []
+    if check_positive:
+        props.append(-V)
+        pnames.append("V>0")
+    props.append(lie + margin if margin else lie)
+    pnames.append("decrease")
+    box = np.tile([-outer, outer], (n, 1)) if box is None else box
+    return VerificationProblem(x, box, cons, props, names, pnames)
+
+
+def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: float,
+                        outer: float, level: float | None = None, margin: float = 0.0,
+                        strict: bool = False, check_positive: bool = True
+                        ) -> VerificationProblem:
+    """Lyapunov problem for saved networks: ``V``, ``κ`` and optionally learned ``φ``.
+
+    Parameters
+    ----------
+    system : systems.System
+    V, controller, dynamics : nlyap_opt.network.Network
+        ``dynamics`` (learned φ) replaces the system's ``f`` in the Lie derivative.
+    inner, outer : float      annulus ``inner ≤ ‖x‖₂ ≤ outer``
+    level : float, optional   intersect with ``V(x) ≤ level``
+    margin : float            β: require ``∇V·g < −β``
+    strict : bool             raise (True) or warn (False) if 0 is not an equilibrium
+    """
+    from nlyap_opt.symbolic import closed_loop, lie_derivative
+
+    if V.n_in != system.nx or V.n_out != 1:
+        raise DimensionError(
+            f"V must map R^{system.nx} -> R (system {system.name!r}), got "
+            f"R^{V.n_in} -> R^{V.n_out}"
+        )
+    cl = closed_loop(system, controller, dynamics, strict=strict)
+    Vx = V.casadi(cl.x)
+    lie = lie_derivative(Vx, cl.x, cl.rhs)
+    return lyapunov_problem(cl.x, Vx, lie, inner=inner, outer=outer, level=level,
+                            margin=margin, check_positive=check_positive)

@@ -1,0 +1,293 @@
+"""Interval branch-and-prune verifier over CasADi graphs (the default backend).
+
+Each round evaluates a whole batch of boxes in one walker pass (numpy arrays over boxes):
+
+1. natural interval extension of ``F = (g, p)`` on every box;
+2. mean-value form ``F(c) + J(X)·(X − c)`` with the interval Jacobian from the CasADi
+   Jacobian graph, intersected with (1);
+3. a box is *decided* when some ``g_i > 0`` on all of it (outside the region) or every
+   ``p_j < 0`` on all of it (properties hold); ``F(c)`` at the centre, evaluated
+   rigorously, confirms counterexamples (centre inside the region and some ``p_j ≥ 0``);
+4. undecided boxes are bisected along the dimension with the largest smear
+   ``max_j |J_ji|·w_i``; boxes narrower than ``resolution`` are reported ``unknown``.
+
+Before branching, a float pre-search over random points and a few gradient steps proposes
+counterexamples, each confirmed by rigorous point evaluation before it is reported.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from concurrent.futures import Executor
+
+import casadi as ca
+import numpy as np
+
+from nlyap_opt.walker import NUMPY, compile_function, evaluate
+
+from .interval import Interval, IntervalArithmetic
+from .problem import Counterexample, VerificationProblem, VerificationResult
+
+__all__ = ["verify_interval", "split_box", "confirm_points"]
+
+_IA = IntervalArithmetic()
+
+
+def _point_enclosure(problem: VerificationProblem, pts: np.ndarray) -> Interval:
+    """Rigorous enclosure of ``F`` at points ``(N, n)`` (degenerate boxes)."""
+    return evaluate(problem.function, [Interval(pts, pts.copy())], _IA)[0]
+
+
+def confirm_points(problem: VerificationProblem, pts: np.ndarray) -> list[Counterexample]:
+    """Rigorously check candidate points; return the confirmed counterexamples.
+
+    A point is confirmed when every region constraint is ``≤ 0`` and some property is
+    ``≥ 0`` at that point, both by outward-rounded interval evaluation.
+    """
+    pts = np.atleast_2d(np.asarray(pts, dtype=float))
+    if not len(pts):
+        return []
+    lo, hi = problem.box[:, 0], problem.box[:, 1]
+    pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
+    if not len(pts):
+        return []
+    enc = _point_enclosure(problem, pts)
+    return _confirmed(problem, pts, enc)
+
+
+def _confirmed(problem, pts, enc) -> list[Counterexample]:
+    m = problem.n_constraints
+    inside = np.all(enc.hi[:, :m] <= 0, axis=1) if m else np.ones(len(pts), bool)
+    viol = enc.lo[:, m:] >= 0
+    rows = np.nonzero(inside & viol.any(axis=1))[0]
+    out = []
+    for r in rows:
+        j = int(np.argmax(np.where(viol[r], enc.lo[r, m:], -np.inf)))
+        out.append(Counterexample(pts[r].copy(), problem.property_names[j],
+                                  float(enc.lo[r, m + j]), float(enc.hi[r, m + j])))
+    out.sort(key=lambda c: -c.value_lower)
+    return out
+
+
+def _presearch(problem, n_samples: int, rng: np.random.Generator, steps: int = 8):
+    """Float sampling plus projected gradient ascent on the worst property; returns points."""
+    lo, hi = problem.box[:, 0], problem.box[:, 1]
+    pts = lo + (hi - lo) * rng.random((n_samples, problem.n))
+    m = problem.n_constraints
+    F = evaluate(problem.function, [pts], NUMPY)[0]
+    score = _float_score(F, m)
+    keep = np.argsort(-score)[: max(8, n_samples // 20)]
+    pts = pts[keep]
+    step = 0.02 * (hi - lo)
+    for _ in range(steps):
+        F = evaluate(problem.function, [pts], NUMPY)[0]
+        J = evaluate(problem.jacobian, [pts], NUMPY)[0].reshape(len(pts), problem.n, -1)
+        J = np.swapaxes(J, 1, 2)  # (N, m + k, n)
+        j = m + np.argmax(F[:, m:], axis=1)
+        grad = J[np.arange(len(pts)), j]
+        # step towards larger violation, then back into the region along violated g
+        pts = pts + step * np.sign(grad)
+        if m:
+            Fg = evaluate(problem.function, [pts], NUMPY)[0][:, :m]
+            Jg = np.swapaxes(evaluate(problem.jacobian, [pts], NUMPY)[0]
+                             .reshape(len(pts), problem.n, -1), 1, 2)[:, :m]
+            for i in range(m):
+                bad = Fg[:, i] > 0
+                if bad.any():
+                    gi = Jg[bad, i]
+                    nrm = np.maximum(np.sum(gi * gi, axis=1), 1e-300)
+                    pts[bad] -= (1.0 + 1e-9) * (Fg[bad, i] / nrm)[:, None] * gi
+        pts = np.clip(pts, lo, hi)
+        step *= 0.6
+    F = evaluate(problem.function, [pts], NUMPY)[0]
+    score = _float_score(F, m)
+    return pts[np.argsort(-score)][: 64]
+
+
+def _float_score(F, m):
+    """Violation score: worst property value, minus constraint violation."""
+    pen = np.maximum(F[:, :m], 0).sum(axis=1) if m else 0.0
+    return np.max(F[:, m:], axis=1) - 1e3 * pen
+
+
+def _enclose(problem, lo, hi, mean_value: bool):
+    """Enclosures of F on boxes, plus F at the centres and the interval Jacobian."""
+    B, n = lo.shape
+    X = Interval(lo, hi)
+    nat = evaluate(problem.function, [X], _IA)[0]
+    c = 0.5 * (lo + hi)
+    c = np.minimum(np.maximum(c, lo), hi)
+    Fc = _point_enclosure(problem, c)
+    if not mean_value:
+        return nat, Fc, None
+    J = evaluate(problem.jacobian, [X], _IA)[0]
+    mk = nat.lo.shape[1]
+    J = _IA.structural(lambda a: np.swapaxes(a.reshape(B, n, mk), 1, 2), J)  # (B, m+k, n)
+    D = _IA.binary(ca.OP_SUB, X, Interval(c, c.copy()))  # rigorous X - c
+    D = _IA.structural(lambda a: a[:, None, :], D)
+    mv = _IA.binary(ca.OP_ADD, Fc, _IA.sum(_IA.binary(ca.OP_MUL, J, D), -1))
+    enc = _IA.intersect(nat, mv)
+    bad = ~(enc.lo <= enc.hi)  # empty intersection cannot happen for sound enclosures
+    if bad.any():
+        enc = Interval(np.where(bad, nat.lo, enc.lo), np.where(bad, nat.hi, enc.hi))
+    return enc, Fc, J
+
+
+def split_box(box: np.ndarray, parts: int) -> list[np.ndarray]:
+    """Split a box into ``parts`` (a power of two) sub-boxes along the widest dimensions."""
+    boxes = [np.asarray(box, dtype=float)]
+    while len(boxes) < parts:
+        nxt = []
+        for b in boxes:
+            i = int(np.argmax(b[:, 1] - b[:, 0]))
+            mid = 0.5 * (b[i, 0] + b[i, 1])
+            left, right = b.copy(), b.copy()
+            left[i, 1] = mid
+            right[i, 0] = mid
+            nxt += [left, right]
+        boxes = nxt
+    return boxes
+
+
+def verify_interval(
+    problem: VerificationProblem,
+    *,
+    resolution: float | None = None,
+    max_boxes: int = 2_000_000,
+    batch: int = 8192,
+    mean_value: bool = True,
+    presearch: int = 2000,
+    stop_at_first: bool = True,
+    keep_leaves: bool = False,
+    seed: int = 0,
+    executor: Executor | None = None,
+    n_tasks: int | None = None,
+    progress: bool = False,
+) -> VerificationResult:
+    """Decide ``problem`` with interval branch-and-prune; see :func:`verification.verify`."""
+    t0 = time.perf_counter()
+    box = problem.box
+    width = box[:, 1] - box[:, 0]
+    if resolution is None:
+        resolution = 1e-4 * float(np.max(width))
+    if executor is not None:
+        return _verify_distributed(problem, executor, n_tasks, t0, resolution=resolution,
+                                   max_boxes=max_boxes, batch=batch, mean_value=mean_value,
+                                   presearch=presearch, stop_at_first=stop_at_first,
+                                   keep_leaves=keep_leaves, seed=seed)
+    compile_function(problem.function)
+    compile_function(problem.jacobian)
+    rng = np.random.default_rng(seed)
+    found: list[Counterexample] = []
+    if presearch:
+        found = confirm_points(problem, _presearch(problem, presearch, rng))
+        if found and stop_at_first:
+            return VerificationResult("counterexample", found[0], found, boxes=0, depth=0,
+                                      seconds=time.perf_counter() - t0)
+    m = problem.n_constraints
+    queue_lo, queue_hi = box[None, :, 0].copy(), box[None, :, 1].copy()
+    depth_q = np.zeros(1, dtype=int)
+    undecided: list[np.ndarray] = []
+    leaves: list[dict] | None = [] if keep_leaves else None
+    n_boxes = 0
+    max_depth = 0
+    while len(queue_lo):
+        lo, hi, dq = queue_lo[:batch], queue_hi[:batch], depth_q[:batch]
+        queue_lo, queue_hi, depth_q = queue_lo[batch:], queue_hi[batch:], depth_q[batch:]
+        n_boxes += len(lo)
+        max_depth = max(max_depth, int(dq.max()))
+        enc, Fc, J = _enclose(problem, lo, hi, mean_value)
+        g_lo, g_hi = enc.lo[:, :m], enc.hi[:, :m]
+        p_hi = enc.hi[:, m:]
+        outside = np.any(g_lo > 0, axis=1) if m else np.zeros(len(lo), bool)
+        holds = np.all(p_hi < 0, axis=1)
+        done = outside | holds
+        # centre points: rigorous counterexample confirmation
+        inside_c = np.all(Fc.hi[:, :m] <= 0, axis=1) if m else np.ones(len(lo), bool)
+        viol_c = np.any(Fc.lo[:, m:] >= 0, axis=1) & inside_c & ~done
+        if viol_c.any():
+            found += _confirmed(problem, 0.5 * (lo[viol_c] + hi[viol_c]),
+                                Interval(Fc.lo[viol_c], Fc.hi[viol_c]))
+            if stop_at_first and found:
+                found.sort(key=lambda c: -c.value_lower)
+                return VerificationResult("counterexample", found[0], found, boxes=n_boxes,
+                                          depth=max_depth, seconds=time.perf_counter() - t0)
+        if keep_leaves and done.any():
+            leaves.append({"lo": lo[done], "hi": hi[done], "enc_lo": enc.lo[done],
+                           "enc_hi": enc.hi[done]})
+        rest = ~done
+        w = hi - lo
+        small = rest & (np.max(w, axis=1) <= resolution)
+        if small.any():
+            undecided.append(np.stack([lo[small], hi[small]], axis=-1))
+        split = rest & ~small
+        if not split.any():
+            continue
+        if n_boxes + len(queue_lo) > max_boxes:
+            undecided.append(np.stack([lo[split], hi[split]], axis=-1))
+            continue
+        lo_s, hi_s, w_s = lo[split], hi[split], w[split]
+        if J is not None:
+            mag = np.maximum(np.abs(J.lo[split]), np.abs(J.hi[split]))  # (b, m+k, n)
+            mag = np.where(np.isfinite(mag), mag, 1e300)
+            active = np.concatenate(
+                [(g_lo[split] <= 0) & (g_hi[split] > 0), p_hi[split] >= 0], axis=1)
+            smear = np.max(mag * w_s[:, None, :] * active[:, :, None], axis=1)
+            dim = np.argmax(smear + 1e-300 * w_s, axis=1)
+            flat = np.max(smear, axis=1) <= 0
+            dim[flat] = np.argmax(w_s[flat], axis=1)
+        else:
+            dim = np.argmax(w_s, axis=1)
+        rows = np.arange(len(lo_s))
+        mid = 0.5 * (lo_s[rows, dim] + hi_s[rows, dim])
+        left_hi = hi_s.copy()
+        left_hi[rows, dim] = mid
+        right_lo = lo_s.copy()
+        right_lo[rows, dim] = mid
+        d = dq[split] + 1
+        # depth-first-ish: put children in front so the queue stays small
+        queue_lo = np.concatenate([lo_s, right_lo, queue_lo])
+        queue_hi = np.concatenate([left_hi, hi_s, queue_hi])
+        depth_q = np.concatenate([d, d, depth_q])
+        if progress and n_boxes % (batch * 10) < batch:
+            print(f"  verify: {n_boxes} boxes, {len(queue_lo)} queued, depth {max_depth}",
+                  flush=True)
+    seconds = time.perf_counter() - t0
+    und = np.concatenate(undecided) if undecided else np.zeros((0, problem.n, 2))
+    if found:
+        found.sort(key=lambda c: -c.value_lower)
+        return VerificationResult("counterexample", found[0], found, und, n_boxes, max_depth,
+                                  seconds, leaves)
+    status = "unknown" if len(und) else "verified"
+    return VerificationResult(status, None, [], und, n_boxes, max_depth, seconds, leaves)
+
+
+def _run_sub(problem, kwargs):
+    return verify_interval(problem, **kwargs)
+
+
+def _verify_distributed(problem, executor, n_tasks, t0, **kwargs) -> VerificationResult:
+    parts = n_tasks or 8
+    parts = 1 << max(0, int(np.ceil(np.log2(parts))))
+    subs = []
+    for b in split_box(problem.box, parts):
+        p = copy.copy(problem)
+        p.box = b
+        subs.append(p)
+    futures = [executor.submit(_run_sub, p, kwargs) for p in subs]
+    results = [f.result() for f in futures]
+    found = sorted([c for r in results for c in r.counterexamples], key=lambda c: -c.value_lower)
+    und = [r.undecided for r in results if len(r.undecided)]
+    und = np.concatenate(und) if und else np.zeros((0, problem.n, 2))
+    boxes = sum(r.boxes for r in results)
+    depth = max(r.depth for r in results)
+    leaves = None
+    if kwargs.get("keep_leaves"):
+        leaves = [leaf for r in results for leaf in (r.leaves or [])]
+    seconds = time.perf_counter() - t0
+    if found:
+        return VerificationResult("counterexample", found[0], found, und, boxes, depth, seconds,
+                                  leaves)
+    return VerificationResult("unknown" if len(und) else "verified", None, [], und, boxes,
+                              depth, seconds, leaves)

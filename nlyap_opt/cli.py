@@ -91,6 +91,16 @@ def cmd_verify(args) -> int:
     return {"verified": 0, "counterexample": 1}.get(res.status, 2)
 
 
+def cmd_run(args) -> int:
+    from .configs import get_config
+    from .pipeline import run
+
+    cfg = get_config(args.system, args.preset, args.config)
+    out = args.out or f"runs/{args.system}{'_known' if args.known_dynamics else ''}"
+    cert = run(args.system, cfg, out, known_dynamics=args.known_dynamics)
+    return 0 if cert["status"] == "certified" else 2
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="nlyap", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -122,6 +132,15 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--progress", action="store_true")
     sp.add_argument("--json", help="write status, seconds, boxes, counterexample here")
     sp.set_defaults(func=cmd_verify)
+
+    sp = sub.add_parser("run", help="learn f (unless --known-dynamics), V and κ; certify the ROA")
+    sp.add_argument("system")
+    sp.add_argument("--config", help="JSON file merged over the preset")
+    sp.add_argument("--preset", default="large", help="paper | large | fast (default large)")
+    sp.add_argument("--known-dynamics", action="store_true",
+                    help="use the true f (the paper's 'actual dynamics' setting)")
+    sp.add_argument("--out", help="output directory (default runs/NAME[_known])")
+    sp.set_defaults(func=cmd_run)
 
     for register in _EXTRA:
         register(sub)

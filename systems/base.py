@@ -218,15 +218,13 @@ class System:
             with np.errstate(all="ignore"):
                 return self.evaluate(z, u)
 
+        from nlyap_opt.simulate import rk4_step
+
         out = np.empty((n_steps + 1,) + x.shape)
         out[0] = x
         with np.errstate(all="ignore"):
             for k in range(n_steps):
-                k1 = rhs(x)
-                k2 = rhs(x + 0.5 * dt * k1)
-                k3 = rhs(x + 0.5 * dt * k2)
-                k4 = rhs(x + dt * k3)
-                x = x + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+                x = rk4_step(rhs, x, dt)
                 x[~np.isfinite(x).all(axis=1)] = np.nan
                 out[k + 1] = x
         return out

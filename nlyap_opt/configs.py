@@ -1,0 +1,125 @@
+"""Run configurations of the seed systems: ``paper`` (the paper's discs), ``large`` (aim at
+the whole true ROA) and ``fast`` (coarse, for the test suite).
+
+A configuration is a nested dict; :func:`get_config` merges a user's JSON file over a
+preset. Keys:
+
+- ``outer`` (r), ``inner`` (ε): the verification annulus;
+- ``controller_scale`` (C): actuator limit of ``u = C·tanh(Kx + b)`` (``None``: no input);
+- ``lqr``: ``{"Q": ..., "R": ...}`` weights of the initial LQR gain;
+- ``train``: :class:`nlyap_opt.learning.TrainConfig` fields;
+- ``cegis``: :class:`nlyap_opt.cegis.CegisConfig` fields (besides inner/outer/train);
+- ``eval_box``, ``eval_grid``: box and grid for areas and the simulated true ROA;
+- ``dynamics``: options of the learned-dynamics stage (``nlyap_opt.dynamics``).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+from .errors import ConfigError, UnknownNameError
+
+__all__ = ["PRESETS", "get_config"]
+
+_VDP_BOX = [[-3.0, 3.0], [-3.0, 3.0]]
+
+PRESETS: dict[str, dict[str, dict]] = {
+    "van_der_pol": {
+        "paper": {
+            "outer": 1.2, "inner": 0.2, "controller_scale": None,
+            "train": {"hidden": [16], "features": 4, "steps": 1500, "lr": 0.01},
+            "cegis": {"iterations": 4, "steps": 500},
+            "eval_box": _VDP_BOX, "eval_grid": 300,
+            "dynamics": {"preset": "default"},
+        },
+        "large": {
+            "outer": 3.0, "inner": 0.2, "controller_scale": None,
+            "train": {"hidden": [20, 20], "features": 6, "steps": 3000, "lr": 0.005,
+                      "time_budget": 60.0},
+            "cegis": {"iterations": 4, "steps": 800},
+            "eval_box": _VDP_BOX, "eval_grid": 300,
+            "dynamics": {"preset": "default"},
+        },
+        "fast": {
+            "outer": 1.0, "inner": 0.2, "controller_scale": None,
+            "train": {"hidden": [6], "features": 3, "steps": 300, "lr": 0.02},
+            "cegis": {"iterations": 2, "steps": 100, "samples": 4000},
+            "eval_box": _VDP_BOX, "eval_grid": 100,
+            "dynamics": {"preset": "fast"},
+        },
+    },
+    "unicycle_path_following": {
+        "paper": {
+            "outer": 0.8, "inner": 0.1, "controller_scale": 5.0,
+            "train": {"hidden": [16], "features": 4, "steps": 1500, "lr": 0.01},
+            "cegis": {"iterations": 4, "steps": 500},
+            "eval_box": [[-0.8, 0.8], [-0.8, 0.8]], "eval_grid": 200,
+            "dynamics": {"preset": "default"},
+        },
+        "fast": {
+            "outer": 0.8, "inner": 0.1, "controller_scale": 5.0,
+            "train": {"hidden": [6], "features": 3, "steps": 300, "lr": 0.02},
+            "cegis": {"iterations": 2, "steps": 100, "samples": 4000},
+            "eval_box": [[-0.8, 0.8], [-0.8, 0.8]], "eval_grid": 100,
+            "dynamics": {"preset": "fast"},
+        },
+    },
+    "inverted_pendulum": {
+        "paper": {
+            "outer": 4.0, "inner": 0.4, "controller_scale": 20.0,
+            "train": {"hidden": [16], "features": 4, "steps": 1500, "lr": 0.01},
+            "cegis": {"iterations": 4, "steps": 500},
+            "eval_box": [[-4.0, 4.0], [-4.0, 4.0]], "eval_grid": 200,
+            "dynamics": {"preset": "default"},
+        },
+        "fast": {
+            "outer": 4.0, "inner": 0.4, "controller_scale": 20.0,
+            "train": {"hidden": [6], "features": 3, "steps": 300, "lr": 0.02},
+            "cegis": {"iterations": 2, "steps": 100, "samples": 4000},
+            "eval_box": [[-4.0, 4.0], [-4.0, 4.0]], "eval_grid": 100,
+            "dynamics": {"preset": "fast"},
+        },
+    },
+}
+# the path-following and pendulum "large" configurations are the paper's discs: the true ROA
+# of the closed loop covers them, so the target is the whole disc
+PRESETS["unicycle_path_following"]["large"] = PRESETS["unicycle_path_following"]["paper"]
+PRESETS["inverted_pendulum"]["large"] = PRESETS["inverted_pendulum"]["paper"]
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def get_config(system: str, preset: str = "large", path: str | Path | None = None) -> dict:
+    """The configuration ``preset`` of ``system``, with a JSON file merged over it."""
+    if system not in PRESETS:
+        raise UnknownNameError(
+            f"no run configuration for system {system!r}; configured: {', '.join(PRESETS)} "
+            "(pass a full --config FILE for other systems)"
+        )
+    if preset not in PRESETS[system]:
+        raise UnknownNameError(
+            f"unknown preset {preset!r}; available: {', '.join(PRESETS[system])}"
+        )
+    cfg = copy.deepcopy(PRESETS[system][preset])
+    if path is not None:
+        try:
+            over = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise ConfigError(f"cannot read config {path}: {err}") from None
+        if not isinstance(over, dict):
+            raise ConfigError(f"config {path} must hold a JSON object")
+        cfg = _merge(cfg, over)
+    if not (0 < cfg["inner"] < cfg["outer"]):
+        raise ConfigError(f"need 0 < inner < outer, got {cfg['inner']}, {cfg['outer']}")
+    cfg["system"], cfg["preset"] = system, preset
+    return cfg

@@ -1,0 +1,139 @@
+"""``report.md`` and ``roa.png`` of a run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["write_report", "plot_roa"]
+
+
+def _fmt(v, digits=4):
+    if v is None:
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, cg: dict):
+    """Write ``report.md`` (parameters, what is certified under which assumptions, times)
+    and ``roa.png``."""
+    lines = [f"# {system.name}: certified region of attraction", ""]
+    lines += [f"**Status: {cert['status']}** ({cert['dynamics']})", ""]
+    lines += ["## Parameters (paper's Table layout)", "",
+              "| K_f | K_φ | δ | α | η | M = sup‖∇V‖ | β (margin) | ε | r | level |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    b = bounds or {}
+    lines.append("| " + " | ".join(_fmt(v) for v in (
+        b.get("K_f"), b.get("K_phi"), b.get("delta"), b.get("alpha"), b.get("eta"),
+        cert.get("M"), cert["margin"], cert["inner_radius"], cert["outer_radius"],
+        cert["level"])) + " |")
+    lines += ["", "## What is certified", ""]
+    r, eps = cert["outer_radius"], cert["inner_radius"]
+    lines += [
+        f"- (a) decrease ∇V·{'f' if bounds is None else 'φ'} < −β on "
+        f"{{{eps:g} ≤ ‖x‖ ≤ {r:g}, V(x) ≤ {cert['level']:.6g}}} — interval verifier "
+        "(outward rounding), β = 0 for known f, β = M·η for learned φ;",
+        f"- (b) containment: V(x) > {cert['level']:.6g} on ‖x‖ = {r:g};",
+    ]
+    ie = cert.get("inner_ellipse")
+    if ie:
+        lines.append(
+            f"- (c) inner ball: E = {{xᵀPx ≤ {ie['level']:.4g}}} ⊇ B_ε; "
+            + ("P·J(y) + J(y)ᵀ·P ≺ 0 verified on a box containing E (true f): "
+               f"{ie['status']}" if bounds is None else
+               "assumed (paper's Assumption 3) for the unknown f"))
+    lines += ["", "Certified set: Ω_c ∪ E with Ω_c = {x ∈ B_r : V(x) ≤ level}.", "",
+              "### Assumptions", ""] + [f"- {a}" for a in cert["assumptions"]]
+    lines += ["", "## Areas", "",
+              "| certified area | true ROA area | certified ÷ true |", "|---|---|---|",
+              f"| {cert['certified_area']:.4g} | {cert['true_roa_area']:.4g} | "
+              f"{100 * cert['fraction_of_true_roa']:.1f}% |", "",
+              f"True ROA: simulated closed loop (true f) from a {cert['eval_grid']}² grid over "
+              f"{np.asarray(cert['eval_box']).tolist()}"
+              + (", intersected with the disc ‖x‖ ≤ r" if system.nu else "")
+              + f". Every certified grid point converges in simulation: "
+              f"{cert['certified_points_converge_in_simulation']}.", ""]
+    tc = cert.get("true_dynamics_check")
+    if tc:
+        lines += ["## Check against the true dynamics (benchmark, not part of the certificate)",
+                  "", f"- decrease of the same V under the true f at the same level: "
+                  f"{tc['decrease_true_f']}",
+                  f"- inner ellipse under the true f: {tc['inner_ball_true_f']}", ""]
+    lines += ["## CEGIS history", "", "| it | loss | candidate level | status | level | area "
+              "in ball | margin | verify s |", "|---|---|---|---|---|---|---|---|"]
+    for h in cg.get("history", []):
+        lines.append(f"| {h['iteration']} | {h['loss']:.3g} | {h['candidate_level']:.4g} | "
+                     f"{h['status']} | {h['level']:.4g} | {h['area']:.4g} | "
+                     f"{h['margin']:.3g} | {h['verify_seconds']:.2f} |")
+    lines += ["", "## Times (s)", ""] + [f"- {k}: {v:.1f}" for k, v in
+                                         cert.get("seconds", {}).items()]
+    lines += ["", "![ROA](roa.png)", ""]
+    (out / "report.md").write_text("\n".join(lines))
+    try:
+        plot_roa(out / "roa.png", system, cert, out)
+    except Exception as err:  # a plot must never lose a certificate
+        print(f"warning: roa.png not written: {err}")
+
+
+def plot_roa(path, system, cert: dict, out: Path):
+    """V level curves, certified set, domain, phase portrait, true ROA boundary."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .network import Network
+    from .roa import grid_points
+
+    V = Network.load(out / "V.json")
+    ctrl = Network.load(out / "controller.json") if (out / "controller.json").exists() else None
+    box = np.asarray(cert["eval_box"], dtype=float)
+    n = 300
+    pts, shape = grid_points(box, n)
+    xs = [np.linspace(lo, hi, n) for lo, hi in box]
+    v = V.numpy(pts)[:, 0].reshape(shape)
+    fig, ax = plt.subplots(figsize=(7, 6))
+    X1, X2 = np.meshgrid(xs[0], xs[1], indexing="ij")
+    lv = cert["level"]
+    if lv > 0:
+        ax.contour(X1, X2, v, levels=np.linspace(lv / 8, 2 * lv, 9), colors="0.75",
+                   linewidths=0.6)
+        inside = (v <= lv) & (np.hypot(X1, X2) <= cert["outer_radius"])
+        ax.contourf(X1, X2, inside.astype(float), levels=[0.5, 1.5], colors=["tab:blue"],
+                    alpha=0.35)
+        ax.contour(X1, X2, v, levels=[lv], colors="tab:blue", linewidths=2)
+    ie = cert.get("inner_ellipse")
+    if ie:
+        q = np.einsum("ij,jk,ik->i", pts, np.asarray(ie["P"]), pts).reshape(shape)
+        ax.contour(X1, X2, q, levels=[ie["level"]], colors="tab:green", linewidths=1.2)
+    npz = out / "true_roa.npz"
+    if npz.exists():
+        m = np.load(npz)["mask"]
+        xt = [lo + (hi - lo) * (np.arange(m.shape[0]) + 0.5) / m.shape[0] for lo, hi in box]
+        T1, T2 = np.meshgrid(xt[0], xt[1], indexing="ij")
+        ax.contour(T1, T2, m.astype(float), levels=[0.5], colors="k", linewidths=1.5)
+    th = np.linspace(0, 2 * np.pi, 400)
+    for rad, style in ((cert["outer_radius"], "--"), (cert["inner_radius"], ":")):
+        ax.plot(rad * np.cos(th), rad * np.sin(th), "r" + style, lw=1)
+    g = 25
+    gp, gs = grid_points(box, g)
+    u = None if ctrl is None else ctrl.numpy(gp)
+    with np.errstate(all="ignore"):
+        F = system.evaluate(gp, u)
+    ax.streamplot(np.linspace(box[0, 0], box[0, 1], g), np.linspace(box[1, 0], box[1, 1], g),
+                  F[:, 0].reshape(gs).T, F[:, 1].reshape(gs).T, color="0.6", density=0.8,
+                  linewidth=0.5, arrowsize=0.6)
+    ax.set_xlim(box[0])
+    ax.set_ylim(box[1])
+    ax.set_xlabel(system.state_names[0])
+    ax.set_ylabel(system.state_names[1])
+    ax.set_title(f"{system.name}: {cert['status']} — certified "
+                 f"{100 * cert['fraction_of_true_roa']:.1f}% of the true ROA\n"
+                 "blue: Ω_c (V ≤ level in B_r), green: E, black: true ROA, red: B_r, B_ε",
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,247 @@
+r"""Certified regions of attraction (METHOD §3).
+
+For a level :math:`c`, the set :math:`\Omega_c = \{x \in B_r : V(x) \le c\}` lies in the
+region of attraction of the **true** closed loop when
+
+- (a) decrease: :math:`\nabla V \cdot g(x) < -\beta` on :math:`\{\varepsilon \le \|x\| \le r,
+  V(x) \le c\}` (``g = φ`` with :math:`\beta > M\eta` for learned dynamics, ``g = f``,
+  :math:`\beta = 0` for known dynamics);
+- (b) containment: :math:`V(x) > c` on :math:`\|x\| = r`;
+- (c) inner ball: :math:`B_\varepsilon \subseteq E = \{x^\top P x \le c_q\}` and ``E`` is a
+  quadratic Lyapunov sublevel set of the true closed loop. For known ``f`` this is proved by
+  verifying :math:`P J(y) + J(y)^\top P \prec 0` for every ``y`` of a box containing ``E``
+  (``J`` the closed-loop Jacobian; since :math:`f(x) = \int_0^1 J(sx)\,ds\;x` and the set
+  of such matrices is convex, :math:`\dot V_q = x^\top (P\bar J + \bar J^\top P) x < 0`
+  on :math:`E \setminus \{0\}`). For unknown ``f`` it is the paper's assumption
+  (LQR region of attraction contains :math:`B_\varepsilon`) and is reported as such.
+
+Every trajectory from :math:`\Omega_c` decreases ``V`` until it enters
+:math:`B_\varepsilon \subseteq E`, which is forward invariant and converges to 0; so
+:math:`\Omega_c \cup E` is certified.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from .walker import evaluate
+
+__all__ = [
+    "LevelCandidate", "candidate_level", "certify_level", "certify_inner_ellipse",
+    "grid_area", "true_roa_mask",
+]
+
+
+@dataclass
+class LevelCandidate:
+    level: float
+    argmin: np.ndarray
+    source: str          # "decrease" (a Lie-derivative boundary point) or "sphere"
+    seconds: float
+
+
+def _fun(x, *outs):
+    return ca.Function("f", [x], list(outs))
+
+
+def candidate_level(x: ca.MX, V: ca.MX, lie: ca.MX, *, inner: float, outer: float,
+                    margin: float = 0.0, n_starts: int = 12, n_samples: int = 20000,
+                    seed: int = 0) -> LevelCandidate:
+    r"""Least ``V`` over :math:`\{x \in B_r\setminus B_\varepsilon: \nabla V\cdot g \ge -\beta\}
+    \cup \{\|x\| = r\}`: sampling, then IPOPT from the best samples (multi-start).
+
+    The value is a *candidate* only: :func:`certify_level` proves a level.
+    """
+    t0 = time.perf_counter()
+    n = x.numel()
+    rng = np.random.default_rng(seed)
+    from .learning import sample_ball, sample_sphere
+
+    F = _fun(x, V, lie)
+    pts = sample_ball(n_samples, n, outer, rng, inner)
+    v, d = (a[:, 0] for a in evaluate(F, [pts]))
+    sph = sample_sphere(max(2000, n_samples // 10), n, outer, rng)
+    vs = evaluate(F, [sph])[0][:, 0]
+    best = (float(vs.min()), sph[np.argmin(vs)], "sphere")
+    bad = d >= -margin
+    if bad.any():
+        i = np.argmin(np.where(bad, v, np.inf))
+        if v[i] < best[0]:
+            best = (float(v[i]), pts[i], "decrease")
+    # IPOPT refinement (multi-start) of both parts
+    opts = {"ipopt.print_level": 0, "print_time": 0, "ipopt.sb": "yes",
+            "ipopt.max_iter": 200, "ipopt.tol": 1e-10}
+    r2 = ca.sumsqr(x)
+    nlp_dec = ca.nlpsol("lev_dec", "ipopt", {"x": x, "f": V, "g": ca.vertcat(lie + margin, r2)},
+                        opts)
+    nlp_sph = ca.nlpsol("lev_sph", "ipopt", {"x": x, "f": V, "g": r2}, opts)
+    starts_dec = pts[np.argsort(np.where(bad, v, np.inf))[:n_starts]][: int(bad.sum())]
+    starts_dec = np.vstack([starts_dec, pts[np.argsort(-d)[: max(1, n_starts // 3)]]])
+    for x0 in starts_dec:
+        try:
+            sol = nlp_dec(x0=x0, lbg=[0.0, inner**2], ubg=[np.inf, outer**2])
+        except RuntimeError:
+            continue
+        xs = np.array(sol["x"]).ravel()
+        vv, dd = (float(a) for a in F(xs))
+        ok = dd >= -margin - 1e-9 and inner**2 - 1e-9 <= xs @ xs <= outer**2 + 1e-9
+        if ok and vv < best[0]:
+            best = (vv, xs, "decrease")
+    for x0 in sph[np.argsort(vs)[:n_starts]]:
+        try:
+            sol = nlp_sph(x0=x0, lbg=outer**2, ubg=outer**2)
+        except RuntimeError:
+            continue
+        xs = np.array(sol["x"]).ravel()
+        if abs(xs @ xs - outer**2) < 1e-8:
+            vv = float(F(xs)[0])
+            if vv < best[0]:
+                best = (vv, xs, "sphere")
+    return LevelCandidate(best[0], np.asarray(best[1]), best[2], time.perf_counter() - t0)
+
+
+@dataclass
+class LevelCertificate:
+    """Result of :func:`certify_level`."""
+
+    status: str                       # "certified" or the reason it is not
+    level: float
+    decrease: object = None           # VerificationResult of (a)
+    containment: object = None        # VerificationResult of (b)
+    history: list = field(default_factory=list)
+    counterexamples: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    seconds: float = 0.0
+
+
+def certify_level(x, V, lie, *, level: float, inner: float, outer: float, margin: float,
+                  max_tries: int = 8, shrink: float = 1e-3, verify_options: dict | None = None,
+                  log=print) -> LevelCertificate:
+    """Prove (a) and (b) at the largest level we can reach from ``level`` downwards.
+
+    Counterexamples lower the level to just below ``V`` at the counterexample; ``unknown``
+    verdicts lower it by 10 %. Returns the certified level or why none was found.
+    """
+    from verification import VerificationProblem, lyapunov_problem, verify
+
+    t0 = time.perf_counter()
+    opts = dict(verify_options or {})
+    Vf = _fun(x, V)
+    r2 = ca.sumsqr(x)
+    n = x.numel()
+    box = np.tile([-outer, outer], (n, 1))
+    c = level * (1.0 - shrink)
+    hist, cexs = [], []
+    for _ in range(max_tries):
+        if not c > 0:
+            break
+        prob_b = VerificationProblem(x, box, [r2 - outer**2, outer**2 - r2], [c - V],
+                                     ["outer", "sphere"], ["V>level on sphere"])
+        res_b = verify(prob_b, **opts)
+        prob_a = lyapunov_problem(x, V, lie, inner=inner, outer=outer, level=c, margin=margin,
+                                  box=box, check_positive=False)
+        res_a = verify(prob_a, **opts) if res_b.status == "verified" else None
+        hist.append({"level": c, "containment": res_b.status,
+                     "decrease": None if res_a is None else res_a.status,
+                     "seconds": res_b.seconds + (res_a.seconds if res_a else 0.0),
+                     "boxes": res_b.boxes + (res_a.boxes if res_a else 0)})
+        log(f"    level {c:.6g}: containment {res_b.status}, decrease "
+            f"{hist[-1]['decrease']}")
+        if res_a is not None and res_a.status == "verified":
+            return LevelCertificate("certified", c, res_a, res_b, hist,
+                                    np.array(cexs).reshape(-1, n), time.perf_counter() - t0)
+        bad = res_b if res_b.status != "verified" else res_a
+        if bad.status == "counterexample":
+            pts = np.array([ce.point for ce in bad.counterexamples])
+            cexs += list(pts)
+            vmin = float(np.min(evaluate(Vf, [pts])[0]))
+            c = min(vmin * (1.0 - 1e-3), c * 0.995)
+        else:
+            c *= 0.9
+    return LevelCertificate("no level certified", 0.0, None, None, hist,
+                            np.array(cexs).reshape(-1, n), time.perf_counter() - t0)
+
+
+def _leading_minors(S):
+    """Leading principal minors of a small symbolic matrix (cofactor expansion)."""
+
+    def det(M):
+        k = M.shape[0]
+        if k == 1:
+            return M[0, 0]
+        if k == 2:
+            return M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]
+        total = 0
+        for j in range(k):
+            minor = ca.horzcat(M[1:, :j], M[1:, j + 1:])
+            total = total + (-1) ** j * M[0, j] * det(minor)
+        return total
+
+    return [det(S[:k, :k]) for k in range(1, S.shape[0] + 1)]
+
+
+def certify_inner_ellipse(system, controller, inner: float, *, P=None,
+                          verify_options: dict | None = None) -> dict:
+    r"""Condition (c) for the true closed loop: ``E = {xᵀPx ≤ c_q} ⊇ B_ε`` is a certified
+    quadratic Lyapunov sublevel set (``P J(y) + J(y)ᵀ P ≺ 0`` on a box containing ``E``).
+
+    ``P`` defaults to the Lyapunov matrix of the closed-loop linearisation. Returns a dict
+    with ``status`` (``"certified"`` or why not), ``P``, ``level`` (``c_q``), ``box``.
+    """
+    from baselines.lqr import lyapunov_matrix
+    from verification import VerificationProblem, verify
+
+    from .symbolic import closed_loop
+
+    cl = closed_loop(system, controller, strict=True)
+    J = ca.jacobian(cl.rhs, cl.x)
+    A_cl = np.array(_fun(cl.x, J)(np.zeros(system.nx)), dtype=float)
+    if P is None:
+        P = lyapunov_matrix(A_cl)
+    P = np.asarray(P, dtype=float)
+    lam = np.linalg.eigvalsh(P)
+    c_q = float(lam[-1]) * inner**2 * (1 + 1e-9)
+    # E ⊆ box [-a, a]^n with a_i = sqrt(c_q (P^-1)_ii)
+    a = np.sqrt(c_q * np.diag(np.linalg.inv(P))) * (1 + 1e-9)
+    S = ca.mtimes(ca.DM(P), J)
+    S = S + S.T
+    minors = _leading_minors(S)
+    props = [-((-1) ** k) * m for k, m in enumerate(minors, start=1)]  # (-1)^k m_k > 0
+    prob = VerificationProblem(cl.x, np.stack([-a, a], axis=1), [], props,
+                               [], [f"minor{k}" for k in range(1, len(props) + 1)])
+    res = verify(prob, **(verify_options or {}))
+    status = "certified" if res.status == "verified" else f"inner ellipse {res.status}"
+    return {"status": status, "P": P, "level": c_q, "box": a, "result": res}
+
+
+def grid_area(mask: np.ndarray, box: np.ndarray) -> float:
+    """Area (volume) of a boolean grid mask over ``box`` (cell-centred grid)."""
+    cells = np.prod((box[:, 1] - box[:, 0]) / np.array(mask.shape))
+    return float(mask.sum() * cells)
+
+
+def grid_points(box: np.ndarray, n: int) -> tuple[np.ndarray, tuple]:
+    """Cell centres of an ``n^d`` grid over ``box``: ``(n^d, d)`` points and the grid shape."""
+    axes = [lo + (hi - lo) * (np.arange(n) + 0.5) / n for lo, hi in box]
+    mesh = np.meshgrid(*axes, indexing="ij")
+    return np.stack([m.ravel() for m in mesh], axis=1), tuple([n] * len(box))
+
+
+def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200, t_final: float = 30.0,
+                  dt: float = 0.02, tol: float = 1e-3) -> np.ndarray:
+    """Grid mask of initial states whose simulated closed loop converges to the origin.
+
+    Fixed-step RK4 on all grid points at once; a state counts as converged once
+    ``‖x‖ < tol`` (it is then dropped from the integration), as diverged once it leaves
+    ``1e6`` or becomes non-finite.
+    """
+    from .simulate import simulate_converges
+
+    def rhs(z):
+        return system.evaluate(z, None if feedback is None else feedback(z))
+
+    pts, shape = grid_points(box, n)
+    return simulate_converges(rhs, pts, t_final, dt, tol).reshape(shape)

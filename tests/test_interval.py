@@ -373,6 +373,19 @@ def test_pow_integer_exponents_and_negative_bases():
     assert r.hi[0] == np.inf and 0.0 <= r.lo[0] <= 0.25 and r.lo[1] == -np.inf
 
 
+@pytest.mark.parametrize("n", [3, 5, 31, 63, 64, 65, 200, -3, -64])
+def test_integer_powers_of_points_exact(n):
+    """x**n at float points against exact rationals (errors compound in binary powering)."""
+    rng = np.random.default_rng(abs(n))
+    x = rng.uniform(0.5, 1.5, 300) * rng.choice([-1.0, 1.0], 300)
+    x[:5] = [1.0, -1.0, 0.5, 1.0 + 2**-52, 1.0 - 2**-53]
+    r = IA.binary(ca.OP_CONSTPOW, Interval(x, x.copy()), IA.constant(np.array(float(n))))
+    for i in range(300):
+        e = Fraction(x[i]) ** n
+        assert Fraction(r.lo[i]) <= e <= Fraction(r.hi[i]), (x[i], n)
+        assert r.hi[i] - r.lo[i] <= 1e-13 * abs(float(e))
+
+
 def test_fmod_constant_divisor_is_tight():
     c = IA.constant(np.array(2 * math.pi))
     x = Interval([7.0, -7.0, 1.0], [7.5, -6.5, 20.0])
@@ -509,6 +522,23 @@ def test_matmul_constant_times_interval_exact_reference():
     for b in range(4):
         e = _frac_sum(Fraction(p) * Fraction(q) for p, q in zip(X[b, :, 0], A[0]))
         assert Fraction(v.lo[b]) <= e <= Fraction(v.hi[b])
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_matmul_short_dot_products_round_outward(k):
+    """For k = 1, 2 the a-priori bound is nearly attained: exact containment of fl errors."""
+    rng = np.random.default_rng(20 + k)
+    A = rng.uniform(1, 2, size=(400, 1, k)) * rng.choice([-1, 1], size=(400, 1, k))
+    X = rng.uniform(1, 2, size=(400, k, 1))
+    for r in (IA.matmul(IA.constant(A), IA.constant(X)),
+              IA.matmul(Interval(A, A.copy()), Interval(X, X.copy()))):
+        for i in range(400):
+            e = sum((Fraction(A[i, 0, j]) * Fraction(X[i, j, 0]) for j in range(k)), Fraction(0))
+            assert Fraction(r.lo[i, 0, 0]) <= e <= Fraction(r.hi[i, 0, 0])
+    s = IA.sum(IA.constant(A[:, 0, :] * 0.1), -1)
+    for i in range(400):
+        e = sum((Fraction(v) for v in A[i, 0, :] * 0.1), Fraction(0))
+        assert Fraction(s.lo[i]) <= e <= Fraction(s.hi[i])
 
 
 def test_matmul_interval_times_interval_vertices():

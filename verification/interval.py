@@ -9,8 +9,9 @@ real-valued result lies in ``[lo, hi]``.
 Invariants and conventions
 --------------------------
 - Results satisfy ``lo <= hi``, are never NaN, ``lo < +inf`` and ``hi > -inf`` (a lower
-  bound that overflowed becomes ``float_max``, which is still below the true value).
-  Inputs are assumed to satisfy the same (boxes of the verifier are finite).
+  bound that overflowed becomes ``float_max``, which is still below the true value),
+  provided the inputs satisfy the same (boxes of the verifier are finite; constants are
+  made so by :meth:`IntervalArithmetic.constant`).
 - ``[-inf, inf]`` means "nothing is known". It is returned where a result is undefined or
   cannot be bounded: division by an interval containing 0, a pole of ``tan`` inside the
   box, any NaN that an operation would produce (``_guard``), and inputs that lie *entirely*
@@ -22,6 +23,16 @@ Invariants and conventions
   defined on the whole box must check the domain separately.
 - Degenerate intervals created by :meth:`IntervalArithmetic.constant` share one array for
   ``lo`` and ``hi`` (``a.lo is a.hi``); operations use this for cheaper exact paths.
+  Results may share memory with their arguments (``OP_ASSIGN``, structural views, ``x**1``):
+  treat the bound arrays as read-only.
+
+Cost
+----
+Every operation is a fixed number of whole-array numpy passes (no Python loops over
+elements): about 10 for ``+``/``-``, 20 for ``*``, 2 elementary-function calls plus about
+12 passes for ``exp``, ``tanh``, ...; ``matmul`` is 2-3 GEMMs plus about 15 passes over
+its operands and result; ``sum`` uses BLAS (``x @ ones``) for trailing axes. The work is
+memory-bound, so batches whose registers fit in the L2 cache are fastest.
 
 Rounding model
 --------------
@@ -88,13 +99,6 @@ def _up(y):
         t += _ETA
         return np.maximum(t, -_MAX, out=t)
     return np.maximum(np.maximum(t, r) + _ETA, -_MAX)
-
-
-def _up_nn(y):
-    """Upper bound for a nonnegative ``y`` computed by one correctly rounded operation."""
-    t = y * _R1_HI
-    t += _ETA
-    return t
 
 
 def _dn_w(y):
@@ -241,16 +245,16 @@ def _bshape(*arrays):
 
 # --------------------------------------------------------------------------- elementary ops
 def _add(al, ah, bl, bh):
-    if al is ah and bl is bh:
+    if al is ah and bl is bh:  # (a user-built degenerate interval may hold inf - inf)
         s = al + bl
-        return _dn(s), _up(s)
-    return _dn(al + bl), _up(ah + bh)
+        return _guard(_dn(s), _up(s))
+    return _dn(al + bl), _up(ah + bh)  # no NaN: lo < +inf and hi > -inf
 
 
 def _sub(al, ah, bl, bh):
     if al is ah and bl is bh:
         s = al - bl
-        return _dn(s), _up(s)
+        return _guard(_dn(s), _up(s))
     return _dn(al - bh), _up(ah - bl)
 
 
@@ -492,25 +496,42 @@ def _exact_monotone(f):
 
 
 # ---- power
-def _pow_mag(tl, th, k: int):
-    """Bounds of ``t**k`` for ``t`` in ``[tl, th]``, ``0 <= tl``, integer ``k >= 1``."""
-    if k > 64:  # libm pow (measured < 1 ulp), widened like the other elementary functions
-        e = float(k)
-        return np.maximum(_dn_w(np.power(tl, e)), 0.0), _up_w(np.power(th, e))
-    rl = rh = None
-    bl, bh = tl, th
-    while True:  # binary powering with a directed rounding at every product
+def _g3(n: int) -> float:
+    """``(g + 2**-52)(1 + 2 g)(1 + 2**-48)`` with ``g >= gamma_n``: see ``sum``/``_pow_end``."""
+    g = _gamma(n)
+    return (g + 2.0**-52) * (1.0 + 2.0 * g) * (1.0 + 2.0**-48)
+
+
+def _pow_end(x, k: int, lower: bool):
+    """Rigorous lower (or upper) bound of ``x**k`` for float arrays ``x``, ``k >= 2``.
+
+    Binary powering: a rounding error made at a squaring is raised to the exponent weight
+    still to come, and these weights add up to ``k - 1``, so ``p = fl(x**k)`` has
+    ``|p - x**k| <= gamma_{k-1} |x**k| + (k - 1) eta`` (not ``gamma_m`` for the ``m``
+    multiplications; intermediate magnitudes only decrease when ``|x| < 1``, so underflow
+    errors are not amplified). As in ``sum``, ``fl(p -+ e)`` with ``e = fl(fl(|p|
+    g3(k - 1)) + 2**-1020)`` is then outward. A NaN there comes only from ``p = +-inf``
+    (overflow) and is mapped to ``+-float_max``, a valid bound for a true magnitude beyond
+    ``float_max``. For ``k > 64``: libm ``pow`` (measured < 1 ulp), widened by 16 ulps.
+    """
+    if k > 64:
+        v = np.power(x, float(k))
+        return _dn_w(v) if lower else _up_w(v)
+    k0 = k
+    r = None
+    b = x
+    while True:
         if k & 1:
-            if rl is None:
-                rl, rh = bl, bh
-            else:
-                rl = np.maximum(_dn(rl * bl), 0.0)
-                rh = _up_nn(rh * bh)
+            r = b if r is None else r * b
         k >>= 1
         if not k:
-            return rl, rh
-        bl = np.maximum(_dn(bl * bl), 0.0)
-        bh = _up_nn(bh * bh)
+            break
+        b = b * b
+    e = np.abs(r) * _g3(k0 - 1)
+    e += 2.0**-1020
+    if lower:
+        return np.fmin(r - e, _MAX)
+    return np.fmax(r + e, -_MAX)
 
 
 def _ipow(lo, hi, n: int):
@@ -525,24 +546,21 @@ def _ipow(lo, hi, n: int):
     if n == -1:
         return _inv(lo, hi)
     k = abs(n)
-    if k % 2 == 0:
+    if k % 2 == 0:  # even: through |x|
         ml, mh = _abs_bounds(lo, hi)
-        pl, ph = _pow_mag(ml, mh, k)
+        pl = np.maximum(_pow_end(ml, k, True), 0.0)
+        ph = _pow_end(mh, k, False)
         if n > 0:
             return pl, ph
         rl = np.maximum(_dn(1.0 / ph), 0.0)
         rh = _up(1.0 / np.abs(pl))  # 1/0 = +inf when 0 is in x
         out = (lo == 0.0) & (hi == 0.0)  # x = 0 exactly: undefined
         return _guard(_set(rl, out, -_INF), _set(rh, out, _INF))
-    al = np.abs(lo)
-    ah = np.abs(hi)
-    pal, pah = _pow_mag(al, al, k)
-    pbl, pbh = _pow_mag(ah, ah, k)
-    rl = np.where(lo >= 0.0, pal, -pah)  # odd powers are increasing
-    rh = np.where(hi >= 0.0, pbh, -pbl)
+    pl = _pow_end(lo, k, True)  # odd powers are increasing
+    ph = _pow_end(hi, k, False)
     if n > 0:
-        return rl, rh
-    return _inv(rl, rh)
+        return pl, ph
+    return _inv(pl, ph)
 
 
 def _pow_real(al, ah, bl, bh):
@@ -861,14 +879,16 @@ class IntervalArithmetic:
     def sum(self, a: Interval, axis=None) -> Interval:
         """Rigorous sum over ``axis`` (int, tuple of ints or None for all axes).
 
-        Any floating-point summation order of ``n`` terms (numpy's pairwise sum, BLAS
-        kernels with several accumulators or FMA) satisfies ``|fl(sum x) - sum x| <=
-        gamma_{n-1} sum |x|`` (Higham, *Accuracy and Stability of Numerical Algorithms*,
-        2nd ed., eq. 4.4; additions never err by underflow), and the computed
-        ``A = fl(sum |x|) >= (1 - gamma_{n-1}) sum |x|``. So with ``S = fl(sum x)`` the
-        true sum lies within ``S -+ t``, ``t = fl(A g)`` and ``g >= gamma_n (1 + 2
-        gamma_n)(1 + 1e-10)``, up to ``2**-1075``; the bounds are then rounded outward by
-        :func:`_fold` (lower bounds from ``lo``, upper bounds from ``hi``).
+        Error bound: any floating-point summation order of ``n`` terms (numpy's pairwise
+        sum, BLAS kernels with several accumulators or FMA) gives ``S = fl(sum x)`` with
+        ``|S - sum x| <= gamma_{n-1} sum |x|`` (Higham, *Accuracy and Stability of
+        Numerical Algorithms*, 2nd ed., eq. 4.4; additions never err by underflow), and
+        ``A = fl(sum |x|) >= (1 - gamma_{n-1}) sum |x|``. The lower bound is
+        ``fl(S - t)`` with ``t = fl(fl(A g3) + 2**-1020)``, which is below the true sum
+        because ``fl(S - t) <= S - t + u (|S| + t)`` and ``t (1 - u) >= gamma_{n-1} sum|x|
+        + u |S|`` for ``g3 = (g + 2**-52)(1 + 2 g)(1 + 2**-48)``, ``g >= gamma_n``
+        (``|S| <= (1 + gamma) sum |x|``); the upper bound is symmetric. Lower bounds are
+        summed from ``lo``, upper bounds from ``hi``.
 
         Parameters
         ----------
@@ -889,33 +909,35 @@ class IntervalArithmetic:
         if n <= 1:
             return self.structural(lambda x: np.sum(x, axis=axes), a)
         g = _gamma(n)
-        g = g * (1.0 + 2.0 * g)
+        g3 = (g + 2.0**-52) * (1.0 + 2.0 * g) * (1.0 + 2.0**-48)
         with np.errstate(all="ignore"):
             s = _reduce(lo, axes)
-            t2 = _fold(s, _reduce(np.abs(lo), axes) * g)
+            t = _reduce(np.abs(lo), axes) * g3 + 2.0**-1020
             if lo is hi:
-                return Interval(*_guard(s - t2, s + t2))
-            rl = s - t2
+                return Interval(*_guard(s - t, s + t))
+            rl = s - t
             s = _reduce(hi, axes)
-            rh = s + _fold(s, _reduce(np.abs(hi), axes) * g)
-            return Interval(*_guard(rl, rh))
+            t = _reduce(np.abs(hi), axes) * g3 + 2.0**-1020
+            return Interval(*_guard(rl, s + t))
 
     def matmul(self, a, b) -> Interval:
         """Rigorous ``a @ b`` with numpy ``matmul`` semantics (batch broadcasting).
 
-        Midpoint-radius (Rump, BIT 39(3), 1999). With ``A = <mA, rhoA>`` and
-        ``B = <mB, rhoB>`` (``rho`` exact radii, 0 for degenerate operands) the real
-        products lie in ``mA mB +- (|mA| rhoB + rhoA (|mB| + rhoB))``, and ``C = fl(mA @
-        mB)`` errs by at most ``gamma_k |mA| |mB| + k eta`` for any order of the
-        ``k``-term dot products, FMA or not (``eta = 2**-1074``). Computed radii satisfy
-        ``rho <= r / (1 - u)``; with ``W1 = fl(fl(g |mB|) + rB)``, ``W2 = fl(|mB| + rB)``,
-        ``P1 = fl(|mA| @ W1)``, ``P2 = fl(rA @ W2)`` and ``M W <= (fl(M W) + k eta) / (1 -
-        gamma_k)`` for nonnegative matrices, the radius is at most
-        ``(P1 + P2) / ((1 - gamma_k)(1 - u)**3) + eta (rowsum|mA| + 4 k)``; it is
-        evaluated as ``fl(fl(P1 + P2) F)`` with ``F = 1 + 4 g + 2**-48 >= 1 / ((1 -
-        gamma_k)(1 - u)**5)`` and the absolute part goes into :func:`_fold`, which also
-        rounds ``C -+ radius`` outward. Operands with infinite bounds fall back to the
-        elementwise products followed by :meth:`sum`.
+        Error bound (midpoint-radius, Rump, BIT 39(3), 1999): with ``A = <mA, rhoA>`` and
+        ``B = <mB, rhoB>`` (exact radii about float midpoints, 0 for degenerate operands)
+        the real products lie in ``mA mB +- R``, ``R = |mA| rhoB + rhoA (|mB| + rhoB)``.
+        ``C = fl(mA @ mB)`` errs by at most ``gamma_k |mA||mB| + k eta`` for any order of
+        the ``k``-term dot products, FMA or not (``eta = 2**-1074``, ``u = 2**-53``), so
+        ``|C| <= (1 + gamma_k)|mA||mB| + k eta``. The final ``lo = fl(C - t)`` is below
+        ``C - R - err(C)`` whenever ``t (1 - u) >= R + err(C) + u |C|``, which holds for
+        ``t = fl(fl(P F) + abs_c)``: ``P = fl(|mA| @ W1) + fl(rA @ W2)`` with
+        ``W1 = fl(fl(g2 |mB|) + rB)``, ``g2 = g + 2**-52 >= gamma_k + u (1 + gamma_k)``,
+        ``W2 = fl(|mB| + rB)`` and computed radii ``r >= (1 - u) rho``; nonnegative
+        products obey ``M W <= (fl(M W) + k eta) / (1 - gamma_k)``; hence
+        ``R + err(C) + u|C| <= P / ((1 - gamma_k)(1 - u)**3) + eta (rowsum|mA| + 5k)``,
+        covered by ``F = 1 + 4g + 2**-48 >= 1 / ((1 - gamma_k)(1 - u)**7)`` and
+        ``abs_c = 4 eta (k max|mA| + 5k + 2)``. ``hi`` is symmetric. Operands with
+        infinite bounds fall back to the elementwise products followed by :meth:`sum`.
 
         Parameters
         ----------
@@ -934,23 +956,24 @@ class IntervalArithmetic:
             if k == 0 or not (_finite(a) and _finite(b)):
                 return self._matmul_elementwise(a, b)
             g = _gamma(k)
-            ma, ra = _midrad(a)
-            mb, rb = _midrad(b)
+            ma, ra, ama = _midrad(a)
+            mb, rb, amb = _midrad(b)
             c = _mm(ma, mb)
-            amb = np.abs(mb)
-            w1 = amb * g
-            if rb is not None:
-                w1 += rb
-            ama = np.abs(ma)
-            p = _mm(ama, w1)
+            w2 = None
             if ra is not None:
                 w2 = amb if rb is None else amb + rb
-                p += _mm(ra, w2)
-            p *= 1.0 + 4.0 * g + 2.0**-48
+            w1 = np.multiply(amb, g + 2.0**-52, out=amb if w2 is None else None)
+            if rb is not None:
+                w1 += rb
+            t = _mm(ama, w1)
+            if ra is not None:
+                t += _mm(ra, w2)
+            t *= 1.0 + 4.0 * g + 2.0**-48
             amax = float(np.max(ama)) if ama.size else 0.0
-            abs_c = 4.0 * _ETA * (k * amax * (1.0 + 2.0**-40) + 4.0 * k + 2.0)
-            t2 = _fold(c, p, max(abs_c, 2.0**-1020))
-            return Interval(*_guard(c - t2, c + t2))
+            t += 4.0 * _ETA * (k * amax * (1.0 + 2.0**-40) + 5.0 * k + 2.0)
+            lo = c - t
+            t += c
+            return Interval(*_guard(lo, t))
 
     def _matmul_elementwise(self, a: Interval, b: Interval) -> Interval:
         """``sum_k a[..., :, k, None] * b[..., None, k, :]`` (handles infinite bounds)."""
@@ -1028,24 +1051,28 @@ class IntervalArithmetic:
 
 
 def _finite(x: Interval) -> bool:
-    """All bounds finite (false also when ``hi - lo`` overflows, which is harmless)."""
-    return bool(np.isfinite(np.sum(x.hi - x.lo)))
+    """All bounds finite and not NaN (``min`` and ``max`` propagate NaN)."""
+    if x.lo.size == 0:
+        return True
+    return bool(np.min(x.lo) > -_INF) and bool(np.max(x.hi) < _INF) and (
+        x.lo is not x.hi or bool(np.max(x.lo) < _INF) and bool(np.min(x.hi) > -_INF))
 
 
 def _midrad(x: Interval):
-    """Midpoint and radius ``r >= (1 - u) rho`` (``None`` for a degenerate interval).
+    """Midpoint, radius ``r >= (1 - u) rho`` (``None`` if degenerate) and ``|midpoint|``.
 
     ``rho = max(hi - m, m - lo)`` is the exact radius about the float midpoint ``m``; the
     float subtractions err by a relative ``u`` at most (no underflow error).
     """
     lo, hi = x.lo, x.hi
     if lo is hi or (lo.size <= _SMALL_DEGENERATE and np.array_equal(lo, hi)):
-        return lo, None
+        return lo, None, np.abs(lo)
     m = lo + hi
     m *= 0.5
     r = hi - m
-    np.maximum(r, m - lo, out=r)
-    return m, r
+    am = np.subtract(m, lo)
+    np.maximum(r, am, out=r)
+    return m, r, np.abs(m, out=am)  # reuse the buffer for |m|
 
 
 def _reduce(x, axes: tuple[int, ...]):
@@ -1074,21 +1101,3 @@ def _mm(a, b):
         r, k = a.shape[-2:]
         return (a.reshape(-1, k) @ b).reshape(a.shape[:-2] + (r, b.shape[1]))
     return a @ b
-
-
-def _fold(c, t, abs_c: float = 2.0**-1020):
-    """Radius ``t2`` with ``fl(c - t2) <= c - R`` and ``fl(c + t2) >= c + R``.
-
-    Valid for every real ``R <= t + abs_c / 2 + 2 eta`` (``t >= 0`` float array). With
-    ``t2 = fl(fl(fl(t + fl(|c| 2**-52)) (1 + 2**-49)) + abs_c)`` every step errs by a
-    relative ``u`` (multiplications also by ``eta / 2``), so ``t2 (1 - u) >= (1 - u)**4
-    (1 + 2**-49)(t + 2u |c|) - eta + (1 - u)**2 abs_c >= R + u |c|``, and
-    ``fl(c -+ t2)`` is within ``u |c -+ t2| <= u (|c| + t2)`` of ``c -+ t2`` (additions
-    have no underflow error).
-    """
-    t2 = np.abs(c)
-    t2 *= 2.0**-52
-    t2 += t
-    t2 *= 1.0 + 2.0**-49
-    t2 += abs_c
-    return t2

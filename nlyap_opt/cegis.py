@@ -77,7 +77,7 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
         raise ValueError("learned dynamics (eta > 0) need a rigorous gradient_bound for M")
     rng = np.random.default_rng(cfg.seed)
     n = system.nx
-    X = sample_ball(cfg.samples, n, cfg.outer, rng, 0.5 * cfg.inner)
+    X = sample_ball(cfg.samples, n, cfg.outer, rng)
     S = sample_sphere(cfg.sphere_samples, n, cfg.outer, rng)
     learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
 

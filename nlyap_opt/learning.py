@@ -8,10 +8,13 @@ frozen at the solved equilibrium bias, so that :math:`f(0, \kappa(0)) = 0` for e
 The loss on a batch of states (METHOD §2.5, with the ROA-shaping terms written for a
 target level ``1``)::
 
-    C_dec · mean[ relu(∇V·g(x) + β + τ) · 1{V(x) ≤ 1 + s} ]      decrease where certified
+    C_dec · mean[ relu(∇V·g(x) + β + τ·V(x)) · 1{V(x) ≤ 1 + s} ] decrease (rate τ) where
+                                                                   certified
   + C_in  · mean[ relu(V(x) - 1) · w_in(x) ]                     pull the level set outwards
   + C_out · mean[ relu(1 + s - V(x_r)) ]  on the outer sphere     containment (b)
   + C_grad· mean ‖∇V‖                                              keep M (and β = M·η) small
+  + C_anc · ‖G − G_lqr‖²                                           keep κ's linearisation
+                                                                   near the LQR gain
 
 ``V ≥ 0`` and ``V(0) = 0`` hold by construction, so the seed's hinge on ``−V`` and
 ``V(0)²`` terms are identically zero and left out.
@@ -40,13 +43,14 @@ class TrainConfig:
     lr: float = 1e-2
     steps: int = 1000
     batch: int = 2048
-    slack: float = 0.02        # τ, robustness slack on the decrease hinge
+    decay: float = 0.1         # τ: the hinge asks for dV/dt <= -β - τ·V (also near 0)
     level_slack: float = 0.1   # s, where the decrease is enforced beyond level 1
     w_decrease: float = 1.0
     w_inside: float = 0.5
     w_outside: float = 1.0
     w_grad: float = 0.0
     train_controller: bool = True
+    w_anchor: float = 1.0      # penalty ‖G − G_lqr‖² keeping the gain near its LQR start
     seed: int = 0
     time_budget: float = 60.0
     threads: int = 1           # torch threads; small batches run fastest single-threaded
@@ -99,9 +103,15 @@ class LyapunovLearner:
             if len(controller.layers) != 1 or controller.layers[0].activation != "tanh":
                 raise ValueError("the controller must be one tanh layer: C·tanh(Kx + b)")
             L = controller.layers[0]
-            self.K = torch.nn.Parameter(torch.as_tensor(L.weight, dtype=torch.float64))
             self.b = torch.as_tensor(L.bias, dtype=torch.float64)          # frozen
-            self.C = torch.as_tensor(controller.output_scale, dtype=torch.float64)
+            self.C = torch.as_tensor(np.broadcast_to(controller.output_scale, L.bias.shape),
+                                     dtype=torch.float64)
+            # train the gain in LQR units: κ(x) = C tanh(-G x / s + b), s = C (1 - tanh²b),
+            # so that ∂κ/∂x(0) = -G (Adam's step is then relative to the LQR gain)
+            self.slope = self.C * (1 - torch.tanh(self.b) ** 2)
+            G0 = -torch.as_tensor(L.weight, dtype=torch.float64) * self.slope[:, None]
+            self.G = torch.nn.Parameter(G0)
+            self.G0 = G0.clone()
         self.dynamics = dynamics
         self.phi = dynamics.torch_module() if dynamics is not None else None
         if self.phi is not None:
@@ -109,10 +119,15 @@ class LyapunovLearner:
                 p.requires_grad_(False)
         params = list(self.V.parameters())
         if controller is not None and config.train_controller:
-            params.append(self.K)
+            params.append(self.G)
         self.opt = torch.optim.Adam(params, lr=config.lr)
 
     # ------------------------------------------------------------------ model pieces
+    @property
+    def K(self):
+        """Pre-activation weights ``K'`` of ``C·tanh(K'x + b)``."""
+        return -self.G / self.slope[:, None]
+
     def kappa(self, x):
         return self.C * torch.tanh(x @ self.K.T + self.b)
 
@@ -169,7 +184,7 @@ class LyapunovLearner:
                 wb = torch.cat([wb, torch.ones(len(cidx), dtype=torch.float64)])
             v, lie, g = self.value_and_lie(xb.clone())
             active = (v <= 1.0 + cfg.level_slack).to(v.dtype)
-            dec = (torch.relu(lie + margin + cfg.slack) * active).mean()
+            dec = (torch.relu(lie + margin + cfg.decay * v) * active).mean()
             inside = (torch.relu(v - 1.0) * wb).mean()
             sidx = torch.randint(0, len(S), (min(cfg.batch // 4, len(S)),), generator=gen)
             vs = self.V(S[sidx])[:, 0]
@@ -177,6 +192,8 @@ class LyapunovLearner:
             loss = cfg.w_decrease * dec + cfg.w_inside * inside + cfg.w_outside * outside
             if cfg.w_grad:
                 loss = loss + cfg.w_grad * g.norm(dim=1).mean()
+            if self.controller is not None and cfg.train_controller and cfg.w_anchor:
+                loss = loss + cfg.w_anchor * ((self.G - self.G0) ** 2).sum()
             self.opt.zero_grad()
             loss.backward()
             self.opt.step()

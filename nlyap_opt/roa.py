@@ -188,20 +188,44 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     r"""Condition (c) for the true closed loop: ``E = {xᵀPx ≤ c_q} ⊇ B_ε`` is a certified
     quadratic Lyapunov sublevel set (``P J(y) + J(y)ᵀ P ≺ 0`` on a box containing ``E``).
 
-    ``P`` defaults to the Lyapunov matrix of the closed-loop linearisation. Returns a dict
-    with ``status`` (``"certified"`` or why not), ``P``, ``level`` (``c_q``), ``box``.
+    Without ``P``, candidates ``P`` solve ``A_clᵀP + P A_cl = −Q_V`` for ``Q_V = I`` and
+    for ``I`` with one diagonal entry scaled by 100 or 0.01 (``A_cl`` the closed-loop
+    linearisation); the first one that certifies is returned. Returns a dict with
+    ``status`` (``"certified"`` or why not), ``P``, ``level`` (``c_q``), ``box``.
     """
     from baselines.lqr import lyapunov_matrix
-    from verification import VerificationProblem, verify
 
     from .symbolic import closed_loop
 
     cl = closed_loop(system, controller, strict=True)
     J = ca.jacobian(cl.rhs, cl.x)
     A_cl = np.array(_fun(cl.x, J)(np.zeros(system.nx)), dtype=float)
-    if P is None:
-        P = lyapunov_matrix(A_cl)
-    P = np.asarray(P, dtype=float)
+    if P is not None:
+        candidates = [np.asarray(P, dtype=float)]
+    else:
+        if np.max(np.linalg.eigvals(A_cl).real) >= 0:
+            return {"status": "closed-loop linearisation not Hurwitz", "P": np.eye(system.nx),
+                    "level": 0.0, "box": np.zeros(system.nx), "result": None}
+        weights = [np.ones(system.nx)]
+        for i in range(system.nx):
+            for f in (100.0, 0.01):
+                w = np.ones(system.nx)
+                w[i] = f
+                weights.append(w)
+        candidates = [lyapunov_matrix(A_cl, np.diag(w)) for w in weights]
+    first = None
+    for Pc in candidates:
+        out = _inner_ellipse(cl, J, Pc, inner, verify_options)
+        if out["status"] == "certified":
+            return out
+        first = first or out
+    return first
+
+
+def _inner_ellipse(cl, J, P, inner, verify_options):
+    from verification import VerificationProblem, verify
+
+    n = P.shape[0]
     lam = np.linalg.eigvalsh(P)
     c_q = float(lam[-1]) * inner**2 * (1 + 1e-9)
     # E ⊆ box [-a, a]^n with a_i = sqrt(c_q (P^-1)_ii)
@@ -211,7 +235,7 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     minors = _leading_minors(S)
     props = [-((-1) ** k) * m for k, m in enumerate(minors, start=1)]  # (-1)^k m_k > 0
     prob = VerificationProblem(cl.x, np.stack([-a, a], axis=1), [], props,
-                               [], [f"minor{k}" for k in range(1, len(props) + 1)])
+                               [], [f"minor{k}" for k in range(1, n + 1)])
     res = verify(prob, **(verify_options or {}))
     status = "certified" if res.status == "verified" else f"inner ellipse {res.status}"
     return {"status": status, "P": P, "level": c_q, "box": a, "result": res}
@@ -230,7 +254,7 @@ def grid_points(box: np.ndarray, n: int) -> tuple[np.ndarray, tuple]:
     return np.stack([m.ravel() for m in mesh], axis=1), tuple([n] * len(box))
 
 
-def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200, t_final: float = 30.0,
+def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200, t_final: float = 60.0,
                   dt: float = 0.02, tol: float = 1e-3) -> np.ndarray:
     """Grid mask of initial states whose simulated closed loop converges to the origin.
 

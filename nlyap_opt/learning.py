@@ -104,7 +104,7 @@ class LyapunovLearner:
                 raise ValueError("the controller must be one tanh layer: C·tanh(Kx + b)")
             L = controller.layers[0]
             self.b = torch.as_tensor(L.bias, dtype=torch.float64)          # frozen
-            self.C = torch.as_tensor(np.broadcast_to(controller.output_scale, L.bias.shape),
+            self.C = torch.as_tensor(np.broadcast_to(controller.output_scale, L.bias.shape).copy(),
                                      dtype=torch.float64)
             # train the gain in LQR units: κ(x) = C tanh(-G x / s + b), s = C (1 - tanh²b),
             # so that ∂κ/∂x(0) = -G (Adam's step is then relative to the LQR gain)

@@ -74,7 +74,10 @@ def closed_loop(system, controller: Network | None = None, dynamics: Network | N
     else:
         rhs = learned_rhs(system, dynamics, x, u)
     cl = ClosedLoop(x, u, rhs)
-    at0 = np.array(ca.Function("r", [x], [rhs])(np.zeros(system.nx)), dtype=float).ravel()
+    # the equilibrium condition is about the plant f(0, κ(0)), not a learned φ (φ(0) ≠ 0 in
+    # general; the verified annulus excludes B_ε, where that does not matter)
+    plant = system.f_fun(x, u)
+    at0 = np.array(ca.Function("r", [x], [plant])(np.zeros(system.nx)), dtype=float).ravel()
     if np.max(np.abs(at0), initial=0.0) > 1e-8:
         msg = (f"the origin is not an equilibrium of the closed loop of {system.name!r}: "
                f"rhs(0) = {at0}; solve the controller bias from f(0, κ(0)) = 0 "

@@ -79,8 +79,11 @@ class VerificationProblem:
         self.property_names = list(self.property_names
                                    or [f"p{j}" for j in range(self.n_properties)])
         F = ca.vertcat(*exprs)
+        J = ca.densify(ca.jacobian(F, self.x))
         self.function = ca.Function("F", [self.x], [F])
-        self.jacobian = ca.Function("J", [self.x], [ca.densify(ca.jacobian(F, self.x))])
+        self.jacobian = ca.Function("J", [self.x], [J])
+        # one pass gives both (shared subexpressions): the verifier's hot path
+        self.function_jacobian = ca.Function("FJ", [self.x], [F, J])
         self.constraints = list(self.constraints)
         self.properties = list(self.properties)
 
@@ -95,6 +98,7 @@ class VerificationProblem:
 
     def __getstate__(self):  # casadi Functions serialise; MX expressions are rebuilt
         return {"function": self.function.serialize(), "jacobian": self.jacobian.serialize(),
+                "function_jacobian": self.function_jacobian.serialize(),
                 "box": self.box, "n_constraints": self.n_constraints,
                 "n_properties": self.n_properties,
                 "constraint_names": self.constraint_names,
@@ -103,6 +107,7 @@ class VerificationProblem:
     def __setstate__(self, st):
         self.function = ca.Function.deserialize(st["function"])
         self.jacobian = ca.Function.deserialize(st["jacobian"])
+        self.function_jacobian = ca.Function.deserialize(st["function_jacobian"])
         self.box = st["box"]
         self.n_constraints = st["n_constraints"]
         self.n_properties = st["n_properties"]

@@ -70,7 +70,7 @@ def _confirmed(problem, pts, enc) -> list[Counterexample]:
     return out
 
 
-def _presearch(problem, n_samples: int, rng: np.random.Generator, steps: int = 8):
+def _presearch(problem, n_samples: int, rng: np.random.Generator, steps: int = 4):
     """Float sampling plus projected gradient ascent on the worst property; returns points."""
     lo, hi = problem.box[:, 0], problem.box[:, 1]
     pts = lo + (hi - lo) * rng.random((n_samples, problem.n))
@@ -112,19 +112,22 @@ def _float_score(F, m):
 
 
 def _enclose(problem, lo, hi, mean_value: bool):
-    """Enclosures of F on boxes, plus F at the centres and the interval Jacobian."""
+    """Enclosures of F on boxes, F at the centres (rigorous) and the interval Jacobian.
+
+    The boxes go through the fused ``(F, J)`` Function (shared subexpressions), the centres
+    through ``F`` alone: two walker passes per round.
+    """
     B, n = lo.shape
-    X = Interval(lo, hi)
-    nat = evaluate(problem.function, [X], _IA)[0]
-    c = 0.5 * (lo + hi)
-    c = np.minimum(np.maximum(c, lo), hi)
-    Fc = _point_enclosure(problem, c)
+    c = np.minimum(np.maximum(0.5 * (lo + hi), lo), hi)
     if not mean_value:
-        return nat, Fc, None
-    J = evaluate(problem.jacobian, [X], _IA)[0]
+        both = evaluate(problem.function, [Interval(np.vstack([lo, c]), np.vstack([hi, c]))],
+                        _IA)[0]
+        return both[:B], both[B:], None
+    nat, Jall = evaluate(problem.function_jacobian, [Interval(lo, hi)], _IA)
+    Fc = _point_enclosure(problem, c)
     mk = nat.lo.shape[1]
-    J = _IA.structural(lambda a: np.swapaxes(a.reshape(B, n, mk), 1, 2), J)  # (B, m+k, n)
-    D = _IA.binary(ca.OP_SUB, X, Interval(c, c.copy()))  # rigorous X - c
+    J = _IA.structural(lambda a: np.swapaxes(a.reshape(B, n, mk), 1, 2), Jall)
+    D = _IA.binary(ca.OP_SUB, Interval(lo, hi), Interval(c, c))  # rigorous X - c
     D = _IA.structural(lambda a: a[:, None, :], D)
     mv = _IA.binary(ca.OP_ADD, Fc, _IA.sum(_IA.binary(ca.OP_MUL, J, D), -1))
     enc = _IA.intersect(nat, mv)
@@ -132,6 +135,17 @@ def _enclose(problem, lo, hi, mean_value: bool):
     if bad.any():
         enc = Interval(np.where(bad, nat.lo, enc.lo), np.where(bad, nat.hi, enc.hi))
     return enc, Fc, J
+
+
+def _initial_boxes(box: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
+    """A uniform grid of about ``target`` sub-boxes of ``box`` (fewer rounds of bisection)."""
+    n = len(box)
+    k = max(1, int(np.floor(target ** (1.0 / n))))
+    edges = [np.linspace(lo, hi, k + 1) for lo, hi in box]
+    idx = np.stack(np.meshgrid(*[np.arange(k)] * n, indexing="ij"), -1).reshape(-1, n)
+    lo = np.stack([edges[d][idx[:, d]] for d in range(n)], axis=1)
+    hi = np.stack([edges[d][idx[:, d] + 1] for d in range(n)], axis=1)
+    return lo, hi
 
 
 def split_box(box: np.ndarray, parts: int) -> list[np.ndarray]:
@@ -157,10 +171,11 @@ def verify_interval(
     max_boxes: int = 2_000_000,
     batch: int = 8192,
     mean_value: bool = True,
-    presearch: int = 2000,
+    presearch: int = 500,
     stop_at_first: bool = True,
     keep_leaves: bool = False,
     seed: int = 0,
+    initial_boxes: int = 256,
     executor: Executor | None = None,
     n_tasks: int | None = None,
     progress: bool = False,
@@ -175,9 +190,9 @@ def verify_interval(
         return _verify_distributed(problem, executor, n_tasks, t0, resolution=resolution,
                                    max_boxes=max_boxes, batch=batch, mean_value=mean_value,
                                    presearch=presearch, stop_at_first=stop_at_first,
-                                   keep_leaves=keep_leaves, seed=seed)
-    compile_function(problem.function)
-    compile_function(problem.jacobian)
+                                   keep_leaves=keep_leaves, seed=seed,
+                                   initial_boxes=initial_boxes)
+    compile_function(problem.function_jacobian)
     rng = np.random.default_rng(seed)
     found: list[Counterexample] = []
     if presearch:
@@ -186,8 +201,8 @@ def verify_interval(
             return VerificationResult("counterexample", found[0], found, boxes=0, depth=0,
                                       seconds=time.perf_counter() - t0)
     m = problem.n_constraints
-    queue_lo, queue_hi = box[None, :, 0].copy(), box[None, :, 1].copy()
-    depth_q = np.zeros(1, dtype=int)
+    queue_lo, queue_hi = _initial_boxes(box, initial_boxes)
+    depth_q = np.zeros(len(queue_lo), dtype=int)
     undecided: list[np.ndarray] = []
     leaves: list[dict] | None = [] if keep_leaves else None
     n_boxes = 0

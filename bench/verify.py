@@ -1,0 +1,115 @@
+"""Verifier benchmark (issue 3): seconds, boxes and verdict for three queries.
+
+(i)   2-D, 6-neuron tanh V with the true Van der Pol f on the annulus 0.2 ≤ ‖x‖ ≤ 1.2;
+(ii)  the same V with a 200-neuron learned dynamics network inside the Lie derivative;
+(iii) a 2×30 tanh V on Van der Pol, radius 2.5 (decrease on the annulus ∩ {V ≤ level}).
+
+Networks are made once (seeded) and cached in bench/data/; delete them to rebuild.
+Targets on 2 cores: (i) ≤ 0.03 s, (ii) ≤ 0.04 s, (iii) ≤ 30 s.
+
+    python bench/verify.py [--repeat 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+import systems
+from nlyap_opt.learning import LyapunovLearner, TrainConfig, sample_ball, sample_sphere
+from nlyap_opt.network import Layer, Network
+from nlyap_opt.roa import candidate_level, certify_level
+from nlyap_opt.symbolic import closed_loop, lie_derivative
+from verification import closed_loop_problem, verify
+
+DATA = Path(__file__).parent / "data"
+
+
+def _train_V(name, hidden, features, outer, steps, seed=0) -> Network:
+    path = DATA / f"{name}.json"
+    if path.exists():
+        return Network.load(path)
+    s = systems.get("van_der_pol")
+    cfg = TrainConfig(hidden=hidden, features=features, steps=steps, seed=seed,
+                      time_budget=600)
+    L = LyapunovLearner(s, None, None, cfg)
+    rng = np.random.default_rng(seed)
+    X = sample_ball(20000, 2, outer, rng)
+    S = sample_sphere(2000, 2, outer, rng)
+    L.train(X, S, 0.0)
+    V, _ = L.export()
+    return Network.load(V.save(path))
+
+
+def _dynamics_200() -> Network:
+    """A 2-200-2 tanh network fitted to Van der Pol on [-1.5, 1.5]² (random features + ridge)."""
+    path = DATA / "vdp_phi_200.json"
+    if path.exists():
+        return Network.load(path)
+    rng = np.random.default_rng(0)
+    W0 = rng.normal(0, 1.0, (200, 2))
+    b0 = rng.uniform(-1.5, 1.5, 200)
+    Z = rng.uniform(-1.5, 1.5, (20000, 2))
+    H = np.tanh(Z @ W0.T + b0)
+    Y = systems.get("van_der_pol").evaluate(Z)
+    H1 = np.hstack([H, np.ones((len(H), 1))])
+    coef = np.linalg.solve(H1.T @ H1 + 1e-8 * np.eye(201), H1.T @ Y)
+    net = Network([Layer(W0, b0, "tanh"), Layer(coef[:200].T, coef[200], "linear")],
+                  meta={"kind": "dynamics", "fit": "random features + ridge, bench only"})
+    err = np.abs(net.numpy(Z) - Y).max()
+    net.meta["max_abs_error_on_fit_points"] = float(err)
+    return Network.load(net.save(path))
+
+
+def _timed(fn, repeat):
+    best, res = np.inf, None
+    for _ in range(repeat):
+        t = time.perf_counter()
+        res = fn()
+        best = min(best, time.perf_counter() - t)
+    return best, res
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    args = ap.parse_args(argv)
+    DATA.mkdir(exist_ok=True)
+    s = systems.get("van_der_pol")
+    V6 = _train_V("vdp_V6", [6], 3, 1.4, 1500)
+    phi = _dynamics_200()
+    V30 = _train_V("vdp_V30x30", [30, 30], 4, 2.5, 2500)
+    rows = []
+
+    p1 = closed_loop_problem(s, V6, inner=0.2, outer=1.2)
+    t1, r1 = _timed(lambda: verify(p1), args.repeat)
+    rows.append(("(i) V 2-6 tanh, true f, 0.2≤‖x‖≤1.2", t1, r1, 0.03))
+
+    # φ in place of f (the Van der Pol system has no input: φ takes (x) only, nu = 0)
+    p2 = closed_loop_problem(s, V6, dynamics=phi, inner=0.2, outer=1.2, margin=0.01)
+    t2, r2 = _timed(lambda: verify(p2), args.repeat)
+    rows.append(("(ii) same V, 200-neuron φ, margin 0.01", t2, r2, 0.04))
+
+    cl = closed_loop(s)
+    Vx = V30.casadi(cl.x)
+    lie = lie_derivative(Vx, cl.x, cl.rhs)
+    cand = candidate_level(cl.x, Vx, lie, inner=0.2, outer=2.5)
+    cert = certify_level(cl.x, Vx, lie, level=cand.level, inner=0.2, outer=2.5, margin=0.0,
+                         log=lambda m: None)
+    from verification import lyapunov_problem
+
+    p3 = lyapunov_problem(cl.x, Vx, lie, inner=0.2, outer=2.5, level=cert.level)
+    t3, r3 = _timed(lambda: verify(p3), max(1, args.repeat // 5))
+    rows.append((f"(iii) V 2-30-30 tanh, r=2.5, level {cert.level:.4g}", t3, r3, 30.0))
+
+    print("| query | seconds (best of runs) | boxes | depth | verdict | target s |")
+    print("|---|---|---|---|---|---|")
+    for label, t, r, target in rows:
+        print(f"| {label} | {t:.4f} | {r.boxes} | {r.depth} | {r.status} | ≤ {target:g} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -20,7 +20,14 @@ from .network import Network
 from .roa import candidate_level, certify_level, grid_area, grid_points
 from .simulate import simulate_converges
 
-__all__ = ["CegisConfig", "CegisResult", "cegis"]
+__all__ = ["CegisConfig", "CegisResult", "cegis", "robust_lie"]
+
+
+def robust_lie(lie, V, x, eta: float):
+    r"""``∇V·φ + η‖∇V‖₂``: an upper bound of ``∇V·f`` wherever ``‖f − φ‖₂ ≤ η``."""
+    import casadi as ca
+
+    return lie + eta * ca.sqrt(ca.sumsqr(ca.gradient(V, x)))
 
 
 @dataclass
@@ -40,6 +47,9 @@ class CegisConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     seed: int = 0
     time_budget: float = 300.0
+    # learned dynamics: "pointwise" verifies ∇V·φ + η‖∇V(x)‖ < 0 (Cauchy–Schwarz: implies
+    # ∇V·f < 0 wherever ‖f − φ‖ ≤ η); "global" verifies the paper's ∇V·φ < −β, β = M·η
+    margin_mode: str = "pointwise"
 
 
 @dataclass
@@ -67,8 +77,9 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
     dynamics : Network or None       learned φ (``None``: the true f, known-dynamics setting)
     cfg : CegisConfig
     eta : float                      error bound ``‖f − φ‖ ≤ η`` on the box (learned case)
-    gradient_bound : callable(V: Network) -> float
-        Rigorous ``sup ‖∇V‖₂`` on the verification ball (needed when ``eta > 0``).
+    gradient_bound : callable(V: Network, controller: Network | None) -> float
+        Rigorous ``sup ‖∇V‖₂`` on the verification ball (needed when ``eta > 0``); it should
+        also refuse a controller that leaves the input box ``U``.
     """
     from .symbolic import closed_loop, lie_derivative
 
@@ -99,25 +110,31 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
     M = None
     for it in range(cfg.iterations):
         steps = (cfg.first_steps or cfg.train.steps) if it == 0 else cfg.steps
-        info = learner.train(X, S, margin, cex if len(cex) else None, steps=steps,
-                             inside_weight=weights)
+        pointwise = eta if (eta > 0 and cfg.margin_mode == "pointwise") else 0.0
+        info = learner.train(X, S, 0.0 if pointwise else margin, cex if len(cex) else None,
+                             steps=steps, inside_weight=weights, eta_pointwise=pointwise)
         V, ctrl = learner.export()
         if eta > 0:
-            M = float(gradient_bound(V))
+            M = float(gradient_bound(V, ctrl))
             margin = float(np.nextafter(M * eta, np.inf))
         cl = closed_loop(system, ctrl, dynamics, strict=True)
         Vx = V.casadi(cl.x)
         lie = lie_derivative(Vx, cl.x, cl.rhs)
-        cand = candidate_level(cl.x, Vx, lie, inner=cfg.inner, outer=cfg.outer, margin=margin,
-                               seed=cfg.seed + it)
+        check_margin = margin
+        if eta > 0 and cfg.margin_mode == "pointwise":
+            lie = robust_lie(lie, Vx, cl.x, eta)
+            check_margin = 0.0
+        cand = candidate_level(cl.x, Vx, lie, inner=cfg.inner, outer=cfg.outer,
+                               margin=check_margin, seed=cfg.seed + it)
         cert = certify_level(cl.x, Vx, lie, level=cand.level, inner=cfg.inner, outer=cfg.outer,
-                             margin=margin, verify_options=cfg.verify_options,
+                             margin=check_margin, verify_options=cfg.verify_options,
                              log=lambda m: log("  " + m))
         area = 0.0
         if cert.status == "certified":
             v = V.numpy(pts)[:, 0]
             area = grid_area((in_ball & (v <= cert.level)).reshape(shape), box)
         entry = {"iteration": it, "loss": info["loss"], "train_steps": info["steps"],
+                 "margin_mode": cfg.margin_mode if eta > 0 else "none",
                  "train_seconds": info["seconds"], "candidate_level": cand.level,
                  "candidate_source": cand.source, "status": cert.status,
                  "level": cert.level, "margin": margin, "M": M, "area": area,

@@ -70,7 +70,8 @@ def cmd_verify(args) -> int:
     if args.margin and dyn is None:
         print("note: --margin without --dynamics tightens the true-f condition", file=sys.stderr)
     problem = closed_loop_problem(s, V, ctrl, dyn, inner=args.inner, outer=args.outer,
-                                  level=args.level, margin=args.margin, strict=False)
+                                  level=args.level, margin=args.margin, eta=args.eta,
+                                  strict=False)
     opts = {}
     if args.backend == "interval":
         opts = {"resolution": args.resolution, "progress": args.progress}
@@ -79,7 +80,8 @@ def cmd_verify(args) -> int:
     res = verify(problem, backend=args.backend, **opts)
     region = f"{args.inner:g} <= |x| <= {args.outer:g}" + (
         f" and V <= {args.level:g}" if args.level is not None else "")
-    print(f"{res.status}: V > 0 and dV/dt < -{args.margin:g} on {region} "
+    extra = f" + {args.eta:g}|∇V|" if args.eta else ""
+    print(f"{res.status}: V > 0 and dV/dt{extra} < -{args.margin:g} on {region} "
           f"({res.boxes} boxes, depth {res.depth}, {res.seconds:.3f} s, {res.backend})")
     if res.counterexample is not None:
         c = res.counterexample
@@ -123,6 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--controller", help="controller network JSON (feeds the inputs)")
     sp.add_argument("--dynamics", help="learned dynamics network JSON (replaces f)")
     sp.add_argument("--margin", type=float, default=0.0, help="beta: require dV/dt < -beta")
+    sp.add_argument("--eta", type=float, default=0.0,
+                    help="pointwise robust margin: require dV/dt + eta*|grad V| < -beta")
     sp.add_argument("--inner", type=float, required=True, help="inner radius epsilon")
     sp.add_argument("--outer", type=float, required=True, help="outer radius r")
     sp.add_argument("--level", type=float, help="restrict to V(x) <= level")

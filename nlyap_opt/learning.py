@@ -140,9 +140,17 @@ class LyapunovLearner:
             u = torch.as_tensor(s.u_eq, dtype=x.dtype).expand(x.shape[0], s.nu)
         if self.phi is None:
             return s.evaluate_torch(x, u)
-        out = self.phi(torch.cat([x, u], dim=1))
-        learned = self.dynamics.meta.get("learned_components")
-        if learned is None:
+        meta = self.dynamics.meta  # same two models as nlyap_opt.symbolic.learned_rhs
+        learned = meta.get("learned_components")
+        if meta.get("model", "full") == "control_affine":
+            out = self.phi(x)
+            if s.nu:
+                B = torch.as_tensor(np.asarray(meta["input_matrix"], dtype=float)).reshape(
+                    out.shape[1], s.nu)
+                out = out + u @ B.T
+        else:
+            out = self.phi(torch.cat([x, u], dim=1))
+        if learned is None or list(learned) == list(range(s.nx)):
             return out
         f = s.evaluate_torch(x, u)
         cols = [out[:, learned.index(i)] if i in learned else f[:, i] for i in range(s.nx)]
@@ -157,11 +165,13 @@ class LyapunovLearner:
     # ------------------------------------------------------------------ training
     def train(self, states: np.ndarray, sphere: np.ndarray, margin: float,
               counterexamples: np.ndarray | None = None, steps: int | None = None,
-              inside_weight: np.ndarray | None = None, progress=None) -> dict:
+              inside_weight: np.ndarray | None = None, progress=None,
+              eta_pointwise: float = 0.0) -> dict:
         """Run ``steps`` Adam steps; returns the last loss terms.
 
         ``inside_weight`` (per state, default 1) scales the pull of ``V ≤ 1`` (0 for
-        states known not to converge).
+        states known not to converge). ``eta_pointwise`` adds ``η‖∇V(x)‖`` to the Lie
+        derivative (the pointwise robust margin for learned dynamics).
         """
         cfg = self.config
         X = torch.as_tensor(states, dtype=torch.float64)
@@ -184,6 +194,8 @@ class LyapunovLearner:
                 wb = torch.cat([wb, torch.ones(len(cidx), dtype=torch.float64)])
             v, lie, g = self.value_and_lie(xb.clone())
             active = (v <= 1.0 + cfg.level_slack).to(v.dtype)
+            if eta_pointwise:
+                lie = lie + eta_pointwise * g.norm(dim=1)
             dec = (torch.relu(lie + margin + cfg.decay * v) * active).mean()
             inside = (torch.relu(v - 1.0) * wb).mean()
             sidx = torch.randint(0, len(S), (min(cfg.batch // 4, len(S)),), generator=gen)

@@ -89,7 +89,7 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
     ball_box = np.tile([-r, r], (system.nx, 1))
 
     # ---------------------------------------------------------------- 1. dynamics
-    dynamics, eta, bounds_info = None, 0.0, None
+    dynamics, eta, bounds_info, dyn_box = None, 0.0, None, None
     if not known_dynamics:
         from .bounds import compute_bounds, write_bounds
         from .dynamics import default_config, learn_dynamics
@@ -141,9 +141,12 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
         if eta > 0:
             from .bounds import gradient_bound
 
-            def grad(V, _ctrl=controller):
-                gb = gradient_bound(V, ball_box)
-                return gb.value
+            def grad(V, ctrl):
+                """Rigorous M on the ball; refuses a κ leaving U or a ball leaving the box."""
+                gb = gradient_bound(V, ball_box, controller=ctrl,
+                                    input_box=system.input_box if system.nu else None,
+                                    state_box=dyn_box)
+                return gb.M
 
         log(f"[cegis] learning V{' and κ' if controller is not None else ''} on "
             f"{eps:g} ≤ ‖x‖ ≤ {r:g}" + (f" with η = {eta:.3g}" if eta else " (true f)"))
@@ -187,6 +190,14 @@ def _certificate(system, cfg, V, controller, dynamics, eta, cg, bounds_info, out
     r, eps = float(cfg["outer"]), float(cfg["inner"])
     level, margin = float(cg["level"]), float(cg["margin"])
     known = dynamics is None
+    mode = (cg["history"][-1].get("margin_mode", "none") if cg.get("history") else "none")
+    if known:
+        condition = "∇V·f(x, κ(x)) < 0"
+    elif mode == "pointwise":
+        condition = (f"∇V·φ(x, κ(x)) + η‖∇V(x)‖ < 0 with η = {eta:.4g} (implies ∇V·f < 0 "
+                     "by Cauchy–Schwarz where ‖f − φ‖ ≤ η)")
+    else:
+        condition = f"∇V·φ(x, κ(x)) < −β with β = M·η = {margin:.4g}"
     assumptions = [
         "V and κ are the float64 networks saved in V.json / controller.json (verified as saved)",
     ]
@@ -250,6 +261,8 @@ def _certificate(system, cfg, V, controller, dynamics, eta, cg, bounds_info, out
         "inner_radius": eps,
         "outer_radius": r,
         "margin": margin,
+        "margin_mode": mode,
+        "decrease_condition": condition,
         "M": cg.get("M"),
         "eta": eta if not known else 0.0,
         "inner_ellipse": None if inner is None else {

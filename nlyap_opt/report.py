@@ -33,9 +33,9 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
     lines += ["", "## What is certified", ""]
     r, eps = cert["outer_radius"], cert["inner_radius"]
     lines += [
-        f"- (a) decrease ∇V·{'f' if bounds is None else 'φ'} < −β on "
+        f"- (a) decrease {cert.get('decrease_condition', '')} on "
         f"{{{eps:g} ≤ ‖x‖ ≤ {r:g}, V(x) ≤ {cert['level']:.6g}}} — interval verifier "
-        "(outward rounding), β = 0 for known f, β = M·η for learned φ;",
+        "(outward rounding);",
         f"- (b) containment: V(x) > {cert['level']:.6g} on ‖x‖ = {r:g};",
     ]
     ie = cert.get("inner_ellipse")

@@ -89,29 +89,40 @@ def closed_loop(system, controller: Network | None = None, dynamics: Network | N
 
 
 def learned_rhs(system, dynamics: Network, x, u):
-    """``φ(x, u)``, completed with the exactly known components of ``f`` if needed."""
+    """``φ(x, u)``, completed with the exactly known components of ``f`` if needed.
+
+    Two models (``dynamics.meta["model"]``):
+
+    - ``"full"`` (default): ``φ`` takes ``(x, u)`` and outputs the learned components;
+    - ``"control_affine"``: ``φ₀`` takes ``x`` only and the learned components are
+      ``φ₀(x) + B u`` with the known constant input matrix ``meta["input_matrix"]``.
+
+    ``meta["learned_components"]`` lists the state indices ``φ`` outputs (default: all);
+    the other components are taken from ``system`` (known exactly).
+    """
+    model = dynamics.meta.get("model", "full")
     learned = dynamics.meta.get("learned_components")
-    if dynamics.n_in != system.nx + system.nu:
+    learned = list(range(system.nx)) if learned is None else [int(i) for i in learned]
+    n_in = system.nx if model == "control_affine" else system.nx + system.nu
+    if dynamics.n_in != n_in or dynamics.n_out != len(learned):
         raise DimensionError(
-            f"dynamics network takes {dynamics.n_in} inputs; system {system.name!r} needs "
-            f"nx + nu = {system.nx + system.nu}"
+            f"dynamics network maps R^{dynamics.n_in} -> R^{dynamics.n_out}; system "
+            f"{system.name!r} with model {model!r} and learned components {learned} needs "
+            f"R^{n_in} -> R^{len(learned)}"
         )
-    phi = dynamics.casadi(ca.vertcat(x, u))
-    if learned is None:
-        if dynamics.n_out != system.nx:
-            raise DimensionError(
-                f"dynamics network has {dynamics.n_out} outputs, expected nx = {system.nx} "
-                "(or set meta['learned_components'])"
-            )
+    if model == "control_affine":
+        phi = dynamics.casadi(x)
+        if system.nu:
+            B = np.array(dynamics.meta.get("input_matrix"), dtype=float).reshape(
+                len(learned), system.nu)
+            phi = phi + ca.mtimes(ca.DM(B), u)
+    else:
+        phi = dynamics.casadi(ca.vertcat(x, u))
+    if learned == list(range(system.nx)):
         return phi
-    learned = [int(i) for i in learned]
-    if len(learned) != dynamics.n_out:
-        raise DimensionError("meta['learned_components'] must list one state per output")
     f = system.f_fun(x, u)
-    parts = []
-    for i in range(system.nx):
-        parts.append(phi[learned.index(i)] if i in learned else f[i])
-    return ca.vertcat(*parts)
+    return ca.vertcat(*[phi[learned.index(i)] if i in learned else f[i]
+                        for i in range(system.nx)])
 
 
 def lie_derivative(V: ca.MX, x: ca.MX, rhs: ca.MX) -> ca.MX:

@@ -209,7 +209,7 @@ def lyapunov_problem(x, V, lie, *, inner: float, outer: float, level: float | No
 
 def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: float,
                         outer: float, level: float | None = None, margin: float = 0.0,
-                        strict: bool = False, check_positive: bool = True
+                        eta: float = 0.0, strict: bool = False, check_positive: bool = True
                         ) -> VerificationProblem:
     """Lyapunov problem for saved networks: ``V``, ``κ`` and optionally learned ``φ``.
 
@@ -221,6 +221,8 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     inner, outer : float      annulus ``inner ≤ ‖x‖₂ ≤ outer``
     level : float, optional   intersect with ``V(x) ≤ level``
     margin : float            β: require ``∇V·g < −β``
+    eta : float               pointwise robust margin: require ``∇V·g + η‖∇V‖ < −β``
+                              (with ``g = φ`` this implies ``∇V·f < −β`` where ``‖f − φ‖ ≤ η``)
     strict : bool             raise (True) or warn (False) if 0 is not an equilibrium
     """
     from nlyap_opt.symbolic import closed_loop, lie_derivative
@@ -233,5 +235,9 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     cl = closed_loop(system, controller, dynamics, strict=strict)
     Vx = V.casadi(cl.x)
     lie = lie_derivative(Vx, cl.x, cl.rhs)
+    if eta:
+        from nlyap_opt.cegis import robust_lie
+
+        lie = robust_lie(lie, Vx, cl.x, eta)
     return lyapunov_problem(cl.x, Vx, lie, inner=inner, outer=outer, level=level,
                             margin=margin, check_positive=check_positive)

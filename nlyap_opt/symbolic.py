@@ -20,7 +20,7 @@ import numpy as np
 from .errors import DimensionError, EquilibriumError, EquilibriumWarning
 from .network import Network
 
-__all__ = ["ClosedLoop", "closed_loop", "lie_derivative"]
+__all__ = ["ClosedLoop", "closed_loop", "lie_derivative", "robust_lie"]
 
 
 @dataclass
@@ -130,3 +130,9 @@ def lie_derivative(V: ca.MX, x: ca.MX, rhs: ca.MX) -> ca.MX:
     if V.shape != (1, 1):
         raise DimensionError(f"V must be scalar, got shape {V.shape}")
     return ca.dot(ca.gradient(V, x), rhs)
+
+
+def robust_lie(lie: ca.MX, V: ca.MX, x: ca.MX, eta: float) -> ca.MX:
+    r"""``∇V·φ + η‖∇V‖₂``: by Cauchy–Schwarz an upper bound of ``∇V·f`` wherever
+    ``‖f − φ‖₂ ≤ η``."""
+    return lie + eta * ca.sqrt(ca.sumsqr(ca.gradient(V, x)))

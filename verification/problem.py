@@ -236,7 +236,7 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     Vx = V.casadi(cl.x)
     lie = lie_derivative(Vx, cl.x, cl.rhs)
     if eta:
-        from nlyap_opt.cegis import robust_lie
+        from nlyap_opt.symbolic import robust_lie
 
         lie = robust_lie(lie, Vx, cl.x, eta)
     return lyapunov_problem(cl.x, Vx, lie, inner=inner, outer=outer, level=level,

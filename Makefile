@@ -14,8 +14,7 @@ $(BIN)/nlyap: setup.cfg pyproject.toml constraints.txt
 install: $(BIN)/nlyap
 
 demo: install
-	$(BIN)/nlyap systems
-	$(BIN)/nlyap lqr inverted_pendulum --json out/lqr_inverted_pendulum.json
+	$(BIN)/nlyap run $(SYSTEM) --out runs/$(SYSTEM)
 
 test: install
 	$(BIN)/python -m pytest -q -rs
@@ -25,5 +24,6 @@ test-slow: install
 
 bench: install
 	$(BIN)/python bench/verify.py
+	$(BIN)/python bench/compare.py
 
 .PHONY: install demo test test-slow bench

@@ -15,7 +15,10 @@ import numpy as np
 from nlyap_opt.errors import DimensionError, NotStabilizableError
 from nlyap_opt.network import Layer, Network
 
-__all__ = ["LQRResult", "lqr", "lyapunov_matrix", "saturated_controller"]
+__all__ = [
+    "LQRResult", "lqr", "lyapunov_matrix", "saturated_controller", "linear_controller",
+    "quadratic_lyapunov",
+]
 
 
 @dataclass
@@ -158,3 +161,20 @@ def saturated_controller(system, K, scale) -> Network:
     Kp = -K / slope[:, None]
     return Network([Layer(Kp, b, "tanh")], C if system.nu > 1 else float(C[0]),
                    {"kind": "controller", "form": "C*tanh(Kx+b)"})
+
+
+def linear_controller(system, K) -> Network:
+    """The unsaturated LQR feedback ``u = u_eq − K x`` as a one-layer linear network."""
+    K = np.atleast_2d(np.asarray(K, dtype=float))
+    if K.shape != (system.nu, system.nx):
+        raise DimensionError(f"K must be ({system.nu}, {system.nx}), got {K.shape}")
+    return Network([Layer(-K, system.u_eq.copy(), "linear")], 1.0,
+                   {"kind": "controller", "form": "u_eq - Kx"})
+
+
+def quadratic_lyapunov(P) -> Network:
+    """``V(x) = xᵀPx`` as a network: ``‖Lᵀx‖²`` with ``P = L Lᵀ`` (sum-of-squares head)."""
+    P = np.asarray(P, dtype=float)
+    L = np.linalg.cholesky(0.5 * (P + P.T))
+    return Network([Layer(L.T, np.zeros(len(P)), "linear")], head={"type": "sum_of_squares"},
+                   meta={"kind": "lyapunov", "form": "x'Px"})

@@ -103,6 +103,18 @@ def cmd_run(args) -> int:
     return 0 if cert["status"] == "certified" else 2
 
 
+def cmd_compare(args) -> int:
+    from baselines.compare import compare
+
+    from .configs import get_config
+
+    cfg = get_config(args.system, args.preset, args.config)
+    out = args.out or f"runs/compare_{args.system}"
+    rows = compare(args.system, cfg, out, include_neural=not args.no_neural)
+    print((Path(out) / "comparison.md").read_text())
+    return 0 if all(r["certified"] for r in rows if r["method"].startswith("neural")) else 2
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="nlyap", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -146,7 +158,17 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", help="output directory (default runs/NAME[_known])")
     sp.set_defaults(func=cmd_run)
 
-    for register in _EXTRA:
+    sp = sub.add_parser("compare", help="LQR, SOS and neural ROAs, all certified, vs true ROA")
+    sp.add_argument("system")
+    sp.add_argument("--config", help="JSON file merged over the preset")
+    sp.add_argument("--preset", default="large", help="paper | large | fast (default large)")
+    sp.add_argument("--out", help="output directory (default runs/compare_NAME)")
+    sp.add_argument("--no-neural", action="store_true", help="baselines only")
+    sp.set_defaults(func=cmd_compare)
+
+    from .bounds import register_cli as register_learn_dynamics
+
+    for register in [register_learn_dynamics, *_EXTRA]:
         register(sub)
     return p
 

@@ -89,27 +89,36 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
     ball_box = np.tile([-r, r], (system.nx, 1))
 
     # ---------------------------------------------------------------- 1. dynamics
-    dynamics, eta, bounds_info, dyn_box = None, 0.0, None, None
+    dynamics, eta, bounds_info, dyn_box, input_box = None, 0.0, None, None, None
     if not known_dynamics:
         from .bounds import compute_bounds, write_bounds
-        from .dynamics import default_config, learn_dynamics
+        from .dynamics import default_config, learn_dynamics, merge_config
 
         if not stages.finished("dynamics"):
             t = time.perf_counter()
             dcfg = dict(cfg.get("dynamics", {}))
             preset = dcfg.pop("preset", "default")
-            dcfg = {**default_config(system_name, fast=(preset == "fast")), **dcfg}
+            dcfg = merge_config(default_config(system_name, fast=(preset == "fast")), dcfg)
+            dcfg["progress"] = dcfg.get("progress", True) and log is print
             log(f"[dynamics] learning φ for {system_name} ({preset} preset)")
             res = learn_dynamics(system, dcfg)
-            bounds = compute_bounds(system, res.network, res.grid, res.alpha)
-            res.network.save(out / "dynamics.json")
-            write_bounds(out / "bounds.json", bounds, res.seconds)
+            bounds = compute_bounds(system, res.network, res.grid, res.alpha,
+                                    options=dcfg.get("bound_options"),
+                                    select=dcfg.get("bound_model", "best"),
+                                    boxes=dcfg.get("interval_boxes", 16384),
+                                    check_points=dcfg.get("check_points", 200000))
+            net_path = res.network.save(out / "dynamics.json")
+            write_bounds(out / "bounds.json", bounds, res.seconds, network_path=str(net_path))
             seconds["dynamics"] = time.perf_counter() - t
             stages.mark("dynamics")
         dynamics = Network.load(out / "dynamics.json")
         bounds_info = json.loads((out / "bounds.json").read_text())
         eta = float(bounds_info["eta"])
-        dyn_box = np.asarray(bounds_info["grid"]["box"], dtype=float)[: system.nx]
+        grid_box = np.asarray(bounds_info["grid"]["box"], dtype=float)
+        dyn_box = grid_box[: system.nx]
+        # U of the bound: the grid's input rows (full model) or the system's (control-affine:
+        # the error does not depend on u)
+        input_box = grid_box[system.nx:] if len(grid_box) > system.nx else system.input_box
         if np.any(ball_box[:, 0] < dyn_box[:, 0]) or np.any(ball_box[:, 1] > dyn_box[:, 1]):
             from .errors import ConfigError
 
@@ -144,7 +153,7 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
             def grad(V, ctrl):
                 """Rigorous M on the ball; refuses a κ leaving U or a ball leaving the box."""
                 gb = gradient_bound(V, ball_box, controller=ctrl,
-                                    input_box=system.input_box if system.nu else None,
+                                    input_box=input_box if system.nu else None,
                                     state_box=dyn_box)
                 return gb.M
 

@@ -6,7 +6,9 @@ region of attraction of the **true** closed loop when
 - (a) decrease: :math:`\nabla V \cdot g(x) < -\beta` on :math:`\{\varepsilon \le \|x\| \le r,
   V(x) \le c\}` (``g = φ`` with :math:`\beta > M\eta` for learned dynamics, ``g = f``,
   :math:`\beta = 0` for known dynamics);
-- (b) containment: :math:`V(x) > c` on :math:`\|x\| = r`;
+- (b) containment: :math:`V(x) > c` on :math:`\|x\| = r` (and, so that the certificate is
+  not trivial, :math:`V(x) < c` on :math:`\|x\| = \varepsilon`, i.e.
+  :math:`B_\varepsilon \subseteq \Omega_c`);
 - (c) inner ball: :math:`B_\varepsilon \subseteq E = \{x^\top P x \le c_q\}` and ``E`` is a
   quadratic Lyapunov sublevel set of the true closed loop. For known ``f`` this is proved by
   verifying :math:`P J(y) + J(y)^\top P \prec 0` for every ``y`` of a box containing ``E``
@@ -151,7 +153,15 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer: float, margin
         log(f"    level {c:.6g}: containment {res_b.status}, decrease "
             f"{hist[-1]['decrease']}")
         if res_a is not None and res_a.status == "verified":
-            return LevelCertificate("certified", c, res_a, res_b, hist,
+            # B_ε ⊆ Ω_c: V < c on the inner sphere (else Ω_c may lie inside B_ε: a trivial
+            # certificate resting on condition (c) alone)
+            prob_d = VerificationProblem(x, box, [r2 - inner**2, inner**2 - r2], [V - c],
+                                         ["inner", "sphere"], ["V<level on inner sphere"])
+            res_d = verify(prob_d, **opts)
+            status = "certified" if res_d.status == "verified" else \
+                f"level {c:.4g} does not contain the inner ball ({res_d.status})"
+            hist[-1]["contains_inner_ball"] = res_d.status
+            return LevelCertificate(status, c, res_a, res_b, hist,
                                     np.array(cexs).reshape(-1, n), time.perf_counter() - t0)
         bad = res_b if res_b.status != "verified" else res_a
         if bad.status == "counterexample":

@@ -298,11 +298,14 @@ class Program:
         prims = [e.primitives() for e in f.call(f.mx_in())]  # symbolic re-evaluation
         self.n_segments = [len(p) for p in prims]
         seen_out: dict[int, int] = {}
+        zero_regs: set[int] = set()  # registers that hold an all-zero constant
         for k in range(f.n_instructions()):
             op = f.instruction_id(k)
             self.ops.append(op)
             i = list(f.instruction_input(k))
             o = list(f.instruction_output(k))
+            z_in = op == ca.OP_MTIMES and i[0] in zero_regs
+            zero_regs.difference_update(o)
             if op == ca.OP_OUTPUT:  # outputs may be written in several primitive segments
                 seg = seen_out.get(o[0], 0)
                 seen_out[o[0]] = seg + 1
@@ -313,6 +316,8 @@ class Program:
             if op == ca.OP_CONST:
                 val = np.array(ca.evalf(node), dtype=float).reshape(node.size1(), node.size2())
                 steps.append(_sx_const(o[0], val))
+                if not val.any() and not np.signbit(val).any():  # +0.0 only
+                    zero_regs.add(o[0])
             elif op == ca.OP_INPUT:
                 off = int(node.info().get("offset", 0))
                 steps.append(_mx_input(o[0], i[0], off, _Sp(node.sparsity())))
@@ -321,7 +326,7 @@ class Program:
             elif op in BINARY_OPS:
                 steps.append(_binary(op, o[0], i[0], i[1]))
             elif op == ca.OP_MTIMES:
-                steps.append(_mx_mtimes(o[0], i[0], i[1], i[2]))
+                steps.append(_mx_mtimes(o[0], i[0], i[1], i[2], z_in))
             elif op == ca.OP_DOT:
                 steps.append(_mx_dot(o[0], i[0], i[1]))
             elif op == ca.OP_BILIN:  # xᵀ A y with inputs [A, x, y]
@@ -391,8 +396,16 @@ class Program:
 
 # step factories (closures keep evaluation free of dispatch)
 def _sx_const(o, value):
+    cache: dict = {}  # per arithmetic that declares ``cache_constants`` (immutable values)
+
     def step(r, ctx):
-        r[o] = ctx[0].constant(value)
+        ar = ctx[0]
+        c = cache.get(ar)
+        if c is None:
+            c = ar.constant(value)
+            if getattr(ar, "cache_constants", False):
+                cache[ar] = c
+        r[o] = c
     return step
 
 
@@ -443,7 +456,12 @@ def _mx_output(ind, seg, src, sp):
     return step
 
 
-def _mx_mtimes(o, z, x, y):
+def _mx_mtimes(o, z, x, y, z_is_zero=False):
+    if z_is_zero:  # z + x y with z = +0: adding zero is exact (same shape (r, c))
+        def step(r, ctx):
+            r[o] = ctx[0].matmul(r[x], r[y])
+        return step
+
     def step(r, ctx):
         ar = ctx[0]
         r[o] = ar.binary(ca.OP_ADD, r[z], ar.matmul(r[x], r[y]))

@@ -91,3 +91,34 @@ def test_run_resumes_from_saved_stages(known_runs):
                 log=logs.append)
     assert any("[cegis] loaded" in m for m in logs)
     assert again["level"] == cert["level"]
+
+
+@pytest.fixture(scope="module")
+def learned_runs(tmp_path_factory):
+    out = {}
+    for name in systems.names():
+        d = tmp_path_factory.mktemp(name + "_learned")
+        cert = run(name, get_config(name, "fast"), d, known_dynamics=False, log=lambda m: None)
+        out[name] = (d, cert)
+    return out
+
+
+@pytest.mark.parametrize("name", systems.names())
+def test_fast_learned_dynamics_run_is_certified(learned_runs, name, tmp_path):
+    d, cert = learned_runs[name]
+    assert cert["status"] == "certified", cert["status"]
+    bounds = json.loads((d / "bounds.json").read_text())
+    assert cert["eta"] == bounds["eta"] > 0
+    assert any("Assumption 3" in a for a in cert["assumptions"])
+    assert cert["true_dynamics_check"] is not None
+    # re-verify the learned-dynamics certificate from the saved files
+    args = ["verify", "--system", name, "--lyapunov", str(d / "V.json"),
+            "--dynamics", str(d / "dynamics.json"), "--eta", repr(cert["eta"]),
+            "--inner", str(cert["inner_radius"]), "--outer", str(cert["outer_radius"]),
+            "--level", repr(cert["level"])]
+    if (d / "controller.json").exists():
+        args += ["--controller", str(d / "controller.json")]
+    assert main(args) == 0
+    # the same networks with a much larger η are not certified at that level
+    args[args.index("--eta") + 1] = repr(cert["eta"] * 1000 + 1.0)
+    assert main(args) in (1, 2)

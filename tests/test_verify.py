@@ -8,7 +8,7 @@ import pytest
 from certcheck import assert_confirmed, assert_no_sample_contradicts
 
 import systems
-from baselines.lqr import lqr, saturated_controller
+from baselines.lqr import lqr, quadratic_lyapunov, saturated_controller
 from nlyap_opt.errors import BackendUnavailableError, UnknownNameError
 from nlyap_opt.network import Layer, Network
 from verification import (
@@ -24,9 +24,7 @@ P_VDP = np.array([[1.5, -0.5], [-0.5, 1.0]])
 
 
 def quadratic_V(P) -> Network:
-    """V(x) = xᵀPx as a network: ||Lᵀx||² with P = L Lᵀ (sum-of-squares head)."""
-    L = np.linalg.cholesky(np.asarray(P, dtype=float))
-    return Network([Layer(L.T, np.zeros(len(P)), "linear")], head={"type": "sum_of_squares"})
+    return quadratic_lyapunov(P)
 
 
 def test_van_der_pol_quadratic_verified_and_refuted():

@@ -1,0 +1,233 @@
+"""``nlyap compare``: every method's ROA, certified by the same verifier, against the true ROA.
+
+Rows (each certified with conditions (a), (b) and the inner-ball condition (c), exactly as
+the neural certificates, so no baseline looks better or worse through a softer standard):
+
+- ``lqr`` — ``V = xᵀPx`` with the LQR controller (linear and saturated variants), true f;
+- ``lqr-learned`` — the same with learned φ and the pointwise robust margin η‖∇V‖;
+- ``sos-2``, ``sos-4`` — SOS (cvxpy) where the closed loop is polynomial, re-certified;
+- ``neural-learned`` / ``neural-true`` — the main pipeline with learned φ / with the true f.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["compare", "quadratic_row"]
+
+
+def quadratic_row(system, cfg: dict, V, controller, *, method: str, dynamics=None,
+                  eta: float = 0.0, log=print) -> dict:
+    """Certify the largest level of ``V`` (a Network) under ``controller`` and return a row."""
+    from nlyap_opt.roa import candidate_level, certify_inner_ellipse, certify_level
+    from nlyap_opt.symbolic import closed_loop, lie_derivative, robust_lie
+
+    t0 = time.perf_counter()
+    r, eps = float(cfg["outer"]), float(cfg["inner"])
+    cl = closed_loop(system, controller, dynamics, strict=True)
+    Vx = V.casadi(cl.x)
+    lie = lie_derivative(Vx, cl.x, cl.rhs)
+    if eta:
+        lie = robust_lie(lie, Vx, cl.x, eta)
+    cand = candidate_level(cl.x, Vx, lie, inner=eps, outer=r)
+    cert = certify_level(cl.x, Vx, lie, level=cand.level, inner=eps, outer=r, margin=0.0,
+                         log=lambda m: None)
+    inner = certify_inner_ellipse(system, controller, eps)
+    status = cert.status
+    if status == "certified" and dynamics is None and inner["status"] != "certified":
+        status = inner["status"]
+    row = {"method": method, "level": cert.level if status == "certified" else 0.0,
+           "certified": status == "certified", "status": status,
+           "candidate_level": cand.level, "seconds": time.perf_counter() - t0,
+           "_maskfn": _sublevel_mask(V, cert.level, r, inner)}
+    log(f"  {method}: {status}, level {row['level']:.5g} (candidate {cand.level:.5g})")
+    return row
+
+
+def _sublevel_mask(V, level, outer, inner_ellipse):
+    """Membership in the certified set {‖x‖ ≤ r, V ≤ level} ∪ E, for (N, nx) points."""
+    def mask(pts):
+        m = (np.linalg.norm(pts, axis=1) <= outer) & (V.numpy(pts)[:, 0] <= level)
+        if inner_ellipse and inner_ellipse.get("level", 0) > 0:
+            P = np.asarray(inner_ellipse["P"])
+            m |= np.einsum("ij,jk,ik->i", pts, P, pts) <= inner_ellipse["level"]
+        return m
+    return mask
+
+
+def _areas(rows, system, cfg, true_mask, box, n):
+    from nlyap_opt.roa import grid_area, grid_points
+
+    pts, shape = grid_points(box, n)
+    true_area = grid_area(true_mask, box)
+    for row in rows:
+        if not row["certified"] or "_maskfn" not in row:
+            row.setdefault("area", 0.0)
+            row.setdefault("fraction_of_true_roa", 0.0)
+            continue
+        row["_mask"] = row["_maskfn"](pts).reshape(shape)
+        row["area"] = grid_area(row["_mask"], box)
+        row["fraction_of_true_roa"] = row["area"] / true_area if true_area else 0.0
+    return true_area
+
+
+def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
+            include_neural: bool = True) -> list[dict]:
+    """Run every method for ``system_name``; write comparison.{json,md,png} into ``out``."""
+    import systems
+    from nlyap_opt.network import Network
+    from nlyap_opt.pipeline import run
+    from nlyap_opt.roa import true_roa_mask
+
+    from .lqr import linear_controller, lqr, quadratic_lyapunov, saturated_controller
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    system = systems.get(system_name)
+    rows: list[dict] = []
+    lq = cfg.get("lqr", {})
+    res = lqr(system, lq.get("Q"), lq.get("R"))
+    V = quadratic_lyapunov(res.P)
+    log(f"[compare] {system_name}: LQR / quadratic V")
+    if system.nu:
+        sat = saturated_controller(system, res.K, cfg["controller_scale"])
+        rows.append(quadratic_row(system, cfg, V, linear_controller(system, res.K),
+                                  method="lqr (linear u, true f)", log=log))
+        rows.append(quadratic_row(system, cfg, V, sat, method="lqr (saturated u, true f)",
+                                  log=log))
+    else:
+        sat = None
+        rows.append(quadratic_row(system, cfg, V, None, method="lqr (quadratic V, true f)",
+                                  log=log))
+    # SOS (polynomial closed loops only; others are explained)
+    try:
+        from .sos import sos_roa
+
+        for deg in (2, 4):
+            t0 = time.perf_counter()
+            sos = sos_roa(system, degree=deg, inner=cfg["inner"])
+            row = {"method": f"sos (degree {deg}, true f)", "level": sos.certified_level or 0.0,
+                   "certified": sos.certified, "status": sos.status,
+                   "sdp_level": sos.sdp_level, "seconds": time.perf_counter() - t0,
+                   "notes": "; ".join(sos.notes), "_maskfn": sos.mask}
+            rows.append(row)
+            log(f"  sos degree {deg}: {sos.status}")
+    except ImportError as err:
+        rows.append({"method": "sos", "level": 0.0, "certified": False,
+                     "status": f"not available: {err}", "seconds": 0.0})
+    # neural rows from the main pipeline (resumed if already run)
+    if include_neural:
+        for known, label in ((False, "neural (learned φ)"), (True, "neural (true f)")):
+            d = out / ("neural_true" if known else "neural_learned")
+            log(f"[compare] {label}: nlyap run into {d}")
+            t0 = time.perf_counter()
+            cert = run(system_name, cfg, d, known_dynamics=known, log=log)
+            row = {"method": label, "level": cert["level"],
+                   "certified": cert["status"] == "certified", "status": cert["status"],
+                   "seconds": sum(cert["seconds"].values()) if cert.get("seconds")
+                   else time.perf_counter() - t0}
+            if row["certified"]:
+                row["_maskfn"] = _sublevel_mask(Network.load(d / "V.json"), cert["level"],
+                                                cert["outer_radius"], cert["inner_ellipse"])
+            rows.append(row)
+            if not known and row["certified"] and (d / "dynamics.json").exists():
+                # LQR with learned φ (the unknown-dynamics setting for the baseline)
+                b = json.loads((d / "bounds.json").read_text())
+                dyn = Network.load(d / "dynamics.json")
+                try:
+                    rows.append(quadratic_row(system, cfg, V, sat, method="lqr (learned φ)",
+                                              dynamics=dyn, eta=float(b["eta"]), log=log))
+                except Exception as err:  # noqa: BLE001 - reported as the row's status
+                    rows.append({"method": "lqr (learned φ)", "level": 0.0,
+                                 "certified": False, "status": f"failed: {err}",
+                                 "seconds": 0.0})
+    # true ROA and areas
+    box = np.asarray(cfg["eval_box"], dtype=float)
+    n = int(cfg["eval_grid"])
+    feedback = None if sat is None else (lambda z: sat.numpy(z))
+    true_mask = true_roa_mask(system, feedback, box, n)
+    if system.nu:
+        from nlyap_opt.roa import grid_points
+
+        pts, shape = grid_points(box, n)
+        true_mask &= (np.linalg.norm(pts, axis=1) <= float(cfg["outer"])).reshape(shape)
+    true_area = _areas(rows, system, cfg, true_mask, box, n)
+    _write(out, system, rows, true_area, true_mask, box, cfg)
+    return rows
+
+
+def _write(out, system, rows, true_area, true_mask, box, cfg):
+    public = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
+    (out / "comparison.json").write_text(json.dumps(
+        {"system": system.name, "true_roa_area": true_area, "rows": public}, indent=1,
+        default=float))
+    lines = [f"# {system.name}: certified regions of attraction", "",
+             f"True ROA area (simulation, {len(true_mask)}² grid over {box.tolist()}"
+             + (", within the disc" if system.nu else "") + f"): {true_area:.4g}", "",
+             "| method | certified | level | area | % of true ROA | seconds | status |",
+             "|---|---|---|---|---|---|---|"]
+    for r in public:
+        lines.append(f"| {r['method']} | {'yes' if r['certified'] else 'no'} | "
+                     f"{r['level']:.5g} | {r.get('area', 0):.4g} | "
+                     f"{100 * r.get('fraction_of_true_roa', 0):.1f} | {r['seconds']:.1f} | "
+                     f"{r['status']} |")
+    notes = [r for r in public if r.get("notes")]
+    if notes:
+        lines += ["", "Notes:"] + [f"- {r['method']}: {r['notes']}" for r in notes]
+    (out / "comparison.md").write_text("\n".join(lines) + "\n")
+    _plot(out / "comparison.png", system, rows, true_mask, box, cfg)
+
+
+def _plot(path, system, rows, true_mask, box, cfg):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = true_mask.shape[0]
+    xs = [lo + (hi - lo) * (np.arange(n) + 0.5) / n for lo, hi in box]
+    X1, X2 = np.meshgrid(xs[0], xs[1], indexing="ij")
+    fig, ax = plt.subplots(figsize=(7, 6))
+    ax.contour(X1, X2, true_mask.astype(float), levels=[0.5], colors="k", linewidths=2)
+    handles = [plt.Line2D([], [], color="k", lw=2, label="true ROA")]
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, r in enumerate(rows):
+        if "_mask" not in r:
+            continue
+        c = colors[i % len(colors)]
+        ax.contour(X1, X2, r["_mask"].astype(float), levels=[0.5], colors=[c], linewidths=1.5)
+        handles.append(plt.Line2D([], [], color=c,
+                                  label=f"{r['method']}: {100 * r['fraction_of_true_roa']:.1f}%"))
+    th = np.linspace(0, 2 * np.pi, 400)
+    ax.plot(cfg["outer"] * np.cos(th), cfg["outer"] * np.sin(th), "r--", lw=1)
+    handles.append(plt.Line2D([], [], color="r", ls="--", label="verification disc"))
+    from nlyap_opt.roa import grid_points
+
+    g = 25
+    gp, gs = grid_points(box, g)
+    ctrl = None
+    if system.nu:
+        from .lqr import lqr, saturated_controller
+
+        lq = cfg.get("lqr", {})
+        ctrl = saturated_controller(system, lqr(system, lq.get("Q"), lq.get("R")).K,
+                                    cfg["controller_scale"])
+    with np.errstate(all="ignore"):
+        F = system.evaluate(gp, None if ctrl is None else ctrl.numpy(gp))
+    ax.streamplot(np.linspace(*box[0], g), np.linspace(*box[1], g), F[:, 0].reshape(gs).T,
+                  F[:, 1].reshape(gs).T, color="0.7", density=0.8, linewidth=0.5,
+                  arrowsize=0.6)
+    ax.set_xlim(box[0])
+    ax.set_ylim(box[1])
+    ax.set_xlabel(system.state_names[0])
+    ax.set_ylabel(system.state_names[1])
+    ax.legend(handles=handles, fontsize=7, loc="upper right")
+    ax.set_title(f"{system.name}: certified sets (every curve verified) vs true ROA",
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -8,6 +8,7 @@ from .lqr import (
     quadratic_lyapunov,
     saturated_controller,
 )
+from .sos import SOSResult, sos_roa
 
 __all__ = ["LQRResult", "lqr", "lyapunov_matrix", "saturated_controller", "linear_controller",
-           "quadratic_lyapunov"]
+           "quadratic_lyapunov", "SOSResult", "sos_roa"]

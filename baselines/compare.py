@@ -107,7 +107,7 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
     try:
         from .sos import sos_roa
 
-        for deg in (2, 4):
+        for deg in (2, 4, 6):
             t0 = time.perf_counter()
             sos = sos_roa(system, degree=deg, inner=cfg["inner"])
             row = {"method": f"sos (degree {deg}, true f)", "level": sos.certified_level or 0.0,

@@ -40,7 +40,9 @@ PRESETS: dict[str, dict[str, dict]] = {
                       "time_budget": 60.0},
             "cegis": {"iterations": 4, "steps": 800},
             "eval_box": _VDP_BOX, "eval_grid": 300,
-            "dynamics": {"preset": "default"},
+            # φ must be bounded on a box that holds the verification ball r = 3
+            "dynamics": {"preset": "default", "state_box": [[-3.0, 3.0], [-3.0, 3.0]],
+                         "grid_counts": [1201, 1201]},
         },
         "fast": {
             # ε = 0.3: with the fast φ (η ≈ 0.035) the robust decrease η‖∇V‖ outweighs

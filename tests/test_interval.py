@@ -655,3 +655,32 @@ def test_walker_evaluation_encloses_point_values():
         v = np.array(f(p.T)).T  # (50, 3)
         tol = 1e-12 * (1 + np.abs(v))
         assert np.all(enc.lo - tol <= v) and np.all(v <= enc.hi + tol)
+
+
+def test_walker_mx_mtimes_zero_addend_and_cached_constants():
+    """``W @ x`` (a zero addend, skipped) and ``W @ x + b`` in MX enclose point values;
+    constants reused across passes give identical results."""
+    from nlyap_opt.walker import NUMPY, compile_function, evaluate
+
+    rng = np.random.default_rng(11)
+    W = rng.normal(size=(5, 3))
+    b = rng.normal(size=(5, 1))
+    x = ca.MX.sym("x", 3)
+    f = ca.Function("f", [x], [ca.tanh(ca.mtimes(W, x)), ca.mtimes(W, x) + b])
+    prog = compile_function(f)
+    assert ca.OP_MTIMES in prog.ops
+    lo = rng.uniform(-1, 1, size=(40, 3))
+    hi = lo + rng.uniform(0, 0.2, size=(40, 3))
+    e1, e2 = evaluate(f, [Interval(lo, hi)], IA)
+    r1, r2 = evaluate(f, [Interval(lo, hi)], IA)  # second pass: cached constants
+    for a, c in ((e1, r1), (e2, r2)):
+        assert np.array_equal(a.lo, c.lo) and np.array_equal(a.hi, c.hi)
+    # the zero addend adds nothing: same as the rigorous matmul alone
+    mm = IA.matmul(IA.constant(W), Interval(lo[:, :, None], hi[:, :, None]))
+    th = IA.unary(ca.OP_TANH, mm)
+    assert np.array_equal(e1.lo, th.lo[..., 0]) and np.array_equal(e1.hi, th.hi[..., 0])
+    for p in lo + rng.uniform(0, 1, size=(20, 40, 3)) * (hi - lo):
+        v1, v2 = evaluate(f, [p], NUMPY)
+        assert np.all(e1.lo <= v1) and np.all(v1 <= e1.hi)
+        assert np.all(e2.lo <= v2) and np.all(v2 <= e2.hi)
+        assert np.allclose(v2, p @ W.T + b[:, 0])

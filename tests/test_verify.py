@@ -243,3 +243,16 @@ def test_dreal_backend_agrees_with_interval():
     assert ok.status == "verified"
     bad = verify(closed_loop_problem(s, V, inner=0.1, outer=1.2), backend="dreal")
     assert bad.status in ("counterexample", "unknown")
+
+
+def test_single_thread_blas_is_scoped():
+    import importlib
+
+    vmod = importlib.import_module("verification.verify")
+    if vmod._BLAS is None:
+        pytest.skip("OpenBLAS thread control not found")
+    get, _ = vmod._BLAS
+    before = get()
+    with vmod._single_thread_blas():
+        assert get() == 1
+    assert get() == before

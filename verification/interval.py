@@ -52,6 +52,7 @@ widened.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import casadi as ca
@@ -76,6 +77,9 @@ _PIO2_UP = float(np.nextafter(_PIO2, _INF))  # > pi/2
 _SMALL_DEGENERATE = 4096  # array_equal test for degenerate matmul operands up to this size
 
 OP_NAMES: dict[int, str] = {getattr(ca, a): a for a in dir(ca) if a.startswith("OP_")}
+_UMIN = np.minimum.reduce  # ufunc reductions without the np.min/np.max wrappers
+_UMAX = np.maximum.reduce
+_F64 = np.dtype(np.float64)
 
 
 # --------------------------------------------------------------------------- rounding
@@ -125,8 +129,8 @@ def _up_w(y):
 
 def _guard(lo, hi):
     """Replace NaN bounds (undefined or unboundable results) by the whole real line."""
-    m = np.min(lo, initial=0.0)  # min and max propagate NaN (read-only reductions)
-    n = np.max(hi, initial=0.0)
+    m = _UMIN(lo, axis=None, initial=0.0)  # min and max propagate NaN (read-only)
+    n = _UMAX(hi, axis=None, initial=0.0)
     if m == m and n == n:
         return lo, hi
     bad = np.isnan(lo) | np.isnan(hi)
@@ -229,10 +233,24 @@ class Interval:
         return f"Interval(lo={self.lo!r}, hi={self.hi!r})"
 
 
+def _iv(lo, hi) -> Interval:
+    """``Interval(lo, hi)`` without conversions when both are float64 arrays of one shape."""
+    if (type(lo) is np.ndarray and type(hi) is np.ndarray and lo.dtype is _F64
+            and hi.dtype is _F64 and lo.shape == hi.shape):
+        x = _NEW(Interval)
+        x.lo = lo
+        x.hi = hi
+        return x
+    return Interval(lo, hi)
+
+
 def _as_interval(x) -> Interval:
     if isinstance(x, Interval):
         return x
     return IntervalArithmetic.constant(x)
+
+
+_NEW = object.__new__
 
 
 def _full(shape, value):
@@ -496,6 +514,7 @@ def _exact_monotone(f):
 
 
 # ---- power
+@functools.lru_cache(maxsize=1024)
 def _g3(n: int) -> float:
     """``(g + 2**-52)(1 + 2 g)(1 + 2**-48)`` with ``g >= gamma_n``: see ``sum``/``_pow_end``."""
     g = _gamma(n)
@@ -799,6 +818,7 @@ class IntervalArithmetic:
     """
 
     name = "interval"
+    cache_constants = True  # constants are immutable: the walker may reuse them
 
     @staticmethod
     def constant(value: np.ndarray) -> Interval:
@@ -846,7 +866,7 @@ class IntervalArithmetic:
         a = _as_interval(a)
         with np.errstate(all="ignore"):
             lo, hi = f(a.lo, a.hi)
-        return Interval(lo, hi)
+        return _iv(lo, hi)
 
     def binary(self, op: int, a: Interval, b: Interval) -> Interval:
         """Enclose the binary CasADi operation ``op`` elementwise, with broadcasting.
@@ -874,7 +894,7 @@ class IntervalArithmetic:
         b = _as_interval(b)
         with np.errstate(all="ignore"):
             lo, hi = f(a.lo, a.hi, b.lo, b.hi)
-        return Interval(lo, hi)
+        return _iv(lo, hi)
 
     def sum(self, a: Interval, axis=None) -> Interval:
         """Rigorous sum over ``axis`` (int, tuple of ints or None for all axes).
@@ -902,23 +922,33 @@ class IntervalArithmetic:
         a = _as_interval(a)
         lo, hi = a.lo, a.hi
         nd = lo.ndim
-        axes = tuple(range(nd)) if axis is None else (
-            (axis,) if np.ndim(axis) == 0 else tuple(axis))
-        axes = tuple(sorted({int(ax) % nd for ax in axes})) if nd else ()
-        n = int(np.prod([lo.shape[ax] for ax in axes]))
+        if axis is None:
+            axes = tuple(range(nd))
+        else:
+            axes = (axis,) if np.ndim(axis) == 0 else tuple(axis)
+            axes = tuple(sorted({int(ax) % nd for ax in axes})) if nd else ()
+        shape = lo.shape
+        n = 1
+        for ax in axes:
+            n *= shape[ax]
         if n <= 1:
             return self.structural(lambda x: np.sum(x, axis=axes), a)
-        g = _gamma(n)
-        g3 = (g + 2.0**-52) * (1.0 + 2.0 * g) * (1.0 + 2.0**-48)
+        g3 = _g3(n)
         with np.errstate(all="ignore"):
-            s = _reduce(lo, axes)
-            t = _reduce(np.abs(lo), axes) * g3 + 2.0**-1020
             if lo is hi:
-                return Interval(*_guard(s - t, s + t))
-            rl = s - t
-            s = _reduce(hi, axes)
-            t = _reduce(np.abs(hi), axes) * g3 + 2.0**-1020
-            return Interval(*_guard(rl, s + t))
+                s = _reduce(lo, axes)
+                t = _reduce(np.abs(lo), axes)
+                t *= g3
+                t += 2.0**-1020
+                return _iv(*_guard(s - t, s + t))
+            # lower and upper bounds summed in one stacked reduction (fewer numpy calls)
+            x = np.stack((lo, hi))
+            axes1 = tuple(ax + 1 for ax in axes)
+            s = _reduce(x, axes1)
+            t = _reduce(np.abs(x, out=x), axes1)
+            t *= g3
+            t += 2.0**-1020
+            return _iv(*_guard(s[0] - t[0], s[1] + t[1]))
 
     def matmul(self, a, b) -> Interval:
         """Rigorous ``a @ b`` with numpy ``matmul`` semantics (batch broadcasting).
@@ -969,11 +999,11 @@ class IntervalArithmetic:
             if ra is not None:
                 t += _mm(ra, w2)
             t *= 1.0 + 4.0 * g + 2.0**-48
-            amax = float(np.max(ama)) if ama.size else 0.0
+            amax = float(_UMAX(ama, axis=None)) if ama.size else 0.0
             t += 4.0 * _ETA * (k * amax * (1.0 + 2.0**-40) + 5.0 * k + 2.0)
             lo = c - t
             t += c
-            return Interval(*_guard(lo, t))
+            return _iv(*_guard(lo, t))
 
     def _matmul_elementwise(self, a: Interval, b: Interval) -> Interval:
         """``sum_k a[..., :, k, None] * b[..., None, k, :]`` (handles infinite bounds)."""
@@ -1015,7 +1045,7 @@ class IntervalArithmetic:
         if all(x.lo is x.hi for x in args):
             v = np.asarray(fn(*los), dtype=np.float64)
             return Interval(v, v)
-        return Interval(fn(*los), fn(*[x.hi for x in args]))
+        return _iv(fn(*los), fn(*[x.hi for x in args]))
 
     @staticmethod
     def intersect(a: Interval, b: Interval) -> Interval:
@@ -1031,7 +1061,7 @@ class IntervalArithmetic:
         """
         a = _as_interval(a)
         b = _as_interval(b)
-        return Interval(np.maximum(a.lo, b.lo), np.minimum(a.hi, b.hi))
+        return _iv(np.maximum(a.lo, b.lo), np.minimum(a.hi, b.hi))
 
     @staticmethod
     def hull(a: Interval, b: Interval) -> Interval:
@@ -1047,15 +1077,15 @@ class IntervalArithmetic:
         """
         a = _as_interval(a)
         b = _as_interval(b)
-        return Interval(np.minimum(a.lo, b.lo), np.maximum(a.hi, b.hi))
+        return _iv(np.minimum(a.lo, b.lo), np.maximum(a.hi, b.hi))
 
 
 def _finite(x: Interval) -> bool:
     """All bounds finite and not NaN (``min`` and ``max`` propagate NaN)."""
     if x.lo.size == 0:
         return True
-    return bool(np.min(x.lo) > -_INF) and bool(np.max(x.hi) < _INF) and (
-        x.lo is not x.hi or bool(np.max(x.lo) < _INF) and bool(np.min(x.hi) > -_INF))
+    # lo <= hi (invariant; for a degenerate interval lo is hi): these two bound the others
+    return bool(_UMIN(x.lo, axis=None) > -_INF) and bool(_UMAX(x.hi, axis=None) < _INF)
 
 
 def _midrad(x: Interval):
@@ -1075,14 +1105,23 @@ def _midrad(x: Interval):
     return m, r, np.abs(m, out=am)  # reuse the buffer for |m|
 
 
+@functools.lru_cache(maxsize=256)
+def _ones(n: int) -> np.ndarray:
+    v = np.ones(n)
+    v.flags.writeable = False
+    return v
+
+
 def _reduce(x, axes: tuple[int, ...]):
     """Floating sum over ``axes`` (any order); BLAS ``@ ones`` for trailing axes."""
     nd = x.ndim
     k = len(axes)
     if k and axes == tuple(range(nd - k, nd)):
-        n = int(np.prod(x.shape[nd - k:]))
         lead = x.shape[: nd - k]
-        return (x.reshape(-1, n) @ np.ones(n)).reshape(lead)
+        n = 1
+        for d in x.shape[nd - k:]:
+            n *= d
+        return (x.reshape(-1, n) @ _ones(n)).reshape(lead)
     return np.sum(x, axis=axes)
 
 

@@ -17,6 +17,7 @@ counterexamples, each confirmed by rigorous point evaluation before it is report
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import time
 from concurrent.futures import Executor
@@ -32,6 +33,52 @@ from .problem import Counterexample, VerificationProblem, VerificationResult
 __all__ = ["verify_interval", "split_box", "confirm_points"]
 
 _IA = IntervalArithmetic()
+
+
+def _openblas_threads():
+    """(get, set) of the OpenBLAS bundled with numpy, or ``None`` (best effort)."""
+    try:
+        import ctypes
+        import glob
+        import os
+
+        libs = glob.glob(os.path.join(os.path.dirname(np.__file__) + ".libs", "*openblas*"))
+        for path in libs:
+            lib = ctypes.CDLL(path)
+            for get, put in (("scipy_openblas_get_num_threads64_",
+                              "scipy_openblas_set_num_threads64_"),
+                             ("openblas_get_num_threads", "openblas_set_num_threads")):
+                if hasattr(lib, get) and hasattr(lib, put):
+                    return getattr(lib, get), getattr(lib, put)
+    except OSError:
+        pass
+    return None
+
+
+_BLAS = _openblas_threads()
+
+
+@contextlib.contextmanager
+def _single_thread_blas():
+    """Run BLAS single-threaded (restored afterwards).
+
+    The verifier's products are skinny (batch x 200 by 200 x 2, ...): threads add spinning
+    CPU time without speed-up (about 2x the CPU time on 2 cores). Rounding bounds do not
+    depend on the kernel's summation order, so results stay rigorous either way.
+    """
+    if _BLAS is None:
+        yield
+        return
+    get, put = _BLAS
+    n = get()
+    if n <= 1:
+        yield
+        return
+    put(1)
+    try:
+        yield
+    finally:
+        put(n)
 
 
 def _point_enclosure(problem: VerificationProblem, pts: np.ndarray) -> Interval:
@@ -80,18 +127,18 @@ def _presearch(problem, n_samples: int, rng: np.random.Generator, steps: int = 4
     keep = np.argsort(-score)[: max(8, n_samples // 20)]
     pts = pts[keep]
     step = 0.02 * (hi - lo)
+    FJ = problem.function_jacobian  # one pass for F and J (shared subexpressions)
     for _ in range(steps):
-        F = evaluate(problem.function, [pts], NUMPY)[0]
-        J = evaluate(problem.jacobian, [pts], NUMPY)[0].reshape(len(pts), problem.n, -1)
-        J = np.swapaxes(J, 1, 2)  # (N, m + k, n)
+        F, J = evaluate(FJ, [pts], NUMPY)
+        J = np.swapaxes(J.reshape(len(pts), problem.n, -1), 1, 2)  # (N, m + k, n)
         j = m + np.argmax(F[:, m:], axis=1)
         grad = J[np.arange(len(pts)), j]
         # step towards larger violation, then back into the region along violated g
         pts = pts + step * np.sign(grad)
         if m:
-            Fg = evaluate(problem.function, [pts], NUMPY)[0][:, :m]
-            Jg = np.swapaxes(evaluate(problem.jacobian, [pts], NUMPY)[0]
-                             .reshape(len(pts), problem.n, -1), 1, 2)[:, :m]
+            Fg, Jg = evaluate(FJ, [pts], NUMPY)
+            Fg = Fg[:, :m]
+            Jg = np.swapaxes(Jg.reshape(len(pts), problem.n, -1), 1, 2)[:, :m]
             for i in range(m):
                 bad = Fg[:, i] > 0
                 if bad.any():
@@ -192,6 +239,14 @@ def verify_interval(
                                    presearch=presearch, stop_at_first=stop_at_first,
                                    keep_leaves=keep_leaves, seed=seed,
                                    initial_boxes=initial_boxes)
+    with _single_thread_blas():
+        return _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
+                             stop_at_first, keep_leaves, seed, initial_boxes, progress)
+
+
+def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
+                  stop_at_first, keep_leaves, seed, initial_boxes, progress):
+    box = problem.box
     compile_function(problem.function_jacobian)
     rng = np.random.default_rng(seed)
     found: list[Counterexample] = []

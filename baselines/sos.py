@@ -179,76 +179,109 @@ def _constant_of(p: dict, nx: int) -> float | None:
     return p.get((0,) * nx, 0.0)
 
 
-def _expand_sx(fun: ca.Function, nx: int) -> list[dict]:
-    """Exact symbolic expansion of an SX Function ``x -> y`` into polynomials (dicts)."""
-    from nlyap_opt.walker import NUMPY, op_name
+class PolynomialArithmetic:
+    """Walker arithmetic over exact polynomials (dicts exponent-tuple -> coefficient).
 
-    zero = (0,) * nx
-    regs: dict[int, dict | None] = {}
-    outs: dict[int, dict | None] = {}
-    bad: dict[str, str] = {}  # operations that are not polynomial, in order of appearance
-    for k in range(fun.n_instructions()):
-        op = fun.instruction_id(k)
-        i = fun.instruction_input(k)
-        o = fun.instruction_output(k)
-        if op == ca.OP_CONST:
-            c = float(fun.instruction_constant(k))
-            regs[o[0]] = {zero: c} if c != 0 else {}
-        elif op == ca.OP_INPUT:
-            e = [0] * nx
-            e[i[1]] = 1
-            regs[o[0]] = {tuple(e): 1.0}
-        elif op == ca.OP_OUTPUT:
-            outs[o[1]] = regs[i[0]]
-        else:
-            args = [regs[j] for j in i if j >= 0][: 2 if op in _BINARY else 1]
-            if any(a is None for a in args):  # already not polynomial: name the op too
-                divisor_ok = (op == ca.OP_DIV and args[1] is not None
-                              and _constant_of(args[1], nx) not in (None, 0.0))
-                if op not in _POLY_OPS and not divisor_ok:
-                    bad.setdefault(_FRIENDLY.get(op, op_name(op).removeprefix("OP_").lower()),
-                                   op_name(op))
-                regs[o[0]] = None
-                continue
-            consts = [_constant_of(a, nx) for a in args]
-            a = args[0]
-            if all(c is not None for c in consts):  # constant folding, any operation
-                val = (NUMPY.unary(op, np.array(consts[0])) if len(args) == 1
-                       else NUMPY.binary(op, np.array(consts[0]), np.array(consts[1])))
-                val = float(val)
-                regs[o[0]] = {zero: val} if val != 0 else {}
-            elif op == ca.OP_ADD:
-                regs[o[0]] = _padd(a, args[1])
-            elif op == ca.OP_SUB:
-                regs[o[0]] = _padd(a, args[1], -1.0)
-            elif op == ca.OP_MUL:
-                regs[o[0]] = _pmul(a, args[1])
-            elif op == ca.OP_NEG:
-                regs[o[0]] = {e: -c for e, c in a.items()}
-            elif op == ca.OP_SQ:
-                regs[o[0]] = _pmul(a, a)
-            elif op == ca.OP_TWICE:
-                regs[o[0]] = {e: 2.0 * c for e, c in a.items()}
-            elif op == ca.OP_ASSIGN:
-                regs[o[0]] = a
-            elif op == ca.OP_DIV and consts[1] is not None and consts[1] != 0:
-                regs[o[0]] = {e: c / consts[1] for e, c in a.items()}
-            elif (op in (ca.OP_POW, ca.OP_CONSTPOW) and consts[1] is not None
-                  and float(consts[1]).is_integer() and 0 <= consts[1] <= 64):
-                p = {zero: 1.0}
-                for _ in range(int(consts[1])):
-                    p = _pmul(p, a)
-                regs[o[0]] = p
-            else:
-                bad.setdefault(_FRIENDLY.get(op, op_name(op).removeprefix("OP_").lower()),
-                               op_name(op))
-                regs[o[0]] = None
-    if any(p is None for p in outs.values()):
-        what = ", ".join(f"{k} ({v})" for k, v in bad.items())
+    A value is ``None`` once a non-polynomial operation was applied to a state-dependent
+    expression; the offending operations are collected in ``bad`` (for the error message).
+    Operations on constants are folded in float64, as CasADi itself would.
+    """
+
+    name = "polynomial"
+    symbolic = True
+
+    def __init__(self, nx: int):
+        self.nx = nx
+        self.zero = (0,) * nx
+        self.bad: dict[str, str] = {}
+
+    def variables(self) -> np.ndarray:
+        xs = np.empty(self.nx, dtype=object)
+        for i in range(self.nx):
+            e = [0] * self.nx
+            e[i] = 1
+            xs[i] = {tuple(e): 1.0}
+        return xs
+
+    def constant(self, value) -> dict:
+        c = float(value)
+        return {self.zero: c} if c != 0 else {}
+
+    def _refuse(self, op):
+        from nlyap_opt.walker import op_name
+
+        self.bad.setdefault(_FRIENDLY.get(op, op_name(op).removeprefix("OP_").lower()),
+                            op_name(op))
+
+    def _fold(self, op, consts):
+        from nlyap_opt.walker import NUMPY
+
+        val = float(NUMPY.unary(op, np.array(consts[0])) if len(consts) == 1
+                    else NUMPY.binary(op, np.array(consts[0]), np.array(consts[1])))
+        return {self.zero: val} if val != 0 else {}
+
+    def unary(self, op, a):
+        if a is None:
+            if op not in _POLY_OPS:
+                self._refuse(op)
+            return None
+        c = _constant_of(a, self.nx)
+        if c is not None:
+            return self._fold(op, [c])
+        if op == ca.OP_NEG:
+            return {e: -v for e, v in a.items()}
+        if op == ca.OP_SQ:
+            return _pmul(a, a)
+        if op == ca.OP_TWICE:
+            return {e: 2.0 * v for e, v in a.items()}
+        if op == ca.OP_ASSIGN:
+            return a
+        self._refuse(op)
+        return None
+
+    def binary(self, op, a, b):
+        cb = None if b is None else _constant_of(b, self.nx)
+        if a is None or b is None:
+            divisor_ok = op == ca.OP_DIV and cb not in (None, 0.0)
+            if op not in _POLY_OPS and not divisor_ok:
+                self._refuse(op)
+            return None
+        ca_ = _constant_of(a, self.nx)
+        if ca_ is not None and cb is not None:
+            return self._fold(op, [ca_, cb])
+        if op == ca.OP_ADD:
+            return _padd(a, b)
+        if op == ca.OP_SUB:
+            return _padd(a, b, -1.0)
+        if op == ca.OP_MUL:
+            return _pmul(a, b)
+        if op == ca.OP_DIV and cb is not None and cb != 0:
+            return {e: v / cb for e, v in a.items()}
+        if (op in (ca.OP_POW, ca.OP_CONSTPOW) and cb is not None
+                and float(cb).is_integer() and 0 <= cb <= 64):
+            p = {self.zero: 1.0}
+            for _ in range(int(cb)):
+                p = _pmul(p, a)
+            return p
+        self._refuse(op)
+        return None
+
+    def structural(self, fn, *args):
+        return fn(*args)
+
+
+def _expand_sx(fun: ca.Function, nx: int) -> list[dict]:
+    """Exact expansion of an SX Function ``x -> y`` into polynomials, through the walker."""
+    from nlyap_opt.walker import evaluate
+
+    ar = PolynomialArithmetic(nx)
+    outs = evaluate(fun, [ar.variables()], ar)[0]
+    if any(p is None for p in outs):
+        what = ", ".join(f"{k} ({v})" for k, v in ar.bad.items())
         raise NotPolynomialError(
             f"not polynomial in x: it applies {what} to state-dependent expressions"
         )
-    return [outs.get(j, {}) for j in range(fun.nnz_out())]
+    return list(outs)
 
 
 _FRIENDLY = {ca.OP_DIV: "division", ca.OP_INV: "the reciprocal", ca.OP_SIN: "sin",
@@ -257,9 +290,6 @@ _FRIENDLY = {ca.OP_DIV: "division", ca.OP_INV: "the reciprocal", ca.OP_SIN: "sin
 _POLY_OPS = {ca.OP_ADD, ca.OP_SUB, ca.OP_MUL, ca.OP_NEG, ca.OP_SQ, ca.OP_TWICE, ca.OP_ASSIGN,
              ca.OP_POW, ca.OP_CONSTPOW}
 
-_BINARY = {ca.OP_ADD, ca.OP_SUB, ca.OP_MUL, ca.OP_DIV, ca.OP_POW, ca.OP_CONSTPOW,
-           ca.OP_FMIN, ca.OP_FMAX, ca.OP_ATAN2, ca.OP_HYPOT, ca.OP_LT, ca.OP_LE, ca.OP_EQ,
-           ca.OP_NE, ca.OP_AND, ca.OP_OR, ca.OP_COPYSIGN, ca.OP_FMOD}
 
 
 def polynomial_closed_loop(system, controller=None) -> list[Polynomial]:

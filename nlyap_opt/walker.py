@@ -411,7 +411,9 @@ def _sx_const(o, value):
 
 def _sx_input(o, ind, nz):
     def step(r, ctx):
-        r[o] = ctx[1][ind][..., nz]
+        v = ctx[1][ind][..., nz]
+        # symbolic arithmetics pass object arrays: hand them the element, not a 0-d array
+        r[o] = v.item() if getattr(v, "ndim", 1) == 0 and isinstance(v, np.ndarray) else v
     return step
 
 
@@ -591,9 +593,9 @@ def _finish_sx_outputs(prog: Program, outs: list, arith) -> list:
         if n == 0:
             res.append(None)
             continue
-        cols = [parts.get(k) if parts else None for k in range(n)]
-        if any(c is None for c in cols):  # structurally constant outputs never written
+        if not parts or len(parts) != n:  # every output nonzero is written by OP_OUTPUT
             raise UnsupportedOperationError(f"output {j} has unwritten nonzeros")
+        cols = [parts[k] for k in range(n)]
         if getattr(arith, "symbolic", False):  # symbolic arithmetics (dReal, SMT-LIB): lists
             res.append(cols)
         else:

@@ -413,7 +413,7 @@ def _sx_input(o, ind, nz):
     def step(r, ctx):
         v = ctx[1][ind][..., nz]
         # symbolic arithmetics pass object arrays: hand them the element, not a 0-d array
-        r[o] = v.item() if getattr(v, "ndim", 1) == 0 and isinstance(v, np.ndarray) else v
+        r[o] = v.item() if isinstance(v, np.ndarray) and v.dtype.kind == "O" and v.ndim == 0 else v
     return step
 
 

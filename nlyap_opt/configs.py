@@ -21,7 +21,18 @@ from pathlib import Path
 
 from .errors import ConfigError, UnknownNameError
 
-__all__ = ["PRESETS", "get_config"]
+__all__ = ["PRESETS", "get_config", "read_json_object"]
+
+
+def read_json_object(path: str | Path) -> dict:
+    """A configuration file: a JSON object (else :class:`ConfigError` saying why)."""
+    try:
+        obj = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ConfigError(f"cannot read config {path}: {err}") from None
+    if not isinstance(obj, dict):
+        raise ConfigError(f"config {path} must hold a JSON object")
+    return obj
 
 _VDP_BOX = [[-3.0, 3.0], [-3.0, 3.0]]
 
@@ -130,13 +141,7 @@ def get_config(system: str, preset: str = "large", path: str | Path | None = Non
         )
     cfg = copy.deepcopy(PRESETS[system][preset])
     if path is not None:
-        try:
-            over = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise ConfigError(f"cannot read config {path}: {err}") from None
-        if not isinstance(over, dict):
-            raise ConfigError(f"config {path} must hold a JSON object")
-        cfg = _merge(cfg, over)
+        cfg = _merge(cfg, read_json_object(path))
     if not (0 < cfg["inner"] < cfg["outer"]):
         raise ConfigError(f"need 0 < inner < outer, got {cfg['inner']}, {cfg['outer']}")
     cfg["system"], cfg["preset"] = system, preset

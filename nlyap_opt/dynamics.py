@@ -426,12 +426,9 @@ def load_config(path: str | Path | None, name: str | None = None, fast: bool = F
     """Defaults of ``name`` overridden by the JSON object in ``path`` (unknown keys refused)."""
     over: dict = {}
     if path is not None:
-        try:
-            over = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise ConfigError(f"cannot read config {path}: {err}") from None
-        if not isinstance(over, dict):
-            raise ConfigError(f"config {path} must hold a JSON object")
+        from .configs import read_json_object
+
+        over = read_json_object(path)
     name = name or over.get("system")
     if name is None:
         raise ConfigError("no system named: pass NAME or put 'system' in the config file")

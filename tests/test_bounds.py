@@ -5,7 +5,6 @@ import json
 import casadi as ca
 import numpy as np
 import pytest
-import torch
 
 import systems
 from baselines.lqr import lqr, saturated_controller
@@ -20,22 +19,12 @@ from nlyap_opt.bounds import (
     margin,
     subboxes,
 )
-from nlyap_opt.dynamics import Grid, default_config, learn_dynamics, measure_alpha
+from nlyap_opt.dynamics import Grid, measure_alpha
 from nlyap_opt.errors import ConfigError, InputRangeError, UnknownNameError
 from nlyap_opt.lipschitz import lipschitz_sampled
 from nlyap_opt.network import Layer, Network, dense_network
 
 NAMES = ["van_der_pol", "unicycle_path_following", "inverted_pendulum"]
-
-
-@pytest.fixture(scope="module")
-def trained():
-    torch.set_num_threads(1)
-    out = {}
-    for name in NAMES:
-        cfg = default_config(name, fast=True) | {"progress": False}
-        out[name] = learn_dynamics(systems.get(name), cfg)
-    return out
 
 
 def _jacobian_norms(em: ErrorModel, pts: np.ndarray) -> np.ndarray:

@@ -24,17 +24,6 @@ from nlyap_opt.symbolic import learned_rhs
 NAMES = ["van_der_pol", "unicycle_path_following", "inverted_pendulum"]
 
 
-@pytest.fixture(scope="module")
-def trained():
-    """Fast-config dynamics for the three seed systems (seconds each), cached per module."""
-    torch.set_num_threads(1)
-    out = {}
-    for name in NAMES:
-        cfg = default_config(name, fast=True) | {"progress": False}
-        out[name] = learn_dynamics(systems.get(name), cfg)
-    return out
-
-
 # ----------------------------------------------------------------------------- δ
 def _brute_force_radius(grid: Grid, probes: np.ndarray) -> float:
     """Largest distance from a probe to its nearest node, by comparing with *every* node."""

@@ -70,6 +70,7 @@ from .dynamics import (
     measure_alpha,
 )
 from .errors import ConfigError, DimensionError, InputRangeError, UnknownNameError
+from .lipschitz import _up
 from .network import Network
 
 __all__ = [
@@ -85,10 +86,6 @@ _FOLD = 1.0 + 2.0 ** -30
 
 
 # ============================================================================ helpers
-def _up(v) -> float:
-    return float(np.nextafter(float(v), np.inf))
-
-
 def _add_up(*vals) -> float:
     s = 0.0
     for v in vals:

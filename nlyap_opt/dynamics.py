@@ -163,10 +163,6 @@ class Grid:
         return f"Grid(counts={self.counts.tolist()}, spacing={self.spacing.tolist()})"
 
 
-def _up(v) -> float:
-    return float(np.nextafter(v, np.inf))
-
-
 def _norm2_up(v, axis=None):
     """Upper bound of ``‖v‖₂`` in float64 (covers the rounding of squares, sum and sqrt)."""
     v = np.abs(np.asarray(v, dtype=float))

@@ -17,8 +17,8 @@ import numpy as np
 
 from .learning import LyapunovLearner, TrainConfig, sample_ball, sample_sphere
 from .network import Network
-from .roa import candidate_level, certify_level, grid_area, grid_points
-from .simulate import simulate_converges
+from .roa import LevelCertificate, candidate_level, certify_level, grid_area, grid_points
+from .simulate import simulate
 
 __all__ = ["CegisConfig", "CegisResult", "cegis"]
 
@@ -34,12 +34,19 @@ class CegisConfig:
     neighbours: int = 8
     first_steps: int | None = None   # training steps of the first iteration (default: train.steps)
     steps: int = 500                 # training steps of later iterations
+    verify_every: int = 1            # run the verifier every k-th iteration (and the last);
+    # in between, the sampled violations of the candidate level are the counterexamples
     target_fraction: float = 0.99    # stop when certified level >= this fraction of candidate
     area_grid: int = 200
     verify_options: dict = field(default_factory=dict)
     train: TrainConfig = field(default_factory=TrainConfig)
     seed: int = 0
     time_budget: float = 300.0
+    inner_samples: int = 0           # extra training states in ε ≤ ‖x‖ ≤ 3ε
+    boundary_samples: int = 0        # extra training states near the model's ROA boundary
+    sim_dt: float = 0.02             # RK4 step of those simulations
+    sim_grid: int = 301              # learned φ: table nodes per axis for them (0: no table)
+    sim_time: float = 20.0           # simulated horizon of the training states (convergence, cost)
     # learned dynamics: "pointwise" verifies ∇V·φ + η‖∇V(x)‖ < 0 (Cauchy–Schwarz: implies
     # ∇V·f < 0 wherever ‖f − φ‖ ≤ η); "global" verifies the paper's ∇V·φ < −β, β = M·η
     margin_mode: str = "pointwise"
@@ -56,6 +63,56 @@ class CegisResult:
     area: float
     history: list
     seconds: float
+
+
+def _simulation_rhs(learner, system, cfg, tabulate: bool):
+    """The closed-loop model as a numpy function for the training simulations.
+
+    A learned φ (a wide network) is tabulated once on a ``sim_grid``-per-axis grid over the
+    ball's box and interpolated (multilinear, SciPy) when the state has at most 3
+    dimensions: the simulations only shape the training targets, and a table is an order of
+    magnitude faster than the network over ~10⁴ steps.
+    """
+    import torch
+
+    def rhs_np(x):
+        with torch.no_grad():
+            return learner.rhs(torch.as_tensor(x)).numpy()
+
+    if not tabulate or system.nx > 3 or not cfg.sim_grid:
+        return rhs_np
+    from scipy.interpolate import RegularGridInterpolator
+
+    axes = [np.linspace(-cfg.outer, cfg.outer, cfg.sim_grid)] * system.nx
+    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, system.nx)
+    table = rhs_np(nodes).reshape(*[cfg.sim_grid] * system.nx, system.nx)
+    return RegularGridInterpolator(axes, table, bounds_error=False, fill_value=None)
+
+
+def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float,
+                 transform: str = "log") -> tuple[np.ndarray, np.ndarray]:
+    r"""Targets for ``V`` from simulated trajectory costs :math:`W` (:func:`simulate`).
+
+    ``W`` decreases along trajectories at rate :math:`\|x\|^2` and grows without bound
+    towards the boundary of the region of attraction, so its sublevel sets approach it.
+    The target is :math:`T = g(W) / g(W_c)` (``T = 1`` at cost ``w_c``), capped at ``cap``
+    (and ``cap`` for states that do not converge); ``g(W) = W`` (``"linear"``) or
+    :math:`\log(1 + W/a)`, ``a = w_c / 6`` (``"log"``: tames the steep rise near the
+    boundary). Returns ``(T, rates)`` with ``dT/dt = −rate·‖x‖²`` along trajectories
+    (rate 0 where ``T`` is capped).
+    """
+    W = np.where(converged, cost, np.inf)
+    if transform == "linear":
+        g, dg, gc = W, np.ones_like(W), w_c
+    elif transform == "log":
+        a = w_c / 6.0
+        with np.errstate(invalid="ignore"):
+            g, dg, gc = np.log1p(W / a), 1.0 / (a + W), np.log1p(w_c / a)
+    else:
+        raise ValueError(f"unknown fit_transform {transform!r}; expected 'linear' or 'log'")
+    T = g / gc
+    capped = ~(T < cap)
+    return np.where(capped, cap, T), np.where(capped, 0.0, dg / gc)
 
 
 def cegis(system, controller: Network | None, dynamics: Network | None, cfg: CegisConfig, *,
@@ -82,17 +139,33 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
     rng = np.random.default_rng(cfg.seed)
     n = system.nx
     X = sample_ball(cfg.samples, n, cfg.outer, rng)
+    if cfg.inner_samples:  # the decrease is hardest to learn next to the inner ball
+        X = np.vstack([X, sample_ball(cfg.inner_samples, n, 3 * cfg.inner, rng, cfg.inner)])
     S = sample_sphere(cfg.sphere_samples, n, cfg.outer, rng)
     learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
 
-    def rhs_np(x):
-        import torch
-
-        with torch.no_grad():
-            return learner.rhs(torch.as_tensor(x)).numpy()
-
-    weights = simulate_converges(rhs_np, X, t_final=20.0, dt=0.02, tol=1e-2).astype(float)
-    log(f"  cegis: {int(weights.sum())}/{len(X)} training states converge under the model")
+    rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
+    conv, cost = simulate(rhs_np, X, t_final=cfg.sim_time, dt=cfg.sim_dt, tol=1e-2)
+    log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model")
+    weights = conv.astype(float)
+    targets, rates = None, None
+    tc = cfg.train
+    if tc.w_fit and conv.any():
+        w_c = float(np.quantile(cost[conv], tc.fit_quantile))
+        if cfg.boundary_samples:
+            # more states where the target rises to its cap: around the model's ROA boundary
+            T = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)[0]
+            near = X[(T >= 0.8) & (T < tc.fit_cap)]
+            if len(near):
+                extra = near[rng.integers(0, len(near), cfg.boundary_samples)]
+                extra = extra + 0.03 * cfg.outer * rng.standard_normal(extra.shape)
+                extra = extra[np.linalg.norm(extra, axis=1) <= cfg.outer]
+                c2, w2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=cfg.sim_dt, tol=1e-2)
+                X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
+        targets, rates = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)
+        weights = (conv & (cost <= w_c)).astype(float)
+        log(f"  cegis: fitting V to the trajectory cost ({tc.fit_transform}; level 1 at cost "
+            f"{w_c:.4g}, {len(X)} states)")
     pts, shape = grid_points(np.tile([-cfg.outer, cfg.outer], (n, 1)), cfg.area_grid)
     in_ball = np.linalg.norm(pts, axis=1) <= cfg.outer
     box = np.tile([-cfg.outer, cfg.outer], (n, 1))
@@ -105,7 +178,8 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
         steps = (cfg.first_steps or cfg.train.steps) if it == 0 else cfg.steps
         pointwise = eta if (eta > 0 and cfg.margin_mode == "pointwise") else 0.0
         info = learner.train(X, S, 0.0 if pointwise else margin, cex if len(cex) else None,
-                             steps=steps, inside_weight=weights, eta_pointwise=pointwise)
+                             steps=steps, inside_weight=weights, eta_pointwise=pointwise,
+                             targets=targets, target_rates=rates)
         V, ctrl = learner.export()
         if eta > 0:
             M = float(gradient_bound(V, ctrl))
@@ -119,9 +193,14 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
             check_margin = 0.0
         cand = candidate_level(cl.x, Vx, lie, inner=cfg.inner, outer=cfg.outer,
                                margin=check_margin, seed=cfg.seed + it)
-        cert = certify_level(cl.x, Vx, lie, level=cand.level, inner=cfg.inner, outer=cfg.outer,
-                             margin=check_margin, verify_options=cfg.verify_options,
-                             log=lambda m: log("  " + m))
+        last = it == cfg.iterations - 1 or time.perf_counter() - t0 > cfg.time_budget
+        if last or (it + 1) % cfg.verify_every == 0:
+            cert = certify_level(cl.x, Vx, lie, level=cand.level, inner=cfg.inner,
+                                 outer=cfg.outer, margin=check_margin,
+                                 verify_options=cfg.verify_options, log=lambda m: log("  " + m))
+        else:  # falsifier only: the sampled violations that limit the candidate level
+            cert = LevelCertificate("not verified (candidate only)", 0.0,
+                                    counterexamples=cand.violations)
         area = 0.0
         if cert.status == "certified":
             v = V.numpy(pts)[:, 0]

@@ -15,6 +15,18 @@ target level ``1``)::
   + C_grad· mean ‖∇V‖                                              keep M (and β = M·η) small
   + C_anc · ‖G − G_lqr‖²                                           keep κ's linearisation
                                                                    near the LQR gain
+  + C_loc · relu(λ_max(AᵀH + HA + 2τH)) / tr H                     first-order decrease at 0
+                                                                   (H = ∇²V(0), A = ∂g/∂x(0))
+  + C_fit · mean (V(x) − T(x))²                                    fit a target whose level
+  + C_pde · mean (∇V·g / (−R(x)‖x‖²) − 1)²                         sets approach the ROA
+
+``T`` is the simulated trajectory cost ``W(x) = ∫‖x(t)‖² dt`` of the model's closed loop,
+rescaled so that ``T = 1`` at a high quantile of the converging states and capped
+(:func:`nlyap_opt.cegis.cost_targets`): ``W`` decreases at rate ``‖x‖²`` along
+trajectories and grows without bound towards the ROA boundary (a Zubov-type function),
+so fitting it (value and decrease law ``Ṫ = −R‖x‖²``) puts the level sets of ``V`` close
+to the boundary of the region of attraction. ``relative_decrease`` divides the hinge by
+``‖x‖²`` so that states near the inner ball weigh as much as the rest.
 
 ``V ≥ 0`` and ``V(0) = 0`` hold by construction, so the seed's hinge on ``−V`` and
 ``V(0)²`` terms are identically zero and left out.
@@ -51,9 +63,36 @@ class TrainConfig:
     w_grad: float = 0.0
     train_controller: bool = True
     w_anchor: float = 1.0      # penalty ‖G − G_lqr‖² keeping the gain near its LQR start
+    w_fit: float = 0.0         # fit V to the trajectory-cost target (0: off)
+    fit_quantile: float = 0.99  # target level 1 = this quantile of the converging states' cost
+    fit_cap: float = 2.0       # target of states that do not converge (and cap of the rest)
+    fit_transform: str = "log"  # "log" or "linear" (see nlyap_opt.cegis.cost_targets)
+    w_pde: float = 0.0         # relative residual of the target's decrease law (0: off)
+    w_local: float = 0.0       # first-order decrease at the origin (see local_violation)
+    relative_decrease: bool = False  # divide the decrease hinge by ‖x‖²
+    lr_schedule: str = "constant"  # or "cosine": lr → lr/100 over each train() call
     seed: int = 0
     time_budget: float = 60.0
     threads: int = 1           # torch threads; small batches run fastest single-threaded
+
+
+def _body_jacobian_at_zero(body, n: int):
+    """``∂N/∂x(0)`` of a ``Sequential`` of Linear / Tanh / scale layers (forward mode, with
+    the graph kept for training); other bodies go through ``torch.func.jacrev``."""
+    h = torch.zeros(n, dtype=torch.float64)
+    J = torch.eye(n, dtype=torch.float64)
+    for m in body:
+        if isinstance(m, torch.nn.Linear):
+            h, J = m(h), m.weight @ J
+        elif isinstance(m, torch.nn.Tanh):
+            h = torch.tanh(h)
+            J = (1 - h * h)[:, None] * J
+        elif hasattr(m, "scale"):
+            h, J = m(h), m.scale.reshape(-1, 1) * J
+        else:
+            return torch.func.jacrev(lambda y: body(y[None])[0])(torch.zeros(n,
+                                                                            dtype=torch.float64))
+    return J
 
 
 def sample_ball(n: int, dim: int, radius: float, rng: np.random.Generator,
@@ -138,6 +177,11 @@ class LyapunovLearner:
             u = self.kappa(x)
         else:
             u = torch.as_tensor(s.u_eq, dtype=x.dtype).expand(x.shape[0], s.nu)
+        return self.rhs_xu(x, u)
+
+    def rhs_xu(self, x, u):
+        """``g(x, u)``: the vector field trained on, before the feedback is closed."""
+        s = self.system
         if self.phi is None:
             return s.evaluate_torch(x, u)
         meta = self.dynamics.meta  # same two models as nlyap_opt.symbolic.learned_rhs
@@ -156,6 +200,48 @@ class LyapunovLearner:
         cols = [out[:, learned.index(i)] if i in learned else f[:, i] for i in range(s.nx)]
         return torch.stack(cols, dim=1)
 
+    def closed_loop_jacobian(self):
+        """``A = ∂g/∂x + ∂g/∂u·∂κ/∂x`` at the origin (``∂κ/∂x(0) = −G`` by construction);
+        the open-loop parts are computed once."""
+        if not hasattr(self, "_AxAu"):
+            s = self.system
+            z = torch.zeros(1, s.nx, dtype=torch.float64, requires_grad=True)
+            u = torch.as_tensor(s.u_eq, dtype=torch.float64).reshape(1, s.nu).requires_grad_(
+                bool(s.nu))
+            out = self.rhs_xu(z, u)[0]
+            rows = [torch.autograd.grad(out[i], [z, u] if s.nu else [z], retain_graph=True,
+                                        allow_unused=True) for i in range(s.nx)]
+
+            def row(g, k):
+                return torch.zeros(k, dtype=torch.float64) if g is None else g.reshape(k)
+
+            Ax = torch.stack([row(r[0], s.nx) for r in rows]).detach()
+            Au = torch.stack([row(r[1], s.nu) for r in rows]).detach() if s.nu else None
+            self._AxAu = (Ax, Au)
+        Ax, Au = self._AxAu
+        if self.controller is None:
+            return Ax
+        return Ax - Au @ self.G
+
+    def local_violation(self):
+        r"""How far the linearisation is from certifying ``V`` near the origin.
+
+        With ``H = ∇²V(0)`` and ``A`` the closed-loop Jacobian at 0,
+        ``V̇ ≈ ½xᵀ(AᵀH + HA)x``; returns ``relu(λ_max(AᵀH + HA + 2τH)) / tr H`` (zero when
+        ``V̇ ≤ −τV`` to first order), differentiable in ``V`` and the gain.
+        """
+        n = self.system.nx
+        if hasattr(self.V, "body"):  # sum-of-squares head: H = 2(JᵀJ + ε I), J = ∂N/∂x(0)
+            J = _body_jacobian_at_zero(self.V.body, n)
+            H = 2 * (J.T @ J + self.V.eps * torch.eye(n, dtype=torch.float64))
+        else:
+            H = torch.autograd.functional.hessian(
+                lambda y: self.V(y[None])[0, 0], torch.zeros(n, dtype=torch.float64),
+                create_graph=True)
+        A = self.closed_loop_jacobian()
+        S = A.T @ H + H @ A + 2 * self.config.decay * H
+        return torch.relu(torch.linalg.eigvalsh(0.5 * (S + S.T))[-1]) / torch.trace(H)
+
     def value_and_lie(self, x, create_graph=True):
         x = x.requires_grad_(True)
         v = self.V(x)[:, 0]
@@ -166,27 +252,40 @@ class LyapunovLearner:
     def train(self, states: np.ndarray, sphere: np.ndarray, margin: float,
               counterexamples: np.ndarray | None = None, steps: int | None = None,
               inside_weight: np.ndarray | None = None, progress=None,
-              eta_pointwise: float = 0.0) -> dict:
+              eta_pointwise: float = 0.0, targets: np.ndarray | None = None,
+              target_rates: np.ndarray | None = None) -> dict:
         """Run ``steps`` Adam steps; returns the last loss terms.
 
         ``inside_weight`` (per state, default 1) scales the pull of ``V ≤ 1`` (0 for
         states known not to converge). ``eta_pointwise`` adds ``η‖∇V(x)‖`` to the Lie
-        derivative (the pointwise robust margin for learned dynamics).
+        derivative (the pointwise robust margin for learned dynamics). ``targets`` (per
+        state) adds ``w_fit · mean (V(x) − target)²``.
         """
         cfg = self.config
         X = torch.as_tensor(states, dtype=torch.float64)
         W = (torch.ones(len(X), dtype=torch.float64) if inside_weight is None
              else torch.as_tensor(inside_weight, dtype=torch.float64))
         S = torch.as_tensor(sphere, dtype=torch.float64)
+        T = None if targets is None or not cfg.w_fit else torch.as_tensor(targets,
+                                                                          dtype=torch.float64)
+        R = None if T is None or target_rates is None or not cfg.w_pde else \
+            torch.as_tensor(target_rates, dtype=torch.float64)
         CE = (torch.as_tensor(counterexamples, dtype=torch.float64)
               if counterexamples is not None and len(counterexamples) else None)
         steps = cfg.steps if steps is None else steps
         t0 = time.perf_counter()
         info = {}
         gen = torch.Generator().manual_seed(cfg.seed)
+        if cfg.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"unknown lr_schedule {cfg.lr_schedule!r}; expected 'constant' or "
+                             "'cosine'")
         for it in range(steps):
+            if cfg.lr_schedule == "cosine":
+                for group in self.opt.param_groups:
+                    group["lr"] = cfg.lr * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * it / steps)))
             idx = torch.randint(0, len(X), (min(cfg.batch, len(X)),), generator=gen)
             xb, wb = X[idx], W[idx]
+            nb = len(idx)
             if CE is not None:
                 cidx = torch.randint(0, len(CE), (min(cfg.batch // 4, len(CE)),),
                                      generator=gen)
@@ -196,12 +295,28 @@ class LyapunovLearner:
             active = (v <= 1.0 + cfg.level_slack).to(v.dtype)
             if eta_pointwise:
                 lie = lie + eta_pointwise * g.norm(dim=1)
-            dec = (torch.relu(lie + margin + cfg.decay * v) * active).mean()
+            hinge = torch.relu(lie + margin + cfg.decay * v)
+            if cfg.relative_decrease:  # scale-free: as strong near the origin as far out
+                hinge = hinge / (xb ** 2).sum(1).clamp_min(1e-12)
+            dec = (hinge * active).mean()
             inside = (torch.relu(v - 1.0) * wb).mean()
             sidx = torch.randint(0, len(S), (min(cfg.batch // 4, len(S)),), generator=gen)
             vs = self.V(S[sidx])[:, 0]
             outside = torch.relu(1.0 + cfg.level_slack - vs).mean()
             loss = cfg.w_decrease * dec + cfg.w_inside * inside + cfg.w_outside * outside
+            if cfg.w_local:
+                local = self.local_violation()
+                loss = loss + cfg.w_local * local
+            if T is not None:
+                fit = ((v[:nb] - T[idx]) ** 2).mean()
+                loss = loss + cfg.w_fit * fit
+                if R is not None:
+                    # the target decreases at rate R(x)·‖x‖² along trajectories
+                    want = R[idx] * (xb[:nb] ** 2).sum(1)
+                    live = want > 0
+                    rel = lie[:nb] / torch.where(live, want, torch.ones_like(want)) + 1.0
+                    pde = torch.where(live, rel, torch.zeros_like(rel)).pow(2).mean()
+                    loss = loss + cfg.w_pde * pde
             if cfg.w_grad:
                 loss = loss + cfg.w_grad * g.norm(dim=1).mean()
             if self.controller is not None and cfg.train_controller and cfg.w_anchor:
@@ -211,6 +326,8 @@ class LyapunovLearner:
             self.opt.step()
             info = {"loss": loss.item(), "decrease": dec.item(), "inside": inside.item(),
                     "outside": outside.item()}
+            if T is not None:
+                info["fit"] = fit.item()
             if progress is not None and (it % 100 == 0 or it == steps - 1):
                 progress(it, info)
             if time.perf_counter() - t0 > cfg.time_budget:

@@ -44,6 +44,8 @@ class LevelCandidate:
     argmin: np.ndarray
     source: str          # "decrease" (a Lie-derivative boundary point) or "sphere"
     seconds: float
+    violations: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    # sampled decrease violations with the least V (for training: they limit the level)
 
 
 def _fun(x, *outs):
@@ -103,7 +105,12 @@ def candidate_level(x: ca.MX, V: ca.MX, lie: ca.MX, *, inner: float, outer: floa
             vv = float(F(xs)[0])
             if vv < best[0]:
                 best = (vv, xs, "sphere")
-    return LevelCandidate(best[0], np.asarray(best[1]), best[2], time.perf_counter() - t0)
+    order = np.argsort(np.where(bad, v, np.inf))[: min(int(bad.sum()), 4 * n_starts)]
+    viol = pts[order]
+    if best[2] == "decrease":
+        viol = np.vstack([np.asarray(best[1])[None], viol])
+    return LevelCandidate(best[0], np.asarray(best[1]), best[2], time.perf_counter() - t0,
+                          viol.reshape(-1, n))
 
 
 @dataclass

@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["rk4_step", "simulate_converges"]
+__all__ = ["rk4_step", "simulate", "simulate_converges"]
 
 
 def rk4_step(rhs: Callable[[np.ndarray], np.ndarray], x: np.ndarray, dt: float) -> np.ndarray:
@@ -18,26 +18,48 @@ def rk4_step(rhs: Callable[[np.ndarray], np.ndarray], x: np.ndarray, dt: float) 
     return x + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
-def simulate_converges(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
-                       dt: float = 0.02, tol: float = 1e-3, blow_up: float = 1e6
-                       ) -> np.ndarray:
-    """Per initial state: does ``x' = rhs(x)`` reach ``‖x‖ < tol`` within ``t_final``?
+def simulate(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
+             dt: float = 0.02, tol: float = 1e-3, blow_up: float = 1e6
+             ) -> tuple[np.ndarray, np.ndarray]:
+    r"""Integrate ``x' = rhs(x)`` from every row of ``x0`` at once.
 
-    All states are integrated at once; a state is dropped once it has converged or left
-    ``blow_up`` (or become non-finite).
+    Returns
+    -------
+    converged : (N,) bool
+        ``‖x(t)‖ < tol`` was reached within ``t_final``.
+    cost : (N,) float
+        :math:`\int_0^{t^*} \|x(t)\|^2\,dt` (trapezoidal rule) up to the time :math:`t^*` a
+        state converged, left ``blow_up`` (or became non-finite), or ``t_final``. For a
+        converged state it is the trajectory cost to the origin up to a tail of order
+        ``tol²``: the data-driven Lyapunov (Zubov-type) function whose sublevel sets grow to
+        the region of attraction (it decreases along trajectories at rate ``‖x‖²``).
     """
     x = np.array(x0, dtype=float)
     done = np.zeros(len(x), bool)
     alive = np.ones(len(x), bool)
+    cost = np.zeros(len(x))
     with np.errstate(all="ignore"):
         for _ in range(int(np.ceil(t_final / dt))):
             idx = np.nonzero(alive)[0]
             if not len(idx):
                 break
-            z = rk4_step(rhs, x[idx], dt)
+            z0 = x[idx]
+            z = rk4_step(rhs, z0, dt)
             x[idx] = z
+            cost[idx] += 0.5 * dt * (np.einsum("ij,ij->i", z0, z0) + np.einsum("ij,ij->i", z, z))
             conv = np.linalg.norm(z, axis=1) < tol
             blow = ~np.all(np.isfinite(z), axis=1) | (np.max(np.abs(z), axis=1) > blow_up)
             done[idx[conv]] = True
             alive[idx[conv | blow]] = False
-    return done
+    cost[~np.isfinite(cost)] = np.inf
+    return done, cost
+
+
+def simulate_converges(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
+                       dt: float = 0.02, tol: float = 1e-3, blow_up: float = 1e6
+                       ) -> np.ndarray:
+    """Per initial state: does ``x' = rhs(x)`` reach ``‖x‖ < tol`` within ``t_final``?
+
+    (The ``converged`` output of :func:`simulate`.)
+    """
+    return simulate(rhs, x0, t_final, dt, tol, blow_up)[0]

@@ -1,0 +1,117 @@
+"""The trajectory-cost target, the local (linearisation) term and falsifier-first CEGIS."""
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+
+import systems
+from baselines.lqr import lqr, saturated_controller
+from nlyap_opt.cegis import CegisConfig, cegis, cost_targets
+from nlyap_opt.learning import LyapunovLearner, TrainConfig, _body_jacobian_at_zero
+from nlyap_opt.simulate import simulate, simulate_converges
+
+
+def test_trajectory_cost_of_a_linear_system_is_its_lyapunov_quadratic():
+    """For x' = Ax, ∫‖x‖² dt = x0ᵀPx0 with AᵀP + PA = −I (up to the tail below tol)."""
+    A = np.array([[0.0, 1.0], [-2.0, -1.5]])
+    P = scipy.linalg.solve_continuous_lyapunov(A.T, -np.eye(2))
+    x0 = np.random.default_rng(0).uniform(-2, 2, (200, 2))
+    conv, cost = simulate(lambda x: x @ A.T, x0, t_final=60.0, dt=0.01, tol=1e-4)
+    assert conv.all()
+    exact = np.einsum("ij,jk,ik->i", x0, P, x0)
+    np.testing.assert_allclose(cost, exact, rtol=2e-4, atol=1e-7)  # trapezoidal O(dt²)
+    # an unstable system: nothing converges, the cost stays finite up to blow-up
+    conv_u, cost_u = simulate(lambda x: -x @ A.T, x0, t_final=60.0, dt=0.01, tol=1e-4)
+    assert not conv_u.any() and np.all(cost_u > 0)
+    assert np.array_equal(simulate_converges(lambda x: x @ A.T, x0, 60.0, 0.01, 1e-4), conv)
+
+
+@pytest.mark.parametrize("transform", ["log", "linear"])
+def test_cost_targets_are_monotone_capped_and_their_rates_are_derivatives(transform):
+    cost = np.linspace(0.0, 100.0, 2001)
+    conv = np.ones_like(cost, bool)
+    conv[-5:] = False
+    T, rate = cost_targets(conv, cost, w_c=20.0, cap=2.0, transform=transform)
+    assert T[0] == 0.0 and np.all(np.diff(T) >= 0) and T.max() == 2.0
+    np.testing.assert_allclose(np.interp(20.0, cost, T), 1.0, rtol=1e-12)
+    assert np.all(T[~conv] == 2.0) and np.all(rate[T >= 2.0] == 0.0)
+    live = rate > 0
+    dT = np.gradient(T, cost)  # dT/dt = dT/dW · dW/dt = −(dT/dW)‖x‖²: rate = dT/dW
+    inner = live & np.roll(live, 1) & np.roll(live, -1)
+    inner[[0, -1]] = False
+    np.testing.assert_allclose(rate[inner], dT[inner], rtol=1e-3)
+    with pytest.raises(ValueError, match="fit_transform"):
+        cost_targets(conv, cost, 20.0, 2.0, "cubic")
+
+
+@pytest.mark.parametrize("name", ["van_der_pol", "inverted_pendulum",
+                                  "unicycle_path_following"])
+def test_local_term_matches_autograd_hessian_and_jacobian(name):
+    s = systems.get(name)
+    ctrl = saturated_controller(s, lqr(s).K, 5.0) if s.nu else None
+    L = LyapunovLearner(s, ctrl, None, TrainConfig(hidden=[7, 5], features=4, seed=3))
+    if ctrl is not None:  # a gain away from the LQR start
+        with torch.no_grad():
+            L.G.add_(0.1 * torch.randn_like(L.G))
+    z = torch.zeros(s.nx, dtype=torch.float64)
+    H = torch.autograd.functional.hessian(lambda y: L.V(y[None])[0, 0], z)
+    A = torch.autograd.functional.jacobian(lambda y: L.rhs(y[None])[0], z)
+    J = _body_jacobian_at_zero(L.V.body, s.nx)
+    H2 = 2 * (J.T @ J + L.V.eps * torch.eye(s.nx, dtype=torch.float64))
+    np.testing.assert_allclose(H2.detach().numpy(), H.numpy(), atol=1e-12)
+    np.testing.assert_allclose(L.closed_loop_jacobian().detach().numpy(), A.numpy(),
+                               atol=1e-12)
+    # the violation is the λ_max of AᵀH + HA + 2τH over tr H (zero iff first-order decrease)
+    S = (A.T @ H + H @ A + 2 * L.config.decay * H).numpy()
+    want = max(np.linalg.eigvalsh(0.5 * (S + S.T))[-1], 0.0) / np.trace(H.numpy())
+    assert L.local_violation().item() == pytest.approx(want, rel=1e-9, abs=1e-15)
+
+
+def test_local_term_trains_a_lyapunov_quadratic():
+    """Minimising the local term alone gives ∇²V(0) with AᵀH + HA ≺ −2τH (Van der Pol)."""
+    s = systems.get("van_der_pol")
+    L = LyapunovLearner(s, None, None, TrainConfig(hidden=[6], features=3, seed=1,
+                                                   decay=0.1))
+    opt = torch.optim.Adam(L.V.parameters(), lr=0.02)
+    start = L.local_violation().item()
+    for _ in range(300):
+        loss = L.local_violation()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert start > 0, "the seed should start from a non-Lyapunov quadratic"
+    assert L.local_violation().item() == 0.0
+    J = _body_jacobian_at_zero(L.V.body, 2).detach().numpy()
+    H = 2 * (J.T @ J + L.V.eps * np.eye(2))
+    assert np.linalg.eigvalsh(s.A.T @ H + H @ s.A)[-1] < 0
+
+
+def test_falsifier_first_cegis_verifies_what_it_returns():
+    """With verify_every = 2, only odd iterations (and the last) run the verifier; the
+    returned level is one the verifier proved (re-checked here)."""
+    from nlyap_opt.symbolic import closed_loop, lie_derivative
+    from verification import lyapunov_problem, verify
+
+    s = systems.get("van_der_pol")
+    train = TrainConfig(hidden=[8], features=3, steps=300, lr=0.02, w_fit=10.0, w_pde=1.0,
+                        w_local=10.0, relative_decrease=True, level_slack=0.5, decay=0.05,
+                        lr_schedule="cosine")
+    cfg = CegisConfig(inner=0.3, outer=1.5, iterations=4, steps=100, verify_every=2,
+                      samples=3000, sphere_samples=500, inner_samples=300,
+                      boundary_samples=1000, sim_dt=0.05, train=train, area_grid=80)
+    res = cegis(s, None, None, cfg, log=lambda m: None)
+    assert len(res.history) >= 2
+    for i, h in enumerate(res.history):
+        if (i + 1) % 2 and i < len(res.history) - 1:
+            assert h["status"].startswith("not verified") and h["boxes"] == 0, h
+            assert h["counterexamples"] >= 0
+        else:
+            assert h["boxes"] > 0, h
+    assert res.status == "certified" and res.level > 0 and res.area > 0
+    cl = closed_loop(s, None, None, strict=True)
+    Vx = res.V.casadi(cl.x)
+    prob = lyapunov_problem(cl.x, Vx, lie_derivative(Vx, cl.x, cl.rhs), inner=0.3,
+                            outer=1.5, level=res.level, margin=0.0,
+                            box=np.tile([-1.5, 1.5], (2, 1)), check_positive=False)
+    assert verify(prob).status == "verified"

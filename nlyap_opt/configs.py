@@ -47,9 +47,15 @@ PRESETS: dict[str, dict[str, dict]] = {
         },
         "large": {
             "outer": 3.0, "inner": 0.2, "controller_scale": None,
-            "train": {"hidden": [20, 20], "features": 6, "steps": 3000, "lr": 0.005,
-                      "time_budget": 60.0},
-            "cegis": {"iterations": 4, "steps": 800},
+            # V fitted to the simulated trajectory cost (its sublevel sets grow to the ROA)
+            # plus the decrease terms; the verifier runs every third iteration
+            "train": {"hidden": [20, 20], "features": 6, "steps": 1500, "lr": 0.01,
+                      "lr_schedule": "cosine", "decay": 0.05, "level_slack": 0.5,
+                      "relative_decrease": True, "w_fit": 10.0, "w_pde": 1.0,
+                      "w_local": 10.0, "time_budget": 60.0},
+            "cegis": {"iterations": 6, "steps": 500, "verify_every": 3, "sim_time": 30.0,
+                      "sim_dt": 0.04,
+                      "inner_samples": 2000, "boundary_samples": 20000},
             "eval_box": _VDP_BOX, "eval_grid": 300,
             # φ must be bounded on a box that holds the verification ball r = 3
             "dynamics": {"preset": "default", "state_box": [[-3.0, 3.0], [-3.0, 3.0]],

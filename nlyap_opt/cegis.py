@@ -45,7 +45,7 @@ class CegisConfig:
     inner_samples: int = 0           # extra training states in ε ≤ ‖x‖ ≤ 3ε
     boundary_samples: int = 0        # extra training states near the model's ROA boundary
     sim_dt: float = 0.02             # RK4 step of those simulations
-    sim_grid: int = 301              # learned φ: table nodes per axis for them (0: no table)
+    sim_grid: int = 0                # learned φ: table nodes per axis for them (0: no table)
     sim_time: float = 20.0           # simulated horizon of the training states (convergence, cost)
     # learned dynamics: "pointwise" verifies ∇V·φ + η‖∇V(x)‖ < 0 (Cauchy–Schwarz: implies
     # ∇V·f < 0 wherever ‖f − φ‖ ≤ η); "global" verifies the paper's ∇V·φ < −β, β = M·η

@@ -54,7 +54,7 @@ PRESETS: dict[str, dict[str, dict]] = {
                       "relative_decrease": True, "w_fit": 10.0, "w_pde": 1.0,
                       "w_local": 10.0, "time_budget": 60.0},
             "cegis": {"iterations": 6, "steps": 500, "verify_every": 3, "sim_time": 30.0,
-                      "sim_dt": 0.04,
+                      "sim_dt": 0.04, "sim_grid": 301,
                       "inner_samples": 2000, "boundary_samples": 20000},
             "eval_box": _VDP_BOX, "eval_grid": 300,
             # φ must be bounded on a box that holds the verification ball r = 3

@@ -133,3 +133,26 @@ def test_tabulated_simulation_rhs_interpolates_the_model():
     # |∂²f₂/∂x_i²| ≤ 2|x₂| ≤ 4 and the x₁²x₂ cross term: bilinear error ≤ h²/8·Σ|f_ii| + ...
     assert 0 < err < 1e-3
     np.testing.assert_allclose(direct(x), s.evaluate(x, None), rtol=0, atol=1e-12)
+
+
+def test_candidate_level_violations_are_sampled_decrease_failures():
+    """For V = ‖x‖² on Van der Pol, V̇ = 2(x₁² − 1)x₂² ≥ 0 where |x₁| ≥ 1 (and on the
+    axis x₂ = 0, where V̇ = 0 and V ≥ ε²): every returned violation fails the decrease and
+    the candidate is no larger than V at any of them."""
+    import casadi as ca
+
+    from nlyap_opt.roa import candidate_level
+    from nlyap_opt.symbolic import closed_loop, lie_derivative
+
+    s = systems.get("van_der_pol")
+    cl = closed_loop(s, None, None, strict=True)
+    V = ca.sumsqr(cl.x)
+    lie = lie_derivative(V, cl.x, cl.rhs)
+    cand = candidate_level(cl.x, V, lie, inner=0.2, outer=2.0, n_samples=5000)
+    pts = cand.violations
+    assert cand.source == "decrease" and len(pts) > 10
+    assert 0.2**2 - 1e-9 <= cand.level <= np.min(np.sum(pts**2, axis=1)) + 1e-12
+    r = np.linalg.norm(pts, axis=1)
+    assert np.all((r >= 0.2 - 1e-9) & (r <= 2.0 + 1e-9))
+    lie_f = ca.Function("l", [cl.x], [lie])
+    assert all(float(lie_f(p)) >= -1e-9 for p in pts)

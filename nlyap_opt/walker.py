@@ -471,9 +471,16 @@ def _mx_mtimes(o, z, x, y, z_is_zero=False):
 
 
 def _mx_dot(o, a, b):
+    # dot(v, v) (``sumsqr``: V = ‖N(x) − N(0)‖², ‖x‖², ‖∇V‖²) as a sum of squares: an
+    # interval arithmetic then encloses it by ``[0, ...]`` instead of the product of two
+    # independent copies of ``v`` (e.g. [-0.75, 5] for ‖x‖² on [-1, 1] × [0.5, 2]); one
+    # register holds one value, so the rewrite is exact
     def step(r, ctx):
         ar = ctx[0]
-        prod = ar.binary(ca.OP_MUL, r[a], r[b])
+        if a == b:
+            prod = ar.unary(ca.OP_SQ, r[a])
+        else:
+            prod = ar.binary(ca.OP_MUL, r[a], r[b])
         r[o] = ar.structural(lambda v: v[..., None, None], ar.sum(prod, (-2, -1)))
     return step
 

@@ -684,3 +684,27 @@ def test_walker_mx_mtimes_zero_addend_and_cached_constants():
         assert np.all(e1.lo <= v1) and np.all(v1 <= e1.hi)
         assert np.all(e2.lo <= v2) and np.all(v2 <= e2.hi)
         assert np.allclose(v2, p @ W.T + b[:, 0])
+
+
+def test_walker_mx_dot_of_a_register_with_itself_is_a_sum_of_squares():
+    """``sumsqr(v)`` (CasADi ``dot(v, v)``) encloses ``‖v‖²`` by ``[min, max]`` of the squares,
+    not the product of two independent copies; ``dot(v, w)`` keeps the product."""
+    from nlyap_opt.walker import NUMPY, evaluate
+
+    x = ca.MX.sym("x", 2)
+    W = np.array([[1.0, -2.0], [0.5, 1.0]])
+    y = ca.mtimes(W, x)
+    f = ca.Function("f", [x], [ca.sumsqr(x), ca.sumsqr(y), ca.dot(x, y)])
+    lo, hi = np.array([[-1.0, 0.5], [0.1, -0.3]]), np.array([[1.0, 2.0], [0.4, 0.2]])
+    s_x, s_y, d_xy = evaluate(f, [Interval(lo, hi)], IA)
+    # ‖x‖² on [-1, 1] × [0.5, 2] is [0.25, 5]; on [0.1, 0.4] × [-0.3, 0.2]: [0.01, 0.25]
+    assert s_x.lo[0, 0] == pytest.approx(0.25, rel=1e-12) and s_x.hi[0, 0] >= 5.0
+    assert s_x.lo[1, 0] == pytest.approx(0.01, rel=1e-12)
+    assert np.all(s_y.lo >= -1e-300)  # a sum of squares (outward rounding: -2⁻¹⁰²⁰·…)
+    rng = np.random.default_rng(12)
+    for p in lo + rng.uniform(0, 1, size=(200, 2, 2)) * (hi - lo):
+        v = [np.ravel(a) for a in evaluate(f, [p], NUMPY)]
+        for enc, val in zip((s_x, s_y, d_xy), v):
+            assert np.all(enc.lo[:, 0] <= val) and np.all(val <= enc.hi[:, 0])
+    # the product of independent copies would reach below zero: x·Wx on the first box
+    assert d_xy.lo[0, 0] < 0.0

@@ -50,6 +50,9 @@ class CegisConfig:
     # learned dynamics: "pointwise" verifies ∇V·φ + η‖∇V(x)‖ < 0 (Cauchy–Schwarz: implies
     # ∇V·f < 0 wherever ‖f − φ‖ ≤ η); "global" verifies the paper's ∇V·φ < −β, β = M·η
     margin_mode: str = "pointwise"
+    # pointwise mode: verify with sqrt(‖∇V‖² + s²), s = norm_smoothing·M (costs at most
+    # norm_smoothing·β of slack; keeps the verifier's mean-value form near the inner ball)
+    norm_smoothing: float = 1e-3
 
 
 @dataclass
@@ -63,6 +66,7 @@ class CegisResult:
     area: float
     history: list
     seconds: float
+    smoothing: float = 0.0       # s of the pointwise condition (see robust_lie)
 
 
 def _simulation_rhs(learner, system, cfg, tabulate: bool):
@@ -174,6 +178,7 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
     history = []
     margin = 0.0
     M = None
+    smoothing = 0.0
     for it in range(cfg.iterations):
         steps = (cfg.first_steps or cfg.train.steps) if it == 0 else cfg.steps
         pointwise = eta if (eta > 0 and cfg.margin_mode == "pointwise") else 0.0
@@ -184,12 +189,13 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
         if eta > 0:
             M = float(gradient_bound(V, ctrl))
             margin = float(np.nextafter(M * eta, np.inf))
+            smoothing = cfg.norm_smoothing * M
         cl = closed_loop(system, ctrl, dynamics, strict=True)
         Vx = V.casadi(cl.x)
         lie = lie_derivative(Vx, cl.x, cl.rhs)
         check_margin = margin
         if eta > 0 and cfg.margin_mode == "pointwise":
-            lie = robust_lie(lie, Vx, cl.x, eta)
+            lie = robust_lie(lie, Vx, cl.x, eta, smoothing)
             check_margin = 0.0
         cand = candidate_level(cl.x, Vx, lie, inner=cfg.inner, outer=cfg.outer,
                                margin=check_margin, seed=cfg.seed + it)
@@ -209,7 +215,8 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
                  "margin_mode": cfg.margin_mode if eta > 0 else "none",
                  "train_seconds": info["seconds"], "candidate_level": cand.level,
                  "candidate_source": cand.source, "status": cert.status,
-                 "level": cert.level, "margin": margin, "M": M, "area": area,
+                 "level": cert.level, "margin": margin, "M": M, "smoothing": smoothing,
+                 "area": area,
                  "verify_seconds": cert.seconds,
                  "boxes": sum((h.get("boxes", 0) for h in cert.history), 0),
                  "counterexamples": int(len(cert.counterexamples))}
@@ -219,7 +226,7 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
             f"area {area:.4g}, margin {margin:.3g}")
         if cert.status == "certified" and (best is None or area > best.area):
             best = CegisResult("certified", V, ctrl, cert.level, margin, M, area, history,
-                               0.0)
+                               0.0, smoothing)
         if cert.status == "certified" and cert.level >= cfg.target_fraction * cand.level \
                 and not len(cert.counterexamples):
             break
@@ -236,6 +243,6 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
     if best is None:
         V, ctrl = learner.export()
         return CegisResult("no certified level within the iteration budget", V, ctrl, 0.0,
-                           margin, M, 0.0, history, seconds)
+                           margin, M, 0.0, history, seconds, smoothing)
     best.history, best.seconds = history, seconds
     return best

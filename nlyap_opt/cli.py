@@ -71,7 +71,7 @@ def cmd_verify(args) -> int:
         print("note: --margin without --dynamics tightens the true-f condition", file=sys.stderr)
     problem = closed_loop_problem(s, V, ctrl, dyn, inner=args.inner, outer=args.outer,
                                   level=args.level, margin=args.margin, eta=args.eta,
-                                  strict=False)
+                                  smoothing=args.smoothing, strict=False)
     opts = {}
     if args.backend == "interval":
         opts = {"resolution": args.resolution, "progress": args.progress}
@@ -81,6 +81,8 @@ def cmd_verify(args) -> int:
     region = f"{args.inner:g} <= |x| <= {args.outer:g}" + (
         f" and V <= {args.level:g}" if args.level is not None else "")
     extra = f" + {args.eta:g}|∇V|" if args.eta else ""
+    if args.eta and args.smoothing:
+        extra = f" + {args.eta:g}sqrt(|∇V|² + {args.smoothing:g}²)"
     print(f"{res.status}: V > 0 and dV/dt{extra} < -{args.margin:g} on {region} "
           f"({res.boxes} boxes, depth {res.depth}, {res.seconds:.3f} s, {res.backend})")
     if res.counterexample is not None:
@@ -139,6 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--margin", type=float, default=0.0, help="beta: require dV/dt < -beta")
     sp.add_argument("--eta", type=float, default=0.0,
                     help="pointwise robust margin: require dV/dt + eta*|grad V| < -beta")
+    sp.add_argument("--smoothing", type=float, default=0.0,
+                    help="s: with --eta use sqrt(|grad V|^2 + s^2) (certificate.json's "
+                         "norm_smoothing)")
     sp.add_argument("--inner", type=float, required=True, help="inner radius epsilon")
     sp.add_argument("--outer", type=float, required=True, help="outer radius r")
     sp.add_argument("--level", type=float, help="restrict to V(x) <= level")

@@ -46,17 +46,31 @@ def _jsonable(o):
     return str(o)
 
 
-class _Stages:
-    """Stage bookkeeping: ``DIR/stages.json`` maps stage -> config hash when finished."""
+#: the configuration keys each stage reads
+_STAGE_KEYS = {
+    "dynamics": ("dynamics",),
+    "controller": ("lqr", "controller_scale"),
+    "cegis": ("inner", "outer", "train", "cegis"),
+}
 
-    def __init__(self, out: Path, cfg: dict, log):
-        self.out, self.log = out, log
+
+class _Stages:
+    """Stage bookkeeping: ``DIR/stages.json`` maps stage -> config hash when finished.
+
+    A stage's hash covers the system, the setting (known or learned f), every configuration
+    key the stage reads (:data:`_STAGE_KEYS`) and the hashes of the stages it builds on, so
+    a changed setting reruns exactly the stages it affects.
+    """
+
+    def __init__(self, out: Path, system: str, cfg: dict, log):
+        self.out, self.log, self.system = out, log, system
         self.file = out / "stages.json"
         self.done = json.loads(self.file.read_text()) if self.file.exists() else {}
         self.cfg = cfg
 
     def key(self, stage: str, *deps) -> str:
-        return _hash([stage, self.cfg.get(stage), self.cfg.get("known_dynamics"),
+        return _hash([stage, self.system, self.cfg.get("known_dynamics"),
+                      {k: self.cfg.get(k) for k in _STAGE_KEYS[stage]},
                       [self.done.get(d) for d in deps]])
 
     def finished(self, stage: str, *deps) -> bool:
@@ -83,7 +97,7 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
     out.mkdir(parents=True, exist_ok=True)
     system = systems.get(system_name)
     cfg = dict(cfg, known_dynamics=known_dynamics)
-    stages = _Stages(out, cfg, log)
+    stages = _Stages(out, system_name, cfg, log)
     seconds: dict[str, float] = {}
     r, eps = float(cfg["outer"]), float(cfg["inner"])
     ball_box = np.tile([-r, r], (system.nx, 1))
@@ -164,7 +178,8 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
         if res.controller is not None:
             res.controller.save(out / "controller.json")
         _write(out / "cegis.json", {"status": res.status, "level": res.level,
-                                    "margin": res.margin, "M": res.M, "area_in_ball": res.area,
+                                    "margin": res.margin, "M": res.M,
+                                    "smoothing": res.smoothing, "area_in_ball": res.area,
                                     "history": res.history, "seconds": res.seconds})
         seconds["cegis"] = time.perf_counter() - t
         stages.mark("cegis", *deps)
@@ -198,13 +213,15 @@ def _certificate(system, cfg, V, controller, dynamics, eta, cg, bounds_info, out
 
     r, eps = float(cfg["outer"]), float(cfg["inner"])
     level, margin = float(cg["level"]), float(cg["margin"])
+    smoothing = float(cg.get("smoothing", 0.0))
     known = dynamics is None
     mode = (cg["history"][-1].get("margin_mode", "none") if cg.get("history") else "none")
     if known:
         condition = "∇V·f(x, κ(x)) < 0"
     elif mode == "pointwise":
-        condition = (f"∇V·φ(x, κ(x)) + η‖∇V(x)‖ < 0 with η = {eta:.4g} (implies ∇V·f < 0 "
-                     "by Cauchy–Schwarz where ‖f − φ‖ ≤ η)")
+        condition = (f"∇V·φ(x, κ(x)) + η·sqrt(‖∇V(x)‖² + s²) < 0 with η = {eta:.4g}, "
+                     f"s = {smoothing:.4g} (implies ∇V·f < 0 by Cauchy–Schwarz where "
+                     "‖f − φ‖ ≤ η)")
     else:
         condition = f"∇V·φ(x, κ(x)) < −β with β = M·η = {margin:.4g}"
     assumptions = [
@@ -273,6 +290,7 @@ def _certificate(system, cfg, V, controller, dynamics, eta, cg, bounds_info, out
         "margin_mode": mode,
         "decrease_condition": condition,
         "M": cg.get("M"),
+        "norm_smoothing": smoothing if mode == "pointwise" else 0.0,
         "eta": eta if not known else 0.0,
         "inner_ellipse": None if inner is None else {
             "status": inner["status"], "P": inner["P"], "level": inner["level"],

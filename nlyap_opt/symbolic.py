@@ -132,7 +132,17 @@ def lie_derivative(V: ca.MX, x: ca.MX, rhs: ca.MX) -> ca.MX:
     return ca.dot(ca.gradient(V, x), rhs)
 
 
-def robust_lie(lie: ca.MX, V: ca.MX, x: ca.MX, eta: float) -> ca.MX:
-    r"""``∇V·φ + η‖∇V‖₂``: by Cauchy–Schwarz an upper bound of ``∇V·f`` wherever
-    ``‖f − φ‖₂ ≤ η``."""
-    return lie + eta * ca.sqrt(ca.sumsqr(ca.gradient(V, x)))
+def robust_lie(lie: ca.MX, V: ca.MX, x: ca.MX, eta: float, smoothing: float = 0.0) -> ca.MX:
+    r"""``∇V·φ + η·sqrt(‖∇V‖₂² + s²)``, ``s = smoothing``.
+
+    By Cauchy–Schwarz an upper bound of ``∇V·f`` wherever ``‖f − φ‖₂ ≤ η``, for every
+    ``s ≥ 0`` (``sqrt(q + s²) ≥ sqrt(q)``); ``s`` costs at most ``η·s`` of slack. ``s > 0``
+    keeps the derivative of the square root finite (at most ``1/(2s)``) where an interval
+    enclosure of ``‖∇V‖²`` reaches 0 — with ``s = 0`` the verifier's mean-value form is
+    lost there and boxes near the inner ball multiply (measured: Van der Pol, a 2-20-20 V,
+    1.7 million boxes with ``s = 0`` and 74 thousand with ``s = 10⁻³·sup‖∇V‖``).
+    """
+    if not smoothing >= 0:
+        raise ValueError(f"smoothing must be >= 0, got {smoothing!r}")
+    q = ca.sumsqr(ca.gradient(V, x))
+    return lie + eta * ca.sqrt(q + smoothing**2 if smoothing else q)

@@ -93,6 +93,19 @@ def test_run_resumes_from_saved_stages(known_runs):
     assert again["level"] == cert["level"]
 
 
+def test_changed_training_settings_rerun_the_cegis_stage(known_runs, tmp_path):
+    import shutil
+
+    d, _ = known_runs["van_der_pol"]
+    shutil.copytree(d, tmp_path / "run")
+    cfg = get_config("van_der_pol", "fast")
+    cfg["train"]["steps"] += 1
+    logs = []
+    run("van_der_pol", cfg, tmp_path / "run", known_dynamics=True, log=logs.append)
+    assert not any("[cegis] loaded" in m for m in logs)
+    assert any("cegis iteration 0" in m for m in logs)
+
+
 @pytest.fixture(scope="module")
 def learned_runs(tmp_path_factory):
     out = {}
@@ -114,6 +127,7 @@ def test_fast_learned_dynamics_run_is_certified(learned_runs, name, tmp_path):
     # re-verify the learned-dynamics certificate from the saved files
     args = ["verify", "--system", name, "--lyapunov", str(d / "V.json"),
             "--dynamics", str(d / "dynamics.json"), "--eta", repr(cert["eta"]),
+            "--smoothing", repr(cert["norm_smoothing"]),
             "--inner", str(cert["inner_radius"]), "--outer", str(cert["outer_radius"]),
             "--level", repr(cert["level"])]
     if (d / "controller.json").exists():

@@ -256,3 +256,28 @@ def test_single_thread_blas_is_scoped():
     with vmod._single_thread_blas():
         assert get() == 1
     assert get() == before
+
+
+def test_robust_lie_with_smoothing_bounds_every_perturbed_lie_derivative():
+    """``∇V·φ + η·sqrt(‖∇V‖² + s²)`` ≥ ``∇V·(φ + e)`` for every ‖e‖ ≤ η (the worst e is
+    ``η∇V/‖∇V‖``), and the smoothing costs at most ``η·s``."""
+    from nlyap_opt.symbolic import lie_derivative, robust_lie
+
+    x = ca.MX.sym("x", 2)
+    V = ca.tanh(x[0] - 0.5 * x[1]) ** 2 + 0.3 * x[1] ** 2
+    phi = ca.vertcat(-x[0] + x[1] ** 2, -x[1] - x[0] * x[1])
+    eta, s = 0.05, 0.2
+    lie = lie_derivative(V, x, phi)
+    g = ca.gradient(V, x)
+    F = ca.Function("F", [x], [lie, robust_lie(lie, V, x, eta), robust_lie(lie, V, x, eta, s), g])
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-2, 2, size=(2, 500))
+    L, R0, Rs, G = (np.array(a) for a in F(X))
+    worst = L + eta * np.linalg.norm(G, axis=0)  # ∇V·(φ + η∇V/‖∇V‖)
+    assert np.allclose(R0, worst, rtol=1e-12, atol=1e-15)
+    assert np.all(Rs >= R0) and np.all(Rs - R0 <= eta * s * (1 + 1e-12))
+    e = rng.standard_normal((2, 500))
+    e *= eta * rng.uniform(0, 1, 500) / np.linalg.norm(e, axis=0)
+    assert np.all(L + np.sum(G * e, axis=0) <= Rs + 1e-15)
+    with pytest.raises(ValueError, match="smoothing"):
+        robust_lie(lie, V, x, eta, -1.0)

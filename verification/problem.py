@@ -209,8 +209,8 @@ def lyapunov_problem(x, V, lie, *, inner: float, outer: float, level: float | No
 
 def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: float,
                         outer: float, level: float | None = None, margin: float = 0.0,
-                        eta: float = 0.0, strict: bool = False, check_positive: bool = True
-                        ) -> VerificationProblem:
+                        eta: float = 0.0, smoothing: float = 0.0, strict: bool = False,
+                        check_positive: bool = True) -> VerificationProblem:
     """Lyapunov problem for saved networks: ``V``, ``κ`` and optionally learned ``φ``.
 
     Parameters
@@ -223,6 +223,8 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     margin : float            β: require ``∇V·g < −β``
     eta : float               pointwise robust margin: require ``∇V·g + η‖∇V‖ < −β``
                               (with ``g = φ`` this implies ``∇V·f < −β`` where ``‖f − φ‖ ≤ η``)
+    smoothing : float         ``s``: use ``sqrt(‖∇V‖² + s²)`` for ``‖∇V‖`` (stronger, and
+                              cheaper to verify; see :func:`nlyap_opt.symbolic.robust_lie`)
     strict : bool             raise (True) or warn (False) if 0 is not an equilibrium
     """
     from nlyap_opt.symbolic import closed_loop, lie_derivative
@@ -238,6 +240,6 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     if eta:
         from nlyap_opt.symbolic import robust_lie
 
-        lie = robust_lie(lie, Vx, cl.x, eta)
+        lie = robust_lie(lie, Vx, cl.x, eta, smoothing)
     return lyapunov_problem(cl.x, Vx, lie, inner=inner, outer=outer, level=level,
                             margin=margin, check_positive=check_positive)

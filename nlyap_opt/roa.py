@@ -132,7 +132,9 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer: float, margin
     """Prove (a) and (b) at the largest level we can reach from ``level`` downwards.
 
     Counterexamples lower the level to just below ``V`` at the counterexample; ``unknown``
-    verdicts lower it by 10 %. Returns the certified level or why none was found.
+    verdicts lower it by 0.5 %, then 1.5 %, 4.5 %, 13.5 %, 30 %, ... (an ``unknown`` is
+    usually a near-tangency that a small step resolves). Returns the certified level or
+    why none was found.
     """
     from verification import VerificationProblem, lyapunov_problem, verify
 
@@ -143,6 +145,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer: float, margin
     n = x.numel()
     box = np.tile([-outer, outer], (n, 1))
     c = level * (1.0 - shrink)
+    drop = 0.005
     hist, cexs = [], []
     for _ in range(max_tries):
         if not c > 0:
@@ -177,7 +180,8 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer: float, margin
             vmin = float(np.min(evaluate(Vf, [pts])[0]))
             c = min(vmin * (1.0 - 1e-3), c * 0.995)
         else:
-            c *= 0.9
+            c *= 1.0 - drop
+            drop = min(3.0 * drop, 0.3)
     return LevelCertificate("no level certified", 0.0, None, None, hist,
                             np.array(cexs).reshape(-1, n), time.perf_counter() - t0)
 

@@ -276,17 +276,25 @@ def grid_points(box: np.ndarray, n: int) -> tuple[np.ndarray, tuple]:
 
 
 def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200, t_final: float = 60.0,
-                  dt: float = 0.02, tol: float = 1e-3) -> np.ndarray:
+                  dt: float = 0.02, tol: float = 1e-3, ellipse=None) -> np.ndarray:
     """Grid mask of initial states whose simulated closed loop converges to the origin.
 
     Fixed-step RK4 on all grid points at once; a state counts as converged once
-    ``‖x‖ < tol`` (it is then dropped from the integration), as diverged once it leaves
-    ``1e6`` or becomes non-finite.
+    ``‖x‖ < tol`` or, given ``ellipse = (P, c)`` (a certified quadratic ROA of this closed
+    loop, :func:`certify_inner_ellipse`), once ``xᵀPx ≤ c`` (it is then dropped from the
+    integration); as diverged once it leaves ``1e6`` or becomes non-finite.
     """
     from .simulate import simulate_converges
 
     def rhs(z):
         return system.evaluate(z, None if feedback is None else feedback(z))
 
+    target = None
+    if ellipse is not None:
+        P, c = np.asarray(ellipse[0], dtype=float), float(ellipse[1])
+
+        def target(z):
+            return np.einsum("ij,jk,ik->i", z, P, z) <= c
+
     pts, shape = grid_points(box, n)
-    return simulate_converges(rhs, pts, t_final, dt, tol).reshape(shape)
+    return simulate_converges(rhs, pts, t_final, dt, tol, target=target).reshape(shape)

@@ -175,3 +175,19 @@ def test_certify_level_steps_down_gently_after_unknown_verdicts():
     assert cert.status == "certified", cert.history
     assert any(h["decrease"] == "unknown" for h in cert.history)
     assert 0.9 < cert.level < 0.98
+
+
+def test_simulate_counts_entering_a_known_roa_set_as_converged():
+    """ẋ = −0.1x from ‖x‖ = 1 reaches ‖x‖ = e⁻¹ in 10 s: not ``tol``, but the target disc
+    ‖x‖ ≤ 0.5; ẋ = +0.1x never converges, target or not."""
+    x0 = np.array([[1.0, 0.0], [0.0, -1.0], [0.3, 0.1]])
+
+    def disc(z):
+        return np.einsum("ij,ij->i", z, z) <= 0.25
+
+    assert not simulate_converges(lambda z: -0.1 * z, x0[:2], t_final=10.0).any()
+    assert simulate_converges(lambda z: -0.1 * z, x0, t_final=10.0, target=disc).all()
+    conv, cost = simulate(lambda z: -0.1 * z, x0[:1], t_final=10.0, target=disc)
+    # stopped on entering the disc at t = 10 ln 2: cost ∫ e^(−0.2t) dt = 5 (1 − 1/4)
+    assert conv[0] and cost[0] == pytest.approx(3.75, rel=0.02)
+    assert not simulate_converges(lambda z: 0.1 * z, x0[:2], t_final=10.0, target=disc).any()

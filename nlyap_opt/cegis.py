@@ -37,6 +37,7 @@ class CegisConfig:
     verify_every: int = 1            # run the verifier every k-th iteration (and the last);
     # in between, the sampled violations of the candidate level are the counterexamples
     target_fraction: float = 0.99    # stop when certified level >= this fraction of candidate
+    min_iterations: int = 1          # ... but not before this many iterations (best area kept)
     area_grid: int = 200
     verify_options: dict = field(default_factory=dict)
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -228,7 +229,7 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
             best = CegisResult("certified", V, ctrl, cert.level, margin, M, area, history,
                                0.0, smoothing)
         if cert.status == "certified" and cert.level >= cfg.target_fraction * cand.level \
-                and not len(cert.counterexamples):
+                and not len(cert.counterexamples) and it + 1 >= cfg.min_iterations:
             break
         new = cert.counterexamples
         if len(new):

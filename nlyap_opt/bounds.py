@@ -14,7 +14,8 @@ Every sup below is a *rigorous* upper bound: CasADi derivative graphs are evalua
 outward-rounded :class:`verification.interval.IntervalArithmetic` on a subdivision of the box
 (many sub-boxes in one call per chunk), and norms are rounded upward. Interval sups are
 inflated by a relative ``2**-30``: CasADi folds products of constants in derivative graphs in
-float64, which the interval arithmetic cannot see.
+float64; the interval arithmetic widens non-integer graph constants by ``2**-50`` (folds
+within 3 ulps), and the inflation is a further allowance for longer folds.
 
 Bound options (:data:`BOUND_OPTIONS`), each sound under the assumptions it prints; ``α̅`` is
 the rigorous upper bound of the grid maximum of :math:`\|e\|_2` (float64 max plus a

@@ -21,8 +21,8 @@ Invariants and conventions
   [-inf, 0]``, ``asin([0, 2]) = [0, pi/2]``, ``x**0.5`` for ``x = [-1, 4]`` is ``[0, 2]``.
   Out-of-domain points have no real value, so a verifier that needs the function to be
   defined on the whole box must check the domain separately.
-- Degenerate intervals created by :meth:`IntervalArithmetic.constant` share one array for
-  ``lo`` and ``hi`` (``a.lo is a.hi``); operations use this for cheaper exact paths.
+- Degenerate intervals (``Interval(v, v)``: points, all-zero constants) share one array
+  for ``lo`` and ``hi`` (``a.lo is a.hi``); operations use this for cheaper exact paths.
   Results may share memory with their arguments (``OP_ASSIGN``, structural views, ``x**1``):
   treat the bound arrays as read-only.
 
@@ -46,8 +46,9 @@ ulps (< 4, ``numpy/_core/tests/data/umath-validation-set-*.csv``) and we measure
 2.5 ulps against mpmath. Their results are widened by a relative ``2**-48`` (at least 16
 ulps) plus an absolute ``2**-1060`` for the subnormal range (``_dn_w``/``_up_w``) and then
 clipped to the function's known range. Exact operations (negation, ``fabs``, ``fmin``,
-``fmax``, ``floor``, ``sign``, comparisons, structural rearrangements, constants) are not
-widened.
+``fmax``, ``floor``, ``sign``, comparisons, structural rearrangements) are not widened;
+nonzero graph constants are, by a relative ``2**-50`` (CasADi's constant folding, see
+:meth:`IntervalArithmetic.constant`).
 """
 
 from __future__ import annotations
@@ -822,7 +823,18 @@ class IntervalArithmetic:
 
     @staticmethod
     def constant(value: np.ndarray) -> Interval:
-        """Return the exact degenerate interval ``[value, value]`` (``lo is hi``).
+        """Enclose a graph constant: ``[value, value]`` widened by a relative ``2**-50``.
+
+        CasADi folds constant subexpressions in float64 while it builds expressions and
+        derivative graphs (``gradient((x * 0.1) * 3)`` holds ``fl(0.1 * 3) =
+        0.30000000000000004``, SX turns ``0.1 * (0.3 * x)`` into ``0.03 * x``), so a graph
+        constant can differ from the real value of the expression it replaces. The
+        widening (at least 3 ulps each side, plus ``2**-1070`` for subnormals) of every
+        non-integer constant covers folds within 3 ulps of the real value: products and
+        quotients of a few constants, sums without cancellation. Integer-valued constants
+        (exponents of powers, counts, ``2`` of ``d(x²)/dx``) stay exact, and an all-integer
+        constant stays degenerate (``lo is hi``); a fold that rounds a non-integer real
+        value to an integer is not covered.
 
         Parameters
         ----------
@@ -837,7 +849,11 @@ class IntervalArithmetic:
         """
         v = np.asarray(value, dtype=np.float64)
         if np.isfinite(v).all():
-            return Interval(v, v)
+            inexact = v != np.round(v)  # integers stay exact: powers, fmod, folds like 2·1
+            if not inexact.any():
+                return Interval(v, v)
+            w = np.where(inexact, np.abs(v) * 2.0**-50 + 2.0**-1070, 0.0)
+            return Interval(v - w, v + w)
         lo = np.where(np.isnan(v), -_INF, np.where(v == _INF, _MAX, v))
         hi = np.where(np.isnan(v), _INF, np.where(v == -_INF, -_MAX, v))
         return Interval(lo, hi)

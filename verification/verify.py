@@ -174,9 +174,10 @@ def _enclose(problem, lo, hi, mean_value: bool):
     Fc = _point_enclosure(problem, c)
     mk = nat.lo.shape[1]
     J = _IA.structural(lambda a: np.swapaxes(a.reshape(B, n, mk), 1, 2), Jall)
-    # CasADi folds products of constants in float64 when it builds derivative graphs, so the
-    # Jacobian graph is the derivative of F only up to those roundings: widen J by a
-    # relative 2^-30 (far above them) before the mean-value form relies on it
+    # CasADi folds products of constants in float64 when it builds derivative graphs; the
+    # interval arithmetic widens non-integer constants by 2^-50 (folds within 3 ulps), and
+    # the mean-value form, which rests on the Jacobian graph being the derivative of F,
+    # gets a further allowance: widen J by a relative 2^-30 before relying on it
     mag = np.maximum(np.abs(J.lo), np.abs(J.hi)) * 2.0**-30 + 2.0**-1000
     J = Interval(J.lo - mag, J.hi + mag)
     D = _IA.binary(ca.OP_SUB, Interval(lo, hi), Interval(c, c))  # rigorous X - c

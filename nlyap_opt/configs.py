@@ -101,10 +101,10 @@ PRESETS: dict[str, dict[str, dict]] = {
             # Q = diag(1, 20) 97% does (measured by simulation)
             "lqr": {"Q": [[1.0, 0.0], [0.0, 20.0]], "R": 1.0},
             # w_local: first-order decrease at the origin (the ring next to B_ε failed in
-            # some iterations without it); at least three iterations, the best area kept
+            # some iterations without it); at least two iterations, the best area kept
             "train": {"hidden": [32], "features": 8, "steps": 3000, "lr": 0.01,
                       "w_inside": 1.0, "w_local": 10.0, "lr_schedule": "cosine"},
-            "cegis": {"iterations": 4, "min_iterations": 3, "steps": 500, "sim_grid": 301},
+            "cegis": {"iterations": 4, "min_iterations": 2, "steps": 500, "sim_grid": 301},
             "eval_box": [[-4.0, 4.0], [-4.0, 4.0]], "eval_grid": 200,
             "dynamics": {"preset": "default"},
         },

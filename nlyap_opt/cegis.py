@@ -190,7 +190,7 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
         if eta > 0:
             M = float(gradient_bound(V, ctrl))
             margin = float(np.nextafter(M * eta, np.inf))
-            smoothing = cfg.norm_smoothing * M
+            smoothing = cfg.norm_smoothing * M if cfg.margin_mode == "pointwise" else 0.0
         cl = closed_loop(system, ctrl, dynamics, strict=True)
         Vx = V.casadi(cl.x)
         lie = lie_derivative(Vx, cl.x, cl.rhs)

@@ -21,7 +21,7 @@ Invariants and conventions
   [-inf, 0]``, ``asin([0, 2]) = [0, pi/2]``, ``x**0.5`` for ``x = [-1, 4]`` is ``[0, 2]``.
   Out-of-domain points have no real value, so a verifier that needs the function to be
   defined on the whole box must check the domain separately.
-- Degenerate intervals (``Interval(v, v)``: points, all-zero constants) share one array
+- Degenerate intervals (``Interval(v, v)``: points, all-integer constants) share one array
   for ``lo`` and ``hi`` (``a.lo is a.hi``); operations use this for cheaper exact paths.
   Results may share memory with their arguments (``OP_ASSIGN``, structural views, ``x**1``):
   treat the bound arrays as read-only.
@@ -47,7 +47,7 @@ ulps (< 4, ``numpy/_core/tests/data/umath-validation-set-*.csv``) and we measure
 ulps) plus an absolute ``2**-1060`` for the subnormal range (``_dn_w``/``_up_w``) and then
 clipped to the function's known range. Exact operations (negation, ``fabs``, ``fmin``,
 ``fmax``, ``floor``, ``sign``, comparisons, structural rearrangements) are not widened;
-nonzero graph constants are, by a relative ``2**-50`` (CasADi's constant folding, see
+non-integer graph constants are, by a relative ``2**-50`` (CasADi's constant folding, see
 :meth:`IntervalArithmetic.constant`).
 """
 

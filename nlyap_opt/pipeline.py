@@ -91,7 +91,7 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
     Returns the content of ``certificate.json``.
     """
     import systems
-    from baselines.lqr import lqr, saturated_controller
+    from .control import lqr, saturated_controller
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -214,7 +214,7 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     linearisation); the first one that certifies is returned. Returns a dict with
     ``status`` (``"certified"`` or why not), ``P``, ``level`` (``c_q``), ``box``.
     """
-    from baselines.lqr import lyapunov_matrix
+    from .control import lyapunov_matrix
 
     from .symbolic import closed_loop
 

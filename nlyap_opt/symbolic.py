@@ -81,7 +81,7 @@ def closed_loop(system, controller: Network | None = None, dynamics: Network | N
     if np.max(np.abs(at0), initial=0.0) > 1e-8:
         msg = (f"the origin is not an equilibrium of the closed loop of {system.name!r}: "
                f"rhs(0) = {at0}; solve the controller bias from f(0, κ(0)) = 0 "
-               "(baselines.lqr.saturated_controller does)")
+               "(nlyap_opt.control.saturated_controller does)")
         if strict:
             raise EquilibriumError(msg)
         warnings.warn(msg, EquilibriumWarning, stacklevel=2)

@@ -1,0 +1,181 @@
+r"""The LQR start of the method (the control layer): LQR on the CasADi linearisation,
+quadratic Lyapunov matrices, saturated controllers (``baselines.lqr`` re-exports them).
+
+Convention: :math:`u = u_{eq} - K x`, with :math:`K = R^{-1} B^\top S` from the
+continuous algebraic Riccati equation :math:`A^\top S + S A - S B R^{-1} B^\top S + Q = 0`.
+The Lyapunov matrix :math:`P` solves :math:`A_{cl}^\top P + P A_{cl} = -Q_V` for the
+closed loop :math:`A_{cl} = A - BK` (or :math:`A` for input-free systems).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import DimensionError, NotStabilizableError
+from .network import Layer, Network
+
+__all__ = [
+    "LQRResult", "lqr", "lyapunov_matrix", "saturated_controller", "linear_controller",
+    "quadratic_lyapunov",
+]
+
+
+@dataclass
+class LQRResult:
+    """Result of :func:`lqr`.
+
+    Attributes
+    ----------
+    K : (nu, nx) ndarray     gain, ``u = u_eq - K x`` (empty for input-free systems)
+    S : (nx, nx) ndarray     Riccati solution (zeros for input-free systems)
+    P : (nx, nx) ndarray     Lyapunov matrix of the closed loop, ``A_clᵀP + P A_cl = -I``
+    eigenvalues : (nx,) complex ndarray   closed-loop eigenvalues
+    A, B, Q, R : ndarray
+    """
+
+    K: np.ndarray
+    S: np.ndarray
+    P: np.ndarray
+    eigenvalues: np.ndarray
+    A: np.ndarray
+    B: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+
+    def riccati_residual(self) -> float:
+        """Max-abs residual of the Riccati equation (0 for input-free systems)."""
+        if self.B.shape[1] == 0:
+            return 0.0
+        A, B, S, Q, R = self.A, self.B, self.S, self.Q, self.R
+        res = A.T @ S + S @ A - S @ B @ np.linalg.solve(R, B.T @ S) + Q
+        return float(np.max(np.abs(res)))
+
+    def to_dict(self) -> dict:
+        ev = self.eigenvalues
+        return {"K": self.K.tolist(), "P": self.P.tolist(),
+                "eigenvalues": [[float(e.real), float(e.imag)] for e in ev]}
+
+
+def _matrix(M, n, what):
+    M = np.atleast_2d(np.asarray(M, dtype=float))
+    if M.shape == (1, 1) and n > 1:
+        M = M[0, 0] * np.eye(n)
+    if M.shape != (n, n):
+        raise DimensionError(f"{what} must be ({n}, {n}) (or a scalar), got {M.shape}")
+    if not np.allclose(M, M.T):
+        raise ValueError(f"{what} must be symmetric")
+    return M
+
+
+def _check_stabilisable(A, B):
+    n = A.shape[0]
+    for lam in np.linalg.eigvals(A):
+        if lam.real >= 0:
+            rank = np.linalg.matrix_rank(np.hstack([A - lam * np.eye(n), B.astype(complex)]),
+                                         tol=1e-9)
+            if rank < n:
+                raise NotStabilizableError(
+                    f"(A, B) is not stabilisable: the mode with eigenvalue {lam:.4g} cannot be "
+                    "moved by the inputs (PBH test). Change the inputs or the model."
+                )
+
+
+def lyapunov_matrix(A_cl, Q=None) -> np.ndarray:
+    """Solve ``A_clᵀ P + P A_cl = -Q`` (``Q = I`` by default) for a Hurwitz ``A_cl``."""
+    import control
+
+    A_cl = np.asarray(A_cl, dtype=float)
+    n = A_cl.shape[0]
+    if np.max(np.linalg.eigvals(A_cl).real) >= 0:
+        raise NotStabilizableError(
+            f"A_cl is not Hurwitz (eigenvalues {np.linalg.eigvals(A_cl)}); no quadratic "
+            "Lyapunov function exists"
+        )
+    Q = np.eye(n) if Q is None else _matrix(Q, n, "Q")
+    P = control.lyap(A_cl.T, Q)  # solves A_clᵀ P + P A_cl + Q = 0
+    return 0.5 * (P + P.T)
+
+
+def lqr(system, Q=None, R=None) -> LQRResult:
+    """LQR gain and Lyapunov matrix for ``system`` linearised at the origin.
+
+    Parameters
+    ----------
+    system : systems.System
+    Q : (nx, nx) array_like or float, optional   state weight (identity by default)
+    R : (nu, nu) array_like or float, optional   input weight (identity by default)
+
+    Returns
+    -------
+    LQRResult
+
+    Examples
+    --------
+    >>> import systems
+    >>> lqr(systems.get("inverted_pendulum")).K.round(5).tolist()
+    [[1.97725, 0.97624]]
+    """
+    import control
+
+    A, B = system.A, system.B
+    nx, nu = system.nx, system.nu
+    Q = np.eye(nx) if Q is None else _matrix(Q, nx, "Q")
+    if nu == 0:
+        P = lyapunov_matrix(A)
+        return LQRResult(np.zeros((0, nx)), np.zeros((nx, nx)), P, np.linalg.eigvals(A),
+                         A, B, Q, np.zeros((0, 0)))
+    R = np.eye(nu) if R is None else _matrix(R, nu, "R")
+    if np.min(np.linalg.eigvalsh(R)) <= 0:
+        raise ValueError("R must be positive definite")
+    _check_stabilisable(A, B)
+    K, S, E = control.lqr(A, B, Q, R)
+    K, S = np.asarray(K, dtype=float), np.asarray(S, dtype=float)
+    P = lyapunov_matrix(A - B @ K)
+    return LQRResult(K, S, P, np.asarray(E), A, B, Q, R)
+
+
+def saturated_controller(system, K, scale) -> Network:
+    r"""The controller :math:`\kappa(x) = C \tanh(K' x + b)` that linearises to ``u_eq - K x``.
+
+    ``b`` solves :math:`C \tanh(b) = u_{eq}` (so that ``f(0, κ(0)) = 0``) and
+    :math:`K' = -\mathrm{diag}(C (1 - \tanh^2 b))^{-1} K`.
+
+    Parameters
+    ----------
+    system : systems.System
+    K : (nu, nx) array_like   LQR gain (``u = u_eq - K x``)
+    scale : float or (nu,) array_like   actuator limit ``C`` (``|u| < C``)
+    """
+    K = np.atleast_2d(np.asarray(K, dtype=float))
+    if K.shape != (system.nu, system.nx):
+        raise DimensionError(f"K must be ({system.nu}, {system.nx}), got {K.shape}")
+    C = np.broadcast_to(np.asarray(scale, dtype=float), (system.nu,)).copy()
+    if np.any(C <= 0) or np.any(np.abs(system.u_eq) >= C):
+        raise ValueError(
+            f"the actuator limit C={C} must exceed |u_eq|={np.abs(system.u_eq)} so that "
+            "C·tanh(b) = u_eq has a solution"
+        )
+    b = np.arctanh(system.u_eq / C)
+    slope = C * (1.0 - np.tanh(b) ** 2)
+    Kp = -K / slope[:, None]
+    return Network([Layer(Kp, b, "tanh")], C if system.nu > 1 else float(C[0]),
+                   {"kind": "controller", "form": "C*tanh(Kx+b)"})
+
+
+def linear_controller(system, K) -> Network:
+    """The unsaturated LQR feedback ``u = u_eq − K x`` as a one-layer linear network."""
+    K = np.atleast_2d(np.asarray(K, dtype=float))
+    if K.shape != (system.nu, system.nx):
+        raise DimensionError(f"K must be ({system.nu}, {system.nx}), got {K.shape}")
+    return Network([Layer(-K, system.u_eq.copy(), "linear")], 1.0,
+                   {"kind": "controller", "form": "u_eq - Kx"})
+
+
+def quadratic_lyapunov(P) -> Network:
+    """``V(x) = xᵀPx`` as a network: ``‖Lᵀx‖²`` with ``P = L Lᵀ`` (sum-of-squares head)."""
+    P = np.asarray(P, dtype=float)
+    L = np.linalg.cholesky(0.5 * (P + P.T))
+    return Network([Layer(L.T, np.zeros(len(P)), "linear")], head={"type": "sum_of_squares"},
+                   meta={"kind": "lyapunov", "form": "x'Px"})

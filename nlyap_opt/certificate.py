@@ -1,0 +1,617 @@
+r"""The region-of-attraction certificate: the one definition of conditions (a), (b), (c).
+
+For a level :math:`c` and :math:`\Omega_c = \{x : \|x\|_2 \le r,\ V(x) \le c\}` the set
+:math:`\Omega_c \cup E` lies in the region of attraction of the **true** closed loop when
+
+- (a) decrease on :math:`\{\varepsilon \le \|x\| \le r,\ V(x) \le c\}`:
+  :math:`\nabla V\cdot f(x,\kappa(x)) < 0` (true ``f``); for learned :math:`\varphi` with
+  :math:`\|f-\varphi\| \le \eta` on the dynamics box, either pointwise
+  :math:`\nabla V\cdot\varphi + \eta\sqrt{\|\nabla V\|^2 + s^2} < 0` (Cauchy–Schwarz) or the
+  paper's :math:`\nabla V\cdot\varphi < -\beta`, :math:`\beta > M\eta`,
+  :math:`M \ge \sup\|\nabla V\|` (rigorous); and :math:`\kappa(x) \in U`, the ball inside the
+  dynamics box (else the bound on :math:`\|f - \varphi\|` does not apply);
+- (b) containment: :math:`V(x) > c` on :math:`\|x\| = r`, and
+  :math:`B_\varepsilon \subseteq \Omega_c` (:math:`V < c` on :math:`\|x\| = \varepsilon`);
+- (c) inner ball: :math:`E = \{x^\top P x \le c_q\} \supseteq B_\varepsilon` is a quadratic
+  Lyapunov sublevel set of the true closed loop — *proved* for known ``f``
+  (:func:`nlyap_opt.roa.certify_inner_ellipse`), the paper's *assumption* for unknown ``f``.
+  Where the true ``f`` is available to the tool, the assumption is checked too: a check that
+  does not confirm it withholds the certificate (the setting with less information may not
+  certify what the known-f setting refuses).
+
+:class:`RoaProblem` holds the objects (saved float64 networks, radii, η), :func:`certify_roa`
+proves a level, :class:`RoaCertificate` is the typed result with the certified set's
+membership test, its area and its JSON form (``certificate.json``), and
+:func:`recheck_certificate` re-verifies a saved certificate from its hashed artifacts.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from .errors import ConfigError, DimensionError, InputRangeError, NetworkFileError
+from .network import Network
+from .walker import evaluate
+
+__all__ = [
+    "CertStatus", "Decrease", "RoaProblem", "RoaCertificate", "InnerEllipse", "certify_roa",
+    "recheck_certificate", "sha256_file", "FORMAT", "VERSION",
+]
+
+FORMAT = "nlyap-roa-certificate"
+VERSION = 2
+
+
+class CertStatus(str, Enum):
+    """Outcome of :func:`certify_roa`."""
+
+    CERTIFIED = "certified"
+    NOT_CERTIFIED = "not certified"
+    #: a check the tool ran refutes an assumption the certificate would rest on
+    ASSUMPTION_REFUTED = "assumption refuted"
+    COUNTEREXAMPLE = "counterexample"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+def sha256_file(path: str | Path) -> str:
+    """Hex sha256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _finite(name: str, value, *, low: float | None = None, strict: bool = False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise ConfigError(f"{name} must be finite, got {value!r}")
+    if low is not None and (v <= low if strict else v < low):
+        raise ConfigError(f"{name} must be {'>' if strict else '>='} {low:g}, got {v:g}")
+    return v
+
+
+@dataclass
+class InnerEllipse:
+    """Condition (c): ``E = {xᵀPx ≤ level}`` with ``B_ε ⊆ E``.
+
+    ``status`` is the verifier's word on ``P·J(y) + J(y)ᵀP ≺ 0`` over a box containing ``E``
+    for the **true** closed loop (``"certified"``, ``"inner ellipse counterexample"``, ...);
+    ``proved`` says whether the certificate rests on that proof (known f) or on the paper's
+    assumption (learned f).
+    """
+
+    status: str
+    P: np.ndarray
+    level: float
+    half_widths: np.ndarray
+    proved: bool
+
+    def contains(self, pts: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,jk,ik->i", pts, self.P, pts) <= self.level
+
+    def to_dict(self) -> dict:
+        return {"status": self.status, "P": np.asarray(self.P).tolist(), "level": self.level,
+                "box_half_widths": np.asarray(self.half_widths).tolist(), "proved": self.proved}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> InnerEllipse:
+        return cls(str(d["status"]), np.asarray(d["P"], dtype=float), float(d["level"]),
+                   np.asarray(d.get("box_half_widths", []), dtype=float), bool(d["proved"]))
+
+
+@dataclass
+class Decrease:
+    """Symbolic pieces of condition (a): ``lie + margin < 0`` where ``V ≤ level``."""
+
+    x: object
+    V: object
+    lie: object
+    margin: float
+    M: float | None
+    smoothing: float
+
+
+@dataclass
+class RoaProblem:
+    """What a region-of-attraction certificate is about.
+
+    Parameters
+    ----------
+    system : systems.System
+        The true system (its ``f`` is used for known dynamics and for the checks of (c)).
+    V : Network or object with ``casadi(x)``
+        Lyapunov function (a saved float64 network, a quadratic, an SOS polynomial).
+    controller : Network, optional
+        ``κ`` (``None`` for input-free systems).
+    dynamics : Network, optional
+        Learned ``φ``; ``None``: the true ``f`` (known-dynamics setting).
+    inner, outer : float
+        ``0 ≤ ε < r``: the excluded ball ``B_ε`` and the verification ball ``B_r``.
+    eta : float
+        ``‖f − φ‖ ≤ η`` on ``dynamics_box × input_box`` (learned dynamics only).
+    margin_mode : {"pointwise", "global"}
+        Decrease condition for learned dynamics (module docstring).
+    smoothing : float, optional
+        ``s ≥ 0`` of the pointwise condition (any ``s`` is sound; it only tightens).
+    norm_smoothing : float
+        Without ``smoothing``: ``s = norm_smoothing·M`` (``M ≥ sup‖∇V‖``, rigorous).
+    dynamics_box, input_box : (nx, 2), (nu, 2) array_like, optional
+        Where the bound on ``‖f − φ‖`` holds (learned dynamics: required).
+    dynamics_assumptions : list of str
+        What the bound on ``‖f − φ‖`` assumes (``bounds.json``), copied into the certificate.
+    verify_options : dict
+        Options of :func:`verification.verify`.
+    """
+
+    system: object
+    V: object
+    controller: Network | None = None
+    dynamics: Network | None = None
+    inner: float = 0.1
+    outer: float = 1.0
+    eta: float = 0.0
+    margin_mode: str = "pointwise"
+    smoothing: float | None = None
+    norm_smoothing: float = 0.0
+    dynamics_box: np.ndarray | None = None
+    input_box: np.ndarray | None = None
+    dynamics_assumptions: list = field(default_factory=list)
+    verify_options: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.inner = _finite("inner radius", self.inner, low=0.0)
+        self.outer = _finite("outer radius", self.outer, low=0.0, strict=True)
+        if not self.inner < self.outer:
+            raise ConfigError(f"need 0 <= inner < outer, got inner={self.inner:g}, "
+                              f"outer={self.outer:g}; choose a smaller inner radius")
+        self.eta = _finite("eta", self.eta, low=0.0)
+        if self.smoothing is not None:
+            self.smoothing = _finite("smoothing", self.smoothing, low=0.0)
+        self.norm_smoothing = _finite("norm_smoothing", self.norm_smoothing, low=0.0)
+        if self.margin_mode not in ("pointwise", "global"):
+            raise ConfigError(f"margin_mode must be 'pointwise' or 'global', got "
+                              f"{self.margin_mode!r}")
+        nx = self.system.nx
+        if isinstance(self.V, Network) and (self.V.n_in != nx or self.V.n_out != 1):
+            raise DimensionError(f"V must map R^{nx} -> R (system {self.system.name!r}), got "
+                                 f"R^{self.V.n_in} -> R^{self.V.n_out}")
+        if self.dynamics is None:
+            if self.eta:
+                raise ConfigError("eta > 0 needs learned dynamics; pass dynamics= or eta=0")
+        else:
+            if self.dynamics_box is None:
+                raise ConfigError("learned dynamics need dynamics_box (the box of ‖f − φ‖ ≤ η)")
+            self.dynamics_box = np.asarray(self.dynamics_box, dtype=float).reshape(nx, 2)
+            if self.system.nu:
+                if self.input_box is None:
+                    raise ConfigError("learned dynamics with inputs need input_box (U)")
+                self.input_box = np.asarray(self.input_box, dtype=float).reshape(-1, 2)
+
+    @property
+    def known(self) -> bool:
+        """True for the known-dynamics setting (``f`` itself in the decrease)."""
+        return self.dynamics is None
+
+    @property
+    def ball_box(self) -> np.ndarray:
+        return np.tile([-self.outer, self.outer], (self.system.nx, 1))
+
+    def V_expr(self, x):
+        """``V`` as a CasADi expression of ``x``."""
+        return self.V.casadi(x)
+
+    def decrease(self) -> Decrease:
+        """The symbolic decrease condition ``lie + margin < 0`` (built once, cached).
+
+        For learned dynamics this computes the rigorous ``M ≥ sup_{B_r} ‖∇V‖`` and checks
+        ``κ(B_r) ⊆ U`` and ``B_r ⊆`` dynamics box (:func:`nlyap_opt.bounds.gradient_bound`);
+        :class:`~nlyap_opt.errors.InputRangeError` when they fail.
+        """
+        if getattr(self, "_decrease", None) is not None:
+            return self._decrease
+        from .symbolic import closed_loop, lie_derivative, robust_lie
+
+        M, margin, s = None, 0.0, 0.0
+        if not self.known:
+            from .bounds import gradient_bound
+
+            gb = gradient_bound(self.V, self.ball_box, controller=self.controller,
+                                input_box=self.input_box if self.system.nu else None,
+                                state_box=self.dynamics_box)
+            M = float(gb.M)
+            if self.margin_mode == "global":
+                margin = float(np.nextafter(M * self.eta, np.inf))
+            else:
+                s = self.smoothing if self.smoothing is not None else self.norm_smoothing * M
+        cl = closed_loop(self.system, self.controller, self.dynamics, strict=True)
+        Vx = self.V_expr(cl.x)
+        lie = lie_derivative(Vx, cl.x, cl.rhs)
+        if not self.known and self.margin_mode == "pointwise":
+            lie = robust_lie(lie, Vx, cl.x, self.eta, s)
+        self._decrease = Decrease(cl.x, Vx, lie, margin, M, s)
+        return self._decrease
+
+    def V_numpy(self, pts: np.ndarray) -> np.ndarray:
+        """``V`` at ``(N, nx)`` points (float64)."""
+        if isinstance(self.V, Network):
+            return self.V.numpy(pts)[:, 0]
+        x = ca.SX.sym("x", self.system.nx)
+        F = ca.Function("V", [x], [self.V_expr(x)])
+        return evaluate(F, [np.asarray(pts, dtype=float)])[0][:, 0]
+
+
+@dataclass
+class RoaCertificate:
+    """Typed result of :func:`certify_roa` (and the content of ``certificate.json``).
+
+    The certified set is ``{‖x‖ ≤ outer, V(x) ≤ level} ∪ E`` when ``status`` is
+    ``CERTIFIED`` (:meth:`contains`), empty otherwise.
+    """
+
+    status: CertStatus
+    reason: str
+    system: str
+    setting: str                       # "known" or "learned"
+    level: float
+    inner: float
+    outer: float
+    eta: float = 0.0
+    margin_mode: str = "none"
+    margin: float = 0.0
+    smoothing: float = 0.0
+    M: float | None = None
+    decrease_condition: str = ""
+    checks: dict = field(default_factory=dict)   # condition -> verifier status
+    inner_ellipse: InnerEllipse | None = None
+    assumptions: list = field(default_factory=list)
+    history: list = field(default_factory=list)
+    counterexamples: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    seconds: float = 0.0
+    artifacts: dict = field(default_factory=dict)  # role -> {"file", "sha256"}
+    V: object = field(default=None, repr=False)
+
+    @property
+    def certified(self) -> bool:
+        return self.status is CertStatus.CERTIFIED
+
+    def summary(self) -> str:
+        """One line: status, level, reason."""
+        if self.certified:
+            return (f"certified: level {self.level:.6g} on {self.inner:g} ≤ ‖x‖ ≤ "
+                    f"{self.outer:g} ({self.setting} dynamics)")
+        return f"{self.status.value}: {self.reason}"
+
+    # ------------------------------------------------------------------ the certified set
+    def contains(self, points) -> np.ndarray:
+        """Which ``(N, nx)`` points lie in the certified set (all ``False`` if not certified)."""
+        pts = np.atleast_2d(np.asarray(points, dtype=float))
+        if not self.certified:
+            return np.zeros(len(pts), dtype=bool)
+        if self.V is None:
+            raise ValueError("this certificate holds no V (loaded without artifacts); "
+                             "use recheck_certificate() to load it with its networks")
+        v = self.V.numpy(pts)[:, 0] if isinstance(self.V, Network) else _numpy_of(self.V, pts)
+        m = (np.linalg.norm(pts, axis=1) <= self.outer) & (v <= self.level)
+        if self.inner_ellipse is not None:
+            m |= self.inner_ellipse.contains(pts)
+        return m
+
+    def area(self, box, n: int) -> float:
+        """Area (volume) of the certified set by cell counting on an ``n^nx`` grid over box."""
+        from .roa import grid_area, grid_points
+
+        box = np.asarray(box, dtype=float)
+        pts, shape = grid_points(box, n)
+        return grid_area(self.contains(pts).reshape(shape), box)
+
+    # ------------------------------------------------------------------ JSON
+    def to_dict(self) -> dict:
+        return {
+            "format": FORMAT, "version": VERSION,
+            "status": self.status.value, "reason": self.reason, "system": self.system,
+            "setting": self.setting,
+            "dynamics": "known (true f)" if self.setting == "known" else "learned φ",
+            "level": self.level, "inner_radius": self.inner, "outer_radius": self.outer,
+            "eta": self.eta, "margin_mode": self.margin_mode, "margin": self.margin,
+            "norm_smoothing": self.smoothing, "M": self.M,
+            "decrease_condition": self.decrease_condition, "checks": dict(self.checks),
+            "inner_ellipse": None if self.inner_ellipse is None
+            else self.inner_ellipse.to_dict(),
+            "assumptions": list(self.assumptions), "history": self.history,
+            "counterexamples": np.asarray(self.counterexamples).tolist(),
+            "verify_seconds": self.seconds, "artifacts": dict(self.artifacts),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RoaCertificate:
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise ConfigError(f"not an nlyap certificate (expected format {FORMAT!r}); "
+                              "pass the certificate.json written by `nlyap run`/`compare`")
+        if d.get("version") != VERSION:
+            raise ConfigError(f"certificate version {d.get('version')!r} is not supported "
+                              f"(this nlyap reads version {VERSION}); rerun the command")
+        try:
+            return cls(
+                CertStatus(d["status"]), str(d["reason"]), str(d["system"]), str(d["setting"]),
+                float(d["level"]), float(d["inner_radius"]), float(d["outer_radius"]),
+                float(d["eta"]), str(d["margin_mode"]), float(d["margin"]),
+                float(d["norm_smoothing"]), None if d["M"] is None else float(d["M"]),
+                str(d["decrease_condition"]), dict(d["checks"]),
+                None if d["inner_ellipse"] is None
+                else InnerEllipse.from_dict(d["inner_ellipse"]),
+                list(d["assumptions"]), list(d["history"]),
+                np.asarray(d["counterexamples"], dtype=float), float(d["verify_seconds"]),
+                dict(d["artifacts"]))
+        except (KeyError, TypeError, ValueError) as err:
+            raise ConfigError(f"malformed certificate: {type(err).__name__}: {err}; rerun "
+                              "the command that wrote it") from None
+
+
+def _numpy_of(V, pts):
+    n = pts.shape[1]
+    x = ca.SX.sym("x", n)
+    return evaluate(ca.Function("V", [x], [V.casadi(x)]), [pts])[0][:, 0]
+
+
+def _decrease_text(problem: RoaProblem, margin: float, smoothing: float) -> str:
+    if problem.known:
+        return "∇V·f(x, κ(x)) < 0"
+    if problem.margin_mode == "pointwise":
+        return (f"∇V·φ(x, κ(x)) + η·sqrt(‖∇V(x)‖² + s²) < 0 with η = {problem.eta:.6g}, "
+                f"s = {smoothing:.4g} (implies ∇V·f < 0 by Cauchy–Schwarz where ‖f − φ‖ ≤ η)")
+    return f"∇V·φ(x, κ(x)) < −β with β = M·η = {margin:.6g} (rounded up)"
+
+
+def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
+                check_inner_ellipse: bool = True, log=print) -> RoaCertificate:
+    r"""Prove conditions (a), (b), (c) at ``level`` (or, with ``search``, at the largest level
+    reachable from it downwards; see :func:`nlyap_opt.roa.certify_level`).
+
+    Parameters
+    ----------
+    problem : RoaProblem
+    level : float
+        The level to prove (``search=False``: exactly this one), > 0 and finite.
+    search : bool
+        Step the level down after a counterexample or an undecided verdict.
+    check_inner_ellipse : bool
+        Run condition (c) (``False`` only inside CEGIS iterations, which certify (c) once
+        at the end through the pipeline's certificate stage).
+
+    Returns
+    -------
+    RoaCertificate
+        ``CERTIFIED`` only when every condition was verified by the interval verifier.
+    """
+    from .roa import certify_inner_ellipse, certify_level
+
+    t0 = time.perf_counter()
+    level = _finite("level", level, low=0.0, strict=True)
+    sysm = problem.system
+    setting = "known" if problem.known else "learned"
+    base = dict(system=sysm.name, setting=setting, inner=problem.inner, outer=problem.outer,
+                eta=problem.eta, margin_mode="none" if problem.known else problem.margin_mode,
+                V=problem.V)
+    assumptions = ["V and κ are the float64 networks saved with this certificate "
+                   "(verified as saved)"]
+    if not problem.known:
+        assumptions.append(
+            f"f is Lipschitz on the dynamics box and ‖f − φ‖ ≤ η = {problem.eta:.6g} on "
+            f"{np.asarray(problem.dynamics_box).tolist()}"
+            + ("" if not sysm.nu else f" × U = {np.asarray(problem.input_box).tolist()}")
+            + (" (" + "; ".join(problem.dynamics_assumptions) + ")"
+               if problem.dynamics_assumptions else ""))
+    try:
+        dec = problem.decrease()
+    except InputRangeError as err:
+        return RoaCertificate(CertStatus.NOT_CERTIFIED, f"the bound ‖f − φ‖ ≤ η does not "
+                              f"apply: {err}", level=0.0, assumptions=assumptions,
+                              seconds=time.perf_counter() - t0, **base)
+    M, margin, smoothing = dec.M, dec.margin, dec.smoothing
+    lc = certify_level(dec.x, dec.V, dec.lie, level=level, inner=problem.inner,
+                       outer=problem.outer, margin=margin, max_tries=8 if search else 1,
+                       shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
+                       log=log)
+    last = lc.history[-1] if lc.history else {}
+    checks = {"(a) decrease": last.get("decrease") or "not run",
+              "(b) V > level on ‖x‖ = r": last.get("containment") or "not run",
+              "(b) B_ε ⊆ Ω_c": last.get("contains_inner_ball") or "not run"}
+    common = dict(M=M, margin=margin, smoothing=smoothing, checks=checks,
+                  decrease_condition=_decrease_text(problem, margin, smoothing),
+                  history=lc.history, counterexamples=lc.counterexamples, **base)
+    if lc.status != "certified":
+        status = CertStatus.COUNTEREXAMPLE if (not search and len(lc.counterexamples)) \
+            else CertStatus.NOT_CERTIFIED
+        return RoaCertificate(status, lc.status, level=0.0 if search else level,
+                              assumptions=assumptions, seconds=time.perf_counter() - t0,
+                              **common)
+    level = float(lc.level)
+    ellipse = None
+    status, reason = CertStatus.CERTIFIED, "conditions (a), (b) and (c) verified"
+    if check_inner_ellipse:
+        inner = certify_inner_ellipse(sysm, problem.controller, problem.inner,
+                                      verify_options=problem.verify_options)
+        ok = inner["status"] == "certified"
+        checks["(c) inner ellipse, true f"] = inner["status"]
+        if ok or not problem.known:
+            ellipse = InnerEllipse(inner["status"], np.asarray(inner["P"]),
+                                   float(inner["level"]), np.asarray(inner["box"]),
+                                   proved=problem.known)
+        if problem.known and not ok:
+            status, reason = CertStatus.NOT_CERTIFIED, f"condition (c): {inner['status']}"
+        elif not problem.known:
+            assumptions.append(
+                "the inner ball B_ε lies in the quadratic-Lyapunov region of attraction E of "
+                "the true closed loop (the paper's Assumption 3; condition (c) is not proved "
+                "from samples)")
+            if not ok:
+                refuted = "counterexample" in inner["status"] or "Hurwitz" in inner["status"]
+                status = CertStatus.ASSUMPTION_REFUTED if refuted else CertStatus.NOT_CERTIFIED
+                reason = (f"assumption (c) is {'refuted' if refuted else 'not confirmed'} by "
+                          f"the tool's true-f check: {inner['status']}")
+            else:
+                assumptions[-1] += "; the tool's check on the true f agrees (certified)"
+    else:
+        reason = "conditions (a) and (b) verified; (c) not checked"
+    return RoaCertificate(status, reason, level=level, inner_ellipse=ellipse,
+                          assumptions=assumptions, seconds=time.perf_counter() - t0, **common)
+
+
+def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
+    """Re-verify a saved ``certificate.json`` from its hashed artifacts.
+
+    Every artifact (``V``, ``κ``, ``φ``) must match the sha256 recorded in the certificate;
+    the conditions are then verified again at the saved level (no search). A claim that
+    does not re-verify, or an artifact that changed, gives a certificate that is not
+    ``CERTIFIED`` with the reason.
+    """
+    import systems
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "certificate.json"
+    try:
+        d = json.loads(path.read_text())
+    except OSError as err:
+        raise ConfigError(f"cannot read certificate {path}: {err.strerror or err}; pass the "
+                          "certificate.json of a finished run") from None
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"certificate {path} is not valid JSON ({err.msg}, line "
+                          f"{err.lineno}); rerun the command that wrote it") from None
+    saved = RoaCertificate.from_dict(d)
+    problem_d = d.get("problem")
+    if not isinstance(problem_d, dict):
+        raise ConfigError(f"certificate {path} holds no 'problem' section; rerun the command "
+                          "that wrote it")
+    base = path.parent
+    nets: dict[str, object] = {}
+    for role, art in saved.artifacts.items():
+        f = base / art["file"]
+        if not f.exists():
+            return _refused(saved, f"artifact {art['file']} ({role}) is missing")
+        digest = sha256_file(f)
+        if digest != art["sha256"]:
+            return _refused(saved, f"artifact {art['file']} ({role}) changed since the "
+                            f"certificate was written (sha256 {digest[:12]}… ≠ "
+                            f"{art['sha256'][:12]}…)")
+        try:
+            nets[role] = Network.load(f) if art.get("kind", "network") == "network" \
+                else _CasadiV(ca.Function.load(str(f)))
+        except (NetworkFileError, RuntimeError) as err:
+            return _refused(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
+    if "V" not in nets:
+        raise ConfigError(f"certificate {path} lists no V artifact; rerun the command")
+    system = systems.get(saved.system)
+    problem = RoaProblem(
+        system, nets["V"], nets.get("controller"), nets.get("dynamics"),
+        inner=saved.inner, outer=saved.outer, eta=saved.eta,
+        margin_mode=problem_d.get("margin_mode", "pointwise"), smoothing=saved.smoothing,
+        dynamics_box=problem_d.get("dynamics_box"), input_box=problem_d.get("input_box"),
+        dynamics_assumptions=list(problem_d.get("dynamics_assumptions", [])))
+    if saved.status is not CertStatus.CERTIFIED or saved.level <= 0:
+        return _refused(saved, f"the certificate does not claim a level ({saved.status.value}: "
+                        f"{saved.reason})")
+    new = certify_roa(problem, saved.level, search=False,
+                      check_inner_ellipse=saved.inner_ellipse is not None, log=log)
+    new.artifacts = saved.artifacts
+    return new
+
+
+class _CasadiV:
+    """A V saved as a CasADi Function (quadratic or SOS baselines)."""
+
+    def __init__(self, fn: ca.Function):
+        self.fn = fn
+
+    def casadi(self, x):
+        return self.fn(x)
+
+    def numpy(self, pts):
+        return evaluate(self.fn, [np.asarray(pts, dtype=float)])[0]
+
+
+def _refused(saved: RoaCertificate, reason: str) -> RoaCertificate:
+    saved.status, saved.reason = CertStatus.NOT_CERTIFIED, reason
+    return saved
+
+
+def problem_to_dict(problem: RoaProblem) -> dict:
+    """The parts of a problem that are not artifacts (for ``certificate.json``)."""
+    return {"margin_mode": problem.margin_mode,
+            "dynamics_box": None if problem.dynamics_box is None
+            else np.asarray(problem.dynamics_box).tolist(),
+            "input_box": None if problem.input_box is None
+            else np.asarray(problem.input_box).tolist(),
+            "dynamics_assumptions": list(problem.dynamics_assumptions)}
+
+
+def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
+                     extra: dict | None = None, *, name: str = "certificate.json") -> Path:
+    """Write the certificate with its artifacts into directory ``out``.
+
+    Networks are saved (``V.json``, ``controller.json``, ``dynamics.json``; other ``V`` as a
+    CasADi Function ``V.casadi``) unless a file with that name already holds them, and each is
+    recorded with its sha256. ``extra`` (areas, true-f checks, timings) is stored beside the
+    certificate's own fields. The file is written atomically.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    arts = {}
+    for role, obj in (("V", problem.V), ("controller", problem.controller),
+                      ("dynamics", problem.dynamics)):
+        if obj is None:
+            continue
+        if isinstance(obj, Network):
+            f = out / f"{role}.json"
+            if not f.exists() or Network.load(f).to_dict() != obj.to_dict():
+                obj.save(f)
+            arts[role] = {"file": f.name, "sha256": sha256_file(f), "kind": "network"}
+        else:
+            f = out / f"{role}.casadi"
+            x = ca.SX.sym("x", problem.system.nx)
+            ca.Function("V", [x], [obj.casadi(x)]).save(str(f))
+            arts[role] = {"file": f.name, "sha256": sha256_file(f), "kind": "casadi"}
+    cert.artifacts = arts
+    d = cert.to_dict()
+    d["problem"] = problem_to_dict(problem)
+    d.update(extra or {})
+    path = out / name
+    write_json_atomic(path, d)
+    return path
+
+
+def write_json_atomic(path: str | Path, data) -> None:
+    """Write JSON to ``path`` through a temporary file and a rename (never half-written)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=1, allow_nan=False, default=_jsonable))
+    tmp.replace(path)
+
+
+def _jsonable(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, Enum):
+        return o.value
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"cannot write {type(o).__name__} to JSON")

@@ -1,0 +1,177 @@
+"""The one certificate core: conditions (a), (b), (c), typed results, honest status, JSON."""
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import systems
+from nlyap_opt.certificate import (
+    CertStatus,
+    RoaCertificate,
+    RoaProblem,
+    certify_roa,
+    recheck_certificate,
+    save_certificate,
+)
+from nlyap_opt.control import lqr, lyapunov_matrix, quadratic_lyapunov
+from nlyap_opt.errors import ConfigError
+from nlyap_opt.network import Layer, Network
+
+QUIET = {"log": lambda m: None}
+
+
+def _vdp_quadratic():
+    s = systems.get("van_der_pol")
+    res = lqr(s)
+    return s, quadratic_lyapunov(res.P), res.P
+
+
+def _min_V_where_decrease_fails(P, s, r, n=801):
+    """Independent grid estimate: min V over {ε ≤ ‖x‖ ≤ r, V̇ ≥ 0} ∪ {‖x‖ = r}."""
+    g = np.linspace(-r, r, n)
+    X = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    X = X[np.linalg.norm(X, axis=1) <= r]
+    v = np.einsum("ij,jk,ik->i", X, P, X)
+    F = s.evaluate(X, None)
+    vdot = 2 * np.einsum("ij,jk,ik->i", X, P, F)
+    th = np.linspace(0, 2 * np.pi, 4000)
+    S = r * np.stack([np.cos(th), np.sin(th)], 1)
+    bad = (vdot >= 0) & (np.linalg.norm(X, axis=1) >= 0.05)
+    return min(v[bad].min() if bad.any() else np.inf, np.einsum("ij,jk,ik->i", S, P, S).min())
+
+
+def test_known_f_quadratic_certificate_and_mutations():
+    s, V, P = _vdp_quadratic()
+    prob = RoaProblem(s, V, inner=0.05, outer=2.0)
+    c_max = _min_V_where_decrease_fails(P, s, 2.0)
+    cert = certify_roa(prob, 0.9 * c_max, **QUIET)
+    assert cert.status is CertStatus.CERTIFIED, cert.reason
+    assert cert.inner_ellipse is not None and cert.inner_ellipse.proved
+    assert all(v in ("verified", "certified") for v in cert.checks.values()), cert.checks
+    # the certified set: Ω_c ∪ E, and nothing where V > level outside E
+    pts = np.random.default_rng(0).uniform(-2, 2, (4000, 2))
+    inside = cert.contains(pts)
+    v = np.einsum("ij,jk,ik->i", pts, P, pts)
+    assert np.all(v[inside & ~cert.inner_ellipse.contains(pts)] <= cert.level)
+    # a level above the grid's minimum of V on the failure set cannot be certified
+    bad = certify_roa(prob, 1.05 * c_max, **QUIET)
+    assert bad.status in (CertStatus.COUNTEREXAMPLE, CertStatus.NOT_CERTIFIED)
+    assert not bad.contains(pts).any()
+    # with search, the level comes down to a certified one below c_max
+    found = certify_roa(prob, 1.05 * c_max, search=True, **QUIET)
+    assert found.certified and found.level < c_max
+
+
+def test_flipped_gain_is_refused():
+    s = systems.get("inverted_pendulum")
+    res = lqr(s)
+    from nlyap_opt.control import linear_controller
+
+    bad_ctrl = linear_controller(s, -res.K)  # wrong sign: the closed loop is unstable
+    prob = RoaProblem(s, quadratic_lyapunov(res.P), bad_ctrl, inner=0.1, outer=1.0)
+    cert = certify_roa(prob, 0.01, **QUIET)
+    assert not cert.certified
+
+
+def test_problem_input_validation():
+    s, V, _ = _vdp_quadratic()
+    for kw in ({"inner": 2.0, "outer": 1.0}, {"inner": -0.1, "outer": 1.0},
+               {"inner": 0.1, "outer": float("nan")}, {"inner": 0.1, "outer": 1.0, "eta": 0.1},
+               {"inner": 0.1, "outer": 1.0, "margin_mode": "foo"}):
+        with pytest.raises(ConfigError):
+            RoaProblem(s, V, **kw)
+    with pytest.raises(ConfigError):
+        certify_roa(RoaProblem(s, V, inner=0.1, outer=1.0), -1.0, **QUIET)
+    with pytest.raises(ConfigError):
+        certify_roa(RoaProblem(s, V, inner=0.1, outer=1.0), float("inf"), **QUIET)
+
+
+def _unstable_truth_with_stable_model():
+    """True f = +x (unstable); learned φ = −x (a model the samples would never give)."""
+    x = ca.SX.sym("x", 2)
+    s = systems.System("unstable_truth", x, None, x, state_box=[[-2, 2], [-2, 2]])
+    phi = Network([Layer(-np.eye(2), np.zeros(2), "linear")],
+                  meta={"kind": "dynamics", "model": "full"})
+    V = quadratic_lyapunov(np.eye(2))
+    return s, phi, V
+
+
+def test_learned_certificate_refused_when_its_assumption_is_refuted():
+    """(c) is assumed for learned φ; the tool's own true-f check refutes it: not certified."""
+    s, phi, V = _unstable_truth_with_stable_model()
+    prob = RoaProblem(s, V, None, phi, inner=0.1, outer=1.0, eta=0.01,
+                      dynamics_box=[[-2, 2], [-2, 2]])
+    cert = certify_roa(prob, 0.5, **QUIET)
+    assert cert.checks["(a) decrease"] == "verified"          # on φ, the decrease holds
+    assert cert.status is CertStatus.ASSUMPTION_REFUTED, cert.reason
+    assert "Assumption 3" in " ".join(cert.assumptions)
+    assert not cert.contains(np.zeros((1, 2))).any()
+
+
+def test_learned_eta_too_large_is_not_certified():
+    s, phi, V = _unstable_truth_with_stable_model()
+    # ∇V·φ + η‖∇V‖ = −2‖x‖² + 2η‖x‖ ≥ 0 for ‖x‖ ≤ η: with η = 0.5 the ring 0.1..0.5 fails
+    prob = RoaProblem(s, V, None, phi, inner=0.1, outer=1.0, eta=0.5,
+                      dynamics_box=[[-2, 2], [-2, 2]])
+    cert = certify_roa(prob, 0.5, **QUIET)
+    assert cert.status in (CertStatus.COUNTEREXAMPLE, CertStatus.NOT_CERTIFIED)
+    assert cert.checks["(a) decrease"] in ("counterexample", "unknown")
+
+
+def test_ball_outside_the_dynamics_box_is_refused():
+    s, phi, V = _unstable_truth_with_stable_model()
+    prob = RoaProblem(s, V, None, phi, inner=0.1, outer=1.0, eta=0.01,
+                      dynamics_box=[[-0.5, 0.5], [-0.5, 0.5]])
+    cert = certify_roa(prob, 0.5, **QUIET)
+    assert not cert.certified and "does not apply" in cert.reason
+
+
+def test_json_round_trip_and_recheck(tmp_path):
+    s, V, P = _vdp_quadratic()
+    prob = RoaProblem(s, V, inner=0.05, outer=2.0)
+    cert = certify_roa(prob, 0.5 * _min_V_where_decrease_fails(P, s, 2.0), **QUIET)
+    assert cert.certified
+    path = save_certificate(cert, prob, tmp_path)
+    back = RoaCertificate.from_dict(__import__("json").loads(path.read_text()))
+    assert back.status is cert.status and back.level == cert.level
+    assert np.array_equal(back.inner_ellipse.P, cert.inner_ellipse.P)
+    again = recheck_certificate(path, **QUIET)
+    assert again.certified and again.level == cert.level
+    # tampering with the saved V is detected by its hash
+    V2 = quadratic_lyapunov(0.5 * P)
+    V2.save(tmp_path / "V.json")
+    refused = recheck_certificate(path, **QUIET)
+    assert not refused.certified and "changed" in refused.reason
+
+
+def test_recheck_rejects_non_certificates(tmp_path):
+    (tmp_path / "c.json").write_text('{"a": 1}')
+    with pytest.raises(ConfigError):
+        recheck_certificate(tmp_path / "c.json", **QUIET)
+    (tmp_path / "d.json").write_text('{"a": ')
+    with pytest.raises(ConfigError):
+        recheck_certificate(tmp_path / "d.json", **QUIET)
+    with pytest.raises(ConfigError):
+        recheck_certificate(tmp_path / "missing.json", **QUIET)
+
+
+def test_non_network_V_is_saved_as_casadi_function(tmp_path):
+    """A V that is only a CasADi expression (SOS polynomial) is saved and re-checked too."""
+    s, V, P = _vdp_quadratic()
+
+    class Poly:
+        def casadi(self, x):
+            return ca.mtimes([x.T, ca.DM(P), x])
+
+    prob = RoaProblem(s, Poly(), inner=0.05, outer=2.0)
+    cert = certify_roa(prob, 0.5 * _min_V_where_decrease_fails(P, s, 2.0), **QUIET)
+    assert cert.certified
+    path = save_certificate(cert, prob, tmp_path)
+    assert (tmp_path / "V.casadi").exists()
+    assert recheck_certificate(path, **QUIET).certified
+
+
+def test_lyapunov_matrix_is_the_lyapunov_solution():
+    A = np.array([[0.0, 1.0], [-2.0, -3.0]])
+    P = lyapunov_matrix(A)
+    assert np.allclose(A.T @ P + P @ A, -np.eye(2), atol=1e-12)

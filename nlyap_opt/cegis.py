@@ -15,9 +15,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .certificate import CertStatus, RoaCertificate, RoaProblem, certify_roa
+from .errors import InputRangeError
 from .learning import LyapunovLearner, TrainConfig, sample_ball, sample_sphere
 from .network import Network
-from .roa import LevelCertificate, candidate_level, certify_level, grid_area, grid_points
+from .roa import candidate_level
 from .simulate import simulate
 
 __all__ = ["CegisConfig", "CegisResult", "cegis"]
@@ -42,7 +44,6 @@ class CegisConfig:
     verify_options: dict = field(default_factory=dict)
     train: TrainConfig = field(default_factory=TrainConfig)
     seed: int = 0
-    time_budget: float = 300.0
     inner_samples: int = 0           # extra training states in ε ≤ ‖x‖ ≤ 3ε
     boundary_samples: int = 0        # extra training states near the model's ROA boundary
     sim_dt: float = 0.02             # RK4 step of those simulations
@@ -58,7 +59,10 @@ class CegisConfig:
 
 @dataclass
 class CegisResult:
-    status: str                  # "certified" or why not
+    """Result of :func:`cegis`: the best certified iterate (by area), one history entry per
+    iteration. ``status`` is :attr:`CertStatus.CERTIFIED` or ``NOT_CERTIFIED`` (``reason``)."""
+
+    status: CertStatus
     V: Network | None
     controller: Network | None
     level: float
@@ -68,6 +72,11 @@ class CegisResult:
     history: list
     seconds: float
     smoothing: float = 0.0       # s of the pointwise condition (see robust_lie)
+    reason: str = ""
+
+    @property
+    def certified(self) -> bool:
+        return self.status is CertStatus.CERTIFIED
 
 
 def _simulation_rhs(learner, system, cfg, tabulate: bool):
@@ -121,8 +130,8 @@ def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float
 
 
 def cegis(system, controller: Network | None, dynamics: Network | None, cfg: CegisConfig, *,
-          eta: float = 0.0, gradient_bound=None, log=print, V0: Network | None = None
-          ) -> CegisResult:
+          eta: float = 0.0, dynamics_box=None, input_box=None, log=print,
+          V0: Network | None = None) -> CegisResult:
     """Learn ``V`` (and ``κ``) and certify a level; see the module docstring.
 
     Parameters
@@ -132,15 +141,11 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
     dynamics : Network or None       learned φ (``None``: the true f, known-dynamics setting)
     cfg : CegisConfig
     eta : float                      error bound ``‖f − φ‖ ≤ η`` on the box (learned case)
-    gradient_bound : callable(V: Network, controller: Network | None) -> float
-        Rigorous ``sup ‖∇V‖₂`` on the verification ball (needed when ``eta > 0``); it should
-        also refuse a controller that leaves the input box ``U``.
+    dynamics_box, input_box : (nx, 2), (nu, 2) array_like
+        Where ``‖f − φ‖ ≤ η`` holds (learned dynamics); each iterate is certified with
+        :func:`nlyap_opt.certificate.certify_roa`, which checks ``κ ∈ U`` and the ball.
     """
-    from .symbolic import closed_loop, lie_derivative, robust_lie
-
     t0 = time.perf_counter()
-    if eta > 0 and gradient_bound is None:
-        raise ValueError("learned dynamics (eta > 0) need a rigorous gradient_bound for M")
     rng = np.random.default_rng(cfg.seed)
     n = system.nx
     X = sample_ball(cfg.samples, n, cfg.outer, rng)
@@ -171,8 +176,6 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
         weights = (conv & (cost <= w_c)).astype(float)
         log(f"  cegis: fitting V to the trajectory cost ({tc.fit_transform}; level 1 at cost "
             f"{w_c:.4g}, {len(X)} states)")
-    pts, shape = grid_points(np.tile([-cfg.outer, cfg.outer], (n, 1)), cfg.area_grid)
-    in_ball = np.linalg.norm(pts, axis=1) <= cfg.outer
     box = np.tile([-cfg.outer, cfg.outer], (n, 1))
     cex = np.zeros((0, n))
     best: CegisResult | None = None
@@ -187,48 +190,50 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
                              steps=steps, inside_weight=weights, eta_pointwise=pointwise,
                              targets=targets, target_rates=rates)
         V, ctrl = learner.export()
-        if eta > 0:
-            M = float(gradient_bound(V, ctrl))
-            margin = float(np.nextafter(M * eta, np.inf))
-            smoothing = cfg.norm_smoothing * M if cfg.margin_mode == "pointwise" else 0.0
-        cl = closed_loop(system, ctrl, dynamics, strict=True)
-        Vx = V.casadi(cl.x)
-        lie = lie_derivative(Vx, cl.x, cl.rhs)
-        check_margin = margin
-        if eta > 0 and cfg.margin_mode == "pointwise":
-            lie = robust_lie(lie, Vx, cl.x, eta, smoothing)
-            check_margin = 0.0
-        cand = candidate_level(cl.x, Vx, lie, inner=cfg.inner, outer=cfg.outer,
-                               margin=check_margin, seed=cfg.seed + it)
-        last = it == cfg.iterations - 1 or time.perf_counter() - t0 > cfg.time_budget
+        problem = RoaProblem(system, V, ctrl, dynamics, inner=cfg.inner, outer=cfg.outer,
+                             eta=eta, margin_mode=cfg.margin_mode,
+                             norm_smoothing=cfg.norm_smoothing, dynamics_box=dynamics_box,
+                             input_box=input_box, verify_options=cfg.verify_options)
+        try:
+            dec = problem.decrease()
+        except InputRangeError as err:  # κ leaves U: no certificate for this iterate
+            log(f"  cegis iteration {it}: {err}")
+            history.append({"iteration": it, "loss": info["loss"], "status": str(err),
+                            "level": 0.0, "area": 0.0})
+            continue
+        M, margin, smoothing = dec.M, dec.margin, dec.smoothing
+        cand = candidate_level(dec.x, dec.V, dec.lie, inner=cfg.inner, outer=cfg.outer,
+                               margin=dec.margin, seed=cfg.seed + it)
+        last = it == cfg.iterations - 1
         if last or (it + 1) % cfg.verify_every == 0:
-            cert = certify_level(cl.x, Vx, lie, level=cand.level, inner=cfg.inner,
-                                 outer=cfg.outer, margin=check_margin,
-                                 verify_options=cfg.verify_options, log=lambda m: log("  " + m))
-        else:  # falsifier only: the sampled violations that limit the candidate level
-            cert = LevelCertificate("not verified (candidate only)", 0.0,
-                                    counterexamples=cand.violations)
-        area = 0.0
-        if cert.status == "certified":
-            v = V.numpy(pts)[:, 0]
-            area = grid_area((in_ball & (v <= cert.level)).reshape(shape), box)
+            cert = certify_roa(problem, cand.level, search=True, check_inner_ellipse=False,
+                               log=lambda m: log("  " + m)) if cand.level > 0 else None
+        else:
+            cert = None
+        if cert is None:  # falsifier only: the sampled violations that limit the candidate
+            cert = RoaCertificate(CertStatus.NOT_CERTIFIED, "not verified (candidate only)",
+                                  system.name, "known" if dynamics is None else "learned",
+                                  0.0, cfg.inner, cfg.outer, counterexamples=cand.violations)
+        area = cert.area(box, cfg.area_grid) if cert.certified else 0.0
         entry = {"iteration": it, "loss": info["loss"], "train_steps": info["steps"],
                  "margin_mode": cfg.margin_mode if eta > 0 else "none",
                  "train_seconds": info["seconds"], "candidate_level": cand.level,
-                 "candidate_source": cand.source, "status": cert.status,
+                 "candidate_source": cand.source, "status": cert.status.value,
+                 "reason": cert.reason,
                  "level": cert.level, "margin": margin, "M": M, "smoothing": smoothing,
                  "area": area,
-                 "verify_seconds": cert.seconds,
+                 "verify_seconds": cert.seconds, "checks": cert.checks,
                  "boxes": sum((h.get("boxes", 0) for h in cert.history), 0),
                  "counterexamples": int(len(cert.counterexamples))}
         history.append(entry)
         log(f"  cegis iteration {it}: loss {info['loss']:.4g}, candidate level "
-            f"{cand.level:.4g} ({cand.source}), {cert.status} level {cert.level:.4g}, "
+            f"{cand.level:.4g} ({cand.source}), "
+            f"{'certified' if cert.certified else cert.reason} level {cert.level:.4g}, "
             f"area {area:.4g}, margin {margin:.3g}")
-        if cert.status == "certified" and (best is None or area > best.area):
-            best = CegisResult("certified", V, ctrl, cert.level, margin, M, area, history,
-                               0.0, smoothing)
-        if cert.status == "certified" and cert.level >= cfg.target_fraction * cand.level \
+        if cert.certified and (best is None or area > best.area):
+            best = CegisResult(CertStatus.CERTIFIED, V, ctrl, cert.level, margin, M, area,
+                               history, 0.0, smoothing)
+        if cert.certified and cert.level >= cfg.target_fraction * cand.level \
                 and not len(cert.counterexamples) and it + 1 >= cfg.min_iterations:
             break
         new = cert.counterexamples
@@ -237,13 +242,11 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
                 (len(new), cfg.neighbours, n))
             new = np.vstack([new, jitter.reshape(-1, n)])
             cex = np.vstack([cex, new])[-cfg.max_counterexamples:]
-        if time.perf_counter() - t0 > cfg.time_budget:
-            log("  cegis: time budget reached")
-            break
     seconds = time.perf_counter() - t0
     if best is None:
         V, ctrl = learner.export()
-        return CegisResult("no certified level within the iteration budget", V, ctrl, 0.0,
-                           margin, M, 0.0, history, seconds, smoothing)
+        return CegisResult(CertStatus.NOT_CERTIFIED, V, ctrl, 0.0, margin, M, 0.0, history,
+                           seconds, smoothing,
+                           reason="no certified level within the iteration budget")
     best.history, best.seconds = history, seconds
     return best

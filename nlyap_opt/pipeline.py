@@ -7,43 +7,79 @@ configuration loads finished stages instead of recomputing them):
    ``known_dynamics``);
 2. ``controller`` — LQR on the linearisation, saturated controller with solved bias;
 3. ``cegis`` — learn V and κ, certify conditions (a) and (b) at a level;
-4. ``certificate`` — condition (c) (certified for known f; the paper's assumption for
-   unknown f), certified and true-ROA areas, and the check of the *same* V and κ against
-   the true f (a benchmark, reported separately); ``report.md`` and ``roa.png``.
+4. ``certificate`` — always rerun: the saved V, κ, φ are verified again at the saved level
+   with conditions (a), (b), (c) (:func:`nlyap_opt.certificate.certify_roa`) before
+   ``certified`` is written; certified and true-ROA areas, the check of the *same* V and κ
+   against the true f (a benchmark, reported separately); ``report.md`` and ``roa.png``.
+
+Nothing on disk is trusted without a check: ``stages.json`` records, per stage, the hash of
+the configuration it read and the sha256 of every file it wrote; a stage whose files changed
+(or whose record is unreadable) is recomputed, saying so, and so is every stage built on it.
+Files are written atomically, so an interrupted run resumes from its finished stages. A lock
+file keeps a second concurrent run out of the same directory.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .cegis import CegisConfig, cegis
+from .certificate import (
+    CertStatus,
+    RoaCertificate,
+    RoaProblem,
+    certify_roa,
+    save_certificate,
+    sha256_file,
+    write_json_atomic,
+)
+from .errors import ConfigError, NlyapError
 from .learning import TrainConfig
 from .network import Network
 
-__all__ = ["run"]
+__all__ = ["run", "RunResult", "RunLockedError"]
 
 
 def _hash(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def _write(path: Path, data: dict):
-    path.write_text(json.dumps(data, indent=1, allow_nan=False, default=_jsonable))
+class RunLockedError(NlyapError, RuntimeError):
+    """Another run holds the output directory."""
 
 
-def _jsonable(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.bool_):
-        return bool(o)
-    return str(o)
+@dataclass
+class RunResult:
+    """Result of :func:`run`.
+
+    Attributes
+    ----------
+    certificate : RoaCertificate
+        The certificate of the saved V, κ (and φ), re-verified in this call.
+    status : CertStatus
+        ``certificate.status`` (or ``NOT_CERTIFIED`` when a gate stopped the run early).
+    summary : dict
+        The content of ``certificate.json`` (areas, checks, assumptions, timings).
+    out : Path
+        The output directory.
+    """
+
+    certificate: RoaCertificate | None
+    status: CertStatus
+    summary: dict
+    out: Path
+    reason: str = ""
+
+    @property
+    def certified(self) -> bool:
+        return self.status is CertStatus.CERTIFIED
 
 
 #: the configuration keys each stage reads
@@ -52,52 +88,152 @@ _STAGE_KEYS = {
     "controller": ("lqr", "controller_scale"),
     "cegis": ("inner", "outer", "train", "cegis"),
 }
+#: the files each stage writes (the sha256 of each is recorded)
+_STAGE_FILES = {
+    "dynamics": ("dynamics.json", "bounds.json"),
+    "controller": ("controller_init.json", "lqr.json"),
+    "cegis": ("V.json", "controller.json", "cegis.json"),
+}
 
 
 class _Stages:
-    """Stage bookkeeping: ``DIR/stages.json`` maps stage -> config hash when finished.
+    """Stage bookkeeping in ``DIR/stages.json``: stage -> {key, files: {name: sha256}}.
 
-    A stage's hash covers the system, the setting (known or learned f), every configuration
-    key the stage reads (:data:`_STAGE_KEYS`) and the hashes of the stages it builds on, so
-    a changed setting reruns exactly the stages it affects.
+    A stage's key covers the system, the setting, every configuration key the stage reads
+    and the recorded file hashes of the stages it builds on.
     """
 
     def __init__(self, out: Path, system: str, cfg: dict, log):
-        self.out, self.log, self.system = out, log, system
+        self.out, self.log, self.system, self.cfg = out, log, system, cfg
         self.file = out / "stages.json"
-        self.done = json.loads(self.file.read_text()) if self.file.exists() else {}
-        self.cfg = cfg
+        self.done: dict = {}
+        if self.file.exists():
+            try:
+                done = json.loads(self.file.read_text())
+                if not isinstance(done, dict) or not all(
+                        isinstance(v, dict) and "key" in v for v in done.values()):
+                    raise ValueError("unexpected content")
+                self.done = done
+            except (ValueError, OSError) as err:
+                log(f"warning: {self.file} is unreadable ({err}); recomputing every stage")
 
     def key(self, stage: str, *deps) -> str:
         return _hash([stage, self.system, self.cfg.get("known_dynamics"),
                       {k: self.cfg.get(k) for k in _STAGE_KEYS[stage]},
-                      [self.done.get(d) for d in deps]])
+                      [self.done.get(d, {}).get("files") for d in deps]])
 
     def finished(self, stage: str, *deps) -> bool:
-        ok = self.done.get(stage) == self.key(stage, *deps)
-        if ok:
-            self.log(f"[{stage}] loaded from {self.out} (finished earlier)")
-        return ok
+        rec = self.done.get(stage)
+        if rec is None:
+            return False
+        if rec.get("key") != self.key(stage, *deps):
+            self.log(f"[{stage}] configuration or earlier stage changed: recomputing")
+            return False
+        for name, digest in rec.get("files", {}).items():
+            f = self.out / name
+            if not f.exists():
+                self.log(f"[{stage}] {name} is missing: recomputing the stage")
+                return False
+            if sha256_file(f) != digest:
+                self.log(f"[{stage}] {name} changed since this stage wrote it: recomputing "
+                         "the stage")
+                return False
+        self.log(f"[{stage}] loaded from {self.out} (finished earlier, files unchanged)")
+        return True
 
     def mark(self, stage: str, *deps):
-        self.done[stage] = self.key(stage, *deps)
-        self.file.write_text(json.dumps(self.done, indent=1))
+        files = {n: sha256_file(self.out / n) for n in _STAGE_FILES[stage]
+                 if (self.out / n).exists()}
+        self.done[stage] = {"key": self.key(stage, *deps), "files": files}
+        write_json_atomic(self.file, self.done)
 
 
-def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
-        log=print) -> dict:
-    """Run the pipeline for ``system_name`` with configuration ``cfg`` into ``out``.
+class _OutLock:
+    """``DIR/.nlyap.lock`` holding the pid of the run that writes into ``DIR``."""
 
-    Returns the content of ``certificate.json``.
+    def __init__(self, out: Path, log):
+        self.path, self.log = out / ".nlyap.lock", log
+
+    def __enter__(self):
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            except FileExistsError:
+                try:
+                    pid = int(self.path.read_text().strip() or 0)
+                except (OSError, ValueError):
+                    pid = 0
+                if pid and pid != os.getpid() and _alive(pid):
+                    raise RunLockedError(
+                        f"another nlyap run (pid {pid}) is writing into {self.path.parent}; "
+                        "wait for it to finish or pass another --out") from None
+                self.log(f"note: removing a stale lock of pid {pid} in {self.path.parent}")
+                self.path.unlink(missing_ok=True)
+                continue
+            with os.fdopen(fd, "w") as fh:
+                fh.write(str(os.getpid()))
+            return self
+        raise RunLockedError(f"cannot lock {self.path.parent}; remove {self.path} and rerun")
+
+    def __exit__(self, *exc):
+        self.path.unlink(missing_ok=True)
+        return False
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _out_dir(out) -> Path:
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} is a file; pass a directory (new or of an earlier run)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"cannot create the output directory {out}: "
+                          f"{err.strerror or err}; pass a writable --out") from None
+    return out
+
+
+def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
+        log=print) -> RunResult:
+    """Run the pipeline for ``system`` with the run configuration ``cfg`` into ``out``.
+
+    Parameters
+    ----------
+    system : str or systems.System
+        A catalogue name or a system object.
+    cfg : dict
+        A validated run configuration (:func:`nlyap_opt.configs.get_config`).
+    out : path
+        Output directory (created; an earlier run's directory is resumed).
+    known_dynamics : bool
+        Use the true f (the paper's "actual dynamics" setting) instead of learning φ.
+
+    Returns
+    -------
+    RunResult
     """
-    import systems
+    import systems as _systems
+
+    system = _systems.get(system) if isinstance(system, str) else system
+    out = _out_dir(out)
+    with _OutLock(out, log):
+        return _run(system, cfg, out, known_dynamics, log)
+
+
+def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
     from .control import lqr, saturated_controller
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    system = systems.get(system_name)
     cfg = dict(cfg, known_dynamics=known_dynamics)
-    stages = _Stages(out, system_name, cfg, log)
+    stages = _Stages(out, system.name, cfg, log)
     seconds: dict[str, float] = {}
     r, eps = float(cfg["outer"]), float(cfg["inner"])
     ball_box = np.tile([-r, r], (system.nx, 1))
@@ -112,9 +248,9 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
             t = time.perf_counter()
             dcfg = dict(cfg.get("dynamics", {}))
             preset = dcfg.pop("preset", "default")
-            dcfg = merge_config(default_config(system_name, fast=(preset == "fast")), dcfg)
+            dcfg = merge_config(default_config(system.name, fast=(preset == "fast")), dcfg)
             dcfg["progress"] = dcfg.get("progress", True) and log is print
-            log(f"[dynamics] learning φ for {system_name} ({preset} preset)")
+            log(f"[dynamics] learning φ for {system.name} ({preset} preset)")
             res = learn_dynamics(system, dcfg)
             bounds = compute_bounds(system, res.network, res.grid, res.alpha,
                                     options=dcfg.get("bound_options"),
@@ -134,8 +270,6 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
         # the error does not depend on u)
         input_box = grid_box[system.nx:] if len(grid_box) > system.nx else system.input_box
         if np.any(ball_box[:, 0] < dyn_box[:, 0]) or np.any(ball_box[:, 1] > dyn_box[:, 1]):
-            from .errors import ConfigError
-
             raise ConfigError(
                 f"the verification ball r={r} leaves the box {dyn_box.tolist()} on which "
                 "‖f − φ‖ ≤ η was established; enlarge the dynamics box or reduce 'outer'"
@@ -150,7 +284,7 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
             res = lqr(system, lq.get("Q"), lq.get("R"))
             ctrl = saturated_controller(system, res.K, cfg["controller_scale"])
             ctrl.save(out / "controller_init.json")
-            _write(out / "lqr.json", res.to_dict())
+            write_json_atomic(out / "lqr.json", res.to_dict())
             stages.mark("controller")
         controller = Network.load(out / "controller_init.json")
 
@@ -160,27 +294,17 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
         t = time.perf_counter()
         train = TrainConfig(**cfg.get("train", {}))
         ccfg = CegisConfig(inner=eps, outer=r, train=train, **cfg.get("cegis", {}))
-        grad = None
-        if eta > 0:
-            from .bounds import gradient_bound
-
-            def grad(V, ctrl):
-                """Rigorous M on the ball; refuses a κ leaving U or a ball leaving the box."""
-                gb = gradient_bound(V, ball_box, controller=ctrl,
-                                    input_box=input_box if system.nu else None,
-                                    state_box=dyn_box)
-                return gb.M
-
         log(f"[cegis] learning V{' and κ' if controller is not None else ''} on "
             f"{eps:g} ≤ ‖x‖ ≤ {r:g}" + (f" with η = {eta:.3g}" if eta else " (true f)"))
-        res = cegis(system, controller, dynamics, ccfg, eta=eta, gradient_bound=grad, log=log)
+        res = cegis(system, controller, dynamics, ccfg, eta=eta, dynamics_box=dyn_box,
+                    input_box=input_box, log=log)
         res.V.save(out / "V.json")
         if res.controller is not None:
             res.controller.save(out / "controller.json")
-        _write(out / "cegis.json", {"status": res.status, "level": res.level,
-                                    "margin": res.margin, "M": res.M,
-                                    "smoothing": res.smoothing, "area_in_ball": res.area,
-                                    "history": res.history, "seconds": res.seconds})
+        write_json_atomic(out / "cegis.json", {
+            "status": res.status.value, "reason": res.reason, "level": res.level,
+            "margin": res.margin, "M": res.M, "smoothing": res.smoothing,
+            "area_in_ball": res.area, "history": res.history, "seconds": res.seconds})
         seconds["cegis"] = time.perf_counter() - t
         stages.mark("cegis", *deps)
     cg = json.loads((out / "cegis.json").read_text())
@@ -189,120 +313,107 @@ def run(system_name: str, cfg: dict, out: str | Path, *, known_dynamics: bool = 
 
     # ---------------------------------------------------------------- 4. certificate
     t = time.perf_counter()
-    cert = _certificate(system, cfg, V, controller, dynamics, eta, cg, bounds_info, out, log)
+    mode = cfg.get("cegis", {}).get("margin_mode", "pointwise")
+    problem = RoaProblem(
+        system, V, controller, dynamics, inner=eps, outer=r, eta=eta, margin_mode=mode,
+        smoothing=float(cg.get("smoothing", 0.0)) if mode == "pointwise" else None,
+        dynamics_box=dyn_box, input_box=input_box,
+        dynamics_assumptions=[] if bounds_info is None else
+        [f"{bounds_info['bound_model']['name']} bound"] + list(
+            bounds_info["bound_model"].get("assumptions", [])))
+    if cg["status"] == CertStatus.CERTIFIED.value and float(cg["level"]) > 0:
+        log(f"[certificate] verifying the saved V{', κ' if controller else ''}"
+            f"{', φ' if dynamics else ''} at the saved level {float(cg['level']):.6g}")
+        cert = certify_roa(problem, float(cg["level"]), search=False,
+                           log=lambda m: log("  " + m))
+    else:
+        cert = RoaCertificate(CertStatus.NOT_CERTIFIED, cg.get("reason") or cg["status"],
+                              system.name, "known" if known_dynamics else "learned", 0.0,
+                              eps, r, eta=eta, V=V)
+    extra = _areas_and_checks(system, cfg, cert, problem, out, log)
     seconds["certificate"] = time.perf_counter() - t
-    prev = json.loads((out / "seconds.json").read_text()) if (out / "seconds.json").exists() \
-        else {}
+    sec_file = out / "seconds.json"
+    prev = {}
+    if sec_file.exists():
+        try:
+            prev = json.loads(sec_file.read_text())
+        except ValueError:
+            prev = {}
     prev.update(seconds)
-    _write(out / "seconds.json", prev)
-    cert["seconds"] = prev
-    _write(out / "certificate.json", cert)
+    write_json_atomic(sec_file, prev)
+    extra["seconds"] = prev
+    if bounds_info is not None:
+        extra["dynamics_bound"] = {k: bounds_info.get(k) for k in
+                                   ("eta", "alpha", "delta", "K_f", "K_phi", "bound_model")}
+    path = save_certificate(cert, problem, out, extra)
+    summary = json.loads(path.read_text())
     from .report import write_report
 
-    write_report(out, system, cfg, cert, bounds_info, cg)
-    log(f"[done] status: {cert['status']}; certified area {cert['certified_area']:.4g} = "
-        f"{100 * cert['fraction_of_true_roa']:.1f}% of the true ROA "
-        f"({cert['true_roa_area']:.4g}); see {out / 'report.md'}")
-    return cert
+    write_report(out, system, cfg, summary, bounds_info, cg)
+    if cert.certified:
+        log(f"[done] status: certified; certified area {summary['certified_area']:.4g} = "
+            f"{100 * summary['fraction_of_true_roa']:.1f}% of the true ROA "
+            f"({summary['true_roa_area']:.4g}); see {out / 'report.md'}")
+    else:
+        log(f"[done] status: {cert.status.value}: {cert.reason}; see {out / 'report.md'}")
+    return RunResult(cert, cert.status, summary, out, cert.reason)
 
 
-def _certificate(system, cfg, V, controller, dynamics, eta, cg, bounds_info, out, log) -> dict:
+def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, out: Path,
+                      log) -> dict:
+    """Certified and true-ROA areas on the evaluation grid; the same V and κ against the
+    true f (a benchmark, not part of a learned-f certificate)."""
     from verification import closed_loop_problem, verify
 
-    from .roa import certify_inner_ellipse, grid_area, grid_points, true_roa_mask
+    from .roa import grid_area, grid_points, true_roa_mask
 
-    r, eps = float(cfg["outer"]), float(cfg["inner"])
-    level, margin = float(cg["level"]), float(cg["margin"])
-    smoothing = float(cg.get("smoothing", 0.0))
-    known = dynamics is None
-    mode = (cg["history"][-1].get("margin_mode", "none") if cg.get("history") else "none")
-    if known:
-        condition = "∇V·f(x, κ(x)) < 0"
-    elif mode == "pointwise":
-        condition = (f"∇V·φ(x, κ(x)) + η·sqrt(‖∇V(x)‖² + s²) < 0 with η = {eta:.4g}, "
-                     f"s = {smoothing:.4g} (implies ∇V·f < 0 by Cauchy–Schwarz where "
-                     "‖f − φ‖ ≤ η)")
-    else:
-        condition = f"∇V·φ(x, κ(x)) < −β with β = M·η = {margin:.4g}"
-    assumptions = [
-        "V and κ are the float64 networks saved in V.json / controller.json (verified as saved)",
-    ]
-    status = cg["status"]
-    inner = None
-    if status == "certified":
-        log("[certificate] condition (c): quadratic certificate on the inner ball")
-        inner = certify_inner_ellipse(system, controller, eps)
-        if known and inner["status"] != "certified":
-            status = f"inner ball not certified ({inner['status']})"
-        if not known:
-            assumptions += [
-                "f is Lipschitz on the dynamics box with the computed K_f, and ‖f − φ‖ ≤ η "
-                f"= {eta:.4g} there ({bounds_info['bound_model']['name']} bound: "
-                + "; ".join(bounds_info["bound_model"]["assumptions"]) + ")",
-                "the inner ball B_ε lies in a quadratic-Lyapunov ROA of the true closed loop "
-                "(the paper's Assumption 3; condition (c) cannot be proved from samples)",
-            ]
-    # areas
     box = np.asarray(cfg["eval_box"], dtype=float)
     n = int(cfg["eval_grid"])
     pts, shape = grid_points(box, n)
-    v = V.numpy(pts)[:, 0]
-    omega = (np.linalg.norm(pts, axis=1) <= r) & (v <= level) if status == "certified" \
-        else np.zeros(len(pts), bool)
-    if inner is not None and inner["status"] == "certified" or (inner is not None and not known):
-        P, cq = inner["P"], inner["level"]
-        omega |= np.einsum("ij,jk,ik->i", pts, P, pts) <= cq
-    omega = omega.reshape(shape)
+    omega = cert.contains(pts).reshape(shape)
+    controller = problem.controller
     cache = out / "true_roa.npz"
     feedback = None if controller is None else (lambda z: controller.numpy(z))
     ckey = _hash([system.name, cfg["eval_box"], n, None if controller is None
                   else controller.to_dict()])
-    if cache.exists() and str(np.load(cache)["key"]) == ckey:
-        true_mask = np.load(cache)["mask"]
-    else:
+    true_mask = None
+    if cache.exists():
+        try:
+            with np.load(cache) as z:
+                if str(z["key"]) == ckey:
+                    true_mask = z["mask"]
+        except (OSError, ValueError, KeyError):
+            log("warning: true_roa.npz is unreadable; simulating again")
+    if true_mask is None:
         log("[certificate] true ROA by simulation on the evaluation grid")
-        # the certified inner ellipse of the true closed loop absorbs converging states early
-        ell = (inner["P"], inner["level"]) if inner and inner["status"] == "certified" else None
+        ie = cert.inner_ellipse
+        ell = (ie.P, ie.level) if ie is not None and ie.status == "certified" else None
         true_mask = true_roa_mask(system, feedback, box, n, ellipse=ell)
-        np.savez_compressed(cache, mask=true_mask, key=ckey)
+        tmp = out / ".true_roa.tmp.npz"
+        np.savez_compressed(tmp, mask=true_mask, key=ckey)
+        tmp.replace(cache)
     if system.nu:  # the paper's comparison for controlled systems: within the disc
-        disc = (np.linalg.norm(pts, axis=1) <= r).reshape(shape)
+        disc = (np.linalg.norm(pts, axis=1) <= problem.outer).reshape(shape)
         true_mask = true_mask & disc
     cert_area = grid_area(omega, box)
     true_area = grid_area(true_mask, box)
-    sound_vs_sim = bool(np.all(true_mask[omega]) if omega.any() else True)
-    # the same V and κ against the true f (benchmark check, not part of the certificate)
     true_check = None
-    if status == "certified" and not known:
-        prob = closed_loop_problem(system, V, controller, None, inner=eps, outer=r,
-                                   level=level, margin=0.0, strict=False, check_positive=False)
+    if cert.certified and not problem.known:
+        prob = closed_loop_problem(system, problem.V, controller, None, inner=problem.inner,
+                                   outer=problem.outer, level=cert.level, margin=0.0,
+                                   strict=False, check_positive=False)
         res = verify(prob)
-        true_check = {"decrease_true_f": res.status, "inner_ball_true_f": inner["status"],
-                      "seconds": res.seconds}
+        true_check = {"decrease_true_f": res.status,
+                      "inner_ball_true_f": cert.inner_ellipse.status, "seconds": res.seconds}
         log(f"[certificate] same V, κ against the true f: decrease {res.status}, "
-            f"inner ball {inner['status']}")
+            f"inner ball {cert.inner_ellipse.status}")
     return {
-        "system": system.name,
-        "status": status,
-        "dynamics": "known (true f)" if known else "learned φ",
-        "level": level,
-        "inner_radius": eps,
-        "outer_radius": r,
-        "margin": margin,
-        "margin_mode": mode,
-        "decrease_condition": condition,
-        "M": cg.get("M"),
-        "norm_smoothing": smoothing if mode == "pointwise" else 0.0,
-        "eta": eta if not known else 0.0,
-        "inner_ellipse": None if inner is None else {
-            "status": inner["status"], "P": inner["P"], "level": inner["level"],
-            "box_half_widths": inner["box"]},
         "certified_area": cert_area,
         "true_roa_area": true_area,
         "fraction_of_true_roa": cert_area / true_area if true_area else 0.0,
-        "certified_points_converge_in_simulation": sound_vs_sim,
-        "assumptions": assumptions,
+        "certified_points_converge_in_simulation":
+            bool(np.all(true_mask[omega]) if omega.any() else True),
         "true_dynamics_check": true_check,
-        "eval_box": box,
+        "eval_box": box.tolist(),
         "eval_grid": n,
     }

@@ -22,6 +22,8 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
     and ``roa.png``."""
     lines = [f"# {system.name}: certified region of attraction", ""]
     lines += [f"**Status: {cert['status']}** ({cert['dynamics']})", ""]
+    if cert["status"] != "certified":
+        lines += [f"Reason: {cert.get('reason', '')}", ""]
     lines += ["## Parameters (paper's Table layout)", "",
               "| K_f | K_φ | δ | α | η | M = sup‖∇V‖ | β (margin) | ε | r | level |",
               "|---|---|---|---|---|---|---|---|---|---|"]
@@ -43,10 +45,13 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
         lines.append(
             f"- (c) inner ball: E = {{xᵀPx ≤ {ie['level']:.4g}}} ⊇ B_ε; "
             + ("P·J(y) + J(y)ᵀ·P ≺ 0 verified on a box containing E (true f): "
-               f"{ie['status']}" if bounds is None else
-               "assumed (paper's Assumption 3) for the unknown f"))
+               f"{ie['status']}" if ie.get("proved") else
+               "assumed (paper's Assumption 3) for the unknown f; the tool's check on the "
+               f"true f: {ie['status']}"))
     lines += ["", "Certified set: Ω_c ∪ E with Ω_c = {x ∈ B_r : V(x) ≤ level}.", "",
-              "### Assumptions", ""] + [f"- {a}" for a in cert["assumptions"]]
+              "### Checks (interval verifier)", ""]
+    lines += [f"- {k}: {v}" for k, v in cert.get("checks", {}).items()]
+    lines += ["", "### Assumptions", ""] + [f"- {a}" for a in cert["assumptions"]]
     lines += ["", "## Areas", "",
               "| certified area | true ROA area | certified ÷ true |", "|---|---|---|",
               f"| {cert['certified_area']:.4g} | {cert['true_roa_area']:.4g} | "

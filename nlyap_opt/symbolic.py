@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .errors import DimensionError, EquilibriumError, EquilibriumWarning
+from .errors import DimensionError, EquilibriumError, EquilibriumWarning, NetworkFileError
 from .network import Network
 
 __all__ = ["ClosedLoop", "closed_loop", "lie_derivative", "robust_lie"]
@@ -101,8 +101,22 @@ def learned_rhs(system, dynamics: Network, x, u):
     the other components are taken from ``system`` (known exactly).
     """
     model = dynamics.meta.get("model", "full")
+    if model not in ("full", "control_affine"):
+        raise NetworkFileError(f"dynamics network meta.model is {model!r}; expected 'full' or "
+                               "'control_affine' (fix the file's meta or relearn φ)")
     learned = dynamics.meta.get("learned_components")
-    learned = list(range(system.nx)) if learned is None else [int(i) for i in learned]
+    if learned is None:
+        learned = list(range(system.nx))
+    else:
+        if not isinstance(learned, (list, tuple)) or not all(
+                isinstance(i, int) and not isinstance(i, bool) for i in learned):
+            raise NetworkFileError(f"dynamics network meta.learned_components must be a list "
+                                   f"of state indices, got {learned!r}")
+        learned = list(learned)
+        if len(set(learned)) != len(learned) or not all(0 <= i < system.nx for i in learned):
+            raise NetworkFileError(
+                f"dynamics network meta.learned_components {learned} must be distinct state "
+                f"indices in 0..{system.nx - 1} of system {system.name!r}; fix the file's meta")
     n_in = system.nx if model == "control_affine" else system.nx + system.nu
     if dynamics.n_in != n_in or dynamics.n_out != len(learned):
         raise DimensionError(
@@ -113,8 +127,16 @@ def learned_rhs(system, dynamics: Network, x, u):
     if model == "control_affine":
         phi = dynamics.casadi(x)
         if system.nu:
-            B = np.array(dynamics.meta.get("input_matrix"), dtype=float).reshape(
-                len(learned), system.nu)
+            try:
+                B = np.array(dynamics.meta.get("input_matrix"), dtype=float).reshape(
+                    len(learned), system.nu)
+            except (TypeError, ValueError):
+                raise NetworkFileError(
+                    f"control-affine dynamics network needs meta.input_matrix of shape "
+                    f"({len(learned)}, {system.nu}) with numbers, got "
+                    f"{dynamics.meta.get('input_matrix')!r}") from None
+            if not np.all(np.isfinite(B)):
+                raise NetworkFileError("meta.input_matrix holds NaN or inf; fix the file")
             phi = phi + ca.mtimes(ca.DM(B), u)
     else:
         phi = dynamics.casadi(ca.vertcat(x, u))

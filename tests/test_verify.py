@@ -212,16 +212,22 @@ def test_unknown_backend_and_missing_dreal():
 
 # ----------------------------------------------------------------------------- SMT-LIB / dReal
 def test_smtlib_export_evaluates_back_to_casadi():
+    import re
+
     s, V, k = _pf()
     problem = closed_loop_problem(s, V, k, inner=0.05, outer=0.5)
     text = to_smtlib(problem)
-    assert text.count("(let ") > 10 and "(check-sat)" in text
+    # shared nodes are let-bound (bindings of one depth in one let)
+    assert "(let ((t0 " in text and "(check-sat)" in text
+    assert text.count("(let (") <= len(re.findall(r"\(t\d+ ", text))
     rng = np.random.default_rng(0)
     pts = rng.uniform(-0.5, 0.5, (50, 2))
     F = np.array(problem.function.map(50)(pts.T)).T
     for p, f in zip(pts, F):
         truth, atoms = evaluate_smtlib(text, p)
-        np.testing.assert_allclose(atoms, f, rtol=1e-12, atol=1e-12)
+        # g, p, then the divisor of the path-following dynamics (domain condition: != 0)
+        assert len(atoms) == len(f) + 1 and atoms[-1] != 0
+        np.testing.assert_allclose(atoms[:len(f)], f, rtol=1e-12, atol=1e-12)
         m = problem.n_constraints
         assert truth == (bool(np.all(f[:m] <= 0)) and bool(np.any(f[m:] >= 0)))
 
@@ -236,13 +242,12 @@ def test_smtlib_constants_are_exact():
 @pytest.mark.skipif(not BACKENDS["dreal"].is_available(),
                     reason="dreal not importable (optional backend; not installable here)")
 def test_dreal_backend_agrees_with_interval():
-    s = systems.get("van_der_pol")
-    V = quadratic_V(P_VDP)
-    ok = verify(closed_loop_problem(s, V, inner=0.1, outer=1.0), backend="dreal",
-                precision=1e-4)
-    assert ok.status == "verified"
-    bad = verify(closed_loop_problem(s, V, inner=0.1, outer=1.2), backend="dreal")
-    assert bad.status in ("counterexample", "unknown")
+    # verified case verified; refuted case a *confirmed* counterexample ('unknown' fails:
+    # the violation is +0.165, far above δ); tests/test_formula.py shows this check fails on
+    # a wrong verdict and runs the backend's code path with a stand-in dReal module
+    from dreal_agreement import check_dreal_agreement
+
+    check_dreal_agreement(lambda p, **kw: verify(p, backend="dreal", **kw))
 
 
 def test_single_thread_blas_is_scoped():

@@ -10,6 +10,7 @@ Problem / Result / one-shot function::
 from __future__ import annotations
 
 from .backends import BACKENDS, Backend, get_backend
+from .formula import Formula, build_formula
 from .interval import Interval, IntervalArithmetic
 from .problem import (
     Counterexample,
@@ -24,7 +25,7 @@ __all__ = [
     "verify", "VerificationProblem", "VerificationResult", "Counterexample",
     "lyapunov_problem", "closed_loop_problem", "Interval", "IntervalArithmetic", "BACKENDS",
     "Backend",
-    "get_backend", "to_smtlib", "write_smtlib", "evaluate_smtlib",
+    "get_backend", "to_smtlib", "write_smtlib", "evaluate_smtlib", "Formula", "build_formula",
 ]
 
 

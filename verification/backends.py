@@ -2,19 +2,20 @@
 
 from __future__ import annotations
 
-import importlib
+import importlib.util
 import time
 
-import casadi as ca
 import numpy as np
 
-from nlyap_opt.errors import BackendUnavailableError, UnknownNameError
-from nlyap_opt.walker import _unsupported, compile_function, evaluate
+from nlyap_opt.errors import BackendUnavailableError, UnknownNameError, UnsupportedOperationError
 
+from .formula import Formula, build_formula, topological
 from .problem import VerificationProblem, VerificationResult
 from .verify import confirm_points, verify_interval
 
-__all__ = ["Backend", "IntervalBackend", "DrealBackend", "BACKENDS", "get_backend"]
+__all__ = [
+    "Backend", "IntervalBackend", "DrealBackend", "BACKENDS", "get_backend", "formula_to_dreal",
+]
 
 
 class Backend:
@@ -40,51 +41,71 @@ class IntervalBackend(Backend):
         return verify_interval(problem, **options)
 
 
-class DrealArithmetic:
-    """Walker arithmetic producing dReal expressions (on the SX expansion)."""
+def formula_to_dreal(formula: Formula, dreal) -> tuple[list, object]:
+    """dReal variables and formula of ``formula.falsification()`` (``unsat``: verified).
 
-    name = "dreal"
-    symbolic = True
+    One dReal object per DAG node: a node used many times is the *same* Python
+    ``Expression`` at every use (dReal's terms share it in memory).
 
-    def __init__(self, dreal):
-        self.d = dreal
-        d = dreal
-        self._unary = {
-            ca.OP_NEG: lambda a: -a, ca.OP_SQ: lambda a: a * a, ca.OP_TWICE: lambda a: 2 * a,
-            ca.OP_SQRT: d.sqrt, ca.OP_EXP: d.exp, ca.OP_LOG: d.log, ca.OP_SIN: d.sin,
-            ca.OP_COS: d.cos, ca.OP_TAN: d.tan, ca.OP_TANH: d.tanh, ca.OP_ATAN: d.atan,
-            ca.OP_FABS: abs, ca.OP_INV: lambda a: 1 / a, ca.OP_ASSIGN: lambda a: a,
-            ca.OP_SINH: d.sinh, ca.OP_COSH: d.cosh,
-        }
-        self._binary = {
-            ca.OP_ADD: lambda a, b: a + b, ca.OP_SUB: lambda a, b: a - b,
-            ca.OP_MUL: lambda a, b: a * b, ca.OP_DIV: lambda a, b: a / b,
-            ca.OP_POW: lambda a, b: a**b, ca.OP_CONSTPOW: lambda a, b: a**b,
-            ca.OP_FMIN: d.Min, ca.OP_FMAX: d.Max,
-        }
+    Parameters
+    ----------
+    formula : verification.formula.Formula
+    dreal : module
+        The imported ``dreal`` module (passed in: it is imported only when the backend runs).
 
-    def constant(self, value):
-        return float(np.asarray(value, dtype=float))
+    Returns
+    -------
+    (list of dreal.Variable, dreal.Formula)
+    """
+    d = dreal
+    fun = {"sqrt": d.sqrt, "exp": d.exp, "log": d.log, "sin": d.sin, "cos": d.cos,
+           "tan": d.tan, "tanh": d.tanh, "atan": d.atan, "asin": d.asin, "acos": d.acos,
+           "sinh": d.sinh, "cosh": d.cosh, "abs": abs}
+    op2 = {"+": lambda a, b: a + b, "-": lambda a, b: a - b, "*": lambda a, b: a * b,
+           "/": lambda a, b: a / b, "^": lambda a, b: a**b, "atan2": d.atan2, "min": d.Min,
+           "max": d.Max, "<=": lambda a, b: a <= b, "<": lambda a, b: a < b,
+           ">=": lambda a, b: a >= b, ">": lambda a, b: a > b, "=": lambda a, b: a == b}
 
-    def unary(self, op, a):
-        if op not in self._unary:
-            raise _unsupported(op, self.name, list(self._unary))
-        return self._unary[op](a)
+    def conn(f):
+        return lambda *xs: xs[0] if len(xs) == 1 else f(*xs)
 
-    def binary(self, op, a, b):
-        if op not in self._binary:
-            raise _unsupported(op, self.name, list(self._binary))
-        return self._binary[op](a, b)
-
-    def structural(self, fn, *args):
-        return fn(*args)
+    nary = {"and": conn(d.And), "or": conn(d.Or)}
+    xs = [d.Variable(v.value) for v in formula.variables]
+    by_name = {v.value: x for v, x in zip(formula.variables, xs)}
+    root = formula.falsification()
+    val: dict[int, object] = {}
+    for node in topological([root]):
+        a = [val[id(x)] for x in node.args]
+        op = node.op
+        if op == "const":
+            r = d.Expression(node.value)
+        elif op == "var":
+            r = by_name[node.value]
+        elif op == "neg":
+            r = -a[0]
+        elif op in fun:
+            r = fun[op](a[0])
+        elif op in op2:
+            r = op2[op](a[0], a[1])
+        elif op in nary:
+            r = nary[op](*a)
+        elif op == "not":
+            r = d.Not(a[0])
+        elif op == "ite":
+            r = d.if_then_else(a[0], a[1], a[2])
+        else:  # pragma: no cover - TermTable creates no other op
+            raise UnsupportedOperationError(f"formula op {op!r} has no dReal counterpart")
+        val[id(node)] = r
+    return xs, val[id(root)]
 
 
 class DrealBackend(Backend):
     """dReal 4 (optional): ``CheckSatisfiability(formula, δ)``.
 
-    ``unsat`` proves the property (verified). A δ-SAT box is *not* a counterexample
-    (PITFALLS P7): its points are re-checked rigorously with the interval arithmetic, and
+    The formula is :func:`~verification.formula.build_formula`'s, the one the SMT-LIB export
+    writes (domain conditions of partial operations included). ``unsat`` proves the property
+    (verified). A δ-SAT box is *not* a counterexample (PITFALLS P7): points of the box
+    (clipped to the root box) are re-checked rigorously with the interval arithmetic, and
     the result is ``counterexample`` only if one is confirmed, else ``unknown``.
     """
 
@@ -95,34 +116,36 @@ class DrealBackend(Backend):
 
     @classmethod
     def is_available(cls) -> bool:
-        return importlib.util.find_spec("dreal") is not None
+        try:
+            return importlib.util.find_spec("dreal") is not None
+        except (ImportError, ValueError):
+            return False
 
-    def verify(self, problem, *, precision: float = 1e-3, **options):
+    def verify(self, problem, *, precision: float = 1e-3, samples: int = 256, **options):
+        """Decide ``problem`` with dReal at δ = ``precision``.
+
+        ``samples`` random points of a δ-SAT box (plus its centre and corners) are checked
+        rigorously; ``counterexample`` only for a confirmed one.
+        """
+        if options:
+            raise UnknownNameError(f"unknown dReal backend option(s) {', '.join(options)}; "
+                                   "available: precision, samples")
         if not self.is_available():
             raise BackendUnavailableError(f"the 'dreal' backend needs dreal: {self.install_hint}")
         import dreal
 
         t0 = time.perf_counter()
-        fun = problem.function.expand() if problem.function.is_a("MXFunction") \
-            else problem.function
-        xs = [dreal.Variable(f"x{i}") for i in range(problem.n)]
-        ar = DrealArithmetic(dreal)
-        terms = evaluate(compile_function(fun), [np.array(xs, dtype=object)], ar)[0]
-        m = problem.n_constraints
-        parts = [v >= float(lo) for v, lo in zip(xs, problem.box[:, 0])]
-        parts += [v <= float(hi) for v, hi in zip(xs, problem.box[:, 1])]
-        parts += [t <= 0 for t in terms[:m]]
-        viol = dreal.Or(*[t >= 0 for t in terms[m:]]) if len(terms) - m > 1 \
-            else terms[m] >= 0
-        formula = dreal.And(*parts, viol)
+        xs, formula = formula_to_dreal(build_formula(problem), dreal)
         box = dreal.CheckSatisfiability(formula, precision)
-        seconds = time.perf_counter() - t0
         if box is None:
-            return VerificationResult("verified", seconds=seconds, backend="dreal")
-        lo = np.array([box[v].lb() for v in xs])
-        hi = np.array([box[v].ub() for v in xs])
+            return VerificationResult("verified", seconds=time.perf_counter() - t0,
+                                      backend="dreal")
+        lo = np.array([box[v].lb() for v in xs], dtype=float)
+        hi = np.array([box[v].ub() for v in xs], dtype=float)
         rng = np.random.default_rng(0)
-        cands = np.vstack([0.5 * (lo + hi), lo + (hi - lo) * rng.random((64, problem.n))])
+        cands = np.vstack([0.5 * (lo + hi), lo, hi,
+                           lo + (hi - lo) * rng.random((samples, problem.n))])
+        cands = np.clip(cands, problem.box[:, 0], problem.box[:, 1])
         found = confirm_points(problem, cands)
         if found:
             return VerificationResult("counterexample", found[0], found,

@@ -1,37 +1,29 @@
-"""SMT-LIB 2 export (dReal dialect) of a falsification formula, through the walker.
+"""SMT-LIB 2 export (dReal dialect) of a falsification formula.
 
-The SX expansion of the problem Function is walked with :class:`SmtArithmetic`, which
-emits one ``let`` binding per instruction (a 2-64-64-1 Lie derivative is ~22 k
-instructions, while its fully expanded term is millions of characters). Constants are
-written as their *exact* decimal expansion (every float64 is a finite decimal), so the
-formula is about the very function that was saved.
+The text is written from the :class:`~verification.formula.Formula` of
+:func:`~verification.formula.build_formula`, the same object the dReal backend consumes.
+Every DAG node used more than once is bound once with ``let`` (bindings of equal depth share
+one ``let``, so the nesting is the depth of the DAG, not its size); single-use nodes are
+written inline. Constants are written as their *exact* decimal expansion (every float64 is
+a finite decimal), so the formula is about the very function that was saved. Domain
+conditions of partial operations are part of the formula (see :mod:`verification.formula`).
 """
 
 from __future__ import annotations
 
 import math
+import re
 from decimal import Decimal
 from pathlib import Path
 
-import casadi as ca
 import numpy as np
 
-from nlyap_opt.walker import _unsupported, compile_function, evaluate
-
+from .formula import Formula, build_formula, topological
 from .problem import VerificationProblem
 
-__all__ = ["SmtArithmetic", "to_smtlib", "evaluate_smtlib", "write_smtlib"]
+__all__ = ["to_smtlib", "formula_to_smtlib", "evaluate_smtlib", "write_smtlib"]
 
-_UNARY = {
-    ca.OP_NEG: "-", ca.OP_SQRT: "sqrt", ca.OP_EXP: "exp", ca.OP_LOG: "log", ca.OP_SIN: "sin",
-    ca.OP_COS: "cos", ca.OP_TAN: "tan", ca.OP_TANH: "tanh", ca.OP_ATAN: "atan",
-    ca.OP_FABS: "abs", ca.OP_SINH: "sinh", ca.OP_COSH: "cosh", ca.OP_ASIN: "asin",
-    ca.OP_ACOS: "acos",
-}
-_BINARY = {
-    ca.OP_ADD: "+", ca.OP_SUB: "-", ca.OP_MUL: "*", ca.OP_DIV: "/", ca.OP_POW: "^",
-    ca.OP_CONSTPOW: "^", ca.OP_FMIN: "min", ca.OP_FMAX: "max", ca.OP_ATAN2: "atan2",
-}
+_OPS = {"neg": "-", "=": "="}
 
 
 def _num(v: float) -> str:
@@ -43,78 +35,61 @@ def _num(v: float) -> str:
     return f"(- {d})" if v < 0 else d
 
 
-class SmtArithmetic:
-    """Walker arithmetic whose values are SMT-LIB term names; it records the bindings."""
-
-    name = "smtlib"
-    symbolic = True
-
-    def __init__(self):
-        self.bindings: list[tuple[str, str]] = []
-
-    def _bind(self, term: str) -> str:
-        name = f"t{len(self.bindings)}"
-        self.bindings.append((name, term))
-        return name
-
-    def constant(self, value):
-        v = np.asarray(value, dtype=float)
-        if v.ndim:
-            raise ValueError("SMT-LIB export walks the SX expansion (scalar registers only)")
-        return _num(float(v))
-
-    def unary(self, op, a):
-        if op == ca.OP_SQ:
-            return self._bind(f"(* {a} {a})")
-        if op == ca.OP_TWICE:
-            return self._bind(f"(* 2.0 {a})")
-        if op == ca.OP_INV:
-            return self._bind(f"(/ 1.0 {a})")
-        if op == ca.OP_ASSIGN:
-            return a
-        if op not in _UNARY:
-            raise _unsupported(op, self.name, list(_UNARY) + [ca.OP_SQ, ca.OP_TWICE, ca.OP_INV])
-        return self._bind(f"({_UNARY[op]} {a})")
-
-    def binary(self, op, a, b):
-        if op not in _BINARY:
-            raise _unsupported(op, self.name, list(_BINARY))
-        return self._bind(f"({_BINARY[op]} {a} {b})")
-
-    def structural(self, fn, *args):
-        return fn(*args)
-
-
-def _sx_terms(problem: VerificationProblem, names: list[str]):
-    fun = problem.function.expand() if problem.function.is_a("MXFunction") \
-        else problem.function
-    ar = SmtArithmetic()
-    x = np.array(names, dtype=object)
-    out = evaluate(compile_function(fun), [x], ar)[0]
-    return ar, list(out)
+def formula_to_smtlib(formula: Formula) -> str:
+    """SMT-LIB 2 text of a :class:`~verification.formula.Formula` (``unsat``: verified)."""
+    names = [v.value for v in formula.variables]
+    for v in names:
+        if re.fullmatch(r"t\d+", v):
+            raise ValueError(f"variable name {v!r} clashes with the let-bound names t<k>")
+    body = formula.body()
+    order = topological([body])
+    uses: dict[int, int] = {}
+    for node in order:
+        for a in node.args:
+            uses[id(a)] = uses.get(id(a), 0) + 1
+    text: dict[int, str] = {}
+    level: dict[int, int] = {}  # let level a node's text needs (0: no binding inside)
+    groups: list[list[tuple[str, str]]] = []
+    for node in order:
+        if node.op == "const":
+            text[id(node)] = _num(node.value)
+            level[id(node)] = 0
+            continue
+        if node.op == "var":
+            text[id(node)] = node.value
+            level[id(node)] = 0
+            continue
+        head = _OPS.get(node.op, node.op)
+        s = "(" + head + " " + " ".join(text[id(a)] for a in node.args) + ")"
+        lv = max((level[id(a)] for a in node.args), default=0)
+        if uses.get(id(node), 0) > 1 and node is not body:
+            while len(groups) <= lv:
+                groups.append([])
+            name = f"t{sum(map(len, groups))}"
+            groups[lv].append((name, s))
+            text[id(node)] = name
+            level[id(node)] = lv + 1
+        else:
+            text[id(node)] = s
+            level[id(node)] = lv
+    lines = ["(set-logic QF_NRA)"]
+    lines += [f"(declare-fun {v} () Real)" for v in names]
+    for v, (lo, hi) in zip(names, formula.box):
+        lines.append(f"(assert (<= {_num(float(lo))} {v}))")
+        lines.append(f"(assert (<= {v} {_num(float(hi))}))")
+    opened = "".join("(let (" + " ".join(f"({n} {s})" for n, s in g) + ")\n" for g in groups)
+    lines.append("(assert " + opened + text[id(body)] + ")" * len(groups) + ")")
+    lines += ["(check-sat)", "(exit)"]
+    return "\n".join(lines) + "\n"
 
 
 def to_smtlib(problem: VerificationProblem, *, var_names: list[str] | None = None) -> str:
     """SMT-LIB 2 text of the falsification formula of ``problem``.
 
-    ``∃x ∈ box: g_i(x) ≤ 0 ∀i ∧ ∨_j p_j(x) ≥ 0`` — ``unsat`` means *verified*.
+    ``∃x ∈ box: g_i(x) ≤ 0 ∀i ∧ (∨_j p_j(x) ≥ 0 ∨ a partial operation undefined)`` —
+    ``unsat`` means *verified*. Built by :func:`~verification.formula.build_formula`.
     """
-    names = var_names or [f"x{i}" for i in range(problem.n)]
-    ar, terms = _sx_terms(problem, names)
-    m = problem.n_constraints
-    lines = ["(set-logic QF_NRA)"]
-    lines += [f"(declare-fun {v} () Real)" for v in names]
-    for v, (lo, hi) in zip(names, problem.box):
-        lines.append(f"(assert (<= {_num(float(lo))} {v}))")
-        lines.append(f"(assert (<= {v} {_num(float(hi))}))")
-    region = [f"(<= {t} 0.0)" for t in terms[:m]]
-    viol = [f"(>= {t} 0.0)" for t in terms[m:]]
-    body = "(and " + " ".join(region + ["(or " + " ".join(viol) + ")"]) + ")" \
-        if region else "(or " + " ".join(viol) + ")"
-    opened = "".join(f"(let (({n} {t}))\n" for n, t in ar.bindings)
-    lines.append("(assert " + opened + body + ")" * len(ar.bindings) + ")")
-    lines += ["(check-sat)", "(exit)"]
-    return "\n".join(lines) + "\n"
+    return formula_to_smtlib(build_formula(problem, var_names=var_names))
 
 
 def write_smtlib(problem: VerificationProblem, path: str | Path) -> Path:
@@ -141,21 +116,25 @@ def _parse(tokens, i=0):
 
 
 _FUN = {
-    "sqrt": math.sqrt, "exp": math.exp, "log": math.log, "sin": math.sin, "cos": math.cos,
-    "tan": math.tan, "tanh": math.tanh, "atan": math.atan, "abs": abs, "sinh": math.sinh,
-    "cosh": math.cosh, "asin": math.asin, "acos": math.acos,
+    "sqrt": np.sqrt, "exp": np.exp, "log": np.log, "sin": np.sin, "cos": np.cos,
+    "tan": np.tan, "tanh": np.tanh, "atan": np.arctan, "abs": np.abs, "sinh": np.sinh,
+    "cosh": np.cosh, "asin": np.arcsin, "acos": np.arccos,
 }
+_CMP = {"<=": np.less_equal, ">=": np.greater_equal, "<": np.less, ">": np.greater,
+        "=": np.equal}
 
 
 def _eval(node, env):
     if isinstance(node, str):
-        return env[node] if node in env else float(node)
+        return env[node] if node in env else np.float64(node)
     head = node[0]
     if head == "let":
         env = dict(env)
         for name, term in node[1]:
             env[name] = _eval(term, env)
         return _eval(node[2], env)
+    if head == "ite":
+        return _eval(node[2], env) if _eval(node[1], env) else _eval(node[3], env)
     args = [_eval(a, env) for a in node[1:]]
     if head == "+":
         return sum(args)
@@ -166,18 +145,19 @@ def _eval(node, env):
     if head == "/":
         return args[0] / args[1]
     if head == "^":
-        return args[0] ** args[1]
+        return np.power(args[0], args[1])
     if head in ("min", "max"):
         return (min if head == "min" else max)(args)
     if head == "atan2":
-        return math.atan2(args[0], args[1])
-    if head in ("<=", ">=", "<", ">"):
-        a, b = args
-        return {"<=": a <= b, ">=": a >= b, "<": a < b, ">": a > b}[head]
+        return np.arctan2(args[0], args[1])
+    if head in _CMP:
+        return bool(_CMP[head](*args))
     if head == "and":
         return all(args)
     if head == "or":
         return any(args)
+    if head == "not":
+        return not args[0]
     return _FUN[head](*args)
 
 
@@ -185,27 +165,36 @@ def evaluate_smtlib(text: str, point) -> tuple[bool, list[float]]:
     """Evaluate an exported formula at a point (float arithmetic; for tests and debugging).
 
     Returns the truth value of the final assertion (box bounds ignored) and the values of
-    the formula's atoms in order (region terms, then properties).
+    the formula's atoms in order: region terms ``g_i``, property terms ``p_j``, then the
+    arguments of the domain-violation atoms (if any).
     """
     import sys
 
     lines = [ln for ln in text.splitlines() if ln.startswith("(declare-fun")]
     names = [ln.split()[1] for ln in lines]
-    env = {n: float(v) for n, v in zip(names, point)}
+    env = {n: np.float64(v) for n, v in zip(names, point)}
     start = text.index("(assert (let") if "(assert (let" in text else text.rindex("(assert")
     end = text.index("(check-sat)")
+    depth = run = 0
+    for ch in text[start:end]:
+        if ch == "(":
+            run += 1
+            depth = max(depth, run)
+        elif ch == ")":
+            run -= 1
     old = sys.getrecursionlimit()
-    sys.setrecursionlimit(max(old, 20 * len(text.split("(let")) + 1000))
+    sys.setrecursionlimit(max(old, 4 * depth + 1000))
     try:
         tree, _ = _parse(_tokens(text[start:end]))
         node = tree[1]
-        # unwind the let chain iteratively, then evaluate the body
-        while isinstance(node, list) and node and node[0] == "let":
-            for name, term in node[1]:
-                env[name] = _eval(term, env)
-            node = node[2]
-        atoms = [_eval(a[1], env) for a in _atoms(node)]
-        return bool(_eval(node, env)), atoms
+        with np.errstate(all="ignore"):
+            # unwind the let chain iteratively, then evaluate the body
+            while isinstance(node, list) and node and node[0] == "let":
+                for name, term in node[1]:
+                    env[name] = _eval(term, env)
+                node = node[2]
+            atoms = [float(_eval(a[1], env)) for a in _atoms(node)]
+            return bool(_eval(node, env)), atoms
     finally:
         sys.setrecursionlimit(old)
 

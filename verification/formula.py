@@ -1,0 +1,574 @@
+r"""One formula builder for the dReal backend and the SMT-LIB export.
+
+The SX expansion of a problem's CasADi Function is walked (``nlyap_opt.walker``) with
+:class:`FormulaArithmetic`, whose values are :class:`Term` nodes of one hash-consed
+expression DAG (:class:`TermTable`). The result, a :class:`Formula`, is what both consumers
+read: :func:`verification.smtlib.to_smtlib` writes it as SMT-LIB text (``let`` bindings for
+shared nodes) and the dReal backend turns it into dReal ``Expression`` objects (one Python
+object per DAG node, reused wherever the node is used). Nothing is encoded twice.
+
+Compactness (dReal works on terms without sharing, so the size of the *expanded* tree is
+what it pays for):
+
+- structurally equal subterms are one node (hash-consing);
+- exact real-arithmetic identities only: ``x + 0 → x``, ``x·1 → x``, ``x·0 → 0``,
+  ``x·(−1) → −x``, ``−(−x) → x``, ``x − x → 0``, ``x/1 → x``, ``x^1 → x``; constants are
+  folded only where the result is exactly a float64 (checked with rationals), so every
+  constant of the formula is the exact value of a float64 of the graph;
+- ``sq(x)`` is ``x^2`` (``x`` once), ``twice(x)`` is ``2·x``; the gradient of a tanh layer
+  stays CasADi's ``(1 − t^2)`` with ``t`` the shared node of the forward pass.
+
+Partial operations (domain conditions)
+--------------------------------------
+dReal is not domain-aware, so every partial operation met while walking records the
+condition under which it is undefined, as an atom (``sqrt a``: ``a < 0``; ``log a``:
+``a ≤ 0``; ``a / b``, ``1/a``: ``b = 0``; ``tan a``: ``cos a = 0``; ``asin, acos``:
+``|a| > 1``; ``log1p a``: ``a ≤ −1``; ``acosh a``: ``a < 1``; ``atanh a``: ``|a| ≥ 1``;
+``atan2(a, b)``: ``a = b = 0``; ``a^e``: ``a = 0`` for a negative integer ``e``, ``a < 0``
+for a positive non-integer ``e``, ``a ≤ 0`` for a negative non-integer or non-constant
+``e``). These atoms are *violations*: the falsification formula is
+
+.. math:: x \in B \;\wedge\; g_i(x) \le 0\ \forall i \;\wedge\;
+          \big(\exists j: p_j(x) \ge 0 \;\vee\; \exists k: \text{violation}_k(x)\big),
+
+so ``unsat`` (verified) also proves that every partial operation is defined on the region
+(the set of points of the box where every ``g_i`` is defined and ``≤ 0``). Conditions are
+recorded before any simplification (a ``0·log(x)`` that folds to ``0`` still asks
+``x > 0``), which is conservative. A violation found by dReal is a δ-SAT box like any other:
+it becomes a counterexample only if a point is confirmed by rigorous evaluation.
+
+Operations with no real-arithmetic counterpart in dReal (``floor``, ``ceil``, ``fmod``,
+``erf``) raise :class:`~nlyap_opt.errors.UnsupportedOperationError` naming the operation.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from fractions import Fraction
+
+import casadi as ca
+import numpy as np
+
+from nlyap_opt.errors import UnsupportedOperationError
+from nlyap_opt.walker import compile_function, evaluate, op_name
+
+__all__ = [
+    "Term", "TermTable", "FormulaArithmetic", "Formula", "build_formula", "SUPPORTED_OPS",
+    "UNSUPPORTED_OPS",
+]
+
+#: boolean-sorted operations of the DAG (comparisons of two reals, connectives)
+BOOL_OPS = frozenset({"<=", "<", ">=", ">", "=", "and", "or", "not"})
+#: real functions of one argument that dReal and SMT-LIB (dReal dialect) know by this name
+FUNCTIONS = ("sqrt", "exp", "log", "sin", "cos", "tan", "tanh", "atan", "asin", "acos",
+             "sinh", "cosh", "abs")
+
+
+class Term:
+    """A node of a hash-consed expression DAG (create through a :class:`TermTable`).
+
+    Attributes
+    ----------
+    op : str
+        ``"var"``, ``"const"``, ``"+"``, ``"-"`` (binary), ``"neg"``, ``"*"``, ``"/"``,
+        ``"^"``, a function name (:data:`FUNCTIONS`), ``"atan2"``, ``"min"``, ``"max"``,
+        ``"ite"`` (boolean, then, else) or a boolean op (:data:`BOOL_OPS`).
+    args : tuple of Term
+    value : float or str or None
+        The float64 value of a constant, the name of a variable.
+    size : int
+        Nodes of the expanded tree (each use of a shared node counted again).
+    """
+
+    __slots__ = ("op", "args", "value", "size")
+
+    def __init__(self, op: str, args: tuple = (), value=None):
+        self.op = op
+        self.args = args
+        self.value = value
+        self.size = 1 + sum(a.size for a in args)
+
+    @property
+    def is_const(self) -> bool:
+        return self.op == "const"
+
+    @property
+    def is_bool(self) -> bool:
+        return self.op in BOOL_OPS
+
+    def __repr__(self) -> str:
+        if self.op == "const":
+            return repr(self.value)
+        if self.op == "var":
+            return str(self.value)
+        return f"({self.op} {' '.join(map(repr, self.args))})"
+
+
+def _exact(v: Fraction) -> float | None:
+    """``v`` as a float64 if that is exact, else None."""
+    try:
+        f = float(v)
+    except OverflowError:
+        return None
+    return f if math.isfinite(f) and Fraction(f) == v else None
+
+
+class TermTable:
+    """Creates :class:`Term` nodes, each structurally distinct node once (hash-consing).
+
+    The constructors apply only identities that are exact in real arithmetic (see the
+    module docstring); they never round.
+    """
+
+    def __init__(self):
+        self._nodes: dict[tuple, Term] = {}
+        self.zero = self.const(0.0)
+        self.one = self.const(1.0)
+
+    def __len__(self) -> int:
+        return len(self._nodes)
+
+    def _mk(self, op: str, args: tuple = (), value=None) -> Term:
+        key = (op, tuple(id(a) for a in args), value)
+        t = self._nodes.get(key)
+        if t is None:
+            t = self._nodes[key] = Term(op, args, value)
+        return t
+
+    # ------------------------------------------------------------------ leaves
+    def var(self, name: str) -> Term:
+        return self._mk("var", (), str(name))
+
+    def const(self, value: float) -> Term:
+        v = float(value)
+        if not math.isfinite(v):
+            raise ValueError(f"a formula constant must be finite, got {v}")
+        return self._mk("const", (), 0.0 if v == 0 else v)  # -0.0 and 0.0 are one real
+
+    def _fold(self, a: Term, b: Term, fn) -> Term | None:
+        if a.is_const and b.is_const:
+            v = _exact(fn(Fraction(a.value), Fraction(b.value)))
+            if v is not None:
+                return self.const(v)
+        return None
+
+    # ------------------------------------------------------------------ arithmetic
+    def add(self, a: Term, b: Term) -> Term:
+        if a is self.zero:
+            return b
+        if b is self.zero:
+            return a
+        if b.op == "neg":
+            return self.sub(a, b.args[0])
+        return self._fold(a, b, lambda p, q: p + q) or self._mk("+", (a, b))
+
+    def sub(self, a: Term, b: Term) -> Term:
+        if b is self.zero:
+            return a
+        if a is self.zero:
+            return self.neg(b)
+        if a is b:
+            return self.zero
+        if b.op == "neg":
+            return self.add(a, b.args[0])
+        return self._fold(a, b, lambda p, q: p - q) or self._mk("-", (a, b))
+
+    def neg(self, a: Term) -> Term:
+        if a.op == "neg":
+            return a.args[0]
+        if a.is_const:
+            return self.const(-a.value)
+        return self._mk("neg", (a,))
+
+    def mul(self, a: Term, b: Term) -> Term:
+        if b.is_const and not a.is_const:  # constants first: c·x
+            a, b = b, a
+        if a is self.zero or b is self.zero:
+            return self.zero
+        if a is self.one:
+            return b
+        if b is self.one:
+            return a
+        if a.is_const and a.value == -1.0:
+            return self.neg(b)
+        if a.is_const and b.op == "neg":
+            return self.mul(self.const(-a.value), b.args[0])
+        return self._fold(a, b, lambda p, q: p * q) or self._mk("*", (a, b))
+
+    def div(self, a: Term, b: Term) -> Term:
+        if b is self.one:
+            return a
+        if a is self.zero:
+            return self.zero
+        if b.is_const and b.value != 0:
+            return self._fold(a, b, lambda p, q: p / q) or self._mk("/", (a, b))
+        return self._mk("/", (a, b))
+
+    def pow(self, a: Term, e: Term) -> Term:
+        if e.is_const and e.value == 1.0:
+            return a
+        if e is self.zero:
+            return self.one
+        return self._mk("^", (a, e))
+
+    def fn(self, name: str, a: Term) -> Term:
+        if name not in FUNCTIONS:
+            raise ValueError(f"unknown function {name!r}")
+        return self._mk(name, (a,))
+
+    def op2(self, name: str, a: Term, b: Term) -> Term:
+        if name not in ("atan2", "min", "max"):
+            raise ValueError(f"unknown binary function {name!r}")
+        if name in ("min", "max") and a is b:
+            return a
+        return self._mk(name, (a, b))
+
+    def ite(self, c: Term, a: Term, b: Term) -> Term:
+        if a is b:
+            return a
+        return self._mk("ite", (c, a, b))
+
+    # ------------------------------------------------------------------ booleans
+    def cmp(self, op: str, a: Term, b: Term) -> Term:
+        if op not in ("<=", "<", ">=", ">", "="):
+            raise ValueError(f"unknown comparison {op!r}")
+        return self._mk(op, (a, b))
+
+    def and_(self, *xs: Term) -> Term:
+        xs = tuple(xs)
+        return xs[0] if len(xs) == 1 else self._mk("and", xs)
+
+    def or_(self, *xs: Term) -> Term:
+        xs = tuple(xs)
+        return xs[0] if len(xs) == 1 else self._mk("or", xs)
+
+    def not_(self, a: Term) -> Term:
+        return self._mk("not", (a,))
+
+
+# --------------------------------------------------------------------------- the arithmetic
+class FormulaArithmetic:
+    """Walker arithmetic whose values are :class:`Term` nodes (SX expansion only).
+
+    Every CasADi elementwise operation of the walker is either implemented (exactly, in
+    real arithmetic) or refused with :class:`UnsupportedOperationError` naming it.
+    ``violations`` collects the domain-violation atoms of the partial operations met.
+    """
+
+    name = "formula"
+    symbolic = True
+
+    def __init__(self, table: TermTable | None = None):
+        self.t = table or TermTable()
+        self.violations: list[Term] = []
+        self._seen: set[int] = set()
+        t = self.t
+        c = t.const
+        fn = t.fn
+        self._unary: dict[int, Callable[[Term], Term]] = {
+            ca.OP_NEG: t.neg,
+            ca.OP_SQ: lambda a: t.pow(a, c(2.0)),
+            ca.OP_TWICE: lambda a: t.mul(c(2.0), a),
+            ca.OP_ASSIGN: lambda a: a,
+            ca.OP_SQRT: lambda a: self._dom(fn("sqrt", a), t.cmp("<", a, t.zero)),
+            ca.OP_EXP: lambda a: fn("exp", a),
+            ca.OP_LOG: lambda a: self._dom(fn("log", a), t.cmp("<=", a, t.zero)),
+            ca.OP_SIN: lambda a: fn("sin", a),
+            ca.OP_COS: lambda a: fn("cos", a),
+            ca.OP_TAN: lambda a: self._dom(fn("tan", a), t.cmp("=", fn("cos", a), t.zero)),
+            ca.OP_TANH: lambda a: fn("tanh", a),
+            ca.OP_ATAN: lambda a: fn("atan", a),
+            ca.OP_SINH: lambda a: fn("sinh", a),
+            ca.OP_COSH: lambda a: fn("cosh", a),
+            ca.OP_FABS: lambda a: fn("abs", a),
+            ca.OP_INV: lambda a: self._dom(t.div(t.one, a), t.cmp("=", a, t.zero)),
+            ca.OP_ASIN: lambda a: self._dom(fn("asin", a), self._outside(a, 1.0, True)),
+            ca.OP_ACOS: lambda a: self._dom(fn("acos", a), self._outside(a, 1.0, True)),
+            ca.OP_EXPM1: lambda a: t.sub(fn("exp", a), t.one),
+            ca.OP_LOG1P: lambda a: self._dom(fn("log", t.add(t.one, a)),
+                                             t.cmp("<=", a, c(-1.0))),
+            ca.OP_ASINH: lambda a: fn("log", t.add(a, fn("sqrt", t.add(t.pow(a, c(2.0)),
+                                                                          t.one)))),
+            ca.OP_ACOSH: lambda a: self._dom(
+                fn("log", t.add(a, fn("sqrt", t.sub(t.pow(a, c(2.0)), t.one)))),
+                t.cmp("<", a, t.one)),
+            ca.OP_ATANH: lambda a: self._dom(
+                t.mul(c(0.5), fn("log", t.div(t.add(t.one, a), t.sub(t.one, a)))),
+                self._outside(a, 1.0, False)),
+            ca.OP_SIGN: lambda a: t.ite(t.cmp(">", a, t.zero), t.one,
+                                        t.ite(t.cmp("<", a, t.zero), c(-1.0), t.zero)),
+            ca.OP_NOT: lambda a: t.ite(t.cmp("=", a, t.zero), t.one, t.zero),
+        }
+        self._binary: dict[int, Callable[[Term, Term], Term]] = {
+            ca.OP_ADD: t.add,
+            ca.OP_SUB: t.sub,
+            ca.OP_MUL: t.mul,
+            ca.OP_DIV: lambda a, b: self._dom(t.div(a, b), t.cmp("=", b, t.zero)),
+            ca.OP_POW: self._pow,
+            ca.OP_CONSTPOW: self._pow,
+            ca.OP_FMIN: lambda a, b: t.op2("min", a, b),
+            ca.OP_FMAX: lambda a, b: t.op2("max", a, b),
+            ca.OP_ATAN2: lambda a, b: self._dom(
+                t.op2("atan2", a, b),
+                t.and_(t.cmp("=", a, t.zero), t.cmp("=", b, t.zero))),
+            ca.OP_HYPOT: lambda a, b: fn("sqrt", t.add(t.pow(a, c(2.0)), t.pow(b, c(2.0)))),
+            ca.OP_LT: lambda a, b: t.ite(t.cmp("<", a, b), t.one, t.zero),
+            ca.OP_LE: lambda a, b: t.ite(t.cmp("<=", a, b), t.one, t.zero),
+            ca.OP_EQ: lambda a, b: t.ite(t.cmp("=", a, b), t.one, t.zero),
+            ca.OP_NE: lambda a, b: t.ite(t.cmp("=", a, b), t.zero, t.one),
+            ca.OP_AND: lambda a, b: t.ite(t.or_(t.cmp("=", a, t.zero), t.cmp("=", b, t.zero)),
+                                          t.zero, t.one),
+            ca.OP_OR: lambda a, b: t.ite(t.and_(t.cmp("=", a, t.zero),
+                                                t.cmp("=", b, t.zero)), t.zero, t.one),
+            ca.OP_COPYSIGN: lambda a, b: t.ite(t.cmp("<", b, t.zero), t.neg(fn("abs", a)),
+                                               fn("abs", a)),
+        }
+
+    # ------------------------------------------------------------------ helpers
+    def _dom(self, value: Term, violation: Term) -> Term:
+        if id(violation) not in self._seen:
+            self._seen.add(id(violation))
+            self.violations.append(violation)
+        return value
+
+    def _outside(self, a: Term, r: float, closed: bool) -> Term:
+        """``|a| > r`` (``closed``: the domain ``[-r, r]``) or ``|a| ≥ r``."""
+        op = ">" if closed else ">="
+        return self.t.cmp(op, self.t.fn("abs", a), self.t.const(r))
+
+    def _pow(self, a: Term, e: Term) -> Term:
+        t = self.t
+        if e.is_const and float(e.value).is_integer():
+            if e.value < 0:
+                self._dom(None, t.cmp("=", a, t.zero))
+        elif e.is_const and e.value > 0:
+            self._dom(None, t.cmp("<", a, t.zero))
+        else:
+            self._dom(None, t.cmp("<=", a, t.zero))
+        return t.pow(a, e)
+
+    # ------------------------------------------------------------------ walker protocol
+    def constant(self, value) -> Term:
+        v = np.asarray(value, dtype=float)
+        if v.ndim:
+            raise UnsupportedOperationError(
+                "the formula builder walks the SX expansion (scalar registers only); "
+                "call Function.expand() first")
+        return self.t.const(float(v))
+
+    def unary(self, op: int, a: Term) -> Term:
+        try:
+            f = self._unary[op]
+        except KeyError:
+            raise _unsupported(op, list(self._unary) + list(self._binary)) from None
+        return f(a)
+
+    def binary(self, op: int, a: Term, b: Term) -> Term:
+        try:
+            f = self._binary[op]
+        except KeyError:
+            raise _unsupported(op, list(self._unary) + list(self._binary)) from None
+        return f(a, b)
+
+    def structural(self, fn, *args):
+        return fn(*args)
+
+
+def _unsupported(op: int, supported) -> UnsupportedOperationError:
+    names = ", ".join(sorted(op_name(o) for o in supported))
+    return UnsupportedOperationError(
+        f"CasADi operation {op_name(op)} has no exact encoding for dReal / SMT-LIB (real "
+        f"arithmetic without integers); the formula builder supports: {names}. Rewrite the "
+        "expression with supported operations or verify with the interval backend."
+    )
+
+
+_FA = FormulaArithmetic()
+#: CasADi op codes the formula arithmetic encodes exactly
+SUPPORTED_OPS: frozenset[int] = frozenset(_FA._unary) | frozenset(_FA._binary)
+#: CasADi elementwise op codes it refuses (no real-arithmetic counterpart in dReal)
+UNSUPPORTED_OPS: frozenset[int] = frozenset({ca.OP_FLOOR, ca.OP_CEIL, ca.OP_FMOD, ca.OP_ERF})
+del _FA
+
+
+# --------------------------------------------------------------------------- the formula
+def topological(roots: Iterable[Term]) -> list[Term]:
+    """Every node reachable from ``roots`` once, each after its arguments (iterative)."""
+    order: list[Term] = []
+    done: set[int] = set()
+    for root in roots:
+        if id(root) in done:
+            continue
+        stack = [(root, False)]
+        while stack:
+            node, expanded = stack.pop()
+            if id(node) in done:
+                continue
+            if expanded:
+                done.add(id(node))
+                order.append(node)
+                continue
+            stack.append((node, True))
+            for a in reversed(node.args):
+                if id(a) not in done:
+                    stack.append((a, False))
+    return order
+
+
+@dataclass
+class Formula:
+    """The falsification formula of a verification problem, as one expression DAG.
+
+    Attributes
+    ----------
+    table : TermTable
+    variables : tuple of Term      one ``var`` node per state component
+    box : (n, 2) ndarray
+    constraints : tuple of Term    region ``g_i ≤ 0``
+    properties : tuple of Term     violated where ``p_j ≥ 0``
+    violations : tuple of Term     boolean atoms: a partial operation is undefined
+    constraint_names, property_names : list of str
+    """
+
+    table: TermTable
+    variables: tuple
+    box: np.ndarray
+    constraints: tuple
+    properties: tuple
+    violations: tuple = ()
+    constraint_names: list = field(default_factory=list)
+    property_names: list = field(default_factory=list)
+
+    def region_atoms(self) -> list[Term]:
+        t = self.table
+        return [t.cmp("<=", g, t.zero) for g in self.constraints]
+
+    def violation_atoms(self) -> list[Term]:
+        """Property violations ``p_j ≥ 0`` followed by the domain violations."""
+        t = self.table
+        return [t.cmp(">=", p, t.zero) for p in self.properties] + list(self.violations)
+
+    def box_atoms(self) -> list[Term]:
+        t = self.table
+        out = [t.cmp("<=", t.const(lo), v) for v, lo in zip(self.variables, self.box[:, 0])]
+        out += [t.cmp("<=", v, t.const(hi)) for v, hi in zip(self.variables, self.box[:, 1])]
+        return out
+
+    def body(self) -> Term:
+        """``g ≤ 0 ∀i ∧ (∃j p_j ≥ 0 ∨ a domain violation)`` (the box not included)."""
+        t = self.table
+        return t.and_(*self.region_atoms(), t.or_(*self.violation_atoms()))
+
+    def falsification(self) -> Term:
+        """The whole formula: box atoms and :meth:`body`; ``unsat`` means verified."""
+        return self.table.and_(*self.box_atoms(), self.body())
+
+    def expanded_size(self) -> int:
+        """Nodes of :meth:`falsification` as a tree (shared nodes counted at each use)."""
+        return self.falsification().size
+
+    def dag_size(self) -> int:
+        """Distinct nodes of :meth:`falsification` (what ``let`` sharing writes)."""
+        return len(topological([self.falsification()]))
+
+    def evaluate(self, points) -> dict[str, np.ndarray]:
+        """Float64 evaluation at points ``(N, n)`` (for tests and debugging; not rigorous).
+
+        Returns
+        -------
+        dict
+            ``"constraints"`` ``(N, m)``, ``"properties"`` ``(N, p)``, ``"violations"``
+            ``(N, k)`` (bool), ``"body"`` ``(N,)`` (bool; the box not included).
+        """
+        X = np.atleast_2d(np.asarray(points, dtype=float))
+        env = {v.value: X[:, i] for i, v in enumerate(self.variables)}
+        body = self.body()
+        val = evaluate_terms([body, *self.constraints, *self.properties, *self.violations],
+                             env, len(X))
+        m, p = len(self.constraints), len(self.properties)
+
+        def cols(ts):
+            return np.stack([val[id(x)] for x in ts], -1) if ts else np.zeros((len(X), 0))
+
+        return {"constraints": cols(self.constraints), "properties": cols(self.properties),
+                "violations": cols(self.violations).astype(bool),
+                "body": np.asarray(val[id(body)], dtype=bool), "m": m, "p": p}
+
+
+_NP_FUN = {
+    "sqrt": np.sqrt, "exp": np.exp, "log": np.log, "sin": np.sin, "cos": np.cos,
+    "tan": np.tan, "tanh": np.tanh, "atan": np.arctan, "asin": np.arcsin,
+    "acos": np.arccos, "sinh": np.sinh, "cosh": np.cosh, "abs": np.abs,
+}
+_NP_OP = {
+    "+": np.add, "-": np.subtract, "*": np.multiply, "/": np.divide, "^": np.power,
+    "atan2": np.arctan2, "min": np.minimum, "max": np.maximum, "<=": np.less_equal,
+    "<": np.less, ">=": np.greater_equal, ">": np.greater, "=": np.equal,
+}
+
+
+def evaluate_terms(roots: Sequence[Term], env: dict, n: int) -> dict[int, np.ndarray]:
+    """Float64 values of every node under ``roots`` (keyed by ``id``), variables from ``env``."""
+    val: dict[int, np.ndarray] = {}
+    with np.errstate(all="ignore"):
+        for node in topological(roots):
+            a = [val[id(x)] for x in node.args]
+            op = node.op
+            if op == "const":
+                r = np.full(n, node.value)
+            elif op == "var":
+                r = np.asarray(env[node.value], dtype=float)
+            elif op == "neg":
+                r = -a[0]
+            elif op in _NP_FUN:
+                r = _NP_FUN[op](a[0])
+            elif op in _NP_OP:
+                r = _NP_OP[op](a[0], a[1])
+            elif op == "and":
+                r = np.logical_and.reduce(a)
+            elif op == "or":
+                r = np.logical_or.reduce(a)
+            elif op == "not":
+                r = ~a[0]
+            elif op == "ite":
+                r = np.where(a[0], a[1], a[2])
+            else:  # pragma: no cover - every op of TermTable is listed above
+                raise ValueError(f"cannot evaluate op {op!r}")
+            val[id(node)] = r
+    return val
+
+
+def build_formula(problem, *, var_names: Sequence[str] | None = None,
+                  table: TermTable | None = None) -> Formula:
+    """The :class:`Formula` of a :class:`~verification.problem.VerificationProblem`.
+
+    Parameters
+    ----------
+    problem : VerificationProblem
+    var_names : sequence of str, optional
+        Names of the state variables (default ``x0, x1, ...``).
+    table : TermTable, optional
+        Node table to build in (shared with other formulas, e.g. to compare encodings).
+
+    Returns
+    -------
+    Formula
+        The only encoding of the problem: :func:`verification.smtlib.to_smtlib` and the
+        dReal backend both consume it.
+    """
+    fun = problem.function.expand() if problem.function.is_a("MXFunction") \
+        else problem.function
+    names = list(var_names) if var_names is not None else [f"x{i}" for i in range(problem.n)]
+    if len(names) != problem.n or len(set(names)) != problem.n:
+        raise ValueError(f"need {problem.n} distinct variable names, got {names}")
+    ar = FormulaArithmetic(table)
+    xs = [ar.t.var(v) for v in names]
+    arg = np.empty(problem.n, dtype=object)
+    arg[:] = xs
+    out = evaluate(compile_function(fun), [arg], ar)[0]
+    m = problem.n_constraints
+    return Formula(ar.t, tuple(xs), np.asarray(problem.box, dtype=float), tuple(out[:m]),
+                   tuple(out[m:]), tuple(ar.violations), list(problem.constraint_names),
+                   list(problem.property_names))

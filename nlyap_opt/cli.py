@@ -1,25 +1,171 @@
-"""The ``nlyap`` command line."""
+"""The ``nlyap`` command line.
+
+Exit codes (every command; see :data:`EXIT_CODES`): 0 success / verified / certified;
+1 counterexample (``verify`` only); 2 unknown / not certified; 3 input or usage error (one
+line ``nlyap: error: <problem>; <fix>``, no traceback); 4 internal error (one line; the
+traceback only with ``nlyap --debug ...``); 130 interrupted.
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import difflib
 import json
+import math
+import os
 import sys
+import traceback
 from pathlib import Path
 
 import numpy as np
 
-from .errors import NlyapError
+from .errors import NlyapError, UsageError
 
-__all__ = ["main"]
+__all__ = ["EXIT_CODES", "build_parser", "main"]
+
+#: the exit-code contract of every ``nlyap`` command
+EXIT_CODES: dict[int, str] = {
+    0: "success (verify: verified; run, compare: certified)",
+    1: "counterexample: a confirmed point violates a condition (verify only)",
+    2: "unknown / not certified",
+    3: "input or usage error (one line: the problem and its fix)",
+    4: "internal error (one line; rerun with --debug for the traceback)",
+    130: "interrupted (Ctrl-C); rerun the same command to resume",
+}
 
 
-def _matrix_arg(text: str | None):
+def _epilog(codes) -> str:
+    return "exit codes:\n" + "\n".join(f"  {c:<4d} {EXIT_CODES[c]}" for c in codes)
+
+
+_EPILOGS = {
+    "verify": _epilog([0, 1, 2, 3, 4, 130]),
+    "run": _epilog([0, 2, 3, 4, 130]),
+    "compare": _epilog([0, 2, 3, 4, 130]),
+}
+_DEFAULT_EPILOG = _epilog([0, 3, 4, 130])
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors raise :class:`UsageError` (exit 3, one line)."""
+
+    def error(self, message: str):
+        raise UsageError(f"{message}; see '{self.prog} --help'")
+
+
+# ============================================================================ argument types
+def _number(check, want: str):
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}") from None
+        if not math.isfinite(v) or not check(v):
+            raise argparse.ArgumentTypeError(f"must be {want}, got {text}")
+        return v
+
+    parse.__name__ = want
+    return parse
+
+
+_nonneg = _number(lambda v: v >= 0, "a finite number >= 0")
+_positive = _number(lambda v: v > 0, "a finite number > 0")
+
+
+def _seed(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {v}")
+    return v
+
+
+def _matrix_arg(text: str | None, option: str):
     """Parse ``"1,0;0,1"`` (rows separated by ';') or a scalar into an array."""
     if text is None:
         return None
-    rows = [[float(v) for v in r.split(",")] for r in text.split(";")]
-    return np.array(rows, dtype=float)
+    try:
+        rows = [[float(v) for v in r.split(",")] for r in text.split(";")]
+    except ValueError:
+        raise UsageError(f"{option} {text!r} is not a number or rows of numbers like "
+                         "'1,0;0,1'; fix the value") from None
+    if len({len(r) for r in rows}) != 1:
+        raise UsageError(f"{option} {text!r} has rows of different lengths; give a square "
+                         "matrix like '1,0;0,1'")
+    M = np.array(rows, dtype=float)
+    if not np.all(np.isfinite(M)):
+        raise UsageError(f"{option} {text!r} must be finite (no nan or inf)")
+    return M
+
+
+# ============================================================================ helpers
+@contextlib.contextmanager
+def _reading(what: str):
+    """Errors while reading user input are usage errors (exit 3), not internal ones."""
+    try:
+        yield
+    except NlyapError:
+        raise
+    except (ValueError, TypeError, KeyError, IndexError) as err:
+        msg = str(err.args[0]) if isinstance(err, KeyError) and err.args else str(err)
+        raise UsageError(f"{what}: {msg}; check the input") from None
+
+
+def _catalogue_system(name: str) -> None:
+    import systems
+
+    if name not in systems.names():
+        close = difflib.get_close_matches(name, systems.names(), n=1)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        raise UsageError(f"unknown system {name!r}; {hint}the catalogue: "
+                         f"{', '.join(systems.names())} (see 'nlyap systems')")
+
+
+def _existing_ancestor(path: Path) -> Path:
+    p = path.absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def _check_writable(path: Path, option: str, directory: bool) -> None:
+    if directory and path.exists() and not path.is_dir():
+        raise UsageError(f"{option} {path} is a file; give a directory (created if missing)")
+    if not directory and path.is_dir():
+        raise UsageError(f"{option} {path} is a directory; give a file name")
+    anc = _existing_ancestor(path if directory else path.parent)
+    if not anc.is_dir():
+        raise UsageError(f"{option} {path}: {anc} is a file, not a directory; choose another "
+                         "path")
+    if not os.access(anc, os.W_OK):
+        raise UsageError(f"{option} {path}: no permission to write in {anc}; choose another "
+                         "path")
+
+
+def _check_paths(args) -> None:
+    """Refuse missing inputs and unusable outputs before any work starts."""
+    if getattr(args, "system", None) is not None:
+        _catalogue_system(args.system)
+    for attr in ("config", "lyapunov", "controller", "dynamics", "certificate"):
+        value = getattr(args, attr, None)
+        if value is None:
+            continue
+        p, option = Path(value), f"--{attr}"
+        if attr == "certificate" and p.is_dir():
+            p = p / "certificate.json"
+        if not p.exists():
+            raise UsageError(f"{option} {p}: no such file; check the path")
+        if p.is_dir():
+            raise UsageError(f"{option} {p} is a directory; pass the JSON file")
+        if not os.access(p, os.R_OK):
+            raise UsageError(f"{option} {p}: no permission to read it")
+    if getattr(args, "out", None) is not None:
+        _check_writable(Path(args.out), "--out", directory=True)
+    if getattr(args, "json", None) is not None:
+        _check_writable(Path(args.json), "--json", directory=False)
 
 
 def _write_json(path: str | None, data: dict) -> None:
@@ -29,6 +175,14 @@ def _write_json(path: str | None, data: dict) -> None:
         print(f"wrote {path}")
 
 
+def _load_network(path: str, option: str):
+    from .network import Network
+
+    with _reading(f"{option} {path}"):
+        return Network.load(path)
+
+
+# ============================================================================ commands
 def cmd_systems(args) -> int:
     import systems
 
@@ -43,10 +197,14 @@ def cmd_systems(args) -> int:
 
 def cmd_lqr(args) -> int:
     import systems
-    from baselines.lqr import lqr
+
+    from .configs import check_lqr_weights
+    from .control import lqr
 
     s = systems.get(args.system)
-    res = lqr(s, _matrix_arg(args.Q), _matrix_arg(args.R))
+    Q, R = check_lqr_weights(s, _matrix_arg(args.Q, "--Q"), _matrix_arg(args.R, "--R"),
+                             where="lqr", names=("--Q", "--R"))
+    res = lqr(s, Q, R)
     np.set_printoptions(precision=6, suppress=True)
     print(f"system {s.name}: A =\n{s.A}\nB =\n{s.B}")
     if s.nu:
@@ -57,21 +215,64 @@ def cmd_lqr(args) -> int:
     return 0
 
 
+_PROBLEM_OPTIONS = ("system", "lyapunov", "controller", "dynamics", "inner", "outer", "level",
+                    "eta", "margin", "smoothing")
+
+
+def _verify_certificate(args) -> int:
+    given = [f"--{o}" for o in _PROBLEM_OPTIONS if getattr(args, o) is not None]
+    if given:
+        raise UsageError(f"--certificate re-checks a saved run with its own V, κ, φ, radii and "
+                         f"level; drop {', '.join(given)}")
+    path = Path(args.certificate)
+    if path.is_dir():
+        path = path / "certificate.json"
+    from .certificate import CertStatus, recheck_certificate
+
+    cert = recheck_certificate(path)
+    print(cert.summary())
+    if args.json:
+        _write_json(args.json, cert.to_dict() if hasattr(cert, "to_dict") else
+                    {"status": cert.status.value, "summary": cert.summary()})
+    if cert.status is CertStatus.CERTIFIED:
+        return 0
+    return 1 if cert.status is CertStatus.COUNTEREXAMPLE else 2
+
+
 def cmd_verify(args) -> int:
+    if args.certificate:
+        return _verify_certificate(args)
+    missing = [f"--{o}" for o in ("system", "lyapunov", "inner", "outer")
+               if getattr(args, o) is None]
+    if missing:
+        raise UsageError(f"verify needs {', '.join(missing)} (or --certificate FILE); "
+                         "see 'nlyap verify --help'")
+    if not args.inner < args.outer:
+        raise UsageError(f"need 0 <= --inner < --outer, got {args.inner:g} and {args.outer:g}; "
+                         "make --inner smaller")
+    if args.backend == "interval" and args.precision is not None:
+        raise UsageError("--precision is the dReal backend's delta; use it with "
+                         "--backend dreal, or drop it")
+    if args.backend == "dreal" and args.resolution is not None:
+        raise UsageError("--resolution applies to --backend interval; drop it or use "
+                         "--precision with dreal")
+    if args.smoothing and not args.eta:
+        raise UsageError("--smoothing only applies with --eta > 0; drop it or give --eta")
+    eta, margin, smoothing = args.eta or 0.0, args.margin or 0.0, args.smoothing or 0.0
+
     import systems
     from verification import closed_loop_problem, verify
 
-    from .network import Network
-
     s = systems.get(args.system)
-    V = Network.load(args.lyapunov)
-    ctrl = Network.load(args.controller) if args.controller else None
-    dyn = Network.load(args.dynamics) if args.dynamics else None
-    if args.margin and dyn is None:
+    V = _load_network(args.lyapunov, "--lyapunov")
+    ctrl = _load_network(args.controller, "--controller") if args.controller else None
+    dyn = _load_network(args.dynamics, "--dynamics") if args.dynamics else None
+    if margin and dyn is None:
         print("note: --margin without --dynamics tightens the true-f condition", file=sys.stderr)
-    problem = closed_loop_problem(s, V, ctrl, dyn, inner=args.inner, outer=args.outer,
-                                  level=args.level, margin=args.margin, eta=args.eta,
-                                  smoothing=args.smoothing, strict=False)
+    with _reading("verify"):
+        problem = closed_loop_problem(s, V, ctrl, dyn, inner=args.inner, outer=args.outer,
+                                      level=args.level, margin=margin, eta=eta,
+                                      smoothing=smoothing, strict=False)
     opts = {}
     if args.backend == "interval":
         opts = {"resolution": args.resolution, "progress": args.progress}
@@ -80,10 +281,10 @@ def cmd_verify(args) -> int:
     res = verify(problem, backend=args.backend, **opts)
     region = f"{args.inner:g} <= |x| <= {args.outer:g}" + (
         f" and V <= {args.level:g}" if args.level is not None else "")
-    extra = f" + {args.eta:g}|∇V|" if args.eta else ""
-    if args.eta and args.smoothing:
-        extra = f" + {args.eta:g}sqrt(|∇V|² + {args.smoothing:g}²)"
-    print(f"{res.status}: V > 0 and dV/dt{extra} < -{args.margin:g} on {region} "
+    extra = f" + {eta:g}|∇V|" if eta else ""
+    if eta and smoothing:
+        extra = f" + {eta:g}sqrt(|∇V|² + {smoothing:g}²)"
+    print(f"{res.status}: V > 0 and dV/dt{extra} < -{margin:g} on {region} "
           f"({res.boxes} boxes, depth {res.depth}, {res.seconds:.3f} s, {res.backend})")
     if res.counterexample is not None:
         c = res.counterexample
@@ -95,12 +296,21 @@ def cmd_verify(args) -> int:
     return {"verified": 0, "counterexample": 1}.get(res.status, 2)
 
 
-def cmd_run(args) -> int:
-    from .configs import get_config
-    from .pipeline import run
+def _run_config(args, learned: bool) -> dict:
+    from .configs import check_dynamics_box, get_config
 
     cfg = get_config(args.system, args.preset, args.config)
+    if learned:
+        check_dynamics_box(cfg)
+    return cfg
+
+
+def cmd_run(args) -> int:
+    from .pipeline import run
+
+    cfg = _run_config(args, learned=not args.known_dynamics)
     out = args.out or f"runs/{args.system}{'_known' if args.known_dynamics else ''}"
+    _check_writable(Path(out), "--out", directory=True)
     cert = run(args.system, cfg, out, known_dynamics=args.known_dynamics)
     return 0 if cert["status"] == "certified" else 2
 
@@ -108,73 +318,119 @@ def cmd_run(args) -> int:
 def cmd_compare(args) -> int:
     from baselines.compare import compare
 
-    from .configs import get_config
-
-    cfg = get_config(args.system, args.preset, args.config)
+    cfg = _run_config(args, learned=not args.no_neural)
     out = args.out or f"runs/compare_{args.system}"
+    _check_writable(Path(out), "--out", directory=True)
     rows = compare(args.system, cfg, out, include_neural=not args.no_neural)
     print((Path(out) / "comparison.md").read_text())
     return 0 if all(r["certified"] for r in rows if r["method"].startswith("neural")) else 2
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="nlyap", description=__doc__)
-    sub = p.add_subparsers(dest="command", required=True)
+def cmd_config(args) -> int:
+    from .configs import config_reference
 
-    sp = sub.add_parser("systems", help="list the system catalogue")
+    if args.keys:
+        print(config_reference())
+        return 0
+    if args.system is None:
+        raise UsageError("config needs a system name (or --keys); see 'nlyap config --help'")
+    cfg = _run_config(args, learned=False)
+    print(json.dumps(cfg, indent=1, allow_nan=False))
+    return 0
+
+
+# ============================================================================ parser
+def _preset_arg(sp) -> None:
+    sp.add_argument("--preset", default="large", choices=["paper", "large", "fast"],
+                    help="paper | large | fast (default large)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``nlyap`` argument parser (usage errors raise :class:`UsageError`)."""
+    fmt = argparse.RawDescriptionHelpFormatter
+    p = _Parser(prog="nlyap", description=__doc__, formatter_class=fmt,
+                epilog=_epilog([0, 1, 2, 3, 4, 130]))
+    p.add_argument("--debug", action="store_true",
+                   help="print the traceback of an internal error (exit code 4)")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(name, **kw):
+        return sub.add_parser(name, formatter_class=fmt,
+                              epilog=_EPILOGS.get(name, _DEFAULT_EPILOG), **kw)
+
+    sp = add("systems", help="list the system catalogue")
     sp.set_defaults(func=cmd_systems)
 
-    sp = sub.add_parser("lqr", help="LQR gain and Lyapunov matrix of a catalogue system")
+    sp = add("lqr", help="LQR gain and Lyapunov matrix of a catalogue system")
     sp.add_argument("system")
-    sp.add_argument("--Q", help="state weight: scalar or rows '1,0;0,1' (default I)")
-    sp.add_argument("--R", help="input weight: scalar or rows (default I)")
+    sp.add_argument("--Q", help="state weight: scalar or rows '1,0;0,1' (default I; symmetric "
+                                "positive semidefinite)")
+    sp.add_argument("--R", help="input weight: scalar or rows (default I; symmetric positive "
+                                "definite)")
     sp.add_argument("--json", help="write K, P, eigenvalues to this file")
     sp.set_defaults(func=cmd_lqr)
 
-    sp = sub.add_parser(
-        "verify", help="verify V > 0 and the decrease condition on an annulus",
-        description="Exit code 0 verified, 1 counterexample, 2 unknown.")
-    sp.add_argument("--system", required=True)
-    sp.add_argument("--lyapunov", required=True, help="V network JSON")
+    sp = add("verify", help="verify V > 0 and the decrease condition on an annulus",
+             description="Verify V > 0 and dV/dt < 0 on inner <= |x| <= outer (and V <= level), "
+                         "or re-check a saved run with --certificate.")
+    sp.add_argument("--certificate",
+                    help="re-check DIR/certificate.json of a run (artifacts hashed, conditions "
+                         "verified again at the saved level); replaces the options below")
+    sp.add_argument("--system")
+    sp.add_argument("--lyapunov", help="V network JSON")
     sp.add_argument("--controller", help="controller network JSON (feeds the inputs)")
     sp.add_argument("--dynamics", help="learned dynamics network JSON (replaces f)")
-    sp.add_argument("--margin", type=float, default=0.0, help="beta: require dV/dt < -beta")
-    sp.add_argument("--eta", type=float, default=0.0,
-                    help="pointwise robust margin: require dV/dt + eta*|grad V| < -beta")
-    sp.add_argument("--smoothing", type=float, default=0.0,
-                    help="s: with --eta use sqrt(|grad V|^2 + s^2) (certificate.json's "
+    sp.add_argument("--margin", type=_nonneg, help="beta >= 0: require dV/dt < -beta")
+    sp.add_argument("--eta", type=_nonneg,
+                    help="pointwise robust margin >= 0: require dV/dt + eta*|grad V| < -beta")
+    sp.add_argument("--smoothing", type=_nonneg,
+                    help="s >= 0: with --eta use sqrt(|grad V|^2 + s^2) (certificate.json's "
                          "norm_smoothing)")
-    sp.add_argument("--inner", type=float, required=True, help="inner radius epsilon")
-    sp.add_argument("--outer", type=float, required=True, help="outer radius r")
-    sp.add_argument("--level", type=float, help="restrict to V(x) <= level")
+    sp.add_argument("--inner", type=_nonneg, help="inner radius epsilon (0 <= inner < outer)")
+    sp.add_argument("--outer", type=_positive, help="outer radius r")
+    sp.add_argument("--level", type=_positive, help="restrict to V(x) <= level (> 0)")
     sp.add_argument("--backend", default="interval", choices=["interval", "dreal"])
-    sp.add_argument("--resolution", type=float, help="smallest box width (interval backend)")
-    sp.add_argument("--precision", type=float, help="delta of the dreal backend")
+    sp.add_argument("--resolution", type=_positive,
+                    help="smallest box width (interval backend)")
+    sp.add_argument("--precision", type=_positive, help="delta of the dreal backend")
     sp.add_argument("--progress", action="store_true")
     sp.add_argument("--json", help="write status, seconds, boxes, counterexample here")
     sp.set_defaults(func=cmd_verify)
 
-    sp = sub.add_parser("run", help="learn f (unless --known-dynamics), V and κ; certify the ROA")
+    sp = add("run", help="learn f (unless --known-dynamics), V and κ; certify the ROA")
     sp.add_argument("system")
-    sp.add_argument("--config", help="JSON file merged over the preset")
-    sp.add_argument("--preset", default="large", help="paper | large | fast (default large)")
+    sp.add_argument("--config", help="JSON file merged over the preset (see 'nlyap config')")
+    _preset_arg(sp)
     sp.add_argument("--known-dynamics", action="store_true",
                     help="use the true f (the paper's 'actual dynamics' setting)")
     sp.add_argument("--out", help="output directory (default runs/NAME[_known])")
     sp.set_defaults(func=cmd_run)
 
-    sp = sub.add_parser("compare", help="LQR, SOS and neural ROAs, all certified, vs true ROA")
+    sp = add("compare", help="LQR, SOS and neural ROAs, all certified, vs true ROA")
     sp.add_argument("system")
     sp.add_argument("--config", help="JSON file merged over the preset")
-    sp.add_argument("--preset", default="large", help="paper | large | fast (default large)")
+    _preset_arg(sp)
     sp.add_argument("--out", help="output directory (default runs/compare_NAME)")
     sp.add_argument("--no-neural", action="store_true", help="baselines only")
     sp.set_defaults(func=cmd_compare)
 
-    from .bounds import register_cli as register_learn_dynamics
+    sp = add("config", help="print the validated run configuration (or every key)",
+             description="Print the run configuration of SYSTEM (preset, then --config FILE "
+                         "merged over it) after validating it; --keys lists every key.")
+    sp.add_argument("system", nargs="?")
+    sp.add_argument("--config", help="JSON file merged over the preset")
+    _preset_arg(sp)
+    sp.add_argument("--keys", action="store_true", help="list every key, type and default")
+    sp.set_defaults(func=cmd_config)
+
+    from .cli_dynamics import register_cli as register_learn_dynamics
 
     for register in [register_learn_dynamics, *_EXTRA]:
         register(sub)
+    for name, parser in sub.choices.items():
+        if not parser.epilog:
+            parser.epilog = _EPILOGS.get(name, _DEFAULT_EPILOG)
+            parser.formatter_class = fmt
     return p
 
 
@@ -182,14 +438,58 @@ def build_parser() -> argparse.ArgumentParser:
 _EXTRA: list = []
 
 
+# ============================================================================ main
+def _one_line(err: BaseException) -> str:
+    msg = str(err.args[0]) if isinstance(err, KeyError) and err.args else str(err)
+    return " ".join(msg.split()) or type(err).__name__
+
+
+def _classify(err: BaseException, command: str | None) -> tuple[int, str]:
+    """Exit code and one-line message of an exception that ended a command."""
+    see = f"see 'nlyap {command} --help'" if command else "see 'nlyap --help'"
+    if isinstance(err, json.JSONDecodeError):
+        return 3, f"malformed JSON ({_one_line(err)}); fix or replace the file"
+    if isinstance(err, NlyapError):
+        msg = _one_line(err)
+        return 3, msg if ";" in msg else f"{msg}; {see}"
+    if isinstance(err, OSError) and err.filename is not None:
+        return 3, (f"{err.filename}: {err.strerror or _one_line(err)}; check the path "
+                   "(and its permissions)")
+    return 4, f"{type(err).__name__}: {_one_line(err)}; rerun with --debug for the traceback"
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Run ``nlyap`` with ``argv`` (default ``sys.argv[1:]``); return the exit code.
+
+    Never raises: every outcome is an exit code of :data:`EXIT_CODES`.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv
+    argv = [a for a in argv if a != "--debug"]
+    command = None
     try:
+        try:
+            args = build_parser().parse_args(argv)
+        except SystemExit as stop:  # --help
+            return stop.code if isinstance(stop.code, int) else 0
+        command = args.command
+        _check_paths(args)
         return int(args.func(args) or 0)
-    except NlyapError as err:
-        print(f"nlyap: error: {err}", file=sys.stderr)
-        return 3
+    except KeyboardInterrupt:
+        print("nlyap: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+    except SystemExit as stop:
+        if stop.code in (0, None):
+            return 0
+        err: BaseException = RuntimeError(f"a component exited with code {stop.code}")
+        code, msg = 4, f"{_one_line(err)}; rerun with --debug for the traceback"
+    except Exception as exc:  # noqa: BLE001 - the exit-code contract maps every exception
+        code, msg = _classify(exc, command)
+        err = exc
+    if debug:
+        traceback.print_exception(err)
+    print(f"nlyap: {'internal error' if code == 4 else 'error'}: {msg}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

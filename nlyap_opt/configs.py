@@ -1,39 +1,100 @@
-"""Run configurations of the seed systems: ``paper`` (the paper's discs), ``large`` (aim at
-the whole true ROA) and ``fast`` (coarse, for the test suite).
+"""Run configurations: presets of the seed systems and one validated schema for all of them.
 
-A configuration is a nested dict; :func:`get_config` merges a user's JSON file over a
-preset. Keys:
+A run configuration is a nested dict (JSON object). Presets: ``paper`` (the paper's discs),
+``large`` (aim at the whole true ROA) and ``fast`` (coarse, for the test suite).
+:func:`make_config` (the one-shot public entry) and :func:`get_config` (the command line's)
+merge a JSON file and a dict of overrides over a preset and validate the result **before**
+any stage runs. Sections and keys:
 
-- ``outer`` (r), ``inner`` (ε): the verification annulus;
-- ``controller_scale`` (C): actuator limit of ``u = C·tanh(Kx + b)`` (``None``: no input);
-- ``lqr``: ``{"Q": ..., "R": ...}`` weights of the initial LQR gain;
-- ``train``: :class:`nlyap_opt.learning.TrainConfig` fields;
-- ``cegis``: :class:`nlyap_opt.cegis.CegisConfig` fields (besides inner/outer/train);
-- ``eval_box``, ``eval_grid``: box and grid for areas and the simulated true ROA;
-- ``dynamics``: options of the learned-dynamics stage (``nlyap_opt.dynamics``).
+- ``outer`` (r), ``inner`` (ε): the verification annulus, finite, ``0 < inner < outer``;
+- ``controller_scale`` (C): actuator limit of ``u = C·tanh(Kx + b)`` (``null`` for a system
+  without inputs, a positive number otherwise);
+- ``lqr``: ``{"Q": ..., "R": ...}`` weights of the initial LQR gain (scalar or matrix;
+  Q symmetric positive semidefinite, R symmetric positive definite);
+- ``train``: the fields of :class:`nlyap_opt.learning.TrainConfig`;
+- ``cegis``: the fields of :class:`nlyap_opt.cegis.CegisConfig` except ``inner``, ``outer``
+  and ``train`` (given above);
+- ``eval_box`` (one ``[lo, hi]`` row per state), ``eval_grid`` (nodes per axis): box and
+  grid of the areas and of the simulated true ROA;
+- ``dynamics``: the learned-dynamics stage, keys of
+  :class:`nlyap_opt.dynamics_config.DynamicsConfig` (``preset``: ``"default"`` or ``"fast"``);
+- ``system``, ``preset``, ``comment``: informational (``system`` and ``preset`` must match).
+
+The ``train`` and ``cegis`` keys are *derived* from the dataclasses by introspection
+(:func:`dataclasses.fields` and their type hints), so each key is defined once, where it is
+used; :data:`_RULES` adds the ranges and choices that a type cannot say. Unknown keys are
+refused with a "did you mean", and so are wrong types, NaN, inf and values out of range:
+every error is a :class:`~nlyap_opt.errors.ConfigError` naming the key.
+
+Examples
+--------
+>>> cfg = make_config("van_der_pol", "fast", overrides={"train": {"steps": 50}})
+>>> cfg["train"]["steps"], cfg["outer"]
+(50, 1.0)
+>>> make_config("van_der_pol", "fast", overrides={"train": {"stpes": 50}})
+Traceback (most recent call last):
+...
+nlyap_opt.errors.ConfigError: run config: unknown key 'train.stpes'; did you mean 'train.steps'?
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
+import difflib
+import functools
+import inspect
 import json
+import math
+import types
+import typing
+from dataclasses import dataclass
+from numbers import Integral, Real
 from pathlib import Path
 
 from .errors import ConfigError, UnknownNameError
 
-__all__ = ["PRESETS", "get_config", "read_json_object"]
+__all__ = [
+    "PRESETS", "Key", "check_dynamics_box", "check_lqr_weights", "config_reference",
+    "get_config", "make_config", "read_json_object", "schema", "validate_config",
+]
 
 
 def read_json_object(path: str | Path) -> dict:
-    """A configuration file: a JSON object (else :class:`ConfigError` saying why)."""
+    """A configuration file: a JSON object (else :class:`ConfigError` saying why).
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    dict
+
+    Raises
+    ------
+    ConfigError
+        The file is missing, a directory, unreadable, not valid JSON, or not an object.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"config {path} is a directory; pass the JSON file inside it")
     try:
-        obj = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ConfigError(f"cannot read config {path}: {err}") from None
+        obj = json.loads(p.read_text())
+    except OSError as err:
+        raise ConfigError(f"cannot read config {path}: {err.strerror or err}; "
+                          "check the path") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"config {path} is not a text file; pass a JSON file") from None
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"config {path} is not valid JSON ({err}); fix the file") from None
     if not isinstance(obj, dict):
-        raise ConfigError(f"config {path} must hold a JSON object")
+        raise ConfigError(f"config {path} must hold a JSON object {{...}}, "
+                          f"got a {type(obj).__name__}")
     return obj
 
+
+# ============================================================================ presets
 _VDP_BOX = [[-3.0, 3.0], [-3.0, 3.0]]
 
 PRESETS: dict[str, dict[str, dict]] = {
@@ -52,7 +113,7 @@ PRESETS: dict[str, dict[str, dict]] = {
             "train": {"hidden": [20, 20], "features": 6, "steps": 1500, "lr": 0.01,
                       "lr_schedule": "cosine", "decay": 0.05, "level_slack": 0.5,
                       "relative_decrease": True, "w_fit": 10.0, "w_pde": 1.0,
-                      "w_local": 10.0, "time_budget": 60.0},
+                      "w_local": 10.0},
             "cegis": {"iterations": 6, "steps": 500, "verify_every": 3, "sim_time": 30.0,
                       "sim_dt": 0.04, "sim_grid": 301,
                       "inner_samples": 2000, "boundary_samples": 20000},
@@ -89,7 +150,7 @@ PRESETS: dict[str, dict[str, dict]] = {
             # the control-affine model on a 161² x-grid reaches η ≈ 0.01 in ~13 s
             "dynamics": {"preset": "fast", "model": "control_affine", "hidden": 60,
                          "grid_counts": [161, 161], "train_points": 4000, "steps": 800,
-                         "lm_iterations": 60, "minimax_rounds": 3, "time_budget": 25.0,
+                         "lm_iterations": 60, "minimax_rounds": 3,
                          "interval_boxes": 4096},
         },
     },
@@ -116,7 +177,7 @@ PRESETS: dict[str, dict[str, dict]] = {
             "eval_box": [[-4.0, 4.0], [-4.0, 4.0]], "eval_grid": 100,
             "dynamics": {"preset": "fast", "model": "control_affine", "hidden": 40,
                          "grid_counts": [201, 201], "train_points": 3000, "steps": 600,
-                         "lm_iterations": 40, "minimax_rounds": 2, "time_budget": 15.0,
+                         "lm_iterations": 40, "minimax_rounds": 2,
                          "interval_boxes": 4096},
         },
     },
@@ -126,32 +187,659 @@ PRESETS: dict[str, dict[str, dict]] = {
 PRESETS["unicycle_path_following"]["large"] = PRESETS["unicycle_path_following"]["paper"]
 PRESETS["inverted_pendulum"]["large"] = PRESETS["inverted_pendulum"]["paper"]
 
+#: the base of ``make_config(name, preset=None, ...)`` for a system without a preset: the
+#: caller supplies ``outer``, ``inner`` (and ``controller_scale`` for a system with inputs)
+_GENERIC: dict = {"controller_scale": None, "train": {}, "cegis": {}, "eval_grid": 200,
+                  "dynamics": {"preset": "default"}}
+
+
+# ============================================================================ schema
+@dataclass(frozen=True)
+class Key:
+    """One key of the run configuration: its type, default and admissible values.
+
+    Attributes
+    ----------
+    name : str
+        Dotted name (``"train.lr"``).
+    kind : str
+        ``"int"``, ``"float"``, ``"bool"``, ``"str"``, ``"int_list"``, ``"dict"``,
+        ``"matrix"``, ``"box"``, ``"section"`` or ``"any"``.
+    default : object
+        Default value (``None`` where the preset or the caller must give it).
+    optional : bool
+        ``None`` (JSON ``null``) is accepted.
+    lo, hi : float, optional
+        Bounds; ``lo_open`` / ``hi_open`` make them strict.
+    choices : tuple
+        Admissible values of a ``"str"`` key.
+    doc : str
+        One line for :func:`config_reference`.
+    """
+
+    name: str
+    kind: str
+    default: object = None
+    optional: bool = False
+    lo: float | None = None
+    lo_open: bool = False
+    hi: float | None = None
+    hi_open: bool = False
+    choices: tuple = ()
+    doc: str = ""
+
+    def describe(self) -> str:
+        """What the key accepts, in words (``"an integer >= 1"``)."""
+        if self.choices:
+            want = "one of " + ", ".join(repr(c) for c in self.choices)
+        else:
+            want = {"int": "an integer", "float": "a finite number", "bool": "true or false",
+                    "str": "a string", "int_list": "a non-empty list of integers",
+                    "dict": "a JSON object", "matrix": "a finite number or a square matrix",
+                    "box": "a list of [lo, hi] rows with finite lo < hi",
+                    "section": "a JSON object", "any": "a JSON value"}[self.kind]
+            rng = []
+            if self.lo is not None:
+                rng.append(f"{'>' if self.lo_open else '>='} {self.lo:g}")
+            if self.hi is not None:
+                rng.append(f"{'<' if self.hi_open else '<='} {self.hi:g}")
+            if rng:
+                want += (" (each " if self.kind == "int_list" else " ") + " and ".join(rng) + \
+                    (")" if self.kind == "int_list" else "")
+        return want + (" or null" if self.optional else "")
+
+
+_POS = {"lo": 0, "lo_open": True}
+_NONNEG = {"lo": 0}
+_COUNT = {"lo": 1}
+_UNIT = {"lo": 0, "lo_open": True, "hi": 1}
+
+#: ranges and choices of the dataclass fields (types and defaults come from the dataclasses;
+#: a field's ``metadata`` may carry the same keys and then wins)
+_RULES: dict[str, dict[str, dict]] = {
+    "train": {
+        "hidden": _COUNT, "features": _COUNT, "eps": _POS, "lr": _POS, "steps": _COUNT,
+        "batch": _COUNT, "decay": _NONNEG, "level_slack": _NONNEG, "w_decrease": _NONNEG,
+        "w_inside": _NONNEG, "w_outside": _NONNEG, "w_grad": _NONNEG, "w_anchor": _NONNEG,
+        "w_fit": _NONNEG, "fit_quantile": _UNIT, "fit_cap": _POS,
+        "fit_transform": {"choices": ("log", "linear")}, "w_pde": _NONNEG,
+        "w_local": _NONNEG, "lr_schedule": {"choices": ("constant", "cosine")},
+        "seed": _NONNEG, "threads": _COUNT,
+    },
+    "cegis": {
+        "iterations": _COUNT, "samples": _COUNT, "sphere_samples": _COUNT,
+        "max_counterexamples": _COUNT, "neighbours": _NONNEG, "first_steps": _COUNT,
+        "steps": _COUNT, "verify_every": _COUNT, "target_fraction": _UNIT,
+        "min_iterations": _COUNT, "area_grid": {"lo": 2}, "seed": _NONNEG,
+        "inner_samples": _NONNEG, "boundary_samples": _NONNEG, "sim_dt": _POS,
+        "sim_grid": _NONNEG, "sim_time": _POS,
+        "margin_mode": {"choices": ("pointwise", "global")}, "norm_smoothing": _NONNEG,
+    },
+}
+
+#: dataclass fields that are not configuration keys: given elsewhere in the run config
+#: (inner, outer, train), or removed (wall-clock budgets, PITFALLS P12)
+_EXCLUDED = {"train": {"time_budget"}, "cegis": {"inner", "outer", "train", "time_budget"}}
+
+#: keys that are gone, with the fix to print
+_REMOVED = {
+    "time_budget": "wall-clock budgets were removed (PITFALLS P12: the same config must give "
+                   "the same result on any machine load); budgets are counted in steps: "
+                   "set 'steps' / 'iterations' instead",
+}
+
+_TOP_DOCS = {
+    "outer": "r: outer radius of the verification ball",
+    "inner": "ε: radius of the excluded inner ball (0 < inner < outer)",
+    "controller_scale": "C of u = C·tanh(Kx + b); null for a system without inputs",
+    "lqr": "weights {Q, R} of the initial LQR gain",
+    "train": "V and κ training (nlyap_opt.learning.TrainConfig)",
+    "cegis": "CEGIS loop (nlyap_opt.cegis.CegisConfig)",
+    "eval_box": "box of the area grid and of the simulated true ROA",
+    "eval_grid": "nodes per axis of that grid",
+    "dynamics": "learned-dynamics stage (nlyap_opt.dynamics_config.DynamicsConfig)",
+    "system": "informational; must name the system being run",
+    "preset": "informational; must name the preset the file is merged over",
+    "comment": "free text",
+}
+
+
+def _kind_of(tp) -> tuple[str, bool]:
+    """``(kind, optional)`` of a type hint."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        rest = [a for a in args if a is not type(None)]
+        if len(rest) == 1 and len(rest) < len(args):
+            return _kind_of(rest[0])[0], True
+        return "any", type(None) in args
+    if tp is bool:
+        return "bool", False
+    if tp is int:
+        return "int", False
+    if tp is float:
+        return "float", False
+    if tp is str:
+        return "str", False
+    if tp is dict or origin is dict:
+        return "dict", False
+    if origin is list and args == (int,):
+        return "int_list", False
+    return "any", False
+
+
+def _keys_of(cls, section: str) -> dict[str, Key]:
+    """The :class:`Key` of every field of the dataclass ``cls`` (introspection)."""
+    hints = typing.get_type_hints(cls)
+    out = {}
+    for f in dataclasses.fields(cls):
+        if f.name in _EXCLUDED.get(section, ()):
+            continue
+        kind, optional = _kind_of(hints[f.name])
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            default = None
+        rule = {**_RULES.get(section, {}).get(f.name, {}),
+                **{k: v for k, v in f.metadata.items()
+                   if k in ("lo", "lo_open", "hi", "hi_open", "choices", "doc")}}
+        out[f.name] = Key(f"{section}.{f.name}", kind, default, optional, **rule)
+    return out
+
+
+def _dynamics_keys() -> dict[str, Key]:
+    try:
+        from .dynamics_config import DynamicsConfig
+    except ImportError:  # pragma: no cover - older layout: validated by dynamics.check_config
+        return {}
+    keys = _keys_of(DynamicsConfig, "dynamics")
+    keys["preset"] = dataclasses.replace(keys["preset"], choices=("default", "fast"))
+    return keys
+
+
+def _verify_option_keys() -> dict[str, Key]:
+    """Keyword options of the interval verifier that a JSON file can hold."""
+    from verification.verify import verify_interval
+
+    hints = typing.get_type_hints(verify_interval)
+    out = {}
+    for name, par in inspect.signature(verify_interval).parameters.items():
+        if par.kind is not inspect.Parameter.KEYWORD_ONLY or name in ("executor", "progress"):
+            continue
+        kind, optional = _kind_of(hints.get(name, object))
+        rule = {"lo": 0, "lo_open": True} if kind == "float" else \
+            {"lo": 0 if name in ("seed", "presearch") else 1} if kind == "int" else {}
+        out[name] = Key(f"cegis.verify_options.{name}", kind, par.default, optional, **rule)
+    return out
+
+
+@functools.cache
+def schema() -> dict[str, dict[str, Key]]:
+    """Every key of the run configuration: ``{section: {key: Key}}``, ``""`` the top level.
+
+    The ``train`` and ``cegis`` sections are derived from
+    :class:`~nlyap_opt.learning.TrainConfig` and :class:`~nlyap_opt.cegis.CegisConfig`,
+    the ``dynamics`` section from :class:`~nlyap_opt.dynamics_config.DynamicsConfig`.
+    """
+    from .cegis import CegisConfig
+    from .learning import TrainConfig
+
+    d = _TOP_DOCS
+    top = {
+        "outer": Key("outer", "float", None, False, **_POS, doc=d["outer"]),
+        "inner": Key("inner", "float", None, False, **_POS, doc=d["inner"]),
+        "controller_scale": Key("controller_scale", "float", None, True, **_POS,
+                                doc=d["controller_scale"]),
+        "lqr": Key("lqr", "section", {}, doc=d["lqr"]),
+        "train": Key("train", "section", {}, doc=d["train"]),
+        "cegis": Key("cegis", "section", {}, doc=d["cegis"]),
+        "eval_box": Key("eval_box", "box", None, doc=d["eval_box"]),
+        "eval_grid": Key("eval_grid", "int", 200, lo=2, doc=d["eval_grid"]),
+        "dynamics": Key("dynamics", "section", {}, doc=d["dynamics"]),
+        "system": Key("system", "str", doc=d["system"]),
+        "preset": Key("preset", "str", optional=True, doc=d["preset"]),
+        "comment": Key("comment", "str", doc=d["comment"]),
+    }
+    return {
+        "": top,
+        "lqr": {"Q": Key("lqr.Q", "matrix", None, True, doc="state weight (default I)"),
+                "R": Key("lqr.R", "matrix", None, True, doc="input weight (default I)")},
+        "train": _keys_of(TrainConfig, "train"),
+        "cegis": _keys_of(CegisConfig, "cegis"),
+        "dynamics": _dynamics_keys(),
+        "cegis.verify_options": _verify_option_keys(),
+    }
+
+
+# ============================================================================ validation
+def _is_int(v) -> bool:
+    return isinstance(v, Integral) and not isinstance(v, bool)
+
+
+def _is_real(v) -> bool:
+    return isinstance(v, Real) and not isinstance(v, bool)
+
+
+def _show(v) -> str:
+    """A value as JSON would write it (``true``, ``NaN``), else its repr."""
+    try:
+        return json.dumps(v)
+    except (TypeError, ValueError):
+        return repr(v)
+
+
+def _in_range(key: Key, v) -> bool:
+    if key.lo is not None and (v < key.lo or (key.lo_open and v == key.lo)):
+        return False
+    if key.hi is not None and (v > key.hi or (key.hi_open and v == key.hi)):
+        return False
+    return True
+
+
+def _check_value(key: Key, v, where: str) -> None:
+    def bad():
+        raise ConfigError(f"{where}: {key.name} must be {key.describe()}, got {_show(v)}; "
+                          "correct that value")
+
+    if v is None:
+        if not key.optional:
+            bad()
+        return
+    k = key.kind
+    if k == "any":
+        return
+    if k == "bool":
+        if not isinstance(v, bool):
+            bad()
+    elif k == "str":
+        if not isinstance(v, str) or (key.choices and v not in key.choices):
+            if isinstance(v, str) and key.choices:
+                close = difflib.get_close_matches(v, key.choices, n=1)
+                hint = f"; did you mean {close[0]!r}?" if close else ""
+                raise ConfigError(f"{where}: {key.name} must be {key.describe()}, "
+                                  f"got {v!r}{hint}")
+            bad()
+    elif k == "int":
+        if not _is_int(v) or not _in_range(key, v):
+            bad()
+    elif k == "float":
+        if not _is_real(v) or not math.isfinite(v) or not _in_range(key, v):
+            bad()
+    elif k == "int_list":
+        if not isinstance(v, (list, tuple)) or not v or \
+                not all(_is_int(h) and _in_range(key, h) for h in v):
+            bad()
+    elif k in ("dict", "section"):
+        if not isinstance(v, dict):
+            bad()
+    elif k == "box":
+        ok = isinstance(v, (list, tuple)) and v and all(
+            isinstance(r, (list, tuple)) and len(r) == 2 and all(_is_real(a) for a in r)
+            and math.isfinite(r[0]) and math.isfinite(r[1]) and r[0] < r[1] for r in v)
+        if not ok:
+            bad()
+    elif k == "matrix":
+        _matrix(key, v, where)
+
+
+def _matrix(key: Key, v, where: str):
+    """A finite scalar or a rectangular 2-D list as an ndarray (else ConfigError)."""
+    import numpy as np
+
+    if isinstance(v, np.ndarray) and v.ndim <= 2 and v.size and \
+            np.issubdtype(v.dtype, np.number):
+        M = np.atleast_2d(v.astype(float))
+    elif _is_real(v):
+        M = np.array([[float(v)]])
+    elif isinstance(v, (list, tuple)) and v and all(isinstance(r, (list, tuple)) for r in v) \
+            and len({len(r) for r in v}) == 1 and all(_is_real(a) for r in v for a in r):
+        M = np.array(v, dtype=float)
+    else:
+        raise ConfigError(f"{where}: {key.name} must be a number or a square matrix "
+                          f"(a list of equal-length rows of numbers), got {v!r}")
+    if not np.all(np.isfinite(M)):
+        raise ConfigError(f"{where}: {key.name} must be finite (no NaN or inf), got {v!r}")
+    return M
+
+
+def _unknown(section: str, name, known: dict, where: str, sch: dict) -> ConfigError:
+    dotted = f"{section}.{name}" if section else str(name)
+    if not isinstance(name, str):
+        return ConfigError(f"{where}: config keys must be strings, got {name!r}")
+    if name in _REMOVED:
+        return ConfigError(f"{where}: unknown key {dotted!r}; {_REMOVED[name]}")
+    close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    if close:
+        full = f"{section}.{close[0]}" if section else close[0]
+        return ConfigError(f"{where}: unknown key {dotted!r}; did you mean {full!r}?")
+    if not section:  # a section key at the top level?
+        homes = [s for s in ("train", "cegis", "dynamics", "lqr") if name in sch[s]]
+        if homes:
+            return ConfigError(f"{where}: unknown top-level key {name!r}; it belongs in a "
+                               f"section: {' or '.join(f'{s}.{name}' for s in homes)}")
+    scope = f"section {section!r}" if section else "the top level"
+    return ConfigError(f"{where}: unknown key {dotted!r}; keys of {scope}: "
+                       f"{', '.join(known)}")
+
+
+def _check_keys(cfg: dict, where: str) -> None:
+    """Refuse unknown keys anywhere in ``cfg`` (a full config or an override)."""
+    sch = schema()
+    if not isinstance(cfg, dict):
+        raise ConfigError(f"{where}: a run config must be a JSON object, "
+                          f"got {type(cfg).__name__}")
+    for name, v in cfg.items():
+        if name not in sch[""]:
+            raise _unknown("", name, sch[""], where, sch)
+        if sch[""][name].kind == "section" and (name != "dynamics" or sch["dynamics"]):
+            if not isinstance(v, dict):
+                raise ConfigError(f"{where}: {name} must be a JSON object {{...}}, got {v!r}")
+            for sub, sv in v.items():
+                if sub not in sch[name]:
+                    raise _unknown(name, sub, sch[name], where, sch)
+                if name == "cegis" and sub == "verify_options" and isinstance(sv, dict):
+                    for opt in sv:
+                        if opt not in sch["cegis.verify_options"]:
+                            raise _unknown("cegis.verify_options", opt,
+                                           sch["cegis.verify_options"], where, sch)
+
+
+def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dict:
+    """Check a complete run configuration of ``system``; return it unchanged.
+
+    Parameters
+    ----------
+    cfg : dict
+        Every key of the top level (sections may be partial: the dataclass defaults fill
+        them).
+    system : str
+        A registered system name (its dimensions check ``eval_box``, ``lqr`` and
+        ``controller_scale``).
+    where : str
+        Prefix of the error messages (the file the config came from).
+
+    Returns
+    -------
+    dict
+        ``cfg``.
+
+    Raises
+    ------
+    ConfigError
+        The first problem found, naming the key, what it accepts and what came.
+    """
+
+    import systems
+
+    sch = schema()
+    _check_keys(cfg, where)
+    for name in ("outer", "inner", "eval_box", "eval_grid"):
+        if name not in cfg:
+            raise ConfigError(f"{where}: missing key {name!r} ({_TOP_DOCS[name]}); add it")
+    for name, v in cfg.items():
+        key = sch[""][name]
+        _check_value(key, v, where)
+        if key.kind == "section" and name in ("lqr", "train", "cegis"):
+            for sub, sv in v.items():
+                _check_value(sch[name][sub], sv, where)
+    opts = cfg.get("cegis", {}).get("verify_options", {})
+    for opt, ov in opts.items():
+        _check_value(sch["cegis.verify_options"][opt], ov, where)
+
+    inner, outer = cfg["inner"], cfg["outer"]
+    if not inner < outer:
+        raise ConfigError(f"{where}: need 0 < inner < outer, got inner = {inner:g}, "
+                          f"outer = {outer:g}; make inner smaller than outer")
+    cg = cfg.get("cegis", {})
+    it = cg.get("iterations", sch["cegis"]["iterations"].default)
+    if cg.get("min_iterations", 1) > it:
+        raise ConfigError(f"{where}: cegis.min_iterations ({cg['min_iterations']}) exceeds "
+                          f"cegis.iterations ({it}); lower it or raise iterations")
+    if cg.get("sim_grid", 0) == 1:
+        raise ConfigError(f"{where}: cegis.sim_grid must be 0 (no table) or >= 2, got 1")
+
+    s = systems.get(system)
+    box = cfg["eval_box"]
+    if len(box) != s.nx:
+        raise ConfigError(f"{where}: eval_box has {len(box)} rows; {system} has {s.nx} states, "
+                          f"give one [lo, hi] row per state")
+    scale = cfg.get("controller_scale")
+    if s.nu and scale is None:
+        raise ConfigError(f"{where}: controller_scale is null but {system} has {s.nu} "
+                          "input(s); give the actuator limit C > 0 of u = C·tanh(Kx + b)")
+    if not s.nu and scale is not None:
+        raise ConfigError(f"{where}: {system} has no inputs; set controller_scale to null")
+    lq = cfg.get("lqr", {})
+    check_lqr_weights(s, lq.get("Q"), lq.get("R"), where=where)
+    _check_dynamics(cfg.get("dynamics", {}), system, where)
+    return cfg
+
+
+def check_lqr_weights(system, Q=None, R=None, *, where: str = "lqr",
+                      names: tuple[str, str] = ("lqr.Q", "lqr.R")):
+    """LQR weights of ``system`` as arrays, checked (``None`` stays ``None``).
+
+    Parameters
+    ----------
+    system : systems.System
+    Q, R : float or (n, n) array_like or None
+        A scalar means that multiple of the identity. ``Q`` must be symmetric positive
+        semidefinite and ``nx × nx``; ``R`` symmetric positive definite and ``nu × nu``.
+    where : str
+        Prefix of the error messages.
+    names : (str, str)
+        How the messages call ``Q`` and ``R`` (``"--Q"`` on the command line).
+
+    Returns
+    -------
+    (Q, R) : ndarray or None
+
+    Raises
+    ------
+    ConfigError
+        Not a finite number or rectangular matrix, wrong size, not symmetric, not
+        positive (semi)definite, or ``R`` for a system without inputs.
+    """
+    import numpy as np
+
+    out = []
+    for value, name, n, strict in ((Q, names[0], system.nx, False),
+                                   (R, names[1], system.nu, True)):
+        if value is None:
+            out.append(None)
+            continue
+        if n == 0:
+            raise ConfigError(f"{where}: {system.name} has no inputs; drop {name}")
+        M = _matrix(Key(name, "matrix"), value, where)
+        if M.shape == (1, 1):
+            M = M[0, 0] * np.eye(n)
+        if M.shape != (n, n):
+            raise ConfigError(f"{where}: {name} must be a number or {n}x{n} for "
+                              f"{system.name}, got {M.shape[0]}x{M.shape[1]}")
+        if not np.allclose(M, M.T):
+            raise ConfigError(f"{where}: {name} must be symmetric, got {M.tolist()}")
+        ev = float(np.min(np.linalg.eigvalsh(0.5 * (M + M.T))))
+        if ev <= 0 if strict else ev < 0:
+            what = "positive definite" if strict else "positive semidefinite"
+            raise ConfigError(f"{where}: {name} must be {what} (smallest eigenvalue "
+                              f"{ev:.3g}); use positive weights")
+        out.append(M)
+    return tuple(out)
+
+
+def check_dynamics_box(cfg: dict) -> None:
+    """Refuse, before training, a verification ball ``‖x‖ ≤ outer`` that leaves the box on
+    which the learned dynamics (and so ``‖f − φ‖ ≤ η``) will be established.
+
+    Raises
+    ------
+    ConfigError
+        Naming the box and the fixes (a larger ``dynamics.state_box`` or a smaller ``outer``).
+    """
+    import numpy as np
+
+    import systems
+
+    s = systems.get(cfg["system"])
+    box = cfg.get("dynamics", {}).get("state_box")
+    box = np.asarray(s.state_box if box is None else box, dtype=float)
+    r = float(cfg["outer"])
+    if np.any(box[:, 0] > -r) or np.any(box[:, 1] < r):
+        raise ConfigError(
+            f"the verification ball r = {r:g} leaves the box {box.tolist()} on which "
+            "‖f − φ‖ ≤ η will be established; set dynamics.state_box to cover "
+            f"[-{r:g}, {r:g}] on every axis or reduce 'outer'"
+        )
+
+
+def _check_dynamics(dyn, system: str, where: str) -> None:
+    if not isinstance(dyn, dict):
+        raise ConfigError(f"{where}: dynamics must be a JSON object {{...}}, got {dyn!r}")
+    try:
+        from .dynamics_config import dynamics_config
+    except ImportError:  # pragma: no cover - older layout
+        from .dynamics import check_config, default_config, merge_config
+
+        d = dict(dyn)
+        preset = d.pop("preset", "default")
+        if preset not in ("default", "fast"):
+            raise ConfigError(f"{where}: dynamics.preset must be 'default' or 'fast', "
+                              f"got {preset!r}") from None
+        if "time_budget" in d:
+            raise ConfigError(f"{where}: unknown key 'dynamics.time_budget'; "
+                              f"{_REMOVED['time_budget']}")
+        try:
+            check_config(merge_config(default_config(system, preset == "fast"), d))
+        except (ConfigError, ValueError, TypeError) as err:
+            raise ConfigError(f"{where}: dynamics: {err}") from None
+        return
+    try:
+        dynamics_config(system, dyn)
+    except (ConfigError, UnknownNameError, ValueError, TypeError) as err:
+        raise ConfigError(f"{where}: {err}") from None
+
 
 def _merge(base: dict, over: dict) -> dict:
     out = copy.deepcopy(base)
     for k, v in over.items():
         if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v)
+            sub = dict(out[k])
+            if k == "dynamics":  # a grid given one way replaces the preset's other way
+                for a, b in (("grid_spacing", "grid_counts"), ("grid_counts", "grid_spacing")):
+                    if v.get(a) is not None and b not in v:
+                        sub.pop(b, None)
+            out[k] = _merge(sub, v)
         else:
-            out[k] = v
+            out[k] = copy.deepcopy(v)
     return out
 
 
-def get_config(system: str, preset: str = "large", path: str | Path | None = None) -> dict:
-    """The configuration ``preset`` of ``system``, with a JSON file merged over it."""
-    if system not in PRESETS:
+def make_config(system: str, preset: str | None = "large", overrides: dict | None = None,
+                file: str | Path | None = None) -> dict:
+    """A validated run configuration: ``preset`` ← JSON ``file`` ← ``overrides``.
+
+    Parameters
+    ----------
+    system : str
+        A registered system (:func:`systems.names`).
+    preset : str or None
+        ``"paper"``, ``"large"`` or ``"fast"`` (see :data:`PRESETS`); ``None`` starts from
+        the dataclass defaults, for a system without a preset: ``outer``, ``inner``
+        (and ``controller_scale`` for a system with inputs) must then come from ``file``
+        or ``overrides``; ``eval_box`` defaults to the system's state box.
+    overrides : dict, optional
+        Nested like the config (``{"train": {"steps": 100}}``), merged last.
+    file : str or Path, optional
+        A JSON object merged over the preset.
+
+    Returns
+    -------
+    dict
+        The merged configuration with ``system`` and ``preset`` set; pass it to
+        :func:`nlyap_opt.pipeline.run`.
+
+    Raises
+    ------
+    UnknownNameError
+        An unknown system or preset.
+    ConfigError
+        An unknown key, a wrong type, NaN/inf, or a value out of range (checked before
+        anything runs).
+
+    Examples
+    --------
+    >>> cfg = make_config("inverted_pendulum", "fast", overrides={"cegis": {"iterations": 1}})
+    >>> cfg["cegis"]["iterations"], cfg["preset"]
+    (1, 'fast')
+    """
+    import systems
+
+    if not isinstance(system, str):
+        raise ConfigError(f"system must be a name (str), got {system!r}")
+    s = systems.get(system)  # UnknownNameError listing the catalogue
+    if preset is None:
+        cfg = copy.deepcopy(_GENERIC)
+        cfg["eval_box"] = s.state_box.tolist()
+        if not s.nu:
+            cfg["controller_scale"] = None
+    elif system not in PRESETS:
         raise UnknownNameError(
-            f"no run configuration for system {system!r}; configured: {', '.join(PRESETS)} "
-            "(pass a full --config FILE for other systems)"
+            f"no preset for system {system!r} (presets exist for {', '.join(PRESETS)}); "
+            f"in Python call nlyap_opt.configs.make_config({system!r}, preset=None, "
+            "overrides={'outer': R, 'inner': EPS, 'controller_scale': C}) and pass it to "
+            "nlyap_opt.pipeline.run (the nlyap command runs catalogue systems only)"
         )
-    if preset not in PRESETS[system]:
+    elif preset not in PRESETS[system]:
+        close = difflib.get_close_matches(str(preset), list(PRESETS[system]), n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
         raise UnknownNameError(
-            f"unknown preset {preset!r}; available: {', '.join(PRESETS[system])}"
+            f"unknown preset {preset!r} for {system}; available: "
+            f"{', '.join(PRESETS[system])}{hint}"
         )
-    cfg = copy.deepcopy(PRESETS[system][preset])
-    if path is not None:
-        cfg = _merge(cfg, read_json_object(path))
-    if not (0 < cfg["inner"] < cfg["outer"]):
-        raise ConfigError(f"need 0 < inner < outer, got {cfg['inner']}, {cfg['outer']}")
+    else:
+        cfg = copy.deepcopy(PRESETS[system][preset])
+    where = "run config"
+    for src, over in ((file, None), (None, overrides)):
+        if src is not None:
+            where = f"config {src}"
+            over = read_json_object(src)
+        if over is None:
+            continue
+        if not isinstance(over, dict):
+            raise ConfigError(f"overrides must be a dict, got {type(over).__name__}")
+        _check_keys(over, where)
+        for k, want in (("system", system), ("preset", preset)):
+            if over.get(k) is not None and want is not None and over[k] != want:
+                raise ConfigError(f"{where}: is for {k} {over[k]!r}, not {want!r}; fix its "
+                                  f"{k!r} key or drop it")
+        cfg = _merge(cfg, over)
+    if file is not None and overrides is not None:
+        where = f"config {file} with overrides"
     cfg["system"], cfg["preset"] = system, preset
+    validate_config(cfg, system, where=where)
     return cfg
+
+
+def get_config(system: str, preset: str = "large", path: str | Path | None = None) -> dict:
+    """The validated configuration ``preset`` of ``system`` with a JSON file merged over it.
+
+    Same as ``make_config(system, preset, file=path)``; see :func:`make_config`.
+    """
+    return make_config(system, preset, file=path)
+
+
+def config_reference() -> str:
+    """A Markdown table of every run-configuration key, its type, default and range."""
+    rows = ["| key | accepts | default |", "| --- | --- | --- |"]
+    sch = schema()
+    for section in ("", "lqr", "train", "cegis", "cegis.verify_options", "dynamics"):
+        for name, key in sch[section].items():
+            if section == "" and key.kind == "section":
+                rows.append(f"| `{name}` | section: {key.doc} | |")
+                continue
+            default = "" if key.default is None and not key.optional else \
+                json.dumps(key.default)
+            doc = f" ({key.doc})" if key.doc else ""
+            rows.append(f"| `{key.name}` | {key.describe()}{doc} | {default} |")
+    return "\n".join(rows)

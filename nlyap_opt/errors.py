@@ -20,6 +20,7 @@ __all__ = [
     "BackendUnavailableError",
     "InputRangeError",
     "ConfigError",
+    "UsageError",
 ]
 
 
@@ -72,3 +73,7 @@ class InputRangeError(NlyapError, ValueError):
 
 class ConfigError(NlyapError, ValueError):
     """A configuration value is missing or out of range."""
+
+
+class UsageError(NlyapError, ValueError):
+    """A command-line argument or an input file is invalid (``nlyap`` exits with code 3)."""

@@ -34,7 +34,8 @@ def known_runs(tmp_path_factory):
     out = {}
     for name in systems.names():
         d = tmp_path_factory.mktemp(name)
-        cert = run(name, get_config(name, "fast"), d, known_dynamics=True, log=lambda m: None)
+        cert = run(name, get_config(name, "fast"), d, known_dynamics=True,
+                   log=lambda m: None).summary
         out[name] = (d, cert)
     return out
 
@@ -88,7 +89,7 @@ def test_run_resumes_from_saved_stages(known_runs):
     d, cert = known_runs["van_der_pol"]
     logs = []
     again = run("van_der_pol", get_config("van_der_pol", "fast"), d, known_dynamics=True,
-                log=logs.append)
+                log=logs.append).summary
     assert any("[cegis] loaded" in m for m in logs)
     assert again["level"] == cert["level"]
 
@@ -111,7 +112,8 @@ def learned_runs(tmp_path_factory):
     out = {}
     for name in systems.names():
         d = tmp_path_factory.mktemp(name + "_learned")
-        cert = run(name, get_config(name, "fast"), d, known_dynamics=False, log=lambda m: None)
+        cert = run(name, get_config(name, "fast"), d, known_dynamics=False,
+                   log=lambda m: None).summary
         out[name] = (d, cert)
     return out
 
@@ -136,3 +138,135 @@ def test_fast_learned_dynamics_run_is_certified(learned_runs, name, tmp_path):
     # the same networks with a much larger η are not certified at that level
     args[args.index("--eta") + 1] = repr(cert["eta"] * 1000 + 1.0)
     assert main(args) in (1, 2)
+
+
+# ------------------------------------------------------------------ trust boundary (issue 12)
+def _copy_run(known_runs, tmp_path, name="van_der_pol"):
+    import shutil
+
+    d, cert = known_runs[name]
+    shutil.copytree(d, tmp_path / "run")
+    return tmp_path / "run", cert
+
+
+def test_certificate_rechecks_from_its_artifacts(known_runs):
+    from nlyap_opt.certificate import recheck_certificate
+
+    for name, (d, cert) in known_runs.items():
+        again = recheck_certificate(d / "certificate.json", log=lambda m: None)
+        assert again.certified, (name, again.reason)
+        assert again.level == cert["level"]
+
+
+def test_tampered_V_is_never_certified_on_resume(known_runs, tmp_path):
+    """Replace V.json in a finished run: the rerun recomputes CEGIS (saying so) and the
+    final certificate is that of the V on disk, re-verified."""
+    from nlyap_opt.certificate import recheck_certificate
+
+    d, cert = _copy_run(known_runs, tmp_path)
+    V = Network.load(d / "V.json")
+    V.layers[0].weight[...] *= 1.5           # a different V (V(0) = 0 still by construction)
+    V.save(d / "V.json")
+    logs = []
+    res = run("van_der_pol", get_config("van_der_pol", "fast"), d, known_dynamics=True,
+              log=logs.append)
+    assert any("V.json changed" in m for m in logs), logs[:5]
+    assert not any("[cegis] loaded" in m for m in logs)
+    assert res.certified and recheck_certificate(d, log=lambda m: None).certified
+
+
+def test_tampered_V_with_forged_stage_record_is_not_certified(known_runs, tmp_path):
+    """Even with stages.json forged to match a false V, the certificate stage re-verifies."""
+    from nlyap_opt.certificate import sha256_file
+
+    d, cert = _copy_run(known_runs, tmp_path)
+    V = Network.load(d / "V.json")
+    for layer in V.layers:
+        layer.weight[...] *= -0.05           # flat V: containment fails at the saved level
+    V.save(d / "V.json")
+    st = json.loads((d / "stages.json").read_text())
+    st["cegis"]["files"]["V.json"] = sha256_file(d / "V.json")
+    (d / "stages.json").write_text(json.dumps(st))
+    res = run("van_der_pol", get_config("van_der_pol", "fast"), d, known_dynamics=True,
+              log=lambda m: None)
+    if res.certified:  # only if the forged V happens to satisfy every condition itself
+        from nlyap_opt.certificate import recheck_certificate
+
+        assert recheck_certificate(d, log=lambda m: None).certified
+    else:
+        saved = json.loads((d / "certificate.json").read_text())
+        assert saved["status"] != "certified"
+
+
+def test_corrupt_stage_files_are_recomputed(known_runs, tmp_path):
+    d, cert = _copy_run(known_runs, tmp_path)
+    (d / "stages.json").write_text('{"cegis": ')
+    (d / "true_roa.npz").write_bytes(b"garbage")
+    logs = []
+    res = run("van_der_pol", get_config("van_der_pol", "fast"), d, known_dynamics=True,
+              log=logs.append)
+    assert any("unreadable" in m for m in logs)
+    assert res.certified and res.summary["level"] == cert["level"]   # deterministic rerun
+
+
+def test_second_run_into_a_locked_directory_is_refused(known_runs, tmp_path):
+    import subprocess
+    import sys
+
+    from nlyap_opt.pipeline import RunLockedError
+
+    d, _ = _copy_run(known_runs, tmp_path)
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (d / ".nlyap.lock").write_text(str(holder.pid))
+        with pytest.raises(RunLockedError, match="another nlyap run"):
+            run("van_der_pol", get_config("van_der_pol", "fast"), d, known_dynamics=True,
+                log=lambda m: None)
+    finally:
+        holder.kill()
+        holder.wait()
+    # a stale lock (its process is gone) is taken over
+    logs = []
+    assert run("van_der_pol", get_config("van_der_pol", "fast"), d, known_dynamics=True,
+               log=logs.append).certified
+    assert any("stale lock" in m for m in logs)
+    assert not (d / ".nlyap.lock").exists()
+
+
+def test_out_that_is_a_file_is_an_input_error(tmp_path):
+    from nlyap_opt.errors import ConfigError
+
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(ConfigError, match="is a file"):
+        run("van_der_pol", get_config("van_der_pol", "fast"), f, known_dynamics=True,
+            log=lambda m: None)
+
+
+@pytest.mark.parametrize("stage", ["controller", "cegis", "certificate"])
+def test_interrupted_run_resumes_to_a_certificate_that_reverifies(stage, tmp_path,
+                                                                  monkeypatch):
+    """SIGINT in a stage (KeyboardInterrupt): the rerun's certificate re-verifies."""
+    import nlyap_opt.pipeline as pl
+    from nlyap_opt.certificate import recheck_certificate
+
+    name = "inverted_pendulum"
+    cfg = get_config(name, "fast")
+    target = {"controller": "saturated_controller", "cegis": "cegis",
+              "certificate": "_areas_and_checks"}[stage]
+    if stage == "controller":
+        import nlyap_opt.control as mod
+    else:
+        mod = pl
+
+    def boom(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mod, target, boom)
+    with pytest.raises(KeyboardInterrupt):
+        run(name, cfg, tmp_path, known_dynamics=True, log=lambda m: None)
+    monkeypatch.undo()
+    assert not (tmp_path / ".nlyap.lock").exists()
+    res = run(name, cfg, tmp_path, known_dynamics=True, log=lambda m: None)
+    assert res.certified
+    assert recheck_certificate(tmp_path, log=lambda m: None).certified

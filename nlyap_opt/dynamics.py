@@ -15,7 +15,8 @@ with :math:`\eta` built from terms computed here (see :mod:`nlyap_opt.bounds` fo
   subset of the grid nodes (plus nodes on the box faces): Adam (minibatches, cosine
   learning-rate schedule), then Levenberg–Marquardt in float64, then Lawson-reweighted
   Levenberg–Marquardt rounds that lower the *maximum* error (α is a maximum); seeded, with a
-  tqdm progress bar and a time budget. Saved as a :class:`~nlyap_opt.network.Network` with
+  tqdm progress bar; budgets are counts of steps, never a wall-clock time (PITFALLS P12).
+  Saved as a :class:`~nlyap_opt.network.Network` with
   float64 weights (input/output normalisation folded into the weights: the saved network is
   the verified object, and α is measured on it).
 
@@ -36,7 +37,6 @@ Two dynamics models:
 
 from __future__ import annotations
 
-import copy
 import json
 import math
 import time
@@ -47,17 +47,18 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from .determinism import deterministic_torch
+from .dynamics_config import MODELS, DynamicsConfig, dynamics_config, load_dynamics_config
 from .errors import ConfigError, DimensionError, NetworkFileError
 from .network import Layer, Network
 
 __all__ = [
-    "Grid", "DynamicsResult", "AlphaResult", "learn_dynamics", "measure_alpha", "default_config",
-    "DEFAULT_CONFIGS", "FAST_CONFIGS", "load_config", "sampling_box",
-    "learned_components", "network_error_bound", "check_dynamics_network", "MODELS", "make_grid",
-    "check_config", "merge_config",
+    "Grid", "DynamicsResult", "AlphaResult", "learn_dynamics", "refine_dynamics",
+    "measure_alpha", "default_config", "load_config", "merge_config", "as_config",
+    "DynamicsConfig", "dynamics_config", "sampling_box", "learned_components",
+    "network_error_bound", "check_dynamics_network", "MODELS", "make_grid",
 ]
 
-MODELS = ("full", "control_affine")
 _U = 2.0 ** -53  # unit roundoff of float64
 
 
@@ -173,16 +174,28 @@ def _norm2_up(v, axis=None):
 
 
 # ============================================================================ models
-def learned_components(system, config: dict | None = None) -> list[int]:
-    """Indices of the state derivatives that are learned (the others are known exactly)."""
-    config = config or {}
-    comp = config.get("learned_components")
+def learned_components(system, config=None) -> list[int]:
+    """Indices of the state derivatives that are learned (the others are known exactly).
+
+    A component that is not learned is taken from the system's model ``f``; that is only
+    sound for components the system declares known (``system.known_state_derivatives``),
+    so leaving out any other one is a :class:`ConfigError`.
+    """
+    comp = None if config is None else config.get("learned_components")
+    known = set(system.known_state_derivatives)
     if comp is None:
-        comp = [i for i in range(system.nx) if i not in set(system.known_state_derivatives)]
+        comp = [i for i in range(system.nx) if i not in known]
     comp = sorted(int(i) for i in comp)
     if not comp or comp[0] < 0 or comp[-1] >= system.nx or len(set(comp)) != len(comp):
         raise ConfigError(
             f"learned_components must be distinct state indices in 0..{system.nx - 1}, got {comp}"
+        )
+    missing = [i for i in range(system.nx) if i not in comp and i not in known]
+    if missing:
+        raise ConfigError(
+            f"learned_components {comp} leaves out state derivatives {missing} that system "
+            f"{system.name!r} does not declare known; learn them (add them to "
+            "'learned_components') or declare them in known_state_derivatives"
         )
     return comp
 
@@ -227,22 +240,42 @@ def _target(system, model: str, comp: list[int], z: np.ndarray) -> np.ndarray:
 def check_dynamics_network(system, network: Network) -> tuple[str, list[int]]:
     """Validate a (loaded) dynamics network against ``system``; return ``(model, components)``.
 
+    Checked: ``meta["model"]`` is one of :data:`MODELS`; ``meta["learned_components"]`` are
+    distinct state indices and every component left out is declared known by the system
+    (never silently replaced by the model ``f``); for ``control_affine``,
+    ``meta["input_matrix"]`` is present, finite, of shape ``(len(components), nu)`` and
+    equal to the system's input matrix on those rows; the sizes; one hidden tanh layer and
+    a linear output.
+
     Raises
     ------
     NetworkFileError
-        Wrong input/output sizes, bad ``meta`` entries, or not one hidden tanh layer with a
-        linear output.
+        Any of the above fails (the message names the entry and the fix).
     """
-    model = network.meta.get("model", "full")
+    meta = network.meta if isinstance(network.meta, dict) else {}
+    model = meta.get("model", "full")
     if model not in MODELS:
-        raise NetworkFileError(f"dynamics network meta['model'] is {model!r}; expected {MODELS}")
-    comp = network.meta.get("learned_components", list(range(system.nx)))
+        raise NetworkFileError(
+            f"dynamics network meta['model'] is {model!r}; expected one of {MODELS}"
+        )
+    comp = meta.get("learned_components", list(range(system.nx)))
     try:
         comp = sorted(int(i) for i in comp)
     except (TypeError, ValueError):
         raise NetworkFileError("meta['learned_components'] must be a list of ints") from None
-    if not comp or comp[0] < 0 or comp[-1] >= system.nx:
-        raise NetworkFileError(f"meta['learned_components'] {comp} is not a set of state indices")
+    if not comp or comp[0] < 0 or comp[-1] >= system.nx or len(set(comp)) != len(comp):
+        raise NetworkFileError(
+            f"meta['learned_components'] {comp} is not a set of distinct state indices in "
+            f"0..{system.nx - 1} of system {system.name!r}"
+        )
+    known = set(system.known_state_derivatives)
+    missing = [i for i in range(system.nx) if i not in comp and i not in known]
+    if missing:
+        raise NetworkFileError(
+            f"dynamics network learns components {comp} but system {system.name!r} does not "
+            f"declare state derivatives {missing} known; a network for this system must learn "
+            "them (the model f is not available for an unknown system)"
+        )
     n_in = system.nx if model == "control_affine" else system.nx + system.nu
     if network.n_in != n_in or network.n_out != len(comp):
         raise NetworkFileError(
@@ -250,6 +283,28 @@ def check_dynamics_network(system, network: Network) -> tuple[str, list[int]]:
             f"{system.name!r} with model {model!r} and learned components {comp} needs "
             f"R^{n_in} -> R^{len(comp)}"
         )
+    if model == "control_affine" and system.nu:
+        if "input_matrix" not in meta:
+            raise NetworkFileError(
+                "control_affine dynamics network has no meta['input_matrix'] (B rows of the "
+                "learned components); re-create it with nlyap learn-dynamics"
+            )
+        try:
+            B = np.array(meta["input_matrix"], dtype=float)
+        except (TypeError, ValueError):
+            raise NetworkFileError("meta['input_matrix'] must be a matrix of numbers") from None
+        if B.shape != (len(comp), system.nu) or not np.all(np.isfinite(B)):
+            raise NetworkFileError(
+                f"meta['input_matrix'] must be a finite {len(comp)}x{system.nu} matrix, got "
+                f"shape {B.shape}"
+            )
+        want = np.asarray(system.B, dtype=float)[comp]
+        if not np.array_equal(B, want):
+            raise NetworkFileError(
+                f"meta['input_matrix'] {B.tolist()} differs from the input matrix "
+                f"{want.tolist()} of system {system.name!r}: the network was made for another "
+                "system"
+            )
     acts = [layer.activation for layer in network.layers]
     if acts != ["tanh", "linear"]:
         raise NetworkFileError(
@@ -357,87 +412,24 @@ def _target_rounding(system, model: str, comp: list[int]):
 
 
 # ============================================================================ configs
-#: Default configurations (``nlyap learn-dynamics NAME``); ``--config FILE`` overrides keys.
-DEFAULT_CONFIGS: dict[str, dict] = {
-    "van_der_pol": {
-        "model": "full", "hidden": 100, "grid_counts": [601, 601],
-        "train_points": 8000, "boundary_points": 1000, "steps": 2000,
-        "lm_iterations": 100, "minimax_rounds": 5, "minimax_iterations": 10,
-        "time_budget": 60.0,
-    },
-    "unicycle_path_following": {
-        "model": "full", "hidden": [20, 150], "grid_counts": [321, 81, 21],
-        "train_points": 6000, "boundary_points": 1500, "steps": 2000,
-        "lm_iterations": 100, "minimax_rounds": 5, "minimax_iterations": 10,
-        "time_budget": 85.0,
-    },
-    "inverted_pendulum": {
-        "model": "control_affine", "hidden": 100, "grid_counts": [401, 401],
-        "train_points": 6000, "boundary_points": 1000, "steps": 2000,
-        "lm_iterations": 200, "minimax_rounds": 5, "minimax_iterations": 10,
-        "time_budget": 80.0,
-    },
-}
-
-#: Tiny configurations for tests (a few seconds each).
-FAST_CONFIGS: dict[str, dict] = {
-    "van_der_pol": {"model": "full", "hidden": 12, "grid_counts": [61, 61],
-                    "train_points": 600, "boundary_points": 100, "steps": 200,
-                    "lm_iterations": 30, "minimax_rounds": 1, "minimax_iterations": 5,
-                    "time_budget": 10.0, "interval_boxes": 1024, "check_points": 20000},
-    "unicycle_path_following": {"model": "full", "hidden": 12, "grid_counts": [21, 21, 9],
-                                "train_points": 600, "boundary_points": 100, "steps": 200,
-                                "lm_iterations": 30, "minimax_rounds": 1,
-                                "minimax_iterations": 5, "time_budget": 10.0,
-                                "interval_boxes": 1024, "check_points": 20000},
-    "inverted_pendulum": {"model": "full", "hidden": 12, "grid_counts": [21, 21, 9],
-                          "train_points": 600, "boundary_points": 100, "steps": 200,
-                          "lm_iterations": 30, "minimax_rounds": 1, "minimax_iterations": 5,
-                          "time_budget": 10.0, "interval_boxes": 1024, "check_points": 20000},
-}
-
-_COMMON: dict = {
-    "model": "full", "hidden": 100, "grid_counts": None, "grid_spacing": None,
-    "learned_components": None, "state_box": None, "input_box": None,
-    "train_points": 8000, "boundary_points": 1000,
-    "steps": 2000, "batch_size": 256, "lr": 1e-2, "lr_final": 1e-4, "train_dtype": "float32",
-    "lm_iterations": 100, "minimax_rounds": 5, "minimax_iterations": 10, "lm_ridge": 1e-14,
-    "prune": 1e-12, "time_budget": 60.0, "seed": 0,
-    "bound_model": "best", "bound_options": None, "interval_boxes": 16384,
-    "interval_counts": None, "check_points": 200000, "eval_batch": 1 << 17, "progress": True,
-}
-_ALLOWED = set(_COMMON) | {"system", "comment"}
-
-
 def default_config(name: str, fast: bool = False) -> dict:
-    """The default (or tiny ``fast``) configuration of a catalogue system, all keys filled."""
-    table = FAST_CONFIGS if fast else DEFAULT_CONFIGS
-    base = copy.deepcopy(_COMMON)
-    base.update(copy.deepcopy(table.get(name, {})))
-    base["system"] = name
-    return base
+    """The ``default`` (or ``fast``) configuration of ``name`` as a dict with every key.
+
+    A thin view of :func:`nlyap_opt.dynamics_config.dynamics_config`; the dict can be
+    updated and passed to :func:`learn_dynamics` (which validates it again).
+    """
+    return dynamics_config(name, {"preset": "fast" if fast else "default"}).to_dict()
 
 
-def load_config(path: str | Path | None, name: str | None = None, fast: bool = False) -> dict:
+def load_config(path: str | Path | None, name: str | None = None, fast: bool = False
+                ) -> DynamicsConfig:
     """Defaults of ``name`` overridden by the JSON object in ``path`` (unknown keys refused)."""
-    over: dict = {}
-    if path is not None:
-        from .configs import read_json_object
-
-        over = read_json_object(path)
-    name = name or over.get("system")
-    if name is None:
-        raise ConfigError("no system named: pass NAME or put 'system' in the config file")
-    if over.get("system", name) != name:
-        raise ConfigError(f"config {path} is for system {over['system']!r}, not {name!r}")
-    cfg = merge_config(default_config(name, fast), over)
-    cfg["system"] = name
-    return check_config(cfg)
+    return load_dynamics_config(path, name, "fast" if fast else "default")
 
 
 def merge_config(base: dict, over: dict | None) -> dict:
     """``base`` updated with ``over``; a grid given one way (counts, spacing) replaces the other."""
-    cfg = dict(base)
+    cfg = dict(base.to_dict() if isinstance(base, DynamicsConfig) else base)
     over = dict(over or {})
     if over.get("grid_spacing") is not None and "grid_counts" not in over:
         cfg["grid_counts"] = None
@@ -447,37 +439,21 @@ def merge_config(base: dict, over: dict | None) -> dict:
     return cfg
 
 
-def check_config(cfg: dict) -> dict:
-    """Validate a configuration dict (unknown keys, types, ranges); return it."""
-    unknown = set(cfg) - _ALLOWED
-    if unknown:
-        raise ConfigError(
-            f"unknown config keys {sorted(unknown)}; allowed keys: {', '.join(sorted(_ALLOWED))}"
-        )
-    if cfg["model"] not in MODELS:
-        raise ConfigError(f"config 'model' must be one of {MODELS}, got {cfg['model']!r}")
-    if cfg["train_dtype"] not in ("float32", "float64"):
-        raise ConfigError("config 'train_dtype' must be 'float32' or 'float64'")
-    for key in ("train_points", "batch_size"):
-        if int(cfg[key]) < 1:
-            raise ConfigError(f"config {key!r} must be a positive integer, got {cfg[key]!r}")
-    for key in ("lm_ridge", "prune"):
-        if not float(cfg[key]) >= 0:
-            raise ConfigError(f"config {key!r} must be non-negative, got {cfg[key]!r}")
-    for key in ("steps", "lm_iterations", "minimax_rounds", "minimax_iterations",
-                "boundary_points", "check_points"):
-        if int(cfg[key]) < 0:
-            raise ConfigError(f"config {key!r} must be a non-negative integer, got {cfg[key]!r}")
-    hidden = cfg["hidden"]
-    if not all(int(h) >= 1 for h in np.atleast_1d(hidden)):
-        raise ConfigError(f"config 'hidden' must be a positive int or a list of them: {hidden}")
-    if float(cfg["time_budget"]) <= 0:
-        raise ConfigError("config 'time_budget' must be positive (seconds)")
-    return cfg
+def as_config(system, config: DynamicsConfig | dict | None) -> DynamicsConfig:
+    """A validated :class:`DynamicsConfig` for ``system`` from a config or a dict of keys."""
+    if isinstance(config, DynamicsConfig):
+        return config
+    return dynamics_config(system.name, config)
 
 
 def make_grid(system, cfg: dict) -> Grid:
     """The grid of a configuration (``grid_counts`` or ``grid_spacing`` over the model's box)."""
+    for key, rows in (("state_box", system.nx), ("input_box", system.nu)):
+        if cfg.get(key) is not None and np.shape(cfg[key]) != (rows, 2):
+            raise ConfigError(
+                f"dynamics config {key!r} has shape {np.shape(cfg[key])}; system "
+                f"{system.name!r} needs {rows} rows [lo, hi]"
+            )
     box = sampling_box(system, cfg["model"], cfg)
     if cfg.get("grid_counts") is not None:
         if len(cfg["grid_counts"]) != box.shape[0]:
@@ -495,7 +471,7 @@ def make_grid(system, cfg: dict) -> Grid:
 # ============================================================================ training
 @dataclass
 class DynamicsResult:
-    """Outcome of :func:`learn_dynamics`.
+    """Outcome of :func:`learn_dynamics` (and of :func:`refine_dynamics`).
 
     Attributes
     ----------
@@ -507,15 +483,16 @@ class DynamicsResult:
     model : str
     learned_components : list of int
     seconds : dict
-        Wall time per stage: ``data``, ``training``, ``alpha``.
+        Wall time per stage (``data``, ``training``, ``alpha``): reported, never used to
+        stop anything.
     history : list of dict
         Training log per component (stage, iteration, loss, max error, seconds).
-    stopped_by : str
-        ``"iterations"`` or ``"time_budget"``.
+    rounds : int
+        Refinement rounds done after the first training (:func:`refine_dynamics`).
     """
 
     system: object
-    config: dict
+    config: DynamicsConfig
     network: Network
     grid: Grid
     alpha: AlphaResult
@@ -523,15 +500,21 @@ class DynamicsResult:
     learned_components: list[int]
     seconds: dict = field(default_factory=dict)
     history: list = field(default_factory=list)
-    stopped_by: str = "iterations"
+    rounds: int = 0
+    _state: dict = field(default_factory=dict, repr=False)
 
     @property
     def delta(self) -> float:
         return self.grid.delta
 
+    @property
+    def stopped_by(self) -> str:
+        """Always ``"iterations"``: budgets are counted in steps (kept for old callers)."""
+        return "iterations"
 
-def learn_dynamics(system, config: dict | None = None, *, progress: bool | None = None
-                   ) -> DynamicsResult:
+
+def learn_dynamics(system, config: DynamicsConfig | dict | None = None, *,
+                   progress: bool | None = None) -> DynamicsResult:
     r"""Learn :math:`\varphi \approx f` on a grid and measure α on that same grid.
 
     Each learned component gets its own hidden neurons (the networks are stacked into one
@@ -539,20 +522,19 @@ def learn_dynamics(system, config: dict | None = None, *, progress: bool | None 
     training nodes (cosine learning-rate schedule, float32 by default), then
     Levenberg–Marquardt in float64 on all training nodes (mean squared error), then
     Lawson-reweighted Levenberg–Marquardt rounds that push down the *largest* error (α is a
-    maximum). Everything is seeded; ``time_budget`` caps the training wall time.
+    maximum). Every budget is a count (``steps``, ``lm_iterations``, ``minimax_rounds``,
+    ``minimax_iterations``) and training runs with ``threads`` torch threads and
+    deterministic algorithms: the same configuration and seed give a bit-identical φ
+    whatever the machine's load (PITFALLS P12).
 
     Parameters
     ----------
     system : systems.System
-    config : dict, optional
-        Keys of :data:`DEFAULT_CONFIGS` / :func:`default_config` (missing keys take the
-        system's defaults): ``model`` (``"full"`` | ``"control_affine"``), ``hidden``
-        (total or per component), ``grid_counts`` or ``grid_spacing``, ``train_points``
-        (random distinct grid nodes) and ``boundary_points`` (random nodes on the box faces),
-        ``steps``, ``batch_size``, ``lr``, ``lr_final`` (Adam), ``lm_iterations``,
-        ``minimax_rounds``, ``minimax_iterations``, ``time_budget`` (s), ``seed``.
+    config : DynamicsConfig or dict, optional
+        A :class:`~nlyap_opt.dynamics_config.DynamicsConfig`, or a dict of its keys applied
+        to the system's preset (``{"preset": "fast", ...}``); validated.
     progress : bool, optional
-        tqdm progress bar (default: ``config["progress"]``).
+        tqdm progress bar (default: ``config.progress``).
 
     Returns
     -------
@@ -562,29 +544,31 @@ def learn_dynamics(system, config: dict | None = None, *, progress: bool | None 
     Examples
     --------
     >>> import systems
-    >>> res = learn_dynamics(systems.get("van_der_pol"), default_config("van_der_pol", fast=True)
-    ...                      | {"progress": False})
+    >>> res = learn_dynamics(systems.get("van_der_pol"), {"preset": "fast", "progress": False})
     >>> res.grid.size, res.learned_components, res.alpha.alpha < 0.5
     (3721, [1], True)
     """
-    cfg = check_config(merge_config(default_config(system.name), config))
-    progress = cfg["progress"] if progress is None else progress
-    model = cfg["model"]
+    cfg = as_config(system, config)
+    progress = cfg.progress if progress is None else progress
+    model = cfg.model
     comp = learned_components(system, cfg)
     B = _input_matrix(system, comp) if model == "control_affine" else None
     grid = make_grid(system, cfg)
-    hidden = [int(h) for h in np.atleast_1d(cfg["hidden"])]
+    hidden = [int(h) for h in np.atleast_1d(cfg.hidden)]
     if len(hidden) == 1 and len(comp) > 1:
         hidden = [max(hidden[0] // len(comp), 1)] * len(comp)
     if len(hidden) != len(comp):
-        raise ConfigError(f"'hidden' lists {len(hidden)} widths for {len(comp)} learned components")
+        raise ConfigError(
+            f"dynamics config 'hidden' lists {len(hidden)} widths for {len(comp)} learned "
+            f"components {comp}: give one width per component or a total"
+        )
     seconds: dict[str, float] = {}
 
     # ---- data: random distinct grid nodes plus nodes on the faces, float64 targets
     t0 = time.perf_counter()
-    rng = np.random.default_rng(int(cfg["seed"]))
-    z = np.concatenate([grid.sample(int(cfg["train_points"]), rng),
-                        _boundary_nodes(grid, int(cfg["boundary_points"]), rng)])
+    rng = np.random.default_rng(cfg.seed)
+    z = np.concatenate([grid.sample(cfg.train_points, rng),
+                        _boundary_nodes(grid, cfg.boundary_points, rng)])
     y = _target(system, model, comp, z)
     centre = grid.box.mean(axis=1)
     radius = 0.5 * (grid.box[:, 1] - grid.box[:, 0])
@@ -595,34 +579,114 @@ def learn_dynamics(system, config: dict | None = None, *, progress: bool | None 
 
     # ---- training, one block of neurons per learned component
     t0 = time.perf_counter()
-    budget = float(cfg["time_budget"])
     history: list[dict] = []
     blocks = []
-    stopped = "iterations"
-    for k in range(len(comp)):
-        deadline = t0 + budget * sum(hidden[:k + 1]) / sum(hidden)
-        params, out_of_time = _train_component(
-            zn, yn[:, k], hidden[k], cfg, int(cfg["seed"]) + 7919 * k, deadline, progress,
-            history, f"φ[{comp[k]}] {system.name}", t0)
-        blocks.append(params)
-        stopped = "time_budget" if out_of_time else stopped
+    with deterministic_torch(cfg.threads):
+        for k in range(len(comp)):
+            blocks.append(_train_component(
+                zn, yn[:, k], hidden[k], cfg, cfg.seed + 7919 * k, progress, history,
+                f"φ[{comp[k]}] {system.name}", t0))
     seconds["training"] = time.perf_counter() - t0
+    state = {"z": z, "centre": centre, "radius": radius, "mu": mu, "sigma": sigma,
+             "blocks": blocks, "B": B, "hidden": hidden}
+    return _finish(system, cfg, grid, model, comp, state, seconds, history, 0)
 
-    network = _assemble(blocks, centre, radius, mu, sigma, float(cfg["prune"]))
+
+def _finish(system, cfg: DynamicsConfig, grid: Grid, model: str, comp: list[int], state: dict,
+            seconds: dict, history: list, rounds: int) -> DynamicsResult:
+    """Assemble the network from the trained blocks and measure α on every grid node."""
+    network = _assemble(state["blocks"], state["centre"], state["radius"], state["mu"],
+                        state["sigma"], cfg.prune)
     network.meta.update({
         "kind": "dynamics", "system": system.name, "model": model,
-        "learned_components": comp, "grid": grid.to_dict(), "config": _jsonable(cfg),
+        "learned_components": comp, "grid": grid.to_dict(), "config": _jsonable(cfg.to_dict()),
     })
-    if B is not None:
-        network.meta["input_matrix"] = B.tolist()
-
-    # ---- α over the same grid that defines δ (float64, every node)
-    alpha = measure_alpha(system, network, grid, batch_size=int(cfg["eval_batch"]))
+    if rounds:
+        network.meta["refinement_rounds"] = rounds
+    if state["B"] is not None:
+        network.meta["input_matrix"] = state["B"].tolist()
+    alpha = measure_alpha(system, network, grid, batch_size=cfg.eval_batch)
     seconds["alpha"] = alpha.seconds
     network.meta.update({"alpha": alpha.alpha, "alpha_upper": alpha.alpha_upper,
                          "delta": grid.delta})
     return DynamicsResult(system, cfg, network, grid, alpha, model, comp, seconds, history,
-                          stopped)
+                          rounds, state)
+
+
+def refine_dynamics(result: DynamicsResult, *, points: int | None = None,
+                    progress: bool | None = None) -> DynamicsResult:
+    """One more training round of φ, aimed at the largest errors on the grid.
+
+    The ``points`` grid nodes with the largest error ``|f_k − φ_k|`` (per learned component,
+    over **every** node) join the training set; then each component runs
+    ``lm_iterations`` Levenberg–Marquardt iterations and ``minimax_rounds`` Lawson rounds
+    from its current weights (the normalisation is kept). Deterministic: a count of
+    iterations, no clock. α is measured again on the new network.
+
+    Parameters
+    ----------
+    result : DynamicsResult
+        From :func:`learn_dynamics` or an earlier :func:`refine_dynamics` (not a reloaded
+        file: the training state is needed).
+    points : int, optional
+        Default ``config.refine_points``.
+
+    Returns
+    -------
+    DynamicsResult
+        A new result (``rounds`` one larger); ``result`` is not changed.
+    """
+    if not result._state:
+        raise ConfigError("refine_dynamics needs a result of learn_dynamics in this process "
+                          "(a reloaded network has no training state)")
+    cfg, system, grid = result.config, result.system, result.grid
+    progress = cfg.progress if progress is None else progress
+    points = cfg.refine_points if points is None else int(points)
+    st = dict(result._state)
+    comp, model = result.learned_components, result.model
+    t0 = time.perf_counter()
+    worst = _worst_nodes(system, result.network, grid, model, comp, points, cfg.eval_batch)
+    z = np.concatenate([st["z"], worst])
+    y = _target(system, model, comp, z)
+    zn = (z - st["centre"]) / st["radius"]
+    yn = (y - st["mu"]) / st["sigma"]
+    history = list(result.history)
+    blocks = []
+    rnd = result.rounds + 1
+    for k, block in enumerate(st["blocks"]):
+        theta = np.concatenate([np.ravel(a) for a in block])
+        total = cfg.lm_iterations + cfg.minimax_rounds * cfg.minimax_iterations
+        bar = _bar(total, progress, f"φ[{comp[k]}] refine {rnd}")
+        blocks.append(_polish(zn, yn[:, k], len(block[1]), cfg, theta, bar, history,
+                              f"φ[{comp[k]}] {system.name} round {rnd}", t0))
+        if bar is not None:
+            bar.close()
+    seconds = dict(result.seconds)
+    seconds["training"] = seconds.get("training", 0.0) + time.perf_counter() - t0
+    st.update(z=z, blocks=blocks)
+    return _finish(system, cfg, grid, model, comp, st, seconds, history, rnd)
+
+
+def _worst_nodes(system, network: Network, grid: Grid, model: str, comp: list[int], n: int,
+                 batch_size: int) -> np.ndarray:
+    """The ``n`` grid nodes with the largest ``|f_k − φ_k|`` for each component (union)."""
+    if n <= 0:
+        return np.zeros((0, grid.dim))
+    best_e = [np.zeros(0) for _ in comp]
+    best_i = [np.zeros(0, dtype=np.int64) for _ in comp]
+    start = 0
+    for z in grid.batches(batch_size):
+        e = np.abs(_target(system, model, comp, z) - network.numpy(z))
+        idx = np.arange(start, start + len(z))
+        start += len(z)
+        for k in range(len(comp)):
+            ek = np.concatenate([best_e[k], e[:, k]])
+            ik = np.concatenate([best_i[k], idx])
+            if len(ek) > n:  # a stable sort: ties keep grid order (deterministic)
+                keep = np.argsort(-ek, kind="stable")[:n]
+                ek, ik = ek[keep], ik[keep]
+            best_e[k], best_i[k] = ek, ik
+    return grid.points(np.unique(np.concatenate(best_i)))
 
 
 def _boundary_nodes(grid: Grid, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -636,14 +700,13 @@ def _boundary_nodes(grid: Grid, n: int, rng: np.random.Generator) -> np.ndarray:
     return np.stack([grid.axes[k][idx[:, k]] for k in range(grid.dim)], axis=1)
 
 
-def _train_component(zn, y, H, cfg, seed, deadline, progress, history, desc, t_start):
+def _train_component(zn, y, H, cfg: DynamicsConfig, seed, progress, history, desc, t_start):
     """Adam, then Levenberg–Marquardt, then minimax (Lawson) rounds, for one output."""
     import torch
 
-    total = int(cfg["steps"]) + int(cfg["lm_iterations"]) \
-        + int(cfg["minimax_rounds"]) * int(cfg["minimax_iterations"])
+    total = cfg.steps + cfg.lm_iterations + cfg.minimax_rounds * cfg.minimax_iterations
     bar = _bar(total, progress, desc)
-    dtype = torch.float32 if cfg["train_dtype"] == "float32" else torch.float64
+    dtype = torch.float32 if cfg.train_dtype == "float32" else torch.float64
     with torch.random.fork_rng(devices=[]):  # seeded init without touching the caller's RNG
         torch.manual_seed(seed)
         net = torch.nn.Sequential(torch.nn.Linear(zn.shape[1], H), torch.nn.Tanh(),
@@ -651,10 +714,9 @@ def _train_component(zn, y, H, cfg, seed, deadline, progress, history, desc, t_s
     Z = torch.as_tensor(zn, dtype=dtype)
     Y = torch.as_tensor(y[:, None], dtype=dtype)
     gen = torch.Generator().manual_seed(seed)
-    steps, bs = int(cfg["steps"]), min(int(cfg["batch_size"]), zn.shape[0])
-    lr0, lr1 = float(cfg["lr"]), float(cfg["lr_final"])
+    steps, bs = cfg.steps, min(cfg.batch_size, zn.shape[0])
+    lr0, lr1 = cfg.lr, cfg.lr_final
     opt = torch.optim.Adam(net.parameters(), lr=lr0)
-    out_of_time = False
     perm, pos = torch.randperm(Z.shape[0], generator=gen), 0
     for step in range(steps):
         for g in opt.param_groups:  # cosine schedule lr0 -> lr1
@@ -674,33 +736,32 @@ def _train_component(zn, y, H, cfg, seed, deadline, progress, history, desc, t_s
                             "loss": loss.item(), "seconds": time.perf_counter() - t_start})
             if bar is not None:
                 bar.set_postfix(stage="adam", loss=f"{loss.item():.2e}")
-        if time.perf_counter() > deadline:
-            out_of_time = True
-            break
     theta = np.concatenate([net[0].weight.detach().double().numpy().ravel(),
                             net[0].bias.detach().double().numpy(),
                             net[2].weight.detach().double().numpy().ravel(),
                             net[2].bias.detach().double().numpy()])
-    lm = _LevenbergMarquardt(zn, y, H, float(cfg["lm_ridge"]))
-    if not out_of_time:
-        theta, out_of_time = lm.run(theta, int(cfg["lm_iterations"]), None, deadline, bar,
-                                    history, desc, "lm", t_start)
+    out = _polish(zn, y, H, cfg, theta, bar, history, desc, t_start)
+    if bar is not None:
+        bar.close()
+    return out
+
+
+def _polish(zn, y, H, cfg: DynamicsConfig, theta, bar, history, desc, t_start):
+    """Levenberg–Marquardt, then Lawson minimax rounds; the weights with the least max error."""
+    lm = _LevenbergMarquardt(zn, y, H, cfg.lm_ridge)
+    theta = lm.run(theta, cfg.lm_iterations, None, bar, history, desc, "lm", t_start)
     weights = np.ones(zn.shape[0])
     best, best_err = theta, float(np.max(np.abs(lm.residual(theta))))
-    for r in range(int(cfg["minimax_rounds"])):
-        if out_of_time:
-            break
+    for r in range(cfg.minimax_rounds):
         res = np.abs(lm.residual(theta))  # Lawson: weight up where the error is large
         weights = np.clip(weights * res / max(np.mean(res), 1e-300), 1e-6, None)
         weights = np.clip(weights / np.mean(weights), 1e-4, 1e4)
-        theta, out_of_time = lm.run(theta, int(cfg["minimax_iterations"]), weights, deadline,
-                                    bar, history, desc, f"minimax{r}", t_start)
+        theta = lm.run(theta, cfg.minimax_iterations, weights, bar, history, desc,
+                       f"minimax{r}", t_start)
         err = float(np.max(np.abs(lm.residual(theta))))
         if err < best_err:  # Lawson rounds may oscillate: keep the best maximum error
             best, best_err = theta, err
-    if bar is not None:
-        bar.close()
-    return lm.unpack(best), out_of_time
+    return lm.unpack(best)
 
 
 class _LevenbergMarquardt:
@@ -727,7 +788,7 @@ class _LevenbergMarquardt:
     def residual(self, th):
         return self._forward(th)[1]
 
-    def run(self, th, iters, weights, deadline, bar, history, desc, stage, t_start):
+    def run(self, th, iters, weights, bar, history, desc, stage, t_start):
         from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
         N, H, d = self.Z.shape[0], self.H, self.d
@@ -777,9 +838,7 @@ class _LevenbergMarquardt:
             if not improved:
                 self.lam = 1e-3
                 break
-            if time.perf_counter() > deadline:
-                return th, True
-        return th, False
+        return th
 
 
 def _assemble(blocks, centre, radius, mu, sigma, prune: float = 0.0) -> Network:

@@ -40,6 +40,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from .determinism import deterministic_torch
+from .errors import ConfigError
 from .network import Layer, Network, dense_network, from_torch
 
 __all__ = ["TrainConfig", "LyapunovLearner", "sample_ball", "sample_sphere"]
@@ -47,7 +49,13 @@ __all__ = ["TrainConfig", "LyapunovLearner", "sample_ball", "sample_sphere"]
 
 @dataclass
 class TrainConfig:
-    """Settings of :class:`LyapunovLearner` (all have defaults)."""
+    """Settings of :class:`LyapunovLearner` (all have defaults).
+
+    Every budget is a count (``steps``); there is no wall-clock budget (PITFALLS P12). With
+    the same settings, seed and package versions, :meth:`LyapunovLearner.train` gives
+    bit-identical weights on any machine load: it runs with ``threads`` torch threads and
+    deterministic algorithms (:func:`nlyap_opt.determinism.deterministic_torch`).
+    """
 
     hidden: list[int] = field(default_factory=lambda: [6])
     features: int = 3          # outputs of N in V = ||N(x) - N(0)||² + eps||x||²
@@ -72,8 +80,9 @@ class TrainConfig:
     relative_decrease: bool = False  # divide the decrease hinge by ‖x‖²
     lr_schedule: str = "constant"  # or "cosine": lr → lr/100 over each train() call
     seed: int = 0
-    time_budget: float = 60.0
-    threads: int = 1           # torch threads; small batches run fastest single-threaded
+    threads: int = 1           # torch threads while training (set and restored): fixed, so
+    #                            that results do not depend on the machine; small batches
+    #                            run fastest single-threaded
 
 
 def _body_jacobian_at_zero(body, n: int):
@@ -127,7 +136,10 @@ class LyapunovLearner:
     def __init__(self, system, controller: Network | None, dynamics: Network | None,
                  config: TrainConfig, V: Network | None = None):
         self.system, self.config = system, config
-        torch.set_num_threads(config.threads)
+        if isinstance(config.threads, bool) or not isinstance(config.threads, int) \
+                or config.threads < 1:
+            raise ConfigError(f"TrainConfig.threads must be a positive integer, got "
+                              f"{config.threads!r}")
         torch.manual_seed(config.seed)
         self.rng = np.random.default_rng(config.seed)
         if V is None:
@@ -256,6 +268,9 @@ class LyapunovLearner:
               target_rates: np.ndarray | None = None) -> dict:
         """Run ``steps`` Adam steps; returns the last loss terms.
 
+        Runs with ``config.threads`` torch threads and deterministic algorithms (restored on
+        return): the weights after ``steps`` steps do not depend on the machine's load.
+
         ``inside_weight`` (per state, default 1) scales the pull of ``V ≤ 1`` (0 for
         states known not to converge). ``eta_pointwise`` adds ``η‖∇V(x)‖`` to the Lie
         derivative (the pointwise robust margin for learned dynamics). ``targets`` (per
@@ -273,8 +288,14 @@ class LyapunovLearner:
         CE = (torch.as_tensor(counterexamples, dtype=torch.float64)
               if counterexamples is not None and len(counterexamples) else None)
         steps = cfg.steps if steps is None else steps
+        with deterministic_torch(cfg.threads):
+            return self._train(X, W, S, T, R, CE, margin, steps, progress, eta_pointwise)
+
+    def _train(self, X, W, S, T, R, CE, margin, steps, progress, eta_pointwise) -> dict:
+        cfg = self.config
         t0 = time.perf_counter()
         info = {}
+        it = -1
         gen = torch.Generator().manual_seed(cfg.seed)
         if cfg.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"unknown lr_schedule {cfg.lr_schedule!r}; expected 'constant' or "
@@ -330,8 +351,6 @@ class LyapunovLearner:
                 info["fit"] = fit.item()
             if progress is not None and (it % 100 == 0 or it == steps - 1):
                 progress(it, info)
-            if time.perf_counter() - t0 > cfg.time_budget:
-                break
         info["steps"] = it + 1
         info["seconds"] = time.perf_counter() - t0
         return info

@@ -208,7 +208,18 @@ def test_controller_inside_U_is_accepted_and_outside_is_refused():
 
 
 def test_margin_is_rounded_up_and_checked():
-    assert margin(3.0, 0.1) >= 3.0 * 0.1
+    from fractions import Fraction
+
+    # 3 · 0.1 is not a float: the float product rounds to nearest (here below the exact
+    # value 3·fl(0.1)), the margin must be the next float up, strictly above it
+    exact = Fraction(3) * Fraction(0.1)
+    assert Fraction(3.0 * 0.1) < exact or Fraction(3.0 * 0.1) > exact
+    b = margin(3.0, 0.1)
+    assert b > 3.0 * 0.1 and Fraction(b) >= exact
+    assert b == np.nextafter(3.0 * 0.1, np.inf)
+    for M, eta in [(1.7, 3.3e-4), (123.456, 0.0123), (0.3, 0.7)]:
+        b = margin(M, eta)
+        assert Fraction(b) >= Fraction(M) * Fraction(eta) and b > M * eta
     assert margin(0.0, 1.0) >= 0.0
     with pytest.raises(ConfigError):
         margin(-1.0, 0.1)
@@ -252,4 +263,9 @@ def test_cli_config_file_and_errors(tmp_path, capsys):
     cfg.write_text(json.dumps({"grid_count": [31, 31]}))
     assert _cli(["learn-dynamics", "van_der_pol", "--config", str(cfg), "--out",
                  str(out)]) == 3
-    assert "unknown config keys" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "unknown dynamics config key 'grid_count'" in err and "grid_counts" in err
+    cfg.write_text(json.dumps({"time_budget": 10}))
+    assert _cli(["learn-dynamics", "van_der_pol", "--config", str(cfg), "--out",
+                 str(out)]) == 3
+    assert "steps" in capsys.readouterr().err

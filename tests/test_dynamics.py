@@ -16,7 +16,10 @@ from nlyap_opt.dynamics import (
     learn_dynamics,
     load_config,
     measure_alpha,
+    refine_dynamics,
 )
+from nlyap_opt.dynamics_config import PRESETS, DynamicsConfig, config_keys, dynamics_config
+from nlyap_opt.dynamics_stage import dynamics_stage, eta_limit_linear
 from nlyap_opt.errors import ConfigError, DimensionError, NetworkFileError
 from nlyap_opt.network import Network, dense_network
 from nlyap_opt.symbolic import learned_rhs
@@ -198,7 +201,7 @@ def test_corrupted_dynamics_files_are_refused(trained, tmp_path):
 def test_config_errors(tmp_path):
     p = tmp_path / "c.json"
     p.write_text(json.dumps({"hiden": 10}))
-    with pytest.raises(ConfigError, match="unknown config keys"):
+    with pytest.raises(ConfigError, match="'hiden' \\(did you mean 'hidden'\\?\\)"):
         load_config(p, "van_der_pol")
     p.write_text(json.dumps({"grid_counts": [11, 11, 11]}))
     cfg = load_config(p, "van_der_pol")
@@ -218,3 +221,168 @@ def test_config_file_grid_spacing_replaces_default_counts(tmp_path):
 
     g = make_grid(systems.get("van_der_pol"), cfg)
     assert g.counts.tolist() == [7, 13] and g.spacing.tolist() == [0.5, 0.25]
+
+
+# ----------------------------------------------------------------------------- one config
+@pytest.mark.parametrize("over, match", [
+    ({"hiden": 10}, r"'hiden' \(did you mean 'hidden'\?\)"),
+    ({"lm_iteration": 3}, r"did you mean 'lm_iterations'"),
+    ({"time_budget": 60.0}, r"'time_budget'.*counted in steps"),
+    ({"steps": -1}, r"'steps' must be an integer >= 0, got -1"),
+    ({"steps": 2.5}, r"'steps' must be an integer"),
+    ({"steps": True}, r"'steps' must be an integer"),
+    ({"hidden": 0}, r"'hidden' must be a positive integer"),
+    ({"hidden": [4, "a"]}, r"'hidden'"),
+    ({"lr": -0.1}, r"'lr' must be a finite number > 0"),
+    ({"lr": float("nan")}, r"'lr'"),
+    ({"model": "affine"}, r"'model' must be one of full, control_affine"),
+    ({"grid_counts": [61, 1]}, r"'grid_counts' must be a non-empty list of integers >= 2"),
+    ({"state_box": [[1.0, -1.0], [0, 1]]}, r"'state_box'"),
+    ({"eta_target": 0.0}, r"'eta_target' must be a finite number > 0"),
+    ({"bound_model": "tight"}, r"'bound_model'"),
+    ({"progress": "yes"}, r"'progress' must be true or false"),
+    ({"system": "unicycle_path_following"}, r"is for system 'unicycle_path_following'"),
+])
+def test_dynamics_config_rejects_bad_keys_types_and_ranges(over, match):
+    with pytest.raises(ConfigError, match=match) as err:
+        dynamics_config("van_der_pol", over)
+    assert "\n" not in str(err.value)  # one line
+
+
+def test_dynamics_config_presets_and_types():
+    d = dynamics_config("van_der_pol")
+    assert isinstance(d, DynamicsConfig) and d.preset == "default"
+    assert d.grid_counts == PRESETS["default"]["van_der_pol"]["grid_counts"]
+    f = dynamics_config("van_der_pol", {"preset": "fast", "grid_spacing": 0.1})
+    assert f.grid_counts is None and f.grid_spacing == 0.1  # spacing replaces the counts
+    assert f.steps == PRESETS["fast"]["van_der_pol"]["steps"]
+    # the dict form round-trips, every field has a type, unknown presets are refused
+    assert dynamics_config("van_der_pol", f.to_dict()) == f
+    assert set(config_keys()) == set(f.to_dict())
+    with pytest.raises(KeyError, match="unknown dynamics preset"):
+        dynamics_config("van_der_pol", {"preset": "slow"})
+    # no wall-clock key anywhere: budgets are counts
+    assert not any("time" in k for k in config_keys())
+    # the bound names the config accepts are the ones that exist
+    from nlyap_opt.bounds import BOUND_OPTIONS
+    from nlyap_opt.dynamics_config import _BOUND_NAMES
+
+    assert set(_BOUND_NAMES) == set(BOUND_OPTIONS)
+
+
+def test_dynamics_metadata_misuse_is_refused(trained):
+    """Unknown model, out-of-range or missing components, a wrong B: never the catalogue f."""
+    s = systems.get("inverted_pendulum")
+    good = trained["inverted_pendulum"].network.to_dict()
+    for meta, match in [
+        ({"model": "affine"}, "meta\\['model'\\]"),
+        ({"learned_components": [1, 7]}, "learned_components"),
+        ({"learned_components": [1, 1]}, "learned_components"),
+        ({"learned_components": ["a"]}, "list of ints"),
+    ]:
+        net = Network.from_dict(good)
+        net.meta.update(meta)
+        with pytest.raises(NetworkFileError, match=match):
+            check_dynamics_network(s, net)
+    # a network that learns only component 1 of a system where 0 is not declared known
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    other = systems.System("unknown_both", x, u, ca.vertcat(x[1], -x[0] + u),
+                           state_box=[[-1, 1], [-1, 1]], input_box=[[-1, 1]])
+    net = Network.from_dict(good)
+    with pytest.raises(NetworkFileError, match="does not declare state derivatives \\[0\\]"):
+        check_dynamics_network(other, net)
+    with pytest.raises(ConfigError, match="leaves out state derivatives \\[0\\]"):
+        learn_dynamics(other, {"preset": "fast", "learned_components": [1],
+                               "grid_counts": [5, 5, 3], "progress": False})
+    # control-affine: the input matrix must be present and be the system's
+    ca_net = Network.from_dict(good)
+    ca_net.layers[0].weight = ca_net.layers[0].weight[:, :2]
+    ca_net.meta["model"] = "control_affine"
+    with pytest.raises(NetworkFileError, match="no meta\\['input_matrix'\\]"):
+        check_dynamics_network(s, ca_net)
+    ca_net.meta["input_matrix"] = [[1.0]]
+    with pytest.raises(NetworkFileError, match="differs from the input matrix"):
+        check_dynamics_network(s, ca_net)
+    ca_net.meta["input_matrix"] = [[1.0, 2.0]]
+    with pytest.raises(NetworkFileError, match="finite 1x1"):
+        check_dynamics_network(s, ca_net)
+    ca_net.meta["input_matrix"] = s.B[[1]].tolist()
+    assert check_dynamics_network(s, ca_net) == ("control_affine", [1])
+
+
+# ----------------------------------------------------------------------------- refinement, gate
+def test_refinement_trains_on_the_worst_grid_nodes(trained):
+    res = trained["van_der_pol"]
+    new = refine_dynamics(res, points=30)
+    assert new.rounds == 1 and new.network.meta["refinement_rounds"] == 1
+    z_old, z_new = res._state["z"], new._state["z"]
+    assert np.array_equal(z_new[:len(z_old)], z_old) and len(z_new) > len(z_old)
+    added = z_new[len(z_old):]
+    # the node where α was attained is among the added ones, and every added node's error
+    # is at least the 30th largest error on the grid
+    assert np.any(np.all(added == res.alpha.argmax, axis=1))
+    nodes = np.concatenate(list(res.grid.batches()))
+    assert res.system.nu == 0 and nodes.shape[1] == 2  # Van der Pol: a grid over x only
+    err = np.abs(res.system.evaluate(nodes)[:, 1] - res.network.numpy(nodes)[:, 0])
+    kth = np.sort(err)[-30]
+    e_added = np.abs(res.system.evaluate(added)[:, 1] - res.network.numpy(added)[:, 0])
+    assert np.all(e_added >= kth)
+    # the original result is unchanged; α is measured again on the new network
+    assert res.rounds == 0
+    assert new.alpha.alpha == measure_alpha(res.system, new.network, new.grid).alpha
+
+
+TINY = {"preset": "fast", "hidden": 2, "steps": 30, "lm_iterations": 3, "minimax_rounds": 0,
+        "eta_target": 1e-3, "eta_rounds": 1, "refine_points": 50, "interval_boxes": 256,
+        "check_points": 1000, "progress": False}
+
+
+def test_hopeless_eta_stops_the_stage_with_advice():
+    s = systems.get("van_der_pol")
+    lines = []
+    st = dynamics_stage(s, TINY, log=lines.append)
+    assert st.status == "eta_too_large" and not st.ok
+    assert st.eta > 1e-3 and st.rounds == 1 and len(st.history) == 2
+    assert st.eta == min(h["eta"] for h in st.history)  # the best round is kept
+    adv = st.advice
+    assert "eta_target" in adv and "hidden" in adv and "state_box" in adv
+    z = st.alpha.argmax
+    assert f"x1 = {z[0]:.4g}" in adv and f"x2 = {z[1]:.4g}" in adv  # where the error peaks
+    assert any("refinement round 1/1" in ln for ln in lines)
+    assert "\n" not in adv
+    # without a target: no gate
+    ok = dynamics_stage(s, TINY | {"eta_target": None}, log=None)
+    assert ok.status == "ok" and ok.advice == "" and ok.rounds == 0
+    assert ok.eta == st.history[0]["eta"]  # the same first round, bit for bit
+
+
+def test_learn_dynamics_cli_exits_2_with_advice_on_a_hopeless_eta(tmp_path, capsys):
+    from nlyap_opt import cli
+
+    cfg = tmp_path / "tiny.json"
+    cfg.write_text(json.dumps({k: v for k, v in TINY.items() if k != "preset"}))
+    out = tmp_path / "o"
+    assert cli.main(["learn-dynamics", "van_der_pol", "--fast", "--config", str(cfg),
+                     "--out", str(out)]) == 2
+    assert "eta_too_large" in capsys.readouterr().err
+    gate = json.loads((out / "bounds.json").read_text())["gate"]
+    assert gate["status"] == "eta_too_large" and gate["eta_target"] == 1e-3
+    assert (out / "dynamics.json").exists()
+
+
+def test_eta_limit_linear_matches_the_closed_form():
+    # A = −a I: P = I / (2a), the limit is ε / (2 λmax P) = a ε
+    assert eta_limit_linear(-3.0 * np.eye(2), 0.2) == pytest.approx(0.6, rel=1e-12)
+    # a non-normal A: compare with the definition on the ring, by sampling
+    A = np.array([[0.0, -1.0], [1.0, -1.0]])  # reversed Van der Pol at the origin
+    lim = eta_limit_linear(A, 0.2)
+    from scipy.linalg import solve_continuous_lyapunov
+
+    P = solve_continuous_lyapunov(A.T, -np.eye(2))
+    th = np.linspace(0, 2 * np.pi, 2001)
+    x = 0.2 * np.stack([np.cos(th), np.sin(th)], axis=1)
+    grad = 2 * x @ P
+    # at η just below the limit the linearised robust decrease holds on the whole ring
+    assert np.all(-np.sum(x * x, axis=1) + 0.999 * lim * np.linalg.norm(grad, axis=1) < 0)
+    with pytest.raises(ConfigError, match="not Hurwitz"):
+        eta_limit_linear(np.eye(2), 0.2)

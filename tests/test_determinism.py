@@ -1,0 +1,117 @@
+"""Same config and seed, same artifacts: whatever the clock says and whatever else runs.
+
+PITFALLS P12: a wall-clock budget gave a different φ (and no certificate) on a loaded
+machine. Every training budget is now a count; these tests run the φ and the V/κ training
+twice, once with the clock running 100 times fast and a sleep injected into the training
+loop (what a loaded machine looks like to a timed loop), and require the saved network
+JSON to be identical, byte for byte.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+import torch
+
+import systems
+from baselines.lqr import lqr, saturated_controller
+from nlyap_opt import dynamics as dyn
+from nlyap_opt.determinism import deterministic_torch
+from nlyap_opt.dynamics import learn_dynamics
+from nlyap_opt.errors import ConfigError
+from nlyap_opt.learning import LyapunovLearner, TrainConfig, sample_ball, sample_sphere
+
+PHI = {"preset": "fast", "hidden": 8, "steps": 60, "lm_iterations": 8, "minimax_rounds": 1,
+       "minimax_iterations": 3, "progress": False}
+
+
+def _slow_machine(monkeypatch):
+    """A clock 100× fast and a sleep in every training step: any time budget would bite."""
+    t0 = {"perf_counter": time.perf_counter(), "time": time.time(),
+          "monotonic": time.monotonic()}
+    real = {k: getattr(time, k) for k in t0}
+    for name in t0:
+        def fast(name=name):
+            return t0[name] + 100.0 * (real[name]() - t0[name])
+        monkeypatch.setattr(time, name, fast)
+    step = torch.optim.Adam.step
+
+    def slow_step(self, *a, **k):
+        time.sleep(0.002)
+        return step(self, *a, **k)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", slow_step)
+    lm_run = dyn._LevenbergMarquardt.run
+
+    def slow_run(self, *a, **k):
+        time.sleep(0.05)
+        return lm_run(self, *a, **k)
+
+    monkeypatch.setattr(dyn._LevenbergMarquardt, "run", slow_run)
+    torch.set_num_threads(2)  # a caller with another thread setting
+
+
+def _phi_json():
+    res = learn_dynamics(systems.get("unicycle_path_following"), PHI)
+    return json.dumps(res.network.to_dict(), sort_keys=True)
+
+
+def test_phi_is_bit_identical_under_a_slow_clock(monkeypatch):
+    threads = torch.get_num_threads()
+    a = _phi_json()
+    assert torch.get_num_threads() == threads  # the thread setting is restored
+    with monkeypatch.context() as m:
+        _slow_machine(m)
+        assert time.perf_counter() - time.perf_counter() < 0  # the patch is live (fast clock)
+        b = _phi_json()
+        assert torch.get_num_threads() == 2
+    torch.set_num_threads(threads)
+    assert a == b
+
+
+def _train_V_kappa():
+    s = systems.get("inverted_pendulum")
+    ctrl = saturated_controller(s, lqr(s).K, 20.0)
+    cfg = TrainConfig(hidden=[6], features=3, steps=40, batch=256, seed=3, w_local=1.0)
+    L = LyapunovLearner(s, ctrl, None, cfg)
+    rng = np.random.default_rng(0)
+    X = sample_ball(2000, 2, 2.0, rng)
+    S = sample_sphere(200, 2, 2.0, rng)
+    info = L.train(X, S, 0.0)
+    assert info["steps"] == 40  # all steps ran: no clock can stop it early
+    V, k = L.export()
+    return json.dumps(V.to_dict(), sort_keys=True), json.dumps(k.to_dict(), sort_keys=True)
+
+
+def test_V_and_kappa_are_bit_identical_under_a_slow_clock(monkeypatch):
+    a = _train_V_kappa()
+    with monkeypatch.context() as m:
+        _slow_machine(m)
+        b = _train_V_kappa()
+    torch.set_num_threads(1)
+    assert a == b
+
+
+def test_no_time_budget_anywhere():
+    assert "time_budget" not in TrainConfig.__dataclass_fields__
+    with pytest.raises(TypeError):
+        TrainConfig(time_budget=1.0)
+    with pytest.raises(ConfigError, match="counted in steps"):
+        learn_dynamics(systems.get("van_der_pol"), {"preset": "fast", "time_budget": 1.0})
+
+
+def test_deterministic_torch_is_scoped_and_checked():
+    before = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled())
+    with deterministic_torch(1):
+        assert torch.get_num_threads() == 1 and torch.are_deterministic_algorithms_enabled()
+    assert (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()) == before
+    with pytest.raises(RuntimeError), deterministic_torch(1):
+        raise RuntimeError("boom")
+    assert (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()) == before
+    with pytest.raises(ConfigError), deterministic_torch(0):
+        pass
+    with pytest.raises(ConfigError, match="threads"):
+        LyapunovLearner(systems.get("van_der_pol"), None, None, TrainConfig(threads=0))

@@ -26,7 +26,9 @@ condition under which it is undefined, as an atom (``sqrt a``: ``a < 0``; ``log 
 ``|a| > 1``; ``log1p a``: ``a ≤ −1``; ``acosh a``: ``a < 1``; ``atanh a``: ``|a| ≥ 1``;
 ``atan2(a, b)``: ``a = b = 0``; ``a^e``: ``a = 0`` for a negative integer ``e``, ``a < 0``
 for a positive non-integer ``e``, ``a ≤ 0`` for a negative non-integer or non-constant
-``e``). These atoms are *violations*: the falsification formula is
+``e``). Two of these are stricter than ``nlyap_opt.walker.OP_TABLE``'s domains, which is
+conservative: ``atan2(0, 0)`` (0 by C's convention) and ``a^e`` with a non-constant ``e``
+(defined at ``a < 0`` for integer ``e``). These atoms are *violations*: the falsification formula is
 
 .. math:: x \in B \;\wedge\; g_i(x) \le 0\ \forall i \;\wedge\;
           \big(\exists j: p_j(x) \ge 0 \;\vee\; \exists k: \text{violation}_k(x)\big),
@@ -324,6 +326,7 @@ class FormulaArithmetic:
                                                 t.cmp("=", b, t.zero)), t.zero, t.one),
             ca.OP_COPYSIGN: lambda a, b: t.ite(t.cmp("<", b, t.zero), t.neg(fn("abs", a)),
                                                fn("abs", a)),
+            ca.OP_IF_ELSE_ZERO: lambda a, b: t.ite(t.cmp("=", a, t.zero), t.zero, b),
         }
 
     # ------------------------------------------------------------------ helpers

@@ -27,6 +27,7 @@ constants are read from ``instruction_constant`` (SX) or ``evalf`` (MX).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
@@ -34,7 +35,10 @@ import numpy as np
 
 from .errors import UnsupportedOperationError
 
-__all__ = ["ArrayArithmetic", "Program", "compile_function", "evaluate", "op_name", "NUMPY"]
+__all__ = [
+    "ArrayArithmetic", "Program", "compile_function", "evaluate", "op_name", "NUMPY", "OpInfo",
+    "OP_TABLE", "UNARY_OPS", "BINARY_OPS", "CHECKED_OPS",
+]
 
 OP_NAMES: dict[int, str] = {getattr(ca, a): a for a in dir(ca) if a.startswith("OP_")}
 
@@ -44,17 +48,77 @@ def op_name(op: int) -> str:
     return OP_NAMES.get(op, f"op#{op}")
 
 
-UNARY_OPS = {
-    ca.OP_NEG, ca.OP_SQ, ca.OP_TWICE, ca.OP_SQRT, ca.OP_EXP, ca.OP_LOG, ca.OP_SIN, ca.OP_COS,
-    ca.OP_TAN, ca.OP_TANH, ca.OP_ATAN, ca.OP_FABS, ca.OP_INV, ca.OP_ASSIGN, ca.OP_SINH,
-    ca.OP_COSH, ca.OP_SIGN, ca.OP_EXPM1, ca.OP_LOG1P, ca.OP_ASIN, ca.OP_ACOS, ca.OP_ERF,
-    ca.OP_FLOOR, ca.OP_CEIL, ca.OP_ASINH, ca.OP_ACOSH, ca.OP_ATANH, ca.OP_NOT,
-}
-BINARY_OPS = {
-    ca.OP_ADD, ca.OP_SUB, ca.OP_MUL, ca.OP_DIV, ca.OP_POW, ca.OP_CONSTPOW, ca.OP_FMIN,
-    ca.OP_FMAX, ca.OP_ATAN2, ca.OP_HYPOT, ca.OP_LT, ca.OP_LE, ca.OP_EQ, ca.OP_NE, ca.OP_AND,
-    ca.OP_OR, ca.OP_COPYSIGN, ca.OP_FMOD,
-}
+@dataclass(frozen=True)
+class OpInfo:
+    """What the verifier must know about one elementwise CasADi operation.
+
+    Attributes
+    ----------
+    name : str
+        ``OP_...`` name (``"OP_SIGN"``).
+    arity : int
+        1 or 2 (``OP_ATAN2`` is ``atan2(a, b)``, ``OP_IF_ELSE_ZERO`` is ``a ? b : 0``).
+    kind : {"smooth", "lipschitz", "discontinuous"}
+        ``"smooth"``: continuously differentiable on the interior of its domain;
+        ``"lipschitz"``: continuous with kinks (``fabs``, ``fmin``, ...), where CasADi's
+        derivative is a one-sided choice; ``"discontinuous"``: jumps (``sign``, ``floor``,
+        comparisons, ...), where CasADi's derivative is 0 across the jump. The mean-value
+        form of the interval verifier needs a derivative over the whole box: boxes where
+        a non-smooth operation's argument meets its kink or jump set use the natural
+        interval extension only.
+    domain : str or None
+        ``None`` for an operation defined on all reals, else the condition on the argument
+        (``x``; binary: ``x`` and ``y``) for which the real-valued operation is defined.
+        An expression is defined at a point when every operation of its graph is applied
+        inside its domain (CasADi's ``if_else`` evaluates both branches).
+    """
+
+    name: str
+    arity: int
+    kind: str
+    domain: str | None = None
+
+
+def _op_table() -> dict[int, OpInfo]:
+    S, L, D = "smooth", "lipschitz", "discontinuous"
+    rows = [
+        # unary
+        ("OP_ASSIGN", 1, S, None), ("OP_NEG", 1, S, None), ("OP_SQ", 1, S, None),
+        ("OP_TWICE", 1, S, None), ("OP_SQRT", 1, S, "x >= 0"), ("OP_EXP", 1, S, None),
+        ("OP_EXPM1", 1, S, None), ("OP_LOG", 1, S, "x > 0"), ("OP_LOG1P", 1, S, "x > -1"),
+        ("OP_SIN", 1, S, None), ("OP_COS", 1, S, None),
+        ("OP_TAN", 1, S, "x != pi/2 + k*pi"), ("OP_ASIN", 1, S, "-1 <= x <= 1"),
+        ("OP_ACOS", 1, S, "-1 <= x <= 1"), ("OP_ATAN", 1, S, None), ("OP_SINH", 1, S, None),
+        ("OP_COSH", 1, S, None), ("OP_TANH", 1, S, None), ("OP_ASINH", 1, S, None),
+        ("OP_ACOSH", 1, S, "x >= 1"), ("OP_ATANH", 1, S, "-1 < x < 1"),
+        ("OP_ERF", 1, S, None), ("OP_INV", 1, S, "x != 0"),
+        ("OP_FABS", 1, L, None), ("OP_SIGN", 1, D, None), ("OP_FLOOR", 1, D, None),
+        ("OP_CEIL", 1, D, None), ("OP_NOT", 1, D, None),
+        # binary
+        ("OP_ADD", 2, S, None), ("OP_SUB", 2, S, None), ("OP_MUL", 2, S, None),
+        ("OP_DIV", 2, S, "y != 0"),
+        ("OP_POW", 2, S, "x > 0, or x = 0 and y > 0, or y integer and (y >= 0 or x != 0)"),
+        ("OP_CONSTPOW", 2, S,
+         "x > 0, or x = 0 and y > 0, or y integer and (y >= 0 or x != 0)"),
+        ("OP_HYPOT", 2, L, None), ("OP_FMIN", 2, L, None), ("OP_FMAX", 2, L, None),
+        ("OP_ATAN2", 2, D, None),  # jumps by 2 pi across y = 0, x < 0
+        ("OP_LT", 2, D, None), ("OP_LE", 2, D, None), ("OP_EQ", 2, D, None),
+        ("OP_NE", 2, D, None), ("OP_AND", 2, D, None), ("OP_OR", 2, D, None),
+        ("OP_COPYSIGN", 2, D, None), ("OP_FMOD", 2, D, "y != 0"),
+        ("OP_IF_ELSE_ZERO", 2, D, None),
+    ]
+    return {getattr(ca, n): OpInfo(n, a, k, d) for n, a, k, d in rows}
+
+
+#: Every elementwise CasADi operation the walker supports (the one op table: the numpy,
+#: torch and interval arithmetics implement each of them, a test checks it).
+OP_TABLE: dict[int, OpInfo] = _op_table()
+#: Derived views of :data:`OP_TABLE` (operation codes by arity).
+UNARY_OPS = frozenset(op for op, info in OP_TABLE.items() if info.arity == 1)
+BINARY_OPS = frozenset(op for op, info in OP_TABLE.items() if info.arity == 2)
+#: Operations whose use must be checked on every box: not smooth, or not total.
+CHECKED_OPS = frozenset(op for op, info in OP_TABLE.items()
+                        if info.kind != "smooth" or info.domain is not None)
 
 
 # --------------------------------------------------------------------------- arithmetic
@@ -80,44 +144,64 @@ class ArrayArithmetic:
             xp = np
             self.asarray = lambda v: np.asarray(v, dtype=float)
             self._sum = lambda a, axis: np.sum(a, axis=axis)
-            atan, atan2 = np.arctan, np.arctan2
+            self._bool = lambda m: m.astype(float)
+            self._where = lambda m, a: np.where(m, a, 0.0)
+
+            def erf(a):
+                from scipy.special import erf as _erf
+
+                return _erf(a)
+            fn = {"atan": np.arctan, "atan2": np.arctan2, "asin": np.arcsin,
+                  "acos": np.arccos, "asinh": np.arcsinh, "acosh": np.arccosh,
+                  "atanh": np.arctanh, "erf": erf}
         elif lib == "torch":
             import torch
 
             xp = torch
             self.asarray = lambda v: torch.as_tensor(np.asarray(v, dtype=float))
             self._sum = lambda a, axis: torch.sum(a, dim=axis)
-            atan, atan2 = torch.atan, torch.atan2
+            self._bool = lambda m: m.to(torch.float64)
+            self._where = lambda m, a: torch.where(m, a, torch.zeros((), dtype=a.dtype))
+            fn = {"atan": torch.atan, "atan2": torch.atan2, "asin": torch.asin,
+                  "acos": torch.acos, "asinh": torch.asinh, "acosh": torch.acosh,
+                  "atanh": torch.atanh, "erf": torch.erf}
         else:
             raise ValueError(f"lib must be 'numpy' or 'torch', got {lib!r}")
         self.name = lib
         self.lib = xp
+        b = self._bool
         self._unary: dict[int, Callable] = {
             ca.OP_NEG: lambda a: -a,
             ca.OP_SQ: lambda a: a * a,
             ca.OP_TWICE: lambda a: a + a,
             ca.OP_SQRT: xp.sqrt, ca.OP_EXP: xp.exp, ca.OP_LOG: xp.log, ca.OP_SIN: xp.sin,
-            ca.OP_COS: xp.cos, ca.OP_TAN: xp.tan, ca.OP_TANH: xp.tanh, ca.OP_ATAN: atan,
+            ca.OP_COS: xp.cos, ca.OP_TAN: xp.tan, ca.OP_TANH: xp.tanh, ca.OP_ATAN: fn["atan"],
             ca.OP_FABS: xp.abs, ca.OP_INV: lambda a: 1.0 / a, ca.OP_ASSIGN: lambda a: a,
             ca.OP_SINH: xp.sinh, ca.OP_COSH: xp.cosh, ca.OP_SIGN: xp.sign,
-            ca.OP_EXPM1: xp.expm1, ca.OP_LOG1P: xp.log1p,
+            ca.OP_EXPM1: xp.expm1, ca.OP_LOG1P: xp.log1p, ca.OP_ASIN: fn["asin"],
+            ca.OP_ACOS: fn["acos"], ca.OP_ASINH: fn["asinh"], ca.OP_ACOSH: fn["acosh"],
+            ca.OP_ATANH: fn["atanh"], ca.OP_ERF: fn["erf"], ca.OP_FLOOR: xp.floor,
+            ca.OP_CEIL: xp.ceil, ca.OP_NOT: lambda a: b(a == 0),
         }
         self._binary: dict[int, Callable] = {
-            ca.OP_ADD: lambda a, b: a + b,
-            ca.OP_SUB: lambda a, b: a - b,
-            ca.OP_MUL: lambda a, b: a * b,
-            ca.OP_DIV: lambda a, b: a / b,
-            ca.OP_POW: lambda a, b: a**b,
-            ca.OP_CONSTPOW: lambda a, b: a**b,
-            ca.OP_FMIN: xp.fmin, ca.OP_FMAX: xp.fmax, ca.OP_ATAN2: atan2,
-            # comparisons give 0.0 / 1.0 (they appear in derivatives of relu / fmax)
-            ca.OP_LT: lambda a, b: self._bool(a < b),
-            ca.OP_LE: lambda a, b: self._bool(a <= b),
-            ca.OP_EQ: lambda a, b: self._bool(a == b),
-            ca.OP_NE: lambda a, b: self._bool(a != b),
+            ca.OP_ADD: lambda a, c: a + c,
+            ca.OP_SUB: lambda a, c: a - c,
+            ca.OP_MUL: lambda a, c: a * c,
+            ca.OP_DIV: lambda a, c: a / c,
+            ca.OP_POW: lambda a, c: a**c,
+            ca.OP_CONSTPOW: lambda a, c: a**c,
+            ca.OP_FMIN: xp.fmin, ca.OP_FMAX: xp.fmax, ca.OP_ATAN2: fn["atan2"],
+            ca.OP_HYPOT: xp.hypot, ca.OP_COPYSIGN: xp.copysign, ca.OP_FMOD: xp.fmod,
+            # comparisons and logic give 0.0 / 1.0 (they appear in derivatives of fmax)
+            ca.OP_LT: lambda a, c: b(a < c),
+            ca.OP_LE: lambda a, c: b(a <= c),
+            ca.OP_EQ: lambda a, c: b(a == c),
+            ca.OP_NE: lambda a, c: b(a != c),
+            ca.OP_AND: lambda a, c: b((a != 0) & (c != 0)),
+            ca.OP_OR: lambda a, c: b((a != 0) | (c != 0)),
+            # CasADi: c == 0 ? 0 : y (a NaN condition selects y)
+            ca.OP_IF_ELSE_ZERO: lambda a, c: self._where(a != 0, c),
         }
-        self._bool = ((lambda m: m.astype(float)) if lib == "numpy"
-                      else (lambda m: m.to(torch.float64)))
 
     def constant(self, value: np.ndarray) -> Any:
         """Return a constant (exact float64 value) as an array of this library."""
@@ -263,27 +347,79 @@ class Program:
         self.sp_out = [_Sp(fun.sparsity_out(i)) for i in range(self.n_out)]
         self.n_registers = fun.sz_w()
         self.ops: list[int] = []
+        #: True when some operation needs a per-box check (see :data:`CHECKED_OPS`): an
+        #: arithmetic with a ``check`` method is then told about it (steps built below)
+        self.checked = False
+        self._feeds = self._liveness()
         self.steps = self._compile_sx() if self.is_sx else self._compile_mx()
+
+    def _liveness(self) -> list[int] | None:
+        """Per instruction, the outputs it feeds (bit ``j``: output ``j``), or ``None``.
+
+        Backward liveness over the register file (registers are reused). Computed only
+        when the Function holds an operation of :data:`CHECKED_OPS` or a call.
+        """
+        f = self.fun
+        n = f.n_instructions()
+        ops = [f.instruction_id(k) for k in range(n)]
+        if not any(op in CHECKED_OPS or op == ca.OP_CALL for op in ops):
+            return None
+        live: dict[int, int] = {}
+        feeds = [0] * n
+        for k in range(n - 1, -1, -1):
+            op = ops[k]
+            i = f.instruction_input(k)
+            o = f.instruction_output(k)
+            if op == ca.OP_OUTPUT:
+                live[i[0]] = live.get(i[0], 0) | (1 << o[0])
+                continue
+            m = 0
+            for reg in o:
+                if reg >= 0:
+                    m |= live.pop(reg, 0)
+            feeds[k] = m
+            if op in (ca.OP_INPUT, ca.OP_CONST):
+                continue
+            for reg in i:
+                if reg >= 0:
+                    live[reg] = live.get(reg, 0) | m
+        return feeds
+
+    def _elementwise(self, k, op, o, ins, consts, base):
+        """Step of an elementwise op; a checked step where :data:`CHECKED_OPS` asks."""
+        if op in CHECKED_OPS and not _statically_safe(op, [consts.get(j) for j in ins]):
+            self.checked = True
+            m = self._feeds[k] if self._feeds is not None else -1
+            feeds = np.array([j for j in range(self.n_out) if (m >> j) & 1], dtype=np.intp)
+            return _checked(op, o, ins, feeds, base)
+        if len(ins) == 1:
+            return _unary(op, o, ins[0])
+        return _binary(op, o, ins[0], ins[1])
 
     # -- SX: every register a batch of scalars
     def _compile_sx(self):
         f = self.fun
         steps = []
+        consts: dict[int, np.ndarray] = {}  # registers holding a graph constant
         for k in range(f.n_instructions()):
             op = f.instruction_id(k)
             self.ops.append(op)
             i = f.instruction_input(k)
             o = f.instruction_output(k)
+            if op != ca.OP_OUTPUT:
+                consts.pop(o[0], None)
             if op == ca.OP_CONST:
-                steps.append(_sx_const(o[0], float(f.instruction_constant(k))))
+                val = float(f.instruction_constant(k))
+                consts[o[0]] = np.asarray(val)
+                steps.append(_sx_const(o[0], val))
             elif op == ca.OP_INPUT:
                 steps.append(_sx_input(o[0], i[0], i[1]))
             elif op == ca.OP_OUTPUT:
                 steps.append(_sx_output(o[0], o[1], i[0]))
             elif op in UNARY_OPS:
-                steps.append(_unary(op, o[0], i[0]))
+                steps.append(self._elementwise(k, op, o[0], [i[0]], consts, 0))
             elif op in BINARY_OPS:
-                steps.append(_binary(op, o[0], i[0], i[1]))
+                steps.append(self._elementwise(k, op, o[0], [i[0], i[1]], consts, 0))
             else:
                 raise UnsupportedOperationError(
                     f"SX operation {op_name(op)} in Function {f.name()!r} is not supported "
@@ -299,6 +435,7 @@ class Program:
         self.n_segments = [len(p) for p in prims]
         seen_out: dict[int, int] = {}
         zero_regs: set[int] = set()  # registers that hold an all-zero constant
+        consts: dict[int, np.ndarray] = {}  # registers holding a graph constant
         for k in range(f.n_instructions()):
             op = f.instruction_id(k)
             self.ops.append(op)
@@ -306,6 +443,8 @@ class Program:
             o = list(f.instruction_output(k))
             z_in = op == ca.OP_MTIMES and i[0] in zero_regs
             zero_regs.difference_update(o)
+            for reg in o:
+                consts.pop(reg, None)
             if op == ca.OP_OUTPUT:  # outputs may be written in several primitive segments
                 seg = seen_out.get(o[0], 0)
                 seen_out[o[0]] = seg + 1
@@ -316,15 +455,16 @@ class Program:
             if op == ca.OP_CONST:
                 val = np.array(ca.evalf(node), dtype=float).reshape(node.size1(), node.size2())
                 steps.append(_sx_const(o[0], val))
+                consts[o[0]] = val
                 if not val.any() and not np.signbit(val).any():  # +0.0 only
                     zero_regs.add(o[0])
             elif op == ca.OP_INPUT:
                 off = int(node.info().get("offset", 0))
                 steps.append(_mx_input(o[0], i[0], off, _Sp(node.sparsity())))
             elif op in UNARY_OPS:
-                steps.append(_unary(op, o[0], i[0]))
+                steps.append(self._elementwise(k, op, o[0], [i[0]], consts, 2))
             elif op in BINARY_OPS:
-                steps.append(_binary(op, o[0], i[0], i[1]))
+                steps.append(self._elementwise(k, op, o[0], [i[0], i[1]], consts, 2))
             elif op == ca.OP_MTIMES:
                 steps.append(_mx_mtimes(o[0], i[0], i[1], i[2], z_in))
             elif op == ca.OP_DOT:
@@ -363,7 +503,10 @@ class Program:
             elif op == ca.OP_CALL:
                 callee = node.which_function()
                 prog = compile_function(callee)
-                steps.append(_mx_call(prog, i, o))
+                self.checked = self.checked or prog.checked
+                m = self._feeds[k] if self._feeds is not None else -1
+                feeds = np.array([j for j in range(self.n_out) if (m >> j) & 1], dtype=np.intp)
+                steps.append(_mx_call(prog, i, o, feeds))
             else:
                 raise UnsupportedOperationError(
                     f"MX operation {op_name(op)} in Function {f.name()!r} is not supported by "
@@ -438,6 +581,52 @@ def _binary(op, o, a, b):
     return step
 
 
+def _checked(op, o, ins, feeds, base):
+    """Elementwise step that reports its arguments and result to ``arith.check``.
+
+    ``feeds``: the outputs of the Function this instruction feeds; ``base``: the number
+    of trailing (non-batch) dimensions of a register (0 in SX, 2 in MX programs).
+    """
+    unary = len(ins) == 1
+    a = ins[0]
+    b = ins[-1]
+
+    def step(r, ctx):
+        ar = ctx[0]
+        args = (r[a],) if unary else (r[a], r[b])
+        y = ar.unary(op, args[0]) if unary else ar.binary(op, args[0], args[1])
+        chk = getattr(ar, "check", None)
+        if chk is not None:
+            chk(op, feeds, base, args, y)
+        r[o] = y
+    return step
+
+
+def _statically_safe(op: int, consts: list) -> bool:
+    """A checked operation whose constant arguments make it smooth and defined everywhere.
+
+    ``consts[i]`` is the value of argument ``i`` when it is a graph constant, else ``None``.
+    """
+    info = OP_TABLE[op]
+    if info.kind != "smooth" and any(c is None for c in consts):
+        return False  # a varying argument may cross a kink or a jump
+    if info.domain is None:
+        return True
+    with np.errstate(all="ignore"):
+        if op in (ca.OP_DIV, ca.OP_FMOD):
+            y = consts[1]
+            return y is not None and bool(np.all(np.isfinite(y) & (y != 0)))
+        if op in (ca.OP_POW, ca.OP_CONSTPOW):
+            x, y = consts
+            if y is not None and bool(np.all((np.floor(y) == y) & (y >= 0) & np.isfinite(y))):
+                return True
+            return x is not None and bool(np.all((x > 0) & np.isfinite(x)))
+        if op == ca.OP_INV:
+            x = consts[0]
+            return x is not None and bool(np.all(np.isfinite(x) & (x != 0)))
+    return False
+
+
 def _mx_input(o, ind, off, sp):
     whole = off == 0
 
@@ -478,10 +667,13 @@ def _mx_dot(o, a, b):
     def step(r, ctx):
         ar = ctx[0]
         if a == b:
-            prod = ar.unary(ca.OP_SQ, r[a])
+            total = ar.sum(ar.unary(ca.OP_SQ, r[a]), (-2, -1))
+            nonneg = getattr(ar, "nonneg", None)  # a sum of squares is >= 0 (e.g. under sqrt)
+            if nonneg is not None:
+                total = nonneg(total)
         else:
-            prod = ar.binary(ca.OP_MUL, r[a], r[b])
-        r[o] = ar.structural(lambda v: v[..., None, None], ar.sum(prod, (-2, -1)))
+            total = ar.sum(ar.binary(ca.OP_MUL, r[a], r[b]), (-2, -1))
+        r[o] = ar.structural(lambda v: v[..., None, None], total)
     return step
 
 
@@ -567,11 +759,19 @@ def _mx_setnz(o, y, x, nz, add, sp_out, sp_x):
     return step
 
 
-def _mx_call(prog: Program, ins, outs):
+def _mx_call(prog: Program, ins, outs, feeds):
     def step(r, ctx):
         ar = ctx[0]
         args = [prog.sp_in[j].to_nz(ar, r[ins[j]]) for j in range(prog.n_in)]
-        res = prog(args, ar)
+        enter = getattr(ar, "enter_call", None) if prog.checked else None
+        if enter is None:
+            res = prog(args, ar)
+        else:  # checks inside the callee are attributed to this call's outputs
+            token = enter(feeds)
+            try:
+                res = prog(args, ar)
+            finally:
+                ar.exit_call(token)
         for j, reg in enumerate(outs):
             if reg >= 0:
                 r[reg] = prog.sp_out[j].from_nz(ar, res[j])

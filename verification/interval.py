@@ -61,7 +61,7 @@ import numpy as np
 
 from nlyap_opt.errors import UnsupportedOperationError
 
-__all__ = ["Interval", "IntervalArithmetic"]
+__all__ = ["Interval", "IntervalArithmetic", "CheckedIntervalArithmetic"]
 
 _INF = np.inf
 _MAX = float(np.finfo(np.float64).max)
@@ -126,6 +126,31 @@ def _up_w(y):
         t += _ETA_W
         return np.maximum(t, -_MAX, out=t)
     return np.maximum(np.maximum(t, r) + _ETA_W, -_MAX)
+
+
+def _dn_s(y):
+    """Lower bound of the real sum or difference of two floats that gave ``y``.
+
+    As :func:`_dn` without the absolute ``2**-1074``: a sum that is zero or subnormal is
+    exact (both operands are multiples of ``2**-1074``), so ``0 + 0`` stays ``[0, 0]``
+    (``x² + y²`` keeps a lower bound of 0, as a square root's domain check needs).
+    """
+    t = y * _R1_LO
+    r = y * _R1_HI
+    if type(t) is np.ndarray:
+        np.minimum(t, r, out=t)
+        return np.minimum(t, _MAX, out=t)
+    return np.minimum(np.minimum(t, r), _MAX)
+
+
+def _up_s(y):
+    """Upper bound of the real sum or difference of two floats that gave ``y``."""
+    t = y * _R1_LO
+    r = y * _R1_HI
+    if type(t) is np.ndarray:
+        np.maximum(t, r, out=t)
+        return np.maximum(t, -_MAX, out=t)
+    return np.maximum(np.maximum(t, r), -_MAX)
 
 
 def _guard(lo, hi):
@@ -266,15 +291,15 @@ def _bshape(*arrays):
 def _add(al, ah, bl, bh):
     if al is ah and bl is bh:  # (a user-built degenerate interval may hold inf - inf)
         s = al + bl
-        return _guard(_dn(s), _up(s))
-    return _dn(al + bl), _up(ah + bh)  # no NaN: lo < +inf and hi > -inf
+        return _guard(_dn_s(s), _up_s(s))
+    return _dn_s(al + bl), _up_s(ah + bh)  # no NaN: lo < +inf and hi > -inf
 
 
 def _sub(al, ah, bl, bh):
     if al is ah and bl is bh:
         s = al - bl
-        return _guard(_dn(s), _up(s))
-    return _dn(al - bh), _up(ah - bl)
+        return _guard(_dn_s(s), _up_s(s))
+    return _dn_s(al - bh), _up_s(ah - bl)
 
 
 def _mul(al, ah, bl, bh):
@@ -1064,6 +1089,27 @@ class IntervalArithmetic:
         return _iv(fn(*los), fn(*[x.hi for x in args]))
 
     @staticmethod
+    def nonneg(a: Interval) -> Interval:
+        """``a`` with its lower bound raised to 0, for a value known to be ``>= 0``.
+
+        The walker uses it for sums of squares (``dot(v, v)``), whose rigorous summation
+        bound may dip below 0 (a square root's domain check then fails).
+
+        Parameters
+        ----------
+        a : Interval
+
+        Returns
+        -------
+        Interval
+        """
+        a = _as_interval(a)
+        if a.lo is a.hi:
+            v = np.maximum(a.lo, 0.0)
+            return Interval(v, v)
+        return _iv(np.maximum(a.lo, 0.0), np.maximum(a.hi, 0.0))
+
+    @staticmethod
     def intersect(a: Interval, b: Interval) -> Interval:
         """Elementwise intersection (empty where ``lo > hi``).
 
@@ -1156,3 +1202,231 @@ def _mm(a, b):
         r, k = a.shape[-2:]
         return (a.reshape(-1, k) @ b).reshape(a.shape[:-2] + (r, b.shape[1]))
     return a @ b
+
+
+# --------------------------------------------------------------------------- checked walk
+# Per-operation predicates over interval arguments, vectorised over boxes. ``_JUMPS[op]``:
+# the argument may meet the operation's kink or jump set (the operation is not known to be
+# smooth on the box); ``_DOMAINS[op]``: (certainly inside the domain, certainly outside).
+# Every non-smooth / partial operation of ``nlyap_opt.walker.OP_TABLE`` has an entry (a
+# test checks it). Interval enclosures are outward, so "certainly" is rigorous.
+def _result_varies(args, res):
+    """Piecewise-constant operations: constant on the box iff the enclosure is a point."""
+    return res[0] != res[1]
+
+
+def _jump_if_else_zero(args, res):
+    t, p = _truth(*args[0])  # the condition may be zero and may be nonzero
+    return p & ~t
+
+
+def _jump_fabs(args, res):
+    lo, hi = args[0]
+    return (lo < 0.0) & (hi > 0.0)
+
+
+def _jump_minmax(args, res):
+    (al, ah), (bl, bh) = args
+    return (al < bh) & (bl < ah)  # a = b somewhere inside (touching ends: one branch)
+
+
+def _jump_hypot(args, res):
+    (al, ah), (bl, bh) = args
+    return (al <= 0.0) & (ah >= 0.0) & (bl <= 0.0) & (bh >= 0.0)
+
+
+def _jump_copysign(args, res):
+    (xl, xh), (yl, yh) = args
+    return ((yl <= 0.0) & (yh >= 0.0)) | ((xl < 0.0) & (xh > 0.0))
+
+
+def _jump_atan2(args, res):
+    (yl, yh), (xl, xh) = args  # cut y = 0, x <= 0 (and the origin)
+    return (yl <= 0.0) & (yh >= 0.0) & (xl <= 0.0)
+
+
+def _jump_fmod(args, res):
+    """``fmod(x, y) = x - trunc(x/y) y`` jumps where ``x/y`` crosses a nonzero integer."""
+    (xl, xh), (yl, yh) = args
+    ql, qh = _div(xl, xh, yl, yh)  # outward enclosure of x / y (infinite if 0 in y)
+    fl, fh = np.floor(ql), np.floor(qh)
+    cl, ch = np.ceil(ql), np.ceil(qh)
+    smooth = (((ql > -1.0) & (qh < 1.0)) | ((ql >= 0.0) & (fl == fh))
+              | ((qh <= 0.0) & (cl == ch)))
+    return ~smooth
+
+
+def _dom_interval(lo_ok, lo_strict, hi_ok, hi_strict):
+    """Domain ``(a, b)`` / ``[a, b]`` predicates for monotone range tests."""
+    def pred(args):
+        lo, hi = args[0]
+        ok = np.ones(np.shape(lo), bool)
+        out = np.zeros(np.shape(lo), bool)
+        if lo_ok is not None:
+            ok &= (lo > lo_ok) if lo_strict else (lo >= lo_ok)
+            out |= (hi <= lo_ok) if lo_strict else (hi < lo_ok)
+        if hi_ok is not None:
+            ok &= (hi < hi_ok) if hi_strict else (hi <= hi_ok)
+            out |= (lo >= hi_ok) if hi_strict else (lo > hi_ok)
+        return ok, out
+    return pred
+
+
+def _dom_nonzero(lo, hi):
+    return (lo > 0.0) | (hi < 0.0), (lo == 0.0) & (hi == 0.0)
+
+
+def _dom_tan(args):
+    lo, hi = args[0]
+    pole = _period_index(hi, _PIO2, False) >= _period_index(lo, _PIO2, True)
+    # a point (lo = hi) is a float, never a pole pi/2 + k pi
+    return ~pole | (lo == hi), np.zeros(np.shape(lo), bool)
+
+
+def _dom_pow(args):
+    """``x**y``: ``x > 0``; ``x = 0, y > 0``; ``y`` integer and (``y >= 0`` or ``x != 0``)."""
+    (xl, xh), (yl, yh) = args
+    y_int = (yl == yh) & _is_int(yl)
+    x_nonzero = (xl > 0.0) | (xh < 0.0)
+    ok = (xl > 0.0) | ((xl >= 0.0) & (yl > 0.0)) | (y_int & ((yl >= 0.0) | x_nonzero))
+    no_int = np.floor(yh) < np.ceil(yl)  # no integer exponent in [yl, yh]
+    x_zero = (xl == 0.0) & (xh == 0.0)
+    out = ((xh < 0.0) & no_int) | (x_zero & (yh < 0.0))
+    return ok, out
+
+
+_JUMPS: dict[int, Callable] = {
+    **{op: _result_varies for op in (
+        ca.OP_SIGN, ca.OP_FLOOR, ca.OP_CEIL, ca.OP_NOT, ca.OP_LT, ca.OP_LE, ca.OP_EQ,
+        ca.OP_NE, ca.OP_AND, ca.OP_OR)},
+    ca.OP_IF_ELSE_ZERO: _jump_if_else_zero,
+    ca.OP_FABS: _jump_fabs,
+    ca.OP_FMIN: _jump_minmax,
+    ca.OP_FMAX: _jump_minmax,
+    ca.OP_HYPOT: _jump_hypot,
+    ca.OP_COPYSIGN: _jump_copysign,
+    ca.OP_ATAN2: _jump_atan2,
+    ca.OP_FMOD: _jump_fmod,
+}
+
+_DOMAINS: dict[int, Callable] = {
+    ca.OP_SQRT: _dom_interval(0.0, False, None, False),
+    ca.OP_LOG: _dom_interval(0.0, True, None, False),
+    ca.OP_LOG1P: _dom_interval(-1.0, True, None, False),
+    ca.OP_ASIN: _dom_interval(-1.0, False, 1.0, False),
+    ca.OP_ACOS: _dom_interval(-1.0, False, 1.0, False),
+    ca.OP_ACOSH: _dom_interval(1.0, False, None, False),
+    ca.OP_ATANH: _dom_interval(-1.0, True, 1.0, True),
+    ca.OP_INV: lambda args: _dom_nonzero(*args[0]),
+    ca.OP_DIV: lambda args: _dom_nonzero(*args[1]),
+    ca.OP_FMOD: lambda args: _dom_nonzero(*args[1]),
+    ca.OP_TAN: _dom_tan,
+    ca.OP_POW: _dom_pow,
+    ca.OP_CONSTPOW: _dom_pow,
+}
+
+
+class CheckedIntervalArithmetic(IntervalArithmetic):
+    """Interval arithmetic that also records, per box and per output, the checks of P9/P10.
+
+    Evaluating a walker ``Program`` whose ``checked`` flag is set calls :meth:`check` after
+    every operation of ``nlyap_opt.walker.CHECKED_OPS`` (non-smooth or partial), with the
+    outputs of the Function that operation feeds. For ``n_boxes`` boxes (inputs of shape
+    ``(n_boxes, n)``) and ``n_outputs`` outputs it fills boolean arrays of shape
+    ``(n_boxes, n_outputs)``:
+
+    - ``jump``: some non-smooth operation feeding the output may meet its kink or jump set
+      on the box (the mean-value form must not be used for that output);
+    - ``maybe_undefined``: some partial operation feeding it is not proved inside its
+      domain on the box (the enclosure of that output then covers only its defined
+      points: it proves nothing);
+    - ``undefined``: some partial operation feeding it is certainly outside its domain on
+      the whole box; ``undefined_op`` holds that operation's code (``-1``: none).
+
+    Values and enclosures are those of :class:`IntervalArithmetic`. One instance serves one
+    walk; instances compare equal so that the walker's constant cache is shared.
+
+    Parameters
+    ----------
+    n_boxes : int
+    n_outputs : int
+    """
+
+    def __init__(self, n_boxes: int, n_outputs: int):
+        self.n_boxes = int(n_boxes)
+        shape = (self.n_boxes, int(n_outputs))
+        self.jump = np.zeros(shape, bool)
+        self.maybe_undefined = np.zeros(shape, bool)
+        self.undefined = np.zeros(shape, bool)
+        self.undefined_op = np.full(shape, -1, dtype=np.int32)
+        self._override = None
+
+    def __hash__(self) -> int:
+        return hash(CheckedIntervalArithmetic)
+
+    def __eq__(self, other) -> bool:
+        return type(other) is CheckedIntervalArithmetic
+
+    def _per_box(self, mask, base: int) -> np.ndarray:
+        """Reduce an elementwise mask to one flag per box (constants: any, for all boxes)."""
+        mask = np.asarray(mask, dtype=bool)
+        B = self.n_boxes
+        if mask.ndim > base:
+            m = mask if mask.ndim == 1 else mask.reshape(mask.shape[0], -1).any(axis=1)
+            if m.shape[0] == B:
+                return m
+            if m.shape[0] == 1:
+                return np.broadcast_to(m, (B,))
+        return np.full(B, bool(mask.any()))
+
+    def enter_call(self, feeds) -> bool:
+        """Attribute checks inside a called Function to the caller's ``feeds``."""
+        if self._override is None:
+            self._override = feeds
+            return True
+        return False
+
+    def exit_call(self, token: bool) -> None:
+        """Undo :meth:`enter_call` (``token``: its return value)."""
+        if token:
+            self._override = None
+
+    def check(self, op: int, feeds, base: int, args, res: Interval) -> None:
+        """Record the kink/jump and domain status of one operation on every box.
+
+        Parameters
+        ----------
+        op : int
+            CasADi operation code (in ``CHECKED_OPS``).
+        feeds : ndarray of int
+            Outputs of the evaluated Function that this operation feeds.
+        base : int
+            Trailing non-batch dimensions of a register (0 in SX, 2 in MX programs).
+        args : tuple of Interval
+            The operation's arguments.
+        res : Interval
+            Its result.
+        """
+        if self._override is not None:
+            feeds = self._override
+        if not len(feeds):
+            return
+        bounds = [(a.lo, a.hi) for a in map(_as_interval, args)]
+        with np.errstate(all="ignore"):
+            jump = _JUMPS.get(op)
+            if jump is not None:
+                m = self._per_box(jump(bounds, (res.lo, res.hi)), base)
+                if m.any():
+                    self.jump[:, feeds] |= m[:, None]
+            dom = _DOMAINS.get(op)
+            if dom is not None:
+                ok, out = dom(bounds)
+                maybe = self._per_box(~ok, base)
+                if maybe.any():
+                    self.maybe_undefined[:, feeds] |= maybe[:, None]
+                    sure = self._per_box(out, base)
+                    if sure.any():
+                        cols = self.undefined_op[:, feeds]
+                        new = sure[:, None] & (cols < 0)
+                        self.undefined_op[:, feeds] = np.where(new, op, cols)
+                        self.undefined[:, feeds] |= sure[:, None]

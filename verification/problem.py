@@ -21,7 +21,8 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from nlyap_opt.errors import DimensionError
+from nlyap_opt.errors import DimensionError, UnsupportedOperationError
+from nlyap_opt.walker import compile_function
 
 __all__ = [
     "VerificationProblem", "VerificationResult", "Counterexample", "lyapunov_problem",
@@ -86,6 +87,28 @@ class VerificationProblem:
         self.function_jacobian = ca.Function("FJ", [self.x], [F, J])
         self.constraints = list(self.constraints)
         self.properties = list(self.properties)
+        self._build_checked(exprs, J)
+
+    def _build_checked(self, exprs, J) -> None:
+        """Functions with one output per constraint/property, where the graph needs checks.
+
+        When ``F`` holds a non-smooth or partial operation (``nlyap_opt.walker.CHECKED_OPS``,
+        not made harmless by constant arguments), the interval verifier evaluates
+        ``function_checked`` (outputs ``g_0, …, g_{m-1}, p_0, …, p_{k-1}``) and
+        ``function_jacobian_checked`` (the same and ``J``) with
+        :class:`~verification.interval.CheckedIntervalArithmetic`, which tells per box and
+        per output whether a kink/jump may lie inside (no mean-value form) and whether every
+        operation is proved inside its domain. ``checked`` is False (and both are ``None``)
+        otherwise: the verifier then runs its plain, faster path.
+        """
+        try:
+            self.checked = compile_function(self.function_jacobian).checked
+        except UnsupportedOperationError:  # the interval backend reports it when it runs
+            self.checked = False
+        self.function_checked = self.function_jacobian_checked = None
+        if self.checked:
+            self.function_checked = ca.Function("F_checked", [self.x], exprs)
+            self.function_jacobian_checked = ca.Function("FJ_checked", [self.x], exprs + [J])
 
     @property
     def n(self) -> int:
@@ -99,6 +122,11 @@ class VerificationProblem:
     def __getstate__(self):  # casadi Functions serialise; MX expressions are rebuilt
         return {"function": self.function.serialize(), "jacobian": self.jacobian.serialize(),
                 "function_jacobian": self.function_jacobian.serialize(),
+                "checked": self.checked,
+                "function_checked": None if self.function_checked is None
+                else self.function_checked.serialize(),
+                "function_jacobian_checked": None if self.function_jacobian_checked is None
+                else self.function_jacobian_checked.serialize(),
                 "box": self.box, "n_constraints": self.n_constraints,
                 "n_properties": self.n_properties,
                 "constraint_names": self.constraint_names,
@@ -108,6 +136,12 @@ class VerificationProblem:
         self.function = ca.Function.deserialize(st["function"])
         self.jacobian = ca.Function.deserialize(st["jacobian"])
         self.function_jacobian = ca.Function.deserialize(st["function_jacobian"])
+        self.checked = st["checked"]
+        self.function_checked = self.function_jacobian_checked = None
+        if self.checked:
+            self.function_checked = ca.Function.deserialize(st["function_checked"])
+            self.function_jacobian_checked = ca.Function.deserialize(
+                st["function_jacobian_checked"])
         self.box = st["box"]
         self.n_constraints = st["n_constraints"]
         self.n_properties = st["n_properties"]

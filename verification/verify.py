@@ -25,9 +25,9 @@ from concurrent.futures import Executor
 import casadi as ca
 import numpy as np
 
-from nlyap_opt.walker import NUMPY, compile_function, evaluate
+from nlyap_opt.walker import NUMPY, compile_function, evaluate, op_name
 
-from .interval import Interval, IntervalArithmetic
+from .interval import CheckedIntervalArithmetic, Interval, IntervalArithmetic
 from .problem import Counterexample, VerificationProblem, VerificationResult
 
 __all__ = ["verify_interval", "split_box", "confirm_points"]
@@ -86,6 +86,45 @@ def _point_enclosure(problem: VerificationProblem, pts: np.ndarray) -> Interval:
     return evaluate(problem.function, [Interval(pts, pts.copy())], _IA)[0]
 
 
+def _columns(outs, B: int) -> Interval:
+    """``(B, K)`` enclosure from ``K`` scalar outputs (each ``(B, 1)``, or constant)."""
+    def col(a):
+        a = a.reshape(-1, 1) if a.ndim < 2 else a
+        return np.broadcast_to(a, (B, 1))
+    return Interval(np.concatenate([col(o.lo) for o in outs], axis=1),
+                    np.concatenate([col(o.hi) for o in outs], axis=1))
+
+
+def _checked_eval(problem: VerificationProblem, lo: np.ndarray, hi: np.ndarray,
+                  jacobian: bool):
+    """Checked walk over boxes: ``(F enclosure (B, K), J or None, checks)``."""
+    B = len(lo)
+    K = problem.n_constraints + problem.n_properties
+    fun = problem.function_jacobian_checked if jacobian else problem.function_checked
+    ar = CheckedIntervalArithmetic(B, K + (1 if jacobian else 0))
+    outs = evaluate(fun, [Interval(lo, hi)], ar)
+    return _columns(outs[:K], B), (outs[K] if jacobian else None), _Checks(ar, K)
+
+
+class _Checks:
+    """Per box and per constraint/property column: jump, maybe/surely undefined, op."""
+
+    __slots__ = ("jump", "maybe", "sure", "op")
+
+    def __init__(self, ar=None, K: int = 0, parts=None):
+        if parts is not None:
+            self.jump, self.maybe, self.sure, self.op = parts
+            return
+        self.jump = ar.jump[:, :K]
+        self.maybe = ar.maybe_undefined[:, :K]
+        self.sure = ar.undefined[:, :K]
+        self.op = ar.undefined_op[:, :K]
+
+    def __getitem__(self, rows) -> _Checks:
+        return _Checks(parts=(self.jump[rows], self.maybe[rows], self.sure[rows],
+                              self.op[rows]))
+
+
 def confirm_points(problem: VerificationProblem, pts: np.ndarray) -> list[Counterexample]:
     """Rigorously check candidate points; return the confirmed counterexamples.
 
@@ -99,20 +138,42 @@ def confirm_points(problem: VerificationProblem, pts: np.ndarray) -> list[Counte
     pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
     if not len(pts):
         return []
+    if problem.checked:
+        enc, _, checks = _checked_eval(problem, pts, pts.copy(), jacobian=False)
+        return _confirmed(problem, pts, enc, checks)
     enc = _point_enclosure(problem, pts)
     return _confirmed(problem, pts, enc)
 
 
-def _confirmed(problem, pts, enc) -> list[Counterexample]:
+def _confirmed(problem, pts, enc, checks: _Checks | None = None) -> list[Counterexample]:
+    """Confirmed counterexamples among points with rigorous enclosures ``enc`` there.
+
+    With ``checks`` (graphs with partial operations): a point is in the region only if
+    every constraint is proved defined there; a property counts only where it is proved
+    defined; a property certainly undefined at a point of the region (some operation
+    certainly outside its domain) is reported as ``"domain of OP_..."``, with the value
+    ``+inf``.
+    """
     m = problem.n_constraints
     inside = np.all(enc.hi[:, :m] <= 0, axis=1) if m else np.ones(len(pts), bool)
     viol = enc.lo[:, m:] >= 0
-    rows = np.nonzero(inside & viol.any(axis=1))[0]
+    undefined = np.zeros_like(viol)
+    if checks is not None:
+        inside &= ~checks.maybe[:, :m].any(axis=1)
+        viol &= ~checks.maybe[:, m:]
+        undefined = checks.sure[:, m:]
+    rows = np.nonzero(inside & (viol.any(axis=1) | undefined.any(axis=1)))[0]
     out = []
     for r in rows:
-        j = int(np.argmax(np.where(viol[r], enc.lo[r, m:], -np.inf)))
-        out.append(Counterexample(pts[r].copy(), problem.property_names[j],
-                                  float(enc.lo[r, m + j]), float(enc.hi[r, m + j])))
+        if viol[r].any():
+            j = int(np.argmax(np.where(viol[r], enc.lo[r, m:], -np.inf)))
+            out.append(Counterexample(pts[r].copy(), problem.property_names[j],
+                                      float(enc.lo[r, m + j]), float(enc.hi[r, m + j])))
+        else:
+            j = int(np.argmax(undefined[r]))
+            op = int(checks.op[r, m + j])
+            out.append(Counterexample(pts[r].copy(), f"domain of {op_name(op)}", np.inf,
+                                      np.inf))
     out.sort(key=lambda c: -c.value_lower)
     return out
 
@@ -159,19 +220,34 @@ def _float_score(F, m):
 
 
 def _enclose(problem, lo, hi, mean_value: bool):
-    """Enclosures of F on boxes, F at the centres (rigorous) and the interval Jacobian.
+    """Enclosures of F on boxes, F at the centres (rigorous), the interval Jacobian, checks.
 
     The boxes go through the fused ``(F, J)`` Function (shared subexpressions), the centres
-    through ``F`` alone: two walker passes per round.
+    through ``F`` alone: two walker passes per round. For a problem with ``checked``
+    Functions (non-smooth or partial operations) the walks also return per box and column
+    the jump and domain flags (``None`` otherwise); a column whose box may hold a kink or
+    jump of an operation feeding it, or an operation not proved inside its domain, keeps
+    the natural extension only (the mean-value form needs a derivative on the whole box:
+    CasADi's derivative is 0 across a jump).
     """
     B, n = lo.shape
-    c = np.minimum(np.maximum(0.5 * (lo + hi), lo), hi)
+    c = _centres(lo, hi)
+    checked = problem.checked
     if not mean_value:
+        if checked:
+            both, _, chk = _checked_eval(problem, np.vstack([lo, c]), np.vstack([hi, c]),
+                                         jacobian=False)
+            return both[:B], both[B:], None, chk[:B], chk[B:]
         both = evaluate(problem.function, [Interval(np.vstack([lo, c]), np.vstack([hi, c]))],
                         _IA)[0]
-        return both[:B], both[B:], None
-    nat, Jall = evaluate(problem.function_jacobian, [Interval(lo, hi)], _IA)
-    Fc = _point_enclosure(problem, c)
+        return both[:B], both[B:], None, None, None
+    chk = chk_c = None
+    if checked:
+        nat, Jall, chk = _checked_eval(problem, lo, hi, jacobian=True)
+        Fc, _, chk_c = _checked_eval(problem, c, c.copy(), jacobian=False)
+    else:
+        nat, Jall = evaluate(problem.function_jacobian, [Interval(lo, hi)], _IA)
+        Fc = _point_enclosure(problem, c)
     mk = nat.lo.shape[1]
     J = _IA.structural(lambda a: np.swapaxes(a.reshape(B, n, mk), 1, 2), Jall)
     # CasADi folds products of constants in float64 when it builds derivative graphs; the
@@ -185,9 +261,16 @@ def _enclose(problem, lo, hi, mean_value: bool):
     mv = _IA.binary(ca.OP_ADD, Fc, _IA.sum(_IA.binary(ca.OP_MUL, J, D), -1))
     enc = _IA.intersect(nat, mv)
     bad = ~(enc.lo <= enc.hi)  # empty intersection cannot happen for sound enclosures
+    if chk is not None:
+        bad |= chk.jump | chk.maybe  # no (valid) derivative on the box: natural only
     if bad.any():
         enc = Interval(np.where(bad, nat.lo, enc.lo), np.where(bad, nat.hi, enc.hi))
-    return enc, Fc, J
+    return enc, Fc, J, chk, chk_c
+
+
+def _centres(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The centres at which :func:`_enclose` evaluates ``F`` (same float points)."""
+    return np.minimum(np.maximum(0.5 * (lo + hi), lo), hi)
 
 
 def _initial_boxes(box: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
@@ -273,18 +356,31 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
         queue_lo, queue_hi, depth_q = queue_lo[batch:], queue_hi[batch:], depth_q[batch:]
         n_boxes += len(lo)
         max_depth = max(max_depth, int(dq.max()))
-        enc, Fc, J = _enclose(problem, lo, hi, mean_value)
+        enc, Fc, J, chk, chk_c = _enclose(problem, lo, hi, mean_value)
         g_lo, g_hi = enc.lo[:, :m], enc.hi[:, :m]
         p_hi = enc.hi[:, m:]
-        outside = np.any(g_lo > 0, axis=1) if m else np.zeros(len(lo), bool)
-        holds = np.all(p_hi < 0, axis=1)
+        if chk is None:
+            outside = np.any(g_lo > 0, axis=1) if m else np.zeros(len(lo), bool)
+            holds = np.all(p_hi < 0, axis=1)
+        else:
+            # P10: a constraint prunes the box only where it is defined on all of it; the
+            # properties hold only if every constraint and property is defined on the box
+            # (outside the region the properties need not be defined)
+            defined = ~chk.maybe
+            outside = (np.any((g_lo > 0) & defined[:, :m], axis=1) if m
+                       else np.zeros(len(lo), bool))
+            holds = np.all(p_hi < 0, axis=1) & defined.all(axis=1)
         done = outside | holds
         # centre points: rigorous counterexample confirmation
         inside_c = np.all(Fc.hi[:, :m] <= 0, axis=1) if m else np.ones(len(lo), bool)
-        viol_c = np.any(Fc.lo[:, m:] >= 0, axis=1) & inside_c & ~done
+        viol_c = np.any(Fc.lo[:, m:] >= 0, axis=1)
+        if chk_c is not None:
+            viol_c |= chk_c.sure[:, m:].any(axis=1)
+        viol_c &= inside_c & ~done
         if viol_c.any():
-            found += _confirmed(problem, 0.5 * (lo[viol_c] + hi[viol_c]),
-                                Interval(Fc.lo[viol_c], Fc.hi[viol_c]))
+            found += _confirmed(problem, _centres(lo, hi)[viol_c],
+                                Interval(Fc.lo[viol_c], Fc.hi[viol_c]),
+                                None if chk_c is None else chk_c[viol_c])
             if stop_at_first and found:
                 found.sort(key=lambda c: -c.value_lower)
                 return VerificationResult("counterexample", found[0], found, boxes=n_boxes,
@@ -309,9 +405,13 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
             mag = np.where(np.isfinite(mag), mag, 1e300)
             active = np.concatenate(
                 [(g_lo[split] <= 0) & (g_hi[split] > 0), p_hi[split] >= 0], axis=1)
+            if chk is not None:
+                active |= chk.maybe[split]
             smear = np.max(mag * w_s[:, None, :] * active[:, :, None], axis=1)
             dim = np.argmax(smear + 1e-300 * w_s, axis=1)
             flat = np.max(smear, axis=1) <= 0
+            if chk is not None:  # no valid derivative on the box: bisect the widest side
+                flat |= np.any((chk.jump | chk.maybe)[split], axis=1)
             dim[flat] = np.argmax(w_s[flat], axis=1)
         else:
             dim = np.argmax(w_s, axis=1)

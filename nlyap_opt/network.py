@@ -484,6 +484,8 @@ def _number(v, where: str, fail: Callable[[str], NlyapError]) -> float:
 
 
 def _vector(v, where: str, fail) -> np.ndarray:
+    if isinstance(v, np.ndarray):  # a dict built in memory rather than read from JSON
+        v = v.tolist()
     if not isinstance(v, list):
         raise fail(f"{where} is {_kind(v)}, expected a list of numbers")
     if not v:
@@ -492,6 +494,8 @@ def _vector(v, where: str, fail) -> np.ndarray:
 
 
 def _matrix(v, where: str, fail) -> np.ndarray:
+    if isinstance(v, np.ndarray):
+        v = v.tolist()
     if not isinstance(v, list) or not v:
         what = "an empty list" if isinstance(v, list) else _kind(v)
         raise fail(f"{where} is {what}, expected a non-empty list of rows (lists of numbers)")

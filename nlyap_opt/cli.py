@@ -311,8 +311,9 @@ def cmd_run(args) -> int:
     cfg = _run_config(args, learned=not args.known_dynamics)
     out = args.out or f"runs/{args.system}{'_known' if args.known_dynamics else ''}"
     _check_writable(Path(out), "--out", directory=True)
-    cert = run(args.system, cfg, out, known_dynamics=args.known_dynamics)
-    return 0 if cert["status"] == "certified" else 2
+    res = run(args.system, cfg, out, known_dynamics=args.known_dynamics)
+    status = res["status"] if isinstance(res, dict) else res.status
+    return 0 if getattr(status, "value", status) == "certified" else 2
 
 
 def cmd_compare(args) -> int:

@@ -5,10 +5,8 @@ For learned dynamics :math:`\varphi` (see :mod:`nlyap_opt.dynamics`) the certifi
 .. math:: \|e(z)\|_2 \le \eta \ \ \forall z \in Z, \qquad e = f - \varphi,
 
 on the sampling box :math:`Z` (:math:`X \times U`, or :math:`X` for the control-affine
-model), then :math:`M \ge \sup_R \|\nabla V\|_2` on the verification region :math:`R`
-(with :math:`\kappa(R) \subseteq U` checked), and the decrease condition is verified with the
-margin :math:`\beta = M\eta`, **strictly**: :math:`\nabla V \cdot \varphi < -\beta` implies
-:math:`\nabla V \cdot f \le \nabla V\cdot\varphi + \|\nabla V\|\,\|e\| < -\beta + M\eta = 0`.
+model). This module builds the error model and every sound bound η; the gradient bound
+``M``, the check ``κ(R) ⊆ U`` and the margin ``β = M·η`` are in :mod:`nlyap_opt.bounds`.
 
 Every sup below is a *rigorous* upper bound: CasADi derivative graphs are evaluated with the
 outward-rounded :class:`verification.interval.IntervalArithmetic` on a subdivision of the box

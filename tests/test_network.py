@@ -244,8 +244,8 @@ def test_dynamics_levenberg_marquardt_forward_equals_casadi():
     """``dynamics._LevenbergMarquardt._forward`` (w1·tanh(W0 z + b0) + b1 in numpy) ≡
     ``Network.casadi`` of the same weights, and ``dynamics._assemble`` (normalisation folded
     into one network) ≡ σ·(block forward on normalised inputs) + μ."""
-    lm_cls = _private("_LevenbergMarquardt", "nlyap_opt.dynamics")
-    assemble = _private("_assemble", "nlyap_opt.dynamics")
+    lm_cls = _private("_LevenbergMarquardt", "nlyap_opt.phi_training", "nlyap_opt.dynamics")
+    assemble = _private("_assemble", "nlyap_opt.phi_training", "nlyap_opt.dynamics")
     rng = np.random.default_rng(5)
     d, H, m = 3, 6, 2
     centre, radius = rng.uniform(-1, 1, d), rng.uniform(0.5, 3, d)

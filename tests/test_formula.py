@@ -380,3 +380,23 @@ def test_agreement_check_fails_on_wrong_verdicts():
     for wrong in ("unknown", "verified", "unconfirmed point"):
         with pytest.raises(AssertionError):
             check_dreal_agreement(run_with(wrong))
+
+
+def test_regrouping_is_exact_and_smaller():
+    # Σ_j c_j·(Σ_k w_kj y_k), the shape of a reverse-mode gradient: regrouped over the
+    # atoms it repeats no y_k per j; same values, smaller expanded tree than the graph's
+    rng = np.random.default_rng(3)
+    z = ca.SX.sym("z", 2)
+    t = ca.tanh(ca.DM(rng.normal(size=(4, 2))) @ z + ca.DM(rng.normal(size=4)))
+    y = ca.DM(rng.normal(size=(3, 4))) @ t
+    adj = ca.DM(rng.normal(size=(4, 3))) @ y
+    e = ca.sum1((1 - t**2) * adj * z[0])
+    problem = VerificationProblem(z, [[-1, 1], [-1, 1]], [], [e])
+    plain = build_formula(problem, collect=False)
+    grouped = build_formula(problem)
+    assert grouped.properties[0].size < plain.properties[0].size
+    X = rng.uniform(-1, 1, (100, 2))
+    ref = np.array(problem.function(X.T)).T
+    for F in (plain, grouped):
+        np.testing.assert_allclose(F.evaluate(X)["properties"], ref[:, 0:], rtol=1e-12,
+                                   atol=1e-12)

@@ -57,7 +57,8 @@ from nlyap_opt.errors import UnsupportedOperationError
 from nlyap_opt.walker import compile_function, evaluate, op_name
 
 __all__ = [
-    "Term", "TermTable", "FormulaArithmetic", "Formula", "build_formula", "SUPPORTED_OPS",
+    "Term", "TermTable", "FormulaArithmetic", "CollectingArithmetic", "Formula",
+    "build_formula", "SUPPORTED_OPS",
     "UNSUPPORTED_OPS",
 ]
 
@@ -379,6 +380,145 @@ class FormulaArithmetic:
         return fn(*args)
 
 
+class _Lin:
+    """A value of :class:`CollectingArithmetic`: the graph's own form and a linear form.
+
+    ``orig`` is the term in the graph's structure; ``lin`` the same value as
+    ``Σ atom·coef`` (``atom`` a non-linear node or ``1``, ``coef`` a term), or ``None``
+    when that form grew past ``MAX_ATOMS``. :attr:`term` is the smaller of the two.
+    """
+
+    __slots__ = ("orig", "lin", "_term", "_t")
+
+    def __init__(self, t: TermTable, orig: Term, lin: dict | None):
+        self._t = t
+        self.orig = orig
+        self.lin = lin
+        self._term = None
+
+    @property
+    def term(self) -> Term:
+        if self._term is None:
+            best = self.orig
+            if self.lin is not None and len(self.lin) > 1:
+                alt = _collect(self._t, self.lin)
+                if alt.size < best.size:
+                    best = alt
+            self._term = best
+        return self._term
+
+    def form(self) -> dict:
+        """The linear form (a materialised value is one atom with coefficient 1)."""
+        if self.lin is not None:
+            return self.lin
+        return {id(self.term): (self.term, self._t.one)}
+
+
+def _collect(t: TermTable, lin: dict) -> Term:
+    acc = None
+    for atom, coef in lin.values():
+        if coef is t.zero:
+            continue
+        z = coef if atom is t.one else t.mul(coef, atom)
+        acc = z if acc is None else t.add(acc, z)
+    return t.zero if acc is None else acc
+
+
+class CollectingArithmetic(FormulaArithmetic):
+    """:class:`FormulaArithmetic` that also regroups linear combinations (exactly).
+
+    Besides the graph's own form of each value it keeps the value as a linear combination
+    ``Σ atom·coef`` over non-linear nodes (``tanh(...)``, ``x_i``, products kept whole)
+    with term coefficients: sums and constant multiples merge the combinations, and a
+    product of two non-constant factors distributes the smaller factor over the other's
+    combination. Wherever a value is used by a non-linear operation or is an output, the
+    smaller expanded tree of the two forms is taken. Example: CasADi's reverse-mode
+    gradient of a tanh network sums ``(1 − t_j²)·Σ_k w_kj y_k`` over ``j``, repeating
+    every output ``y_k`` once per neuron; regrouped over the ``t`` atoms it is a short sum.
+    Distributivity and commutativity are exact in real arithmetic; no constant is rounded
+    (products of weights stay products).
+    """
+
+    name = "formula-collect"
+    #: largest linear form kept (beyond it the value is used whole)
+    MAX_ATOMS = 512
+
+    def _wrap(self, v) -> _Lin:
+        if isinstance(v, _Lin):
+            return v
+        t = self.t
+        if v is t.zero:
+            return _Lin(t, v, {})
+        if v.is_const:
+            return _Lin(t, v, {id(t.one): (t.one, v)})
+        return _Lin(t, v, {id(v): (v, t.one)})
+
+    def _merge(self, a: dict, b: dict, sign: int) -> dict | None:
+        t = self.t
+        out = dict(a)
+        for k, (atom, coef) in b.items():
+            if k in out:
+                c0 = out[k][1]
+                out[k] = (atom, t.add(c0, coef) if sign > 0 else t.sub(c0, coef))
+            else:
+                out[k] = (atom, coef if sign > 0 else t.neg(coef))
+        return out if len(out) <= self.MAX_ATOMS else None
+
+    def _scale(self, c: Term, a: dict) -> dict:
+        t = self.t
+        return {k: (atom, t.mul(c, coef)) for k, (atom, coef) in a.items()}
+
+    def constant(self, value) -> _Lin:
+        return self._wrap(super().constant(value))
+
+    def unary(self, op: int, a) -> _Lin:
+        a = self._wrap(a)
+        t = self.t
+        if op == ca.OP_ASSIGN:
+            return a
+        if op == ca.OP_NEG:
+            return _Lin(t, t.neg(a.orig), self._scale(t.const(-1.0), a.form()))
+        if op == ca.OP_TWICE:
+            return self._mul(self._wrap(t.const(2.0)), a)
+        return self._wrap(super().unary(op, a.term))
+
+    def binary(self, op: int, a, b) -> _Lin:
+        a, b = self._wrap(a), self._wrap(b)
+        t = self.t
+        if op in (ca.OP_ADD, ca.OP_SUB):
+            sign = 1 if op == ca.OP_ADD else -1
+            orig = t.add(a.orig, b.orig) if sign > 0 else t.sub(a.orig, b.orig)
+            lin = None
+            if a.lin is not None and b.lin is not None:
+                lin = self._merge(a.lin, b.lin, sign)
+            return _Lin(t, orig, lin)
+        if op == ca.OP_MUL:
+            return self._mul(a, b)
+        return self._wrap(super().binary(op, a.term, b.term))
+
+    def _mul(self, a: _Lin, b: _Lin) -> _Lin:
+        t = self.t
+        if b.orig.is_const and not a.orig.is_const:
+            a, b = b, a
+        if a.orig.is_const:  # constant multiple: linear
+            lin = None if b.lin is None else self._scale(a.orig, b.lin)
+            return _Lin(t, t.mul(a.orig, b.orig), lin)
+        A, B = a.term, b.term
+        orig = t.mul(A, B)
+        fa, fb = a.form(), b.form()
+        # distribute the smaller factor over the other's combination
+        if A.size <= B.size and len(fb) > 1:
+            return _Lin(t, orig, self._scale(A, fb))
+        if B.size < A.size and len(fa) > 1:
+            return _Lin(t, orig, self._scale(B, fa))
+        return self._wrap(orig)
+
+    @staticmethod
+    def term(v) -> Term:
+        """The term of a value (its smaller form)."""
+        return v.term if isinstance(v, _Lin) else v
+
+
 def _unsupported(op: int, supported) -> UnsupportedOperationError:
     names = ", ".join(sorted(op_name(o) for o in supported))
     return UnsupportedOperationError(
@@ -544,7 +684,7 @@ def evaluate_terms(roots: Sequence[Term], env: dict, n: int) -> dict[int, np.nda
 
 
 def build_formula(problem, *, var_names: Sequence[str] | None = None,
-                  table: TermTable | None = None) -> Formula:
+                  table: TermTable | None = None, collect: bool = True) -> Formula:
     """The :class:`Formula` of a :class:`~verification.problem.VerificationProblem`.
 
     Parameters
@@ -554,6 +694,9 @@ def build_formula(problem, *, var_names: Sequence[str] | None = None,
         Names of the state variables (default ``x0, x1, ...``).
     table : TermTable, optional
         Node table to build in (shared with other formulas, e.g. to compare encodings).
+    collect : bool
+        Regroup linear combinations where that makes the expanded tree smaller
+        (:class:`CollectingArithmetic`, default); ``False``: the graph's structure as is.
 
     Returns
     -------
@@ -566,11 +709,11 @@ def build_formula(problem, *, var_names: Sequence[str] | None = None,
     names = list(var_names) if var_names is not None else [f"x{i}" for i in range(problem.n)]
     if len(names) != problem.n or len(set(names)) != problem.n:
         raise ValueError(f"need {problem.n} distinct variable names, got {names}")
-    ar = FormulaArithmetic(table)
+    ar = (CollectingArithmetic if collect else FormulaArithmetic)(table)
     xs = [ar.t.var(v) for v in names]
     arg = np.empty(problem.n, dtype=object)
     arg[:] = xs
-    out = evaluate(compile_function(fun), [arg], ar)[0]
+    out = [CollectingArithmetic.term(v) for v in evaluate(compile_function(fun), [arg], ar)[0]]
     m = problem.n_constraints
     return Formula(ar.t, tuple(xs), np.asarray(problem.box, dtype=float), tuple(out[:m]),
                    tuple(out[m:]), tuple(ar.violations), list(problem.constraint_names),

@@ -17,48 +17,46 @@ from pathlib import Path
 
 import numpy as np
 
+from nlyap_opt.errors import InputRangeError
+from nlyap_opt.network import Network
+
 __all__ = ["compare", "quadratic_row"]
 
 
 def quadratic_row(system, cfg: dict, V, controller, *, method: str, dynamics=None,
-                  eta: float = 0.0, log=print) -> dict:
-    """Certify the largest level of ``V`` (a Network) under ``controller`` and return a row."""
-    from nlyap_opt.roa import candidate_level, certify_inner_ellipse, certify_level
-    from nlyap_opt.symbolic import closed_loop, lie_derivative, robust_lie
+                  eta: float = 0.0, dynamics_box=None, input_box=None, out=None,
+                  log=print) -> dict:
+    """Certify the largest level of ``V`` (a Network) under ``controller`` and return a row.
+
+    The level is certified by :func:`nlyap_opt.certificate.certify_roa` (conditions (a), (b),
+    (c), exactly as the neural rows); with ``out`` the certificate is saved there
+    (``nlyap verify --certificate OUT/certificate.json`` re-checks it).
+    """
+    from nlyap_opt.certificate import RoaProblem, certify_roa, save_certificate
+    from nlyap_opt.roa import candidate_level
 
     t0 = time.perf_counter()
     # a quadratic V needs no large excluded ball: B_ε only has to lie in the certified inner
     # ellipse, and a thin LQR ellipse cannot contain the neural runs' B_ε (B_ε ⊆ Ω_c fails)
     r, eps = float(cfg["outer"]), float(cfg["inner"]) / 4
-    cl = closed_loop(system, controller, dynamics, strict=True)
-    Vx = V.casadi(cl.x)
-    lie = lie_derivative(Vx, cl.x, cl.rhs)
-    if eta:
-        lie = robust_lie(lie, Vx, cl.x, eta)
-    cand = candidate_level(cl.x, Vx, lie, inner=eps, outer=r)
-    cert = certify_level(cl.x, Vx, lie, level=cand.level, inner=eps, outer=r, margin=0.0,
-                         log=lambda m: None)
-    inner = certify_inner_ellipse(system, controller, eps)
-    status = cert.status
-    if status == "certified" and dynamics is None and inner["status"] != "certified":
-        status = inner["status"]
-    row = {"method": method, "level": cert.level if status == "certified" else 0.0,
-           "certified": status == "certified", "status": status,
+    problem = RoaProblem(system, V, controller, dynamics, inner=eps, outer=r, eta=eta,
+                         dynamics_box=dynamics_box, input_box=input_box)
+    try:
+        dec = problem.decrease()
+    except InputRangeError as err:
+        return {"method": method, "level": 0.0, "certified": False,
+                "status": f"not certified: {err}", "seconds": time.perf_counter() - t0}
+    cand = candidate_level(dec.x, dec.V, dec.lie, inner=eps, outer=r, margin=dec.margin)
+    cert = certify_roa(problem, cand.level, search=True, log=lambda m: None)
+    row = {"method": method, "level": cert.level if cert.certified else 0.0,
+           "certified": cert.certified,
+           "status": "certified" if cert.certified else f"{cert.status.value}: {cert.reason}",
            "candidate_level": cand.level, "seconds": time.perf_counter() - t0,
-           "_maskfn": _sublevel_mask(V, cert.level, r, inner)}
-    log(f"  {method}: {status}, level {row['level']:.5g} (candidate {cand.level:.5g})")
+           "_cert": cert}
+    if out is not None:
+        row["certificate"] = str(save_certificate(cert, problem, out))
+    log(f"  {method}: {row['status']}, level {row['level']:.5g} (candidate {cand.level:.5g})")
     return row
-
-
-def _sublevel_mask(V, level, outer, inner_ellipse):
-    """Membership in the certified set {‖x‖ ≤ r, V ≤ level} ∪ E, for (N, nx) points."""
-    def mask(pts):
-        m = (np.linalg.norm(pts, axis=1) <= outer) & (V.numpy(pts)[:, 0] <= level)
-        if inner_ellipse and inner_ellipse.get("level", 0) > 0:
-            P = np.asarray(inner_ellipse["P"])
-            m |= np.einsum("ij,jk,ik->i", pts, P, pts) <= inner_ellipse["level"]
-        return m
-    return mask
 
 
 def _areas(rows, system, cfg, true_mask, box, n):
@@ -67,11 +65,11 @@ def _areas(rows, system, cfg, true_mask, box, n):
     pts, shape = grid_points(box, n)
     true_area = grid_area(true_mask, box)
     for row in rows:
-        if not row["certified"] or "_maskfn" not in row:
+        if not row["certified"] or "_cert" not in row:
             row.setdefault("area", 0.0)
             row.setdefault("fraction_of_true_roa", 0.0)
             continue
-        row["_mask"] = row["_maskfn"](pts).reshape(shape)
+        row["_mask"] = row["_cert"].contains(pts).reshape(shape)
         row["area"] = grid_area(row["_mask"], box)
         row["fraction_of_true_roa"] = row["area"] / true_area if true_area else 0.0
     return true_area
@@ -81,11 +79,15 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
             include_neural: bool = True) -> list[dict]:
     """Run every method for ``system_name``; write comparison.{json,md,png} into ``out``."""
     import systems
-    from nlyap_opt.network import Network
+    from nlyap_opt.certificate import (
+        RoaProblem,
+        certify_roa,
+        recheck_certificate,
+        save_certificate,
+    )
+    from nlyap_opt.control import linear_controller, lqr, quadratic_lyapunov, saturated_controller
     from nlyap_opt.pipeline import run
     from nlyap_opt.roa import true_roa_mask
-
-    from .lqr import linear_controller, lqr, quadratic_lyapunov, saturated_controller
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -98,13 +100,14 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
     if system.nu:
         sat = saturated_controller(system, res.K, cfg["controller_scale"])
         rows.append(quadratic_row(system, cfg, V, linear_controller(system, res.K),
-                                  method="lqr (linear u, true f)", log=log))
-        rows.append(quadratic_row(system, cfg, V, sat, method="lqr (saturated u, true f)",
+                                  method="lqr (linear u, true f)", out=out / "lqr_linear",
                                   log=log))
+        rows.append(quadratic_row(system, cfg, V, sat, method="lqr (saturated u, true f)",
+                                  out=out / "lqr_saturated", log=log))
     else:
         sat = None
         rows.append(quadratic_row(system, cfg, V, None, method="lqr (quadratic V, true f)",
-                                  log=log))
+                                  out=out / "lqr", log=log))
     # SOS (polynomial closed loops only; others are explained)
     try:
         from .sos import sos_roa
@@ -115,7 +118,12 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
             row = {"method": f"sos (degree {deg}, true f)", "level": sos.certified_level or 0.0,
                    "certified": sos.certified, "status": sos.status,
                    "sdp_level": sos.sdp_level, "seconds": time.perf_counter() - t0,
-                   "notes": "; ".join(sos.notes), "_maskfn": sos.mask}
+                   "notes": "; ".join(sos.notes)}
+            if sos.certified:
+                problem = RoaProblem(system, sos.V, None, inner=sos.inner, outer=sos.outer)
+                cert = certify_roa(problem, sos.certified_level, log=lambda m: None)
+                row["certified"], row["_cert"] = cert.certified, cert
+                row["certificate"] = str(save_certificate(cert, problem, out / f"sos_{deg}"))
             if sos.status.startswith("not applicable"):
                 row["method"] = "sos (true f)"  # one row: the reason holds for every degree
                 rows.append(row)
@@ -132,26 +140,28 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
             d = out / ("neural_true" if known else "neural_learned")
             log(f"[compare] {label}: nlyap run into {d}")
             t0 = time.perf_counter()
-            cert = run(system_name, cfg, d, known_dynamics=known, log=log)
-            row = {"method": label, "level": cert["level"],
-                   "certified": cert["status"] == "certified", "status": cert["status"],
+            res = run(system, cfg, d, known_dynamics=known, log=log)
+            cert = res.summary
+            row = {"method": label, "level": cert["level"], "certified": res.certified,
+                   "status": cert["status"] if res.certified
+                   else f"{cert['status']}: {cert['reason']}",
+                   "certificate": str(d / "certificate.json"),
                    "seconds": sum(cert["seconds"].values()) if cert.get("seconds")
                    else time.perf_counter() - t0}
             if row["certified"]:
-                row["_maskfn"] = _sublevel_mask(Network.load(d / "V.json"), cert["level"],
-                                                cert["outer_radius"], cert["inner_ellipse"])
+                row["_cert"] = recheck_certificate(d, log=lambda m: None) \
+                    if res.certificate is None else res.certificate
             rows.append(row)
             if not known and row["certified"] and (d / "dynamics.json").exists():
                 # LQR with learned φ (the unknown-dynamics setting for the baseline)
                 b = json.loads((d / "bounds.json").read_text())
                 dyn = Network.load(d / "dynamics.json")
-                try:
-                    rows.append(quadratic_row(system, cfg, V, sat, method="lqr (learned φ)",
-                                              dynamics=dyn, eta=float(b["eta"]), log=log))
-                except Exception as err:  # noqa: BLE001 - reported as the row's status
-                    rows.append({"method": "lqr (learned φ)", "level": 0.0,
-                                 "certified": False, "status": f"failed: {err}",
-                                 "seconds": 0.0})
+                grid_box = np.asarray(b["grid"]["box"], dtype=float)
+                rows.append(quadratic_row(
+                    system, cfg, V, sat, method="lqr (learned φ)", dynamics=dyn,
+                    eta=float(b["eta"]), dynamics_box=grid_box[: system.nx],
+                    input_box=grid_box[system.nx:] if len(grid_box) > system.nx
+                    else system.input_box, out=out / "lqr_learned", log=log))
     # true ROA and areas
     box = np.asarray(cfg["eval_box"], dtype=float)
     n = int(cfg["eval_grid"])

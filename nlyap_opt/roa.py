@@ -63,7 +63,7 @@ def candidate_level(x: ca.MX, V: ca.MX, lie: ca.MX, *, inner: float, outer: floa
     t0 = time.perf_counter()
     n = x.numel()
     rng = np.random.default_rng(seed)
-    from .learning import sample_ball, sample_sphere
+    from .sampling import sample_ball, sample_sphere
 
     F = _fun(x, V, lie)
     pts = sample_ball(n_samples, n, outer, rng, inner)

@@ -400,3 +400,12 @@ def test_regrouping_is_exact_and_smaller():
     for F in (plain, grouped):
         np.testing.assert_allclose(F.evaluate(X)["properties"], ref[:, 0:], rtol=1e-12,
                                    atol=1e-12)
+
+
+def test_domain_conditions_decided_on_constants_are_dropped():
+    x = ca.MX.sym("x", 1)
+    by_const = VerificationProblem(x, [[-1, 1]], [], [x / 0.0375 - 100])
+    assert build_formula(by_const).violations == ()
+    by_var = VerificationProblem(x, [[-1, 1]], [], [1 / (x + 3) - 100])
+    (viol,) = build_formula(by_var).violations
+    assert viol.op == "=" and not FormulaArithmetic().violations

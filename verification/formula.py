@@ -219,6 +219,8 @@ class TermTable:
     def fn(self, name: str, a: Term) -> Term:
         if name not in FUNCTIONS:
             raise ValueError(f"unknown function {name!r}")
+        if name == "abs" and a.is_const:
+            return self.const(abs(a.value))
         return self._mk(name, (a,))
 
     def op2(self, name: str, a: Term, b: Term) -> Term:
@@ -252,6 +254,10 @@ class TermTable:
 
 
 # --------------------------------------------------------------------------- the arithmetic
+_CMP_EXACT = {"<=": lambda p, q: p <= q, "<": lambda p, q: p < q, ">=": lambda p, q: p >= q,
+              ">": lambda p, q: p > q, "=": lambda p, q: p == q}
+
+
 class FormulaArithmetic:
     """Walker arithmetic whose values are :class:`Term` nodes (SX expansion only).
 
@@ -332,6 +338,10 @@ class FormulaArithmetic:
 
     # ------------------------------------------------------------------ helpers
     def _dom(self, value: Term, violation: Term) -> Term:
+        if violation.op in _CMP_EXACT and all(a.is_const for a in violation.args):
+            p, q = (Fraction(a.value) for a in violation.args)
+            if not _CMP_EXACT[violation.op](p, q):  # decided: never violated
+                return value
         if id(violation) not in self._seen:
             self._seen.add(id(violation))
             self.violations.append(violation)
@@ -381,36 +391,41 @@ class FormulaArithmetic:
 
 
 class _Lin:
-    """A value of :class:`CollectingArithmetic`: the graph's own form and a linear form.
+    """A value of :class:`CollectingArithmetic`: the graph's own form and linear forms.
 
-    ``orig`` is the term in the graph's structure; ``lin`` the same value as
-    ``Σ atom·coef`` (``atom`` a non-linear node or ``1``, ``coef`` a term), or ``None``
-    when that form grew past ``MAX_ATOMS``. :attr:`term` is the smaller of the two.
+    ``orig`` is the term in the graph's structure. ``forms`` holds the same value as
+    linear combinations ``Σ atom·coef`` (``atom`` a node or ``1``, ``coef`` a term):
+    ``forms[0]`` over non-linear atoms (tanh nodes, variables, products kept whole),
+    ``forms[1]`` over coarser atoms (a sum scaled by a constant stays one atom); ``None``
+    where a form grew past ``MAX_ATOMS``. :attr:`term` is the smallest of them.
     """
 
-    __slots__ = ("orig", "lin", "_term", "_t")
+    __slots__ = ("orig", "forms", "is_sum", "_term", "_t")
 
-    def __init__(self, t: TermTable, orig: Term, lin: dict | None):
+    def __init__(self, t: TermTable, orig: Term, forms, is_sum: bool = False):
         self._t = t
         self.orig = orig
-        self.lin = lin
+        self.forms = forms
+        self.is_sum = is_sum
         self._term = None
 
     @property
     def term(self) -> Term:
         if self._term is None:
             best = self.orig
-            if self.lin is not None and len(self.lin) > 1:
-                alt = _collect(self._t, self.lin)
-                if alt.size < best.size:
-                    best = alt
+            for lin in self.forms:
+                if lin is not None and len(lin) > 1:
+                    alt = _collect(self._t, lin)
+                    if alt.size < best.size:
+                        best = alt
             self._term = best
         return self._term
 
-    def form(self) -> dict:
-        """The linear form (a materialised value is one atom with coefficient 1)."""
-        if self.lin is not None:
-            return self.lin
+    def form(self, k: int) -> dict:
+        """Linear form ``k`` (a value without one is one atom with coefficient 1)."""
+        lin = self.forms[k]
+        if lin is not None:
+            return lin
         return {id(self.term): (self.term, self._t.one)}
 
 
@@ -427,14 +442,15 @@ def _collect(t: TermTable, lin: dict) -> Term:
 class CollectingArithmetic(FormulaArithmetic):
     """:class:`FormulaArithmetic` that also regroups linear combinations (exactly).
 
-    Besides the graph's own form of each value it keeps the value as a linear combination
-    ``Σ atom·coef`` over non-linear nodes (``tanh(...)``, ``x_i``, products kept whole)
-    with term coefficients: sums and constant multiples merge the combinations, and a
-    product of two non-constant factors distributes the smaller factor over the other's
-    combination. Wherever a value is used by a non-linear operation or is an output, the
-    smaller expanded tree of the two forms is taken. Example: CasADi's reverse-mode
-    gradient of a tanh network sums ``(1 − t_j²)·Σ_k w_kj y_k`` over ``j``, repeating
-    every output ``y_k`` once per neuron; regrouped over the ``t`` atoms it is a short sum.
+    Besides the graph's own form of each value it keeps the value as linear combinations
+    ``Σ atom·coef`` with term coefficients, over two choices of atoms (non-linear nodes;
+    or coarser: a sum scaled by a constant kept whole): sums and constant multiples merge
+    the combinations, and a product of two non-constant factors distributes the smaller
+    factor over the other's combinations. Wherever a value is used by a non-linear
+    operation or is an output, the smallest expanded tree of the forms is taken. Example:
+    CasADi's reverse-mode gradient of a tanh network sums ``w_ji (1 − t_j²)·Σ_k w'_kj y_k``
+    over the neurons ``j``, repeating every output ``y_k`` once per neuron; regrouped it is
+    ``Σ_k y_k·(Σ_j w_ji w'_kj (1 − t_j²))``, the chain rule as one writes it by hand.
     Distributivity and commutativity are exact in real arithmetic; no constant is rounded
     (products of weights stay products).
     """
@@ -448,12 +464,16 @@ class CollectingArithmetic(FormulaArithmetic):
             return v
         t = self.t
         if v is t.zero:
-            return _Lin(t, v, {})
-        if v.is_const:
-            return _Lin(t, v, {id(t.one): (t.one, v)})
-        return _Lin(t, v, {id(v): (v, t.one)})
+            lin = {}
+        elif v.is_const:
+            lin = {id(t.one): (t.one, v)}
+        else:
+            lin = {id(v): (v, t.one)}
+        return _Lin(t, v, (lin, dict(lin)))
 
-    def _merge(self, a: dict, b: dict, sign: int) -> dict | None:
+    def _merge(self, a: dict | None, b: dict | None, sign: int) -> dict | None:
+        if a is None or b is None:
+            return None
         t = self.t
         out = dict(a)
         for k, (atom, coef) in b.items():
@@ -464,7 +484,9 @@ class CollectingArithmetic(FormulaArithmetic):
                 out[k] = (atom, coef if sign > 0 else t.neg(coef))
         return out if len(out) <= self.MAX_ATOMS else None
 
-    def _scale(self, c: Term, a: dict) -> dict:
+    def _scale(self, c: Term, a: dict | None) -> dict | None:
+        if a is None:
+            return None
         t = self.t
         return {k: (atom, t.mul(c, coef)) for k, (atom, coef) in a.items()}
 
@@ -477,7 +499,9 @@ class CollectingArithmetic(FormulaArithmetic):
         if op == ca.OP_ASSIGN:
             return a
         if op == ca.OP_NEG:
-            return _Lin(t, t.neg(a.orig), self._scale(t.const(-1.0), a.form()))
+            m1 = t.const(-1.0)
+            return _Lin(t, t.neg(a.orig), tuple(self._scale(m1, f) for f in a.forms),
+                        a.is_sum)
         if op == ca.OP_TWICE:
             return self._mul(self._wrap(t.const(2.0)), a)
         return self._wrap(super().unary(op, a.term))
@@ -488,10 +512,8 @@ class CollectingArithmetic(FormulaArithmetic):
         if op in (ca.OP_ADD, ca.OP_SUB):
             sign = 1 if op == ca.OP_ADD else -1
             orig = t.add(a.orig, b.orig) if sign > 0 else t.sub(a.orig, b.orig)
-            lin = None
-            if a.lin is not None and b.lin is not None:
-                lin = self._merge(a.lin, b.lin, sign)
-            return _Lin(t, orig, lin)
+            forms = tuple(self._merge(fa, fb, sign) for fa, fb in zip(a.forms, b.forms))
+            return _Lin(t, orig, forms, True)
         if op == ca.OP_MUL:
             return self._mul(a, b)
         return self._wrap(super().binary(op, a.term, b.term))
@@ -501,21 +523,23 @@ class CollectingArithmetic(FormulaArithmetic):
         if b.orig.is_const and not a.orig.is_const:
             a, b = b, a
         if a.orig.is_const:  # constant multiple: linear
-            lin = None if b.lin is None else self._scale(a.orig, b.lin)
-            return _Lin(t, t.mul(a.orig, b.orig), lin)
+            c = a.orig
+            fine = self._scale(c, b.forms[0])
+            coarse = ({id(b.term): (b.term, c)} if b.is_sum
+                      else self._scale(c, b.forms[1]))
+            return _Lin(t, t.mul(c, b.orig), (fine, coarse))
         A, B = a.term, b.term
         orig = t.mul(A, B)
-        fa, fb = a.form(), b.form()
-        # distribute the smaller factor over the other's combination
-        if A.size <= B.size and len(fb) > 1:
-            return _Lin(t, orig, self._scale(A, fb))
-        if B.size < A.size and len(fa) > 1:
-            return _Lin(t, orig, self._scale(B, fa))
-        return self._wrap(orig)
+        small, other = (A, b) if A.size <= B.size else (B, a)
+        forms = []
+        for k in range(2):
+            f = other.form(k)
+            forms.append(self._scale(small, f) if len(f) > 1 else {id(orig): (orig, t.one)})
+        return _Lin(t, orig, tuple(forms))
 
     @staticmethod
     def term(v) -> Term:
-        """The term of a value (its smaller form)."""
+        """The term of a value (its smallest form)."""
         return v.term if isinstance(v, _Lin) else v
 
 

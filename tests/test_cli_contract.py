@@ -1,0 +1,195 @@
+"""The exit-code contract of ``nlyap``: 0 success, 1 counterexample (verify only), 2 unknown /
+not certified, 3 input or usage error, 4 internal error, 130 interrupted; one line, no
+traceback unless ``--debug``."""
+
+import argparse
+import json
+import signal
+import subprocess
+import sys
+import types
+
+import numpy as np
+import pytest
+
+import systems
+from nlyap_opt import cli
+from nlyap_opt.cli import EXIT_CODES, build_parser, main
+from nlyap_opt.control import lyapunov_matrix, quadratic_lyapunov
+from nlyap_opt.errors import ConfigError
+
+
+def _err_lines(capsys):
+    return [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+
+
+def test_every_command_documents_the_exit_codes(capsys):
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    names = list(sub.choices)
+    assert {"systems", "lqr", "verify", "run", "compare", "learn-dynamics"} <= set(names)
+    for name in names:
+        assert main([name, "--help"]) == 0
+        text = capsys.readouterr().out
+        assert "exit codes:" in text, name
+        for code in (0, 3, 4, 130):
+            assert f"  {code} " in text, (name, code)
+    assert main(["verify", "--help"]) == 0
+    text = capsys.readouterr().out
+    assert "  1    counterexample" in text and "  2    unknown" in text
+    assert set(EXIT_CODES) == {0, 1, 2, 3, 4, 130}
+
+
+@pytest.fixture(scope="module")
+def vfiles(tmp_path_factory):
+    d = tmp_path_factory.mktemp("v")
+    s = systems.get("van_der_pol")
+    good = quadratic_lyapunov(lyapunov_matrix(s.A)).save(d / "Vp.json")
+    ident = quadratic_lyapunov(np.eye(2)).save(d / "Vi.json")
+    return str(good), str(ident), d
+
+
+@pytest.mark.parametrize("which,radii,extra,code,status", [
+    (0, ["0.1", "0.5"], [], 0, "verified"),
+    (1, ["0.2", "2.5"], [], 1, "counterexample"),           # dV/dt > 0 at |x1| > 1
+    (0, ["0.1", "0.5"], ["--resolution", "0.3"], 2, "unknown"),
+])
+def test_verify_exit_codes_follow_the_verdict(vfiles, which, radii, extra, code, status,
+                                              tmp_path, capsys):
+    out = tmp_path / "v.json"
+    argv = ["verify", "--system", "van_der_pol", "--lyapunov", vfiles[which], "--inner",
+            radii[0], "--outer", radii[1], "--json", str(out), *extra]
+    assert main(argv) == code
+    assert json.loads(out.read_text())["status"] == status
+    assert _err_lines(capsys) == []
+
+
+def _patch_command(monkeypatch, exc):
+    def boom(args):
+        raise exc
+
+    monkeypatch.setattr(cli, "cmd_systems", boom)
+
+
+@pytest.mark.parametrize("exc,code,words", [
+    (ZeroDivisionError("division by zero"), 4, ["internal error", "ZeroDivisionError",
+                                                "--debug"]),
+    (ValueError("a bug deep inside"), 4, ["internal error", "--debug"]),
+    (RuntimeError("multi\nline"), 4, ["internal error", "multi line"]),
+    (KeyError("k"), 4, ["internal error"]),
+    (ConfigError("bad key; fix it"), 3, ["error: bad key; fix it"]),
+    (FileNotFoundError(2, "No such file or directory", "/x/y.json"), 3, ["/x/y.json"]),
+    (PermissionError(13, "Permission denied", "/root/z"), 3, ["Permission denied"]),
+    (json.JSONDecodeError("Expecting value", "{", 1), 3, ["malformed JSON"]),
+    (SystemExit(1), 4, ["internal error"]),
+])
+def test_exceptions_map_to_exit_codes(monkeypatch, capsys, exc, code, words):
+    _patch_command(monkeypatch, exc)
+    assert main(["systems"]) == code
+    lines = _err_lines(capsys)
+    assert len(lines) == 1 and lines[0].startswith("nlyap: "), lines
+    assert "Traceback" not in lines[0]
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+
+
+def test_debug_prints_the_traceback_of_an_internal_error(monkeypatch, capsys):
+    _patch_command(monkeypatch, ZeroDivisionError("division by zero"))
+    assert main(["--debug", "systems"]) == 4
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "ZeroDivisionError" in err
+    assert err.strip().splitlines()[-1].startswith("nlyap: internal error:")
+
+
+def test_keyboard_interrupt_exits_130(monkeypatch, capsys):
+    _patch_command(monkeypatch, KeyboardInterrupt())
+    assert main(["systems"]) == 130
+    assert _err_lines(capsys) == ["nlyap: interrupted; rerun the same command to resume"]
+
+
+def test_never_exit_1_for_errors(monkeypatch, capsys):
+    for exc in (Exception("x"), AssertionError("y"), OSError("z"), SystemExit(1)):
+        _patch_command(monkeypatch, exc)
+        assert main(["systems"]) not in (0, 1)
+        capsys.readouterr()
+
+
+@pytest.mark.parametrize("status,code", [("certified", 0), ("counterexample", 1),
+                                         ("not certified", 2), ("assumption refuted", 2)])
+def test_verify_certificate_exit_codes(monkeypatch, tmp_path, capsys, status, code):
+    certificate = pytest.importorskip("nlyap_opt.certificate")
+    f = tmp_path / "certificate.json"
+    f.write_text("{}")
+    fake = types.SimpleNamespace(status=certificate.CertStatus(status),
+                                 summary=lambda: f"{status}: because")
+    monkeypatch.setattr(certificate, "recheck_certificate", lambda path, **k: fake)
+    assert main(["verify", "--certificate", str(tmp_path)]) == code
+    assert f"{status}: because" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("status,code", [("certified", 0), ("not certified", 2)])
+def test_run_passes_the_validated_config_and_maps_the_status(monkeypatch, tmp_path, status,
+                                                             code):
+    import nlyap_opt.pipeline
+
+    seen = {}
+
+    def fake_run(system, cfg, out, known_dynamics=False, **kw):
+        seen.update(system=system, cfg=cfg, out=out, known=known_dynamics)
+        return types.SimpleNamespace(status=types.SimpleNamespace(value=status))
+
+    monkeypatch.setattr(nlyap_opt.pipeline, "run", fake_run)
+    c = tmp_path / "c.json"
+    c.write_text(json.dumps({"train": {"steps": 11}}))
+    argv = ["run", "van_der_pol", "--preset", "fast", "--config", str(c), "--known-dynamics",
+            "--out", str(tmp_path / "o")]
+    assert main(argv) == code
+    assert seen["cfg"]["train"]["steps"] == 11 and seen["known"] is True
+
+
+def test_config_command_round_trips(tmp_path, capsys):
+    assert main(["config", "inverted_pendulum", "--preset", "fast"]) == 0
+    printed = capsys.readouterr().out
+    cfg = json.loads(printed)
+    (tmp_path / "c.json").write_text(printed)
+    assert main(["config", "inverted_pendulum", "--preset", "fast", "--config",
+                 str(tmp_path / "c.json")]) == 0
+    assert json.loads(capsys.readouterr().out) == cfg
+    assert main(["config", "--keys"]) == 0
+    assert "`cegis.margin_mode`" in capsys.readouterr().out
+
+
+def _nlyap(*argv, **kw):
+    return subprocess.Popen([sys.executable, "-m", "nlyap_opt.cli", *argv], text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
+
+
+def test_help_and_usage_error_in_a_real_process():
+    p = _nlyap("lqr", "inverted_pendulum", "--R", "0")
+    out, err = p.communicate(timeout=120)
+    assert p.returncode == 3 and "Traceback" not in err
+    assert err.strip() == err.strip().splitlines()[0]
+    assert "positive definite" in err
+    p = _nlyap("run", "--help")
+    out, err = p.communicate(timeout=120)
+    assert p.returncode == 0 and "exit codes:" in out
+
+
+def test_sigint_during_a_run_exits_130(tmp_path):
+    """A real SIGINT in the CEGIS stage of a fast run: exit 130, one line, no traceback."""
+    p = _nlyap("run", "van_der_pol", "--preset", "fast", "--known-dynamics", "--out",
+               str(tmp_path / "run"),
+               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        for line in p.stdout:
+            if line.startswith("[cegis]"):
+                break
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130, err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1] == \
+        "nlyap: interrupted; rerun the same command to resume"

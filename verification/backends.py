@@ -107,6 +107,9 @@ class DrealBackend(Backend):
     (verified). A δ-SAT box is *not* a counterexample (PITFALLS P7): points of the box
     (clipped to the root box) are re-checked rigorously with the interval arithmetic, and
     the result is ``counterexample`` only if one is confirmed, else ``unknown``.
+
+    Constants reach dReal as the graph's float64 values; dReal's ``Expression`` folds
+    constant subterms (products of weights) in double precision, as its SMT-LIB reader does.
     """
 
     name = "dreal"

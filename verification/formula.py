@@ -16,7 +16,13 @@ what it pays for):
   folded only where the result is exactly a float64 (checked with rationals), so every
   constant of the formula is the exact value of a float64 of the graph;
 - ``sq(x)`` is ``x^2`` (``x`` once), ``twice(x)`` is ``2·x``; the gradient of a tanh layer
-  stays CasADi's ``(1 − t^2)`` with ``t`` the shared node of the forward pass.
+  stays CasADi's ``(1 − t^2)`` with ``t`` the shared node of the forward pass;
+- linear combinations are regrouped where that makes the expanded tree smaller
+  (:class:`CollectingArithmetic`, exact: distributivity and commutativity only). CasADi's
+  reverse-mode gradient repeats every network output once per neuron; regrouped, the Lie
+  derivative is about the size of the one written by hand (``bench/encoding.py``: 0.85–1.14
+  of a hand-written encoding on the published network sizes, where the former encoding
+  was 1.4–2.6; a 2-30-30 V: 3.0 M expanded nodes instead of 87 M).
 
 Partial operations (domain conditions)
 --------------------------------------

@@ -28,7 +28,7 @@ __all__ = ["EXIT_CODES", "build_parser", "main"]
 EXIT_CODES: dict[int, str] = {
     0: "success (verify: verified; run, compare: certified)",
     1: "counterexample: a confirmed point violates a condition (verify only)",
-    2: "unknown / not certified",
+    2: "unknown / not certified (learn-dynamics: η above the config's eta_target)",
     3: "input or usage error (one line: the problem and its fix)",
     4: "internal error (one line; rerun with --debug for the traceback)",
     130: "interrupted (Ctrl-C); rerun the same command to resume",
@@ -43,6 +43,7 @@ _EPILOGS = {
     "verify": _epilog([0, 1, 2, 3, 4, 130]),
     "run": _epilog([0, 2, 3, 4, 130]),
     "compare": _epilog([0, 2, 3, 4, 130]),
+    "learn-dynamics": _epilog([0, 2, 3, 4, 130]),
 }
 _DEFAULT_EPILOG = _epilog([0, 3, 4, 130])
 
@@ -349,7 +350,9 @@ def _preset_arg(sp) -> None:
 def build_parser() -> argparse.ArgumentParser:
     """The ``nlyap`` argument parser (usage errors raise :class:`UsageError`)."""
     fmt = argparse.RawDescriptionHelpFormatter
-    p = _Parser(prog="nlyap", description=__doc__, formatter_class=fmt,
+    p = _Parser(prog="nlyap", formatter_class=fmt,
+                description="Neural Lyapunov control of unknown systems with certified "
+                            "regions of attraction.",
                 epilog=_epilog([0, 1, 2, 3, 4, 130]))
     p.add_argument("--debug", action="store_true",
                    help="print the traceback of an internal error (exit code 4)")
@@ -429,7 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
     for register in [register_learn_dynamics, *_EXTRA]:
         register(sub)
     for name, parser in sub.choices.items():
-        if not parser.epilog:
+        if not parser.epilog or name in _EPILOGS:
             parser.epilog = _EPILOGS.get(name, _DEFAULT_EPILOG)
             parser.formatter_class = fmt
     return p

@@ -40,11 +40,12 @@ Enlarging :math:`V` (V–s iteration, degree 4 or 6)
 Certification (what makes a result a claim)
     The SDP solver works in floating point with tolerances, so an SDP level is only a
     *candidate*. Every result is re-certified on the system's true CasADi closed loop by
-    :func:`nlyap_opt.roa.certify_level` (interval verifier: (a) decrease on
+    :func:`nlyap_opt.certificate.certify_roa`, the one definition of the certificate used by
+    every method (interval verifier: (a) decrease on
     :math:`\{\varepsilon \le \|x\| \le r,\ V \le c\}`, (b) :math:`V > c` on
-    :math:`\|x\| = r`, lowering ``c`` on counterexamples) and
-    :func:`nlyap_opt.roa.certify_inner_ellipse` ((c) on the inner ball). Only
-    ``certified_level`` is a claim; ``sdp_level`` is reported beside it.
+    :math:`\|x\| = r` and :math:`B_\varepsilon \subseteq \Omega_c`, lowering ``c`` on
+    counterexamples, (c) the inner ellipse). Only ``certified_level`` is a claim;
+    ``sdp_level`` is reported beside it.
 
 Non-polynomial closed loops (``sin``, ``cos``, ``1/(1 - d)``, ``tanh`` controllers) are not
 handled: :func:`sos_roa` returns ``status = "not applicable: ..."`` with the reason.
@@ -58,9 +59,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nlyap_opt.certificate import InnerEllipse, RoaCertificate, RoaProblem, certify_roa
 from nlyap_opt.control import lqr
-from nlyap_opt.roa import certify_inner_ellipse, certify_level, grid_area, grid_points
-from nlyap_opt.symbolic import closed_loop, lie_derivative
+from nlyap_opt.roa import grid_area, grid_points
 
 from .polynomial import NotPolynomialError, Polynomial, polynomial_closed_loop
 from .sos_sdp import SOSLevel, boundary_points, sos_level, star_area, vs_iteration
@@ -96,11 +97,16 @@ class SOSResult:
     notes : list of str
     inner, outer : float
         Radii of the excluded ball and of the verification ball.
-    inner_ellipse : dict or None
-        Condition (c), from :func:`nlyap_opt.roa.certify_inner_ellipse`.
     history : list of dict
         One entry per V–s iteration (``degree``, ``sdp_level``, ``seconds``, ``area``).
-    certificate : nlyap_opt.roa.LevelCertificate or None
+    certificate : nlyap_opt.certificate.RoaCertificate or None
+        The claim: :func:`nlyap_opt.certificate.certify_roa` on :attr:`problem`.
+    problem : nlyap_opt.certificate.RoaProblem or None
+        What was certified (``save_certificate(res.certificate, res.problem, out)`` writes a
+        ``certificate.json`` that ``nlyap verify --certificate`` re-checks).
+    non_polynomial : dict
+        Readable name -> ``OP_...`` name of the operations that make the closed loop
+        non-polynomial (empty when SOS applies).
     sdp_seconds, certify_seconds : float
     """
 
@@ -113,15 +119,27 @@ class SOSResult:
     notes: list = field(default_factory=list)
     inner: float = 0.0
     outer: float = 0.0
-    inner_ellipse: dict | None = None
     history: list = field(default_factory=list)
-    certificate: object = None
+    certificate: RoaCertificate | None = None
+    problem: RoaProblem | None = None
+    non_polynomial: dict = field(default_factory=dict)
     sdp_seconds: float = 0.0
     certify_seconds: float = 0.0
 
     @property
     def certified(self) -> bool:
+        """True when the verifier proved conditions (a), (b) and (c) at ``certified_level``."""
         return self.status == "certified"
+
+    @property
+    def applicable(self) -> bool:
+        """False when the closed loop is not polynomial (no SOS program was set up)."""
+        return not self.non_polynomial
+
+    @property
+    def inner_ellipse(self) -> InnerEllipse | None:
+        """Condition (c): the certified inner ellipse ``E`` (``None`` if not run)."""
+        return None if self.certificate is None else self.certificate.inner_ellipse
 
     def casadi(self, x):
         """``V`` as a CasADi expression of ``x``."""
@@ -131,15 +149,9 @@ class SOSResult:
 
     def mask(self, points) -> np.ndarray:
         """Boolean: which ``(N, nx)`` points lie in the certified set (all ``False`` if none)."""
-        pts = np.atleast_2d(np.asarray(points, dtype=float))
-        out = np.zeros(len(pts), dtype=bool)
         if not self.certified:
-            return out
-        out |= (np.linalg.norm(pts, axis=1) <= self.outer) & (self.V(pts) <= self.certified_level)
-        e = self.inner_ellipse
-        if e is not None and e["status"] == "certified":
-            out |= np.einsum("ij,jk,ik->i", pts, e["P"], pts) <= e["level"]
-        return out
+            return np.zeros(len(np.atleast_2d(points)), dtype=bool)
+        return self.certificate.contains(points)
 
     def area(self, box=((-3.0, 3.0), (-3.0, 3.0)), n: int = 400) -> float:
         """Area (volume) of the certified set by counting cell centres of an ``n^nx`` grid."""
@@ -148,7 +160,7 @@ class SOSResult:
         return grid_area(self.mask(pts).reshape(shape), box)
 
     def to_dict(self) -> dict:
-        e = self.inner_ellipse
+        """JSON-ready summary (the certificate in its own ``certificate.json`` form)."""
         return {
             "method": f"SOS (degree {self.degree})",
             "status": self.status, "degree": self.degree,
@@ -157,9 +169,8 @@ class SOSResult:
             "level": self.certified_level, "certified": self.certified,
             "inner": self.inner, "outer": self.outer, "seconds": self.seconds,
             "sdp_seconds": self.sdp_seconds, "certify_seconds": self.certify_seconds,
-            "inner_ellipse": None if e is None else {
-                "status": e["status"], "P": np.asarray(e["P"]).tolist(),
-                "level": float(e["level"])},
+            "certificate": None if self.certificate is None else self.certificate.to_dict(),
+            "non_polynomial": dict(self.non_polynomial),
             "history": self.history, "notes": list(self.notes),
         }
 
@@ -179,10 +190,10 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     ``V0``) and its largest SOS level by bisection (:func:`sos_level`); (3) for
     ``degree > 2`` the V–s iteration (see the module docstring) for at most ``iterations``
     rounds or ``time_budget`` seconds; (4) certification of the final ``(V, c)`` on the
-    true CasADi closed loop: :func:`nlyap_opt.roa.certify_level` with ``inner = ε``,
-    ``outer = r`` (the ray-sampled extent of :math:`\{V \le c\}` times
-    ``1 + outer_margin``), ``margin = 0``, and
-    :func:`nlyap_opt.roa.certify_inner_ellipse` for condition (c).
+    true CasADi closed loop: :func:`nlyap_opt.certificate.certify_roa` (conditions (a), (b),
+    (c), the level searched downwards from the SDP level) with ``inner = ε`` and
+    ``outer = r``, the ray-sampled extent of :math:`\{V \le c\}` times
+    ``1 + outer_margin``.
 
     Parameters
     ----------
@@ -250,7 +261,7 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
             "Neither is implemented; the LQR and neural rows cover this system."
         )
         return SOSResult("not applicable: " + reason, degree, seconds=time.perf_counter() - t0,
-                         notes=[reason], inner=inner)
+                         notes=[reason], inner=inner, non_polynomial=err.operations)
     nx = system.nx
     P = np.asarray(V0 if V0 is not None else lqr(system).P, dtype=float)
     if P.shape != (nx, nx) or np.min(np.linalg.eigvalsh(0.5 * (P + P.T))) <= 0:
@@ -283,23 +294,22 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     t1 = time.perf_counter()
     extent = float(np.linalg.norm(boundary_points(V, level), axis=1).max())
     res.outer = outer = extent * (1 + outer_margin)
-    cl = closed_loop(system, controller, strict=True)
-    Vx = V.casadi(cl.x)
-    lie = lie_derivative(Vx, cl.x, cl.rhs)
-    cert = certify_level(cl.x, Vx, lie, level=level, inner=inner, outer=outer, margin=0.0,
-                         verify_options=verify_options,
-                         log=(lambda m: say("[sos] certify" + m)))
+    if not outer > inner:
+        res.status = (f"not certified: the SOS level set (extent {extent:.4g}) does not "
+                      f"contain the excluded ball B_ε (ε = {inner:g})")
+        res.seconds = time.perf_counter() - t0
+        return res
+    res.problem = RoaProblem(system, V, controller, inner=inner, outer=outer,
+                             verify_options=dict(verify_options or {}))
+    cert = certify_roa(res.problem, level, search=True,
+                       log=(lambda m: say("[sos] certify" + m)))
     res.certificate = cert
-    ell = certify_inner_ellipse(system, controller, inner, verify_options=verify_options)
-    res.inner_ellipse = ell
     res.certify_seconds = time.perf_counter() - t1
-    if cert.status != "certified":
-        res.status = f"not certified: {cert.status}"
-    elif ell["status"] != "certified":
-        res.status = f"not certified: condition (c) {ell['status']}"
-    else:
+    if cert.certified:
         res.status = "certified"
         res.certified_level = float(cert.level)
+    else:
+        res.status = f"not certified: {cert.reason}"
     res.seconds = time.perf_counter() - t0
     say(f"[sos] degree {V.degree}: SDP level {level:.6g}, certified {res.certified_level:.6g} "
         f"({res.status}, {res.seconds:.2f} s)")

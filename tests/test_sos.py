@@ -5,7 +5,6 @@ The polynomial data themselves (Polynomial, the walker's polynomial arithmetic) 
 (an independent computation, no toolbox code).
 """
 
-import casadi as ca
 import numpy as np
 import pytest
 from scipy.optimize import minimize
@@ -13,8 +12,14 @@ from vdp_reference import vdp_lyapunov_matrix, vdp_quadratic_level, vdp_sampled_
 
 import systems
 from baselines.sos import Polynomial, SOSResult, sos_roa
-from nlyap_opt.roa import certify_level, grid_points
-from nlyap_opt.symbolic import closed_loop
+from nlyap_opt.certificate import (
+    CertStatus,
+    RoaProblem,
+    certify_roa,
+    recheck_certificate,
+    save_certificate,
+)
+from nlyap_opt.roa import grid_points
 
 # V = xᵀPx with AᵀP + PA = -I for the linearisation of reversed Van der Pol (μ = 1), and the
 # supremum c* of the levels with V̇ < 0 on {V ≤ c} \ {0}: c* = 2.30448 (vdp_reference.py)
@@ -85,6 +90,9 @@ def test_non_polynomial_system_not_applicable(name, ops):
     assert "not polynomial" in res.status and "Taylor" in res.status
     for op in ops:  # the offending operations are named
         assert op in res.status
+    assert not res.applicable
+    assert {f"{k} ({v})" for k, v in res.non_polynomial.items()} == set(ops)
+    assert res.certificate is None and res.problem is None
     assert not res.certified and res.certified_level == 0.0 and res.V is None
     assert res.area(n=50) == 0.0
 
@@ -102,9 +110,10 @@ def test_quadratic_level_certified_within_one_percent(quadratic):
     # c* (no sound certificate reaches it) and within 1 % of it
     assert res.certified_level <= res.sdp_level
     assert 0.99 * REFERENCE_LEVEL <= res.certified_level < REFERENCE_LEVEL
-    assert res.certificate.status == "certified"
+    assert res.certificate.certified and res.certificate.setting == "known"
     assert res.certificate.level == res.certified_level
-    assert res.inner_ellipse["status"] == "certified"
+    assert res.inner_ellipse.status == "certified" and res.inner_ellipse.proved
+    assert res.applicable and res.non_polynomial == {}
 
 
 def test_quadratic_certificate_holds_on_samples(vdp, quadratic):
@@ -132,21 +141,31 @@ def test_raised_level_is_refused_by_the_verifier(vdp, quadratic):
     """A corrupted result (level 10 % above the certified one) is not certified as is."""
     res = quadratic
     raised = 1.1 * res.certified_level
-    cl = closed_loop(vdp)
-    V = res.casadi(cl.x)
-    lie = ca.dot(ca.gradient(V, cl.x), cl.rhs)
     outer = 1.1 * res.outer  # so that (b) still holds and (a) is what fails
-    cert = certify_level(cl.x, V, lie, level=raised, inner=res.inner, outer=outer,
-                         margin=0.0, log=lambda m: None)
-    assert cert.history[0]["containment"] == "verified"
-    assert cert.history[0]["decrease"] == "counterexample"
+    problem = RoaProblem(vdp, res.V, inner=res.inner, outer=outer)
+    cert = certify_roa(problem, raised, search=False, log=lambda m: None)
+    assert cert.status is CertStatus.COUNTEREXAMPLE and not cert.certified
+    assert cert.checks["(b) V > level on ‖x‖ = r"] == "verified"
+    assert cert.checks["(a) decrease"] == "counterexample"
     cex = cert.counterexamples
     assert len(cex) > 0
     # the counterexamples are genuine: inside the raised set, and V does not decrease there
     assert np.all(res.V(cex) <= raised)
     assert np.all(_lie(vdp, res.V, cex) >= -1e-9)
-    # the level it ends at is below c*
-    assert cert.level < REFERENCE_LEVEL
+    # searching down from the raised level ends below c*
+    lowered = certify_roa(problem, raised, search=True, log=lambda m: None)
+    assert lowered.certified and lowered.level < REFERENCE_LEVEL
+
+
+def test_saved_certificate_rechecks(quadratic, tmp_path):
+    """The SOS certificate is the toolbox's one certificate: saved, it re-verifies."""
+    res = quadratic
+    path = save_certificate(res.certificate, res.problem, tmp_path)
+    again = recheck_certificate(path, log=lambda m: None)
+    assert again.certified, again.reason
+    assert again.level == res.certified_level
+    pts, _ = grid_points(BOX, 80)
+    np.testing.assert_array_equal(again.contains(pts), res.mask(pts))
 
 
 # --------------------------------------------------------------------------- higher degree

@@ -834,6 +834,9 @@ def config_reference() -> str:
     rows = ["| key | accepts | default |", "| --- | --- | --- |"]
     sch = schema()
     for section in ("", "lqr", "train", "cegis", "cegis.verify_options", "dynamics"):
+        if section == "dynamics":
+            rows.append("| `dynamics.*` | the fields of nlyap_opt.dynamics_config.DynamicsConfig; "
+                        "ranges checked by dynamics_config() | |")
         for name, key in sch[section].items():
             if section == "" and key.kind == "section":
                 rows.append(f"| `{name}` | section: {key.doc} | |")

@@ -53,45 +53,12 @@ from numbers import Integral, Real
 from pathlib import Path
 
 from .errors import ConfigError, UnknownNameError
+from .jsonio import read_json_object
 
 __all__ = [
     "PRESETS", "Key", "check_dynamics_box", "check_lqr_weights", "config_reference",
     "get_config", "make_config", "read_json_object", "schema", "validate_config",
 ]
-
-
-def read_json_object(path: str | Path) -> dict:
-    """A configuration file: a JSON object (else :class:`ConfigError` saying why).
-
-    Parameters
-    ----------
-    path : str or Path
-
-    Returns
-    -------
-    dict
-
-    Raises
-    ------
-    ConfigError
-        The file is missing, a directory, unreadable, not valid JSON, or not an object.
-    """
-    p = Path(path)
-    if p.is_dir():
-        raise ConfigError(f"config {path} is a directory; pass the JSON file inside it")
-    try:
-        obj = json.loads(p.read_text())
-    except OSError as err:
-        raise ConfigError(f"cannot read config {path}: {err.strerror or err}; "
-                          "check the path") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"config {path} is not a text file; pass a JSON file") from None
-    except json.JSONDecodeError as err:
-        raise ConfigError(f"config {path} is not valid JSON ({err}); fix the file") from None
-    if not isinstance(obj, dict):
-        raise ConfigError(f"config {path} must hold a JSON object {{...}}, "
-                          f"got a {type(obj).__name__}")
-    return obj
 
 
 # ============================================================================ presets

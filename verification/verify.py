@@ -363,13 +363,14 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
             outside = np.any(g_lo > 0, axis=1) if m else np.zeros(len(lo), bool)
             holds = np.all(p_hi < 0, axis=1)
         else:
-            # P10: a constraint prunes the box only where it is defined on all of it; the
-            # properties hold only if every constraint and property is defined on the box
-            # (outside the region the properties need not be defined)
+            # P10: a constraint prunes the box only if it is defined on all of it (outside
+            # the region the properties need not be defined); the properties hold on the
+            # box only if each is defined on all of it (then p < 0 at every point of the
+            # box, whatever a constraint that is undefined somewhere would have said)
             defined = ~chk.maybe
             outside = (np.any((g_lo > 0) & defined[:, :m], axis=1) if m
                        else np.zeros(len(lo), bool))
-            holds = np.all(p_hi < 0, axis=1) & defined.all(axis=1)
+            holds = np.all((p_hi < 0) & defined[:, m:], axis=1)
         done = outside | holds
         # centre points: rigorous counterexample confirmation
         inside_c = np.all(Fc.hi[:, :m] <= 0, axis=1) if m else np.ones(len(lo), bool)

@@ -104,7 +104,7 @@ def _matrix_arg(text: str | None, option: str):
 
 # ============================================================================ helpers
 @contextlib.contextmanager
-def _reading(what: str):
+def _reading(what: str, fix: str = "check the input"):
     """Errors while reading user input are usage errors (exit 3), not internal ones."""
     try:
         yield
@@ -112,7 +112,7 @@ def _reading(what: str):
         raise
     except (ValueError, TypeError, KeyError, IndexError) as err:
         msg = str(err.args[0]) if isinstance(err, KeyError) and err.args else str(err)
-        raise UsageError(f"{what}: {msg}; check the input") from None
+        raise UsageError(f"{what}: {' '.join(msg.split())}; {fix}") from None
 
 
 def _catalogue_system(name: str) -> None:
@@ -205,7 +205,9 @@ def cmd_lqr(args) -> int:
     s = systems.get(args.system)
     Q, R = check_lqr_weights(s, _matrix_arg(args.Q, "--Q"), _matrix_arg(args.R, "--R"),
                              where="lqr", names=("--Q", "--R"))
-    res = lqr(s, Q, R)
+    with _reading("lqr: the Riccati solver failed with these weights",
+                  "use moderate weights (say between 1e-6 and 1e6)"):
+        res = lqr(s, Q, R)
     np.set_printoptions(precision=6, suppress=True)
     print(f"system {s.name}: A =\n{s.A}\nB =\n{s.B}")
     if s.nu:

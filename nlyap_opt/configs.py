@@ -578,7 +578,15 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
     if not s.nu and scale is not None:
         raise ConfigError(f"{where}: {system} has no inputs; set controller_scale to null")
     lq = cfg.get("lqr", {})
-    check_lqr_weights(s, lq.get("Q"), lq.get("R"), where=where)
+    Q, R = check_lqr_weights(s, lq.get("Q"), lq.get("R"), where=where)
+    if s.nu:  # the controller stage comes after the dynamics stage: fail now, not then
+        from .control import lqr
+
+        try:
+            lqr(s, Q, R)
+        except ValueError as err:  # NotStabilizableError, LinAlgError of the Riccati solver
+            raise ConfigError(f"{where}: no LQR start for {system} with these lqr weights "
+                              f"({' '.join(str(err).split())}); use moderate weights") from None
     _check_dynamics(cfg.get("dynamics", {}), system, where)
     return cfg
 

@@ -398,3 +398,34 @@ def test_sum_of_squares_under_sqrt_is_proved_in_domain():
     ps = VerificationProblem(xs, BOX, [ca.sumsqr(xs) - 1.0],
                              [ca.sqrt(xs[0] ** 2 + xs[1] ** 2) - 1.5])
     assert verify(ps).status == "verified"
+
+
+def test_mx_graph_strip_is_never_verified():
+    x = ca.MX.sym("x", 2)
+    V = ca.sumsqr(x)
+    ind = 0.5 * (ca.sign(x[0] - A) - ca.sign(x[0] - A - 1e-6))
+    lie = ca.dot(ca.gradient(V, x), -x + 10.0 * x * ind)
+    problem = VerificationProblem(x, BOX, [V - 1.0, 0.01 - V], [lie])
+    assert problem.checked
+    _assert_not_verified(problem, verify(problem, presearch=0))
+
+
+@pytest.mark.parametrize("w", [1e-3, 1e-6])
+def test_system_with_coulomb_like_strip_through_closed_loop(w):
+    """A catalogue-style System (SX f called from the MX closed loop): jumps inside the
+    called Function are attributed to the caller's outputs."""
+    xs = ca.SX.sym("x", 2)
+    strip = 0.5 * (ca.sign(xs[1] - A) - ca.sign(xs[1] - A - w))
+    f = ca.vertcat(xs[1], -xs[0] - xs[1] - 0.05 * ca.sign(xs[1]) + 20.0 * xs[1] * strip)
+    s = systems.System("strip_oscillator", xs, None, f, state_box=BOX)
+    V = quadratic_lyapunov(np.array([[1.5, 0.5], [0.5, 1.0]]))
+    problem = closed_loop_problem(s, V, inner=0.1, outer=0.9, check_positive=False)
+    assert problem.checked
+    res = verify(problem, presearch=0)
+    _assert_not_verified(problem, res)
+    # without the strip the same friction oscillator verifies (friction jumps included)
+    f0 = ca.vertcat(xs[1], -xs[0] - xs[1] - 0.05 * ca.sign(xs[1]))
+    s0 = systems.System("friction_oscillator", xs, None, f0, state_box=BOX)
+    ok = closed_loop_problem(s0, V, inner=0.1, outer=0.9, check_positive=False)
+    assert verify(ok).status == "verified"
+    assert_no_sample_contradicts(ok, 200_000)

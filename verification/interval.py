@@ -20,7 +20,9 @@ Invariants and conventions
   part (documented domain clipping): ``sqrt([-1, 4]) = [0, 2]``, ``log([-1, 1]) =
   [-inf, 0]``, ``asin([0, 2]) = [0, pi/2]``, ``x**0.5`` for ``x = [-1, 4]`` is ``[0, 2]``.
   Out-of-domain points have no real value, so a verifier that needs the function to be
-  defined on the whole box must check the domain separately.
+  defined on the whole box must check the domain separately:
+  :class:`CheckedIntervalArithmetic` does (per box and output, with the kink/jump checks
+  of non-smooth operations), and ``verification.verify`` uses it.
 - Degenerate intervals (``Interval(v, v)``: points, all-integer constants) share one array
   for ``lo`` and ``hi`` (``a.lo is a.hi``); operations use this for cheaper exact paths.
   Results may share memory with their arguments (``OP_ASSIGN``, structural views, ``x**1``):
@@ -39,7 +41,9 @@ Rounding model
 numpy computes in IEEE double precision with round-to-nearest. For a correctly rounded
 operation (``+ - * /`` and ``sqrt``) the computed ``y`` is within half an ulp of the real
 result, so ``_dn(y) = min(y*(1-2**-52), y*(1+2**-52)) - 2**-1074`` (at least one float
-below ``y``) is a lower bound, and ``_up`` symmetrically an upper bound. numpy's float64
+below ``y``) is a lower bound, and ``_up`` symmetrically an upper bound. Sums and
+differences drop the ``2**-1074`` (a zero or subnormal sum of two floats is exact), so
+``0 + 0`` stays ``[0, 0]``. numpy's float64
 elementary functions (``exp``, ``log``, ``sin``, ``tanh``, ``arctan``, ... and
 ``scipy.special.erf``) are not correctly rounded; numpy documents and tests them to a few
 ulps (< 4, ``numpy/_core/tests/data/umath-validation-set-*.csv``) and we measured at most

@@ -9,7 +9,9 @@ Outcomes (never blurred):
 - ``verified``: no point of ``R`` violates a property (rigorous, interval arithmetic with
   outward rounding);
 - ``counterexample``: a concrete point, inside ``R`` and violating a property, both
-  *confirmed* by rigorous evaluation at that point;
+  *confirmed* by rigorous evaluation at that point (or, property ``"domain of OP_..."``,
+  a point of ``R`` at which a property is certainly undefined: some operation of its
+  graph is applied outside its domain, e.g. ``sqrt`` of a negative number);
 - ``unknown``: some boxes narrower than the resolution could be decided neither way.
 """
 
@@ -50,7 +52,14 @@ class VerificationProblem:
     -----
     Builds once the CasADi Functions ``F(x) = (g, p)`` and its Jacobian, which the
     verifier evaluates with interval arithmetic (natural extension intersected with the
-    mean-value form).
+    mean-value form). ``checked`` tells whether the graph holds non-smooth or partial
+    operations (then ``function_checked`` / ``function_jacobian_checked``, with one output
+    per constraint and property, carry the per-box kink/jump and domain checks).
+
+    A constraint or property is defined at a point when every operation of its graph is
+    applied inside its domain there (``nlyap_opt.walker.OP_TABLE``; CasADi's ``if_else``
+    evaluates both branches). The properties must be defined on the region; a constraint
+    that is undefined somewhere prunes nothing there.
     """
 
     x: ca.MX

@@ -11,6 +11,25 @@ Each round evaluates a whole batch of boxes in one walker pass (numpy arrays ove
 4. undecided boxes are bisected along the dimension with the largest smear
    ``max_j |J_ji|·w_i``; boxes narrower than ``resolution`` are reported ``unknown``.
 
+Non-smooth and partial operations (``nlyap_opt.walker.OP_TABLE``; problems whose
+``checked`` flag is set) are walked with
+:class:`~verification.interval.CheckedIntervalArithmetic`, which reports per box and per
+constraint/property column:
+
+- P9, kinks and jumps: where an operation feeding a column may meet its kink or jump set
+  on the box (``sign``'s argument contains 0, ``floor``'s an integer, the two sides of a
+  comparison overlap, the arguments of ``fmin`` cross, ...), that column keeps the
+  natural extension only (CasADi's derivative is 0 across a jump, so ``F(c) + J(X)(X − c)``
+  would miss it) and the box is bisected along its widest side;
+- P10, domains: a constraint prunes a box only if every operation feeding it is proved
+  inside its domain on the box; a property holds on a box only if it is so proved. A point
+  of the region (every constraint proved defined and ``≤ 0`` there) at which a property is
+  certainly undefined is a counterexample ``"domain of OP_..."``; a box that can be
+  decided neither way ends ``unknown``.
+
+Graphs without such operations (or only with harmless ones: division by a nonzero
+constant, integer powers) take the plain path, at unchanged cost.
+
 Before branching, a float pre-search over random points and a few gradient steps proposes
 counterexamples, each confirmed by rigorous point evaluation before it is reported.
 """

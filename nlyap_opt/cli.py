@@ -16,6 +16,7 @@ import math
 import os
 import sys
 import traceback
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -206,7 +207,8 @@ def cmd_lqr(args) -> int:
     Q, R = check_lqr_weights(s, _matrix_arg(args.Q, "--Q"), _matrix_arg(args.R, "--R"),
                              where="lqr", names=("--Q", "--R"))
     with _reading("lqr: the Riccati solver failed with these weights",
-                  "use moderate weights (say between 1e-6 and 1e6)"):
+                  "use moderate weights (say between 1e-6 and 1e6)"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a failure is reported as such
         res = lqr(s, Q, R)
     np.set_printoptions(precision=6, suppress=True)
     print(f"system {s.name}: A =\n{s.A}\nB =\n{s.B}")

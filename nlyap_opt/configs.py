@@ -48,6 +48,7 @@ import json
 import math
 import types
 import typing
+import warnings
 from dataclasses import dataclass
 from numbers import Integral, Real
 from pathlib import Path
@@ -583,7 +584,9 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
         from .control import lqr
 
         try:
-            lqr(s, Q, R)
+            with warnings.catch_warnings():  # the failure is reported, not its warnings
+                warnings.simplefilter("ignore", RuntimeWarning)
+                lqr(s, Q, R)
         except ValueError as err:  # NotStabilizableError, LinAlgError of the Riccati solver
             raise ConfigError(f"{where}: no LQR start for {system} with these lqr weights "
                               f"({' '.join(str(err).split())}); use moderate weights") from None
@@ -634,7 +637,7 @@ def check_lqr_weights(system, Q=None, R=None, *, where: str = "lqr",
                               f"{system.name}, got {M.shape[0]}x{M.shape[1]}")
         if not np.allclose(M, M.T):
             raise ConfigError(f"{where}: {name} must be symmetric, got {M.tolist()}")
-        ev = float(np.min(np.linalg.eigvalsh(0.5 * (M + M.T))))
+        ev = float(np.min(np.linalg.eigvalsh(0.5 * M + 0.5 * M.T)))
         if ev <= 0 if strict else ev < 0:
             what = "positive definite" if strict else "positive semidefinite"
             raise ConfigError(f"{where}: {name} must be {what} (smallest eigenvalue "

@@ -467,8 +467,13 @@ def test_cli_bad_input(argv, code, words, config, files, capsys, request):
     from nlyap_opt.cli import main
 
     label = request.node.callspec.id
-    got = main(_fill(argv, files, config, label))
+    with warnings.catch_warnings(record=True) as caught:  # a warning prints more lines
+        warnings.simplefilter("always")
+        got = main(_fill(argv, files, config, label))
     out = capsys.readouterr()
+    shown = [str(w.message) for w in caught
+             if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))]
+    assert not shown, shown
     assert "Traceback" not in out.err and "TRIPWIRE" not in out.err, out.err
     lines = [ln for ln in out.err.splitlines() if ln.strip()]
     assert got == code, out.err

@@ -205,7 +205,8 @@ class Key:
                     "str": "a string", "int_list": "a non-empty list of integers",
                     "dict": "a JSON object", "matrix": "a finite number or a square matrix",
                     "box": "a list of [lo, hi] rows with finite lo < hi",
-                    "section": "a JSON object", "any": "a JSON value"}[self.kind]
+                    "section": "a JSON object", "any": "a JSON value",
+                    "scale": "a finite number or a list of them (one per input)"}[self.kind]
             rng = []
             if self.lo is not None:
                 rng.append(f"{'>' if self.lo_open else '>='} {self.lo:g}")
@@ -357,7 +358,7 @@ def schema() -> dict[str, dict[str, Key]]:
     top = {
         "outer": Key("outer", "float", None, False, **_POS, doc=d["outer"]),
         "inner": Key("inner", "float", None, False, **_POS, doc=d["inner"]),
-        "controller_scale": Key("controller_scale", "float", None, True, **_POS,
+        "controller_scale": Key("controller_scale", "scale", None, True, **_POS,
                                 doc=d["controller_scale"]),
         "lqr": Key("lqr", "section", {}, doc=d["lqr"]),
         "train": Key("train", "section", {}, doc=d["train"]),
@@ -433,6 +434,11 @@ def _check_value(key: Key, v, where: str) -> None:
             bad()
     elif k == "float":
         if not _is_real(v) or not math.isfinite(v) or not _in_range(key, v):
+            bad()
+    elif k == "scale":
+        vals = v if isinstance(v, (list, tuple)) else [v]
+        if not vals or not all(_is_real(a) and math.isfinite(a) and _in_range(key, a)
+                               for a in vals):
             bad()
     elif k == "int_list":
         if not isinstance(v, (list, tuple)) or not v or \
@@ -576,6 +582,9 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
     if s.nu and scale is None:
         raise ConfigError(f"{where}: controller_scale is null but {system} has {s.nu} "
                           "input(s); give the actuator limit C > 0 of u = C·tanh(Kx + b)")
+    if isinstance(scale, (list, tuple)) and len(scale) != s.nu:
+        raise ConfigError(f"{where}: controller_scale has {len(scale)} entries; {system} has "
+                          f"{s.nu} input(s): give one number or one per input")
     if not s.nu and scale is not None:
         raise ConfigError(f"{where}: {system} has no inputs; set controller_scale to null")
     lq = cfg.get("lqr", {})

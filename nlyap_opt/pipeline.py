@@ -241,29 +241,29 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
     # ---------------------------------------------------------------- 1. dynamics
     dynamics, eta, bounds_info, dyn_box, input_box = None, 0.0, None, None, None
     if not known_dynamics:
-        from .bounds import compute_bounds, write_bounds
-        from .dynamics import default_config, learn_dynamics, merge_config
+        from .dynamics_stage import dynamics_stage
 
         if not stages.finished("dynamics"):
             t = time.perf_counter()
             dcfg = dict(cfg.get("dynamics", {}))
-            preset = dcfg.pop("preset", "default")
-            dcfg = merge_config(default_config(system.name, fast=(preset == "fast")), dcfg)
-            dcfg["progress"] = dcfg.get("progress", True) and log is print
-            log(f"[dynamics] learning φ for {system.name} ({preset} preset)")
-            res = learn_dynamics(system, dcfg)
-            bounds = compute_bounds(system, res.network, res.grid, res.alpha,
-                                    options=dcfg.get("bound_options"),
-                                    select=dcfg.get("bound_model", "best"),
-                                    boxes=dcfg.get("interval_boxes", 16384),
-                                    check_points=dcfg.get("check_points", 200000))
-            net_path = res.network.save(out / "dynamics.json")
-            write_bounds(out / "bounds.json", bounds, res.seconds, network_path=str(net_path))
+            dcfg.setdefault("progress", log is print)   # progress bars on the terminal only
+            st = dynamics_stage(system, dcfg, log=log)
+            st.save(out)
             seconds["dynamics"] = time.perf_counter() - t
             stages.mark("dynamics")
         dynamics = Network.load(out / "dynamics.json")
         bounds_info = json.loads((out / "bounds.json").read_text())
         eta = float(bounds_info["eta"])
+        gate = bounds_info.get("gate") or {}
+        if gate.get("status", "ok") != "ok":
+            reason = f"η = {eta:.4g} above eta_target {gate.get('eta_target')}: " \
+                f"{gate.get('advice', '')}"
+            log(f"[done] status: not certified (dynamics stage): {reason}")
+            cert = RoaCertificate(CertStatus.NOT_CERTIFIED, reason, system.name, "learned",
+                                  0.0, eps, r, eta=eta)
+            summary = dict(cert.to_dict(), problem={}, stage="dynamics", gate=gate)
+            write_json_atomic(out / "certificate.json", summary)
+            return RunResult(cert, CertStatus.NOT_CERTIFIED, summary, out, reason)
         grid_box = np.asarray(bounds_info["grid"]["box"], dtype=float)
         dyn_box = grid_box[: system.nx]
         # U of the bound: the grid's input rows (full model) or the system's (control-affine:

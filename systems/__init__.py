@@ -1,4 +1,9 @@
-"""System catalogue: CasADi dynamics with a registry.
+"""Systems: CasADi models, black-box callables and sample files, a registry, spec files.
+
+A :class:`System` is a CasADi model (``kind == "model"``), a black-box batched callable
+(:meth:`System.from_callable`) or samples on a regular grid (:meth:`System.from_samples`,
+:func:`load_samples`); :func:`load_spec` reads a TOML spec file. Assumptions about an
+unknown ``f`` are :class:`Declarations`, checked against data by :func:`check_declarations`.
 
 Examples
 --------
@@ -15,10 +20,14 @@ from collections.abc import Callable
 
 from nlyap_opt.errors import UnknownNameError
 
-from .base import System
+from .base import ModelUnavailableError, System
 from .catalogue import inverted_pendulum, unicycle_path_following, van_der_pol
+from .declarations import Declarations, check_declarations
+from .samples import SampleSet, load_samples, sample_function, save_samples
 
-__all__ = ["System", "get", "names", "register", "REGISTRY"]
+__all__ = ["System", "get", "names", "register", "REGISTRY", "ModelUnavailableError",
+           "Declarations", "check_declarations", "SampleSet", "load_samples", "save_samples",
+           "sample_function", "load_spec", "default_run_settings"]
 
 REGISTRY: dict[str, Callable[..., System]] = {
     "van_der_pol": van_der_pol,
@@ -49,3 +58,20 @@ def get(name: str, **params) -> System:
             "(add one with systems.register)"
         ) from None
     return factory(**params)
+
+
+def load_spec(path) -> System:
+    """Build a :class:`System` from a TOML spec file (:func:`systems.spec.load_spec`).
+
+    Imports SymPy (the expression parser) only when called.
+    """
+    from .spec import load_spec as _load_spec
+
+    return _load_spec(path)
+
+
+def default_run_settings(system: System) -> dict:
+    """Proposed run settings from a system's box (:func:`systems.spec.default_run_settings`)."""
+    from .spec import default_run_settings as _default
+
+    return _default(system)

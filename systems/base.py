@@ -1,4 +1,22 @@
-"""The :class:`System`: dynamics ``x' = f(x, u)`` as a CasADi SX expression, frozen once built."""
+"""The :class:`System`: dynamics ``x' = f(x, u)``, frozen once built.
+
+Three kinds (:attr:`System.kind`):
+
+``"model"``
+    a CasADi SX expression ``f(x, u)`` (``System(name, x, u, f, ...)``): everything is
+    available, including the true-f checks, ``K_f`` by intervals, the proof of condition (c)
+    and the linearisation ``A, B``;
+``"callable"``
+    a black-box batched function ``f(X, U) -> Xdot`` (:meth:`System.from_callable`): it can
+    be sampled and simulated, but there is no model (``has_model`` is False);
+``"samples"``
+    values on a complete regular grid (:meth:`System.from_samples`, e.g. from a file):
+    ``f`` is known at the grid nodes only.
+
+Without a model, ``f``, ``f_fun``, ``A`` and ``B`` raise :class:`ModelUnavailableError`
+(never a stand-in); the components of ``f`` that are known exactly (``θ' = ω``) are given as
+expressions in the system's symbols (:attr:`System.known_rhs`) for every kind.
+"""
 
 from __future__ import annotations
 
@@ -7,10 +25,22 @@ from collections.abc import Callable, Sequence
 import casadi as ca
 import numpy as np
 
-from nlyap_opt.errors import DimensionError, EquilibriumError
+from nlyap_opt.errors import ConfigError, DimensionError, EquilibriumError, NlyapError
 from nlyap_opt.walker import ArrayArithmetic, compile_function, evaluate
 
-__all__ = ["System"]
+from .declarations import Declarations, check_declarations
+from .samples import SampleSet
+
+__all__ = ["System", "ModelUnavailableError", "KINDS", "EQUILIBRIUM_TOL"]
+
+#: the kinds of system: a CasADi model, a black-box callable, samples on a grid
+KINDS = ("model", "callable", "samples")
+#: absolute tolerance of the equilibrium check ``max_k |f_k(0, u_eq)| <= EQUILIBRIUM_TOL``
+EQUILIBRIUM_TOL = 1e-9
+
+
+class ModelUnavailableError(NlyapError, AttributeError):
+    """The system has no CasADi model (a black-box callable or samples): ``f`` is unknown."""
 
 
 def _box(box, n: int, what: str) -> np.ndarray:
@@ -25,7 +55,10 @@ def _box(box, n: int, what: str) -> np.ndarray:
 
 
 class System:
-    r"""A continuous-time control system :math:`\dot x = f(x, u)` defined with CasADi.
+    r"""A continuous-time control system :math:`\dot x = f(x, u)`.
+
+    The constructor takes a CasADi model; :meth:`from_callable` and :meth:`from_samples`
+    build systems whose ``f`` is unknown (``has_model`` False).
 
     Parameters
     ----------
@@ -50,6 +83,21 @@ class System:
     known_state_derivatives : sequence of int, optional
         Indices ``i`` of states whose derivative is known exactly (e.g. ``θ' = ω``); learned
         dynamics may model only the other components.
+    declarations : Declarations, optional
+        Assumptions declared by the user (``K_f``, ``H``, a control-affine ``B``).
+    run_overrides : dict, optional
+        Run-configuration overrides that travel with the system (a spec file's ``[run]``).
+    source : str, optional
+        Where the system was defined (a spec file), for messages and reports.
+
+    Attributes
+    ----------
+    kind : {"model", "callable", "samples"}
+    has_model : bool
+        True when the CasADi ``f`` is available (true-f checks, ``K_f`` by intervals,
+        condition (c) proved, linearisation by CasADi).
+    known_rhs : dict of int to casadi.SX
+        The exactly known components of ``f`` as expressions of ``x`` and ``u``.
 
     Notes
     -----
@@ -64,6 +112,8 @@ class System:
     ...              state_box=[[-1, 1], [-1, 1]], input_box=[[-1, 1]])
     >>> sys.A.tolist(), sys.B.ravel().tolist()
     ([[0.0, 1.0], [0.0, 0.0]], [0.0, 1.0])
+    >>> sys.kind, sys.has_model
+    ('model', True)
     """
 
     def __init__(
@@ -81,6 +131,9 @@ class System:
         input_names: Sequence[str] | None = None,
         description: str = "",
         known_state_derivatives: Sequence[int] = (),
+        declarations: Declarations | None = None,
+        run_overrides: dict | None = None,
+        source: str = "",
     ):
         if not isinstance(x, ca.SX) or not x.is_column() or not x.is_valid_input():
             raise TypeError("x must be a column of casadi.SX symbols, e.g. ca.SX.sym('x', 2)")
@@ -99,28 +152,391 @@ class System:
                 f"f depends on symbols other than x and u: {fun.get_free()}; "
                 "substitute parameter values before building the System"
             )
+        self._setup(name, x, u, "model", state_box=state_box, input_box=input_box,
+                    params=params, state_names=state_names, input_names=input_names,
+                    description=description, declarations=declarations,
+                    run_overrides=run_overrides, source=source)
+        self._f, self._f_fun = f, fun
+        self.known_state_derivatives = self._known_indices(known_state_derivatives)
+        self.u_eq = self._equilibrium_input(u_eq)
+        jac = ca.Function("jac_" + name, [x, u], [ca.jacobian(f, x), ca.jacobian(f, u)])
+        A, B = jac(np.zeros(self.nx), self.u_eq)
+        self._A = np.array(A, dtype=float).reshape(self.nx, self.nx)
+        self._B = np.array(B, dtype=float).reshape(self.nx, self.nu)
+        self._program = compile_function(fun)
+
+    # ------------------------------------------------------------------ other kinds
+    @classmethod
+    def from_callable(
+        cls,
+        name: str,
+        fun: Callable[[np.ndarray, np.ndarray], np.ndarray],
+        *,
+        nx: int,
+        nu: int = 0,
+        state_box,
+        input_box=None,
+        u_eq=None,
+        known_rhs: dict | None = None,
+        equilibrium_tol: float = EQUILIBRIUM_TOL,
+        symbols: tuple[ca.SX, ca.SX] | None = None,
+        **kwargs,
+    ) -> System:
+        r"""A system given by a black-box batched function ``fun(X, U) -> Xdot``.
+
+        Parameters
+        ----------
+        name : str
+        fun : callable
+            ``(N, nx), (N, nu) -> (N, nx)`` float64 arrays (a simulator wrapper); it is
+            called on batches and must not keep state between calls.
+        nx, nu : int
+        state_box, input_box : array_like
+            As for the constructor.
+        u_eq : (nu,) array_like
+            The declared equilibrium input (required when ``nu > 0``); ``x = 0`` is the
+            equilibrium: ``max_k |fun(0, u_eq)_k| <= equilibrium_tol`` is checked.
+        known_rhs : dict, optional
+            ``{state index or name: expr}``: components known exactly, as functions
+            ``expr(x, u) -> casadi.SX`` of the system's symbols ``x`` ``(nx, 1)`` and ``u``
+            ``(nu, 1)``, or SX expressions in ``symbols``; checked against ``fun`` on 64
+            seeded points of the box (relative 1e-9).
+        equilibrium_tol : float
+            Absolute tolerance of the equilibrium check (default 1e-9).
+        symbols : (casadi.SX, casadi.SX), optional
+            The system's ``x`` and ``u`` (default: new ones from :meth:`symbols`).
+        **kwargs
+            ``params``, ``state_names``, ``input_names``, ``description``,
+            ``declarations``, ``run_overrides``, ``source``.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> s = System.from_callable(
+        ...     "di", lambda X, U: np.stack([X[:, 1], U[:, 0]], axis=1), nx=2, nu=1,
+        ...     state_box=[[-1, 1], [-1, 1]], input_box=[[-1, 1]], u_eq=[0.0])
+        >>> s.has_model, s.evaluate([[0.5, 1.0]], [[2.0]]).tolist()
+        (False, [[1.0, 2.0]])
+        """
+        if not callable(fun):
+            raise TypeError(f"fun must be a callable f(X, U) -> Xdot, got {type(fun).__name__}")
+        self = cls.__new__(cls)
+        x, u = cls._given_symbols(symbols, int(nx), int(nu))
+        self._setup(name, x, u, "callable", state_box=state_box, input_box=input_box, **kwargs)
+        self._callable = fun
+        self._set_known_rhs(known_rhs)
+        self.u_eq = self._declared_u_eq(u_eq)
+        resid = self.evaluate(np.zeros((1, self.nx)), self.u_eq.reshape(1, self.nu))[0]
+        self._check_equilibrium(resid, equilibrium_tol, "the callable")
+        if self._known:
+            rng = np.random.default_rng(0)
+            lo, hi = self.sampling_box[:, 0], self.sampling_box[:, 1]
+            z = lo + (hi - lo) * rng.random((64, self.nx + self.nu))
+            self._check_known(z, self.evaluate(z[:, :self.nx], z[:, self.nx:]), "the callable")
+        return self
+
+    @classmethod
+    def from_samples(
+        cls,
+        name: str,
+        samples: SampleSet,
+        *,
+        state_box=None,
+        input_box=None,
+        u_eq=None,
+        known_rhs: dict | None = None,
+        equilibrium_tol: float = EQUILIBRIUM_TOL,
+        symbols: tuple[ca.SX, ca.SX] | None = None,
+        **kwargs,
+    ) -> System:
+        r"""A system known only by its samples on a complete regular grid.
+
+        Parameters
+        ----------
+        name : str
+        samples : SampleSet
+            From :func:`systems.samples.load_samples` (its ``nx``, ``nu`` and names are
+            the system's).
+        state_box, input_box : array_like, optional
+            Default: the grid's box; if given, must equal it (the samples define the box
+            on which the error bound holds).
+        u_eq : (nu,) array_like
+            Declared equilibrium input (required when ``nu > 0``); the grid must contain the
+            node ``(0, u_eq)`` and ``max_k |f_k| <= equilibrium_tol`` there.
+        known_rhs : dict, optional
+            As in :meth:`from_callable`; checked on every node (relative 1e-9).
+        equilibrium_tol, symbols
+            As in :meth:`from_callable`.
+        **kwargs
+            ``params``, ``description``, ``declarations``, ``run_overrides``, ``source``.
+
+        Notes
+        -----
+        ``evaluate`` returns the sampled values at grid nodes and refuses other points;
+        declared assumptions are checked against the samples here
+        (:func:`~systems.declarations.check_declarations`).
+        """
+        if not isinstance(samples, SampleSet):
+            raise TypeError("samples must be a SampleSet (systems.samples.load_samples)")
+        nx, nu = samples.nx, samples.nu
+        checks = [("state_box", state_box, samples.box[:nx])]
+        if not samples.input_slice:
+            checks.append(("input_box", input_box, samples.box[nx:]))
+        for what, given, rows in checks:
+            if given is not None and not np.array_equal(np.asarray(given, dtype=float), rows):
+                raise ConfigError(
+                    f"{what} {np.asarray(given).tolist()} differs from the sample grid's box "
+                    f"{rows.tolist()}; leave {what} out (the samples define it) or resample"
+                )
+        ubox = samples.box[nx:] if nu else None
+        if samples.input_slice:
+            decl = kwargs.get("declarations")
+            levels = samples.box[nx:, 0][samples.counts[nx:] == 1].tolist()
+            if decl is None or decl.input_matrix is None:
+                raise ConfigError(
+                    f"the samples of {name!r} hold a single input level {levels}; declare "
+                    "control-affine structure (input_matrix B) to say what other inputs do, "
+                    "or sample a grid over the inputs too"
+                )
+            if input_box is None:
+                raise ConfigError(
+                    f"the samples of {name!r} hold a single input level {levels}; give "
+                    "input_box (the inputs the controller may use)"
+                )
+            ubox = _box(input_box, nu, "input_box")
+            inside = (ubox[:, 0] <= samples.box[nx:, 0]) & (samples.box[nx:, 1] <= ubox[:, 1])
+            if not np.all(inside):
+                raise ConfigError(
+                    f"input_box {ubox.tolist()} does not contain the sampled inputs "
+                    f"{samples.box[nx:].tolist()}; widen input_box"
+                )
+        self = cls.__new__(cls)
+        kwargs.setdefault("state_names", samples.names[:nx])
+        kwargs.setdefault("input_names", samples.names[nx:])
+        x, u = cls._given_symbols(symbols, nx, nu)
+        self._setup(name, x, u, "samples", state_box=samples.box[:nx], input_box=ubox,
+                    **kwargs)
+        self.samples = samples
+        self._set_known_rhs(known_rhs)
+        self.u_eq = self._declared_u_eq(u_eq)
+        z0 = np.concatenate([np.zeros(nx), self.u_eq])
+        if samples.input_slice:  # the equilibrium through the declared B: f(0, u0) + B(u_eq − u0)
+            z0[nx:] = np.where(samples.counts[nx:] == 1, samples.box[nx:, 0], self.u_eq)
+        k, dist = samples.nearest_node(z0)
+        tol = 1e-9 * np.max(samples.spacing)
+        if dist > tol:
+            raise ConfigError(
+                f"the sample grid of {name!r} has no node at (x = 0, u = u_eq = "
+                f"{self.u_eq.tolist()}) (nearest node {samples.points([k])[0].tolist()}); "
+                "sample a grid that contains the equilibrium (e.g. an odd number of nodes on "
+                "a symmetric axis)"
+            )
+        f0 = samples.values[k]
+        if samples.input_slice:
+            f0 = f0 + self.declarations.B @ (self.u_eq - z0[nx:])
+        self._check_equilibrium(f0, equilibrium_tol, "the samples")
+        if self._known:
+            self._check_known(samples.points(np.arange(samples.size)), samples.values,
+                              "the samples")
+        if self.declarations is not None:
+            check_declarations(samples, samples.values, self.declarations,
+                               names=self.state_names + self.input_names,
+                               source=self.source or samples.source)
+        return self
+
+    @staticmethod
+    def symbols(nx: int, nu: int = 0) -> tuple[ca.SX, ca.SX]:
+        """The symbols ``x`` ``(nx, 1)`` and ``u`` ``(nu, 1)`` of a system without a model."""
+        return ca.SX.sym("x", int(nx)), ca.SX.sym("u", int(nu))
+
+    @classmethod
+    def _given_symbols(cls, symbols, nx: int, nu: int) -> tuple[ca.SX, ca.SX]:
+        if symbols is None:
+            return cls.symbols(nx, nu)
+        x, u = symbols
+        if not isinstance(x, ca.SX) or x.shape != (nx, 1) or not x.is_valid_input():
+            raise TypeError(f"symbols[0] must be an SX column of {nx} symbols")
+        if not isinstance(u, ca.SX) or u.shape[0] != nu or not (u.is_empty() or
+                                                               u.is_valid_input()):
+            raise TypeError(f"symbols[1] must be an SX column of {nu} symbols")
+        return x, u
+
+    # ------------------------------------------------------------------ common set-up
+    def _setup(self, name, x, u, kind, *, state_box, input_box=None, params=None,
+               state_names=None, input_names=None, description="", declarations=None,
+               run_overrides=None, source=""):
         self.name = name
-        self.x, self.u, self.f = x, u, f
+        self.kind = kind
+        self.x, self.u = x, u
         self.nx, self.nu = x.numel(), u.numel()
         self.state_box = _box(state_box, self.nx, "state_box")
-        self.input_box = _box(input_box, self.nu, "input_box") if self.nu else np.zeros((0, 2))
         if self.nu and input_box is None:
             raise ValueError(f"system {name!r} has inputs: give input_box (nu={self.nu})")
+        self.input_box = _box(input_box, self.nu, "input_box") if self.nu else np.zeros((0, 2))
         self.params = dict(params or {})
         self.state_names = list(state_names or [f"x{i + 1}" for i in range(self.nx)])
         self.input_names = list(input_names or [f"u{i + 1}" for i in range(self.nu)])
         if len(self.state_names) != self.nx or len(self.input_names) != self.nu:
             raise DimensionError("state_names/input_names must have nx/nu entries")
         self.description = description
-        self.known_state_derivatives = tuple(int(i) for i in known_state_derivatives)
-        self.f_fun = fun
-        self.u_eq = self._equilibrium_input(u_eq)
-        jac = ca.Function("jac_" + name, [x, u], [ca.jacobian(f, x), ca.jacobian(f, u)])
-        A, B = jac(np.zeros(self.nx), self.u_eq)
-        self.A = np.array(A, dtype=float).reshape(self.nx, self.nx)
-        self.B = np.array(B, dtype=float).reshape(self.nx, self.nu)
-        self._program = compile_function(fun)
+        if declarations is not None and not isinstance(declarations, Declarations):
+            raise TypeError("declarations must be a systems.Declarations")
+        self.declarations = None if declarations is None else declarations.validate(
+            self.nx, self.nu)
+        self.run_overrides = dict(run_overrides or {})
+        self.source = str(source)
+        self._f = self._f_fun = self._A = self._B = None
+        self._program = self._callable = None
+        self.samples = None
+        self._known: dict[int, ca.SX] = {}
         self._torch = None
+
+    def _known_indices(self, idx) -> tuple[int, ...]:
+        out = tuple(int(i) for i in idx)
+        for i in out:
+            if not 0 <= i < self.nx:
+                raise ConfigError(
+                    f"known_state_derivatives index {i} is out of range for {self.nx} states"
+                )
+        return out
+
+    def _set_known_rhs(self, known_rhs) -> None:
+        known: dict[int, ca.SX] = {}
+        for key, expr in dict(known_rhs or {}).items():
+            if isinstance(key, str):
+                if key not in self.state_names:
+                    raise ConfigError(
+                        f"known_rhs names {key!r}, not a state of {self.name!r} "
+                        f"({', '.join(self.state_names)})"
+                    )
+                key = self.state_names.index(key)
+            i = int(key)
+            if not 0 <= i < self.nx:
+                raise ConfigError(f"known_rhs index {i} is out of range for {self.nx} states")
+            e = expr(self.x, self.u) if callable(expr) else expr
+            e = ca.SX(e)
+            if e.shape != (1, 1):
+                raise DimensionError(f"known_rhs[{i}] must be a scalar expression, got {e.shape}")
+            if ca.Function("k", [self.x, self.u], [e], {"allow_free": True}).has_free():
+                raise ConfigError(
+                    f"known_rhs[{i}] ({self.state_names[i]}') uses symbols other than the "
+                    "system's x and u; build it from System.symbols or pass a function (x, u)"
+                )
+            known[i] = e
+        self._known = dict(sorted(known.items()))
+        self.known_state_derivatives = tuple(self._known)
+
+    def _check_known(self, z: np.ndarray, values: np.ndarray, where: str) -> None:
+        fun = ca.Function("known", [self.x, self.u], [ca.vertcat(*self._known.values())])
+        prog = compile_function(fun)
+        got = evaluate(prog, [z[:, :self.nx], z[:, self.nx:]])[0]
+        want = values[:, list(self._known)]
+        err = np.abs(got - want)
+        bad = err > 1e-9 * (1.0 + np.abs(want))
+        if bad.any():
+            r, c = np.argwhere(bad)[0]
+            i = list(self._known)[c]
+            raise ConfigError(
+                f"the known component {self.state_names[i]}' of {self.name!r} disagrees with "
+                f"{where} at z = {z[r].tolist()}: expression {got[r, c]!r}, data "
+                f"{want[r, c]!r}; fix the expression or do not declare the component known"
+            )
+
+    def _declared_u_eq(self, u_eq) -> np.ndarray:
+        if not self.nu:
+            if u_eq is not None and np.size(u_eq):
+                raise ConfigError(f"system {self.name!r} has no inputs; remove u_eq")
+            return np.zeros(0)
+        if u_eq is None:
+            raise ConfigError(
+                f"system {self.name!r} has no model to solve f(0, u) = 0 from: declare the "
+                f"equilibrium input u_eq ({self.nu} numbers)"
+            )
+        u = np.asarray(u_eq, dtype=float).ravel()
+        if u.shape != (self.nu,) or not np.all(np.isfinite(u)):
+            raise ConfigError(f"u_eq must be {self.nu} finite numbers, got {u_eq!r}")
+        return u
+
+    def _check_equilibrium(self, resid, tol: float, where: str) -> None:
+        resid = np.asarray(resid, dtype=float).ravel()
+        if not np.all(np.isfinite(resid)) or np.max(np.abs(resid), initial=0.0) > tol:
+            raise EquilibriumError(
+                f"the origin is not an equilibrium of {self.name!r}: f(0, u_eq="
+                f"{self.u_eq.tolist()}) = {resid.tolist()} by {where} (tolerance {tol:g}); shift "
+                "the state so that the equilibrium is at x = 0, or declare the right u_eq"
+            )
+
+    def _no_model(self, what: str):
+        src = f" from {self.source}" if self.source else ""
+        return ModelUnavailableError(
+            f"{what} of system {self.name!r} is unknown: it is given by "
+            f"{'a black-box callable' if self.kind == 'callable' else 'samples'}{src}, "
+            "not a CasADi model; use the learned dynamics φ (or check system.has_model)"
+        )
+
+    # ------------------------------------------------------------------ model access
+    @property
+    def has_model(self) -> bool:
+        """True when ``f`` is a CasADi expression (``kind == "model"``)."""
+        return self.kind == "model"
+
+    @property
+    def f(self) -> ca.SX:
+        """The right-hand side as CasADi SX (model only)."""
+        if self._f is None:
+            raise self._no_model("the right-hand side f")
+        return self._f
+
+    @property
+    def f_fun(self) -> ca.Function:
+        """CasADi Function ``(x, u) -> f`` (model only)."""
+        if self._f_fun is None:
+            raise self._no_model("the CasADi function f_fun")
+        return self._f_fun
+
+    @property
+    def A(self) -> np.ndarray:
+        """``∂f/∂x`` at ``(0, u_eq)`` (model only)."""
+        if self._A is None:
+            raise self._no_model("the linearisation A = ∂f/∂x")
+        return self._A
+
+    @property
+    def B(self) -> np.ndarray:
+        """``∂f/∂u`` at ``(0, u_eq)`` (model only)."""
+        if self._B is None:
+            raise self._no_model("the linearisation B = ∂f/∂u")
+        return self._B
+
+    @property
+    def known_rhs(self) -> dict[int, ca.SX]:
+        """The exactly known components ``{i: f_i(x, u)}`` as SX in ``x``, ``u`` (every kind)."""
+        if self.has_model:
+            return {i: self._f[i] for i in self.known_state_derivatives}
+        return dict(self._known)
+
+    @property
+    def sampling_box(self) -> np.ndarray:
+        """``X × U`` as one ``(nx + nu, 2)`` box (rows: states, then inputs)."""
+        return np.vstack([self.state_box, self.input_box])
+
+    def check_declarations(self, grid, values=None) -> dict:
+        """Check :attr:`declarations` against ``f`` at the nodes of ``grid`` (over X × U).
+
+        ``values`` defaults to :meth:`evaluate` at the nodes (not for a ``"samples"`` system
+        unless ``grid`` is its grid). Returns the estimates (see
+        :func:`~systems.declarations.check_declarations`); raises ConfigError if the data
+        contradict a declaration.
+        """
+        if self.declarations is None:
+            return {}
+        if values is None:
+            z = np.vstack(list(grid.batches())) if hasattr(grid, "batches") else None
+            if z is None:
+                raise TypeError("grid needs a batches() method, or pass values")
+            values = self.evaluate(z[:, :self.nx], z[:, self.nx:])
+        return check_declarations(grid, values, self.declarations,
+                                  names=self.state_names + self.input_names, source=self.source)
 
     # ------------------------------------------------------------------ derived
     def _equilibrium_input(self, u_eq) -> np.ndarray:
@@ -139,7 +555,7 @@ class System:
             u_eq = sol.x
         u_eq = np.zeros(0) if not self.nu else np.asarray(u_eq, dtype=float).reshape(self.nu)
         resid = np.array(self.f_fun(zero, u_eq), dtype=float).ravel()
-        if np.max(np.abs(resid), initial=0.0) > 1e-9:
+        if np.max(np.abs(resid), initial=0.0) > EQUILIBRIUM_TOL:
             raise EquilibriumError(
                 f"the origin is not an equilibrium of {self.name!r}: f(0, u_eq={u_eq}) = {resid}; "
                 "shift the state so that the equilibrium is at x = 0"
@@ -148,6 +564,10 @@ class System:
 
     def evaluate(self, x, u=None) -> np.ndarray:
         """Evaluate ``f`` on a batch, float64.
+
+        A ``"model"`` is evaluated through its CasADi graph, a ``"callable"`` is called, a
+        ``"samples"`` system returns the sampled values and refuses points that are not
+        grid nodes.
 
         Parameters
         ----------
@@ -167,10 +587,22 @@ class System:
         u = np.asarray(u, dtype=float)
         if u.ndim != 2 or u.shape != (x.shape[0], self.nu):
             raise DimensionError(f"u must have shape ({x.shape[0]}, {self.nu}), got {u.shape}")
-        return evaluate(self._program, [x, u])[0]
+        if self.kind == "model":
+            return evaluate(self._program, [x, u])[0]
+        if self.kind == "samples":
+            return self.samples.lookup(x, u)
+        out = np.asarray(self._callable(x, u), dtype=float)
+        if out.shape != x.shape:
+            raise DimensionError(
+                f"the callable of {self.name!r} returned shape {out.shape} for {x.shape[0]} "
+                f"points; it must return (N, {self.nx}) = {x.shape}"
+            )
+        return out
 
     def evaluate_torch(self, x, u=None):
-        """Evaluate ``f`` on torch tensors ``(N, nx)``, ``(N, nu)`` (differentiable)."""
+        """Evaluate ``f`` on torch tensors ``(N, nx)``, ``(N, nu)`` (differentiable; model only)."""
+        if self._program is None:
+            raise self._no_model("a differentiable (torch) evaluation of f")
         if self._torch is None:
             self._torch = ArrayArithmetic("torch")
         if u is None:
@@ -195,6 +627,8 @@ class System:
     ) -> np.ndarray:
         """Simulate the closed loop from many initial states at once (fixed-step RK4).
 
+        Works for a ``"model"`` and a ``"callable"``; samples cannot be simulated.
+
         Parameters
         ----------
         feedback : callable or None
@@ -210,6 +644,8 @@ class System:
         """
         if method != "rk4":
             raise ValueError(f"method must be 'rk4', got {method!r}")
+        if self.kind == "samples":
+            raise self._no_model("f between the grid nodes (needed to simulate)")
         x = np.array(x0, dtype=float, ndmin=2)
         dt = t_final / n_steps
 
@@ -229,5 +665,12 @@ class System:
                 out[k + 1] = x
         return out
 
+    def describe_assumptions(self) -> list[str]:
+        """The declared assumptions, one sentence each (for certificate and report)."""
+        if self.declarations is None:
+            return []
+        return self.declarations.describe(self.state_names, self.input_names)
+
     def __repr__(self) -> str:
-        return f"System({self.name!r}, nx={self.nx}, nu={self.nu})"
+        extra = "" if self.kind == "model" else f", kind={self.kind!r}"
+        return f"System({self.name!r}, nx={self.nx}, nu={self.nu}{extra})"

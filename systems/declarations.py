@@ -1,0 +1,413 @@
+r"""Assumptions a user declares about an unknown ``f``, and their check against samples.
+
+An unknown system is only sampled, so what the certificate needs beyond the samples is
+*declared*: a Lipschitz constant :math:`K_f` (the paper's setting), optionally a bound on the
+second derivatives (the second-order error model, condition (c) from samples), and
+optionally control-affine structure with a known input matrix ``B``. The certificate lists
+each :meth:`Declarations.describe` line verbatim under "Assumptions (declared by the user)".
+
+Declarations are never trusted blindly where data can refute them:
+:func:`check_declarations` refuses
+
+- a declared :math:`K_f` below the largest finite-difference slope
+  :math:`\|f(z_a) - f(z_b)\|_2 / \|z_a - z_b\|_2` between neighbouring grid nodes (every such
+  slope is a lower bound of any Lipschitz constant);
+- a declared :math:`H` below the largest second difference
+  :math:`|f(z + h e_i) - 2 f(z) + f(z - h e_i)| / h^2` or mixed difference over a grid cell
+  (each equals a second derivative of a :math:`C^2` function at some point, or its mean
+  over the cell);
+- a declared ``B`` with :math:`f(x, u_1) - f(x, u_2) \ne B (u_1 - u_2)` between neighbours
+  along an input axis.
+
+Each sample value is taken as exact to within an absolute ``value_tolerance`` (default: 8
+units in the last place of the largest :math:`|f|`, i.e. float64 rounding of the data); the
+estimates are lowered by the error this allows (:math:`2\tau/h` for a slope,
+:math:`4\tau/h^2` for a second difference) and a declaration is refused only when the
+lowered estimate still exceeds it by more than a relative ``1e-6``. A check can only
+refute: passing it does not prove a declaration (a Lipschitz constant is a statement about
+every pair of points, the grid sees finitely many).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from nlyap_opt.errors import ConfigError, DimensionError
+
+__all__ = ["Declarations", "check_declarations", "RTOL"]
+
+#: relative slack before a declaration counts as contradicted by an estimate from the data
+RTOL = 1e-6
+_EPS = 2.0**-52
+
+
+def _fmt(v) -> str:
+    return f"{float(v):.6g}"
+
+
+def _fmt_vec(v) -> str:
+    return "(" + ", ".join(_fmt(a) for a in np.ravel(v)) + ")"
+
+
+def _positive(name: str, v) -> float:
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        raise ConfigError(f"declared {name} must be a number, got {v!r}") from None
+    if not np.isfinite(v) or v <= 0:
+        raise ConfigError(f"declared {name} must be a finite positive number, got {v}")
+    return v
+
+
+@dataclass(frozen=True)
+class Declarations:
+    r"""Assumptions about ``f`` declared by the user (none is computed from data).
+
+    Parameters
+    ----------
+    lipschitz : float or sequence of float, optional
+        :math:`K_f`: either one constant with
+        :math:`\|f(z_a) - f(z_b)\|_2 \le K_f \|z_a - z_b\|_2`, or one per state derivative
+        ``k`` with :math:`|f_k(z_a) - f_k(z_b)| \le K_k \|z_a - z_b\|_2`, for all
+        :math:`z = (x, u)` in the sampling box :math:`X \times U`.
+    hessian : float, optional
+        :math:`H`: ``f`` is :math:`C^2` on :math:`X \times U` with
+        :math:`|\partial^2 f_k / \partial z_i \partial z_j| \le H` for all ``k, i, j``.
+    input_matrix : (nx, nu) array_like, optional
+        Known ``B`` of a control-affine ``f(x, u) = f_0(x) + B u``.
+
+    Examples
+    --------
+    >>> d = Declarations(lipschitz=[1.0, 20.0], hessian=40.0)
+    >>> round(d.lipschitz_bound(), 6)
+    20.024984
+    >>> d.describe(state_names=["theta", "omega"])[0][:30]
+    'Lipschitz constant per compone'
+    """
+
+    lipschitz: float | tuple[float, ...] | None = None
+    hessian: float | None = None
+    input_matrix: tuple[tuple[float, ...], ...] | None = None
+    source: str = field(default="", compare=False)
+
+    def __post_init__(self):
+        lip = self.lipschitz
+        if lip is not None:
+            if np.ndim(lip) == 0:
+                lip = _positive("lipschitz (K_f)", lip)
+            else:
+                if np.ndim(lip) != 1 or len(lip) == 0:
+                    raise ConfigError(
+                        "declared lipschitz must be a number or a list with one number per "
+                        f"state, got {lip!r}"
+                    )
+                lip = tuple(_positive("lipschitz (K_f) entry", v) for v in lip)
+            object.__setattr__(self, "lipschitz", lip)
+        if self.hessian is not None:
+            object.__setattr__(self, "hessian", _positive("hessian (H)", self.hessian))
+        if self.input_matrix is not None:
+            try:
+                b = np.array(self.input_matrix, dtype=float)
+            except (TypeError, ValueError):
+                raise ConfigError(
+                    f"declared input_matrix must be a list of rows of numbers, got "
+                    f"{self.input_matrix!r}"
+                ) from None
+            if b.ndim != 2 or not np.all(np.isfinite(b)):
+                raise ConfigError(
+                    f"declared input_matrix must be a finite (nx, nu) matrix, got shape {b.shape}"
+                )
+            object.__setattr__(self, "input_matrix", tuple(tuple(r) for r in b.tolist()))
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def empty(self) -> bool:
+        """True when nothing is declared."""
+        return self.lipschitz is None and self.hessian is None and self.input_matrix is None
+
+    @property
+    def B(self) -> np.ndarray | None:
+        """The declared input matrix as an ``(nx, nu)`` array (``None`` if not declared)."""
+        return None if self.input_matrix is None else np.array(self.input_matrix, dtype=float)
+
+    def validate(self, nx: int, nu: int) -> Declarations:
+        """Check the shapes against a system with ``nx`` states and ``nu`` inputs."""
+        if isinstance(self.lipschitz, tuple) and len(self.lipschitz) != nx:
+            raise ConfigError(
+                f"declared lipschitz has {len(self.lipschitz)} entries; give one number, or one "
+                f"per state ({nx})"
+            )
+        if self.input_matrix is not None:
+            shape = self.B.shape
+            if nu == 0:
+                raise ConfigError("declared input_matrix for a system without inputs; remove it")
+            if shape != (nx, nu):
+                raise ConfigError(
+                    f"declared input_matrix has shape {shape}; the system needs ({nx}, {nu}) "
+                    "(one row per state, one column per input)"
+                )
+        return self
+
+    def lipschitz_bound(self, components: Sequence[int] | None = None) -> float | None:
+        r"""A global :math:`K_f` for the components ``components`` (default: all).
+
+        Per-component constants give :math:`\|f(z_a) - f(z_b)\|_2 \le \|(K_k)_k\|_2
+        \|z_a - z_b\|_2` (rounded up); a global constant bounds every sub-vector too.
+        """
+        if self.lipschitz is None:
+            return None
+        if not isinstance(self.lipschitz, tuple):
+            return self.lipschitz
+        k = np.array(self.lipschitz, dtype=float)
+        if components is not None:
+            k = k[list(components)]
+        s = float(np.sum(k * k)) * (1.0 + 4.0 * (k.size + 2) * _EPS)
+        return float(np.nextafter(np.nextafter(np.sqrt(s), np.inf), np.inf))
+
+    def describe(self, state_names: Sequence[str] | None = None,
+                 input_names: Sequence[str] | None = None) -> list[str]:
+        """One sentence per declaration, as the certificate and the report list them."""
+        out: list[str] = []
+        dom = "for all z = (x, u) in the sampling box X × U"
+        if self.lipschitz is not None:
+            if isinstance(self.lipschitz, tuple):
+                names = list(state_names or [f"x{i + 1}" for i in range(len(self.lipschitz))])
+                ks = ", ".join(f"{n}': {_fmt(k)}" for n, k in zip(names, self.lipschitz))
+                out.append(
+                    "Lipschitz constant per component (declared): |f_k(z_a) − f_k(z_b)| ≤ K_k·"
+                    f"‖z_a − z_b‖₂ {dom}, with K = {ks}"
+                )
+            else:
+                out.append(
+                    f"Lipschitz constant (declared): ‖f(z_a) − f(z_b)‖₂ ≤ K_f·‖z_a − z_b‖₂ {dom},"
+                    f" with K_f = {_fmt(self.lipschitz)}"
+                )
+        if self.hessian is not None:
+            out.append(
+                "Second-derivative bound (declared): f is twice continuously differentiable on "
+                f"X × U with |∂²f_k/∂z_i∂z_j| ≤ H = {_fmt(self.hessian)} for all k, i, j"
+            )
+        if self.input_matrix is not None:
+            rows = "; ".join(", ".join(_fmt(v) for v in r) for r in self.input_matrix)
+            inputs = ", ".join(input_names) if input_names else "u"
+            out.append(
+                "Control-affine structure (declared): f(x, u) = f₀(x) + B·u on X × U with the "
+                f"known input matrix B = [{rows}] (inputs: {inputs})"
+            )
+        return out
+
+    def to_dict(self) -> dict:
+        """Plain-JSON form (``None`` entries kept)."""
+        lip = list(self.lipschitz) if isinstance(self.lipschitz, tuple) else self.lipschitz
+        return {"lipschitz": lip, "hessian": self.hessian,
+                "input_matrix": None if self.B is None else self.B.tolist()}
+
+
+# ============================================================================ checks
+def _z_names(names, d: int) -> list[str]:
+    names = list(names or [])
+    return names if len(names) == d else [f"z{i + 1}" for i in range(d)]
+
+
+def _node(axes, idx) -> str:
+    return _fmt_vec([ax[i] for ax, i in zip(axes, idx)])
+
+
+def check_declarations(
+    grid,
+    values,
+    declarations: Declarations,
+    *,
+    names: Sequence[str] | None = None,
+    value_tolerance: float | None = None,
+    source: str = "",
+) -> dict:
+    r"""Refuse declarations that the samples on a regular grid contradict.
+
+    Parameters
+    ----------
+    grid : Grid or SampleSet
+        Anything with ``axes`` (list of the ``d`` per-axis node coordinates, increasing)
+        and ``counts``; the nodes in C order. The axes are ``(x, u)``: ``d = nx + nu``.
+        A :class:`nlyap_opt.dynamics.Grid` and a :class:`~systems.samples.SampleSet` qualify.
+    values : (N, nx) array_like
+        ``f`` at the nodes, in the grid's C order.
+    declarations : Declarations
+    names : sequence of str, optional
+        Names of the ``d`` axes (states then inputs), for the messages.
+    value_tolerance : float, optional
+        Absolute error allowed in each value (default: 8 ulps of ``max |values|``).
+    source : str, optional
+        Prefix of the messages (e.g. the spec file).
+
+    Returns
+    -------
+    dict
+        The estimates from the data: ``slope`` (largest neighbour slope, 2-norm over the
+        components), ``slope_per_component``, ``second_difference`` (largest, ``None`` on a
+        grid with fewer than 3 nodes on every axis), ``input_matrix_error`` (largest
+        :math:`|Δf − BΔu|`, if ``B`` was declared).
+
+    Raises
+    ------
+    ConfigError
+        A declaration is below (``K_f``, ``H``) or away from (``B``) what the data show.
+    """
+    axes = [np.asarray(a, dtype=float) for a in grid.axes]
+    counts = tuple(int(c) for c in grid.counts)
+    d = len(axes)
+    v = np.asarray(values, dtype=float)
+    if v.ndim != 2 or v.shape[0] != int(np.prod(counts)):
+        raise DimensionError(
+            f"values must have shape (N, nx) with N = {int(np.prod(counts))} grid nodes, "
+            f"got {v.shape}"
+        )
+    nx = v.shape[1]
+    nu = d - nx
+    if nu < 0:
+        raise DimensionError(f"the grid has {d} axes but the values have {nx} components")
+    if not np.all(np.isfinite(v)):
+        raise ConfigError("the sample values contain NaN or inf; fix the data before checking")
+    declarations.validate(nx, nu)
+    znames = _z_names(names, d)
+    pre = f"{source}: " if source else ""
+    scale = float(np.max(np.abs(v), initial=0.0))
+    tau = 8.0 * _EPS * scale if value_tolerance is None else float(value_tolerance)
+    V = v.reshape(counts + (nx,))
+    out: dict = {"slope": 0.0, "slope_per_component": [0.0] * nx, "second_difference": None,
+                 "input_matrix_error": None}
+
+    # ---- first differences: Lipschitz lower bounds (slack for the data's rounding)
+    best = (0.0, None)
+    best_k = np.zeros(nx)
+    best_k_at: list = [None] * nx
+    for i in range(d):
+        if counts[i] < 2:
+            continue
+        shape = [1] * d
+        shape[i] = counts[i] - 1
+        gap = np.diff(axes[i]).reshape(shape + [1])
+        dv = np.diff(V, axis=i)
+        allow = 2.0 * tau  # absolute error of a difference of two values
+        slope = np.maximum(np.sqrt(np.sum(dv * dv, axis=-1, keepdims=True)) - np.sqrt(nx) * allow,
+                           0.0) / gap
+        slope_k = np.maximum(np.abs(dv) - allow, 0.0) / gap
+        j = int(np.argmax(slope))
+        if slope.flat[j] > best[0]:
+            idx = np.unravel_index(j, slope.shape[:-1])
+            best = (float(slope.flat[j]), (i, idx))
+        flat = slope_k.reshape(-1, nx)
+        jk = np.argmax(flat, axis=0)
+        for k in range(nx):
+            if flat[jk[k], k] > best_k[k]:
+                best_k[k] = flat[jk[k], k]
+                best_k_at[k] = (i, np.unravel_index(int(jk[k]), slope_k.shape[:-1]))
+    out["slope"], out["slope_per_component"] = best[0], best_k.tolist()
+    lip = declarations.lipschitz
+    if lip is not None and not isinstance(lip, tuple) and best[0] > lip * (1 + RTOL):
+        i, idx = best[1]
+        raise ConfigError(
+            f"{pre}declared K_f = {_fmt(lip)} is below the finite-difference slope "
+            f"{_fmt(best[0])} between the neighbouring grid samples at z = {_node(axes, idx)} "
+            f"and the next node along {znames[i]!r}; declare K_f ≥ {_fmt(best[0])} (any "
+            "Lipschitz constant is at least every slope) or check the data's units"
+        )
+    if isinstance(lip, tuple):
+        for k in range(nx):
+            if best_k[k] > lip[k] * (1 + RTOL):
+                i, idx = best_k_at[k]
+                raise ConfigError(
+                    f"{pre}declared K_f for component {k} ({znames[k]}') = {_fmt(lip[k])} is "
+                    f"below the finite-difference slope {_fmt(best_k[k])} between the "
+                    f"neighbouring grid samples at z = {_node(axes, idx)} and the next node "
+                    f"along {znames[i]!r}; declare at least {_fmt(best_k[k])}"
+                )
+
+    # ---- second differences: lower bounds of max |∂²f_k/∂z_i∂z_j|
+    best2 = (0.0, None)
+    any2 = False
+    for i in range(d):
+        for j in range(i, d):
+            if i == j:
+                if counts[i] < 3:
+                    continue
+                sl = [slice(None)] * d
+                a, b, c = list(sl), list(sl), list(sl)
+                a[i], b[i], c[i] = slice(2, None), slice(1, -1), slice(0, -2)
+                h1 = np.diff(axes[i])
+                shape = [1] * d
+                shape[i] = counts[i] - 2
+                hl, hr = h1[:-1].reshape(shape + [1]), h1[1:].reshape(shape + [1])
+                # divided difference: f[z-, z, z+] * 2 = f''(ξ) for a C² function
+                dd = 2.0 * ((V[tuple(a)] - V[tuple(b)]) / hr - (V[tuple(b)] - V[tuple(c)]) / hl)
+                dd = dd / (hl + hr)
+                allow = 4.0 * tau / (hl * hr)
+            else:
+                if counts[i] < 2 or counts[j] < 2:
+                    continue
+                sl = [slice(None)] * d
+                pp, pm, mp, mm = list(sl), list(sl), list(sl), list(sl)
+                pp[i], pp[j] = slice(1, None), slice(1, None)
+                pm[i], pm[j] = slice(1, None), slice(0, -1)
+                mp[i], mp[j] = slice(0, -1), slice(1, None)
+                mm[i], mm[j] = slice(0, -1), slice(0, -1)
+                si, sj = [1] * d, [1] * d
+                si[i], sj[j] = counts[i] - 1, counts[j] - 1
+                hi_ = np.diff(axes[i]).reshape(si + [1])
+                hj_ = np.diff(axes[j]).reshape(sj + [1])
+                # (f(++) − f(+−) − f(−+) + f(−−)) / (h_i h_j): the mean of ∂²f/∂z_i∂z_j on the cell
+                dd = (V[tuple(pp)] - V[tuple(pm)] - V[tuple(mp)] + V[tuple(mm)]) / (hi_ * hj_)
+                allow = 4.0 * tau / (hi_ * hj_)
+            any2 = True
+            est = np.maximum(np.abs(dd) - allow, 0.0)
+            m = int(np.argmax(est))
+            if est.flat[m] > best2[0]:
+                idx = np.unravel_index(m, est.shape)
+                best2 = (float(est.flat[m]), (i, j, idx[-1], idx[:-1]))
+    out["second_difference"] = best2[0] if any2 else None
+    H = declarations.hessian
+    if H is not None and best2[0] > H * (1 + RTOL):
+        i, j, k, idx = best2[1]
+        base = [ax[t] for ax, t in zip(axes, idx)]
+        raise ConfigError(
+            f"{pre}declared H = {_fmt(H)} is below the second-difference estimate "
+            f"{_fmt(best2[0])} of |∂²f_{k}/∂{znames[i]}∂{znames[j]}| near z = {_fmt_vec(base)}; "
+            f"declare H ≥ {_fmt(best2[0])} (a second difference equals a second derivative "
+            "somewhere in its stencil) or check the data"
+        )
+
+    # ---- declared B: f(x, u + h e_j) − f(x, u) = B[:, j] h between input neighbours
+    B = declarations.B
+    if B is not None:
+        worst = (0.0, None)
+        for j in range(nu):
+            i = nx + j
+            if counts[i] < 2:  # a single input level says nothing about B
+                continue
+            shape = [1] * d
+            shape[i] = counts[i] - 1
+            gap = np.diff(axes[i]).reshape(shape + [1])
+            err = np.abs(np.diff(V, axis=i) - B[:, j] * gap)
+            allow = 2.0 * tau + RTOL * (scale + np.abs(B[:, j]) * gap)
+            bad = np.maximum(err - allow, 0.0)
+            m = int(np.argmax(bad))
+            if bad.flat[m] > worst[0]:
+                idx = np.unravel_index(m, bad.shape)
+                worst = (float(err.flat[m]), (i, j, idx[-1], idx[:-1]))
+        out["input_matrix_error"] = worst[0]
+        if worst[1] is not None:
+            i, j, k, idx = worst[1]
+            hgap = axes[i][idx[i] + 1] - axes[i][idx[i]]
+            nxt = list(idx)
+            nxt[i] += 1
+            change = V[tuple(nxt) + (k,)] - V[tuple(idx) + (k,)]
+            raise ConfigError(
+                f"{pre}declared input matrix B is contradicted by the samples: at z = "
+                f"{_node(axes, idx)} a step {_fmt(hgap)} in {znames[i]!r} changes f_{k} by "
+                f"{_fmt(change)}, but B[{k}, {j}]·step = {_fmt(B[k, j] * hgap)}; the system is "
+                "not control-affine with this B: fix B or drop input_matrix"
+            )
+    return out

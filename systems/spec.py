@@ -1,0 +1,632 @@
+r"""System spec files (TOML): a system without writing Python, parsed safely.
+
+A spec file gives a system in one of three ways: the right-hand side as expression strings
+(a CasADi model), a sample file (``[samples]``), or a Python factory (``factory =
+"module:function"``, imported only because the file names it). Example::
+
+    name = "pendulum"
+    states = ["theta", "omega"]
+    inputs = ["torque"]                 # leave out for an autonomous system
+    state_box = [[-4, 4], [-4, 4]]
+    input_box = [[-20, 20]]
+    u_eq = [0.0]                        # optional for expressions (solved), else required
+    known = ["theta"]                   # states whose derivative is known exactly
+
+    [parameters]                        # numbers, or expressions of earlier parameters
+    m = 0.15
+    l = 0.5
+
+    [rhs]                               # one expression per state
+    theta = "omega"
+    omega = "(m*9.81*l*sin(theta) + torque - 0.1*omega) / (m*l^2)"
+
+    [declared]                          # assumptions, listed verbatim in the certificate
+    lipschitz = 120.0                   # K_f, or one number per state
+    hessian = 80.0                      # H: |∂²f_k/∂z_i∂z_j| <= H
+    input_matrix = [[0.0], [26.667]]    # control-affine f = f0(x) + B u
+
+    [run]                               # run-config overrides, passed on as a dict
+    outer = 4.0
+
+With ``[samples]`` (``file``, relative to the spec file; optional ``columns`` for a csv
+without header) the ``[rhs]`` table may give only the ``known`` components. With
+``factory`` the factory returns the :class:`~systems.base.System`; the spec adds
+``[declared]`` and ``[run]``. A ``factory`` of the form ``"file.py:function"`` is loaded
+from that file (relative to the spec); ``"package.module:function"`` is imported.
+
+Expressions are parsed with :mod:`ast` (never ``eval``) into a whitelisted tree — numbers,
+the declared symbols and parameters, ``+ - * / ** ^``, unary minus and the functions
+:data:`FUNCTIONS` — built as a SymPy expression and converted to CasADi SX node by node
+(:data:`SYMPY_TO_CASADI`). (SymPy's own ``parse_expr`` calls ``eval`` and is not used.)
+Every error is one line naming the file, the entry and the problem.
+"""
+
+from __future__ import annotations
+
+import ast
+import difflib
+import importlib
+import importlib.util
+import math
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import sympy
+import tomllib
+
+from nlyap_opt.errors import ConfigError
+
+from .base import System
+from .declarations import Declarations
+from .samples import load_samples
+
+__all__ = ["load_spec", "parse_expression", "to_casadi", "default_run_settings", "FUNCTIONS",
+           "SYMPY_TO_CASADI", "SPEC_KEYS"]
+
+#: allowed function names -> (SymPy function, number of arguments; None: two or more)
+FUNCTIONS: dict[str, tuple[Callable, int | None]] = {
+    "sin": (sympy.sin, 1), "cos": (sympy.cos, 1), "tan": (sympy.tan, 1),
+    "asin": (sympy.asin, 1), "acos": (sympy.acos, 1), "atan": (sympy.atan, 1),
+    "atan2": (sympy.atan2, 2), "sinh": (sympy.sinh, 1), "cosh": (sympy.cosh, 1),
+    "tanh": (sympy.tanh, 1), "exp": (sympy.exp, 1), "log": (sympy.log, 1),
+    "sqrt": (sympy.sqrt, 1), "abs": (sympy.Abs, 1), "sign": (sympy.sign, 1),
+    "min": (sympy.Min, None), "max": (sympy.Max, None), "pow": (sympy.Pow, 2),
+}
+#: allowed constants
+CONSTANTS = {"pi": sympy.pi}
+
+#: keys of a spec file: top level and tables
+SPEC_KEYS = {
+    "": {"name", "description", "states", "inputs", "state_box", "input_box", "u_eq", "known",
+         "parameters", "rhs", "samples", "factory", "declared", "run"},
+    "samples": {"file", "columns"},
+    "declared": {"lipschitz", "hessian", "input_matrix"},
+}
+
+
+def _fold(op):
+    def f(*args):
+        out = args[0]
+        for a in args[1:]:
+            out = op(out, a)
+        return out
+    return f
+
+
+def _pow(base, exp, node):
+    e = node.exp
+    if e == sympy.Rational(1, 2):
+        return ca.sqrt(base)
+    if e == -1:
+        return 1.0 / base
+    if e.is_Integer:
+        return base ** int(e)
+    return base ** exp
+
+
+#: SymPy node type -> CasADi builder ``(converted args..., node) -> SX``
+SYMPY_TO_CASADI: dict[type, Callable] = {
+    sympy.Add: lambda *a: _fold(lambda p, q: p + q)(*a[:-1]),
+    sympy.Mul: lambda *a: _fold(lambda p, q: p * q)(*a[:-1]),
+    sympy.Pow: _pow,
+    sympy.sin: lambda a, n: ca.sin(a), sympy.cos: lambda a, n: ca.cos(a),
+    sympy.tan: lambda a, n: ca.tan(a), sympy.asin: lambda a, n: ca.asin(a),
+    sympy.acos: lambda a, n: ca.acos(a), sympy.atan: lambda a, n: ca.atan(a),
+    sympy.atan2: lambda y, x, n: ca.atan2(y, x), sympy.sinh: lambda a, n: ca.sinh(a),
+    sympy.cosh: lambda a, n: ca.cosh(a), sympy.tanh: lambda a, n: ca.tanh(a),
+    sympy.exp: lambda a, n: ca.exp(a), sympy.log: lambda a, n: ca.log(a),
+    sympy.Abs: lambda a, n: ca.fabs(a), sympy.sign: lambda a, n: ca.sign(a),
+    sympy.Min: lambda *a: _fold(ca.fmin)(*a[:-1]),
+    sympy.Max: lambda *a: _fold(ca.fmax)(*a[:-1]),
+}
+
+
+class _ExprError(Exception):
+    """A problem in one expression (turned into a one-line ConfigError with its location)."""
+
+
+def _did_you_mean(name: str, options) -> str:
+    m = difflib.get_close_matches(name, sorted(options), n=1, cutoff=0.5)
+    return f"; did you mean {m[0]!r}?" if m else ""
+
+
+# ============================================================================ parsing
+def parse_expression(text: str, symbols: dict[str, sympy.Expr]) -> sympy.Expr:
+    """Parse one expression string into SymPy, allowing only whitelisted constructs.
+
+    Parameters
+    ----------
+    text : str
+        E.g. ``"(m*g*l*sin(theta) + u - b*omega) / (m*l^2)"``; ``^`` is a power.
+    symbols : dict
+        The names allowed (states, inputs, parameters) and what they stand for.
+
+    Returns
+    -------
+    sympy.Expr
+
+    Raises
+    ------
+    ConfigError
+        Syntax error, unknown symbol, disallowed function or construct (one line).
+
+    Examples
+    --------
+    >>> x = sympy.Symbol("x", real=True)
+    >>> parse_expression("2*sin(x)^2", {"x": x})
+    2*sin(x)**2
+    """
+    try:
+        return _parse(text, symbols)
+    except _ExprError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _parse(text: str, symbols: dict) -> sympy.Expr:
+    # evaluate(False): the tree stays as written (no rewriting such as exp(log(x)) -> x,
+    # which would change the domain the verifier checks, PITFALLS P10)
+    with sympy.evaluate(False):
+        return _parse_unevaluated(text, symbols)
+
+
+def _parse_unevaluated(text: str, symbols: dict) -> sympy.Expr:
+    if not isinstance(text, str):
+        raise _ExprError(f"must be a string expression, got {type(text).__name__} {text!r}")
+    if not text.strip():
+        raise _ExprError("is empty; write an expression such as \"-x1 + u\"")
+    text = text.strip()
+    # '^' is a power, as in maths (Python's '^' would bind looser than '+'): parse the text
+    # with '**' in its place and report columns of the text as written
+    src = text.replace("^", "**")
+    try:
+        tree = ast.parse(src, mode="eval")
+    except SyntaxError as exc:
+        col = _column(text, (exc.offset or 1) - 1)
+        raise _ExprError(f"syntax error at column {col + 1} in {text!r} ({exc.msg})") from None
+    return _node(tree.body, symbols, text)
+
+
+def _column(text: str, col: int) -> int:
+    """Column in ``text`` of column ``col`` of ``text`` with every '^' written '**'."""
+    shift = 0
+    for i, c in enumerate(text):
+        if i + shift >= col:
+            return i
+        shift += c == "^"
+    return len(text)
+
+
+_BINOPS = {
+    ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b, ast.Mult: lambda a, b: a * b,
+    ast.Div: lambda a, b: a / b, ast.Pow: lambda a, b: a**b,
+}
+
+
+def _node(n: ast.AST, symbols: dict, text: str) -> sympy.Expr:
+    where = f"at column {_column(text, getattr(n, 'col_offset', 0)) + 1} of {text!r}"
+    if isinstance(n, ast.Constant):
+        v = n.value
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise _ExprError(f"constant {v!r} {where} is not a real number")
+        return sympy.Integer(v) if isinstance(v, int) else sympy.Float(v)
+    if isinstance(n, ast.Name):
+        if n.id in symbols:
+            return symbols[n.id]
+        if n.id in CONSTANTS:
+            return CONSTANTS[n.id]
+        if n.id in FUNCTIONS:
+            raise _ExprError(f"function {n.id!r} used without arguments {where}")
+        allowed = list(symbols) + list(CONSTANTS)
+        raise _ExprError(
+            f"unknown symbol {n.id!r} {where}{_did_you_mean(n.id, allowed)} "
+            f"(known: {', '.join(allowed)})"
+        )
+    if isinstance(n, ast.BinOp) and type(n.op) in _BINOPS:
+        a, b = _node(n.left, symbols, text), _node(n.right, symbols, text)
+        return _BINOPS[type(n.op)](a, b)
+    if isinstance(n, ast.UnaryOp) and isinstance(n.op, (ast.USub, ast.UAdd)):
+        a = _node(n.operand, symbols, text)
+        return -a if isinstance(n.op, ast.USub) else a
+    if isinstance(n, ast.Call):
+        if not isinstance(n.func, ast.Name):
+            raise _ExprError(
+                f"only plain function calls are allowed {where} (no attributes or methods); "
+                f"allowed functions: {', '.join(FUNCTIONS)}"
+            )
+        name = n.func.id
+        if name not in FUNCTIONS:
+            raise _ExprError(
+                f"function {name!r} is not allowed {where}{_did_you_mean(name, FUNCTIONS)} "
+                f"(allowed: {', '.join(FUNCTIONS)})"
+            )
+        if n.keywords or any(isinstance(a, ast.Starred) for a in n.args):
+            raise _ExprError(f"{name}() takes positional arguments only {where}")
+        fn, arity = FUNCTIONS[name]
+        args = [_node(a, symbols, text) for a in n.args]
+        if (arity is None and len(args) < 2) or (arity is not None and len(args) != arity):
+            want = "2 or more" if arity is None else str(arity)
+            raise _ExprError(f"{name}() takes {want} arguments, got {len(args)} {where}")
+        return fn(*args)
+    kind = {ast.Attribute: "attribute access", ast.Subscript: "indexing",
+            ast.Compare: "comparisons", ast.BoolOp: "and/or", ast.Lambda: "lambda",
+            ast.IfExp: "if-else", ast.Tuple: "tuples", ast.List: "lists"}.get(
+        type(n), type(n).__name__)
+    raise _ExprError(
+        f"{kind} is not allowed {where}; use numbers, the declared symbols, + - * / ^ and "
+        f"the functions {', '.join(FUNCTIONS)}"
+    )
+
+
+def to_casadi(expr: sympy.Expr, symbols: dict[sympy.Symbol, ca.SX]) -> ca.SX:
+    """Convert a SymPy expression to CasADi SX with :data:`SYMPY_TO_CASADI`.
+
+    Parameters
+    ----------
+    expr : sympy.Expr
+    symbols : dict
+        SymPy symbol -> CasADi SX scalar.
+
+    Raises
+    ------
+    ConfigError
+        A node without converter (complex or infinite values, an unsupported function).
+
+    Examples
+    --------
+    >>> x = sympy.Symbol("x", real=True); X = ca.SX.sym("x")
+    >>> e = to_casadi(sympy.sin(x) ** 2 + 1, {x: X})
+    >>> float(ca.Function("f", [X], [e])(0.0))
+    1.0
+    """
+    try:
+        return _convert(expr, symbols)
+    except _ExprError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _convert(e, symbols) -> ca.SX:
+    if e.is_Symbol:
+        try:
+            return symbols[e]
+        except KeyError:
+            raise _ExprError(f"symbol {e} has no CasADi counterpart") from None
+    if e in (sympy.zoo, sympy.oo, -sympy.oo, sympy.nan) or e.has(sympy.zoo, sympy.nan):
+        raise _ExprError("the expression is infinite or undefined (a division by zero?)")
+    if e.is_Number or e.is_NumberSymbol:
+        if not e.is_real:
+            raise _ExprError(f"the constant {e} is not a real number")
+        v = float(e)
+        if not math.isfinite(v):
+            raise _ExprError(f"the constant {e} is not finite")
+        return ca.SX(v)
+    if e == sympy.I or (e.is_number and e.is_real is False):
+        raise _ExprError(f"the subexpression {e} is not a finite real number (a division by "
+                         "zero, or a complex value)")
+    conv = SYMPY_TO_CASADI.get(type(e)) or SYMPY_TO_CASADI.get(e.func)
+    if conv is None:
+        raise _ExprError(f"the operation {e.func.__name__} ({e}) has no CasADi converter")
+    args = [_convert(a, symbols) for a in e.args]
+    out = conv(*args, e)
+    if out.is_constant() and not math.isfinite(float(ca.evalf(out))):
+        raise _ExprError(f"the subexpression {e} is {float(ca.evalf(out))} (a division by "
+                         "zero or a value outside a function's domain)")
+    return out
+
+
+# ============================================================================ spec files
+def _err(path, where: str, msg: str) -> ConfigError:
+    return ConfigError(f"{path}: {where}{': ' if where else ''}{msg}")
+
+
+def _check_keys(path, table: dict, allowed: set, where: str) -> None:
+    for key in table:
+        if key not in allowed:
+            raise _err(
+                path, where or "top level",
+                f"unknown key {key!r}{_did_you_mean(key, allowed)} (allowed: "
+                f"{', '.join(sorted(allowed))})"
+            )
+
+
+def _names(path, spec: dict, key: str, required: bool) -> list[str]:
+    v = spec.get(key)
+    if v is None:
+        if required:
+            raise _err(path, key, f"missing; give the list of {key} names")
+        return []
+    if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
+        raise _err(path, key, f"must be a list of names, got {v!r}")
+    for s in v:
+        if not s.isidentifier() or s.startswith("_") or s in FUNCTIONS or s in CONSTANTS:
+            raise _err(path, key, f"{s!r} is not a usable name (an identifier that is not a "
+                       "function or constant name and does not start with '_')")
+    if len(set(v)) != len(v):
+        raise _err(path, key, "names must be distinct")
+    return list(v)
+
+
+def _box(path, spec: dict, key: str, n: int, required: bool):
+    v = spec.get(key)
+    if v is None:
+        if required:
+            raise _err(path, key, f"missing; give {n} rows [lo, hi]")
+        return None
+    try:
+        b = np.array(v, dtype=float)
+    except (TypeError, ValueError):
+        raise _err(path, key, f"must be {n} rows [lo, hi] of numbers, got {v!r}") from None
+    if b.shape != (n, 2):
+        raise _err(path, key, f"has shape {b.shape}; need {n} rows [lo, hi] (one per "
+                   f"{'state' if key == 'state_box' else 'input'})")
+    if not np.all(np.isfinite(b)) or np.any(b[:, 0] >= b[:, 1]):
+        raise _err(path, key, f"needs finite rows with lo < hi, got {b.tolist()}")
+    return b
+
+
+def _parameters(path, spec: dict, reserved: set) -> dict[str, float]:
+    table = spec.get("parameters", {})
+    if not isinstance(table, dict):
+        raise _err(path, "parameters", "must be a table of name = value")
+    out: dict[str, float] = {}
+    for name, v in table.items():
+        where = f"parameters.{name}"
+        if not name.isidentifier() or name.startswith("_") or name in reserved \
+                or name in FUNCTIONS or name in CONSTANTS:
+            raise _err(path, where, f"{name!r} cannot be a parameter name (it is not an "
+                       "identifier, or it is a state, input, function or constant)")
+        if isinstance(v, bool):
+            raise _err(path, where, f"must be a number or an expression, got {v!r}")
+        if isinstance(v, (int, float)):
+            val = float(v)
+        else:
+            try:
+                e = _parse(v, {k: sympy.Float(x) for k, x in out.items()})
+                val = float(e) if e.is_number and e.is_real else math.nan
+            except _ExprError as exc:
+                raise _err(path, where, str(exc)) from None
+            except (TypeError, ValueError):
+                val = math.nan
+        if not math.isfinite(val):
+            raise _err(path, where, f"must evaluate to a finite real number, got {v!r}")
+        out[name] = val
+    return out
+
+
+def _expressions(path, table, states, inputs, params, xs, us, only=None) -> dict[int, ca.SX]:
+    if not isinstance(table, dict):
+        raise _err(path, "rhs", "must be a table: state = \"expression\"")
+    syms = {n: sympy.Symbol(n, real=True) for n in states + inputs}
+    allowed = {**syms, **{k: sympy.Float(v) for k, v in params.items()}}
+    to_ca = {syms[n]: xs[i] for i, n in enumerate(states)}
+    to_ca.update({syms[n]: us[i] for i, n in enumerate(inputs)})
+    out: dict[int, ca.SX] = {}
+    for name, text in table.items():
+        where = f"rhs.{name}"
+        if name not in states:
+            raise _err(path, where, f"{name!r} is not a state{_did_you_mean(name, states)} "
+                       f"(states: {', '.join(states)})")
+        if only is not None and name not in only:
+            raise _err(path, where, "the dynamics come from the sample file; [rhs] may give "
+                       f"only the components named in 'known' (add {name!r} to known if its "
+                       "derivative is exactly this expression)")
+        try:
+            out[states.index(name)] = _convert(_parse(text, allowed), to_ca)
+        except _ExprError as exc:
+            raise _err(path, where, str(exc)) from None
+    return out
+
+
+def _declarations(path, spec: dict) -> Declarations | None:
+    d = spec.get("declared")
+    if d is None:
+        return None
+    if not isinstance(d, dict):
+        raise _err(path, "declared", "must be a table (lipschitz, hessian, input_matrix)")
+    _check_keys(path, d, SPEC_KEYS["declared"], "declared")
+    try:
+        return Declarations(d.get("lipschitz"), d.get("hessian"), d.get("input_matrix"),
+                            source=str(path))
+    except ConfigError as exc:
+        raise _err(path, "declared", str(exc)) from None
+
+
+def _load_factory(path: Path, ref) -> Callable:
+    if not isinstance(ref, str) or ref.count(":") != 1:
+        raise _err(path, "factory", f"must be \"module:function\" or \"file.py:function\", "
+                   f"got {ref!r}")
+    mod, fn = ref.split(":")
+    if mod.endswith(".py"):
+        file = (path.parent / mod).resolve()
+        if not file.is_file():
+            raise _err(path, "factory", f"file {str(file)!r} not found")
+        modname = f"_nlyap_spec_{file.stem}_{abs(hash(str(file)))}"
+        spec = importlib.util.spec_from_file_location(modname, file)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[modname] = module
+        try:
+            spec.loader.exec_module(module)
+        except Exception as exc:
+            del sys.modules[modname]
+            raise _err(path, "factory", f"importing {str(file)!r} failed: "
+                       f"{type(exc).__name__}: {exc}") from None
+    else:
+        try:
+            module = importlib.import_module(mod)
+        except ImportError as exc:
+            raise _err(path, "factory", f"cannot import {mod!r} ({exc}); install it or use "
+                       "\"file.py:function\" relative to the spec") from None
+    f = getattr(module, fn, None)
+    if not callable(f):
+        raise _err(path, "factory", f"{mod!r} has no function {fn!r}")
+    return f
+
+
+def load_spec(path) -> System:
+    """Build a :class:`~systems.base.System` from a TOML spec file.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    System
+        With ``declarations`` (``[declared]``), ``run_overrides`` (``[run]``, a dict) and
+        ``source`` (the path).
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file, the entry and the problem (unknown keys with a
+        suggestion, unknown symbols, syntax errors, disallowed functions, wrong shapes, a
+        missing ``u_eq``, bad sample files, declarations the samples contradict).
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            spec = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"system spec {str(path)!r} not found; check the path") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    _check_keys(path, spec, SPEC_KEYS[""], "")
+    name = spec.get("name", path.stem)
+    if not isinstance(name, str) or not name:
+        raise _err(path, "name", "must be a non-empty string")
+    run = spec.get("run", {})
+    if not isinstance(run, dict):
+        raise _err(path, "run", "must be a table of run-config overrides")
+    decl = _declarations(path, spec)
+    if "factory" in spec:
+        clash = sorted(set(spec) - {"name", "description", "factory", "declared", "run"})
+        if clash:
+            raise _err(path, "factory", f"the factory defines the system; remove {clash} "
+                       "(a factory spec takes only name, description, declared and run)")
+        system = _load_factory(path, spec["factory"])()
+        if not isinstance(system, System):
+            raise _err(path, "factory", f"{spec['factory']!r} returned "
+                       f"{type(system).__name__}, not a systems.System")
+        if decl is not None:
+            if system.declarations is not None:
+                raise _err(path, "declared", "the factory's system has declarations already; "
+                           "declare them in one place")
+            try:
+                system.declarations = decl.validate(system.nx, system.nu)
+            except ConfigError as exc:
+                raise _err(path, "declared", str(exc)) from None
+            if system.kind == "samples":
+                system.check_declarations(system.samples)
+        if "name" in spec:
+            system.name = name
+        if "description" in spec:
+            system.description = str(spec["description"])
+        system.run_overrides = {**system.run_overrides, **run}
+        system.source = str(path)
+        return system
+
+    states = _names(path, spec, "states", True)
+    inputs = _names(path, spec, "inputs", False)
+    if not states:
+        raise _err(path, "states", "needs at least one state")
+    clash = set(states) & set(inputs)
+    if clash:
+        raise _err(path, "inputs", f"{sorted(clash)} are states too; use distinct names")
+    nx, nu = len(states), len(inputs)
+    if decl is not None:
+        try:
+            decl.validate(nx, nu)
+        except ConfigError as exc:
+            raise _err(path, "declared", str(exc)) from None
+    params = _parameters(path, spec, set(states) | set(inputs))
+    known = _names(path, spec, "known", False)
+    for k in known:
+        if k not in states:
+            raise _err(path, "known", f"{k!r} is not a state{_did_you_mean(k, states)}")
+    u_eq = spec.get("u_eq")
+    if u_eq is not None:
+        try:
+            u_eq = np.array(u_eq, dtype=float).ravel()
+        except (TypeError, ValueError):
+            raise _err(path, "u_eq", f"must be {nu} numbers, got {u_eq!r}") from None
+        if u_eq.shape != (nu,) or not np.all(np.isfinite(u_eq)):
+            raise _err(path, "u_eq", f"must be {nu} finite numbers (one per input), got "
+                       f"{spec['u_eq']!r}")
+    common = dict(params=params, state_names=states, input_names=inputs,
+                  description=str(spec.get("description", "")), declarations=decl,
+                  run_overrides=run, source=str(path))
+    xs, us = System.symbols(nx, nu)
+    sources = [k for k in ("rhs", "samples") if k in spec]
+    if sources == ["rhs"]:
+        xbox = _box(path, spec, "state_box", nx, True)
+        ubox = _box(path, spec, "input_box", nu, nu > 0) if nu else None
+        if not nu and "input_box" in spec:
+            raise _err(path, "input_box", "the system has no inputs; remove it")
+        rhs = _expressions(path, spec["rhs"], states, inputs, params, xs, us)
+        missing = [s for i, s in enumerate(states) if i not in rhs]
+        if missing:
+            raise _err(path, "rhs", f"no expression for {missing}; give one per state")
+        f = ca.vertcat(*[rhs[i] for i in range(nx)])
+        try:
+            return System(name, xs, us, f, state_box=xbox, input_box=ubox, u_eq=u_eq,
+                          known_state_derivatives=[states.index(k) for k in known], **common)
+        except ConfigError as exc:
+            raise _err(path, "", str(exc)) from None
+        except ValueError as exc:  # EquilibriumError and friends: one line with the file
+            raise ConfigError(f"{path}: {exc}") from None
+    if sources not in (["samples"], ["rhs", "samples"]):
+        raise _err(path, "", "give the dynamics in exactly one way: [rhs] expressions, a "
+                   "[samples] file, or factory = \"module:function\"")
+    # ---- samples
+    smp = spec["samples"]
+    if not isinstance(smp, dict):
+        raise _err(path, "samples", "must be a table with 'file' (and optional 'columns')")
+    _check_keys(path, smp, SPEC_KEYS["samples"], "samples")
+    if "file" not in smp or not isinstance(smp["file"], str):
+        raise _err(path, "samples", "needs file = \"name.csv\" (or .npz), relative to the spec")
+    if nu and u_eq is None:
+        raise _err(path, "u_eq", f"missing; a system given by samples needs the declared "
+                   f"equilibrium input u_eq ({nu} numbers)")
+    known_rhs = _expressions(path, spec.get("rhs", {}), states, inputs, params, xs, us,
+                             only={k: "samples" for k in known})
+    lacking = [k for k in known if states.index(k) not in known_rhs]
+    if lacking:
+        raise _err(path, "rhs", f"known components {lacking} need an expression in [rhs] "
+                   "(without a model nothing else gives them)")
+    try:
+        samples = load_samples(path.parent / smp["file"], states=states, inputs=inputs,
+                               columns=smp.get("columns"))
+        return System.from_samples(
+            name, samples, state_box=_box(path, spec, "state_box", nx, False),
+            input_box=_box(path, spec, "input_box", nu, False) if nu else None,
+            u_eq=u_eq, known_rhs=known_rhs, symbols=(xs, us),
+            **{k: v for k, v in common.items() if k not in ("state_names", "input_names")})
+    except ConfigError as exc:
+        msg = str(exc)
+        raise ConfigError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+    except ValueError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def default_run_settings(system: System) -> dict:
+    """Proposed run settings from the state box: the verification disc inside ``X``.
+
+    ``outer`` is the radius of the largest origin-centred ball inside the state box,
+    ``inner = outer / 10``; the sampling box is the system's ``X × U``.
+
+    Examples
+    --------
+    >>> import systems
+    >>> default_run_settings(systems.get("inverted_pendulum"))
+    {'outer': 4.0, 'inner': 0.4}
+    """
+    box = system.state_box
+    if np.any(box[:, 0] >= 0) or np.any(box[:, 1] <= 0):
+        raise ConfigError(
+            f"the state box {box.tolist()} of {system.name!r} does not contain the origin in "
+            "its interior; the equilibrium x = 0 must be inside X"
+        )
+    outer = float(np.min(np.minimum(-box[:, 0], box[:, 1])))
+    return {"outer": outer, "inner": outer / 10.0}

@@ -515,6 +515,17 @@ class System:
             return {i: self._f[i] for i in self.known_state_derivatives}
         return dict(self._known)
 
+    def known_function(self) -> ca.Function:
+        """CasADi Function ``(x, u) -> (f_i)_{i in known_state_derivatives}`` (every kind).
+
+        The exactly known components, in the order of ``known_state_derivatives``; call it
+        on SX or MX symbols to complete a learned right-hand side.
+        """
+        known = self.known_rhs
+        out = ca.vertcat(*[known[i] for i in self.known_state_derivatives]) if known \
+            else ca.SX(0, 1)
+        return ca.Function(f"{self.name}_known", [self.x, self.u], [out], ["x", "u"], ["f"])
+
     @property
     def sampling_box(self) -> np.ndarray:
         """``X × U`` as one ``(nx + nu, 2)`` box (rows: states, then inputs)."""
@@ -666,10 +677,38 @@ class System:
         return out
 
     def describe_assumptions(self) -> list[str]:
-        """The declared assumptions, one sentence each (for certificate and report)."""
-        if self.declarations is None:
-            return []
-        return self.declarations.describe(self.state_names, self.input_names)
+        """The assumptions about ``f``, one sentence each (for certificate and report).
+
+        The declared ones (:meth:`Declarations.describe`), and for a system without a
+        model the one every certificate from data rests on: the data are ``f``'s values.
+        """
+        out = [] if self.declarations is None else self.declarations.describe(
+            self.state_names, self.input_names)
+        if not self.has_model and (self.declarations is None
+                                   or self.declarations.sample_error is None):
+            what = ("the black-box callable returns" if self.kind == "callable"
+                    else "the sample file holds")
+            out.append(f"Data (assumed): {what} the exact values of f (no measurement noise; "
+                       "declare sample_error otherwise)")
+        return out
+
+    def summary(self) -> dict:
+        """Plain-JSON description for reports, certificates and ``nlyap systems --check``."""
+        out = {
+            "name": self.name, "kind": self.kind, "has_model": self.has_model,
+            "source": self.source, "description": self.description,
+            "states": self.state_names, "inputs": self.input_names,
+            "state_box": self.state_box.tolist(), "input_box": self.input_box.tolist(),
+            "u_eq": self.u_eq.tolist(), "params": dict(self.params),
+            "known_state_derivatives": [self.state_names[i] for i in
+                                        self.known_state_derivatives],
+            "assumptions_declared": self.describe_assumptions(),
+            "declarations": None if self.declarations is None else self.declarations.to_dict(),
+            "run_overrides": dict(self.run_overrides),
+        }
+        if self.samples is not None:
+            out["samples"] = self.samples.to_dict()
+        return out
 
     def __repr__(self) -> str:
         extra = "" if self.kind == "model" else f", kind={self.kind!r}"

@@ -78,6 +78,10 @@ class Declarations:
         :math:`|\partial^2 f_k / \partial z_i \partial z_j| \le H` for all ``k, i, j``.
     input_matrix : (nx, nu) array_like, optional
         Known ``B`` of a control-affine ``f(x, u) = f_0(x) + B u``.
+    sample_error : float, optional
+        :math:`\varepsilon`: every sample value (or callable output) ``s`` is within
+        :math:`\|s - f(z)\|_2 \le \varepsilon` of the true ``f`` (noise, a simulator's
+        tolerance); add it to α. Not declared: the data are taken as exact.
 
     Examples
     --------
@@ -91,6 +95,7 @@ class Declarations:
     lipschitz: float | tuple[float, ...] | None = None
     hessian: float | None = None
     input_matrix: tuple[tuple[float, ...], ...] | None = None
+    sample_error: float | None = None
     source: str = field(default="", compare=False)
 
     def __post_init__(self):
@@ -108,6 +113,12 @@ class Declarations:
             object.__setattr__(self, "lipschitz", lip)
         if self.hessian is not None:
             object.__setattr__(self, "hessian", _positive("hessian (H)", self.hessian))
+        if self.sample_error is not None:
+            e = self.sample_error
+            if isinstance(e, bool) or not isinstance(e, (int, float)) or not np.isfinite(e) \
+                    or e < 0:
+                raise ConfigError(f"declared sample_error must be a finite number >= 0, got {e!r}")
+            object.__setattr__(self, "sample_error", float(e))
         if self.input_matrix is not None:
             try:
                 b = np.array(self.input_matrix, dtype=float)
@@ -126,7 +137,8 @@ class Declarations:
     @property
     def empty(self) -> bool:
         """True when nothing is declared."""
-        return self.lipschitz is None and self.hessian is None and self.input_matrix is None
+        return (self.lipschitz is None and self.hessian is None and self.input_matrix is None
+                and self.sample_error is None)
 
     @property
     def B(self) -> np.ndarray | None:
@@ -197,13 +209,19 @@ class Declarations:
                 "Control-affine structure (declared): f(x, u) = f₀(x) + B·u on X × U with the "
                 f"known input matrix B = [{rows}] (inputs: {inputs})"
             )
+        if self.sample_error is not None:
+            out.append(
+                "Sample error (declared): every sample value s of f at a node z satisfies "
+                f"‖s − f(z)‖₂ ≤ ε = {_fmt(self.sample_error)}"
+            )
         return out
 
     def to_dict(self) -> dict:
         """Plain-JSON form (``None`` entries kept)."""
         lip = list(self.lipschitz) if isinstance(self.lipschitz, tuple) else self.lipschitz
         return {"lipschitz": lip, "hessian": self.hessian,
-                "input_matrix": None if self.B is None else self.B.tolist()}
+                "input_matrix": None if self.B is None else self.B.tolist(),
+                "sample_error": self.sample_error}
 
 
 # ============================================================================ checks
@@ -239,7 +257,8 @@ def check_declarations(
     names : sequence of str, optional
         Names of the ``d`` axes (states then inputs), for the messages.
     value_tolerance : float, optional
-        Absolute error allowed in each value (default: 8 ulps of ``max |values|``).
+        Absolute error allowed in each value (default: 8 ulps of ``max |values|`` plus a
+        declared ``sample_error``).
     source : str, optional
         Prefix of the messages (e.g. the spec file).
 
@@ -275,7 +294,9 @@ def check_declarations(
     znames = _z_names(names, d)
     pre = f"{source}: " if source else ""
     scale = float(np.max(np.abs(v), initial=0.0))
-    tau = 8.0 * _EPS * scale if value_tolerance is None else float(value_tolerance)
+    if value_tolerance is None:  # float64 rounding of the data, plus declared noise
+        value_tolerance = 8.0 * _EPS * scale + (declarations.sample_error or 0.0)
+    tau = float(value_tolerance)
     V = v.reshape(counts + (nx,))
     out: dict = {"slope": 0.0, "slope_per_component": [0.0] * nx, "second_difference": None,
                  "input_matrix_error": None}

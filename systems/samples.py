@@ -242,6 +242,12 @@ class SampleSet:
         for start in range(0, self.size, batch_size):
             yield self.points(np.arange(start, min(start + batch_size, self.size)))
 
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """``n`` distinct random nodes (all nodes, in order, if ``n >= size``), as ``Grid``."""
+        if n >= self.size:
+            return self.points(np.arange(self.size))
+        return self.points(np.sort(rng.choice(self.size, size=n, replace=False)))
+
     def index_of(self, z) -> np.ndarray:
         """Flat indices of the nodes ``z`` ``(N, d)``; a point that is not a node is an error.
 

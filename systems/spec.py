@@ -24,6 +24,7 @@ A spec file gives a system in one of three ways: the right-hand side as expressi
     lipschitz = 120.0                   # K_f, or one number per state
     hessian = 80.0                      # H: |∂²f_k/∂z_i∂z_j| <= H
     input_matrix = [[0.0], [26.667]]    # control-affine f = f0(x) + B u
+    sample_error = 1e-6                 # data within 1e-6 of f (2-norm); default: exact
 
     [run]                               # run-config overrides, passed on as a dict
     outer = 4.0
@@ -47,6 +48,7 @@ import ast
 import difflib
 import importlib
 import importlib.util
+import keyword
 import math
 import sys
 from collections.abc import Callable
@@ -83,7 +85,7 @@ SPEC_KEYS = {
     "": {"name", "description", "states", "inputs", "state_box", "input_box", "u_eq", "known",
          "parameters", "rhs", "samples", "factory", "declared", "run"},
     "samples": {"file", "columns"},
-    "declared": {"lipschitz", "hessian", "input_matrix"},
+    "declared": {"lipschitz", "hessian", "input_matrix", "sample_error"},
 }
 
 
@@ -165,11 +167,19 @@ def parse_expression(text: str, symbols: dict[str, sympy.Expr]) -> sympy.Expr:
         raise ConfigError(str(exc)) from None
 
 
+def _too_deep(text) -> _ExprError:
+    return _ExprError(f"is nested too deeply to parse ({len(str(text))} characters); split it "
+                      "with parameters or simplify it")
+
+
 def _parse(text: str, symbols: dict) -> sympy.Expr:
     # evaluate(False): the tree stays as written (no rewriting such as exp(log(x)) -> x,
     # which would change the domain the verifier checks, PITFALLS P10)
-    with sympy.evaluate(False):
-        return _parse_unevaluated(text, symbols)
+    try:
+        with sympy.evaluate(False):
+            return _parse_unevaluated(text, symbols)
+    except (RecursionError, MemoryError):
+        raise _too_deep(text) from None
 
 
 def _parse_unevaluated(text: str, symbols: dict) -> sympy.Expr:
@@ -340,7 +350,8 @@ def _names(path, spec: dict, key: str, required: bool) -> list[str]:
     if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
         raise _err(path, key, f"must be a list of names, got {v!r}")
     for s in v:
-        if not s.isidentifier() or s.startswith("_") or s in FUNCTIONS or s in CONSTANTS:
+        if not s.isidentifier() or keyword.iskeyword(s) or s.startswith("_") \
+                or s in FUNCTIONS or s in CONSTANTS:
             raise _err(path, key, f"{s!r} is not a usable name (an identifier that is not a "
                        "function or constant name and does not start with '_')")
     if len(set(v)) != len(v):
@@ -373,8 +384,8 @@ def _parameters(path, spec: dict, reserved: set) -> dict[str, float]:
     out: dict[str, float] = {}
     for name, v in table.items():
         where = f"parameters.{name}"
-        if not name.isidentifier() or name.startswith("_") or name in reserved \
-                or name in FUNCTIONS or name in CONSTANTS:
+        if not name.isidentifier() or keyword.iskeyword(name) or name.startswith("_") \
+                or name in reserved or name in FUNCTIONS or name in CONSTANTS:
             raise _err(path, where, f"{name!r} cannot be a parameter name (it is not an "
                        "identifier, or it is a state, input, function or constant)")
         if isinstance(v, bool):
@@ -413,7 +424,10 @@ def _expressions(path, table, states, inputs, params, xs, us, only=None) -> dict
                        f"only the components named in 'known' (add {name!r} to known if its "
                        "derivative is exactly this expression)")
         try:
-            out[states.index(name)] = _convert(_parse(text, allowed), to_ca)
+            try:
+                out[states.index(name)] = _convert(_parse(text, allowed), to_ca)
+            except RecursionError:
+                raise _too_deep(text) from None
         except _ExprError as exc:
             raise _err(path, where, str(exc)) from None
     return out
@@ -428,7 +442,7 @@ def _declarations(path, spec: dict) -> Declarations | None:
     _check_keys(path, d, SPEC_KEYS["declared"], "declared")
     try:
         return Declarations(d.get("lipschitz"), d.get("hessian"), d.get("input_matrix"),
-                            source=str(path))
+                            d.get("sample_error"), source=str(path))
     except ConfigError as exc:
         raise _err(path, "declared", str(exc)) from None
 

@@ -274,6 +274,42 @@ def test_declarations_describe_and_bound():
 
 def test_blackbox_example_declarations_hold(bb):
     s = bb.make()
-    assert s.kind == "callable" and len(s.describe_assumptions()) == 3
+    lines = s.describe_assumptions()
+    assert s.kind == "callable" and len(lines) == 4
+    assert lines[-1].startswith("Data (assumed): the black-box callable returns the exact")
     est = s.check_declarations(Grid(s.sampling_box, [41, 41, 5]))
     assert est["slope"] < 34.5 and est["second_difference"] < 26.0
+
+
+def test_known_function_for_every_kind():
+    for s in (systems.get("inverted_pendulum"),
+              _callable_pendulum(known_rhs={"x1": lambda x, u: x[1]})):
+        kf = s.known_function()
+        assert kf(ca.DM([0.3, -0.7]), ca.DM([0.1])).full().ravel().tolist() == [-0.7]
+    assert _callable_pendulum().known_function().numel_out() == 0
+
+
+def test_sample_error_declaration():
+    d = Declarations(lipschitz=1.0, sample_error=1e-3)
+    assert d.describe()[-1].startswith("Sample error (declared)")
+    s = _callable_pendulum(declarations=d)
+    assert not any(x.startswith("Data (assumed)") for x in s.describe_assumptions())
+    for bad in (-1.0, float("inf"), "x", True):
+        with pytest.raises(ConfigError, match="sample_error"):
+            Declarations(sample_error=bad)
+    # noise up to sample_error does not make a correct K_f look wrong
+    smp = systems.sample_function(lambda X, U: X + 1e-3 * np.sin(1e4 * X), [[-1, 1]], [201],
+                                  nx=1)
+    with pytest.raises(ConfigError):
+        check_declarations(smp, smp.values, Declarations(lipschitz=1.0))
+    check_declarations(smp, smp.values, Declarations(lipschitz=1.0, sample_error=1e-3))
+
+
+def test_sample_set_is_a_drop_in_grid(rng):
+    g = Grid([[-1, 1], [0, 2], [-3, 3]], [7, 5, 3])
+    smp = systems.sample_function(lambda X, U: X[:, :2] * U, g.box, g.counts, nx=2)
+    np.testing.assert_array_equal(smp.sample(10, np.random.default_rng(1)),
+                                  g.sample(10, np.random.default_rng(1)))
+    assert [b.tolist() for b in smp.batches(17)] == [b.tolist() for b in g.batches(17)]
+    for key in ("box", "counts", "spacing", "size", "delta"):
+        assert smp.to_dict()[key] == g.to_dict()[key]

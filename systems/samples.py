@@ -315,7 +315,7 @@ def _is_number(s: str) -> bool:
 
 
 def _read_csv(path: Path, columns: Sequence[str] | None) -> tuple[list[str], np.ndarray]:
-    with open(path, newline="", encoding="utf-8") as fh:
+    with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a spreadsheet's BOM
         rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
     if not rows:
         raise ConfigError(f"{path}: the sample file is empty; write one row per sample")

@@ -624,17 +624,26 @@ def load_spec(path) -> System:
         raise ConfigError(f"{path}: {exc}") from None
 
 
-def default_run_settings(system: System) -> dict:
-    """Proposed run settings from the state box: the verification disc inside ``X``.
+def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
+    """Proposed run settings for a system without a preset, from its boxes.
 
-    ``outer`` is the radius of the largest origin-centred ball inside the state box,
-    ``inner = outer / 10``; the sampling box is the system's ``X × U``.
+    - ``outer``: radius of the largest origin-centred ball inside the state box;
+      ``inner = outer / 10``;
+    - ``controller_scale`` (``u = C·tanh(Kx + b)`` stays in ``U``): the largest ``C`` with
+      ``[-C, C]`` inside every input's range (``None`` without inputs);
+    - ``eval_box``: the state box;
+    - ``dynamics.grid_counts``: the sample grid of a ``"samples"`` system (its own, it
+      cannot change), else at most ``grid_budget`` nodes over ``X × U``, the same odd
+      count on every axis (a symmetric axis then has 0 as a node; equal counts need no
+      choice of units); ``dynamics.model`` is ``"control_affine"`` for samples of one
+      input level.
 
     Examples
     --------
     >>> import systems
-    >>> default_run_settings(systems.get("inverted_pendulum"))
-    {'outer': 4.0, 'inner': 0.4}
+    >>> d = default_run_settings(systems.get("inverted_pendulum"))
+    >>> d["outer"], d["inner"], d["controller_scale"], d["dynamics"]["grid_counts"]
+    (4.0, 0.4, 20.0, [57, 57, 57])
     """
     box = system.state_box
     if np.any(box[:, 0] >= 0) or np.any(box[:, 1] <= 0):
@@ -643,4 +652,26 @@ def default_run_settings(system: System) -> dict:
             "its interior; the equilibrium x = 0 must be inside X"
         )
     outer = float(np.min(np.minimum(-box[:, 0], box[:, 1])))
-    return {"outer": outer, "inner": outer / 10.0}
+    out: dict = {"outer": outer, "inner": outer / 10.0, "controller_scale": None,
+                 "eval_box": box.tolist()}
+    if system.nu:
+        ub = system.input_box
+        c = float(np.min(np.minimum(-ub[:, 0], ub[:, 1])))
+        if not c > 0 or np.any(np.abs(system.u_eq) >= c):
+            raise ConfigError(
+                f"the input box {ub.tolist()} of {system.name!r} leaves no symmetric range "
+                f"[-C, C] around u_eq = {system.u_eq.tolist()}; give controller_scale in [run]"
+            )
+        out["controller_scale"] = c
+    if system.samples is not None:
+        smp = system.samples
+        if smp.input_slice:
+            dyn = {"model": "control_affine", "grid_counts": smp.counts[:system.nx].tolist()}
+        else:
+            dyn = {"model": "full", "grid_counts": smp.counts.tolist()}
+    else:
+        d = system.nx + system.nu
+        n = int(2 * max(1, math.floor((grid_budget ** (1.0 / d) - 1) / 2)) + 1)
+        dyn = {"grid_counts": [n] * d}
+    out["dynamics"] = dyn
+    return out

@@ -313,3 +313,27 @@ def test_sample_set_is_a_drop_in_grid(rng):
     assert [b.tolist() for b in smp.batches(17)] == [b.tolist() for b in g.batches(17)]
     for key in ("box", "counts", "spacing", "size", "delta"):
         assert smp.to_dict()[key] == g.to_dict()[key]
+
+
+def test_blackbox_declared_constants_are_true(bb):
+    """K_f and H of the example hold for its formula (dense evaluation of the derivatives)."""
+    th, om = np.meshgrid(np.linspace(-4, 4, 801), np.linspace(-4, 4, 801), indexing="ij")
+    k, c, inertia = bb.K_SMOOTH, bb.C_COUL, bb.INERTIA
+    sech2 = 1.0 / np.cosh(k * om) ** 2
+    j_th = bb.G / bb.L * np.cos(th)                     # ∂ω'/∂θ
+    j_om = -(bb.B_VISC + c * k * sech2) / inertia       # ∂ω'/∂ω
+    j_u = 1.0 / inertia                                 # ∂ω'/∂u
+    # ‖J‖₂ ≤ ‖J‖_F, rows (0, 1, 0) and (j_th, j_om, j_u)
+    assert np.sqrt(1.0 + j_th**2 + j_om**2 + j_u**2).max() <= 34.5
+    d2_th = np.abs(bb.G / bb.L * np.sin(th))
+    d2_om = np.abs(c * 2 * k**2 * np.tanh(k * om) * sech2 / inertia)
+    assert max(d2_th.max(), d2_om.max()) <= 26.0
+    assert bb.DECLARED.B[1, 0] == 1.0 / inertia
+
+
+def test_csv_with_bom_and_crlf(tmp_path):
+    g = Grid([[-1, 1]], [3])
+    path = tmp_path / "a.csv"
+    path.write_bytes("\ufeffx,x_dot\r\n-1.0,1.0\r\n0.0,0.0\r\n1.0,-1.0\r\n".encode("utf-8"))
+    smp = systems.load_samples(path, states=["x"])
+    assert smp.delta == g.delta and smp.values.ravel().tolist() == [1.0, 0.0, -1.0]

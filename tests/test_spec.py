@@ -43,7 +43,11 @@ def test_lorenz_spec_equals_hand_written_model(rng):
     np.testing.assert_allclose(s.A, [[-10, 10, 0], [28, -1, 0], [0, 0, -beta]], atol=1e-15)
     np.testing.assert_array_equal(s.B.ravel(), [0, 1, 0])
     assert s.declarations.B.ravel().tolist() == [0, 1, 0]
-    assert systems.default_run_settings(s) == {"outer": 1.0, "inner": 0.1}
+    d = systems.default_run_settings(s)
+    assert (d["outer"], d["inner"], d["controller_scale"]) == (1.0, 0.1, 40.0)
+    counts = d["dynamics"]["grid_counts"]
+    assert len(counts) == 4 and all(c % 2 == 1 for c in counts)
+    assert counts == [21] * 4 and np.prod(counts) <= 200_000
 
 
 def test_two_machine_spec_equals_hand_written_model(rng):
@@ -80,6 +84,8 @@ def test_factory_spec_and_csv_spec(tmp_path):
     from nlyap_opt.dynamics import Grid
 
     assert p.samples.delta == Grid(s.state_box, [41, 41]).delta
+    assert systems.default_run_settings(p)["dynamics"] == {"model": "control_affine",
+                                                           "grid_counts": [41, 41]}
 
 
 def test_expression_parser_functions_and_powers():

@@ -223,7 +223,13 @@ def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
     """
     import systems as _systems
 
+    from .configs import check_dynamics_box, validate_config
+
     system = _systems.get(system) if isinstance(system, str) else system
+    if system.name in _systems.names():   # a hand-built dict gets the CLI's checks too
+        validate_config(cfg, system.name)
+        if not known_dynamics:
+            check_dynamics_box(cfg)
     out = _out_dir(out)
     with _OutLock(out, log):
         return _run(system, cfg, out, known_dynamics, log)

@@ -44,7 +44,7 @@ from .walker import evaluate
 
 __all__ = [
     "CertStatus", "Decrease", "RoaProblem", "RoaCertificate", "InnerEllipse", "certify_roa",
-    "recheck_certificate", "sha256_file", "FORMAT", "VERSION",
+    "recheck_certificate", "certify_with_inner_search", "sha256_file", "FORMAT", "VERSION",
 ]
 
 FORMAT = "nlyap-roa-certificate"
@@ -470,6 +470,64 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
         reason = "conditions (a) and (b) verified; (c) not checked"
     return RoaCertificate(status, reason, level=level, inner_ellipse=ellipse,
                           assumptions=assumptions, seconds=time.perf_counter() - t0, **common)
+
+
+#: the inner radii :func:`certify_with_inner_search` tries, as multiples of the configured one
+INNER_FACTORS = (1.0, 0.5, 0.25, 2.0, 0.125, 3.0)
+
+
+def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
+                              factors=INNER_FACTORS, log=print) -> RoaCertificate:
+    r""":func:`certify_roa` at the configured inner radius ε, then at other radii.
+
+    The inner radius is a trade-off the user should not have to tune: a small ε makes
+    condition (c) easy (a small ellipse around the origin) but the decrease (a) must then hold
+    close to the origin, where a robust margin :math:`\eta\|
+abla V\|` (learned f) can beat it;
+    a large ε the other way round. The same ``V`` and ``κ`` are re-checked with
+    ``ε·factor`` for each factor (no retraining); the first radius that certifies wins (the
+    configured one first). Without ``level`` each radius gets its own candidate level
+    (:func:`nlyap_opt.roa.candidate_level`). Returns the certificate (its ``history`` lists
+    every radius tried) or the configured radius's refusal.
+    """
+    from dataclasses import replace
+
+    from .roa import candidate_level
+
+    try:  # the decrease condition does not depend on ε: built once, shared
+        dec = problem.decrease()
+    except InputRangeError:
+        return certify_roa(problem, 1.0 if level is None else level, log=log)
+    first, tried = None, []
+    for f in factors:
+        eps = problem.inner * f
+        if not 0 < eps < problem.outer:
+            continue
+        p = problem if f == 1.0 else replace(problem, inner=eps)
+        p._decrease = dec
+        lv = level
+        if lv is None:
+            lv = candidate_level(dec.x, dec.V, dec.lie, inner=eps, outer=p.outer,
+                                 margin=dec.margin).level
+        if not lv > 0:
+            tried.append({"inner": eps, "status": "no positive candidate level"})
+            continue
+        cert = certify_roa(p, lv, search=f != 1.0 or level is None, log=log)
+        tried.append({"inner": eps, "status": cert.status.value, "reason": cert.reason,
+                      "level": cert.level})
+        first = first or cert
+        if cert.certified:
+            if f != 1.0:
+                log(f"inner radius {problem.inner:g} refused; certified with ε = {eps:g}")
+                cert.assumptions.append(
+                    f"inner radius ε = {eps:g} chosen by the tool (configured "
+                    f"{problem.inner:g}: {tried[0]['reason']})")
+            cert.history = list(cert.history) + [{"inner_radius_search": tried}]
+            return cert
+    if first is None:
+        raise ConfigError(f"no inner radius to try below outer = {problem.outer:g}")
+    first.history = list(first.history) + [{"inner_radius_search": tried}]
+    return first
 
 
 def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:

@@ -35,7 +35,7 @@ from .certificate import (
     CertStatus,
     RoaCertificate,
     RoaProblem,
-    certify_roa,
+    certify_with_inner_search,
     save_certificate,
     sha256_file,
     write_json_atomic,
@@ -327,15 +327,17 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
         dynamics_assumptions=[] if bounds_info is None else
         [f"{bounds_info['bound_model']['name']} bound"] + list(
             bounds_info["bound_model"].get("assumptions", [])))
-    if cg["status"] == CertStatus.CERTIFIED.value and float(cg["level"]) > 0:
+    claimed = cg["status"] == CertStatus.CERTIFIED.value and float(cg["level"]) > 0
+    if claimed:
         log(f"[certificate] verifying the saved V{', κ' if controller else ''}"
             f"{', φ' if dynamics else ''} at the saved level {float(cg['level']):.6g}")
-        cert = certify_roa(problem, float(cg["level"]), search=False,
-                           log=lambda m: log("  " + m))
     else:
-        cert = RoaCertificate(CertStatus.NOT_CERTIFIED, cg.get("reason") or cg["status"],
-                              system.name, "known" if known_dynamics else "learned", 0.0,
-                              eps, r, eta=eta, V=V)
+        log(f"[certificate] CEGIS certified no level ({cg.get('reason') or cg['status']}); "
+            "trying the last V with other inner radii")
+    # the saved level at the configured ε first (exact re-verification); other radii only
+    # if that is refused (the same V and κ; no retraining)
+    cert = certify_with_inner_search(problem, float(cg["level"]) if claimed else None,
+                                     log=lambda m: log("  " + m))
     extra = _areas_and_checks(system, cfg, cert, problem, out, log)
     seconds["certificate"] = time.perf_counter() - t
     sec_file = out / "seconds.json"

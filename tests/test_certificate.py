@@ -175,3 +175,22 @@ def test_lyapunov_matrix_is_the_lyapunov_solution():
     A = np.array([[0.0, 1.0], [-2.0, -3.0]])
     P = lyapunov_matrix(A)
     assert np.allclose(A.T @ P + P @ A, -np.eye(2), atol=1e-12)
+
+
+def test_inner_radius_is_chosen_by_the_tool_without_retraining():
+    """ε = 1 is refused for the Van der Pol LQR quadratic ((c) fails on so large an ellipse);
+    the same V certifies with a smaller ε, and the certificate says which and why."""
+    from nlyap_opt.certificate import certify_with_inner_search
+
+    s, V, P = _vdp_quadratic()
+    prob = RoaProblem(s, V, inner=1.0, outer=2.0)
+    refused = certify_roa(prob, 2.0, **QUIET)
+    assert not refused.certified and "(c)" in refused.reason
+    cert = certify_with_inner_search(prob, 2.0, **QUIET)
+    assert cert.certified and cert.inner < 1.0
+    assert any("chosen by the tool" in a for a in cert.assumptions)
+    tried = cert.history[-1]["inner_radius_search"]
+    assert tried[0]["inner"] == 1.0 and tried[-1]["inner"] == cert.inner
+    # and it is a real certificate: re-check it at its own radius
+    again = certify_roa(RoaProblem(s, V, inner=cert.inner, outer=2.0), cert.level, **QUIET)
+    assert again.certified

@@ -62,8 +62,8 @@ import tomllib
 from nlyap_opt.errors import ConfigError
 
 from .base import System
-from .declarations import Declarations
-from .samples import load_samples
+from .declarations import Declarations, check_declarations
+from .samples import load_samples, sample_function
 
 __all__ = ["load_spec", "parse_expression", "to_casadi", "default_run_settings", "FUNCTIONS",
            "SYMPY_TO_CASADI", "SPEC_KEYS"]
@@ -478,6 +478,27 @@ def _load_factory(path: Path, ref) -> Callable:
     return f
 
 
+def _quick_check(system: System, path) -> System:
+    """Check declarations against ``f`` on a coarse grid (≤ 11 nodes per axis, ≤ 20 000 nodes).
+
+    Only refutes what the data contradict (e.g. a K_f below a slope); a model's rigorous
+    constants are the pipeline's business.
+    """
+    if system.declarations is None or system.kind == "samples":
+        return system
+    d = system.nx + system.nu
+    n = max(3, min(11, int(20_000 ** (1.0 / d))))
+    smp = sample_function(system.evaluate, system.sampling_box, [n] * d, nx=system.nx,
+                          names=system.state_names + system.input_names)
+    try:
+        check_declarations(smp, smp.values, system.declarations, names=smp.names,
+                           source=str(path))
+    except ConfigError as exc:
+        msg = str(exc)
+        raise ConfigError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+    return system
+
+
 def load_spec(path) -> System:
     """Build a :class:`~systems.base.System` from a TOML spec file.
 
@@ -489,7 +510,9 @@ def load_spec(path) -> System:
     -------
     System
         With ``declarations`` (``[declared]``), ``run_overrides`` (``[run]``, a dict) and
-        ``source`` (the path).
+        ``source`` (the path). Declarations are checked against the data: a sample file's
+        samples, or ``f`` on a coarse grid (at most 11 nodes per axis) for expressions and
+        factories.
 
     Raises
     ------
@@ -539,7 +562,7 @@ def load_spec(path) -> System:
             system.description = str(spec["description"])
         system.run_overrides = {**system.run_overrides, **run}
         system.source = str(path)
-        return system
+        return _quick_check(system, path)
 
     states = _names(path, spec, "states", True)
     inputs = _names(path, spec, "inputs", False)
@@ -584,8 +607,9 @@ def load_spec(path) -> System:
             raise _err(path, "rhs", f"no expression for {missing}; give one per state")
         f = ca.vertcat(*[rhs[i] for i in range(nx)])
         try:
-            return System(name, xs, us, f, state_box=xbox, input_box=ubox, u_eq=u_eq,
-                          known_state_derivatives=[states.index(k) for k in known], **common)
+            return _quick_check(System(
+                name, xs, us, f, state_box=xbox, input_box=ubox, u_eq=u_eq,
+                known_state_derivatives=[states.index(k) for k in known], **common), path)
         except ConfigError as exc:
             raise _err(path, "", str(exc)) from None
         except ValueError as exc:  # EquilibriumError and friends: one line with the file

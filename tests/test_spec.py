@@ -260,6 +260,11 @@ BAD = [
      r"declared input matrix B is contradicted"),
     ("B wrong shape", GOOD + "[declared]\ninput_matrix = [[0.0, 1.0]]\n", None,
      r"declared: declared input_matrix has shape \(1, 2\)|declared: input_matrix has shape"),
+    ("K_f too small (model)", GOOD + "[declared]\nlipschitz = 1.0\n", None,
+     r"sys.toml: declared K_f = 1 is below the finite-difference slope 1\.[4-9]"),
+    ("H too small (model)", _x1("x2 + 3*x1^2") + "[declared]\nhessian = 1.0\n", None,
+     r"sys.toml: declared H = 1 is below the second-difference estimate 6 of "
+     r"\|∂²f_0/∂x1∂x1\|"),
     ("K_f per component length", GOOD + "[declared]\nlipschitz = [1, 2, 3]\n", None,
      r"declared lipschitz has 3 entries"),
     ("known without expression", SAMPLES.replace('u_eq', 'known = ["x1"]\nu_eq'), _csv(),

@@ -249,8 +249,10 @@ def check_declarations(
     ----------
     grid : Grid or SampleSet
         Anything with ``axes`` (list of the ``d`` per-axis node coordinates, increasing)
-        and ``counts``; the nodes in C order. The axes are ``(x, u)``: ``d = nx + nu``.
-        A :class:`nlyap_opt.dynamics.Grid` and a :class:`~systems.samples.SampleSet` qualify.
+        and ``counts``; the nodes in C order. The axes are ``(x, u)``: ``d = nx + nu``
+        (``nu = 0``: a grid over ``x`` only, as for control-affine data, where a declared
+        ``B`` is not checked). A :class:`nlyap_opt.dynamics.Grid` and a
+        :class:`~systems.samples.SampleSet` qualify.
     values : (N, nx) array_like
         ``f`` at the nodes, in the grid's C order.
     declarations : Declarations
@@ -290,7 +292,10 @@ def check_declarations(
         raise DimensionError(f"the grid has {d} axes but the values have {nx} components")
     if not np.all(np.isfinite(v)):
         raise ConfigError("the sample values contain NaN or inf; fix the data before checking")
-    declarations.validate(nx, nu)
+    if nu or declarations.input_matrix is None:
+        declarations.validate(nx, nu)
+    else:  # a grid over x only (control-affine data): B cannot be checked here
+        Declarations(declarations.lipschitz).validate(nx, 0)
     znames = _z_names(names, d)
     pre = f"{source}: " if source else ""
     scale = float(np.max(np.abs(v), initial=0.0))

@@ -337,3 +337,14 @@ def test_csv_with_bom_and_crlf(tmp_path):
     path.write_bytes("\ufeffx,x_dot\r\n-1.0,1.0\r\n0.0,0.0\r\n1.0,-1.0\r\n".encode("utf-8"))
     smp = systems.load_samples(path, states=["x"])
     assert smp.delta == g.delta and smp.values.ravel().tolist() == [1.0, 0.0, -1.0]
+
+
+def test_check_on_a_state_grid_with_declared_b(bb):
+    s = bb.make()
+    g = Grid(s.state_box, [41, 41])  # the control-affine model's grid over x
+    x = g.points(np.arange(g.size))
+    vals = s.evaluate(x, np.zeros((g.size, 1)))
+    est = check_declarations(g, vals, bb.DECLARED)
+    assert est["input_matrix_error"] is None and est["slope"] < 34.5
+    with pytest.raises(ConfigError, match="declared K_f = 10"):
+        check_declarations(g, vals, Declarations(lipschitz=10.0, input_matrix=[[0], [1]]))

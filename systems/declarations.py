@@ -407,7 +407,7 @@ def check_declarations(
 
     # ---- declared B: f(x, u + h e_j) − f(x, u) = B[:, j] h between input neighbours
     B = declarations.B
-    if B is not None:
+    if B is not None and any(counts[nx + j] > 1 for j in range(nu)):
         worst = (0.0, None)
         for j in range(nu):
             i = nx + j

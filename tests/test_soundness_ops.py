@@ -429,3 +429,16 @@ def test_system_with_coulomb_like_strip_through_closed_loop(w):
     ok = closed_loop_problem(s0, V, inner=0.1, outer=0.9, check_positive=False)
     assert verify(ok).status == "verified"
     assert_no_sample_contradicts(ok, 200_000)
+
+
+@pytest.mark.parametrize("w", [1e-2, 1e-4, 1e-6])
+def test_jumps_from_the_derivative_of_a_lipschitz_V_are_seen(w):
+    """V = |x|² + 0.1·w·tent(x0) (fabs/fmin/fmax): ∇V holds sign and comparisons, so the
+    Lie derivative jumps; on the falling side of the tent dV/dt > 0 (f = -x)."""
+    x = _x()
+    tent = ca.fmax(0.0, 1.0 - ca.fabs(x[0] - A) / w)  # peak 1 at A, half-width w
+    V = ca.sumsqr(x) + 3.0 * w * tent
+    lie = ca.dot(ca.gradient(V, x), -x)  # = -2|x|² + 3 x0 sign(x0 - A) on |x0 - A| < w
+    problem = VerificationProblem(x, BOX, [ca.sumsqr(x) - 1.0, 0.01 - ca.sumsqr(x)], [lie])
+    assert problem.checked
+    _assert_not_verified(problem, verify(problem, presearch=0))

@@ -348,3 +348,52 @@ def test_check_on_a_state_grid_with_declared_b(bb):
     assert est["input_matrix_error"] is None and est["slope"] < 34.5
     with pytest.raises(ConfigError, match="declared K_f = 10"):
         check_declarations(g, vals, Declarations(lipschitz=10.0, input_matrix=[[0], [1]]))
+
+
+# ============================================================================ Jacobian from data
+def test_jacobian_from_data_contains_the_true_jacobian(bb):
+    from systems.jacobian import jacobian_from_data
+
+    truth = np.array([[0.0, 1.0, 0.0],
+                      [bb.G / bb.L, -(bb.B_VISC + bb.C_COUL * bb.K_SMOOTH) / bb.INERTIA,
+                       1.0 / bb.INERTIA]])
+    c = bb.make()
+    jb = jacobian_from_data(c)  # callable: tiny steps, tiny error
+    assert np.all(np.abs(jb.J - truth) <= jb.error) and jb.error.max() < 1e-3
+    smp = systems.sample_function(c.evaluate, c.sampling_box, [41, 41, 21], nx=2)
+    s = systems.System.from_samples("p", smp, u_eq=[0.0], declarations=bb.DECLARED)
+    jb = jacobian_from_data(s)  # grid spacing 0.2: error H h / 2 = 2.6
+    assert jb.source == "samples" and np.all(np.abs(jb.J - truth) <= jb.error)
+    np.testing.assert_allclose(jb.error[:, 0], 26.0 * 0.2 / 2, rtol=1e-12)
+    assert np.all(jb.error > 0)
+    # the bound is not loose by orders of magnitude: the true error is a sizeable part of it
+    assert np.abs(jb.J - truth).max() > 0.05 * jb.error.max()
+    # a model (evaluated as a black box) agrees with its own linearisation
+    m = systems.get("inverted_pendulum")
+    m.declarations = Declarations(hessian=20.0)
+    jm = jacobian_from_data(m, step=1e-3)
+    assert np.all(np.abs(jm.J - np.hstack([m.A, m.B])) <= jm.error)
+    with pytest.raises(ConfigError, match="declare hessian"):
+        jacobian_from_data(_callable_pendulum())
+
+
+def test_jacobian_from_slice_uses_declared_b(bb, tmp_path):
+    from systems.jacobian import jacobian_from_data
+
+    s = bb.make()
+    g = Grid(s.state_box, [41, 41])
+    x = g.points(np.arange(g.size))
+    smp = SampleSet(np.hstack([x, np.zeros((g.size, 1))]), s.evaluate(x, np.zeros((g.size, 1))),
+                    nx=2, nu=1)
+    ps = systems.System.from_samples("p", smp, u_eq=[0.0], input_box=[[-20, 20]],
+                                     declarations=bb.DECLARED)
+    jb = jacobian_from_data(ps)
+    np.testing.assert_array_equal(jb.B, bb.DECLARED.B)
+    assert np.all(jb.error[:, 2] == 0)
+    edge = SampleSet(np.hstack([x[x[:, 0] >= 0], np.zeros((int(np.sum(x[:, 0] >= 0)), 1))]),
+                     s.evaluate(x[x[:, 0] >= 0], np.zeros((int(np.sum(x[:, 0] >= 0)), 1))),
+                     nx=2, nu=1)
+    pe = systems.System.from_samples("e", edge, u_eq=[0.0], input_box=[[-20, 20]],
+                                     declarations=bb.DECLARED)
+    with pytest.raises(ConfigError, match="on the boundary of the sample grid along 'x1'"):
+        jacobian_from_data(pe)

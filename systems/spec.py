@@ -582,7 +582,11 @@ def load_spec(path) -> System:
     for k in known:
         if k not in states:
             raise _err(path, "known", f"{k!r} is not a state{_did_you_mean(k, states)}")
+    if not nu and "input_box" in spec:
+        raise _err(path, "input_box", "the system has no inputs; remove it")
     u_eq = spec.get("u_eq")
+    if not nu and u_eq is not None and np.size(u_eq):
+        raise _err(path, "u_eq", "the system has no inputs; remove it")
     if u_eq is not None:
         try:
             u_eq = np.array(u_eq, dtype=float).ravel()
@@ -599,8 +603,6 @@ def load_spec(path) -> System:
     if sources == ["rhs"]:
         xbox = _box(path, spec, "state_box", nx, True)
         ubox = _box(path, spec, "input_box", nu, nu > 0) if nu else None
-        if not nu and "input_box" in spec:
-            raise _err(path, "input_box", "the system has no inputs; remove it")
         rhs = _expressions(path, spec["rhs"], states, inputs, params, xs, us)
         missing = [s for i, s in enumerate(states) if i not in rhs]
         if missing:

@@ -265,6 +265,11 @@ BAD = [
     ("H too small (model)", _x1("x2 + 3*x1^2") + "[declared]\nhessian = 1.0\n", None,
      r"sys.toml: declared H = 1 is below the second-difference estimate 6 of "
      r"\|∂²f_0/∂x1∂x1\|"),
+    ("input box without inputs", _replace('inputs = ["u"]\n', '').replace(" + u", ""), None,
+     r"input_box: the system has no inputs; remove it"),
+    ("u_eq without inputs", _replace('inputs = ["u"]\n', 'u_eq = [0.0]\n').replace(
+        "input_box = [[-2, 2]]\n", "").replace(" + u", ""), None,
+     r"u_eq: the system has no inputs; remove it"),
     ("K_f per component length", GOOD + "[declared]\nlipschitz = [1, 2, 3]\n", None,
      r"declared lipschitz has 3 entries"),
     ("known without expression", SAMPLES.replace('u_eq', 'known = ["x1"]\nu_eq'), _csv(),
@@ -299,3 +304,12 @@ def test_good_specs_load(tmp_path):
     path.write_text(SAMPLES + "[declared]\nlipschitz = 1.8\ninput_matrix = [[0.0], [1.0]]\n")
     s = systems.load_spec(path)
     assert s.kind == "samples" and s.samples.delta == pytest.approx(math.sqrt(3) / 2)
+    # a csv without header, columns declared (in another order)
+    rows = _csv(header=None).splitlines()
+    perm = [[r.split(",")[i] for i in (3, 0, 4, 1, 2)] for r in rows]
+    (tmp_path / "s.csv").write_text("\n".join(",".join(r) for r in perm) + "\n")
+    text = SAMPLES.replace('file = "s.csv"',
+                           'file = "s.csv"\ncolumns = ["x1_dot", "x1", "x2_dot", "x2", "u"]')
+    path.write_text(text)
+    t = systems.load_spec(path)
+    np.testing.assert_array_equal(t.samples.values, s.samples.values)

@@ -221,7 +221,7 @@ class System:
         if not callable(fun):
             raise TypeError(f"fun must be a callable f(X, U) -> Xdot, got {type(fun).__name__}")
         self = cls.__new__(cls)
-        x, u = cls._given_symbols(symbols, int(nx), int(nu))
+        x, u = cls._given_symbols(symbols, int(nx), int(nu), kwargs)
         self._setup(name, x, u, "callable", state_box=state_box, input_box=input_box, **kwargs)
         self._callable = fun
         self._set_known_rhs(known_rhs)
@@ -313,7 +313,7 @@ class System:
         self = cls.__new__(cls)
         kwargs.setdefault("state_names", samples.names[:nx])
         kwargs.setdefault("input_names", samples.names[nx:])
-        x, u = cls._given_symbols(symbols, nx, nu)
+        x, u = cls._given_symbols(symbols, nx, nu, kwargs)
         self._setup(name, x, u, "samples", state_box=samples.box[:nx], input_box=ubox,
                     **kwargs)
         self.samples = samples
@@ -345,14 +345,21 @@ class System:
         return self
 
     @staticmethod
-    def symbols(nx: int, nu: int = 0) -> tuple[ca.SX, ca.SX]:
-        """The symbols ``x`` ``(nx, 1)`` and ``u`` ``(nu, 1)`` of a system without a model."""
-        return ca.SX.sym("x", int(nx)), ca.SX.sym("u", int(nu))
+    def symbols(nx: int, nu: int = 0, state_names: Sequence[str] | None = None,
+                input_names: Sequence[str] | None = None) -> tuple[ca.SX, ca.SX]:
+        """Symbols ``x`` ``(nx, 1)`` and ``u`` ``(nu, 1)``, one named scalar per entry."""
+        sn = list(state_names or [f"x{i + 1}" for i in range(int(nx))])
+        un = list(input_names or [f"u{i + 1}" for i in range(int(nu))])
+        if len(sn) != int(nx) or len(un) != int(nu):
+            raise DimensionError("state_names/input_names must have nx/nu entries")
+        x = ca.vertcat(*[ca.SX.sym(n) for n in sn]) if sn else ca.SX(0, 1)
+        u = ca.vertcat(*[ca.SX.sym(n) for n in un]) if un else ca.SX(0, 1)
+        return ca.SX(x), ca.SX(u)
 
     @classmethod
-    def _given_symbols(cls, symbols, nx: int, nu: int) -> tuple[ca.SX, ca.SX]:
+    def _given_symbols(cls, symbols, nx: int, nu: int, kwargs: dict) -> tuple[ca.SX, ca.SX]:
         if symbols is None:
-            return cls.symbols(nx, nu)
+            return cls.symbols(nx, nu, kwargs.get("state_names"), kwargs.get("input_names"))
         x, u = symbols
         if not isinstance(x, ca.SX) or x.shape != (nx, 1) or not x.is_valid_input():
             raise TypeError(f"symbols[0] must be an SX column of {nx} symbols")
@@ -459,6 +466,8 @@ class System:
 
     def _check_equilibrium(self, resid, tol: float, where: str) -> None:
         resid = np.asarray(resid, dtype=float).ravel()
+        self._eq_residual = float(np.max(np.abs(resid), initial=0.0))
+        self._eq_tol = float(tol)
         if not np.all(np.isfinite(resid)) or np.max(np.abs(resid), initial=0.0) > tol:
             raise EquilibriumError(
                 f"the origin is not an equilibrium of {self.name!r}: f(0, u_eq="
@@ -684,12 +693,24 @@ class System:
         """
         out = [] if self.declarations is None else self.declarations.describe(
             self.state_names, self.input_names)
-        if not self.has_model and (self.declarations is None
-                                   or self.declarations.sample_error is None):
+        if self.has_model:
+            return out
+        if self.declarations is None or self.declarations.sample_error is None:
             what = ("the black-box callable returns" if self.kind == "callable"
                     else "the sample file holds")
             out.append(f"Data (assumed): {what} the exact values of f (no measurement noise; "
                        "declare sample_error otherwise)")
+        out.append(
+            f"Equilibrium (declared): f(0, u_eq) = 0 with u_eq = {self.u_eq.tolist()} (the "
+            f"data give max_k |f_k(0, u_eq)| = {self._eq_residual:.3g}, checked ≤ "
+            f"{self._eq_tol:g})"
+        )
+        if self._known:
+            eqs = "; ".join(f"{self.state_names[i]}' = {ca.SX(e)}" for i, e in
+                            self._known.items())
+            out.append(f"Known components (declared, checked on the data): {eqs}, in the "
+                       f"symbols x = ({', '.join(self.state_names)})"
+                       + (f", u = ({', '.join(self.input_names)})" if self.nu else ""))
         return out
 
     def summary(self) -> dict:

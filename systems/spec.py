@@ -598,7 +598,7 @@ def load_spec(path) -> System:
     common = dict(params=params, state_names=states, input_names=inputs,
                   description=str(spec.get("description", "")), declarations=decl,
                   run_overrides=run, source=str(path))
-    xs, us = System.symbols(nx, nu)
+    xs, us = System.symbols(nx, nu, states, inputs)
     sources = [k for k in ("rhs", "samples") if k in spec]
     if sources == ["rhs"]:
         xbox = _box(path, spec, "state_box", nx, True)

@@ -275,8 +275,11 @@ def test_declarations_describe_and_bound():
 def test_blackbox_example_declarations_hold(bb):
     s = bb.make()
     lines = s.describe_assumptions()
-    assert s.kind == "callable" and len(lines) == 4
-    assert lines[-1].startswith("Data (assumed): the black-box callable returns the exact")
+    assert s.kind == "callable" and len(lines) == 6
+    assert lines[3].startswith("Data (assumed): the black-box callable returns the exact")
+    assert lines[4].startswith("Equilibrium (declared): f(0, u_eq) = 0 with u_eq = [0.0]")
+    assert lines[5].startswith("Known components (declared, checked on the data): theta' = "
+                               "omega")
     est = s.check_declarations(Grid(s.sampling_box, [41, 41, 5]))
     assert est["slope"] < 34.5 and est["second_difference"] < 26.0
 

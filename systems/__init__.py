@@ -23,11 +23,13 @@ from nlyap_opt.errors import UnknownNameError
 from .base import ModelUnavailableError, System
 from .catalogue import inverted_pendulum, unicycle_path_following, van_der_pol
 from .declarations import Declarations, check_declarations
+from .jacobian import JacobianBound, jacobian_from_data
 from .samples import SampleSet, load_samples, sample_function, save_samples
 
 __all__ = ["System", "get", "names", "register", "REGISTRY", "ModelUnavailableError",
            "Declarations", "check_declarations", "SampleSet", "load_samples", "save_samples",
-           "sample_function", "load_spec", "default_run_settings"]
+           "sample_function", "load_spec", "default_run_settings", "JacobianBound",
+           "jacobian_from_data"]
 
 REGISTRY: dict[str, Callable[..., System]] = {
     "van_der_pol": van_der_pol,

@@ -490,6 +490,11 @@ class System:
         return self.kind == "model"
 
     @property
+    def can_simulate(self) -> bool:
+        """True when ``f`` can be evaluated anywhere (a model or a callable, not samples)."""
+        return self.kind in ("model", "callable")
+
+    @property
     def f(self) -> ca.SX:
         """The right-hand side as CasADi SX (model only)."""
         if self._f is None:
@@ -717,6 +722,7 @@ class System:
         """Plain-JSON description for reports, certificates and ``nlyap systems --check``."""
         out = {
             "name": self.name, "kind": self.kind, "has_model": self.has_model,
+            "can_simulate": self.can_simulate,
             "source": self.source, "description": self.description,
             "states": self.state_names, "inputs": self.input_names,
             "state_box": self.state_box.tolist(), "input_box": self.input_box.tolist(),

@@ -89,7 +89,8 @@ def test_callable_checks():
 def test_samples_system_lookup_only_at_nodes():
     smp = systems.sample_function(_pend, [[-1, 1], [-1, 1], [-2, 2]], [5, 5, 5], nx=2)
     s = systems.System.from_samples("ps", smp, u_eq=[0.0], known_rhs={0: lambda x, u: x[1]})
-    assert s.kind == "samples" and not s.has_model
+    assert s.kind == "samples" and not s.has_model and not s.can_simulate
+    assert s.summary()["samples"]["counts"] == [5, 5, 5]
     z = smp.points([7, 60])
     np.testing.assert_array_equal(s.evaluate(z[:, :2], z[:, 2:]), _pend(z[:, :2], z[:, 2:]))
     with pytest.raises(ConfigError, match="not a node of the sample grid"):

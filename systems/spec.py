@@ -23,7 +23,7 @@ A spec file gives a system in one of three ways: the right-hand side as expressi
     [declared]                          # assumptions, listed verbatim in the certificate
     lipschitz = 120.0                   # K_f, or one number per state
     hessian = 80.0                      # H: |∂²f_k/∂z_i∂z_j| <= H
-    input_matrix = [[0.0], [26.667]]    # control-affine f = f0(x) + B u
+    input_matrix = [[0.0], [26.666666666666668]]  # control-affine f = f0(x) + B u
     sample_error = 1e-6                 # data within 1e-6 of f (2-norm); default: exact
 
     [run]                               # run-config overrides, passed on as a dict
@@ -613,7 +613,8 @@ def load_spec(path) -> System:
                 name, xs, us, f, state_box=xbox, input_box=ubox, u_eq=u_eq,
                 known_state_derivatives=[states.index(k) for k in known], **common), path)
         except ConfigError as exc:
-            raise _err(path, "", str(exc)) from None
+            msg = str(exc)
+            raise (exc if msg.startswith(str(path)) else _err(path, "", msg)) from None
         except ValueError as exc:  # EquilibriumError and friends: one line with the file
             raise ConfigError(f"{path}: {exc}") from None
     if sources not in (["samples"], ["rhs", "samples"]):

@@ -313,3 +313,15 @@ def test_good_specs_load(tmp_path):
     path.write_text(text)
     t = systems.load_spec(path)
     np.testing.assert_array_equal(t.samples.values, s.samples.values)
+
+
+def test_docstring_example_spec_loads(tmp_path):
+    import systems.spec as sp
+
+    doc = sp.__doc__
+    text = doc[doc.index('    name = "pendulum"'):doc.index("With ``[samples]``")]
+    (tmp_path / "p.toml").write_text(textwrap.dedent(text))
+    s = systems.load_spec(tmp_path / "p.toml")
+    assert s.has_model and s.run_overrides == {"outer": 4.0}
+    assert len(s.describe_assumptions()) == 4
+    np.testing.assert_allclose(s.B.ravel(), s.declarations.B.ravel(), rtol=1e-15)

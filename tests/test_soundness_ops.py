@@ -495,3 +495,16 @@ def test_random_expressions_over_the_whole_op_table_no_verified_is_contradicted(
         ok = F[inside, 1] < 0  # NaN (undefined) is a contradiction too
         assert ok.all(), (seed, str(e), pts[inside][~ok][:3])
     assert verified > 150
+
+
+def test_checked_problems_with_an_executor():
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as ex:
+        strip = _strip_problem(_ind_sign, 1e-6)
+        assert verify(strip, presearch=0, executor=ex, n_tasks=4).status != "verified"
+        x = _x()
+        V = ca.sumsqr(x)
+        friction = VerificationProblem(x, BOX, [V - 1.0, 0.01 - V],
+                                       [ca.dot(ca.gradient(V, x), -x - 0.1 * ca.sign(x))])
+        assert verify(friction, executor=ex, n_tasks=4).status == "verified"

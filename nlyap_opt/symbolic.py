@@ -75,12 +75,18 @@ def closed_loop(system, controller: Network | None = None, dynamics: Network | N
         rhs = learned_rhs(system, dynamics, x, u)
     cl = ClosedLoop(x, u, rhs)
     # the equilibrium condition is about the plant f(0, κ(0)), not a learned φ (φ(0) ≠ 0 in
-    # general; the verified annulus excludes B_ε, where that does not matter)
-    plant = system.f_fun(x, u)
+    # general; the verified annulus excludes B_ε, where that does not matter); without a
+    # model, f(0, u_eq) = 0 is declared (and checked on the data), so κ(0) = u_eq is required
+    if getattr(system, "has_model", True):
+        plant = system.f_fun(x, u)
+        what = "rhs(0)"
+    else:
+        plant = u - ca.DM(system.u_eq) if system.nu else ca.MX(0, 1)
+        what = "κ(0) − u_eq"
     at0 = np.array(ca.Function("r", [x], [plant])(np.zeros(system.nx)), dtype=float).ravel()
     if np.max(np.abs(at0), initial=0.0) > 1e-8:
         msg = (f"the origin is not an equilibrium of the closed loop of {system.name!r}: "
-               f"rhs(0) = {at0}; solve the controller bias from f(0, κ(0)) = 0 "
+               f"{what} = {at0}; solve the controller bias from f(0, κ(0)) = 0 "
                "(nlyap_opt.control.saturated_controller does)")
         if strict:
             raise EquilibriumError(msg)
@@ -142,8 +148,14 @@ def learned_rhs(system, dynamics: Network, x, u):
         phi = dynamics.casadi(ca.vertcat(x, u))
     if learned == list(range(system.nx)):
         return phi
-    f = system.f_fun(x, u)
-    return ca.vertcat(*[phi[learned.index(i)] if i in learned else f[i]
+    known = list(system.known_state_derivatives)
+    missing = [i for i in range(system.nx) if i not in learned and i not in known]
+    if missing:
+        raise NetworkFileError(
+            f"dynamics network learns components {learned} of {system.name!r}, and components "
+            f"{missing} are neither learned nor known exactly; relearn φ for them")
+    kf = system.known_function()(x, u)
+    return ca.vertcat(*[phi[learned.index(i)] if i in learned else kf[known.index(i)]
                         for i in range(system.nx)])
 
 

@@ -36,8 +36,7 @@ def _train_V(name, hidden, features, outer, steps, seed=0) -> Network:
     if path.exists():
         return Network.load(path)
     s = systems.get("van_der_pol")
-    cfg = TrainConfig(hidden=hidden, features=features, steps=steps, seed=seed,
-                      time_budget=600)
+    cfg = TrainConfig(hidden=hidden, features=features, steps=steps, seed=seed)
     L = LyapunovLearner(s, None, None, cfg)
     rng = np.random.default_rng(seed)
     X = sample_ball(20000, 2, outer, rng)

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .certificate import CertStatus, RoaCertificate, RoaProblem, certify_roa
+from .determinism import deterministic_torch
 from .errors import InputRangeError
 from .learning import LyapunovLearner, TrainConfig, sample_ball, sample_sphere
 from .network import Network
@@ -145,6 +146,11 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
         Where ``‖f − φ‖ ≤ η`` holds (learned dynamics); each iterate is certified with
         :func:`nlyap_opt.certificate.certify_roa`, which checks ``κ ∈ U`` and the ball.
     """
+    with deterministic_torch(cfg.train.threads):   # fixed threads: bit-identical results
+        return _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0)
+
+
+def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0):
     t0 = time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
     n = system.nx

@@ -17,7 +17,8 @@ from .errors import DimensionError, NotStabilizableError
 from .network import Layer, Network
 
 __all__ = [
-    "LQRResult", "lqr", "lyapunov_matrix", "saturated_controller", "linear_controller",
+    "LQRResult", "lqr", "linearisation", "lyapunov_matrix", "saturated_controller",
+    "linear_controller",
     "quadratic_lyapunov",
 ]
 
@@ -98,7 +99,27 @@ def lyapunov_matrix(A_cl, Q=None) -> np.ndarray:
     return 0.5 * (P + P.T)
 
 
-def lqr(system, Q=None, R=None) -> LQRResult:
+def linearisation(system, dynamics: Network | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(A, B)`` at ``(0, u_eq)``: of the model, or of a learned ``φ`` (CasADi Jacobians).
+
+    Without a model (a black-box or sampled system) the learned ``φ`` is the only
+    linearisation the tool has: the LQR start then comes from φ's graph.
+    """
+    if dynamics is None:
+        return system.A, system.B
+    import casadi as ca
+
+    from .symbolic import learned_rhs
+
+    x, u = ca.MX.sym("x", system.nx), ca.MX.sym("u", system.nu)
+    rhs = learned_rhs(system, dynamics, x, u)
+    F = ca.Function("AB", [x, u], [ca.jacobian(rhs, x), ca.jacobian(rhs, u)])
+    A, B = F(np.zeros(system.nx), system.u_eq if system.nu else np.zeros(0))
+    return np.array(A, dtype=float).reshape(system.nx, system.nx), \
+        np.array(B, dtype=float).reshape(system.nx, system.nu)
+
+
+def lqr(system, Q=None, R=None, *, dynamics: Network | None = None) -> LQRResult:
     """LQR gain and Lyapunov matrix for ``system`` linearised at the origin.
 
     Parameters
@@ -106,6 +127,9 @@ def lqr(system, Q=None, R=None) -> LQRResult:
     system : systems.System
     Q : (nx, nx) array_like or float, optional   state weight (identity by default)
     R : (nu, nu) array_like or float, optional   input weight (identity by default)
+    dynamics : Network, optional
+        Linearise this learned ``φ`` instead of the model (required for systems without a
+        model; :func:`linearisation`).
 
     Returns
     -------
@@ -119,7 +143,7 @@ def lqr(system, Q=None, R=None) -> LQRResult:
     """
     import control
 
-    A, B = system.A, system.B
+    A, B = linearisation(system, dynamics)
     nx, nu = system.nx, system.nu
     Q = np.eye(nx) if Q is None else _matrix(Q, nx, "Q")
     if nu == 0:

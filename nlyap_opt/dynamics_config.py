@@ -33,6 +33,7 @@ from numbers import Integral, Real
 from pathlib import Path
 
 from .errors import ConfigError, UnknownNameError
+from .jsonio import read_json_object
 
 __all__ = [
     "DynamicsConfig", "dynamics_config", "PRESETS", "MODELS", "config_keys",
@@ -299,8 +300,6 @@ def load_dynamics_config(path: str | Path | None, system_name: str | None = None
     """:func:`dynamics_config` of ``system_name`` over a JSON file (and then ``overrides``)."""
     over: dict = {}
     if path is not None:
-        from .configs import read_json_object
-
         over = read_json_object(path)
     name = system_name or over.get("system")
     if not name:

@@ -215,7 +215,6 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     ``status`` (``"certified"`` or why not), ``P``, ``level`` (``c_q``), ``box``.
     """
     from .control import lyapunov_matrix
-
     from .symbolic import closed_loop
 
     cl = closed_loop(system, controller, strict=True)

@@ -406,8 +406,7 @@ class Program:
             self.ops.append(op)
             i = f.instruction_input(k)
             o = f.instruction_output(k)
-            if op != ca.OP_OUTPUT:
-                consts.pop(o[0], None)
+            n_steps = len(steps)
             if op == ca.OP_CONST:
                 val = float(f.instruction_constant(k))
                 consts[o[0]] = np.asarray(val)
@@ -425,6 +424,8 @@ class Program:
                     f"SX operation {op_name(op)} in Function {f.name()!r} is not supported "
                     "by the instruction walker."
                 )
+            if op not in (ca.OP_CONST, ca.OP_OUTPUT) and len(steps) > n_steps:
+                consts.pop(o[0], None)  # the register now holds a computed value
         return steps
 
     # -- MX: every register a batch of dense matrices
@@ -443,8 +444,7 @@ class Program:
             o = list(f.instruction_output(k))
             z_in = op == ca.OP_MTIMES and i[0] in zero_regs
             zero_regs.difference_update(o)
-            for reg in o:
-                consts.pop(reg, None)
+            written = [reg for reg in o if reg >= 0] if op != ca.OP_OUTPUT else []
             if op == ca.OP_OUTPUT:  # outputs may be written in several primitive segments
                 seg = seen_out.get(o[0], 0)
                 seen_out[o[0]] = seg + 1
@@ -513,6 +513,9 @@ class Program:
                     "the instruction walker; supported are elementwise ops, mtimes, dot, "
                     "transpose, reshape, concatenation, splits, (get/set)nonzeros and calls."
                 )
+            if op != ca.OP_CONST:
+                for reg in written:  # the register now holds a computed value
+                    consts.pop(reg, None)
         for j, n in enumerate(self.n_segments):
             if seen_out.get(j, 0) != n:
                 raise UnsupportedOperationError(

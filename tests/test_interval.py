@@ -735,3 +735,76 @@ def test_constants_folded_by_casadi_are_enclosed():
     assert Fraction(g) != cases[0][1]
     zero = IA.constant(np.zeros(3))
     assert zero.lo is zero.hi
+
+
+# --------------------------------------------------------------------------- checked walk
+def test_sums_keep_exact_zero_lower_bounds_and_round_outward():
+    z = Interval([0.0, 0.0], [1.0, 2.0])
+    s = IA.binary(ca.OP_ADD, IA.unary(ca.OP_SQ, z), IA.unary(ca.OP_SQ, z))
+    assert np.all(s.lo == 0.0)
+    # a sum that is not exact still rounds outward
+    a = Interval([0.1], [0.1])
+    b = Interval([0.2], [0.2])
+    r = IA.binary(ca.OP_ADD, a, b)
+    assert mp.mpf(0.1) + mp.mpf(0.2) >= r.lo[0] and mp.mpf(0.1) + mp.mpf(0.2) <= r.hi[0]
+    assert r.lo[0] < 0.1 + 0.2 < r.hi[0] or r.lo[0] < r.hi[0]
+    d = IA.binary(ca.OP_SUB, Interval([1e-310], [1e-310]), Interval([3e-310], [3e-310]))
+    assert d.lo[0] <= 1e-310 - 3e-310 <= d.hi[0]  # subnormal differences are exact
+    n = IA.nonneg(Interval([-1e-300, -2.0], [3.0, 4.0]))
+    assert np.array_equal(n.lo, [0.0, 0.0]) and np.array_equal(n.hi, [3.0, 4.0])
+
+
+def test_checked_arithmetic_flags_per_box_and_output():
+    from nlyap_opt.walker import compile_function, evaluate
+    from verification.interval import CheckedIntervalArithmetic
+
+    x = ca.SX.sym("x", 2)
+    f = ca.Function("f", [x], [x[0] + x[1], ca.sign(x[0]) * x[1], ca.sqrt(x[1]) + x[0]])
+    assert compile_function(f).checked
+    lo = np.array([[-1.0, 0.5], [0.5, -1.0], [0.0, 0.0], [-2.0, -3.0]])
+    hi = np.array([[1.0, 1.0], [1.0, -0.5], [0.0, 1.0], [-1.0, -2.0]])
+    ar = CheckedIntervalArithmetic(len(lo), 3)
+    evaluate(f, [Interval(lo, hi)], ar)
+    assert not ar.jump[:, 0].any() and not ar.maybe_undefined[:, :2].any()
+    assert ar.jump[:, 1].tolist() == [True, False, False, False]  # sign(0) on a point: no
+    assert not ar.jump[:, 2].any()
+    assert ar.maybe_undefined[:, 2].tolist() == [False, True, False, True]
+    assert ar.undefined[:, 2].tolist() == [False, True, False, True]
+    assert (ar.undefined_op[:, 2] == np.where(ar.undefined[:, 2], ca.OP_SQRT, -1)).all()
+
+
+def test_checked_arithmetic_through_mx_calls_and_constants():
+    from nlyap_opt.walker import compile_function, evaluate
+    from verification.interval import CheckedIntervalArithmetic
+
+    xs = ca.SX.sym("x", 2)
+    inner = ca.Function("inner", [xs], [ca.vertcat(ca.log(xs[0]), xs[1])])
+    xm = ca.MX.sym("x", 2)
+    W = ca.DM([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
+    out = inner(xm)
+    f = ca.Function("f", [xm], [out[1] * 2, ca.sumsqr(ca.fmax(ca.mtimes(W, xm), 0)) + out[0]])
+    assert compile_function(f).checked
+    lo = np.array([[0.5, -1.0], [-0.5, 1.0], [1.0, 1.0]])
+    hi = np.array([[1.0, 1.0], [1.0, 2.0], [2.0, 2.0]])
+    ar = CheckedIntervalArithmetic(3, 2)
+    evaluate(f, [Interval(lo, hi)], ar)
+    # the call feeds both outputs: its log is attributed to both (conservative)
+    assert ar.maybe_undefined.tolist() == [[False, False], [True, True], [False, False]]
+    # fmax(W x, 0) feeds output 1 only; a row of W x crosses 0 in box 0 only
+    assert ar.jump[:, 0].tolist() == [False, False, False]
+    assert ar.jump[:, 1].tolist() == [True, False, False]
+
+
+def test_statically_safe_operations_are_not_checked():
+    from nlyap_opt.walker import compile_function
+
+    x = ca.SX.sym("x", 2)
+    cases = [(x[0] / 3.0, False), (x[0] ** 3, False), (ca.fmax(1.0, 2.0) * x[0], False),
+             (x[0] / x[1], True), (x[0] ** 1.5, True), (x[0] ** -2, True),
+             (ca.fabs(x[0]), True), (2.0 ** x[0], False), ((-2.0) ** x[0], True)]
+    xm = ca.MX.sym("x", 2)
+    cases += [(xm / ca.DM([2.0, 4.0]), False), (xm / ca.DM([2.0, 0.0]), True),
+              (ca.DM([2.0, 3.0]) ** xm, False)]
+    for e, checked in cases:
+        xx = xm if isinstance(e, ca.MX) else x
+        assert compile_function(ca.Function("f", [xx], [e])).checked == checked, str(e)

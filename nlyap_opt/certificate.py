@@ -283,6 +283,7 @@ class RoaCertificate:
     counterexamples: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     seconds: float = 0.0
     artifacts: dict = field(default_factory=dict)  # role -> {"file", "sha256"}
+    declared: list = field(default_factory=list)   # assumptions declared by the user
     V: object = field(default=None, repr=False)
 
     @property
@@ -332,7 +333,8 @@ class RoaCertificate:
             "decrease_condition": self.decrease_condition, "checks": dict(self.checks),
             "inner_ellipse": None if self.inner_ellipse is None
             else self.inner_ellipse.to_dict(),
-            "assumptions": list(self.assumptions), "history": self.history,
+            "assumptions": list(self.assumptions),
+            "assumptions_declared_by_user": list(self.declared), "history": self.history,
             "counterexamples": np.asarray(self.counterexamples).tolist(),
             "verify_seconds": self.seconds, "artifacts": dict(self.artifacts),
         }
@@ -356,7 +358,7 @@ class RoaCertificate:
                 else InnerEllipse.from_dict(d["inner_ellipse"]),
                 list(d["assumptions"]), list(d["history"]),
                 np.asarray(d["counterexamples"], dtype=float), float(d["verify_seconds"]),
-                dict(d["artifacts"]))
+                dict(d["artifacts"]), list(d.get("assumptions_declared_by_user", [])))
         except (KeyError, TypeError, ValueError) as err:
             raise ConfigError(f"malformed certificate: {type(err).__name__}: {err}; rerun "
                               "the command that wrote it") from None
@@ -398,7 +400,7 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     RoaCertificate
         ``CERTIFIED`` only when every condition was verified by the interval verifier.
     """
-    from .roa import certify_inner_ellipse, certify_level
+    from .roa import certify_level
 
     t0 = time.perf_counter()
     level = _finite("level", level, low=0.0, strict=True)
@@ -406,7 +408,7 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     setting = "known" if problem.known else "learned"
     base = dict(system=sysm.name, setting=setting, inner=problem.inner, outer=problem.outer,
                 eta=problem.eta, margin_mode="none" if problem.known else problem.margin_mode,
-                V=problem.V)
+                V=problem.V, declared=_declared(sysm))
     assumptions = ["V and κ are the float64 networks saved with this certificate "
                    "(verified as saved)"]
     if not problem.known:
@@ -444,22 +446,28 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     ellipse = None
     status, reason = CertStatus.CERTIFIED, "conditions (a), (b) and (c) verified"
     if check_inner_ellipse:
-        inner = certify_inner_ellipse(sysm, problem.controller, problem.inner,
-                                      verify_options=problem.verify_options)
+        inner, proved_from = _inner_ellipse(problem)
         ok = inner["status"] == "certified"
-        checks["(c) inner ellipse, true f"] = inner["status"]
-        if ok or not problem.known:
+        checks["(c) inner ellipse" + ("" if proved_from else ", true f")] = inner["status"]
+        proved = problem.known or proved_from is not None
+        if ok or not proved:
             ellipse = InnerEllipse(inner["status"], np.asarray(inner["P"]),
                                    float(inner["level"]), np.asarray(inner["box"]),
-                                   proved=problem.known)
-        if problem.known and not ok:
+                                   proved=proved and ok)
+        if proved and not ok:
             status, reason = CertStatus.NOT_CERTIFIED, f"condition (c): {inner['status']}"
+        elif proved_from is not None:
+            assumptions.append(f"condition (c) proved from {proved_from}")
         elif not problem.known:
             assumptions.append(
                 "the inner ball B_ε lies in the quadratic-Lyapunov region of attraction E of "
                 "the true closed loop (the paper's Assumption 3; condition (c) is not proved "
                 "from samples)")
-            if not ok:
+            if inner.get("checked") is False and "Hurwitz" in inner["status"]:
+                status, reason = CertStatus.NOT_CERTIFIED, f"condition (c): {inner['status']}"
+            elif inner.get("checked") is False:
+                assumptions[-1] += "; no model is available to check it"
+            elif not ok:
                 refuted = "counterexample" in inner["status"] or "Hurwitz" in inner["status"]
                 status = CertStatus.ASSUMPTION_REFUTED if refuted else CertStatus.NOT_CERTIFIED
                 reason = (f"assumption (c) is {'refuted' if refuted else 'not confirmed'} by "
@@ -470,6 +478,65 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
         reason = "conditions (a) and (b) verified; (c) not checked"
     return RoaCertificate(status, reason, level=level, inner_ellipse=ellipse,
                           assumptions=assumptions, seconds=time.perf_counter() - t0, **common)
+
+
+def _declared(system) -> list[str]:
+    """The user's declarations about f (verbatim), for systems that carry them."""
+    describe = getattr(system, "describe_assumptions", None)
+    return list(describe()) if describe is not None else []
+
+
+def _inner_ellipse(problem: RoaProblem) -> tuple[dict, str | None]:
+    """Condition (c): ``(result, proved_from)``.
+
+    With a model: :func:`nlyap_opt.roa.certify_inner_ellipse` on the true closed loop (a proof
+    for known f, a check of the assumption for learned φ). Without a model: proved from the
+    samples when the user declared a second-derivative bound
+    (:func:`nlyap_opt.inner_from_data.prove_inner_ellipse_from_data`), else the ellipse of
+    the learned closed loop's linearisation, *assumed* (``checked: False``).
+    """
+    from .roa import certify_inner_ellipse
+
+    sysm = problem.system
+    if getattr(sysm, "has_model", True):
+        return certify_inner_ellipse(sysm, problem.controller, problem.inner,
+                                     verify_options=problem.verify_options), None
+    decl = getattr(sysm, "declarations", None)
+    if decl is not None and getattr(decl, "hessian", None) is not None:
+        try:
+            from .inner_from_data import prove_inner_ellipse_from_data
+        except ImportError:
+            prove_inner_ellipse_from_data = None
+        if prove_inner_ellipse_from_data is not None:
+            res = prove_inner_ellipse_from_data(sysm, problem.controller, problem.inner)
+            return res, res.get("proved_from", "samples and the declared bound H")
+    return _assumed_ellipse(problem), None
+
+
+def _assumed_ellipse(problem: RoaProblem) -> dict:
+    """The quadratic ellipse ``E ⊇ B_ε`` of the learned closed loop's linearisation."""
+    from .control import lyapunov_matrix
+
+    dec = problem.decrease()
+    cl_rhs = _learned_closed_loop(problem)
+    J = np.array(ca.Function("J", [dec.x], [ca.jacobian(cl_rhs, dec.x)])(
+        np.zeros(problem.system.nx)), dtype=float)
+    if np.max(np.linalg.eigvals(J).real) >= 0:
+        return {"status": "closed-loop linearisation of φ not Hurwitz", "P": np.eye(len(J)),
+                "level": 0.0, "box": np.zeros(len(J)), "checked": False}
+    P = lyapunov_matrix(J)
+    c_q = float(np.linalg.eigvalsh(P)[-1]) * problem.inner**2 * (1 + 1e-9)
+    a = np.sqrt(c_q * np.diag(np.linalg.inv(P))) * (1 + 1e-9)
+    return {"status": "assumed (no model to check it)", "P": P, "level": c_q, "box": a,
+            "checked": False}
+
+
+def _learned_closed_loop(problem: RoaProblem):
+    from .symbolic import closed_loop
+
+    dec = problem.decrease()
+    return closed_loop(problem.system, problem.controller, problem.dynamics, x=dec.x,
+                       strict=True).rhs
 
 
 #: the inner radii :func:`certify_with_inner_search` tries, as multiples of the configured one

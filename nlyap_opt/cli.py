@@ -147,9 +147,32 @@ def _check_writable(path: Path, option: str, directory: bool) -> None:
                          "path")
 
 
+def _is_spec(name: str) -> bool:
+    return name.endswith(".toml") or os.sep in name or Path(name).is_file()
+
+
+def _spec_system(path: str) -> str:
+    """Load a system spec file (TOML), register it for this process, return its name."""
+    import systems
+
+    p = Path(path)
+    if not p.is_file():
+        raise UsageError(f"system file {p}: no such file; check the path (or pass a "
+                         "catalogue name, see 'nlyap systems')")
+    s = systems.load_spec(p)
+    if s.name in systems.names() and getattr(systems.get(s.name), "source", None) != \
+            getattr(s, "source", None):
+        raise UsageError(f"system file {p} names its system {s.name!r}, which is a catalogue "
+                         "system; choose another name in the file")
+    systems.REGISTRY[s.name] = lambda _s=s: _s
+    return s.name
+
+
 def _check_paths(args) -> None:
     """Refuse missing inputs and unusable outputs before any work starts."""
     if getattr(args, "system", None) is not None:
+        if _is_spec(args.system):   # --system FILE.toml / run FILE.toml
+            args.system = _spec_system(args.system)
         _catalogue_system(args.system)
     for attr in ("config", "lyapunov", "controller", "dynamics", "certificate"):
         value = getattr(args, attr, None)
@@ -187,6 +210,11 @@ def _load_network(path: str, option: str):
 # ============================================================================ commands
 def cmd_systems(args) -> int:
     import systems
+
+    if args.check:
+        s = systems.load_spec(args.check) if _is_spec(args.check) else systems.get(args.check)
+        print(json.dumps(s.summary(), indent=1, allow_nan=False, default=str))
+        return 0
 
     print(f"{'name':26s} {'nx':>3s} {'nu':>3s}  state box / input box")
     for name in systems.names():
@@ -302,9 +330,12 @@ def cmd_verify(args) -> int:
 
 
 def _run_config(args, learned: bool) -> dict:
-    from .configs import check_dynamics_box, get_config
+    from .configs import PRESETS, check_dynamics_box, make_config
 
-    cfg = get_config(args.system, args.preset, args.config)
+    preset = args.preset
+    if preset is None:  # a catalogue system's default preset; none for a system file
+        preset = "large" if args.system in PRESETS else None
+    cfg = make_config(args.system, preset, file=args.config)
     if learned:
         check_dynamics_box(cfg)
     return cfg
@@ -347,8 +378,9 @@ def cmd_config(args) -> int:
 
 # ============================================================================ parser
 def _preset_arg(sp) -> None:
-    sp.add_argument("--preset", default="large", choices=["paper", "large", "fast"],
-                    help="paper | large | fast (default large)")
+    sp.add_argument("--preset", default=None, choices=["paper", "large", "fast"],
+                    help="paper | large | fast (default large for catalogue systems; a "
+                         "system file's settings come from its boxes and its [run] table)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -366,7 +398,9 @@ def build_parser() -> argparse.ArgumentParser:
         return sub.add_parser(name, formatter_class=fmt,
                               epilog=_EPILOGS.get(name, _DEFAULT_EPILOG), **kw)
 
-    sp = add("systems", help="list the system catalogue")
+    sp = add("systems", help="list the system catalogue (or check a system file)")
+    sp.add_argument("--check", metavar="FILE",
+                    help="load a system spec file (TOML) and print what it declares")
     sp.set_defaults(func=cmd_systems)
 
     sp = add("lqr", help="LQR gain and Lyapunov matrix of a catalogue system")

@@ -150,6 +150,62 @@ PRESETS: dict[str, dict[str, dict]] = {
         },
     },
 }
+# 4-D / 6-D catalogue systems (issue 15). Areas are volumes on coarse grids (n^4, n^6 points);
+# CEGIS's area grid is coarse for the same reason. Their input matrices depend on θ, so the
+# learned-dynamics model is "full" (φ of the unknown components on X × U), known state
+# derivatives (p' = v, θ' = ω; x' = ẋ, ...) taken from the model.
+_CARTPOLE_BOX = [[-1.0, 1.0]] * 4
+_QUAD_BOX = [[-1.0, 1.0]] * 6
+PRESETS["cartpole"] = {
+    "fast": {
+        "outer": 0.5, "inner": 0.1, "controller_scale": 10.0,
+        "train": {"hidden": [8], "features": 4, "steps": 300, "lr": 0.02},
+        "cegis": {"iterations": 2, "steps": 100, "samples": 4000, "area_grid": 11},
+        "eval_box": _CARTPOLE_BOX, "eval_grid": 11,
+        "dynamics": {"preset": "fast", "model": "full", "hidden": 24,
+                     "grid_counts": [5, 5, 13, 13, 9], "train_points": 3000,
+                     "boundary_points": 300, "steps": 300, "lm_iterations": 30,
+                     "minimax_rounds": 1, "minimax_iterations": 5,
+                     "interval_boxes": 4096, "check_points": 20000},
+    },
+    "large": {
+        "outer": 1.0, "inner": 0.1, "controller_scale": 10.0,
+        # Q = diag(10, 1, 1, 1): the best-conditioned LQR P of a small weight scan (cond 330)
+        "lqr": {"Q": [[10.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]],
+                "R": 1.0},
+        "train": {"hidden": [16], "features": 6, "steps": 1500, "lr": 0.01,
+                  "w_local": 10.0, "lr_schedule": "cosine"},
+        "cegis": {"iterations": 4, "steps": 500, "samples": 20000, "area_grid": 15},
+        "eval_box": _CARTPOLE_BOX, "eval_grid": 15,
+        "dynamics": {"preset": "default", "model": "full", "hidden": 100,
+                     "grid_counts": [9, 9, 41, 41, 21], "train_points": 8000,
+                     "boundary_points": 1000, "steps": 2000, "interval_boxes": 16384},
+    },
+}
+PRESETS["planar_quadrotor"] = {
+    "fast": {
+        "outer": 0.5, "inner": 0.1, "controller_scale": 0.486 * 9.81,  # m g
+        "train": {"hidden": [8], "features": 6, "steps": 300, "lr": 0.02},
+        "cegis": {"iterations": 2, "steps": 100, "samples": 4000, "area_grid": 7},
+        "eval_box": _QUAD_BOX, "eval_grid": 7,
+        "dynamics": {"preset": "fast", "model": "full", "hidden": 36,
+                     "grid_counts": [3, 3, 9, 3, 3, 3, 7, 7], "train_points": 3000,
+                     "boundary_points": 300, "steps": 300, "lm_iterations": 30,
+                     "minimax_rounds": 1, "minimax_iterations": 5,
+                     "interval_boxes": 4096, "check_points": 20000},
+    },
+    "large": {
+        "outer": 1.0, "inner": 0.1, "controller_scale": 0.486 * 9.81,  # m g
+        "train": {"hidden": [16], "features": 8, "steps": 1500, "lr": 0.01,
+                  "w_local": 10.0, "lr_schedule": "cosine"},
+        "cegis": {"iterations": 4, "steps": 500, "samples": 20000, "area_grid": 9},
+        "eval_box": _QUAD_BOX, "eval_grid": 9,
+        "dynamics": {"preset": "default", "model": "full", "hidden": 150,
+                     "grid_counts": [3, 3, 21, 3, 3, 3, 11, 11], "train_points": 8000,
+                     "boundary_points": 1000, "steps": 2000, "interval_boxes": 16384},
+    },
+}
+
 # the path-following and pendulum "large" configurations are the paper's discs: the true ROA
 # of the closed loop covers them, so the target is the whole disc
 PRESETS["unicycle_path_following"]["large"] = PRESETS["unicycle_path_following"]["paper"]
@@ -318,10 +374,8 @@ def _keys_of(cls, section: str) -> dict[str, Key]:
 
 
 def _dynamics_keys() -> dict[str, Key]:
-    try:
-        from .dynamics_config import DynamicsConfig
-    except ImportError:  # pragma: no cover - older layout: validated by dynamics.check_config
-        return {}
+    from .dynamics_config import DynamicsConfig
+
     keys = _keys_of(DynamicsConfig, "dynamics")
     keys["preset"] = dataclasses.replace(keys["preset"], choices=("default", "fast"))
     return keys
@@ -683,24 +737,8 @@ def check_dynamics_box(cfg: dict) -> None:
 def _check_dynamics(dyn, system: str, where: str) -> None:
     if not isinstance(dyn, dict):
         raise ConfigError(f"{where}: dynamics must be a JSON object {{...}}, got {dyn!r}")
-    try:
-        from .dynamics_config import dynamics_config
-    except ImportError:  # pragma: no cover - older layout
-        from .dynamics import check_config, default_config, merge_config
+    from .dynamics_config import dynamics_config
 
-        d = dict(dyn)
-        preset = d.pop("preset", "default")
-        if preset not in ("default", "fast"):
-            raise ConfigError(f"{where}: dynamics.preset must be 'default' or 'fast', "
-                              f"got {preset!r}") from None
-        if "time_budget" in d:
-            raise ConfigError(f"{where}: unknown key 'dynamics.time_budget'; "
-                              f"{_REMOVED['time_budget']}")
-        try:
-            check_config(merge_config(default_config(system, preset == "fast"), d))
-        except (ConfigError, ValueError, TypeError) as err:
-            raise ConfigError(f"{where}: dynamics: {err}") from None
-        return
     try:
         dynamics_config(system, dyn)
     except (ConfigError, UnknownNameError, ValueError, TypeError) as err:
@@ -770,12 +808,17 @@ def make_config(system: str, preset: str | None = "large", overrides: dict | Non
         cfg["eval_box"] = s.state_box.tolist()
         if not s.nu:
             cfg["controller_scale"] = None
+        # a new system's settings come from its boxes, then from its spec file's [run] table
+        cfg = _merge(cfg, systems.default_run_settings(s))
+        if getattr(s, "run_overrides", None):
+            _check_keys(s.run_overrides, f"system {system!r} [run]")
+            cfg = _merge(cfg, s.run_overrides)
     elif system not in PRESETS:
         raise UnknownNameError(
             f"no preset for system {system!r} (presets exist for {', '.join(PRESETS)}); "
             f"in Python call nlyap_opt.configs.make_config({system!r}, preset=None, "
             "overrides={'outer': R, 'inner': EPS, 'controller_scale': C}) and pass it to "
-            "nlyap_opt.pipeline.run (the nlyap command runs catalogue systems only)"
+            "nlyap_opt.pipeline.run; on the command line omit --preset"
         )
     elif preset not in PRESETS[system]:
         close = difflib.get_close_matches(str(preset), list(PRESETS[system]), n=1)

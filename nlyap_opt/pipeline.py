@@ -238,6 +238,10 @@ def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
 def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
     from .control import lqr, saturated_controller
 
+    has_model = getattr(system, "has_model", True)
+    if known_dynamics and not has_model:
+        raise ConfigError(f"system {system.name!r} has no model of f ({system.kind}); it can "
+                          "only be run with learned dynamics: drop --known-dynamics")
     cfg = dict(cfg, known_dynamics=known_dynamics)
     stages = _Stages(out, system.name, cfg, log)
     seconds: dict[str, float] = {}
@@ -285,13 +289,16 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
     # ---------------------------------------------------------------- 2. controller
     controller = None
     if system.nu:
-        if not stages.finished("controller"):
+        # without a model, the LQR start linearises the learned φ (its CasADi graph)
+        cdeps = () if has_model else ("dynamics",)
+        if not stages.finished("controller", *cdeps):
             lq = cfg.get("lqr", {})
-            res = lqr(system, lq.get("Q"), lq.get("R"))
+            res = lqr(system, lq.get("Q"), lq.get("R"),
+                      dynamics=None if has_model else dynamics)
             ctrl = saturated_controller(system, res.K, cfg["controller_scale"])
             ctrl.save(out / "controller_init.json")
             write_json_atomic(out / "lqr.json", res.to_dict())
-            stages.mark("controller")
+            stages.mark("controller", *cdeps)
         controller = Network.load(out / "controller_init.json")
 
     # ---------------------------------------------------------------- 3. CEGIS
@@ -358,7 +365,10 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
     from .report import write_report
 
     write_report(out, system, cfg, summary, bounds_info, cg)
-    if cert.certified:
+    if cert.certified and summary["true_roa_area"] is None:
+        log(f"[done] status: certified; certified area {summary['certified_area']:.4g} "
+            f"(true ROA not available); see {out / 'report.md'}")
+    elif cert.certified:
         log(f"[done] status: certified; certified area {summary['certified_area']:.4g} = "
             f"{100 * summary['fraction_of_true_roa']:.1f}% of the true ROA "
             f"({summary['true_roa_area']:.4g}); see {out / 'report.md'}")
@@ -384,8 +394,12 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     feedback = None if controller is None else (lambda z: controller.numpy(z))
     ckey = _hash([system.name, cfg["eval_box"], n, None if controller is None
                   else controller.to_dict()])
+    not_available = []
     true_mask = None
-    if cache.exists():
+    if not getattr(system, "can_simulate", True):
+        not_available.append("true ROA by simulation (no model and no simulator of f)")
+        true_mask = np.zeros(shape, dtype=bool)
+    elif cache.exists():
         try:
             with np.load(cache) as z:
                 if str(z["key"]) == ckey:
@@ -393,7 +407,8 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         except (OSError, ValueError, KeyError):
             log("warning: true_roa.npz is unreadable; simulating again")
     if true_mask is None:
-        log("[certificate] true ROA by simulation on the evaluation grid")
+        log("[certificate] true ROA by simulation on the evaluation grid"
+            + ("" if getattr(system, "has_model", True) else " (simulating the black box)"))
         ie = cert.inner_ellipse
         ell = (ie.P, ie.level) if ie is not None and ie.status == "certified" else None
         true_mask = true_roa_mask(system, feedback, box, n, ellipse=ell)
@@ -406,7 +421,9 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     cert_area = grid_area(omega, box)
     true_area = grid_area(true_mask, box)
     true_check = None
-    if cert.certified and not problem.known:
+    if not getattr(system, "has_model", True):
+        not_available.append("check of the same V and κ against the true f (no model of f)")
+    elif cert.certified and not problem.known:
         prob = closed_loop_problem(system, problem.V, controller, None, inner=problem.inner,
                                    outer=problem.outer, level=cert.level, margin=0.0,
                                    strict=False, check_positive=False)
@@ -415,12 +432,15 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
                       "inner_ball_true_f": cert.inner_ellipse.status, "seconds": res.seconds}
         log(f"[certificate] same V, κ against the true f: decrease {res.status}, "
             f"inner ball {cert.inner_ellipse.status}")
+    simulated = not any(a.startswith("true ROA") for a in not_available)
     return {
         "certified_area": cert_area,
-        "true_roa_area": true_area,
-        "fraction_of_true_roa": cert_area / true_area if true_area else 0.0,
+        "true_roa_area": true_area if simulated else None,
+        "fraction_of_true_roa": (cert_area / true_area if true_area else 0.0) if simulated
+        else None,
         "certified_points_converge_in_simulation":
-            bool(np.all(true_mask[omega]) if omega.any() else True),
+            bool(np.all(true_mask[omega]) if omega.any() else True) if simulated else None,
+        "not_available": not_available,
         "true_dynamics_check": true_check,
         "eval_box": box.tolist(),
         "eval_grid": n,

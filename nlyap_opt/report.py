@@ -52,15 +52,27 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
               "### Checks (interval verifier)", ""]
     lines += [f"- {k}: {v}" for k, v in cert.get("checks", {}).items()]
     lines += ["", "### Assumptions", ""] + [f"- {a}" for a in cert["assumptions"]]
-    lines += ["", "## Areas", "",
-              "| certified area | true ROA area | certified ÷ true |", "|---|---|---|",
-              f"| {cert['certified_area']:.4g} | {cert['true_roa_area']:.4g} | "
-              f"{100 * cert['fraction_of_true_roa']:.1f}% |", "",
-              f"True ROA: simulated closed loop (true f) from a {cert['eval_grid']}² grid over "
-              f"{np.asarray(cert['eval_box']).tolist()}"
-              + (", intersected with the disc ‖x‖ ≤ r" if system.nu else "")
-              + f". Every certified grid point converges in simulation: "
-              f"{cert['certified_points_converge_in_simulation']}.", ""]
+    if cert.get("assumptions_declared_by_user"):
+        lines += ["", "### Assumptions (declared by the user)", ""] + [
+            f"- {a}" for a in cert["assumptions_declared_by_user"]]
+    if cert.get("not_available"):
+        lines += ["", "### Not available (no model of f)", ""] + [
+            f"- {a}" for a in cert["not_available"]]
+    n_x = len(cert["eval_box"])
+    if cert.get("true_roa_area") is None:
+        lines += ["", "## Areas", "", f"Certified area: {cert['certified_area']:.4g} (grid count, "
+                  f"{cert['eval_grid']}^{n_x} over {np.asarray(cert['eval_box']).tolist()}); "
+                  "the true ROA is not available (no model or simulator of f).", ""]
+    else:
+        lines += ["", "## Areas", "",
+                  "| certified area | true ROA area | certified ÷ true |", "|---|---|---|",
+                  f"| {cert['certified_area']:.4g} | {cert['true_roa_area']:.4g} | "
+                  f"{100 * cert['fraction_of_true_roa']:.1f}% |", "",
+                  f"True ROA: simulated closed loop (true f) from a {cert['eval_grid']}^{n_x} "
+                  f"grid over {np.asarray(cert['eval_box']).tolist()}"
+                  + (", intersected with the ball ‖x‖ ≤ r" if system.nu else "")
+                  + f". Every certified grid point converges in simulation: "
+                  f"{cert['certified_points_converge_in_simulation']}.", ""]
     tc = cert.get("true_dynamics_check")
     if tc:
         lines += ["## Check against the true dynamics (benchmark, not part of the certificate)",
@@ -84,7 +96,11 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
 
 
 def plot_roa(path, system, cert: dict, out: Path):
-    """V level curves, certified set, domain, phase portrait, true ROA boundary."""
+    """V level curves, certified set, domain, phase portrait, true ROA boundary.
+
+    States beyond the first two are shown as the slice through the origin (the other
+    states 0), so a run of any dimension gets its picture.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -96,17 +112,26 @@ def plot_roa(path, system, cert: dict, out: Path):
     V = Network.load(out / "V.json")
     ctrl = Network.load(out / "controller.json") if (out / "controller.json").exists() else None
     box = np.asarray(cert["eval_box"], dtype=float)
+    nx = len(box)
     n = 300
-    pts, shape = grid_points(box, n)
-    xs = [np.linspace(lo, hi, n) for lo, hi in box]
+
+    def lift(p2):  # 2-D points of the slice -> states (others 0)
+        z = np.zeros((len(p2), nx))
+        z[:, :2] = p2
+        return z
+
+    pts2, shape = grid_points(box[:2], n)
+    pts = lift(pts2)
+    xs = [np.linspace(lo, hi, n) for lo, hi in box[:2]]
     v = V.numpy(pts)[:, 0].reshape(shape)
     fig, ax = plt.subplots(figsize=(7, 6))
     X1, X2 = np.meshgrid(xs[0], xs[1], indexing="ij")
     lv = cert["level"]
-    if lv > 0:
+    if lv > 0 and cert["status"] == "certified":
         ax.contour(X1, X2, v, levels=np.linspace(lv / 8, 2 * lv, 9), colors="0.75",
                    linewidths=0.6)
-        inside = (v <= lv) & (np.hypot(X1, X2) <= cert["outer_radius"])
+        inside = (v <= lv) & (np.linalg.norm(pts, axis=1).reshape(shape)
+                              <= cert["outer_radius"])
         ax.contourf(X1, X2, inside.astype(float), levels=[0.5, 1.5], colors=["tab:blue"],
                     alpha=0.35)
         ax.contour(X1, X2, v, levels=[lv], colors="tab:blue", linewidths=2)
@@ -115,7 +140,7 @@ def plot_roa(path, system, cert: dict, out: Path):
         q = np.einsum("ij,jk,ik->i", pts, np.asarray(ie["P"]), pts).reshape(shape)
         ax.contour(X1, X2, q, levels=[ie["level"]], colors="tab:green", linewidths=1.2)
     npz = out / "true_roa.npz"
-    if npz.exists():
+    if npz.exists() and nx == 2 and cert.get("true_roa_area") is not None:
         m = np.load(npz)["mask"]
         xt = [lo + (hi - lo) * (np.arange(m.shape[0]) + 0.5) / m.shape[0] for lo, hi in box]
         T1, T2 = np.meshgrid(xt[0], xt[1], indexing="ij")
@@ -123,20 +148,26 @@ def plot_roa(path, system, cert: dict, out: Path):
     th = np.linspace(0, 2 * np.pi, 400)
     for rad, style in ((cert["outer_radius"], "--"), (cert["inner_radius"], ":")):
         ax.plot(rad * np.cos(th), rad * np.sin(th), "r" + style, lw=1)
-    g = 25
-    gp, gs = grid_points(box, g)
-    u = None if ctrl is None else ctrl.numpy(gp)
-    with np.errstate(all="ignore"):
-        F = system.evaluate(gp, u)
-    ax.streamplot(np.linspace(box[0, 0], box[0, 1], g), np.linspace(box[1, 0], box[1, 1], g),
-                  F[:, 0].reshape(gs).T, F[:, 1].reshape(gs).T, color="0.6", density=0.8,
-                  linewidth=0.5, arrowsize=0.6)
+    if getattr(system, "can_simulate", True):
+        g = 25
+        gp2, gs = grid_points(box[:2], g)
+        gp = lift(gp2)
+        u = None if ctrl is None else ctrl.numpy(gp)
+        with np.errstate(all="ignore"):
+            F = system.evaluate(gp, u)
+        ax.streamplot(np.linspace(box[0, 0], box[0, 1], g),
+                      np.linspace(box[1, 0], box[1, 1], g), F[:, 0].reshape(gs).T,
+                      F[:, 1].reshape(gs).T, color="0.6", density=0.8, linewidth=0.5,
+                      arrowsize=0.6)
     ax.set_xlim(box[0])
     ax.set_ylim(box[1])
     ax.set_xlabel(system.state_names[0])
     ax.set_ylabel(system.state_names[1])
-    ax.set_title(f"{system.name}: {cert['status']} — certified "
-                 f"{100 * cert['fraction_of_true_roa']:.1f}% of the true ROA\n"
+    frac = cert.get("fraction_of_true_roa")
+    share = "true ROA not available" if frac is None else \
+        f"certified {100 * frac:.1f}% of the true ROA"
+    where = "" if nx == 2 else f" (slice {', '.join(system.state_names[2:])} = 0)"
+    ax.set_title(f"{system.name}: {cert['status']} — {share}{where}\n"
                  "blue: Ω_c (V ≤ level in B_r), green: E, black: true ROA, red: B_r, B_ε",
                  fontsize=9)
     fig.tight_layout()

@@ -643,7 +643,9 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
         raise ConfigError(f"{where}: {system} has no inputs; set controller_scale to null")
     lq = cfg.get("lqr", {})
     Q, R = check_lqr_weights(s, lq.get("Q"), lq.get("R"), where=where)
-    if s.nu:  # the controller stage comes after the dynamics stage: fail now, not then
+    if s.nu and getattr(s, "has_model", True):
+        # the controller stage comes after the dynamics stage: fail now, not then (without a
+        # model the LQR start linearises the learned φ, known only after the dynamics stage)
         from .control import lqr
 
         try:

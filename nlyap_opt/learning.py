@@ -43,6 +43,7 @@ import torch
 from .determinism import deterministic_torch
 from .errors import ConfigError
 from .network import Layer, Network, dense_network, from_torch
+from .sampling import sample_ball, sample_sphere
 
 __all__ = ["TrainConfig", "LyapunovLearner", "sample_ball", "sample_sphere"]
 
@@ -102,21 +103,6 @@ def _body_jacobian_at_zero(body, n: int):
             return torch.func.jacrev(lambda y: body(y[None])[0])(torch.zeros(n,
                                                                             dtype=torch.float64))
     return J
-
-
-def sample_ball(n: int, dim: int, radius: float, rng: np.random.Generator,
-                inner: float = 0.0) -> np.ndarray:
-    """Uniform samples of the annulus ``inner ≤ ‖x‖ ≤ radius`` in ``dim`` dimensions."""
-    d = rng.standard_normal((n, dim))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    r = (inner**dim + (radius**dim - inner**dim) * rng.random(n)) ** (1.0 / dim)
-    return d * r[:, None]
-
-
-def sample_sphere(n: int, dim: int, radius: float, rng: np.random.Generator) -> np.ndarray:
-    """Uniform samples of the sphere ``‖x‖ = radius``."""
-    d = rng.standard_normal((n, dim))
-    return radius * d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 class LyapunovLearner:

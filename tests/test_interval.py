@@ -764,7 +764,7 @@ def test_checked_arithmetic_flags_per_box_and_output():
     lo = np.array([[-1.0, 0.5], [0.5, -1.0], [0.0, 0.0], [-2.0, -3.0]])
     hi = np.array([[1.0, 1.0], [1.0, -0.5], [0.0, 1.0], [-1.0, -2.0]])
     ar = CheckedIntervalArithmetic(len(lo), 3)
-    evaluate(f, [Interval(lo, hi)], ar)
+    ar.collect(evaluate(f, [Interval(lo, hi)], ar))
     assert not ar.jump[:, 0].any() and not ar.maybe_undefined[:, :2].any()
     assert ar.jump[:, 1].tolist() == [True, False, False, False]  # sign(0) on a point: no
     assert not ar.jump[:, 2].any()
@@ -787,9 +787,9 @@ def test_checked_arithmetic_through_mx_calls_and_constants():
     lo = np.array([[0.5, -1.0], [-0.5, 1.0], [1.0, 1.0]])
     hi = np.array([[1.0, 1.0], [1.0, 2.0], [2.0, 2.0]])
     ar = CheckedIntervalArithmetic(3, 2)
-    evaluate(f, [Interval(lo, hi)], ar)
-    # the call feeds both outputs: its log is attributed to both (conservative)
-    assert ar.maybe_undefined.tolist() == [[False, False], [True, True], [False, False]]
+    ar.collect(evaluate(f, [Interval(lo, hi)], ar))
+    # the log inside the call flows into output 1 only (domain taint is per value)
+    assert ar.maybe_undefined.tolist() == [[False, False], [False, True], [False, False]]
     # fmax(W x, 0) feeds output 1 only; a row of W x crosses 0 in box 0 only
     assert ar.jump[:, 0].tolist() == [False, False, False]
     assert ar.jump[:, 1].tolist() == [True, False, False]
@@ -808,3 +808,26 @@ def test_statically_safe_operations_are_not_checked():
     for e, checked in cases:
         xx = xm if isinstance(e, ca.MX) else x
         assert compile_function(ca.Function("f", [xx], [e])).checked == checked, str(e)
+
+
+def test_domain_taint_flows_through_mx_layers_and_respects_if_else_guards():
+    from nlyap_opt.walker import evaluate
+    from verification.interval import CheckedIntervalArithmetic
+
+    xm = ca.MX.sym("x", 2)
+    W = ca.DM([[1.0, 2.0], [3.0, 4.0]])
+    h = ca.tanh(ca.mtimes(W, ca.vertcat(ca.sqrt(xm[0]), xm[1])))  # row 0 of the input only
+    guarded = ca.if_else(xm[1] > 0, ca.sqrt(xm[1]), 0.0)
+    f = ca.Function("f", [xm], [ca.sumsqr(h), h[1] + xm[1], guarded])
+    lo = np.array([[-1.0, -1.0], [0.5, -2.0], [0.5, 0.5], [-2.0, -2.0]])
+    hi = np.array([[1.0, 1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, -1.0]])
+    ar = CheckedIntervalArithmetic(len(lo), 3)
+    ar.collect(evaluate(f, [Interval(lo, hi)], ar))
+    assert ar.maybe_undefined[:, 0].tolist() == [True, False, False, True]
+    assert ar.undefined[:, 0].tolist() == [False, False, False, True]
+    assert ar.undefined_op[3, 0] == ca.OP_SQRT
+    assert ar.maybe_undefined[:, 1].tolist() == [True, False, False, True]
+    # sqrt(x1) is out of its domain in boxes 1 and 3, but the guard x1 > 0 is certainly
+    # false there: if_else gives 0; box 0 straddles: not proved defined
+    assert ar.maybe_undefined[:, 2].tolist() == [True, False, False, False]
+    assert not ar.undefined[:, 2].any()

@@ -508,3 +508,19 @@ def test_checked_problems_with_an_executor():
         friction = VerificationProblem(x, BOX, [V - 1.0, 0.01 - V],
                                        [ca.dot(ca.gradient(V, x), -x - 0.1 * ca.sign(x))])
         assert verify(friction, executor=ex, n_tasks=4).status == "verified"
+
+
+def test_if_else_guarded_partial_op():
+    """CasADi's if_else evaluates both branches; a branch that is certainly not taken does
+    not make the value undefined, a taken branch outside its domain does."""
+    x = _x()
+    ok = -1.0 + 0.1 * ca.tanh(ca.if_else(x[0] > 0, ca.sqrt(x[0]), -x[0]))
+    problem = VerificationProblem(x, BOX, [ca.sumsqr(x) - 1.0], [ok])
+    assert problem.checked
+    assert verify(problem).status == "verified"
+    assert_no_sample_contradicts(problem, 200_000)
+    bad = -1.0 + 0.1 * ca.tanh(ca.if_else(x[0] > -0.5, ca.sqrt(x[0]), -x[0]))
+    res = verify(VerificationProblem(x, BOX, [ca.sumsqr(x) - 1.0], [bad]))
+    assert res.status == "counterexample"
+    assert res.counterexample.property == "domain of OP_SQRT"
+    assert -0.5 < res.counterexample.point[0] < 0

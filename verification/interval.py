@@ -1330,25 +1330,91 @@ _DOMAINS: dict[int, Callable] = {
 }
 
 
+class _Tainted(Interval):
+    """An interval array with per-element "not proved defined" masks (checked walks only).
+
+    ``um``: some partial operation this value depends on may be applied outside its
+    domain; ``us``: certainly is (at every point of the box); ``uo``: that operation's code
+    where ``us`` (``-1`` elsewhere). Masks have the shape of ``lo`` (possibly broadcast,
+    read-only views).
+    """
+
+    __slots__ = ("um", "us", "uo")
+
+
+def _taint(x):
+    """``(um, us, uo)`` of a value, or ``None`` when it is proved defined everywhere."""
+    if type(x) is _Tainted:
+        return x.um, x.us, x.uo
+    return None
+
+
+def _merge(*taints):
+    """Elementwise union of taints (broadcasting); ``None`` if all are ``None``."""
+    out = None
+    for t in taints:
+        if t is None:
+            continue
+        if out is None:
+            out = t
+            continue
+        um, us, uo = out
+        um2, us2, uo2 = t
+        out = (um | um2, us | us2, np.where(uo >= 0, uo, uo2))
+    return out
+
+
+def _attach(res: Interval, t) -> Interval:
+    """``res`` carrying taint ``t`` (broadcast to its shape)."""
+    if t is None:
+        return res
+    um, us, uo = t
+    if not np.any(um):
+        return res
+    x = _NEW(_Tainted)
+    x.lo = res.lo
+    x.hi = res.hi
+    shape = res.lo.shape
+    x.um = np.broadcast_to(um, shape)
+    x.us = np.broadcast_to(us, shape)
+    x.uo = np.broadcast_to(uo, shape)
+    return x
+
+
+def _domain_taint(op, args):
+    """Taint created by a partial operation ``op`` on its interval arguments."""
+    dom = _DOMAINS.get(op)
+    if dom is None:
+        return None
+    ok, out = dom([(a.lo, a.hi) for a in args])
+    if ok.all():
+        return None
+    return ~ok, out, np.where(out, np.int32(op), np.int32(-1))
+
+
 class CheckedIntervalArithmetic(IntervalArithmetic):
     """Interval arithmetic that also records, per box and per output, the checks of P9/P10.
 
-    Evaluating a walker ``Program`` whose ``checked`` flag is set calls :meth:`check` after
-    every operation of ``nlyap_opt.walker.CHECKED_OPS`` (non-smooth or partial), with the
-    outputs of the Function that operation feeds. For ``n_boxes`` boxes (inputs of shape
-    ``(n_boxes, n)``) and ``n_outputs`` outputs it fills boolean arrays of shape
-    ``(n_boxes, n_outputs)``:
+    Same values and enclosures as :class:`IntervalArithmetic`, plus:
 
-    - ``jump``: some non-smooth operation feeding the output may meet its kink or jump set
-      on the box (the mean-value form must not be used for that output);
-    - ``maybe_undefined``: some partial operation feeding it is not proved inside its
-      domain on the box (the enclosure of that output then covers only its defined
-      points: it proves nothing);
-    - ``undefined``: some partial operation feeding it is certainly outside its domain on
-      the whole box; ``undefined_op`` holds that operation's code (``-1``: none).
+    - kinks and jumps (P9): evaluating a walker ``Program`` whose ``checked`` flag is set
+      calls :meth:`check` after every non-smooth operation of
+      ``nlyap_opt.walker.CHECKED_OPS``, with the outputs of the Function that operation
+      feeds (static liveness); ``jump[b, j]``: some non-smooth operation feeding output
+      ``j`` may meet its kink or jump set on box ``b`` (the mean-value form must not be
+      used for that output);
+    - domains (P10): every value carries, per element, whether some partial operation it
+      depends on may be (or certainly is) applied outside its domain; the taint flows
+      through every operation, matrix product, sum and rearrangement, except that
+      ``if_else_zero(c, x)`` (CasADi's ``if_else``) drops the taint of ``x`` where ``c`` is
+      certainly 0 (``c ? x : 0`` is then 0, as CasADi evaluates it). :meth:`collect` reads
+      the outputs' taints into ``maybe_undefined[b, j]`` (output ``j`` is not proved
+      defined on box ``b``: its enclosure covers its defined points only and proves
+      nothing), ``undefined[b, j]`` (certainly undefined on the whole box) and
+      ``undefined_op[b, j]`` (that operation's code, ``-1``: none).
 
-    Values and enclosures are those of :class:`IntervalArithmetic`. One instance serves one
-    walk; instances compare equal so that the walker's constant cache is shared.
+    One instance serves one walk of ``n_boxes`` boxes (inputs of shape ``(n_boxes, n)``);
+    instances compare equal so that the walker's constant cache is shared.
 
     Parameters
     ----------
@@ -1370,6 +1436,113 @@ class CheckedIntervalArithmetic(IntervalArithmetic):
 
     def __eq__(self, other) -> bool:
         return type(other) is CheckedIntervalArithmetic
+
+    # -- values with domain taint
+    def unary(self, op: int, a: Interval) -> Interval:
+        """As :meth:`IntervalArithmetic.unary`, propagating and creating domain taint."""
+        a = _as_interval(a)
+        res = super().unary(op, a)
+        with np.errstate(all="ignore"):
+            return _attach(res, _merge(_taint(a), _domain_taint(op, (a,))))
+
+    def binary(self, op: int, a: Interval, b: Interval) -> Interval:
+        """As :meth:`IntervalArithmetic.binary`, propagating and creating domain taint."""
+        a = _as_interval(a)
+        b = _as_interval(b)
+        res = super().binary(op, a, b)
+        ta, tb = _taint(a), _taint(b)
+        if ta is None and tb is None and op not in _DOMAINS:
+            return res
+        with np.errstate(all="ignore"):
+            if op == ca.OP_IF_ELSE_ZERO and tb is not None:
+                t, p = _truth(a.lo, a.hi)  # c certainly / possibly nonzero
+                um, us, uo = tb
+                tb = (um & p, us & t, np.where(us & t, uo, np.int32(-1)))
+            return _attach(res, _merge(ta, tb, _domain_taint(op, (a, b))))
+
+    def matmul(self, a, b) -> Interval:
+        """As :meth:`IntervalArithmetic.matmul`; an entry is tainted by its row and column."""
+        a = _as_interval(a)
+        b = _as_interval(b)
+        res = super().matmul(a, b)
+        ta, tb = _taint(a), _taint(b)
+        if ta is None and tb is None:
+            return res
+        shape = res.lo.shape
+        parts = []
+        for t, axis, expand in ((ta, -1, -1), (tb, -2, -2)):
+            if t is None:
+                continue
+            um, us, uo = t
+            if um.ndim < 2:  # 1-D operand: every entry of the result
+                parts.append((np.full(shape, um.any()), np.full(shape, us.any()),
+                              np.full(shape, np.int32(uo.max()))))
+                continue
+            parts.append((np.expand_dims(um.any(axis=axis), expand),
+                          np.expand_dims(us.any(axis=axis), expand),
+                          np.expand_dims(uo.max(axis=axis), expand)))
+        return _attach(res, _merge(*parts))
+
+    def sum(self, a: Interval, axis=None) -> Interval:
+        """As :meth:`IntervalArithmetic.sum`; the sum is tainted by any of its terms."""
+        a = _as_interval(a)
+        res = super().sum(a, axis)
+        t = _taint(a)
+        if t is None:
+            return res
+        um, us, uo = t
+        nd = a.lo.ndim
+        axes = tuple(range(nd)) if axis is None else (
+            (axis,) if np.ndim(axis) == 0 else tuple(axis))
+        axes = tuple(sorted({int(ax) % nd for ax in axes})) if nd else ()
+        return _attach(res, (um.any(axis=axes), us.any(axis=axes), uo.max(axis=axes)))
+
+    def structural(self, fn: Callable, *args: Interval) -> Interval:
+        """As :meth:`IntervalArithmetic.structural`; the taint is rearranged alike."""
+        args = [_as_interval(x) for x in args]
+        res = super().structural(fn, *args)
+        taints = [_taint(x) for x in args]
+        if all(t is None for t in taints):
+            return res
+        full = [t if t is not None else (np.zeros(x.lo.shape, bool), np.zeros(x.lo.shape, bool),
+                                         np.full(x.lo.shape, -1, dtype=np.int32))
+                for x, t in zip(args, taints)]
+        um = np.asarray(fn(*[t[0] for t in full])) != 0
+        us = np.asarray(fn(*[t[1] for t in full])) != 0
+        uo = np.asarray(fn(*[t[2] for t in full])).astype(np.int32)
+        return _attach(res, (um, us, np.where(us, uo, np.int32(-1))))
+
+    def nonneg(self, a: Interval) -> Interval:
+        """As :meth:`IntervalArithmetic.nonneg`, keeping the taint."""
+        return _attach(IntervalArithmetic.nonneg(a), _taint(a))
+
+    def collect(self, outputs) -> None:
+        """Read the outputs' domain taints into ``maybe_undefined``, ``undefined``, ``_op``.
+
+        Parameters
+        ----------
+        outputs : list of Interval
+            The walker's outputs, shapes ``(n_boxes, nnz)`` (or constants ``(nnz,)``).
+        """
+        for j, out in enumerate(outputs):
+            t = _taint(out) if out is not None else None
+            if t is None:
+                continue
+            um, us, uo = t
+            self.maybe_undefined[:, j] |= self._per_box(um, 1)
+            sure = self._per_box(us, 1)
+            if sure.any():
+                op = self._per_box_op(uo, us)
+                new = sure & (self.undefined_op[:, j] < 0)
+                self.undefined_op[:, j] = np.where(new, op, self.undefined_op[:, j])
+                self.undefined[:, j] |= sure
+
+    def _per_box_op(self, uo, us) -> np.ndarray:
+        """One operation code per box from the ``(n_boxes, ...)`` op codes where ``us``."""
+        v = np.where(us, uo, -1)
+        if v.ndim >= 2 and v.shape[0] == self.n_boxes:
+            return v.reshape(self.n_boxes, -1).max(axis=1)
+        return np.full(self.n_boxes, int(v.max()) if v.size else -1)
 
     def _per_box(self, mask, base: int) -> np.ndarray:
         """Reduce an elementwise mask to one flag per box (constants: any, for all boxes)."""
@@ -1396,12 +1569,13 @@ class CheckedIntervalArithmetic(IntervalArithmetic):
             self._override = None
 
     def check(self, op: int, feeds, base: int, args, res: Interval) -> None:
-        """Record the kink/jump and domain status of one operation on every box.
+        """Record whether a non-smooth operation may meet its kink or jump set, per box.
 
         Parameters
         ----------
         op : int
-            CasADi operation code (in ``CHECKED_OPS``).
+            CasADi operation code (in ``CHECKED_OPS``; partial operations are handled by
+            the domain taint of the values instead).
         feeds : ndarray of int
             Outputs of the evaluated Function that this operation feeds.
         base : int
@@ -1422,15 +1596,3 @@ class CheckedIntervalArithmetic(IntervalArithmetic):
                 m = self._per_box(jump(bounds, (res.lo, res.hi)), base)
                 if m.any():
                     self.jump[:, feeds] |= m[:, None]
-            dom = _DOMAINS.get(op)
-            if dom is not None:
-                ok, out = dom(bounds)
-                maybe = self._per_box(~ok, base)
-                if maybe.any():
-                    self.maybe_undefined[:, feeds] |= maybe[:, None]
-                    sure = self._per_box(out, base)
-                    if sure.any():
-                        cols = self.undefined_op[:, feeds]
-                        new = sure[:, None] & (cols < 0)
-                        self.undefined_op[:, feeds] = np.where(new, op, cols)
-                        self.undefined[:, feeds] |= sure[:, None]

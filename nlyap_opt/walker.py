@@ -69,8 +69,9 @@ class OpInfo:
     domain : str or None
         ``None`` for an operation defined on all reals, else the condition on the argument
         (``x``; binary: ``x`` and ``y``) for which the real-valued operation is defined.
-        An expression is defined at a point when every operation of its graph is applied
-        inside its domain (CasADi's ``if_else`` evaluates both branches).
+        An expression is defined at a point when every operation it depends on is applied
+        inside its domain there; CasADi's ``if_else`` evaluates both branches, and a branch
+        that is not taken does not count.
     """
 
     name: str

@@ -56,10 +56,11 @@ class VerificationProblem:
     operations (then ``function_checked`` / ``function_jacobian_checked``, with one output
     per constraint and property, carry the per-box kink/jump and domain checks).
 
-    A constraint or property is defined at a point when every operation of its graph is
+    A constraint or property is defined at a point when every operation it depends on is
     applied inside its domain there (``nlyap_opt.walker.OP_TABLE``; CasADi's ``if_else``
-    evaluates both branches). The properties must be defined on the region; a constraint
-    that is undefined somewhere prunes nothing there.
+    evaluates both branches, and a branch that is not taken does not count). The
+    properties must be defined on the region; a constraint that is undefined somewhere
+    prunes nothing there.
     """
 
     x: ca.MX

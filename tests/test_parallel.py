@@ -1,0 +1,243 @@
+"""Dask distributed: the client helper, verification on a cluster, the seed portfolio.
+
+Clusters bind to 127.0.0.1, have no dashboard and are closed by the test that starts them.
+"""
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+from certcheck import assert_confirmed
+
+import systems
+from baselines.lqr import quadratic_lyapunov
+from nlyap_opt.errors import BackendUnavailableError, ConfigError
+from nlyap_opt.parallel import (
+    _starts_from_boxes,
+    dask_client,
+    parse_scheduler,
+    verify_distributed,
+)
+from verification import VerificationProblem, closed_loop_problem, verify
+
+pytest.importorskip("distributed")
+
+P_VDP = np.array([[1.5, -0.5], [-0.5, 1.0]])
+#: task modes of verify_distributed this checkout supports (batched needs
+#: verify_interval(boxes=...))
+MODES = [False] + ([True] if _starts_from_boxes() else [])
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _listening_hosts() -> set:
+    import psutil
+
+    return {c.laddr.ip for c in psutil.Process().net_connections(kind="tcp")
+            if c.status == psutil.CONN_LISTEN}
+
+
+def _vdp_problem(outer: float):
+    return closed_loop_problem(systems.get("van_der_pol"), quadratic_lyapunov(P_VDP),
+                               inner=0.1, outer=outer)
+
+
+@pytest.fixture(scope="module")
+def client():
+    with dask_client(workers=2) as c:
+        yield c
+
+
+@pytest.fixture(params=MODES, ids=lambda b: "batched" if b else "fixed-split")
+def mode(request, monkeypatch):
+    monkeypatch.setattr("nlyap_opt.parallel._starts_from_boxes", lambda: request.param)
+    return request.param
+
+
+# ----------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("kwargs, match", [
+    ({"workers": 0}, "workers must be an integer >= 1"),
+    ({"workers": -2}, "workers must be an integer >= 1"),
+    ({"workers": 1.5}, "workers must be an integer >= 1"),
+    ({"workers": True}, "workers must be an integer >= 1"),
+    ({"scheduler": "localhost"}, "tcp://HOST:PORT"),
+    ({"scheduler": "tcp://127.0.0.1"}, "tcp://HOST:PORT"),
+    ({"scheduler": "http://127.0.0.1:8786"}, "tcp://HOST:PORT"),
+    ({"scheduler": "tcp://127.0.0.1:99999"}, "port must be in 1..65535"),
+    ({"scheduler": 8786}, "must be a string"),
+    ({"workers": 2, "timeout": 0}, "timeout must be a positive"),
+])
+def test_bad_client_options_are_config_errors(kwargs, match):
+    with pytest.raises(ConfigError, match=match) as err:
+        with dask_client(**kwargs):
+            pass
+    assert "\n" not in str(err.value)
+
+
+def test_scheduler_address_forms():
+    assert parse_scheduler("127.0.0.1:8786") == "tcp://127.0.0.1:8786"
+    assert parse_scheduler(" tcp://node-1.example:1 ") == "tcp://node-1.example:1"
+    assert parse_scheduler("tls://[::1]:8786") == "tls://[::1]:8786"
+
+
+def test_no_scheduler_at_address_is_a_config_error():
+    address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
+    t = time.monotonic()
+    with pytest.raises(ConfigError, match="no Dask scheduler answered") as err:
+        with dask_client(scheduler=address, timeout=2):
+            pass
+    assert "dask scheduler" in str(err.value) and time.monotonic() - t < 60
+
+
+def test_missing_dask_names_the_install_command(monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import fails
+    with pytest.raises(BackendUnavailableError, match=r"pip install 'dask\[distributed\]'"):
+        with dask_client(workers=1):
+            pass
+    assert isinstance(BackendUnavailableError("x"), ImportError)
+
+
+def test_bad_verify_options(client):
+    with pytest.raises(ConfigError, match="task_boxes"):
+        verify_distributed(_vdp_problem(1.0), client, task_boxes=0)
+
+
+# ----------------------------------------------------------------------------- the cluster
+def test_local_cluster_is_local_quiet_and_closed():
+    with dask_client(workers=2) as c:
+        info = c.scheduler_info()
+        address = c.scheduler.address
+        assert address.startswith("tcp://127.0.0.1:")
+        assert len(info["workers"]) == 2
+        assert all(w["nthreads"] == 1 for w in info["workers"].values())
+        assert all(a.startswith("tcp://127.0.0.1:") for a in info["workers"])
+        # every listening socket (scheduler, its HTTP API, nannies here; workers there) is
+        # on the loopback interface
+        assert _listening_hosts() == {"127.0.0.1"}
+        assert set().union(*c.run(_listening_hosts).values()) == {"127.0.0.1"}
+        # worker processes, not threads of this one
+        pids = c.run(os.getpid)
+        assert len(set(pids.values())) == 2 and os.getpid() not in pids.values()
+        # workers keep glibc's adaptive malloc (see dask_client)
+        env = c.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_"))
+        assert set(env.values()) == {os.environ.get("MALLOC_TRIM_THRESHOLD_")}
+    assert c.status == "closed"
+    host, port = address.removeprefix("tcp://").rsplit(":", 1)
+    with pytest.raises(OSError):  # the scheduler is gone
+        socket.create_connection((host, int(port)), timeout=2).close()
+
+
+# ----------------------------------------------------------------------------- verification
+@pytest.mark.parametrize("outer, expected", [(1.0, "verified"), (1.2, "counterexample")])
+def test_distributed_verdict_equals_serial(client, mode, outer, expected):
+    problem = _vdp_problem(outer)
+    serial = verify(problem)
+    dist = verify_distributed(problem, client, task_boxes=64)  # small: many hand-outs
+    assert serial.status == dist.status == expected
+    if expected == "counterexample":
+        assert_confirmed(problem, dist.counterexample)
+    else:
+        assert len(dist.undecided) == 0 and dist.boxes >= 0.5 * serial.boxes
+
+
+def test_counterexample_found_by_branching_not_presearch(client, mode):
+    """No pre-search: the counterexample comes from a worker's box, confirmed there."""
+    problem = _vdp_problem(1.2)
+    dist = verify_distributed(problem, client, presearch=0, task_boxes=16)
+    assert dist.status == "counterexample"
+    assert_confirmed(problem, dist.counterexample)
+    # every confirmed one (coarse resolution: the violating set is not ground down)
+    all_found = verify_distributed(problem, client, presearch=0, stop_at_first=False,
+                                   resolution=0.05, task_boxes=64)
+    serial = verify(problem, presearch=0, stop_at_first=False, resolution=0.05)
+    assert all_found.status == "counterexample" and len(all_found.counterexamples) >= 2
+    assert abs(len(all_found.counterexamples) - len(serial.counterexamples)) <= \
+        0.5 * len(serial.counterexamples)
+    for c in all_found.counterexamples[:5]:
+        assert_confirmed(problem, c)
+
+
+def test_unknown_stays_unknown(client, mode):
+    x = ca.MX.sym("x", 1)
+    problem = VerificationProblem(x, [[-1, 1]], [], [(x - 0.3) * (0.3 - x) - 1e-12])
+    serial = verify(problem, resolution=0.1, presearch=0)
+    dist = verify_distributed(problem, client, resolution=0.1, presearch=0, task_boxes=4)
+    assert serial.status == dist.status == "unknown"
+    assert len(dist.undecided) > 0
+    assert np.all(dist.undecided[:, :, 1] - dist.undecided[:, :, 0] <= 0.1)
+
+
+def test_box_budget_gives_unknown_never_verified(client, mode):
+    problem = _vdp_problem(1.0)
+    dist = verify_distributed(problem, client, max_boxes=40, task_boxes=16)
+    assert dist.status == "unknown" and len(dist.undecided) > 0
+
+
+def test_keep_leaves_cover_the_root_box(client):
+    problem = _vdp_problem(1.0)
+    dist = verify_distributed(problem, client, keep_leaves=True, task_boxes=64)
+    assert dist.status == "verified"
+    vol = sum(np.prod(leaf["hi"] - leaf["lo"], axis=1).sum() for leaf in dist.leaves)
+    assert vol == pytest.approx(np.prod(np.diff(problem.box, axis=1)), rel=1e-12)
+
+
+def test_executor_hook_of_verify_runs_on_dask(client):
+    for outer, expected in ((1.0, "verified"), (1.2, "counterexample")):
+        problem = _vdp_problem(outer)
+        res = verify(problem, executor=client.get_executor(), n_tasks=4)
+        assert res.status == verify(problem).status == expected
+
+
+@pytest.mark.slow  # about 30 s on 2 busy cores: three Python processes start
+def test_existing_cluster_scheduler_and_two_worker_processes(tmp_path):
+    """`dask scheduler` + two `dask worker` processes on 127.0.0.1, used through
+    ``scheduler=``; the tool connects and leaves the cluster running."""
+    dask_cli = Path(sys.executable).with_name("dask")
+    if not dask_cli.exists():
+        pytest.skip("the `dask` command is not installed next to this Python")
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = dict(os.environ, MALLOC_TRIM_THRESHOLD_="1073741824",
+               MALLOC_MMAP_THRESHOLD_="33554432")
+    logs = open(tmp_path / "cluster.log", "w")
+    procs = [subprocess.Popen([str(dask_cli), "scheduler", "--host", "127.0.0.1", "--port",
+                               str(port), "--no-dashboard"], stdout=logs, stderr=logs,
+                              env=env, cwd=tmp_path)]
+    try:
+        for i in range(2):
+            procs.append(subprocess.Popen(
+                [str(dask_cli), "worker", address, "--host", "127.0.0.1", "--nthreads", "1",
+                 "--no-dashboard", "--no-nanny", "--name", f"w{i}", "--death-timeout", "60",
+                 "--local-directory", str(tmp_path / f"w{i}")],
+                stdout=logs, stderr=logs, env=env, cwd=tmp_path))
+        with dask_client(workers=2, scheduler=address, timeout=60) as c:
+            assert len(c.scheduler_info()["workers"]) == 2
+            for outer, expected in ((1.0, "verified"), (1.2, "counterexample")):
+                problem = _vdp_problem(outer)
+                res = verify_distributed(problem, c, task_boxes=64)
+                assert res.status == verify(problem).status == expected
+        assert all(p.poll() is None for p in procs), "the tool must not close the cluster"
+        with pytest.raises(ConfigError, match=r"has 2 worker\(s\)"):
+            with dask_client(workers=3, scheduler=address, timeout=2):
+                pass
+        assert all(p.poll() is None for p in procs)
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in reversed(procs):
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(timeout=10)
+        logs.close()

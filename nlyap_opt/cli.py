@@ -321,8 +321,12 @@ def cmd_verify(args) -> int:
           f"({res.boxes} boxes, depth {res.depth}, {res.seconds:.3f} s, {res.backend})")
     if res.counterexample is not None:
         c = res.counterexample
-        print(f"  counterexample x = {c.point.tolist()} violates {c.property}: "
-              f"value in [{c.value_lower:.6g}, {c.value_upper:.6g}]")
+        if c.property.startswith("domain of"):
+            print(f"  counterexample x = {c.point.tolist()}: the dynamics or V is undefined "
+                  f"there ({c.property})")
+        else:
+            print(f"  counterexample x = {c.point.tolist()} violates {c.property}: "
+                  f"value in [{c.value_lower:.6g}, {c.value_upper:.6g}]")
     if res.status == "unknown":
         print(f"  {len(res.undecided)} boxes undecided at resolution {args.resolution}")
     _write_json(args.json, res.to_dict())

@@ -66,7 +66,8 @@ __all__ = [
     "Grid", "DynamicsResult", "AlphaResult", "learn_dynamics", "refine_dynamics",
     "measure_alpha", "default_config", "load_config", "merge_config", "as_config",
     "DynamicsConfig", "dynamics_config", "sampling_box", "learned_components",
-    "network_error_bound", "check_dynamics_network", "MODELS", "make_grid",
+    "network_error_bound", "check_dynamics_network", "MODELS", "make_grid", "SampleGrid",
+    "affine_base_input", "check_declared",
 ]
 
 _U = 2.0 ** -53  # unit roundoff of float64
@@ -210,10 +211,34 @@ def learned_components(system, config=None) -> list[int]:
     return comp
 
 
+def _declared_input_matrix(system) -> np.ndarray | None:
+    """The declared control-affine ``B`` of a system without a model (``None`` if none)."""
+    decl = getattr(system, "declarations", None)
+    return None if decl is None else decl.B
+
+
+def _has_model(system) -> bool:
+    return bool(getattr(system, "has_model", True))
+
+
 def _input_matrix(system, comp: list[int]) -> np.ndarray:
-    """``B`` rows of ``comp`` after checking ``f = f0(x) + B u`` with constant ``B`` (symbolic)."""
+    """``B`` rows of ``comp`` for the control-affine model ``f = f0(x) + B u``.
+
+    With a model, ``∂f/∂u`` is checked symbolically to be the constant linearisation ``B``.
+    Without one (a black-box callable or samples), ``B`` is the **declared**
+    ``input_matrix`` (checked against the data by
+    :func:`systems.declarations.check_declarations` where an input axis was sampled).
+    """
     if system.nu == 0:
         return np.zeros((len(comp), 0))
+    if not _has_model(system):
+        B = _declared_input_matrix(system)
+        if B is None:
+            raise ConfigError(
+                f"system {system.name!r} has no model, so the control-affine dynamics model "
+                "needs a declared input matrix: declare input_matrix (B) or use model 'full'"
+            )
+        return B[comp]
     ju = ca.jacobian(system.f, system.u)
     if ca.depends_on(ju, ca.vertcat(system.x, system.u)):
         raise ConfigError(
@@ -224,6 +249,25 @@ def _input_matrix(system, comp: list[int]) -> np.ndarray:
     if not np.allclose(B, system.B, rtol=0, atol=0):
         raise ConfigError("∂f/∂u differs from the linearisation's B; use model 'full'")
     return B[comp]
+
+
+def affine_base_input(system) -> np.ndarray:
+    r"""The input ``u0`` at which the control-affine model reads ``f0(x) = f(x, u0) − B u0``.
+
+    ``0`` for a model (``f0(x) = f(x, 0)``, as before); ``u_eq`` for a black-box callable
+    (a declared point of ``U``); for samples, the file's single input level on a sliced
+    input axis and ``u_eq`` (a node) on a sampled one.
+    """
+    if system.nu == 0:
+        return np.zeros(0)
+    kind = getattr(system, "kind", "model")
+    if kind == "samples":
+        smp = system.samples
+        nx = system.nx
+        return np.where(smp.counts[nx:] == 1, smp.box[nx:, 0], system.u_eq).astype(float)
+    if kind == "callable":
+        return np.asarray(system.u_eq, dtype=float).copy()
+    return np.zeros(system.nu)
 
 
 def sampling_box(system, model: str = "full", config: dict | None = None) -> np.ndarray:
@@ -242,8 +286,11 @@ def _target(system, model: str, comp: list[int], z: np.ndarray) -> np.ndarray:
     """The function that φ approximates, at points ``z`` of the sampling box, float64."""
     nx = system.nx
     if model == "control_affine":
-        u = np.zeros((z.shape[0], system.nu))
-        return system.evaluate(z[:, :nx], u)[:, comp]  # f0(x) = f(x, 0)
+        u0 = affine_base_input(system)
+        fx = system.evaluate(z[:, :nx], np.broadcast_to(u0, (z.shape[0], system.nu)))
+        if np.any(u0 != 0):  # f0(x) = f(x, u0) − B u0
+            fx = fx - _input_matrix(system, list(range(nx))) @ u0
+        return fx[:, comp]
     return system.evaluate(z[:, :nx], z[:, nx:])[:, comp]
 
 
@@ -308,7 +355,17 @@ def check_dynamics_network(system, network: Network) -> tuple[str, list[int]]:
                 f"meta['input_matrix'] must be a finite {len(comp)}x{system.nu} matrix, got "
                 f"shape {B.shape}"
             )
-        want = np.asarray(system.B, dtype=float)[comp]
+        if _has_model(system):
+            want = np.asarray(system.B, dtype=float)[comp]
+        else:
+            declared = _declared_input_matrix(system)
+            if declared is None:
+                raise NetworkFileError(
+                    f"control_affine dynamics network for system {system.name!r}, which has no "
+                    "model and declares no input_matrix; declare input_matrix (B) or use a "
+                    "network with model 'full'"
+                )
+            want = declared[comp]
         if not np.array_equal(B, want):
             raise NetworkFileError(
                 f"meta['input_matrix'] {B.tolist()} differs from the input matrix "
@@ -401,7 +458,28 @@ def measure_alpha(system, network: Network, grid: Grid, *, batch_size: int = 1 <
 
 
 def _target_rounding(system, model: str, comp: list[int]):
-    """``z -> bound on |fl(f(z)) − f(z)|`` per learned component (interval at point boxes)."""
+    r"""``z -> bound on |fl(f(z)) − f(z)|`` per learned component (interval at point boxes).
+
+    Without a model the data are ``f``'s values by assumption, up to a declared
+    ``sample_error`` ε (:math:`\|s - f(z)\|_2 \le ε` bounds every component by ε); the
+    control-affine target ``f(x, u0) − B u0`` with ``u0 ≠ 0`` adds the rounding of that
+    subtraction.
+    """
+    if not _has_model(system):
+        decl = getattr(system, "declarations", None)
+        eps = float((decl is not None and decl.sample_error) or 0.0)
+        u0 = affine_base_input(system) if model == "control_affine" else np.zeros(0)
+        shifted = bool(np.any(u0 != 0))
+        Bu0 = np.abs(_input_matrix(system, comp) @ u0) if shifted else 0.0
+
+        def data_bound(z):
+            out = np.full((z.shape[0], len(comp)), eps)
+            if shifted:
+                t = np.abs(_target(system, model, comp, z))
+                out = out + 4 * _U * (2 * t + Bu0)
+            return out
+
+        return data_bound
     from verification.interval import Interval, IntervalArithmetic
 
     from .walker import compile_function, evaluate
@@ -456,14 +534,121 @@ def as_config(system, config: DynamicsConfig | dict | None) -> DynamicsConfig:
     return dynamics_config(system.name, config)
 
 
+class SampleGrid(Grid):
+    r"""The state axes of a sample file's grid, as a :class:`Grid` whose δ is the file's.
+
+    Used by the control-affine model of a ``"samples"`` system: the grid of ``φ0(x)`` is
+    the file's nodes in x-space (at the input level ``u0``,
+    :func:`affine_base_input`). The nodes are bitwise the file's; ``delta`` is
+    :math:`\tfrac12\|g_x\|_2` plus the file's ``offset`` (rows off the ideal nodes), so
+    that every point of the box lies within δ of the *row* whose value its node carries.
+    """
+
+    def __init__(self, samples, axes: list[int]):
+        super().__init__(samples.box[axes], samples.counts[axes])
+        for a, i in zip(self.axes, axes):
+            if not np.array_equal(a, samples.axes[i]):
+                raise ConfigError(
+                    f"the sample grid's axis {samples.names[i]!r} differs from its regular "
+                    "nodes; reload the samples (systems.load_samples)"
+                )
+        self.offset = float(samples.offset)
+        if self.offset > 0:
+            self.delta = float(np.nextafter(self.delta + self.offset, np.inf))
+        self.source = samples.source
+
+    def to_dict(self) -> dict:
+        return {**super().to_dict(), "offset": self.offset, "source": self.source}
+
+
+def _samples_grid(system, cfg) -> Grid:
+    """The grid of a ``"samples"`` system: the file's nodes (never resampled)."""
+    smp = system.samples
+    nx, nu = system.nx, system.nu
+    model = cfg["model"]
+    for key, rows in (("state_box", smp.box[:nx]), ("input_box", system.input_box)):
+        given = cfg.get(key)
+        if given is not None and not np.array_equal(np.asarray(given, dtype=float), rows):
+            raise ConfigError(
+                f"dynamics config {key!r} = {np.asarray(given).tolist()} differs from the box "
+                f"{rows.tolist()} of the samples of {system.name!r}; leave {key!r} out (the "
+                "sample file defines the grid)"
+            )
+    if cfg.get("grid_spacing") is not None:
+        raise ConfigError(
+            f"system {system.name!r} is given by samples: the sample file defines the grid; "
+            "remove 'grid_spacing' from the dynamics config"
+        )
+    if model == "control_affine" and nu:
+        grid = SampleGrid(smp, list(range(nx)))
+    elif smp.input_slice:
+        raise ConfigError(
+            f"the samples of {system.name!r} hold a single input level: model 'full' needs a "
+            "grid over the inputs too; use model 'control_affine' (with the declared "
+            "input_matrix) or sample the inputs"
+        )
+    else:
+        grid = smp
+    counts = cfg.get("grid_counts")
+    if counts is not None and [int(c) for c in counts] != grid.counts.tolist():
+        raise ConfigError(
+            f"dynamics config grid_counts {list(counts)} differs from the sample file's grid "
+            f"{grid.counts.tolist()} of {system.name!r}; remove 'grid_counts' (the samples "
+            "define the grid)"
+        )
+    return grid
+
+
+def check_declared(system, grid, model: str) -> dict | None:
+    """Check the declarations of a system without a model against its values on ``grid``.
+
+    The values of every component at every node (``f(x, u0)`` on an x-grid of the
+    control-affine model) go to :func:`systems.declarations.check_declarations`, which
+    refuses a declared ``K_f``, ``H`` or ``B`` that the data contradict. Returns its
+    estimates (``None`` for a model or without declarations).
+
+    Raises
+    ------
+    ConfigError
+        A declaration is contradicted by the data (both numbers in the message).
+    """
+    decl = getattr(system, "declarations", None)
+    if _has_model(system) or decl is None or decl.empty:
+        return None
+    from systems.declarations import check_declarations
+
+    nx = system.nx
+    vals = []
+    for z in grid.batches():
+        if grid.dim == nx and system.nu:  # x-grid: f(x, u0)
+            u = np.broadcast_to(affine_base_input(system), (z.shape[0], system.nu))
+        else:
+            u = z[:, nx:]
+        with np.errstate(all="ignore"):
+            vals.append(system.evaluate(z[:, :nx], u))
+    values = np.vstack(vals)
+    names = list(system.state_names) + (list(system.input_names) if grid.dim > nx else [])
+    out = check_declarations(grid, values, decl, names=names, source=system.source)
+    out["grid"] = "x-space at u0 = " + str(affine_base_input(system).tolist()) \
+        if grid.dim == nx and system.nu else "(x, u)-space"
+    return out
+
+
 def make_grid(system, cfg: dict) -> Grid:
-    """The grid of a configuration (``grid_counts`` or ``grid_spacing`` over the model's box)."""
+    """The grid of a configuration (``grid_counts`` or ``grid_spacing`` over the model's box).
+
+    For a ``"samples"`` system the grid is the sample file's (its nodes and its δ, which
+    includes the file's offset from the ideal nodes): the :class:`systems.SampleSet` for
+    model ``full``, its state axes (:class:`SampleGrid`) for ``control_affine``.
+    """
     for key, rows in (("state_box", system.nx), ("input_box", system.nu)):
         if cfg.get(key) is not None and np.shape(cfg[key]) != (rows, 2):
             raise ConfigError(
                 f"dynamics config {key!r} has shape {np.shape(cfg[key])}; system "
                 f"{system.name!r} needs {rows} rows [lo, hi]"
             )
+    if getattr(system, "kind", "model") == "samples":
+        return _samples_grid(system, cfg)
     box = sampling_box(system, cfg["model"], cfg)
     if cfg.get("grid_counts") is not None:
         if len(cfg["grid_counts"]) != box.shape[0]:
@@ -564,6 +749,7 @@ def learn_dynamics(system, config: DynamicsConfig | dict | None = None, *,
     comp = learned_components(system, cfg)
     B = _input_matrix(system, comp) if model == "control_affine" else None
     grid = make_grid(system, cfg)
+    declared = check_declared(system, grid, model)  # fail fast, before any training
     hidden = [int(h) for h in np.atleast_1d(cfg.hidden)]
     if len(hidden) == 1 and len(comp) > 1:
         hidden = [max(hidden[0] // len(comp), 1)] * len(comp)
@@ -598,7 +784,7 @@ def learn_dynamics(system, config: DynamicsConfig | dict | None = None, *,
                 f"φ[{comp[k]}] {system.name}", t0))
     seconds["training"] = time.perf_counter() - t0
     state = {"z": z, "centre": centre, "radius": radius, "mu": mu, "sigma": sigma,
-             "blocks": blocks, "B": B, "hidden": hidden}
+             "blocks": blocks, "B": B, "hidden": hidden, "declarations_check": declared}
     return _finish(system, cfg, grid, model, comp, state, seconds, history, 0)
 
 
@@ -615,6 +801,8 @@ def _finish(system, cfg: DynamicsConfig, grid: Grid, model: str, comp: list[int]
         network.meta["refinement_rounds"] = rounds
     if state["B"] is not None:
         network.meta["input_matrix"] = state["B"].tolist()
+    if state.get("declarations_check") is not None:
+        network.meta["declarations_check"] = _jsonable(state["declarations_check"])
     alpha = measure_alpha(system, network, grid, batch_size=cfg.eval_batch)
     seconds["alpha"] = alpha.seconds
     network.meta.update({"alpha": alpha.alpha, "alpha_upper": alpha.alpha_upper,

@@ -62,7 +62,7 @@ import casadi as ca
 import numpy as np
 
 from .dynamics import AlphaResult, Grid, _norm2_up, check_dynamics_network, measure_alpha
-from .errors import DimensionError, UnknownNameError
+from .errors import ConfigError, DimensionError, UnknownNameError
 from .interval_sup import _add_up, _counts_for, _interval_sup, _matrix_norm_up, _mul_up
 from .lipschitz import _up
 from .network import Network
@@ -79,7 +79,10 @@ class ErrorModel:
 
     Builds (once) the CasADi Functions of ``z`` used by the bounds: ``J_f`` (learned rows of
     the Jacobian of the true model w.r.t. the sampled variables ``z``), ``J_phi``, ``J_e``,
-    and ``D2_e`` (diagonal second derivatives of ``e``, shape ``m × d``).
+    ``D2_phi`` and ``D2_e`` (diagonal second derivatives, shape ``m × d``). Without a model
+    (``system.has_model`` False: a black-box callable or samples) only ``J_phi`` and
+    ``D2_phi`` exist (``has_f`` False; the others are ``None``) and ``f`` enters the bounds
+    through the user's declarations (:class:`systems.Declarations`).
 
     Parameters
     ----------
@@ -99,6 +102,15 @@ class ErrorModel:
         if self.box.shape != (self.d, 2):
             raise DimensionError(f"box must have shape ({self.d}, 2), got {self.box.shape}")
         nx = system.nx
+        #: True when the CasADi model of f is available (False: a black box or samples)
+        self.has_f = bool(getattr(system, "has_model", True))
+        zm = ca.MX.sym("z", self.d)
+        jphi, d2phi = self._phi_derivatives(zm)
+        self.J_phi = ca.Function("J_phi", [zm], [jphi])
+        self.D2_phi = ca.Function("D2_phi", [zm], [d2phi])
+        self.f_fun = self.J_f = self.D2_f = self.J_e = self.D2_e = None
+        if not self.has_f:  # only φ's derivatives; f enters through declarations
+            return
         z = ca.SX.sym("z", self.d)
         u = ca.SX.zeros(system.nu) if self.model == "control_affine" else z[nx:]
         fz = system.f_fun(z[:nx], u)[self.comp]
@@ -107,9 +119,6 @@ class ErrorModel:
         self.J_f = ca.Function("J_f", [z], [jf])
         d2f = ca.horzcat(*[ca.jacobian(jf[:, i], z)[:, i] for i in range(self.d)])
         self.D2_f = ca.Function("D2_f", [z], [d2f])
-        zm = ca.MX.sym("z", self.d)
-        jphi, d2phi = self._phi_derivatives(zm)
-        self.J_phi = ca.Function("J_phi", [zm], [jphi])
         self.J_e = ca.Function("J_e", [zm], [self.J_f(zm) - jphi])
         self.D2_e = ca.Function("D2_e", [zm], [self.D2_f(zm) - d2phi])
 
@@ -172,7 +181,16 @@ def lipschitz_f(em: ErrorModel, *, boxes: int = 16384, counts=None,
     r"""``K_f ≥ sup_Z ‖J_f‖₂``: interval Jacobian on sub-boxes, Frobenius/Perron bound, upward.
 
     ``sample_points`` (e.g. grid nodes) give the sampled maximum for comparison.
+
+    Without a model the **declared** Lipschitz constant of the learned components is used
+    (:meth:`systems.Declarations.lipschitz_bound`; a per-component declaration gives
+    :math:`\|(K_k)_k\|_2`); its ``sampled`` value is the largest finite-difference slope
+    between neighbouring grid nodes (a lower bound of any Lipschitz constant), when known.
+    Nothing declared: ``value`` is NaN and ``method`` says why (the bounds that need
+    ``K_f`` are then skipped, never faked).
     """
+    if not em.has_f:
+        return _declared_lipschitz(em)
     t0 = time.perf_counter()
     counts = _counts_for(em.box, boxes, counts)
     m, d = len(em.comp), em.d
@@ -193,6 +211,32 @@ def lipschitz_f(em: ErrorModel, *, boxes: int = 16384, counts=None,
         sampled = float(np.max(np.linalg.norm(J, ord=2, axis=(1, 2))))
     return LipschitzBound(value, sampled, n, time.perf_counter() - t0,
                           "interval Jacobian on sub-boxes; ‖J‖₂ ≤ min(Frobenius, Perron) of |J|")
+
+
+def _declared_lipschitz(em: ErrorModel) -> LipschitzBound:
+    decl = getattr(em.system, "declarations", None)
+    check = em.network.meta.get("declarations_check") if isinstance(em.network.meta, dict) \
+        else None
+    sampled = float("nan")
+    if isinstance(check, dict):
+        per = check.get("slope_per_component")
+        if per is not None and len(per) == em.system.nx:
+            sampled = float(np.sqrt(np.sum(np.square(np.asarray(per, float)[em.comp]))))
+    value = None if decl is None else decl.lipschitz_bound(em.comp)
+    if value is None:
+        return LipschitzBound(float("nan"), sampled, 0, 0.0,
+                              f"not available: system {em.system.name!r} has no model and "
+                              "declares no Lipschitz constant (declare lipschitz)",
+                              {"source": "none"})
+    return LipschitzBound(float(value), sampled, 0, 0.0,
+                          "declared by the user (Declarations.lipschitz); sampled: the largest "
+                          "neighbour slope of the grid data (a lower bound)",
+                          {"source": "declared",
+                           "declared": decl.to_dict()["lipschitz"]})
+
+
+class _Skip(Exception):
+    """A bound option that cannot be computed soundly here (the reason is reported)."""
 
 
 def lipschitz_phi(em: ErrorModel, *, boxes: int = 16384, counts=None,
@@ -245,11 +289,26 @@ def _common_assumptions(em: ErrorModel, grid: Grid) -> list[str]:
     a = [
         f"α̅ = {grid.size} grid nodes' max of ‖f − φ‖₂ (float64) plus a rigorous rounding "
         "allowance; the grid includes both ends of every axis of the sampling box",
-        "samples of f are exact at the grid nodes",
     ]
+    decl = getattr(em.system, "declarations", None)
+    eps = None if decl is None else decl.sample_error
+    kind = getattr(em.system, "kind", "model")
+    if em.has_f:
+        a.append("samples of f are exact at the grid nodes")
+    elif eps is not None:
+        a.append(f"the {kind} data are within the declared sample error ε = {eps:.6g} of f "
+                 "(added to α̅)")
+    else:
+        a.append(f"the {kind} data are the exact values of f at the grid nodes (assumed)")
+    offset = float(getattr(grid, "offset", 0.0) or 0.0)
+    if offset > 0:
+        a.append(f"δ includes the sample file's offset {offset:.3g} of its rows from the "
+                 "regular grid nodes")
     if em.model == "control_affine":
-        a.append("f(x, u) = f0(x) + B u with the known constant input matrix B (checked "
-                 "symbolically on the model); φ(x, u) = φ0(x) + B u, grid in x-space only")
+        how = "checked symbolically on the model" if em.has_f else \
+            "declared by the user, checked on the data where an input axis was sampled"
+        a.append(f"f(x, u) = f0(x) + B u with the known constant input matrix B ({how}); "
+                 "φ(x, u) = φ0(x) + B u, grid in x-space only")
     known = [i for i in range(em.system.nx) if i not in em.comp]
     if known:
         a.append(f"state derivatives {known} are known exactly and not learned")
@@ -258,12 +317,18 @@ def _common_assumptions(em: ErrorModel, grid: Grid) -> list[str]:
 
 def _option_global(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: dict) -> BoundOption:
     Kf, Kphi = ctx["K_f"], ctx["K_phi"]
+    if not math.isfinite(Kf.value):
+        raise _Skip(f"needs a Lipschitz constant K_f of f: {Kf.method}")
     eta = _add_up(alpha.alpha_upper, _mul_up(_add_up(Kf.value, Kphi.value), grid.delta))
+    kf_text = (f"K_f = {Kf.value:.6g} ≥ sup ‖J_f‖₂ over the box (known Lipschitz constant of "
+               "f; here rigorous from the CasADi model by interval evaluation)") if em.has_f \
+        else (f"K_f = {Kf.value:.6g}: the Lipschitz constant of f on the sampling box "
+              "declared by the user (for the learned components); δ is the covering radius "
+              "of the very nodes on which α was measured")
     return BoundOption(
         "global", eta,
         _common_assumptions(em, grid) + [
-            f"K_f = {Kf.value:.6g} ≥ sup ‖J_f‖₂ over the box (known Lipschitz constant of f; "
-            "here rigorous from the CasADi model by interval evaluation)",
+            kf_text,
             "K_φ = min(re-certified LipSDP, interval sup ‖J_φ‖₂ on the box)",
         ],
         {"alpha_upper": alpha.alpha_upper, "K_f": Kf.value, "K_phi": Kphi.value,
@@ -272,6 +337,9 @@ def _option_global(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: dict) ->
 
 def _option_anisotropic(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: dict
                         ) -> BoundOption:
+    if not em.has_f:
+        raise _Skip("needs interval enclosures of J_f on sub-boxes, i.e. a CasADi model of f; "
+                    f"system {em.system.name!r} is a {getattr(em.system, 'kind', '?')} system")
     t0 = time.perf_counter()
     counts = ctx["counts"]
 
@@ -305,19 +373,37 @@ def _option_second_order(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: di
     def red(mag, lo, hi):
         return mag  # (n, m, d)
 
-    D2, n = _interval_sup(em.D2_e, em.box, counts, red)
-    D = np.max(D2, axis=0)  # (m, d)
+    H = None
+    if not em.has_f:
+        decl = getattr(em.system, "declarations", None)
+        H = None if decl is None else decl.hessian
+        if H is None:
+            raise _Skip("needs a bound on the second derivatives of f: declare hessian (H) "
+                        f"(system {em.system.name!r} has no model)")
+        if float(getattr(grid, "offset", 0.0) or 0.0) > 0:
+            raise _Skip("the sample file's rows are off the regular nodes (offset "
+                        f"{grid.offset:.3g}); the interpolation bound needs values at the "
+                        "nodes (write the file with 17 significant digits)")
+        # |∂²_i e_k| ≤ |∂²_i f_k| + |∂²_i φ_k| ≤ H + sup |∂²_i φ_k|
+        D2p, n = _interval_sup(em.D2_phi, em.box, counts, red)
+        D = np.vectorize(lambda v: _add_up(H, v))(np.max(D2p, axis=0))
+    else:
+        D2, n = _interval_sup(em.D2_e, em.box, counts, red)
+        D = np.max(D2, axis=0)  # (m, d)
     g2 = np.array([_up(_up(g * g) / 8.0) for g in grid.gaps])  # exact /8, rounded anyway
     per = np.array([
         _add_up(*[_mul_up(D[k, i], g2[i]) for i in range(d)]) for k in range(m)
     ])
     term = _norm2_up(per)
     eta = _add_up(alpha.alpha_upper, term)
+    how = ("here rigorous from the CasADi model by interval evaluation of the diagonal "
+           f"Hessian of f − φ on {n} sub-boxes") if H is None else \
+        (f"declared by the user: |∂²f_k/∂z_i∂z_j| ≤ H = {H:.6g}; D = H + the interval sup of "
+         f"|∂²φ_k/∂z_i²| on {n} sub-boxes")
     return BoundOption(
         "second_order", eta,
         _common_assumptions(em, grid) + [
-            "f is C² on the box with |∂²f_k/∂z_i²| bounded (here rigorous from the CasADi model "
-            f"by interval evaluation of the diagonal Hessian of f − φ on {n} sub-boxes)",
+            f"f is C² on the box with |∂²f_k/∂z_i²| bounded ({how})",
             "multilinear interpolation over each grid cell (corners are grid nodes)",
         ],
         {"alpha_upper": alpha.alpha_upper, "D": D.tolist(), "gaps": grid.gaps.tolist(),
@@ -350,6 +436,9 @@ class BoundsResult:
     eta_sampled: float
     n_check: int
     seconds: dict = field(default_factory=dict)
+    skipped: dict = field(default_factory=dict)
+    declarations_check: dict | None = None
+    system_kind: str = "model"
 
     @property
     def eta(self) -> float:
@@ -358,6 +447,16 @@ class BoundsResult:
     @property
     def delta(self) -> float:
         return self.grid.delta
+
+    def _check_dict(self) -> dict:
+        if not math.isfinite(self.eta_sampled):
+            return {"eta_sampled": None, "points": 0, "passed": None,
+                    "note": "not available: f is known at the sample nodes only (no off-grid "
+                            "values to test the bound with)"}
+        return {"eta_sampled": self.eta_sampled, "points": self.n_check,
+                "note": "max ‖f − φ‖₂ at random off-grid points of the box (a test of "
+                        "the bound, not part of it)",
+                "passed": bool(all(self.eta_sampled <= o.eta for o in self.options.values()))}
 
     def to_dict(self) -> dict:
         """The content of ``bounds.json``."""
@@ -381,11 +480,11 @@ class BoundsResult:
             "bound_model": {"name": sel.name, "dynamics_model": self.model,
                             "assumptions": sel.assumptions},
             "options": {k: v.to_dict() for k, v in self.options.items()},
-            "check": {"eta_sampled": self.eta_sampled, "points": self.n_check,
-                      "note": "max ‖f − φ‖₂ at random off-grid points of the box (a test of "
-                              "the bound, not part of it)",
-                      "passed": bool(all(self.eta_sampled <= o.eta
-                                         for o in self.options.values()))},
+            "options_skipped": dict(self.skipped),
+            "system_kind": self.system_kind,
+            "K_f_source": self.K_f.extra.get("source", "interval"),
+            "declarations_check": self.declarations_check,
+            "check": self._check_dict(),
             "K_f_detail": self.K_f.to_dict(), "K_phi_detail": self.K_phi.to_dict(),
             "seconds": self.seconds,
         }
@@ -413,7 +512,20 @@ def compute_bounds(system, network: Network, grid: Grid, alpha: AlphaResult | No
     boxes, counts
         Sub-boxes for the interval bounds: about ``boxes`` in total, or ``counts`` per axis.
     check_points : int
-        Random off-grid points where ``‖f − φ‖₂`` is evaluated as a test of the bound.
+        Random off-grid points where ``‖f − φ‖₂`` is evaluated as a test of the bound
+        (not for a ``"samples"`` system: ``f`` is known at the nodes only).
+
+    Notes
+    -----
+    For a system without a model the options use what the user declared (``K_f`` for
+    ``global``, ``H`` for ``second_order``); an option that cannot be computed soundly is
+    skipped and its reason recorded (``skipped``, ``bounds.json["options_skipped"]``).
+
+    Raises
+    ------
+    ConfigError
+        No requested option can be computed (e.g. no model and no declared ``K_f`` or
+        ``H``), or ``select`` names a skipped option.
     """
     t_all = time.perf_counter()
     names = list(options or BOUND_OPTIONS)
@@ -441,30 +553,47 @@ def compute_bounds(system, network: Network, grid: Grid, alpha: AlphaResult | No
     t0 = time.perf_counter()
     ctx["K_phi"] = lipschitz_phi(em, counts=ctx["counts"], sample_points=nodes)
     seconds["K_phi"] = time.perf_counter() - t0
-    opts = {}
+    opts, skipped = {}, {}
     for nm in names:
         t0 = time.perf_counter()
-        opts[nm] = BOUND_OPTIONS[nm](em, grid, alpha, ctx)
+        try:
+            opts[nm] = BOUND_OPTIONS[nm](em, grid, alpha, ctx)
+        except _Skip as why:
+            skipped[nm] = str(why)
         seconds[nm] = time.perf_counter() - t0
+    if not opts:
+        raise ConfigError(
+            f"no sound bound on ‖f − φ‖ for system {system.name!r}: "
+            + "; ".join(f"{k}: {v}" for k, v in skipped.items())
+            + "; declare lipschitz (K_f) or hessian (H)"
+        )
+    if select != "best" and select in skipped:
+        raise ConfigError(f"bound option {select!r} is not available for system "
+                          f"{system.name!r}: {skipped[select]}; choose bound_model 'best'")
     selected = min(opts, key=lambda k: opts[k].eta) if select == "best" else select
     t0 = time.perf_counter()
     eta_s = _sampled_error(em, int(check_points), rng)
     seconds["check"] = time.perf_counter() - t0
     seconds["bounds"] = time.perf_counter() - t_all - seconds.get("alpha", 0.0)
+    meta = network.meta if isinstance(network.meta, dict) else {}
     return BoundsResult(system.name, em.model, em.comp, grid, alpha, ctx["K_f"], ctx["K_phi"],
-                        opts, selected, eta_s, int(check_points), seconds)
+                        opts, selected, eta_s, int(check_points), seconds, skipped,
+                        meta.get("declarations_check"), getattr(system, "kind", "model"))
 
 
 def _sampled_error(em: ErrorModel, n: int, rng: np.random.Generator) -> float:
     """max ‖f − φ‖₂ over random points of ``Z`` (for control-affine: random u in U, true f)."""
     s, best = em.system, 0.0
     nx = s.nx
+    if not getattr(s, "can_simulate", True):  # samples: f is known at the nodes only
+        return float("nan")
     for a in range(0, n, 1 << 16):
         k = min(1 << 16, n - a)
         z = rng.uniform(em.box[:, 0], em.box[:, 1], size=(k, em.d))
         if em.model == "control_affine":
             u = rng.uniform(s.input_box[:, 0], s.input_box[:, 1], size=(k, s.nu)) if s.nu \
                 else np.zeros((k, 0))
+            # a black box may model B only approximately: this is a test, not a bound
             B = np.asarray(em.network.meta.get("input_matrix", np.zeros((len(em.comp), s.nu))),
                            dtype=float).reshape(len(em.comp), s.nu)
             e = s.evaluate(z, u)[:, em.comp] - em.network.numpy(z) - u @ B.T

@@ -1,0 +1,510 @@
+r"""Condition (c) for an **unknown** f, proved from data and a declared second-derivative bound.
+
+METHOD.md §3 (c) needs an ellipse :math:`E = \{x^\top P x \le c_q\} \supseteq B_\varepsilon`
+on which :math:`V_q = x^\top P x` decreases along the *true* closed loop
+:math:`g(x) = f(x, \kappa(x))`. With a model this is an interval check of the Jacobian
+(:func:`nlyap_opt.roa.certify_inner_ellipse`). Without one, :func:`prove_inner_ellipse_from_data`
+proves it for **every** ``f`` that agrees with the data and the user's declaration
+
+.. math:: f \in C^2(X \times U), \quad
+          |\partial^2 f_k / \partial z_i \partial z_j| \le H, \quad f(0, u_{eq}) = 0,
+
+(``z = (x, u)``), so that the certificate rests on that declaration instead of the paper's
+Assumption 3 (``B_ε`` in the LQR region of attraction).
+
+The proof
+---------
+1. **Jacobian at the equilibrium.** Central differences of the samples (or of the black
+   box) around :math:`z_{eq} = (0, u_{eq})` give :math:`\hat J = [\hat J_x\ \hat J_u]` with
+   :math:`|J(z_{eq}) - \hat J| \le E` entrywise
+   (:func:`systems.jacobian.jacobian_from_data`: Taylor with the Lagrange remainder,
+   :math:`H(a^2 + b^2)/(2(a + b))`, plus noise and rounding). For a sample file whose rows
+   are off the regular nodes (``offset > 0``) the declared Lipschitz constant adds
+   :math:`2 K_k\,\text{offset}/(a + b)`. Components known exactly (``system.known_rhs``)
+   are differentiated symbolically instead (no error but rounding).
+2. **Closed-loop linear part.** :math:`J_g(0) = J_x + J_u J_\kappa(0)`;
+   :math:`J_\kappa(0)` is enclosed by outward-rounded interval arithmetic on the
+   controller's CasADi graph, and :math:`G = \hat J_x + \hat J_u J_\kappa(0)` by an
+   outward-rounded interval matrix product; :math:`G` is its midpoint and
+   :math:`|J_g(0) - G| \le D = E_x + E_u |J_\kappa(0)| + \mathrm{rad}` entrywise.
+3. **Remainder.** :math:`g(x) = J_g(0)x + R(x)`,
+   :math:`R_k(x) = \int_0^1 (1 - s)\,D^2 g_k(sx)[x, x]\,ds`, and
+   :math:`D^2 g_k[v, v] = D^2 f_k[w, w] + \sum_j \partial_{u_j} f_k\, D^2\kappa_j[v, v]` with
+   :math:`w = (v, J_\kappa v)`. Bounds over the box :math:`[-\rho, \rho]^n \supseteq E`:
+   :math:`|D^2 f_k[w, w]| \le H \|w\|_1^2 \le H a^2 \|v\|^2` with
+   :math:`a = \sqrt n + \sum_j \sup\|\nabla\kappa_j\|_2` (:math:`a = \sqrt n` under a
+   declared control-affine ``B``: then :math:`\partial^2 f/\partial u\,\partial\cdot = 0`);
+   :math:`|\partial_{u_j} f_k(z)| \le |\hat J_{u,kj}| + E_{u,kj} + H\|z - z_{eq}\|_1`
+   (mean value theorem; exactly :math:`|B_{kj}|` under a declared ``B``);
+   :math:`|D^2\kappa_j[v, v]| \le \|\,|\nabla^2\kappa_j|\,\|_F \|v\|^2` from the interval
+   Hessian of the controller. So :math:`\|R(x)\|_2 \le \tfrac12 H_g \|x\|^2` with
+   :math:`H_g = \|(h_k)_k\|_2`; a known component uses the interval Hessian of its own
+   expression.
+4. **Decrease.** :math:`\dot V_q = x^\top(PJ_g(0) + J_g(0)^\top P)x + 2x^\top P R(x)`,
+   :math:`x^\top(PJ_g(0) + J_g(0)^\top P)x \le -\lambda\|x\|^2` with
+   :math:`\lambda = \lambda_{\min}(-(PG + G^\top P)) - 2\|P\|_2\|D\|_2` (Weyl), and on
+   :math:`E` (Cauchy–Schwarz in the ``P`` inner product)
+   :math:`2x^\top P R \le 2\|P^{1/2}x\|\,\|P^{1/2}\|_2\|R\| \le
+   \sqrt{c_q\lambda_{\max}(P)}\,H_g\|x\|^2`. So :math:`\dot V_q < 0` on
+   :math:`E \setminus \{0\}` when :math:`\lambda > \sqrt{c_q\lambda_{\max}(P)}\,H_g`; with
+   :math:`c_q = \lambda_{\max}(P)\varepsilon^2` (so :math:`B_\varepsilon \subseteq E`) that
+   is :math:`\lambda > \|P\|_2 H_g \varepsilon` — sharper by :math:`\sqrt{\mathrm{cond}(P)}`
+   than the ball form :math:`\lambda > \|P\|_2 H_g \rho` of METHOD.md, with
+   :math:`\rho = \sqrt{c_q / \lambda_{\min}(P)}` the radius of a ball containing ``E``.
+   The derivative bounds of step 3 are taken over :math:`[-\rho, \rho]^n \supseteq E`,
+   which must lie in ``X``, and :math:`\kappa` must map it into ``U`` (the declaration
+   holds on :math:`X \times U`).
+
+Rounding: every bound is computed upward (``nextafter`` after each step, relative
+allowances :math:`4(n + 2)u` on sums and products); matrix products in float64 carry the
+standard :math:`\gamma_n |A||B|` error term; eigenvalues of the symmetric matrices come from
+``numpy.linalg.eigvalsh`` widened by :math:`10^{-12}\|S\|_F` (LAPACK's backward error is a
+small multiple of :math:`n u \|S\|_2`) plus Weyl's bound for the rounding of ``S`` itself;
+interval enclosures of CasADi derivative graphs are widened by a relative :math:`2^{-30}`
+(constant folding, as in :mod:`nlyap_opt.interval_sup`); the final inequality is checked
+with a relative safety factor :math:`10^{-9}`.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from .errors import DimensionError
+from .network import Network
+
+__all__ = ["prove_inner_ellipse_from_data", "SAFETY"]
+
+#: relative safety factor of the final strict inequality λ > ‖P‖·H_g·ρ
+SAFETY = 1e-9
+_U = 2.0**-53
+_FOLD = 2.0**-30     # relative widening of interval enclosures of derivative graphs
+_EIG = 1e-12         # relative (to ‖S‖_F) allowance on eigvalsh
+_SMOOTH = ("tanh", "linear", "sigmoid")
+
+
+# ============================================================================ rounding helpers
+def _up(v):
+    """Round a non-negative array (or float) up past one to three roundings."""
+    v = np.asarray(v, dtype=float) * (1.0 + 8 * _U)
+    r = np.nextafter(np.nextafter(v, np.inf), np.inf)
+    return float(r) if np.ndim(r) == 0 else r
+
+
+def _down(v: float) -> float:
+    """Round a float down past one to three roundings (for a lower bound)."""
+    v = float(v)
+    v = v - abs(v) * 8 * _U
+    return float(np.nextafter(np.nextafter(v, -np.inf), -np.inf))
+
+
+def _fro_up(M) -> float:
+    """Upper bound of the Frobenius norm (hence of the spectral norm) of ``M``."""
+    M = np.abs(np.asarray(M, dtype=float))
+    s = float(np.sum(M * M)) * (1.0 + 2.0 * (M.size + 2) * _U)
+    return _up(np.sqrt(s))
+
+
+def _matmul_err(A, B) -> np.ndarray:
+    """Entrywise bound of ``|fl(A @ B) − A @ B|`` (recursive summation, any order)."""
+    k = np.asarray(A).shape[-1]
+    g = (k + 2) * _U / (1.0 - (k + 2) * _U)
+    return _up(g * (np.abs(A) @ np.abs(B))) + 1e-300
+
+
+def _pt_times_iv(A, L, U):
+    """Enclosure ``[lo, hi]`` of ``A @ X`` for every ``L ≤ X ≤ U`` (``A`` a point matrix)."""
+    A = np.asarray(A, dtype=float)
+    p1 = A[:, :, None] * L[None, :, :]
+    p2 = A[:, :, None] * U[None, :, :]
+    lo_t, hi_t = np.minimum(p1, p2), np.maximum(p1, p2)
+    k = A.shape[1]
+    g = 2.0 * (k + 2) * _U
+    mag = np.sum(np.maximum(np.abs(lo_t), np.abs(hi_t)), axis=1)
+    lo = np.sum(lo_t, axis=1) - g * mag - 1e-300
+    hi = np.sum(hi_t, axis=1) + g * mag + 1e-300
+    return np.nextafter(lo, -np.inf), np.nextafter(hi, np.inf)
+
+
+def _upper(v: float) -> float:
+    """Round a float of any sign up past one to three roundings (for an upper bound)."""
+    return -_down(-float(v))
+
+
+def _eig_bounds(S) -> tuple[float, float]:
+    """``(lower bound of λ_min, upper bound of λ_max)`` of a symmetric ``S``.
+
+    ``eigvalsh`` widened by ``1e-12·‖S‖_F`` (LAPACK's symmetric eigensolvers are backward
+    stable: each computed eigenvalue is within a small multiple of ``n·u·‖S‖₂`` of the true
+    one; the allowance covers that for any ``n`` up to thousands).
+    """
+    S = np.asarray(S, dtype=float)
+    lam = np.linalg.eigvalsh(S)
+    m = _up(_EIG * _fro_up(S)) + 1e-300
+    return _down(float(lam[0]) - m), _upper(float(lam[-1]) + m)
+
+
+def _smooth_expression(fun: ca.Function) -> bool:
+    """True when every operation of an SX Function is smooth and defined on all reals."""
+    from .walker import CHECKED_OPS
+
+    return not any(fun.instruction_id(k) in CHECKED_OPS for k in range(fun.n_instructions()))
+
+
+def _enclose(fun: ca.Function, lo, hi) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Dense outward enclosures ``(L, U)`` of every output of ``fun`` over the box [lo, hi]."""
+    from verification.interval import Interval, IntervalArithmetic
+
+    from .walker import evaluate
+
+    outs = evaluate(fun, [Interval(np.asarray(lo, float)[None], np.asarray(hi, float)[None])],
+                    IntervalArithmetic())
+    res = []
+    for j, o in enumerate(outs):
+        sp = fun.sparsity_out(j)
+        r, c = (np.asarray(v, dtype=np.intp) for v in sp.get_triplet())
+        L, U = np.zeros(sp.shape), np.zeros(sp.shape)
+        nnz = sp.nnz()  # a constant output may come without the batch axis: broadcast
+        ol = np.broadcast_to(np.asarray(o.lo, dtype=float), (1, nnz))[0]
+        oh = np.broadcast_to(np.asarray(o.hi, dtype=float), (1, nnz))[0]
+        ol = np.where(np.isnan(ol), -np.inf, ol)
+        oh = np.where(np.isnan(oh), np.inf, oh)
+        L[r, c] = np.nextafter(ol - np.abs(ol) * _FOLD, -np.inf)
+        U[r, c] = np.nextafter(oh + np.abs(oh) * _FOLD, np.inf)
+        res.append((L, U))
+    return res
+
+
+def _mag(L, U):
+    return np.maximum(np.abs(L), np.abs(U))
+
+
+# ============================================================================ the proof
+def _fail(status: str, n: int, **extra) -> dict:
+    out = {"status": status, "P": np.eye(n), "level": 0.0, "box": np.zeros(n),
+           "result": None, "proved_from": None}
+    out.update(extra)
+    return out
+
+
+def _controller_parts(system, controller):
+    """SX functions of the controller: κ, J_κ, the Hessians of each κ_j (stacked rows)."""
+    n, m = system.nx, system.nu
+    x = ca.SX.sym("x", n)
+    k = controller.casadi(x) if m else ca.SX(0, 1)
+    Jk = ca.jacobian(k, x) if m else ca.SX(0, n)
+    Hk = ca.vertcat(*[ca.hessian(k[j], x)[0] for j in range(m)]) if m else ca.SX(0, n)
+    return x, k, Jk, Hk
+
+
+def prove_inner_ellipse_from_data(system, controller: Network | None, inner: float, *,
+                                  jac=None, P=None) -> dict:
+    r"""Prove condition (c) for every ``f`` consistent with the data and the declared ``H``.
+
+    Parameters
+    ----------
+    system : systems.System
+        Any kind; ``system.declarations.hessian`` (``H``) must be declared (a
+        ``"model"`` system is treated as a black box: only its values are used).
+    controller : Network or None
+        ``κ`` (``C·tanh(Kx + b)`` or any network with smooth activations); ``None`` for an
+        autonomous system (``nu = 0``). ``κ(0) = u_eq`` must hold exactly.
+    inner : float
+        The radius ε of the inner ball ``B_ε ⊆ E``.
+    jac : systems.JacobianBound, optional
+        From :func:`systems.jacobian.jacobian_from_data` (computed when omitted).
+    P : (nx, nx) array_like, optional
+        The quadratic form; by default candidates solve
+        :math:`G^\top P + P G = -Q` for ``Q = I`` and ``I`` with one diagonal entry scaled
+        by 100 or 0.01 (as :func:`nlyap_opt.roa.certify_inner_ellipse`); the first one
+        that proves is returned.
+
+    Returns
+    -------
+    dict
+        The keys of :func:`nlyap_opt.roa.certify_inner_ellipse`: ``status``
+        (``"certified"``, or ``"not proved: …"`` / ``"not available: …"`` with the reason
+        and, where it helps, the radius that would work), ``P``, ``level`` (``c_q``),
+        ``box`` (half-widths of a box containing ``E``), ``result`` (``None``); and
+        ``proved_from`` (the assumptions the proof rests on, one sentence), ``assumptions``
+        (list), ``terms`` (every number of the inequality: ``lambda``, ``P_norm``,
+        ``H_g``, ``rho``, ``rho_max``, ``DeltaJ_norm``, ...), ``jacobian``
+        (``JacobianBound.to_dict()``).
+
+    Notes
+    -----
+    See the module docstring for the proof and its rounding. A declared ``H`` below the
+    truth gives a proof about the functions the declaration describes, not about the real
+    plant: :func:`systems.declarations.check_declarations` refuses an ``H`` that the samples
+    contradict (the dynamics stage runs it), but no check can confirm a declaration.
+    """
+    n, m = system.nx, system.nu
+    inner = float(inner)
+    if not (np.isfinite(inner) and inner > 0):
+        return _fail(f"not proved: the inner radius must be positive, got {inner}", n)
+    decl = getattr(system, "declarations", None)
+    H = None if decl is None else decl.hessian
+    if H is None:
+        return _fail("not available: condition (c) from data needs a declared second-"
+                     "derivative bound (declare hessian H); it rests on the paper's "
+                     "assumption otherwise", n)
+    H = float(H)
+    if m and controller is None:
+        return _fail("not proved: a system with inputs needs the controller κ", n)
+    if controller is not None:
+        if controller.n_in != n or controller.n_out != m:
+            raise DimensionError(
+                f"controller maps R^{controller.n_in} -> R^{controller.n_out}; system "
+                f"{system.name!r} needs R^{n} -> R^{m}")
+        acts = [layer.activation for layer in controller.layers]
+        if any(a not in _SMOOTH for a in acts) or controller.head is not None:
+            return _fail(f"not proved: the controller must be C² (activations {acts}; "
+                         f"smooth ones: {', '.join(_SMOOTH)})", n)
+    if jac is None:
+        from systems.jacobian import jacobian_from_data
+
+        jac = jacobian_from_data(system)
+    J_hat = np.asarray(jac.J, dtype=float)
+    E = np.asarray(jac.error, dtype=float)
+    if J_hat.shape != (n, n + m) or E.shape != (n, n + m):
+        raise DimensionError(f"jac.J and jac.error must have shape ({n}, {n + m}), got "
+                             f"{J_hat.shape} and {E.shape}")
+    if float(jac.hessian) != H:
+        return _fail(f"not proved: the Jacobian bound rests on H = {jac.hessian}, the system "
+                     f"declares H = {H}; recompute it (jacobian_from_data)", n)
+    assumptions = list(system.describe_assumptions()) if hasattr(
+        system, "describe_assumptions") else []
+    # sample rows off the regular nodes: the difference quotient sees f(row), not f(node)
+    smp = getattr(system, "samples", None)
+    offset = float(getattr(smp, "offset", 0.0) or 0.0) if getattr(
+        system, "kind", "") == "samples" else 0.0
+    if offset > 0:
+        K = None if decl.lipschitz is None else (
+            np.asarray(decl.lipschitz, dtype=float) if isinstance(decl.lipschitz, tuple)
+            else np.full(n, float(decl.lipschitz)))
+        if K is None:
+            return _fail(f"not proved: the sample file's rows are up to {offset:.3g} off the "
+                         "regular nodes; declare lipschitz (K_f) to bound what that does to "
+                         "the finite differences, or write the file with 17 digits", n)
+        steps = np.asarray(jac.steps, dtype=float)
+        width = np.sum(steps, axis=1) * (1 - 4 * _U)
+        for i in range(n + m):
+            if width[i] > 0:
+                E[:, i] = _up(E[:, i] + _up(2.0 * K * offset / width[i]))
+
+    # ---- the controller: κ(0) = u_eq exactly, J_κ(0) enclosed
+    x, ksym, Jk, Hk = _controller_parts(system, controller)
+    F0 = ca.Function("k0", [x], [ca.densify(ksym), ca.densify(Jk)])
+    zero = np.zeros(n)
+    (k0L, k0U), (JK0L, JK0U) = _enclose(F0, zero, zero) if m else (
+        (np.zeros((0, 1)), np.zeros((0, 1))), (np.zeros((0, n)), np.zeros((0, n))))
+    if m:
+        k0 = np.asarray(controller.numpy(zero[None]), dtype=float).ravel()
+        exact = _kappa0_exact(controller, system.u_eq)
+        if not exact:
+            dev = float(np.max(np.abs(k0 - system.u_eq)))
+            return _fail(
+                f"not proved: κ(0) = {k0.tolist()} equals u_eq = {system.u_eq.tolist()} only "
+                f"up to rounding (|κ(0) − u_eq| ≈ {dev:.2g}); the true closed loop's "
+                "equilibrium is then not exactly x = 0 (use u_eq = 0 with a zero controller "
+                "bias, or a controller u_eq − Kx)", n)
+
+    # ---- closed-loop linear part G and its error D (learned rows from data)
+    known = {int(i): e for i, e in (system.known_rhs.items() if hasattr(system, "known_rhs")
+                                     else {}.items())}
+    Jx, Ju = J_hat[:, :n], J_hat[:, n:]
+    Ex, Eu = E[:, :n], E[:, n:]
+    if m:
+        pl, ph = _pt_times_iv(Ju, JK0L, JK0U)
+        GL = np.nextafter(Jx + pl - np.abs(Jx + pl) * 2 * _U, -np.inf)
+        GU = np.nextafter(Jx + ph + np.abs(Jx + ph) * 2 * _U, np.inf)
+        D = _up(Ex + _up(Eu @ _mag(JK0L, JK0U)) + _matmul_err(Eu, _mag(JK0L, JK0U)))
+    else:
+        GL, GU, D = Jx.copy(), Jx.copy(), _up(Ex)
+    # known components: exact symbolic derivatives of g_k(x) = known_k(x, κ(x))
+    known_parts = {}
+    if known:  # only smooth, total expressions (a jump has CasADi derivative 0: PITFALLS P9)
+        smooth = {}
+        for i, e in known.items():
+            e = ca.SX(e)
+            if _smooth_expression(ca.Function("e", [system.x, system.u], [e])):
+                smooth[i] = e
+        known = smooth
+    if known:
+        gk = ca.vertcat(*[ca.substitute(e, ca.vertcat(system.x, system.u),
+                                        ca.vertcat(x, ksym)) for e in known.values()])
+        Jg = ca.jacobian(gk, x)
+        Fk0 = ca.Function("gk0", [x], [ca.densify(Jg)])
+        (KL, KU), = _enclose(Fk0, zero, zero)
+        Hg_rows = ca.vertcat(*[ca.densify(ca.hessian(gk[r], x)[0]) for r in range(gk.shape[0])])
+        known_parts = {"rows": list(known), "Hfun": ca.Function("gkH", [x], [Hg_rows])}
+        for r, i in enumerate(known):
+            GL[i], GU[i] = KL[r], KU[r]
+            D[i] = 0.0
+    G = 0.5 * (GL + GU)
+    D = _up(D + np.maximum(G - GL, GU - G))
+    D_norm = _fro_up(D)
+    if not np.all(np.isfinite(G)) or not np.all(np.isfinite(D)):
+        return _fail("not proved: the closed-loop Jacobian enclosure is not finite", n)
+    if np.max(np.linalg.eigvals(G).real) >= 0:
+        return _fail(f"not proved: the estimated closed-loop Jacobian Ĵ_g is not Hurwitz "
+                     f"(eigenvalues {np.round(np.linalg.eigvals(G), 6).tolist()})", n,
+                     terms={"G": G.tolist(), "D": D.tolist()})
+
+    if P is not None:
+        candidates = [np.asarray(P, dtype=float)]
+    else:
+        from .control import lyapunov_matrix
+
+        weights = [np.ones(n)]
+        for i in range(n):
+            for f in (100.0, 0.01):
+                w = np.ones(n)
+                w[i] = f
+                weights.append(w)
+        candidates = [lyapunov_matrix(G, np.diag(w)) for w in weights]
+    ctx = {"system": system, "controller": controller, "x": x, "Jk": Jk, "Hk": Hk,
+           "k": ksym, "H": H, "G": G, "D": D, "D_norm": D_norm, "J_hat": J_hat, "E": E,
+           "known": known_parts, "inner": inner}
+    best = None
+    for Pc in candidates:
+        out = _check(Pc, ctx)
+        if out["status"] == "certified":
+            best = out
+            break
+        if best is None or out["terms"].get("inner_max", 0.0) > \
+                best["terms"].get("inner_max", 0.0):
+            best = out
+    B_declared = decl.input_matrix is not None and m > 0
+    best["proved_from"] = (
+        f"samples and the declared second-derivative bound H = {H:.6g}"
+        + (" and the declared input matrix B" if B_declared else "")
+        + (f" and the declared Lipschitz constant (sample offset {offset:.3g})"
+           if offset > 0 else "")
+        + f" (f(0, u_eq) = 0 declared; Jacobian from {jac.source})")
+    best["assumptions"] = assumptions
+    best["jacobian"] = jac.to_dict()
+    best["inner"] = inner
+    return best
+
+
+def _kappa0_exact(controller: Network, u_eq) -> bool:
+    """True when the real-valued ``κ(0)`` provably equals ``u_eq``.
+
+    Exact cases: ``u_eq = 0`` with every bias zero and every activation mapping 0 to 0
+    (tanh, linear); or one linear layer with output scale 1 and bias ``u_eq``. Otherwise
+    ``κ(0) = C·tanh(b)`` equals ``u_eq`` only up to rounding, and the true closed loop's
+    equilibrium is not exactly 0.
+    """
+    u_eq = np.asarray(u_eq, dtype=float).ravel()
+    layers = controller.layers
+    scale = np.broadcast_to(controller.output_scale, (controller.n_out,))
+    if np.all(u_eq == 0) and all(np.all(layer.bias == 0) and layer.activation in
+                                 ("tanh", "linear") for layer in layers):
+        return True
+    if len(layers) == 1 and layers[0].activation == "linear" and np.all(scale == 1.0):
+        return bool(np.array_equal(layers[0].bias, u_eq))
+    return False
+
+
+def _check(P, ctx) -> dict:
+    """The inequality of step 4 for one ``P``."""
+    system = ctx["system"]
+    n, m = system.nx, system.nu
+    H, G, D_norm = ctx["H"], ctx["G"], ctx["D_norm"]
+    P = np.asarray(P, dtype=float)
+    if P.shape != (n, n) or not np.all(np.isfinite(P)):
+        raise DimensionError(f"P must be a finite ({n}, {n}) matrix, got shape {P.shape}")
+    P = np.triu(P) + np.triu(P, 1).T  # exactly symmetric
+    pmin, pmax = _eig_bounds(P)
+    terms: dict = {"G": G.tolist(), "D": ctx["D"].tolist(), "DeltaJ_norm": D_norm}
+    if not pmin > 0:
+        return {"status": "not proved: P is not positive definite", "P": P, "level": 0.0,
+                "box": np.zeros(n), "result": None, "terms": terms}
+    P_norm = pmax
+    eps = ctx["inner"]
+    c_q = _up(pmax * _up(eps * eps))
+    rho = _up(np.sqrt(_up(c_q / pmin)))
+    terms.update({"P_norm": P_norm, "lambda_min_P": pmin, "rho": rho, "level": c_q})
+    box = np.full(n, rho)
+    # λ = λ_min(−(PG + GᵀP)) − ‖S − fl(S)‖ − 2‖P‖‖D‖
+    PG = P @ G
+    S = -(PG + PG.T)
+    s_err = _fro_up(2.0 * _matmul_err(P, G) + _up(np.abs(S) * _U))
+    s_min, _ = _eig_bounds(S)
+    lam = _down(s_min - _up(s_err + _up(2.0 * P_norm * D_norm)))
+    terms.update({"lambda_S": s_min, "lambda": lam})
+    out = {"P": P, "level": c_q, "box": box, "result": None, "terms": terms}
+    if not lam > 0:
+        out["status"] = (
+            f"not proved: the linear part is not certified: λ_min(−(PĴ_g + Ĵ_gᵀP)) = "
+            f"{s_min:.4g} does not exceed 2‖P‖‖ΔJ‖ = {2 * P_norm * D_norm:.4g} (‖ΔJ‖ ≤ "
+            f"{D_norm:.3g} from the finite-difference error with H = {H:.4g}); sample more "
+            "finely around the equilibrium or declare a smaller (true) H")
+        terms["inner_max"] = terms["rho_max"] = 0.0
+        return out
+    # E inside the sampling box: states, and κ(E's box) inside U
+    X = np.asarray(system.state_box, dtype=float)
+    if np.any(-rho < X[:, 0]) or np.any(rho > X[:, 1]):
+        out["status"] = (f"not proved: the ellipse's box [−{rho:.4g}, {rho:.4g}]^{n} leaves the "
+                         f"state box {X.tolist()} on which H is declared; use a smaller inner "
+                         "radius")
+        terms["inner_max"] = terms["rho_max"] = 0.0
+        return out
+    lo, hi = -box, box
+    if m:
+        F = ca.Function("kb", [ctx["x"]], [ca.densify(ctx["k"]), ca.densify(ctx["Jk"]),
+                                           ca.densify(ctx["Hk"])])
+        (kL, kU), (JL, JU), (HL, HU) = _enclose(F, lo, hi)
+        Ubox = np.asarray(system.input_box, dtype=float)
+        if np.any(kL[:, 0] < Ubox[:, 0]) or np.any(kU[:, 0] > Ubox[:, 1]):
+            out["status"] = (f"not proved: κ on the ellipse's box ranges over "
+                             f"{np.stack([kL[:, 0], kU[:, 0]], 1).tolist()}, not inside the "
+                             f"input box {Ubox.tolist()} on which H is declared")
+            terms["inner_max"] = terms["rho_max"] = 0.0
+            return out
+        Jmag = _mag(JL, JU)                               # (m, n)
+        c2 = np.array([_fro_up(_mag(HL[j * n:(j + 1) * n], HU[j * n:(j + 1) * n]))
+                       for j in range(m)])                # |D²κ_j[v,v]| ≤ c2_j ‖v‖²
+        dk = _mag(kL[:, 0] - system.u_eq, kU[:, 0] - system.u_eq)
+        decl = system.declarations
+        if decl.input_matrix is not None:                 # f = f0(x) + B u
+            a2 = float(n)
+            Fu = np.abs(decl.B)
+        else:
+            a = _up(np.sqrt(n) * (1 + 4 * _U) + _up(np.sum([_fro_up(r) for r in Jmag])))
+            a2 = _up(a * a)
+            r1 = _up(_up(np.sqrt(n) * rho) + _up(np.sum(dk)))
+            Fu = _up(np.abs(ctx["J_hat"][:, n:]) + ctx["E"][:, n:] + _up(H * r1))
+            if decl.lipschitz is not None:                # |∂f_k/∂u_j| ≤ ‖row k of J‖ ≤ K_k
+                K = np.asarray(decl.lipschitz, dtype=float) if isinstance(
+                    decl.lipschitz, tuple) else np.full(n, float(decl.lipschitz))
+                Fu = np.minimum(Fu, K[:, None])
+        h = _up(_up(H * a2) + _up(Fu @ c2) + _matmul_err(Fu, c2[:, None])[:, 0])
+        terms.update({"kappa_range": np.stack([kL[:, 0], kU[:, 0]], 1).tolist(),
+                      "kappa_hessian_bound": c2.tolist(), "a_squared": a2})
+    else:
+        h = np.full(n, _up(H * float(n)))
+    known = ctx["known"]
+    if known:
+        (KHL, KHU), = _enclose(known["Hfun"], lo, hi)
+        for r, i in enumerate(known["rows"]):
+            h[i] = _fro_up(_mag(KHL[r * n:(r + 1) * n], KHU[r * n:(r + 1) * n]))
+    H_g = _fro_up(h)
+    # 2xᵀPR ≤ 2‖P^½x‖‖P^½‖‖R‖ ≤ sqrt(c_q λ_max(P))·H_g·‖x‖² on E
+    need = _up(_up(np.sqrt(_up(pmax * c_q))) * H_g)
+    inner_max = lam / _up(P_norm * H_g) if H_g > 0 else np.inf
+    rho_max = inner_max * np.sqrt(pmax / pmin)  # the radius of E at ε = inner_max
+    terms.update({"H": H, "h": np.asarray(h).tolist(), "H_g": H_g,
+                  "remainder_coefficient": need, "inner_max": float(inner_max),
+                  "rho_max": float(rho_max)})
+    if lam > need * (1.0 + SAFETY):
+        out["status"] = "certified"
+        return out
+    out["status"] = (
+        f"not proved: the decrease λ‖x‖² (λ = {lam:.4g}) beats the remainder "
+        f"2xᵀPR(x) ≤ sqrt(λ_max(P)·c_q)·H_g·‖x‖² (‖P‖ = {P_norm:.4g}, H_g = {H_g:.4g}) only "
+        f"for a level c_q = λ_max(P)·ε² with ε < {inner_max:.4g}: needs ρ ≤ {rho_max:.4g} "
+        f"(radius of E), but E ⊇ B_ε reaches ρ = {rho:.4g} at ε = {eps:.4g}; use an inner "
+        f"radius ε ≤ {inner_max:.4g} or declare a smaller (true) H")
+    return out

@@ -3,11 +3,13 @@
 Clusters bind to 127.0.0.1, have no dashboard and are closed by the test that starts them.
 """
 
+import json
 import os
 import socket
 import subprocess
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import casadi as ca
@@ -241,3 +243,92 @@ def test_existing_cluster_scheduler_and_two_worker_processes(tmp_path):
                 p.kill()
                 p.wait(timeout=10)
         logs.close()
+
+
+# ----------------------------------------------------------------------------- portfolio
+def _fast_vdp():
+    from nlyap_opt.configs import get_config
+
+    return get_config("van_der_pol", "fast")
+
+
+@pytest.mark.parametrize("seeds, match", [
+    (0, "seeds must be >= 1"), ([], "seeds must be a count"), ([1, -2], "seeds must be"),
+    ([0, 0], "distinct"), (True, "seeds must be"), ("3", "seeds must be"),
+])
+def test_portfolio_bad_seeds(tmp_path, seeds, match):
+    from nlyap_opt.portfolio import run_portfolio
+
+    with pytest.raises(ConfigError, match=match):
+        run_portfolio("van_der_pol", _fast_vdp(), tmp_path, seeds=seeds, workers=1)
+    assert not list(tmp_path.iterdir())  # nothing started
+
+
+def test_seed_config_sets_both_training_seeds():
+    from nlyap_opt.portfolio import seed_config
+
+    cfg = _fast_vdp()
+    c3 = seed_config(cfg, 3)
+    assert c3["train"]["seed"] == c3["cegis"]["seed"] == 3
+    assert "seed" not in cfg["train"] or cfg["train"]["seed"] != 3  # the input is untouched
+    assert {k: v for k, v in c3.items() if k not in ("train", "cegis")} == \
+        {k: v for k, v in cfg.items() if k not in ("train", "cegis")}
+
+
+def test_two_seed_portfolio_keeps_the_largest_certified_area(client, tmp_path):
+    """2 seeds of the fast Van der Pol preset (true f) on the 2-worker cluster, then the
+    same seeds on 1 worker: the same candidates, bit for bit, and the same choice."""
+    from nlyap_opt.portfolio import run_portfolio
+
+    cfg = _fast_vdp()
+    lines = []
+    res = run_portfolio("van_der_pol", cfg, tmp_path / "w2", seeds=[0, 1],
+                        scheduler=client.scheduler.address, known_dynamics=True,
+                        log=lines.append)
+    assert [r.seed for r in res.runs] == [0, 1] and res.workers == 2
+    certified = [r for r in res.runs if r.certified]
+    assert certified, res.runs
+    top = max(r.certified_area for r in certified)
+    assert res.best.certified_area == top
+    assert res.best.seed == min(r.seed for r in certified if r.certified_area == top)
+    for r in res.runs:  # each seed is a full pipeline run of its own, with its seed
+        summary = json.loads((tmp_path / "w2" / r.dir / "certificate.json").read_text())
+        assert summary["status"] == r.status
+        if r.certified:
+            assert summary["level"] == r.level and summary["certified_area"] == r.certified_area
+    v = [json.loads((tmp_path / "w2" / r.dir / "V.json").read_text()) for r in res.runs]
+    assert v[0] != v[1]  # the seeds train different V
+    # the files
+    pj = json.loads((tmp_path / "w2" / "portfolio.json").read_text())
+    assert pj["best"]["seed"] == res.best.seed and len(pj["runs"]) == 2
+    md = (tmp_path / "w2" / "portfolio.md").read_text()
+    assert md.count("| 0") + md.count("| 1") >= 2 and "(best)" in md
+    best = tmp_path / "w2" / "best"
+    assert best.is_symlink() and (best / "certificate.json").exists()
+    assert any("best: seed" in m for m in lines)
+    # 1 worker (a local cluster started by the call): the same result
+    one = run_portfolio("van_der_pol", cfg, tmp_path / "w1", seeds=[0, 1], workers=1,
+                        known_dynamics=True, log=lambda m: None)
+    assert one.workers == 1 and one.best.seed == res.best.seed
+    def strip(runs):
+        return [{k: v for k, v in asdict(r).items() if k != "seconds"} for r in runs]
+
+    assert strip(one.runs) == strip(res.runs)
+
+
+def test_learned_dynamics_are_learned_once_and_shared(client, tmp_path):
+    from nlyap_opt.portfolio import run_portfolio
+
+    res = run_portfolio("van_der_pol", _fast_vdp(), tmp_path, seeds=[2, 0],
+                        scheduler=client.scheduler.address, log=lambda m: None)
+    assert res.shared_dynamics == "seed_2"
+    first, other = tmp_path / "seed_2", tmp_path / "seed_0"
+    assert "[dynamics] learning" in (first / "run.log").read_text()
+    log0 = (other / "run.log").read_text()
+    assert "[dynamics] loaded from" in log0 and "[dynamics] learning" not in log0
+    stages = [json.loads((d / "stages.json").read_text())["dynamics"] for d in (first, other)]
+    assert stages[0] == stages[1]
+    for name in stages[0]["files"]:
+        assert (first / name).read_bytes() == (other / name).read_bytes()
+    assert [r.seed for r in res.runs] == [2, 0]
+    assert json.loads((tmp_path / "portfolio.json").read_text())["setting"] == "learned"

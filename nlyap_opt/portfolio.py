@@ -1,0 +1,381 @@
+r"""A multi-seed portfolio: K seeded candidates trained in parallel on Dask, the best one kept.
+
+:func:`run_portfolio` runs :func:`nlyap_opt.pipeline.run` once per seed ``k`` into
+``OUT/seed_k`` (the seed replaces ``train.seed`` and ``cegis.seed``: the initial V and κ,
+the samples and the counterexample search), each as one task on a Dask cluster
+(:func:`nlyap_opt.parallel.dask_client`: a local cluster started and stopped here, or an
+existing one by its address). Every candidate is certified by the pipeline's own
+certificate stage; the portfolio keeps the certified candidate with the largest certified
+area (ties: the lowest seed). Training is deterministic (step budgets, fixed torch threads),
+so the same seeds give the same candidates, and the same choice, on any number of workers.
+
+The learned dynamics do not depend on the seed: the first seed's run learns φ, and as soon
+as its ``dynamics`` stage is recorded, its files and their ``stages.json`` entry are copied
+into the other seed directories, whose runs then load that stage (the pipeline accepts it
+because the file hashes match) instead of learning φ again.
+
+Written into ``OUT``: ``portfolio.json`` and ``portfolio.md`` (every seed: status, level,
+certified area, share of the true ROA, seconds) and ``best``, a link to the chosen seed's
+directory (its ``certificate.json`` re-checks with ``nlyap verify --certificate``).
+
+With an existing cluster, ``OUT`` must be a directory that the workers and this process
+share (the runs write there) and the workers must have this package installed.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from .certificate import sha256_file, write_json_atomic
+from .errors import ConfigError
+from .parallel import client_workers, dask_client
+
+__all__ = ["run_portfolio", "PortfolioResult", "SeedRun", "seed_config"]
+
+_POLL = 0.5  # seconds between looks for the first seed's finished dynamics stage
+
+
+@dataclass
+class SeedRun:
+    """One candidate of a portfolio.
+
+    Attributes
+    ----------
+    seed : int
+    status : str
+        The pipeline's status (``"certified"``, ``"not certified"``, ...) or ``"skipped"``.
+    certified : bool
+    level : float or None
+        The certified sublevel value.
+    certified_area : float
+        Certified area on the evaluation grid (0 when not certified).
+    share : float or None
+        Certified area as a share of the simulated true ROA.
+    seconds : float
+        Wall-clock seconds of this seed's run (on its worker).
+    dir : str
+        The run's directory, relative to the portfolio's.
+    reason : str
+    """
+
+    seed: int
+    status: str
+    certified: bool
+    level: float | None
+    certified_area: float
+    share: float | None
+    seconds: float
+    dir: str
+    reason: str = ""
+
+
+@dataclass
+class PortfolioResult:
+    """Result of :func:`run_portfolio`.
+
+    Attributes
+    ----------
+    runs : list of SeedRun
+        Every seed, in the order given.
+    best : SeedRun or None
+        The certified run with the largest certified area (ties: lowest seed); ``None`` if
+        no seed certified.
+    out : Path
+    workers : int
+        Workers of the cluster that ran it.
+    seconds : float
+        Wall-clock seconds of the whole portfolio.
+    """
+
+    runs: list[SeedRun]
+    best: SeedRun | None
+    out: Path
+    workers: int
+    seconds: float
+    system: str = ""
+    known_dynamics: bool = False
+    shared_dynamics: str | None = field(default=None)
+
+    @property
+    def certified(self) -> bool:
+        return self.best is not None
+
+    def to_dict(self) -> dict:
+        return {
+            "format": "nlyap-portfolio", "version": 1, "system": self.system,
+            "setting": "known" if self.known_dynamics else "learned",
+            "seeds": [r.seed for r in self.runs],
+            "best": None if self.best is None else {
+                "seed": self.best.seed, "dir": self.best.dir,
+                "certificate": f"{self.best.dir}/certificate.json",
+                "report": f"{self.best.dir}/report.md"},
+            "rule": "largest certified area among certified seeds; ties: lowest seed",
+            "shared_dynamics": self.shared_dynamics,
+            "workers": self.workers, "seconds": self.seconds,
+            "runs": [asdict(r) for r in self.runs],
+        }
+
+
+def seed_config(cfg: dict, seed: int) -> dict:
+    """A copy of the run configuration ``cfg`` with ``train.seed = cegis.seed = seed``."""
+    out = copy.deepcopy(cfg)
+    for section in ("train", "cegis"):
+        sec = out.get(section)
+        out[section] = dict(sec) if isinstance(sec, dict) else {}
+        out[section]["seed"] = int(seed)
+    return out
+
+
+def _check_seeds(seeds) -> list[int]:
+    if isinstance(seeds, bool):
+        seeds = None
+    if isinstance(seeds, int):
+        if seeds < 1:
+            raise ConfigError(f"seeds must be >= 1 (the number of candidates), got {seeds}; "
+                              "pass e.g. seeds=4 or a list of seeds")
+        return list(range(seeds))
+    try:
+        out = list(seeds)
+    except TypeError:
+        out = None
+    if (not out or any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in out)):
+        raise ConfigError(f"seeds must be a count >= 1 or a list of integers >= 0, got "
+                          f"{seeds!r}; pass e.g. seeds=4 or seeds=[0, 3, 7]")
+    if len(set(out)) != len(out):
+        raise ConfigError(f"seeds must be distinct, got {out}; drop the repeated ones")
+    return out
+
+
+def _run_seed(system: str, cfg: dict, out: str, known_dynamics: bool) -> dict:
+    """Worker side: one pipeline run, its log in ``out/run.log``; a plain summary back."""
+    from .pipeline import run
+
+    t = time.perf_counter()
+    Path(out).mkdir(parents=True, exist_ok=True)
+    with open(Path(out) / "run.log", "a", encoding="utf-8") as fh:
+        def log(msg):
+            fh.write(f"{msg}\n")
+            fh.flush()
+
+        res = run(system, cfg, out, known_dynamics=known_dynamics, log=log)
+    s = res.summary or {}
+    share = s.get("fraction_of_true_roa")
+    return {"status": str(getattr(res.status, "value", res.status)),
+            "certified": bool(res.certified),
+            "level": float(s["level"]) if res.certified and s.get("level") is not None
+            else None,
+            "certified_area": float(s.get("certified_area") or 0.0) if res.certified else 0.0,
+            "share": None if share is None or not res.certified else float(share),
+            "seconds": time.perf_counter() - t, "reason": str(res.reason or ""),
+            "stage": s.get("stage")}
+
+
+def _dynamics_record(run_dir: Path) -> dict | None:
+    """The finished ``dynamics`` entry of ``run_dir/stages.json`` whose files match it."""
+    try:
+        rec = json.loads((run_dir / "stages.json").read_text()).get("dynamics")
+        if not rec or not rec.get("files"):
+            return None
+        for name, digest in rec["files"].items():
+            if sha256_file(run_dir / name) != digest:
+                return None
+    except (OSError, ValueError, AttributeError):
+        return None
+    return rec
+
+
+def _share_dynamics(src: Path, dst: Path, rec: dict) -> None:
+    """Copy the dynamics stage (files and ``stages.json`` entry) from ``src`` to ``dst``."""
+    dst.mkdir(parents=True, exist_ok=True)
+    for name in rec["files"]:
+        tmp = dst / f".{name}.copy"
+        shutil.copyfile(src / name, tmp)
+        tmp.replace(dst / name)
+    stages = {}
+    try:
+        stages = json.loads((dst / "stages.json").read_text())
+        stages = stages if isinstance(stages, dict) else {}
+    except (OSError, ValueError):
+        pass
+    stages["dynamics"] = rec
+    write_json_atomic(dst / "stages.json", stages)
+
+
+def _best(runs: list[SeedRun]) -> SeedRun | None:
+    ok = [r for r in runs if r.certified]
+    return min(ok, key=lambda r: (-r.certified_area, r.seed)) if ok else None
+
+
+def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
+                  workers: int | None = None, scheduler: str | None = None,
+                  known_dynamics: bool = False, log=print) -> PortfolioResult:
+    """Train and certify one candidate per seed in parallel; keep the best certified one.
+
+    Parameters
+    ----------
+    system : str or systems.System
+        A catalogue name (a ``System`` is sent by its name: it must be registered in the
+        worker processes too).
+    cfg : dict
+        A validated run configuration (:func:`nlyap_opt.configs.get_config`).
+    out : path
+        Portfolio directory; seed ``k`` runs in ``out/seed_k`` (an earlier portfolio's
+        directories are resumed stage by stage).
+    seeds : int or list of int
+        ``K`` (seeds ``0 … K−1``) or the seeds themselves (distinct, ≥ 0).
+    workers : int, optional
+        Worker processes of the local cluster (default: ``min(K, CPU cores)``); with
+        ``scheduler``, the workers to wait for.
+    scheduler : str, optional
+        ``tcp://HOST:PORT`` of an existing Dask cluster (never closed here).
+    known_dynamics : bool
+        Use the true f instead of learned φ (then there is no dynamics stage to share).
+    log : callable
+        Progress lines of the portfolio (each run's own log goes to ``seed_k/run.log``).
+
+    Returns
+    -------
+    PortfolioResult
+
+    Raises
+    ------
+    ConfigError
+        Bad ``seeds``, ``workers`` or ``scheduler``.
+
+    Examples
+    --------
+    >>> from nlyap_opt.configs import get_config
+    >>> res = run_portfolio("van_der_pol", get_config("van_der_pol", "fast"),  # doctest: +SKIP
+    ...                     "runs/pf", seeds=4, workers=2, known_dynamics=True)
+    >>> res.best.seed, res.best.certified_area                               # doctest: +SKIP
+    """
+    seed_list = _check_seeds(seeds)
+    if not isinstance(cfg, dict):
+        raise ConfigError(f"cfg must be a run configuration dict, got {type(cfg).__name__}; "
+                          "use nlyap_opt.configs.get_config(system, preset)")
+    name = system if isinstance(system, str) else getattr(system, "name", None)
+    if not isinstance(name, str):
+        raise ConfigError(f"system must be a catalogue name or a systems.System, got "
+                          f"{system!r}")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"out {out} is a file; pass a directory (new or of a portfolio)")
+    out.mkdir(parents=True, exist_ok=True)
+    if workers is None and scheduler is None:
+        from .parallel import _cores
+
+        workers = max(1, min(len(seed_list), _cores()))
+    dirs = {s: out / f"seed_{s}" for s in seed_list}
+    t0 = time.perf_counter()
+    results: dict[int, dict] = {}
+    shared = None
+    with dask_client(workers=workers, scheduler=scheduler) as client:
+        n_workers = client_workers(client)
+        log(f"[portfolio] {name}: seeds {seed_list} on {n_workers} worker(s)")
+
+        def submit(s):
+            return client.submit(_run_seed, name, seed_config(cfg, s), str(dirs[s]),
+                                 known_dynamics, pure=False)
+
+        first, rest = seed_list[0], seed_list[1:]
+        futures = {first: submit(first)}
+        if known_dynamics:
+            futures.update({s: submit(s) for s in rest})
+        else:  # learn φ once: wait for the first seed's dynamics stage, then share it
+            rec = None
+            while rec is None and not futures[first].done():
+                rec = _dynamics_record(dirs[first])
+                if rec is None:
+                    time.sleep(_POLL)
+            rec = rec or _dynamics_record(dirs[first])
+            if rec is not None:
+                shared = f"seed_{first}"
+                for s in rest:
+                    _share_dynamics(dirs[first], dirs[s], rec)
+                log(f"[portfolio] dynamics learned once (seed {first}), shared with "
+                    f"{len(rest)} other seed(s)")
+                futures.update({s: submit(s) for s in rest})
+            else:
+                r0 = futures[first].result()  # raises the first seed's error, if any
+                reason = (f"not run: seed {first} stopped in the shared dynamics stage "
+                          f"({r0['status']}: {r0['reason']})")
+                for s in rest:
+                    results[s] = {"status": "skipped", "certified": False, "level": None,
+                                  "certified_area": 0.0, "share": None, "seconds": 0.0,
+                                  "reason": reason}
+        try:
+            for s, fut in futures.items():
+                results[s] = fut.result()
+                r = results[s]
+                log(f"[portfolio] seed {s}: {r['status']}"
+                    + (f", level {r['level']:.6g}, area {r['certified_area']:.4g}"
+                       if r["certified"] else f" ({r['reason']})")
+                    + f", {r['seconds']:.1f} s")
+        finally:
+            client.cancel([f for f in futures.values() if not f.done()])
+    runs = [SeedRun(seed=s, dir=dirs[s].name,
+                    **{k: v for k, v in results[s].items() if k != "stage"})
+            for s in seed_list]
+    res = PortfolioResult(runs, _best(runs), out, n_workers, time.perf_counter() - t0,
+                          system=name, known_dynamics=known_dynamics, shared_dynamics=shared)
+    _write(res)
+    if res.best is None:
+        log(f"[portfolio] no seed certified; see {out / 'portfolio.md'}")
+    else:
+        log(f"[portfolio] best: seed {res.best.seed} (certified area "
+            f"{res.best.certified_area:.4g}); see {out / 'portfolio.md'}")
+    return res
+
+
+def _write(res: PortfolioResult) -> None:
+    """``portfolio.json``, ``portfolio.md`` and the ``best`` link in ``res.out``."""
+    out = res.out
+    write_json_atomic(out / "portfolio.json", res.to_dict())
+
+    def num(v, fmt):
+        return "–" if v is None else format(v, fmt)
+
+    lines = [f"# Portfolio: {res.system} ({'true f' if res.known_dynamics else 'learned φ'})",
+             "",
+             f"{len(res.runs)} seeds on {res.workers} Dask worker(s), {res.seconds:.1f} s "
+             "wall-clock. Kept: the certified seed with the largest certified area "
+             "(ties: the lowest seed)."
+             + (f" The learned dynamics were computed once ({res.shared_dynamics}) and "
+                "shared." if res.shared_dynamics else ""),
+             "",
+             "| seed | status | level | certified area | share of true ROA | seconds | run |",
+             "|---|---|---|---|---|---|---|"]
+    for r in res.runs:
+        mark = " **(best)**" if res.best is not None and r.seed == res.best.seed else ""
+        status = r.status + ("" if r.certified or not r.reason else f" ({r.reason})")
+        lines.append(f"| {r.seed}{mark} | {status} | {num(r.level, '.6g')} | "
+                     f"{num(r.certified_area if r.certified else None, '.4g')} | "
+                     f"{num(None if r.share is None else 100 * r.share, '.1f')}"
+                     f"{'' if r.share is None else ' %'} | {r.seconds:.1f} | [{r.dir}]({r.dir}/) |")
+    lines.append("")
+    if res.best is None:
+        lines.append("No seed certified.")
+    else:
+        lines.append(f"Best certificate: [{res.best.dir}/certificate.json]"
+                     f"({res.best.dir}/certificate.json) (also `best/`), report "
+                     f"[{res.best.dir}/report.md]({res.best.dir}/report.md).")
+    tmp = out / ".portfolio.md.tmp"
+    tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    tmp.replace(out / "portfolio.md")
+    link = out / "best"
+    if link.is_symlink() or link.exists():
+        if link.is_symlink() or link.is_file():
+            link.unlink()
+        else:  # a real directory named best: leave it, the JSON points to the seed
+            return
+    if res.best is not None:
+        try:
+            os.symlink(res.best.dir, link, target_is_directory=True)
+        except OSError:  # no symlinks here (some filesystems): portfolio.json points to it
+            pass

@@ -23,6 +23,13 @@ configuration: :class:`nlyap_opt.dynamics_config.DynamicsConfig`):
   folded into the weights: the saved network is the verified object, and α is measured on
   it).
 
+Systems without a model (``system.has_model`` False, :mod:`systems.base`): a black-box
+callable is sampled on the configured grid like a model; a ``"samples"`` system's grid is
+its sample file's (:func:`make_grid`: the nodes and δ of the file, including its offset from
+the regular nodes), and α is measured on exactly those nodes. The data are ``f``'s values
+up to a declared ``sample_error`` (added to α̅); declarations the data contradict are
+refused before training (:func:`check_declared`).
+
 Two dynamics models:
 
 ``"full"``
@@ -31,7 +38,8 @@ Two dynamics models:
     lists the learned ones, :func:`nlyap_opt.symbolic.learned_rhs` completes the rest).
 ``"control_affine"``
     assumes :math:`f(x, u) = f_0(x) + B u` with a known constant input matrix ``B``
-    (the linearisation's, checked symbolically against the model in experiments); learns
+    (the linearisation's, checked symbolically against the model in experiments; for a
+    system without a model the *declared* ``input_matrix``); learns
     :math:`\varphi_0 \approx f_0` on a grid in **x-space** only and saves a network with input
     ``x`` and ``meta["model"] = "control_affine"``, ``meta["input_matrix"]`` (rows of ``B``
     for the learned components); :func:`nlyap_opt.symbolic.learned_rhs` builds

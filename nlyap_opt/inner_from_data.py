@@ -144,6 +144,28 @@ def _eig_bounds(S) -> tuple[float, float]:
     return _down(float(lam[0]) - m), _upper(float(lam[-1]) + m)
 
 
+def _ellipse_box(P, c) -> np.ndarray:
+    """Half-widths ``a`` with ``{xᵀPx ≤ c} ⊆ [−a, a]``: ``a_i² = c·(P⁻¹)_ii``, bounded upward.
+
+    ``(P⁻¹)_ii ≤ Y_ii + ‖Y‖_F r/(1 − r)`` for the float inverse ``Y`` and ``r ≥ ‖I − PY‖₂``
+    (Neumann series; ``r`` includes the rounding of ``PY``); ``inf`` if ``r ≥ 1/2``.
+    """
+    P = np.asarray(P, dtype=float)
+    n = P.shape[0]
+    try:
+        Y = np.linalg.inv(P)
+    except np.linalg.LinAlgError:
+        return np.full(n, np.inf)
+    r = _up(_fro_up(np.eye(n) - P @ Y) + _fro_up(_matmul_err(P, Y)))
+    if not r < 0.5:
+        return np.full(n, np.inf)
+    err = _up(_fro_up(Y) * _up(r / (1.0 - r) * (1 + 4 * _U)))
+    d = np.diag(Y) + err
+    if np.any(d <= 0):
+        return np.full(n, np.inf)
+    return _up(np.sqrt(_up(float(c) * _up(d))))
+
+
 def _smooth_expression(fun: ca.Function) -> bool:
     """True when every operation of an SX Function is smooth and defined on all reals."""
     from .walker import CHECKED_OPS
@@ -198,7 +220,10 @@ def _controller_parts(system, controller):
 
 
 def prove_inner_ellipse_from_data(system, controller: Network | None, inner: float, *,
-                                  jac=None, P=None) -> dict:
+                                  jac=None, P=None, dynamics: Network | None = None,
+                                  eta: float | None = None, eta_state_box=None,
+                                  eta_input_box=None, verify_options: dict | None = None
+                                  ) -> dict:
     r"""Prove condition (c) for every ``f`` consistent with the data and the declared ``H``.
 
     Parameters
@@ -218,6 +243,15 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
         :math:`G^\top P + P G = -Q` for ``Q = I`` and ``I`` with one diagonal entry scaled
         by 100 or 0.01 (as :func:`nlyap_opt.roa.certify_inner_ellipse`); the first one
         that proves is returned.
+    dynamics, eta : Network, float, optional
+        A learned ``φ`` with its bound ``‖f − φ‖₂ ≤ η`` (on ``eta_state_box`` ×
+        ``eta_input_box``, default the system's boxes). When the data alone prove (c) only
+        on a smaller ellipse ``E_s = {xᵀPx ≤ c_s}`` (the remainder term grows with the
+        radius), the rest ``c_s ≤ xᵀPx ≤ c_q`` is verified by the interval verifier on
+        ``2xᵀPφ(x, κ(x)) + η‖2Px‖₂ < 0`` (Cauchy–Schwarz: then ``2xᵀPf < 0``), with
+        ``κ(E) ⊆ U`` and ``E`` inside the box of η checked. Both parts use the same ``P``.
+    verify_options : dict, optional
+        Options of :func:`verification.verify` for that part.
 
     Returns
     -------
@@ -375,13 +409,32 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
         if best is None or out["terms"].get("inner_max", 0.0) > \
                 best["terms"].get("inner_max", 0.0):
             best = out
+    if best["status"] != "certified" and dynamics is not None and eta is not None:
+        first = None
+        for Pc in candidates:
+            ext = _extend_with_phi(Pc, ctx, dynamics, float(eta), eta_state_box,
+                                   eta_input_box, verify_options)
+            if ext is not None and ext["status"] == "certified":
+                best = ext
+                break
+            first = first or ext
+        else:
+            if first is not None:
+                best["phi_part"] = first.get("phi_part")
+                best["status"] += ("; with the learned φ on the rest: "
+                                   + first["status"].removeprefix("not proved: "))
+            else:
+                best["status"] += "; the learned φ cannot help (the linear part fails)"
     B_declared = decl.input_matrix is not None and m > 0
     best["proved_from"] = (
         f"samples and the declared second-derivative bound H = {H:.6g}"
         + (" and the declared input matrix B" if B_declared else "")
         + (f" and the declared Lipschitz constant (sample offset {offset:.3g})"
            if offset > 0 else "")
-        + f" (f(0, u_eq) = 0 declared; Jacobian from {jac.source})")
+        + f" (f(0, u_eq) = 0 declared; Jacobian from {jac.source})"
+        + (f"; outside the inner ellipse x'Px ≤ {best['phi_part']['inner_level']:.4g}: the "
+           f"learned φ with ‖f − φ‖ ≤ η = {best['phi_part']['eta']:.4g} (interval verifier)"
+           if best["status"] == "certified" and best.get("phi_part") else ""))
     best["assumptions"] = assumptions
     best["jacobian"] = jac.to_dict()
     best["inner"] = inner
@@ -426,7 +479,7 @@ def _check(P, ctx) -> dict:
     c_q = _up(pmax * _up(eps * eps))
     rho = _up(np.sqrt(_up(c_q / pmin)))
     terms.update({"P_norm": P_norm, "lambda_min_P": pmin, "rho": rho, "level": c_q})
-    box = np.full(n, rho)
+    box = np.minimum(_ellipse_box(P, c_q), rho)     # E ⊆ [−box, box]
     # λ = λ_min(−(PG + GᵀP)) − ‖S − fl(S)‖ − 2‖P‖‖D‖
     PG = P @ G
     S = -(PG + PG.T)
@@ -445,8 +498,8 @@ def _check(P, ctx) -> dict:
         return out
     # E inside the sampling box: states, and κ(E's box) inside U
     X = np.asarray(system.state_box, dtype=float)
-    if np.any(-rho < X[:, 0]) or np.any(rho > X[:, 1]):
-        out["status"] = (f"not proved: the ellipse's box [−{rho:.4g}, {rho:.4g}]^{n} leaves the "
+    if np.any(-box < X[:, 0]) or np.any(box > X[:, 1]):
+        out["status"] = (f"not proved: the ellipse's box ±{np.round(box, 4).tolist()} leaves the "
                          f"state box {X.tolist()} on which H is declared; use a smaller inner "
                          "radius")
         terms["inner_max"] = terms["rho_max"] = 0.0
@@ -507,4 +560,69 @@ def _check(P, ctx) -> dict:
         f"for a level c_q = λ_max(P)·ε² with ε < {inner_max:.4g}: needs ρ ≤ {rho_max:.4g} "
         f"(radius of E), but E ⊇ B_ε reaches ρ = {rho:.4g} at ε = {eps:.4g}; use an inner "
         f"radius ε ≤ {inner_max:.4g} or declare a smaller (true) H")
+    return out
+
+
+def _extend_with_phi(P, ctx, dynamics, eta, eta_state_box, eta_input_box, verify_options):
+    """The data proof on a small ellipse, the learned φ with η on the rest (same ``P``)."""
+    from verification import VerificationProblem, verify
+
+    from .bounds import check_input_range
+    from .errors import InputRangeError
+    from .symbolic import closed_loop
+
+    system, controller = ctx["system"], ctx["controller"]
+    if not (np.isfinite(eta) and eta >= 0):
+        return None
+    eps = ctx["inner"]
+    big = _check(P, ctx)
+    if not big["terms"].get("lambda", 0.0) > 0:
+        return None                              # the linear part fails: nothing to extend
+    # 1. the largest inner ellipse the data prove with this P (halving from ε)
+    eps_s, small = eps, None
+    for _ in range(60):
+        im = big["terms"].get("inner_max", 0.0) if small is None else \
+            small["terms"].get("inner_max", 0.0)
+        eps_s = min(0.5 * eps_s, 0.9 * im) if im > 0 else 0.5 * eps_s
+        small = _check(P, dict(ctx, inner=eps_s))
+        if small["status"] == "certified":
+            break
+        if not small["terms"].get("lambda", 0.0) > 0:
+            return None
+    else:
+        return None
+    P = big["P"]
+    c_s, c_q = float(small["level"]), float(big["level"])
+    a = np.asarray(big["box"], dtype=float)
+    box = np.stack([-a, a], axis=1)
+    phi_part = {"inner_level": c_s, "inner_radius": eps_s, "eta": eta, "level": c_q}
+    out = {"P": P, "level": c_q, "box": a, "result": None,
+           "terms": dict(big["terms"], inner_part=small["terms"]), "phi_part": phi_part}
+    X = np.asarray(system.state_box if eta_state_box is None else eta_state_box, dtype=float)
+    if np.any(box[:, 0] < X[:, 0]) or np.any(box[:, 1] > X[:, 1]):
+        out["status"] = (f"not proved: the ellipse's box ±{np.round(a, 4).tolist()} leaves the "
+                         f"box {X.tolist()} on which η holds; use a smaller inner radius")
+        return out
+    if system.nu:
+        Ubox = np.asarray(system.input_box if eta_input_box is None else eta_input_box,
+                          dtype=float)
+        try:
+            check_input_range(controller, box, Ubox)
+        except InputRangeError as exc:
+            out["status"] = f"not proved: {exc}"
+            return out
+    cl = closed_loop(system, controller, dynamics, strict=False)
+    x = cl.x
+    Px = ca.mtimes(ca.DM(P), x)
+    V = ca.dot(x, Px)
+    lie = 2.0 * ca.dot(Px, cl.rhs) + _up(eta) * ca.sqrt(ca.sumsqr(2.0 * Px))
+    prob = VerificationProblem(x, box, [c_s - V, V - c_q], [lie],
+                               ["outside the data-proved ellipse", "inside E"],
+                               ["2x'Pφ + η‖2Px‖ < 0"])
+    res = verify(prob, **(verify_options or {}))
+    out["result"] = res
+    phi_part["status"] = res.status
+    out["status"] = "certified" if res.status == "verified" else (
+        f"not proved: the data prove (c) for ε ≤ {eps_s:.4g} only, and the learned φ with η = "
+        f"{eta:.4g} leaves the rest {res.status}")
     return out

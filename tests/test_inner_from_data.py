@@ -204,3 +204,40 @@ def test_sample_offset_needs_a_declared_lipschitz_constant(pend, tmp_path):
     res = prove_inner_ellipse_from_data(with_k, kap, 0.003)
     assert res["status"] == "certified", res["status"]
     assert "Lipschitz" in res["proved_from"]
+
+
+# a plant whose learned component a tanh network represents exactly (η = 0 is a true bound)
+_A2, _D2, _B2 = 19.62, 9.33, 26.67
+
+
+def _tanh_plant(X, U):
+    return np.stack([X[:, 1], _A2 * np.tanh(X[:, 0]) - _D2 * np.tanh(X[:, 1]) + _B2 * U[:, 0]],
+                    axis=1)
+
+
+def test_the_learned_phi_with_eta_extends_the_data_proof_to_a_large_inner_radius():
+    s = systems.System.from_callable(
+        "tanh_plant", _tanh_plant, nx=2, nu=1, state_box=[[-4, 4], [-4, 4]],
+        input_box=[[-20, 20]], u_eq=[0.0], known_rhs={0: lambda x, u: x[1]},
+        declarations=systems.Declarations(hessian=16.0, input_matrix=[[0.0], [_B2]]))
+    s.check_declarations(Grid(s.sampling_box, [41, 41, 5]))   # H = 16 ≥ 19.62·4/(3√3)
+    phi = Network([Layer(np.eye(2), np.zeros(2), "tanh"),
+                   Layer(np.array([[_A2, -_D2]]), np.zeros(1), "linear")], 1.0,
+                  {"kind": "dynamics", "model": "control_affine", "learned_components": [1],
+                   "input_matrix": [[_B2]]})
+    kap = _lqr_controller(s, jacobian_from_data(s))
+    alone = prove_inner_ellipse_from_data(s, kap, 0.4)
+    assert alone["status"].startswith("not proved")
+    res = prove_inner_ellipse_from_data(s, kap, 0.4, dynamics=phi, eta=1e-12)
+    assert res["status"] == "certified", res["status"]
+    part = res["phi_part"]
+    assert part["status"] == "verified" and 0 < part["inner_level"] < res["level"]
+    assert "learned φ" in res["proved_from"] and "H = 16" in res["proved_from"]
+    assert res["level"] >= np.max(np.linalg.eigvalsh(res["P"])) * 0.4**2
+    assert _max_decrease(res, s.evaluate, kap.numpy) < 0
+    # a large η leaves the outer part unproved: said so, never certified
+    res = prove_inner_ellipse_from_data(s, kap, 0.4, dynamics=phi, eta=1.0)
+    assert res["status"].startswith("not proved") and "learned φ" in res["status"]
+    # an ellipse that leaves the box where H (and η) hold is refused
+    res = prove_inner_ellipse_from_data(s, kap, 1.0, dynamics=phi, eta=1e-12)
+    assert res["status"].startswith("not proved") and "leaves the" in res["status"]

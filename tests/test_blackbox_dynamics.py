@@ -185,3 +185,18 @@ def test_declared_sample_error_is_added_to_alpha(pend):
     res = learn_dynamics(noisy, FAST | {"model": "control_affine", "grid_counts": [11, 11],
                                         "steps": 20, "lm_iterations": 2})
     assert res.alpha.alpha_upper >= res.alpha.alpha + 0.01
+
+
+def test_stage_of_a_sample_file_saves_and_reloads(pend, tmp_path):
+    from nlyap_opt.network import Network
+
+    smp = _slice_samples(pend, [21, 21], tmp_path / "p.csv")
+    st = dynamics_stage(_from_samples(pend, smp), FAST | {"model": "control_affine"}, log=None)
+    net_path, b_path = st.save(tmp_path / "out")
+    net = Network.load(net_path)
+    assert net.meta["declarations_check"]["slope"] > 0
+    assert net.meta["grid"]["delta"] == smp.delta
+    d = json.loads(b_path.read_text())
+    assert d["delta"] == smp.delta and d["eta"] == st.eta and d["gate"]["status"] == "ok"
+    assert d["grid"]["box"] == smp.box[:2].tolist()
+    assert d["options_skipped"]["anisotropic"] and d["check"]["passed"] is None

@@ -20,7 +20,7 @@ from nlyap_opt.configs import get_config
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("systems", nargs="*", default=systems.names())
+    ap.add_argument("systems", nargs="*", default=list(systems.SEED_SYSTEMS))
     ap.add_argument("--preset", default="large")
     ap.add_argument("--out", default="runs/bench_compare")
     args = ap.parse_args(argv)

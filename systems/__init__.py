@@ -21,7 +21,13 @@ from collections.abc import Callable
 from nlyap_opt.errors import UnknownNameError
 
 from .base import ModelUnavailableError, System
-from .catalogue import inverted_pendulum, unicycle_path_following, van_der_pol
+from .catalogue import (
+    cartpole,
+    inverted_pendulum,
+    planar_quadrotor,
+    unicycle_path_following,
+    van_der_pol,
+)
 from .declarations import Declarations, check_declarations
 from .jacobian import JacobianBound, jacobian_from_data
 from .samples import SampleSet, load_samples, sample_function, save_samples
@@ -35,7 +41,13 @@ REGISTRY: dict[str, Callable[..., System]] = {
     "van_der_pol": van_der_pol,
     "unicycle_path_following": unicycle_path_following,
     "inverted_pendulum": inverted_pendulum,
+    "cartpole": cartpole,
+    "planar_quadrotor": planar_quadrotor,
 }
+
+#: the paper's 2-D seed systems: what the default test suite and benchmarks iterate over
+#: (the 4-D / 6-D catalogue systems have their own tests, ``tests/test_highdim.py``)
+SEED_SYSTEMS = ("van_der_pol", "unicycle_path_following", "inverted_pendulum")
 
 
 def register(name: str, factory: Callable[..., System]) -> None:

@@ -1,4 +1,9 @@
-"""The seed systems of the paper, with its default domains."""
+"""The catalogue: the seed systems of the paper (2-D) and higher-dimensional benchmarks.
+
+The seed systems (Van der Pol, path following, pendulum) come with the paper's default
+domains; :func:`cartpole` (4 states) and :func:`planar_quadrotor` (6 states) are the usual
+benchmarks of the neural-Lyapunov-control literature, with their published parameters.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +11,8 @@ import casadi as ca
 
 from .base import System
 
-__all__ = ["van_der_pol", "unicycle_path_following", "inverted_pendulum"]
+__all__ = ["van_der_pol", "unicycle_path_following", "inverted_pendulum", "cartpole",
+           "planar_quadrotor"]
 
 
 def van_der_pol(mu: float = 1.0) -> System:
@@ -71,4 +77,101 @@ def inverted_pendulum(m: float = 0.15, l: float = 0.5, g: float = 9.81, b: float
         state_names=["theta", "omega"], input_names=["torque"],
         description="inverted pendulum with friction",
         known_state_derivatives=(0,),
+    )
+
+
+def cartpole(M: float = 1.0, m: float = 0.1, l: float = 0.5, g: float = 9.8,  # noqa: E741
+             max_force: float = 10.0) -> System:
+    r"""Cart-pole (inverted pendulum on a cart), upright equilibrium at the origin.
+
+    States ``(p, v, θ, ω)``: cart position and velocity, pole angle from the upright (rad),
+    pole angular velocity; input: the horizontal force ``F`` on the cart. Frictionless
+    equations of Barto, Sutton & Anderson (1983), as in OpenAI Gym's ``CartPole``:
+
+    .. math::
+        \dot p = v, \qquad \dot\theta = \omega, \qquad
+        \dot\omega = \frac{g \sin\theta - \cos\theta\, h}
+                             {l \left(\tfrac43 - \tfrac{m \cos^2\theta}{M + m}\right)},
+        \qquad
+        \dot v = h - \frac{m l\, \dot\omega \cos\theta}{M + m},
+        \qquad h = \frac{F + m l \omega^2 \sin\theta}{M + m}.
+
+    Parameters (Barto, Sutton & Anderson, "Neuronlike adaptive elements that can solve
+    difficult learning control problems", IEEE Trans. SMC 13(5), 1983; the same values in
+    Gym's ``CartPole-v1``): cart mass ``M = 1.0`` kg, pole mass ``m = 0.1`` kg, pole
+    half-length ``l = 0.5`` m, ``g = 9.8`` m/s², force limit ``|F| ≤ 10`` N (Gym's
+    ``force_mag``). Equilibrium input ``u_eq = 0``.
+
+    Notes
+    -----
+    ``∂f/∂F`` depends on ``θ``: the system is control-affine with a state-dependent input
+    matrix, so the learned-dynamics model ``"control_affine"`` (constant ``B``) does not
+    apply; learn the ``"full"`` model of the unknown components ``v̇, ω̇``.
+    """
+    x = ca.SX.sym("x", 4)
+    u = ca.SX.sym("u", 1)
+    v, th, om = x[1], x[2], x[3]
+    total = M + m
+    h = (u[0] + m * l * om**2 * ca.sin(th)) / total
+    om_dot = (g * ca.sin(th) - ca.cos(th) * h) / (l * (4.0 / 3.0 - m * ca.cos(th) ** 2 / total))
+    v_dot = h - m * l * om_dot * ca.cos(th) / total
+    f = ca.vertcat(v, v_dot, om, om_dot)
+    return System(
+        "cartpole", x, u, f,
+        state_box=[[-1.0, 1.0], [-1.0, 1.0], [-1.0, 1.0], [-1.0, 1.0]],
+        input_box=[[-max_force, max_force]],
+        u_eq=[0.0],
+        params={"M": M, "m": m, "l": l, "g": g, "max_force": max_force},
+        state_names=["p", "v", "theta", "omega"], input_names=["force"],
+        description="cart-pole (Barto-Sutton-Anderson 1983), pole upright",
+        known_state_derivatives=(0, 2),
+    )
+
+
+def planar_quadrotor(m: float = 0.486, l: float = 0.25, J: float = 0.00383,  # noqa: E741
+                     g: float = 9.81, max_thrust: float | None = None) -> System:
+    r"""Planar (2-D) quadrotor at hover, two rotor thrusts.
+
+    States ``(x, y, θ, ẋ, ẏ, θ̇)``: horizontal and vertical position, pitch angle (rad) and
+    their rates; inputs: the thrusts ``u₁, u₂`` of the two rotors at distance ``l`` from
+    the centre of mass:
+
+    .. math::
+        \ddot x = -\frac{(u_1 + u_2) \sin\theta}{m}, \qquad
+        \ddot y = \frac{(u_1 + u_2) \cos\theta}{m} - g, \qquad
+        \ddot\theta = \frac{l (u_1 - u_2)}{J}.
+
+    Parameters as in Dai, Landry, Yang, Pavone & Tedrake, "Lyapunov-stable neural-network
+    control", RSS 2021 (and the later verification-aware NN-Lyapunov papers that reuse
+    their planar quadrotor): ``m = 0.486`` kg, ``l = 0.25`` m, ``J = 0.00383`` kg·m²,
+    ``g = 9.81`` m/s². Hover input ``u_eq = m g / 2`` per rotor. The input box is
+    ``[-max_thrust, max_thrust]`` per rotor (default ``max_thrust = m g``, twice the
+    hover thrust): it is symmetric because the toolbox's saturated controller
+    ``C·tanh(Kx + b)`` is; thrusts are not constrained to be non-negative here.
+
+    Notes
+    -----
+    The input matrix depends on ``θ`` (not the ``"control_affine"`` learned model).
+    """
+    if max_thrust is None:
+        max_thrust = m * g
+    x = ca.SX.sym("x", 6)
+    u = ca.SX.sym("u", 2)
+    th = x[2]
+    thrust = u[0] + u[1]
+    f = ca.vertcat(x[3], x[4], x[5],
+                   -thrust * ca.sin(th) / m,
+                   thrust * ca.cos(th) / m - g,
+                   l * (u[0] - u[1]) / J)
+    u_eq = 0.5 * m * g
+    return System(
+        "planar_quadrotor", x, u, f,
+        state_box=[[-1.0, 1.0]] * 6,
+        input_box=[[-max_thrust, max_thrust]] * 2,
+        u_eq=[u_eq, u_eq],
+        params={"m": m, "l": l, "J": J, "g": g, "max_thrust": max_thrust},
+        state_names=["x", "y", "theta", "x_dot", "y_dot", "theta_dot"],
+        input_names=["thrust_1", "thrust_2"],
+        description="planar quadrotor (Dai et al. 2021 parameters), hover",
+        known_state_derivatives=(0, 1, 2),
     )

@@ -34,7 +34,7 @@ def _rows(rows, prefix):
 @pytest.fixture(scope="module")
 def baseline_rows(tmp_path_factory):
     out = {}
-    for name in systems.names():
+    for name in systems.SEED_SYSTEMS:
         d = tmp_path_factory.mktemp("cmp_" + name)
         cfg = get_config(name, "large" if name == "van_der_pol" else "fast")
         out[name] = (d, cfg, compare(name, cfg, d, log=lambda m: None, include_neural=False))
@@ -95,7 +95,7 @@ def test_sos_not_applicable_exactly_for_non_polynomial_systems(baseline_rows, na
     assert any(r["certified"] for r in _rows(rows, "lqr"))
 
 
-@pytest.mark.parametrize("name", systems.names())
+@pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
 def test_every_certified_set_converges_in_simulation(baseline_rows, name):
     _, cfg, rows = baseline_rows[name]
     s = systems.get(name)

@@ -11,7 +11,7 @@ from nlyap_opt.network import dense_network, from_torch
 from nlyap_opt.symbolic import closed_loop, lie_derivative
 from nlyap_opt.walker import ArrayArithmetic, evaluate
 
-ALL = systems.names()
+ALL = list(systems.SEED_SYSTEMS)
 
 
 # ----------------------------------------------------------------------------- LQR

@@ -32,7 +32,7 @@ def _certified_points(out, cert, n=60):
 @pytest.fixture(scope="module")
 def known_runs(tmp_path_factory):
     out = {}
-    for name in systems.names():
+    for name in systems.SEED_SYSTEMS:
         d = tmp_path_factory.mktemp(name)
         cert = run(name, get_config(name, "fast"), d, known_dynamics=True,
                    log=lambda m: None).summary
@@ -40,7 +40,7 @@ def known_runs(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("name", systems.names())
+@pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
 def test_fast_known_dynamics_run_is_certified(known_runs, name):
     d, cert = known_runs[name]
     assert cert["status"] == "certified", cert["status"]
@@ -53,7 +53,7 @@ def test_fast_known_dynamics_run_is_certified(known_runs, name):
     assert cert["inner_ellipse"]["status"] == "certified"
 
 
-@pytest.mark.parametrize("name", systems.names())
+@pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
 def test_certified_points_converge_in_simulation(known_runs, name):
     """No certified point may diverge (simulated with the true f and the saved controller)."""
     d, cert = known_runs[name]
@@ -69,7 +69,7 @@ def test_certified_points_converge_in_simulation(known_runs, name):
     assert ok.all(), pts[~ok][:5]
 
 
-@pytest.mark.parametrize("name", systems.names())
+@pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
 def test_saved_certificate_reverifies_with_cli(known_runs, name, tmp_path):
     d, cert = known_runs[name]
     args = ["verify", "--system", name, "--lyapunov", str(d / "V.json"),
@@ -110,7 +110,7 @@ def test_changed_training_settings_rerun_the_cegis_stage(known_runs, tmp_path):
 @pytest.fixture(scope="module")
 def learned_runs(tmp_path_factory):
     out = {}
-    for name in systems.names():
+    for name in systems.SEED_SYSTEMS:
         d = tmp_path_factory.mktemp(name + "_learned")
         cert = run(name, get_config(name, "fast"), d, known_dynamics=False,
                    log=lambda m: None).summary
@@ -118,7 +118,7 @@ def learned_runs(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("name", systems.names())
+@pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
 def test_fast_learned_dynamics_run_is_certified(learned_runs, name, tmp_path):
     d, cert = learned_runs[name]
     assert cert["status"] == "certified", cert["status"]

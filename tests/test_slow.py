@@ -10,7 +10,7 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.mark.parametrize("known", [False, True], ids=["learned", "known"])
-@pytest.mark.parametrize("name", systems.names())
+@pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
 def test_large_preset_is_certified(name, known, tmp_path):
     cert = run(name, get_config(name, "large"), tmp_path, known_dynamics=known,
                log=lambda m: None).summary

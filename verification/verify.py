@@ -46,12 +46,14 @@ import numpy as np
 
 from nlyap_opt.walker import NUMPY, compile_function, evaluate, op_name
 
+from .affine import Affine, AffineArithmetic
 from .interval import CheckedIntervalArithmetic, Interval, IntervalArithmetic
 from .problem import Counterexample, VerificationProblem, VerificationResult
 
 __all__ = ["verify_interval", "split_box", "confirm_points"]
 
 _IA = IntervalArithmetic()
+_AA = AffineArithmetic()
 
 
 def _openblas_threads():
@@ -239,7 +241,15 @@ def _float_score(F, m):
     return np.max(F[:, m:], axis=1) - 1e3 * pen
 
 
-def _enclose(problem, lo, hi, mean_value: bool):
+def _affine_enclosure(problem: VerificationProblem, lo: np.ndarray,
+                      hi: np.ndarray) -> Interval:
+    """``(B, K)`` ranges of the affine forms of ``F`` on boxes (:mod:`verification.affine`)."""
+    out = evaluate(problem.function, [Affine.from_box(lo, hi)], _AA)[0].to_interval()
+    shape = (len(lo), problem.n_constraints + problem.n_properties)
+    return Interval(np.broadcast_to(out.lo, shape), np.broadcast_to(out.hi, shape))
+
+
+def _enclose(problem, lo, hi, mean_value: bool, affine: bool = False):
     """Enclosures of F on boxes, F at the centres (rigorous), the interval Jacobian, checks.
 
     The boxes go through the fused ``(F, J)`` Function (shared subexpressions), the centres
@@ -257,10 +267,14 @@ def _enclose(problem, lo, hi, mean_value: bool):
         if checked:
             both, _, chk = _checked_eval(problem, np.vstack([lo, c]), np.vstack([hi, c]),
                                          jacobian=False)
-            return both[:B], both[B:], None, chk[:B], chk[B:]
+            enc, chk_b = both[:B], chk[:B]
+            if affine:
+                enc = _with_affine(problem, lo, hi, enc, chk_b)
+            return enc, both[B:], None, chk_b, chk[B:]
         both = evaluate(problem.function, [Interval(np.vstack([lo, c]), np.vstack([hi, c]))],
                         _IA)[0]
-        return both[:B], both[B:], None, None, None
+        enc = _with_affine(problem, lo, hi, both[:B], None) if affine else both[:B]
+        return enc, both[B:], None, None, None
     chk = chk_c = None
     if checked:
         nat, Jall, chk = _checked_eval(problem, lo, hi, jacobian=True)
@@ -285,7 +299,26 @@ def _enclose(problem, lo, hi, mean_value: bool):
         bad |= chk.jump | chk.maybe  # no (valid) derivative on the box: natural only
     if bad.any():
         enc = Interval(np.where(bad, nat.lo, enc.lo), np.where(bad, nat.hi, enc.hi))
+    if affine:
+        enc = _with_affine(problem, lo, hi, enc, chk)
     return enc, Fc, J, chk, chk_c
+
+
+def _with_affine(problem, lo, hi, enc: Interval, chk) -> Interval:
+    """``enc`` intersected with the affine-arithmetic ranges (columns with valid checks).
+
+    Affine arithmetic encloses every operation it evaluates, across jumps too (non-smooth
+    operations run on intervals), but the checked path's rule is kept: a column whose box
+    may hold a kink or jump, or an operation not proved inside its domain, keeps ``enc``.
+    """
+    aff = _affine_enclosure(problem, lo, hi)
+    both = _IA.intersect(enc, aff)
+    keep = ~(both.lo <= both.hi)  # empty: cannot happen for sound enclosures
+    if chk is not None:
+        keep |= chk.jump | chk.maybe
+    if keep.any():
+        both = Interval(np.where(keep, enc.lo, both.lo), np.where(keep, enc.hi, both.hi))
+    return both
 
 
 def _centres(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -327,6 +360,7 @@ def verify_interval(
     max_boxes: int = 2_000_000,
     batch: int = 8192,
     mean_value: bool = True,
+    affine: bool = True,
     presearch: int = 500,
     stop_at_first: bool = True,
     keep_leaves: bool = False,
@@ -345,16 +379,17 @@ def verify_interval(
     if executor is not None:
         return _verify_distributed(problem, executor, n_tasks, t0, resolution=resolution,
                                    max_boxes=max_boxes, batch=batch, mean_value=mean_value,
-                                   presearch=presearch, stop_at_first=stop_at_first,
+                                   affine=affine, presearch=presearch, stop_at_first=stop_at_first,
                                    keep_leaves=keep_leaves, seed=seed,
                                    initial_boxes=initial_boxes)
     with _single_thread_blas():
         return _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
-                             stop_at_first, keep_leaves, seed, initial_boxes, progress)
+                             stop_at_first, keep_leaves, seed, initial_boxes, progress,
+                             affine)
 
 
 def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
-                  stop_at_first, keep_leaves, seed, initial_boxes, progress):
+                  stop_at_first, keep_leaves, seed, initial_boxes, progress, affine=False):
     box = problem.box
     compile_function(problem.function_jacobian)
     rng = np.random.default_rng(seed)
@@ -376,7 +411,7 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
         queue_lo, queue_hi, depth_q = queue_lo[batch:], queue_hi[batch:], depth_q[batch:]
         n_boxes += len(lo)
         max_depth = max(max_depth, int(dq.max()))
-        enc, Fc, J, chk, chk_c = _enclose(problem, lo, hi, mean_value)
+        enc, Fc, J, chk, chk_c = _enclose(problem, lo, hi, mean_value, affine)
         g_lo, g_hi = enc.lo[:, :m], enc.hi[:, :m]
         p_hi = enc.hi[:, m:]
         if chk is None:

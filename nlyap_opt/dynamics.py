@@ -611,9 +611,11 @@ def check_declared(system, grid, model: str) -> dict | None:
     """Check the declarations of a system without a model against its values on ``grid``.
 
     The values of every component at every node (``f(x, u0)`` on an x-grid of the
-    control-affine model) go to :func:`systems.declarations.check_declarations`, which
-    refuses a declared ``K_f``, ``H`` or ``B`` that the data contradict. Returns its
-    estimates (``None`` for a model or without declarations).
+    control-affine model of samples; for a black-box callable with a declared ``B`` the
+    x-grid times 3 levels of every input, so that ``B`` is checked too) go to
+    :func:`systems.declarations.check_declarations`, which refuses a declared ``K_f``,
+    ``H`` or ``B`` that the data contradict. Returns its estimates (``None`` for a model or
+    without declarations).
 
     Raises
     ------
@@ -625,11 +627,19 @@ def check_declared(system, grid, model: str) -> dict | None:
         return None
     from systems.declarations import check_declarations
 
-    nx = system.nx
+    nx, nu = system.nx, system.nu
+    where = "(x, u)-space"
+    if grid.dim == nx and nu and getattr(system, "can_simulate", False) \
+            and decl.input_matrix is not None:
+        # a black box with a declared B: check B (and K_f, H) across input levels too
+        levels = 3 if grid.size * 3**nu <= 4_000_000 else 2
+        grid = Grid(np.vstack([grid.box, system.input_box]),
+                    list(grid.counts) + [levels] * nu)
+        where = f"x-grid × {levels} levels of every input"
     vals = []
     for z in grid.batches():
-        if grid.dim == nx and system.nu:  # x-grid: f(x, u0)
-            u = np.broadcast_to(affine_base_input(system), (z.shape[0], system.nu))
+        if grid.dim == nx and nu:  # x-grid: f(x, u0)
+            u = np.broadcast_to(affine_base_input(system), (z.shape[0], nu))
         else:
             u = z[:, nx:]
         with np.errstate(all="ignore"):
@@ -638,7 +648,7 @@ def check_declared(system, grid, model: str) -> dict | None:
     names = list(system.state_names) + (list(system.input_names) if grid.dim > nx else [])
     out = check_declarations(grid, values, decl, names=names, source=system.source)
     out["grid"] = "x-space at u0 = " + str(affine_base_input(system).tolist()) \
-        if grid.dim == nx and system.nu else "(x, u)-space"
+        if grid.dim == nx and nu else where
     return out
 
 

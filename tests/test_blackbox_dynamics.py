@@ -200,3 +200,12 @@ def test_stage_of_a_sample_file_saves_and_reloads(pend, tmp_path):
     assert d["delta"] == smp.delta and d["eta"] == st.eta and d["gate"]["status"] == "ok"
     assert d["grid"]["box"] == smp.box[:2].tolist()
     assert d["options_skipped"]["anisotropic"] and d["check"]["passed"] is None
+
+
+def test_a_declared_input_matrix_that_the_black_box_contradicts_is_refused(pend):
+    wrong = systems.System.from_callable(
+        "pend_wrong_B", pend.pendulum_rhs, nx=2, nu=1, state_box=[[-4, 4], [-4, 4]],
+        input_box=[[-20, 20]], u_eq=[0.0], known_rhs={0: lambda x, u: x[1]},
+        declarations=systems.Declarations(lipschitz=34.5, input_matrix=[[0.0], [20.0]]))
+    with pytest.raises(ConfigError, match="declared input matrix B is contradicted"):
+        learn_dynamics(wrong, FAST | {"model": "control_affine", "grid_counts": [11, 11]})

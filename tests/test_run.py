@@ -270,3 +270,23 @@ def test_interrupted_run_resumes_to_a_certificate_that_reverifies(stage, tmp_pat
     res = run(name, cfg, tmp_path, known_dynamics=True, log=lambda m: None)
     assert res.certified
     assert recheck_certificate(tmp_path, log=lambda m: None).certified
+
+
+# ------------------------------------------------------------------ regression (issue 11)
+def _reference():
+    from pathlib import Path
+
+    return json.loads((Path(__file__).parent / "data" / "fast_certificates.json").read_text())
+
+
+@pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
+def test_fast_certificates_are_identical_to_the_reference(known_runs, learned_runs, name):
+    """Refactors must not move a certificate: the fast presets' levels, areas and η are the
+    recorded ones bit for bit (tests/data/fast_certificates.json says where they come from)."""
+    ref = _reference()
+    for setting, runs in (("known", known_runs), ("learned", learned_runs)):
+        cert = runs[name][1]
+        want = ref[f"{name}/{setting}"]
+        got = {"level": cert["level"], "certified_area": cert["certified_area"],
+               "eta": cert.get("eta", 0.0)}
+        assert got == want, (setting, got, want)

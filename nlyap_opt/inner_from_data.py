@@ -55,6 +55,15 @@ The proof
    which must lie in ``X``, and :math:`\kappa` must map it into ``U`` (the declaration
    holds on :math:`X \times U`).
 
+5. **Optional: the learned φ on the rest.** The remainder grows with the radius, so the
+   data alone prove (c) only for small ε (the black-box pendulum with H = 26: ε ≤ 0.018).
+   Given a learned ``φ`` with ``‖f − φ‖₂ ≤ η`` on a box, the data prove the decrease on a
+   small ellipse :math:`E_s = \{x^\top P x \le c_s\}` and the interval verifier proves
+   :math:`2x^\top P\varphi(x, \kappa(x)) + \eta\|2Px\|_2 < 0` on
+   :math:`c_s \le x^\top P x \le c_q` (Cauchy–Schwarz: then :math:`2x^\top P f < 0` there),
+   with the same ``P``: together :math:`\dot V_q < 0` on :math:`E \setminus \{0\}`. This
+   needs η below about :math:`\varepsilon_s / (2\lambda_{\max}(P))`.
+
 Rounding: every bound is computed upward (``nextafter`` after each step, relative
 allowances :math:`4(n + 2)u` on sums and products); matrix products in float64 carry the
 standard :math:`\gamma_n |A||B|` error term; eigenvalues of the symmetric matrices come from

@@ -40,21 +40,24 @@ The proof
    Hessian of the controller. So :math:`\|R(x)\|_2 \le \tfrac12 H_g \|x\|^2` with
    :math:`H_g = \|(h_k)_k\|_2`; a known component uses the interval Hessian of its own
    expression.
-4. **Decrease.** :math:`\dot V_q = x^\top(PJ_g(0) + J_g(0)^\top P)x + 2x^\top P R(x)`,
-   :math:`x^\top(PJ_g(0) + J_g(0)^\top P)x \le -\lambda\|x\|^2` with
-   :math:`\lambda = \lambda_{\min}(-(PG + G^\top P)) - 2\|P\|_2\|D\|_2` (Weyl), and on
-   :math:`E` (Cauchy–Schwarz in the ``P`` inner product)
-   :math:`2x^\top P R \le 2\|P^{1/2}x\|\,\|P^{1/2}\|_2\|R\| \le
-   \sqrt{c_q\lambda_{\max}(P)}\,H_g\|x\|^2`. So :math:`\dot V_q < 0` on
-   :math:`E \setminus \{0\}` when :math:`\lambda > \sqrt{c_q\lambda_{\max}(P)}\,H_g`; with
-   :math:`c_q = \lambda_{\max}(P)\varepsilon^2` (so :math:`B_\varepsilon \subseteq E`) that
-   is :math:`\lambda > \|P\|_2 H_g \varepsilon` — sharper by :math:`\sqrt{\mathrm{cond}(P)}`
-   than the ball form :math:`\lambda > \|P\|_2 H_g \rho` of METHOD.md, with
-   :math:`\rho = \sqrt{c_q / \lambda_{\min}(P)}` the radius of a ball containing ``E``.
-   The derivative bounds of step 3 are taken over :math:`[-\rho, \rho]^n \supseteq E`,
-   which must lie in ``X``, and :math:`\kappa` must map it into ``U`` (the declaration
-   holds on :math:`X \times U`).
-
+4. **Decrease.** :math:`\dot V_q = x^\top(PJ_g(0) + J_g(0)^\top P)x + 2x^\top P R(x)`.
+   Linear part: :math:`x^\top(PJ_g(0) + J_g(0)^\top P)x \le -\lambda\|x\|^2` with
+   :math:`\lambda = \lambda_{\min}(-(PG + G^\top P)) - 2\min(\|P\|_2\|D\|_2,
+   \|\,|P|D\,\|_F)` (Weyl; :math:`\|P\Delta\|_2 \le \|\,|P|D\,\|_F` for
+   :math:`|\Delta| \le D`). Remainder on :math:`E` (Cauchy–Schwarz in the ``P`` inner
+   product, :math:`|R_k| \le \tfrac12 h_k\|x\|^2`):
+   :math:`2x^\top P R \le 2\sqrt{x^\top Px}\sqrt{R^\top PR} \le \sqrt{c_q}\,w\,\|x\|^2`
+   with :math:`w = \min(\sqrt{\lambda_{\max}(P)}H_g, \sqrt{h^\top|P|h})` (the second
+   form is much smaller when the learned rows carry little weight in ``P``). So
+   :math:`\dot V_q < 0` on :math:`E \setminus \{0\}` when :math:`\lambda > \sqrt{c_q}\,w`;
+   with :math:`c_q = \lambda_{\max}(P)\varepsilon^2` (so :math:`B_\varepsilon \subseteq E`)
+   the proof holds for :math:`\varepsilon < \lambda / (\sqrt{\lambda_{\max}(P)}\,w)`
+   (``terms["inner_max"]``) — sharper than the ball form
+   :math:`\lambda > 2\|P\|(\|\Delta J\| + \tfrac12 H_g\rho)` of METHOD.md. The derivative
+   bounds of step 3 are taken over a box containing ``E`` (half-widths
+   :math:`\sqrt{c_q (P^{-1})_{ii}}`, with a verified bound of the inverse's diagonal), which
+   must lie in ``X``, and :math:`\kappa` must map it into ``U`` (the declaration holds on
+   :math:`X \times U`).
 5. **Optional: the learned φ on the rest.** The remainder grows with the radius, so the
    data alone prove (c) only for small ε (the black-box pendulum with H = 26: ε ≤ 0.018).
    Given a learned ``φ`` with ``‖f − φ‖₂ ≤ η`` on a box, the data prove the decrease on a
@@ -489,18 +492,21 @@ def _check(P, ctx) -> dict:
     rho = _up(np.sqrt(_up(c_q / pmin)))
     terms.update({"P_norm": P_norm, "lambda_min_P": pmin, "rho": rho, "level": c_q})
     box = np.minimum(_ellipse_box(P, c_q), rho)     # E ⊆ [−box, box]
-    # λ = λ_min(−(PG + GᵀP)) − ‖S − fl(S)‖ − 2‖P‖‖D‖
+    # λ = λ_min(−(PG + GᵀP)) − ‖S − fl(S)‖ − 2‖PΔ‖, ‖PΔ‖₂ ≤ min(‖P‖‖D‖, ‖|P|D‖_F)
     PG = P @ G
     S = -(PG + PG.T)
     s_err = _fro_up(2.0 * _matmul_err(P, G) + _up(np.abs(S) * _U))
     s_min, _ = _eig_bounds(S)
-    lam = _down(s_min - _up(s_err + _up(2.0 * P_norm * D_norm)))
-    terms.update({"lambda_S": s_min, "lambda": lam})
+    D = np.asarray(ctx["D"], dtype=float)
+    PD = _fro_up(_up(np.abs(P) @ D) + _matmul_err(np.abs(P), D))
+    lin = _up(2.0 * min(_up(P_norm * D_norm), PD))
+    lam = _down(s_min - _up(s_err + lin))
+    terms.update({"lambda_S": s_min, "lambda": lam, "linear_error": lin})
     out = {"P": P, "level": c_q, "box": box, "result": None, "terms": terms}
     if not lam > 0:
         out["status"] = (
             f"not proved: the linear part is not certified: λ_min(−(PĴ_g + Ĵ_gᵀP)) = "
-            f"{s_min:.4g} does not exceed 2‖P‖‖ΔJ‖ = {2 * P_norm * D_norm:.4g} (‖ΔJ‖ ≤ "
+            f"{s_min:.4g} does not exceed 2‖PΔJ‖ ≤ {lin:.4g} (‖ΔJ‖ ≤ "
             f"{D_norm:.3g} from the finite-difference error with H = {H:.4g}); sample more "
             "finely around the equilibrium or declare a smaller (true) H")
         terms["inner_max"] = terms["rho_max"] = 0.0
@@ -552,12 +558,17 @@ def _check(P, ctx) -> dict:
         (KHL, KHU), = _enclose(known["Hfun"], lo, hi)
         for r, i in enumerate(known["rows"]):
             h[i] = _fro_up(_mag(KHL[r * n:(r + 1) * n], KHU[r * n:(r + 1) * n]))
+    h = np.asarray(h, dtype=float)
     H_g = _fro_up(h)
-    # 2xᵀPR ≤ 2‖P^½x‖‖P^½‖‖R‖ ≤ sqrt(c_q λ_max(P))·H_g·‖x‖² on E
-    need = _up(_up(np.sqrt(_up(pmax * c_q))) * H_g)
-    inner_max = lam / _up(P_norm * H_g) if H_g > 0 else np.inf
+    # 2xᵀPR ≤ 2 sqrt(xᵀPx)·sqrt(RᵀPR) on E, |R_k| ≤ ½h_k‖x‖²: RᵀPR ≤ ¼‖x‖⁴·min(λ_max(P)‖h‖²,
+    # hᵀ|P|h); so 2xᵀPR ≤ sqrt(c_q)·w·‖x‖² with w = min(sqrt(λ_max(P))·H_g, sqrt(hᵀ|P|h))
+    Ph = _up(np.abs(P) @ h) + _matmul_err(np.abs(P), h[:, None])[:, 0]
+    hPh = _up(float(h @ Ph) + float(_matmul_err(h[None, :], Ph[:, None])[0, 0]))
+    w = min(_up(_up(np.sqrt(pmax)) * H_g), _up(np.sqrt(hPh)))
+    need = _up(_up(np.sqrt(c_q)) * w)
+    inner_max = lam / _up(_up(np.sqrt(pmax)) * w) if w > 0 else np.inf
     rho_max = inner_max * np.sqrt(pmax / pmin)  # the radius of E at ε = inner_max
-    terms.update({"H": H, "h": np.asarray(h).tolist(), "H_g": H_g,
+    terms.update({"H": H, "h": h.tolist(), "H_g": H_g, "remainder_weight": w,
                   "remainder_coefficient": need, "inner_max": float(inner_max),
                   "rho_max": float(rho_max)})
     if lam > need * (1.0 + SAFETY):
@@ -565,7 +576,7 @@ def _check(P, ctx) -> dict:
         return out
     out["status"] = (
         f"not proved: the decrease λ‖x‖² (λ = {lam:.4g}) beats the remainder "
-        f"2xᵀPR(x) ≤ sqrt(λ_max(P)·c_q)·H_g·‖x‖² (‖P‖ = {P_norm:.4g}, H_g = {H_g:.4g}) only "
+        f"2xᵀPR(x) ≤ sqrt(c_q)·w·‖x‖² (w = {w:.4g}, H_g = {H_g:.4g}, ‖P‖ = {P_norm:.4g}) only "
         f"for a level c_q = λ_max(P)·ε² with ε < {inner_max:.4g}: needs ρ ≤ {rho_max:.4g} "
         f"(radius of E), but E ⊇ B_ε reaches ρ = {rho:.4g} at ε = {eps:.4g}; use an inner "
         f"radius ε ≤ {inner_max:.4g} or declare a smaller (true) H")

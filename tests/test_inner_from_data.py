@@ -136,28 +136,38 @@ def test_an_H_far_too_small_proves_only_its_own_declaration_and_the_data_refuse_
     assert prove_inner_ellipse_from_data(ok, None, 1.5)["status"].startswith("not proved")
 
 
-def test_pendulum_from_samples_needs_a_fine_grid_around_the_equilibrium(pend):
+def test_pendulum_from_a_sample_file(pend):
     black = _pendulum(pend)
+    g = Grid(black.state_box, [201, 201])
+    X = np.vstack(list(g.batches()))
+    U = np.zeros((X.shape[0], 1))
+    smp = systems.SampleSet(np.hstack([X, U]), black.evaluate(X, U), nx=2, nu=1,
+                            names=["theta", "omega", "torque"])
+    s = systems.System.from_samples("pend_samples", smp, input_box=[[-20, 20]], u_eq=[0.0],
+                                    known_rhs={"theta": lambda x, u: x[1]},
+                                    declarations=pend.DECLARED)
+    jb = jacobian_from_data(s)
+    assert jb.source == "samples" and jb.error.max() == pytest.approx(26 * 0.04 / 2, rel=1e-6)
+    kap = _lqr_controller(s, jb)
+    res = prove_inner_ellipse_from_data(s, kap, 0.05, jac=jb)
+    assert res["status"] == "certified", res["status"]
+    assert "Jacobian from samples" in res["proved_from"]
+    assert _max_decrease(res, black.evaluate, kap.numpy) < 0       # on the true plant
+    assert prove_inner_ellipse_from_data(s, kap, 0.4, jac=jb)["status"].startswith(
+        "not proved")
+
+
+def test_a_coarse_sample_grid_leaves_the_linear_part_unproved():
     out = {}
-    for n in (201, 401):
-        g = Grid(black.state_box, [n, n])
-        X = np.vstack(list(g.batches()))
-        U = np.zeros((X.shape[0], 1))
-        smp = systems.SampleSet(np.hstack([X, U]), black.evaluate(X, U), nx=2, nu=1,
-                                names=["theta", "omega", "torque"])
-        s = systems.System.from_samples("pend_samples", smp, input_box=[[-20, 20]],
-                                        u_eq=[0.0], known_rhs={"theta": lambda x, u: x[1]},
-                                        declarations=pend.DECLARED)
-        jb = jacobian_from_data(s)
-        assert jb.source == "samples"
-        out[n] = prove_inner_ellipse_from_data(s, _lqr_controller(s, jb), 0.003, jac=jb)
-    # h = 0.04: the finite-difference error H·h/2 = 0.52 swamps the linear decrease
-    assert out[201]["status"].startswith("not proved: the linear part")
-    assert out[401]["status"] == "certified", out[401]["status"]
-    assert "Jacobian from samples" in out[401]["proved_from"]
-    # the certified P with its own controller (LQR on the sampled Jacobian), on the true plant
-    kap = _lqr_controller(s, jacobian_from_data(s))
-    assert _max_decrease(out[401], black.evaluate, kap.numpy) < 0
+    for n in (61, 301):
+        smp = systems.sample_function(_vdp, [[-3, 3], [-3, 3]], [n, n], nx=2)
+        s = systems.System.from_samples("rvdp_samples", smp,
+                                        declarations=systems.Declarations(hessian=6.0))
+        out[n] = prove_inner_ellipse_from_data(s, None, 0.01)
+    # h = 0.1: the finite-difference error H·h/2 = 0.3 per entry swamps the linear decrease
+    assert out[61]["status"].startswith("not proved: the linear part"), out[61]["status"]
+    assert out[301]["status"] == "certified", out[301]["status"]
+    assert _max_decrease(out[301], _vdp) < 0
 
 
 def test_what_cannot_be_proved_says_why(pend):

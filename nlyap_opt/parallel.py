@@ -40,7 +40,7 @@ import numpy as np
 
 from .errors import BackendUnavailableError, ConfigError
 
-__all__ = ["dask_client", "verify_distributed", "parse_scheduler", "client_workers"]
+__all__ = ["dask_client", "verify_distributed", "parse_scheduler", "client_workers", "cpu_cores"]
 
 #: ``tcp://HOST:PORT`` (also ``tls://``); a bare ``HOST:PORT`` means ``tcp://``
 _ADDRESS = re.compile(r"^(?:(tcp|tls)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):(\d{1,5})$")
@@ -101,7 +101,8 @@ def _check_workers(workers) -> int | None:
     return int(workers)
 
 
-def _cores() -> int:
+def cpu_cores() -> int:
+    """CPU cores this process may run on (the default number of local workers)."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):  # pragma: no cover - not Linux
@@ -176,7 +177,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
 
     import dask
 
-    n = workers or _cores()
+    n = workers or cpu_cores()
     # Dask's nannies export MALLOC_TRIM_THRESHOLD_=65536 to their workers; an explicit
     # threshold turns off glibc's adaptive mmap threshold, and the verifier's many large
     # temporaries then run 4x slower (measured). Workers started here keep glibc's default.
@@ -213,16 +214,17 @@ def _starts_from_boxes() -> bool:
     return "boxes" in inspect.signature(verify_interval).parameters
 
 
-def _split(out_boxes: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+def _split(out_boxes: np.ndarray, resolution: float, n: int
+           ) -> tuple[np.ndarray, np.ndarray]:
     """``(unknown, open)``: boxes at the resolution, and boxes still to bisect."""
     if not len(out_boxes):
-        return out_boxes, out_boxes
+        return np.zeros((0, n, 2)), np.zeros((0, n, 2))
     wide = np.max(out_boxes[:, :, 1] - out_boxes[:, :, 0], axis=1) > resolution
     return out_boxes[~wide], out_boxes[wide]
 
 
-def _pack(r, resolution: float) -> dict:
-    unknown, open_ = _split(r.undecided, resolution)
+def _pack(r, resolution: float, n: int) -> dict:
+    unknown, open_ = _split(r.undecided, resolution, n)
     return {"found": r.counterexamples, "unknown": unknown, "open": open_, "boxes": r.boxes,
             "depth": r.depth, "leaves": r.leaves or []}
 
@@ -235,12 +237,18 @@ def _box_task(problem, boxes: np.ndarray, budget: int, options: dict, batched: b
     each box is a serial run of its own (a restricted copy of the problem, sharing its
     compiled CasADi Functions), run to the end (``budget`` is then the global cap).
     """
+    t = time.thread_time()
+    out = _decide_boxes(problem, boxes, budget, options, batched)
+    return dict(out, cpu=time.thread_time() - t, pid=os.getpid())
+
+
+def _decide_boxes(problem, boxes, budget, options, batched) -> dict:
     from verification.verify import verify_interval
 
     res = options["resolution"]
     if batched:
         r = verify_interval(problem, boxes=boxes, max_boxes=budget, presearch=0, **options)
-        return _pack(r, res)
+        return _pack(r, res, problem.n)
     found, unknown, open_, leaves = [], [], [], []
     used, depth = 0, 0
     for i, box in enumerate(boxes):
@@ -250,7 +258,7 @@ def _box_task(problem, boxes: np.ndarray, budget: int, options: dict, batched: b
         sub = copy.copy(problem)
         sub.box = np.asarray(box, dtype=float)
         r = verify_interval(sub, max_boxes=max(1, budget - used), presearch=0, **options)
-        part = _pack(r, res)
+        part = _pack(r, res, problem.n)
         used += r.boxes
         depth = max(depth, r.depth)
         found += part["found"]
@@ -259,8 +267,10 @@ def _box_task(problem, boxes: np.ndarray, budget: int, options: dict, batched: b
         open_.append(part["open"])
         if found and options["stop_at_first"]:
             break
-    return {"found": found, "unknown": np.concatenate(unknown), "open": np.concatenate(open_),
-            "boxes": used, "depth": depth, "leaves": leaves}
+    empty = np.zeros((0, problem.n, 2))
+    return {"found": found, "unknown": np.concatenate([empty] + unknown),
+            "open": np.concatenate([empty] + open_), "boxes": used, "depth": depth,
+            "leaves": leaves}
 
 
 def _root_task(problem, options: dict, presearch: int, initial_boxes: int,
@@ -269,24 +279,28 @@ def _root_task(problem, options: dict, presearch: int, initial_boxes: int,
     boxes are spent (``budget = 0``: only the root box itself is evaluated)."""
     from verification.verify import verify_interval
 
+    t = time.thread_time()
     r = verify_interval(problem, max_boxes=budget, presearch=presearch,
                         initial_boxes=initial_boxes, **options)
-    return _pack(r, options["resolution"])
+    return dict(_pack(r, options["resolution"], problem.n), cpu=time.thread_time() - t,
+                pid=os.getpid())
 
 
 def verify_distributed(problem, client, *, resolution: float | None = None,
                        max_boxes: int = 2_000_000, batch: int = 8192, mean_value: bool = True,
                        presearch: int = 500, stop_at_first: bool = True,
                        keep_leaves: bool = False, seed: int = 0, initial_boxes: int = 256,
-                       task_boxes: int = 16384, tasks_per_worker: int = 2):
+                       task_boxes: int = 16384, tasks_per_worker: int = 2,
+                       root_boxes: int = 1, stats: dict | None = None):
     """Decide ``problem`` with the interval verifier on a Dask cluster, load-balanced.
 
     The hard boxes of a Lyapunov problem are few (near the level set, near the inner
     sphere), so a fixed split of the root box leaves workers idle. Work is handed out by
     *box budget* instead:
 
-    1. one task runs the pre-search and the serial verifier on the root box until
-       ``task_boxes`` boxes are processed; the boxes it would still bisect come back *open*;
+    1. one task runs the pre-search and evaluates the root box's initial grid
+       (``initial_boxes``), bisecting on until ``root_boxes`` boxes are processed; the boxes
+       it would still bisect come back *open*;
     2. open boxes are dealt into enough tasks to keep ``tasks_per_worker`` per worker busy;
        each task bisects its boxes (all in one batch) by the serial verifier's rules until
        it has spent ``task_boxes`` boxes, and returns what is still open;
@@ -311,13 +325,20 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         From :func:`dask_client`.
     resolution, max_boxes, batch, mean_value, presearch, stop_at_first, keep_leaves, seed, \
 initial_boxes
-        As in :func:`verification.verify` (interval backend); ``max_boxes`` bounds the
-        boxes of all tasks together, ``resolution`` is the root problem's.
+        As in :func:`verification.verify` (interval backend); ``resolution`` is the root
+        problem's; ``max_boxes`` bounds the boxes of all tasks together (each new task gets
+        a share of what is left; a first grid is always evaluated whole, as serially).
     task_boxes : int
         Boxes one task processes before it hands its open boxes back (the load-balancing
         grain; one walker pass evaluates up to ``batch`` boxes).
     tasks_per_worker : int
         Tasks kept in flight per worker.
+    root_boxes : int
+        Boxes of step 1 (default 1: only the initial grid, then the work is dealt out).
+    stats : dict, optional
+        Filled with ``tasks`` (count), ``root_cpu`` (CPU seconds of step 1) and
+        ``cpu_by_worker`` (CPU seconds of the other tasks per worker process): the load
+        balance, independent of other load on the machines.
 
     Returns
     -------
@@ -333,6 +354,7 @@ initial_boxes
     from verification.verify import split_box
 
     for name, v in (("task_boxes", task_boxes), ("tasks_per_worker", tasks_per_worker),
+                    ("root_boxes", root_boxes),
                     ("max_boxes", max_boxes), ("batch", batch),
                     ("initial_boxes", initial_boxes)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
@@ -358,7 +380,15 @@ initial_boxes
     submitted: list = []
     ac = as_completed([], loop=client.loop)
 
+    tally = {"tasks": 0, "root_cpu": None, "cpu_by_worker": {}}
+
     def absorb(out) -> np.ndarray:
+        tally["tasks"] += 1
+        if tally["root_cpu"] is None:
+            tally["root_cpu"] = out["cpu"]
+        else:
+            by = tally["cpu_by_worker"]
+            by[out["pid"]] = by.get(out["pid"], 0.0) + out["cpu"]
         found.extend(out["found"])
         if len(out["unknown"]):
             unknown.append(out["unknown"])
@@ -376,7 +406,8 @@ initial_boxes
             unknown.append(open_boxes)
             return
         size = max(1, math.ceil(k / max(1, parts)))
-        budget = min(task_boxes, left) if batched else left
+        share = max(1, left // math.ceil(k / size))  # of the global budget, per new task
+        budget = min(task_boxes, share) if batched else share
         for i in range(0, k, size):
             fut = client.submit(_box_task, pf, open_boxes[i:i + size], budget, options,
                                 batched, pure=False)
@@ -388,7 +419,7 @@ initial_boxes
         root = {k: v for k, v in options.items() if k != "initial_boxes"}
         first = client.submit(_root_task, pf, root, presearch,
                               initial_boxes if batched else 1,
-                              min(task_boxes, max_boxes) if batched else 0, pure=False)
+                              min(root_boxes, max_boxes) if batched else 0, pure=False)
         opened = absorb(first.result())
         if not (found and stop_at_first):
             if not batched and len(opened):  # fixed split, scheduled as workers free up
@@ -408,6 +439,8 @@ initial_boxes
         client.cancel([f for f in submitted if not f.done()])
         pf.release()
 
+    if stats is not None:
+        stats.update(tally)
     und = np.concatenate(unknown) if unknown else np.zeros((0, problem.n, 2))
     seconds = time.perf_counter() - t0
     leaves_out = leaves if keep_leaves else None

@@ -34,7 +34,7 @@ from pathlib import Path
 
 from .certificate import sha256_file, write_json_atomic
 from .errors import ConfigError
-from .parallel import client_workers, dask_client
+from .parallel import client_workers, cpu_cores, dask_client
 
 __all__ = ["run_portfolio", "PortfolioResult", "SeedRun", "seed_config"]
 
@@ -268,9 +268,7 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
         raise ConfigError(f"out {out} is a file; pass a directory (new or of a portfolio)")
     out.mkdir(parents=True, exist_ok=True)
     if workers is None and scheduler is None:
-        from .parallel import _cores
-
-        workers = max(1, min(len(seed_list), _cores()))
+        workers = max(1, min(len(seed_list), cpu_cores()))
     dirs = {s: out / f"seed_{s}" for s in seed_list}
     t0 = time.perf_counter()
     results: dict[int, dict] = {}

@@ -181,8 +181,9 @@ def test_unknown_stays_unknown(client, mode):
 
 def test_box_budget_gives_unknown_never_verified(client, mode):
     problem = _vdp_problem(1.0)
-    dist = verify_distributed(problem, client, max_boxes=40, task_boxes=16)
-    assert dist.status == "unknown" and len(dist.undecided) > 0
+    serial = verify(problem, max_boxes=40, initial_boxes=4)
+    dist = verify_distributed(problem, client, max_boxes=40, initial_boxes=4, task_boxes=16)
+    assert serial.status == dist.status == "unknown" and len(dist.undecided) > 0
 
 
 def test_keep_leaves_cover_the_root_box(client):

@@ -1,0 +1,129 @@
+"""Distributed verification benchmark (issue 15, item 3): 1 vs 2 Dask workers.
+
+Two certificate queries, each decided serially (``verification.verify``), then by
+:func:`nlyap_opt.parallel.verify_distributed` on a ``LocalCluster`` of 1 and of 2 workers,
+and by the executor hook ``verify(problem, executor=client.get_executor())`` (a fixed split
+into ``n_tasks`` sub-boxes) for comparison:
+
+(A) 4-D: two coupled reversed Van der Pol oscillators, a quadratic V with a 16-neuron tanh
+    factor, decrease on 0.1 ≤ ‖x‖ ≤ 1.1 (about 10⁵ boxes serially);
+(B) 2-D: bench/verify.py's 2-30-30 tanh V on Van der Pol, r = 2.5, at 0.99 × the IPOPT
+    candidate level (bench/data/vdp_V30x30.json; run bench/verify.py once to create it).
+
+Seconds are the best of ``--repeat`` runs (cluster start-up excluded). Figures are printed,
+not asserted; on a shared machine read them with the load average printed beside them.
+
+    python bench/distributed_verify.py [--repeat 3] [--workers 1 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+import systems
+from nlyap_opt.network import Network
+from nlyap_opt.parallel import _starts_from_boxes, dask_client, verify_distributed
+from verification import lyapunov_problem, verify
+
+DATA = Path(__file__).parent / "data"
+
+
+def problem_4d(outer: float = 1.1):
+    """Two coupled reversed Van der Pol oscillators; ``V = xᵀ(I₂⊗P)x·(1 + 0.05·aᵀtanh(Wx+b)/4)``."""
+    x = ca.MX.sym("x", 4)
+    P = np.array([[1.5, -0.5], [-0.5, 1.0]])
+
+    def vdp(a, b):
+        return ca.vertcat(-b, a - (1 - a**2) * b)
+
+    f = ca.vertcat(vdp(x[0], x[1]), vdp(x[2], x[3])) + 0.1 * ca.vertcat(
+        x[2] * x[1], 0, -x[0] * x[3], 0)
+    rng = np.random.default_rng(0)
+    W, b, a = rng.normal(0, 1, (16, 4)), rng.normal(0, 0.5, 16), rng.normal(0, 1, 16)
+    h = ca.tanh(ca.mtimes(ca.DM(W), x) + ca.DM(b))
+    V = ca.bilin(ca.DM(np.kron(np.eye(2), P)), x, x) * (1 + 0.05 * ca.dot(ca.DM(a), h) / 4)
+    lie = ca.dot(ca.gradient(V, x), f)
+    return lyapunov_problem(x, V, lie, inner=0.1, outer=outer)
+
+
+def problem_vdp30():
+    from nlyap_opt.roa import candidate_level
+    from nlyap_opt.symbolic import closed_loop, lie_derivative
+
+    path = DATA / "vdp_V30x30.json"
+    if not path.exists():
+        return None
+    cl = closed_loop(systems.get("van_der_pol"))
+    Vx = Network.load(path).casadi(cl.x)
+    lie = lie_derivative(Vx, cl.x, cl.rhs)
+    cand = candidate_level(cl.x, Vx, lie, inner=0.2, outer=2.5)
+    return lyapunov_problem(cl.x, Vx, lie, inner=0.2, outer=2.5, level=0.99 * cand.level)
+
+
+def _best(fn, repeat):
+    best, res = np.inf, None
+    for _ in range(repeat):
+        t = time.perf_counter()
+        res = fn()
+        best = min(best, time.perf_counter() - t)
+    return best, res
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--n-tasks", type=int, default=8, help="sub-boxes of the executor hook")
+    args = ap.parse_args(argv)
+    queries = [("(A) 4-D, 16-neuron V factor", problem_4d())]
+    p = problem_vdp30()
+    if p is not None:
+        queries.append(("(B) 2-D, V 2-30-30, r = 2.5", p))
+    mode = "batched hand-out of open boxes" if _starts_from_boxes() else \
+        "fixed split (verify_interval has no boxes=)"
+    print(f"verify_distributed mode: {mode}; load average: {os.getloadavg()[0]:.2f}")
+    rows, balance = [], []
+    for label, prob in queries:
+        t, r = _best(lambda prob=prob: verify(prob), args.repeat)
+        rows.append((label, "serial verify()", "–", t, r))
+    for w in args.workers:
+        with dask_client(workers=w) as client:
+            client.submit(sum, [1]).result()  # workers up
+            for label, prob in queries:
+                st: dict = {}
+                t, r = _best(lambda prob=prob, st=st: verify_distributed(prob, client,
+                                                                         stats=st),
+                             args.repeat)
+                rows.append((label, "verify_distributed", w, t, r))
+                by = list(st["cpu_by_worker"].values()) or [0.0]
+                balance.append((label, w, st["tasks"], st["root_cpu"], sum(by), max(by)))
+                t, r = _best(lambda prob=prob: verify(prob, executor=client.get_executor(),
+                                                      n_tasks=args.n_tasks), args.repeat)
+                rows.append((label, f"executor hook, n_tasks={args.n_tasks}", w, t, r))
+    print("| query | how | workers | seconds (best) | speed-up vs 1 worker | boxes | verdict |")
+    print("|---|---|---|---|---|---|---|")
+    for label, how, w, t, r in rows:
+        one = [t1 for lb, h, w1, t1, _ in rows if lb == label and h == how and w1 == 1]
+        up = f"{one[0] / t:.2f}" if one and w != "–" else "–"
+        print(f"| {label} | {how} | {w} | {t:.2f} | {up} | {r.boxes} | {r.status} |")
+    print()
+    print("Load balance of verify_distributed from the tasks' CPU seconds (last run; other "
+          "load on the machine does not enter): the root task runs alone, then the rest is "
+          "dealt out; ideal speed-up = (root + Σ workers) / (root + max worker).")
+    print("| query | workers | tasks | root CPU s | tasks CPU s (Σ) | busiest worker CPU s | "
+          "ideal speed-up |")
+    print("|---|---|---|---|---|---|---|")
+    for label, w, n, root, tot, top in balance:
+        print(f"| {label} | {w} | {n} | {root:.2f} | {tot:.2f} | {top:.2f} | "
+              f"{(root + tot) / (root + top):.2f} |")
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

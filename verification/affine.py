@@ -295,65 +295,65 @@ def _sq_aff(x: Affine) -> Affine:
 
 # --------------------------------------------------------------------------- relaxations
 def _d_at(f, t, alpha):
-    """Enclosure ``(lo, hi)`` of ``d(t) = f(t) - α t`` at float points ``t`` (arrays)."""
+    """Enclosures of ``d(t) = f(t) - α t`` and of ``f(t)`` at float points ``t`` (arrays)."""
     fl, fh = f(t, t)
     pl, ph = _mul(t, t, alpha, alpha)
-    return _sub(fl, fh, pl, ph)
+    return _sub(fl, fh, pl, ph), (fl, fh)
 
 
-def _tangent_bounds(f, df, a, b, p, alpha, upper: bool):
-    """Bound of ``d = f - α t`` on ``[a, b]`` by its tangent at ``p ∈ [a, b]``.
+def _piece_bounds(rel, a, b, alpha, convex: bool):
+    """``(lo, hi)`` bounds of ``d = f - α t`` on pieces ``[a, b]`` of one convexity.
 
-    Valid when ``d`` is convex on ``[a, b]`` (lower bound, ``upper=False``) or concave
-    (upper bound): the tangent lies below (above) ``d`` on the whole piece, so its value
-    at ``a`` or ``b`` bounds ``d``.
+    Convex ``d``: the maximum is at an end; the minimum is above the tangent at any point
+    ``p`` of the piece (``p`` near the critical point ``f'(p) = α``), whose smallest value
+    on ``[a, b]`` is at ``a`` or ``b``. Concave: mirrored.
     """
-    dl, dh = _d_at(f, p, alpha)
-    sl, sh = df(p)  # enclosure of f'(p)
+    p = np.minimum(np.maximum(rel.crit(alpha, a, b), a), b)
+    p = np.where(p == p, p, a)  # NaN (no critical point): any point of the piece will do
+    (al, ah), _ = _d_at(rel.f, a, alpha)
+    (bl, bh), _ = _d_at(rel.f, b, alpha)
+    (dl, dh), fp = _d_at(rel.f, p, alpha)
+    sl, sh = rel.df(p, fp)  # enclosure of f'(p)
     sl, sh = _sub(sl, sh, alpha, alpha)  # d'(p)
     out = None
     for t in (a, b):
         wl, wh = _sub(t, t, p, p)
         ml, mh = _mul(sl, sh, wl, wh)
         vl, vh = _add(dl, dh, ml, mh)
-        v = vh if upper else vl
-        out = v if out is None else (np.maximum(out, v) if upper else np.minimum(out, v))
-    return out
-
-
-def _piece_bounds(f, df, crit, a, b, alpha, convex: bool):
-    """``(lo, hi)`` bounds of ``d = f - α t`` on a piece ``[a, b]`` of one convexity."""
-    p = np.minimum(np.maximum(crit(alpha, a, b), a), b)
-    p = np.where(np.isfinite(p), p, a)
-    al, ah = _d_at(f, a, alpha)
-    bl, bh = _d_at(f, b, alpha)
+        v = vl if convex else vh
+        out = v if out is None else (np.minimum(out, v) if convex else np.maximum(out, v))
     if convex:
-        hi = np.maximum(ah, bh)
-        lo = _tangent_bounds(f, df, a, b, p, alpha, upper=False)
-    else:
-        lo = np.minimum(al, bl)
-        hi = _tangent_bounds(f, df, a, b, p, alpha, upper=True)
-    return lo, hi
+        return out, np.maximum(ah, bh)
+    return np.minimum(al, bl), out
 
 
-def _piece(rel, a, b, alpha, convex):
-    """:func:`_piece_bounds` for a convexity flag that is a bool or a per-element array."""
+def _piece(rel, a, b, alpha, convex, rows):
+    """Bounds on the pieces ``rows`` (flat indices) only; ``convex``: bool or array."""
+    a, b, alpha = a.ravel()[rows], b.ravel()[rows], alpha.ravel()[rows]
     if isinstance(convex, (bool, np.bool_)):
-        return _piece_bounds(rel.f, rel.df, rel.crit, a, b, alpha, bool(convex))
-    lo1, hi1 = _piece_bounds(rel.f, rel.df, rel.crit, a, b, alpha, True)
-    lo2, hi2 = _piece_bounds(rel.f, rel.df, rel.crit, a, b, alpha, False)
-    return np.where(convex, lo1, lo2), np.where(convex, hi1, hi2)
+        return _piece_bounds(rel, a, b, alpha, bool(convex))
+    convex = np.asarray(convex).ravel()[rows]  # an array of the shape of a
+    out_lo = np.empty(len(rows))
+    out_hi = np.empty(len(rows))
+    for flag in (True, False):
+        sel = convex == flag
+        if sel.any():
+            lo, hi = _piece_bounds(rel, a[sel], b[sel], alpha[sel], flag)
+            out_lo[sel] = lo
+            out_hi[sel] = hi
+    return out_lo, out_hi
 
 
 class _Relax:
     """A smooth unary function with known inflection points, for :func:`_relax_unary`.
 
-    ``f(lo, hi)``: interval enclosure (rigorous); ``df(t)``: enclosure of ``f'`` at float
-    points; ``slope(l, h)``: a float slope (any value is sound); ``crit(α, a, b)``: a point
-    near where ``f' = α`` in ``[a, b]`` (heuristic); ``pieces(l, h)``: ``(ok, q_lo, q_hi,
-    convex_left, convex_right)``: where ``ok``, ``[l, h]`` has at most one inflection point,
-    inside ``[q_lo, q_hi]`` (``q_lo > h`` or ``q_hi < l`` when none), and the convexity of
-    ``f`` left of it and right of it.
+    ``f(lo, hi)``: interval enclosure (rigorous); ``df(t, ft)``: enclosure of ``f'`` at
+    float points ``t`` (``ft``: the enclosure of ``f(t)``); ``slope(l, h)``: a float
+    slope (any value is sound); ``crit(α, a, b)``: a point near where ``f' = α`` in
+    ``[a, b]`` (heuristic: any point of the piece is sound); ``pieces(l, h)``: ``(ok,
+    q_lo, q_hi, convex_left, convex_right)``: where ``ok``, ``[l, h]`` has at most one
+    inflection point, inside ``[q_lo, q_hi]`` (both ``+inf`` when none), and the
+    convexity of ``f`` left of it and right of it.
     """
 
     def __init__(self, f, df, slope, crit, pieces):
@@ -376,12 +376,20 @@ def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
     # pieces: left [tl, min(th, q_lo)], sliver [q_lo, q_hi] ∩ [tl, th], right [max(tl, q_hi), th]
     has_l = tl < q_lo
     has_r = th > q_hi
-    a1, b1 = tl, np.where(has_l, np.minimum(th, q_lo), tl)
-    a2, b2 = np.where(has_r, np.maximum(tl, q_hi), th), th
-    lo1, hi1 = _piece(rel, a1, b1, alpha, cvx_l)
-    lo2, hi2 = _piece(rel, a2, b2, alpha, cvx_r)
-    dl = np.minimum(np.where(has_l, lo1, _INF), np.where(has_r, lo2, _INF))
-    dh = np.maximum(np.where(has_l, hi1, -_INF), np.where(has_r, hi2, -_INF))
+    b1 = np.minimum(th, q_lo)
+    a2 = np.maximum(tl, q_hi)
+    dl = np.full(tl.size, _INF)
+    dh = np.full(tl.size, -_INF)
+    for has, pa, pb, cvx in ((has_l, tl, b1, cvx_l), (has_r, a2, th, cvx_r)):
+        rows = np.flatnonzero(has & ok)
+        if not isinstance(cvx, (bool, np.bool_)):
+            cvx = np.broadcast_to(cvx, tl.shape)
+        if len(rows):
+            plo, phi = _piece(rel, pa, pb, alpha, cvx, rows)
+            dl[rows] = np.minimum(dl[rows], plo)
+            dh[rows] = np.maximum(dh[rows], phi)
+    dl = dl.reshape(tl.shape)
+    dh = dh.reshape(tl.shape)
     # the sliver around an inflection point: the interval extension of d there
     s_lo = np.maximum(tl, q_lo)
     s_hi = np.minimum(th, q_hi)
@@ -437,9 +445,8 @@ def _one_piece(convex: bool):
 
 
 # tanh: convex left of 0, concave right of it; f' = 1 - tanh²; f' = α at ±atanh(sqrt(1-α))
-def _tanh_df(t):
-    tl, th = _iv_fun(ca.OP_TANH)(t, t)
-    sl, sh = _sq(tl, th)
+def _tanh_df(t, ft):
+    sl, sh = _sq(*ft)
     return _sub(1.0, 1.0, sl, sh)
 
 
@@ -458,8 +465,8 @@ _TANH = _Relax(_iv_fun(ca.OP_TANH), _tanh_df,
 
 
 # exp: convex; f' = exp; f' = α at log α
-def _exp_df(t):
-    return _iv_fun(ca.OP_EXP)(t, t)
+def _exp_df(t, ft):
+    return ft
 
 
 _EXP = _Relax(_iv_fun(ca.OP_EXP), _exp_df, _secant(np.exp, np.exp),
@@ -467,8 +474,8 @@ _EXP = _Relax(_iv_fun(ca.OP_EXP), _exp_df, _secant(np.exp, np.exp),
 
 
 # sqrt on [l, h], l > 0: concave; f' = 1/(2 sqrt t); f' = α at 1/(4 α²)
-def _sqrt_df(t):
-    sl, sh = _iv_fun(ca.OP_SQRT)(t, t)
+def _sqrt_df(t, ft):
+    sl, sh = ft
     return _dn_s(0.5 / sh) * (1 - 2.0**-50), _up_s(0.5 / sl) * (1 + 2.0**-50)
 
 
@@ -483,9 +490,8 @@ _SQRT = _Relax(_iv_fun(ca.OP_SQRT), _sqrt_df,
 
 
 # 1/t away from 0: convex for t > 0, concave for t < 0; f' = -1/t²; f' = α at ±1/sqrt(-α)
-def _inv_df(t):
-    tl, th = _iv_fun(ca.OP_INV)(t, t)
-    sl, sh = _sq(tl, th)
+def _inv_df(t, ft):
+    sl, sh = _sq(*ft)
     return -sh, -sl
 
 
@@ -511,7 +517,7 @@ def _sincos_relax(op: int, fn, dfn, phase: float):
     f = _iv_fun(op)
     dop = ca.OP_COS if op == ca.OP_SIN else ca.OP_SIN
 
-    def df(t):
+    def df(t, ft):
         sl, sh = _iv_fun(dop)(t, t)
         return (sl, sh) if op == ca.OP_SIN else (-sh, -sl)
 

@@ -1,15 +1,24 @@
 """Interval branch-and-prune verifier over CasADi graphs (the default backend).
 
-Each round evaluates a whole batch of boxes in one walker pass (numpy arrays over boxes):
+Each round evaluates a whole batch of boxes in a few walker passes (numpy arrays over boxes):
 
 1. natural interval extension of ``F = (g, p)`` on every box;
-2. mean-value form ``F(c) + J(X)·(X − c)`` with the interval Jacobian from the CasADi
-   Jacobian graph, intersected with (1);
-3. a box is *decided* when some ``g_i > 0`` on all of it (outside the region) or every
+2. affine arithmetic (:mod:`verification.affine`, option ``affine``, default on): every
+   value an affine form in the box's inputs plus a remainder, with sound linear
+   relaxations of the nonlinear operations; the ranges of the output forms are
+   intersected with (1) (the tighter bound wins per box and output);
+3. mean-value form ``F(c) + J(X)·(X − c)`` with the interval Jacobian from the CasADi
+   Jacobian graph, intersected with (1) (option ``mean_value``; by default only without
+   affine arithmetic);
+4. a box is *decided* when some ``g_i > 0`` on all of it (outside the region) or every
    ``p_j < 0`` on all of it (properties hold); ``F(c)`` at the centre, evaluated
    rigorously, confirms counterexamples (centre inside the region and some ``p_j ≥ 0``);
-4. undecided boxes are bisected along the dimension with the largest smear
-   ``max_j |J_ji|·w_i``; boxes narrower than ``resolution`` are reported ``unknown``.
+5. undecided boxes are bisected along the dimension to which the bounds of the
+   undecided outputs are most sensitive: ``max_j (|g_ji| + e_j w_i / Σ_k w_k)`` for the
+   affine forms ``c_j + Σ_i g_ji ε_i ± e_j`` (linear part, and the remainder shared in
+   proportion to the widths), or the smear ``max_j |J_ji|·w_i`` of the interval
+   Jacobian with the mean-value form; boxes narrower than ``resolution`` are reported
+   ``unknown``.
 
 Non-smooth and partial operations (``nlyap_opt.walker.OP_TABLE``; problems whose
 ``checked`` flag is set) are walked with
@@ -20,7 +29,8 @@ constraint/property column:
   on the box (``sign``'s argument contains 0, ``floor``'s an integer, the two sides of a
   comparison overlap, the arguments of ``fmin`` cross, ...), that column keeps the
   natural extension only (CasADi's derivative is 0 across a jump, so ``F(c) + J(X)(X − c)``
-  would miss it) and the box is bisected along its widest side;
+  would miss it; the affine ranges are not used either, although every non-smooth
+  operation runs on intervals there) and the box is bisected along its widest side;
 - P10, domains: a constraint prunes a box only if every operation feeding it is proved
   inside its domain on the box; a property holds on a box only if it is so proved. A point
   of the region (every constraint proved defined and ``≤ 0`` there) at which a property is
@@ -241,15 +251,38 @@ def _float_score(F, m):
     return np.max(F[:, m:], axis=1) - 1e3 * pen
 
 
-def _affine_enclosure(problem: VerificationProblem, lo: np.ndarray,
-                      hi: np.ndarray) -> Interval:
-    """``(B, K)`` ranges of the affine forms of ``F`` on boxes (:mod:`verification.affine`)."""
-    out = evaluate(problem.function, [Affine.from_box(lo, hi)], _AA)[0].to_interval()
-    shape = (len(lo), problem.n_constraints + problem.n_properties)
-    return Interval(np.broadcast_to(out.lo, shape), np.broadcast_to(out.hi, shape))
+def _affine_enclosure(problem: VerificationProblem, lo: np.ndarray, hi: np.ndarray):
+    """Ranges ``(B, K)`` of the affine forms of ``F`` on boxes, and their sensitivities.
+
+    Returns the ranges (:mod:`verification.affine`) and sensitivities ``(B, K, n)``: how
+    much each output's bound owes to each input over the box, ``|g_i|`` (the linear
+    part, half widths included) plus the remainder ``e`` shared in proportion to the
+    widths (the splitting rule's measure; the share of an unknown remainder: the widths).
+    """
+    out = evaluate(problem.function, [Affine.from_box(lo, hi)], _AA)[0]
+    rng = out.to_interval()
+    B, n = lo.shape
+    shape = (B, problem.n_constraints + problem.n_properties)
+    # the remainder e (nonlinear terms, about quadratic in the half widths r) is shared
+    # out in proportion to r_i; an unknown remainder (inf) counts as the widths alone
+    r = hi - lo
+    frac = r / np.maximum(r.sum(axis=1, keepdims=True), 1e-300)  # (B, n)
+    e = np.broadcast_to(out.e, shape)
+    known = np.isfinite(e) & np.isfinite(rng.lo) & np.isfinite(rng.hi)
+    sens = np.where(known, e, 0.0)[..., None] * frac[:, None, :]
+    if out.g is not None:
+        g = np.moveaxis(np.abs(np.broadcast_to(out.g, (n,) + shape)), 0, -1)
+        sens = sens + np.where(np.isfinite(g), g, 0.0)
+    sens = np.where(known[..., None], sens, frac[:, None, :])
+    return Interval(np.broadcast_to(rng.lo, shape), np.broadcast_to(rng.hi, shape)), sens
 
 
 def _enclose(problem, lo, hi, mean_value: bool, affine: bool = False):
+    """See :func:`_enclose_all`; without the sensitivities."""
+    return _enclose_all(problem, lo, hi, mean_value, affine)[:5]
+
+
+def _enclose_all(problem, lo, hi, mean_value: bool, affine: bool = False):
     """Enclosures of F on boxes, F at the centres (rigorous), the interval Jacobian, checks.
 
     The boxes go through the fused ``(F, J)`` Function (shared subexpressions), the centres
@@ -268,13 +301,15 @@ def _enclose(problem, lo, hi, mean_value: bool, affine: bool = False):
             both, _, chk = _checked_eval(problem, np.vstack([lo, c]), np.vstack([hi, c]),
                                          jacobian=False)
             enc, chk_b = both[:B], chk[:B]
+            sens = None
             if affine:
-                enc = _with_affine(problem, lo, hi, enc, chk_b)
-            return enc, both[B:], None, chk_b, chk[B:]
+                enc, sens = _with_affine(problem, lo, hi, enc, chk_b)
+            return enc, both[B:], None, chk_b, chk[B:], sens
         both = evaluate(problem.function, [Interval(np.vstack([lo, c]), np.vstack([hi, c]))],
                         _IA)[0]
-        enc = _with_affine(problem, lo, hi, both[:B], None) if affine else both[:B]
-        return enc, both[B:], None, None, None
+        enc, sens = (_with_affine(problem, lo, hi, both[:B], None) if affine
+                     else (both[:B], None))
+        return enc, both[B:], None, None, None, sens
     chk = chk_c = None
     if checked:
         nat, Jall, chk = _checked_eval(problem, lo, hi, jacobian=True)
@@ -299,26 +334,28 @@ def _enclose(problem, lo, hi, mean_value: bool, affine: bool = False):
         bad |= chk.jump | chk.maybe  # no (valid) derivative on the box: natural only
     if bad.any():
         enc = Interval(np.where(bad, nat.lo, enc.lo), np.where(bad, nat.hi, enc.hi))
+    sens = None
     if affine:
-        enc = _with_affine(problem, lo, hi, enc, chk)
-    return enc, Fc, J, chk, chk_c
+        enc, sens = _with_affine(problem, lo, hi, enc, chk)
+    return enc, Fc, J, chk, chk_c, sens
 
 
-def _with_affine(problem, lo, hi, enc: Interval, chk) -> Interval:
+def _with_affine(problem, lo, hi, enc: Interval, chk):
     """``enc`` intersected with the affine-arithmetic ranges (columns with valid checks).
 
     Affine arithmetic encloses every operation it evaluates, across jumps too (non-smooth
     operations run on intervals), but the checked path's rule is kept: a column whose box
     may hold a kink or jump, or an operation not proved inside its domain, keeps ``enc``.
+    Returns the enclosure and the sensitivities of :func:`_affine_enclosure`.
     """
-    aff = _affine_enclosure(problem, lo, hi)
+    aff, sens = _affine_enclosure(problem, lo, hi)
     both = _IA.intersect(enc, aff)
     keep = ~(both.lo <= both.hi)  # empty: cannot happen for sound enclosures
     if chk is not None:
         keep |= chk.jump | chk.maybe
     if keep.any():
         both = Interval(np.where(keep, enc.lo, both.lo), np.where(keep, enc.hi, both.hi))
-    return both
+    return both, sens
 
 
 def _centres(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -359,7 +396,7 @@ def verify_interval(
     resolution: float | None = None,
     max_boxes: int = 2_000_000,
     batch: int = 8192,
-    mean_value: bool = True,
+    mean_value: bool | None = None,
     affine: bool = True,
     presearch: int = 500,
     stop_at_first: bool = True,
@@ -370,8 +407,18 @@ def verify_interval(
     n_tasks: int | None = None,
     progress: bool = False,
 ) -> VerificationResult:
-    """Decide ``problem`` with interval branch-and-prune; see :func:`verification.verify`."""
+    """Decide ``problem`` with interval branch-and-prune; see :func:`verification.verify`.
+
+    ``affine`` (default): intersect the enclosures with the ranges of affine forms
+    (:mod:`verification.affine`) and split boxes where those bounds are most sensitive.
+    ``mean_value``: intersect with the mean-value form ``F(c) + J(X)(X − c)`` (one more
+    walker pass, over the Jacobian graph) and split by the interval Jacobian's smear;
+    ``None`` (default): only without ``affine`` (with it, the mean-value form rarely
+    tightens a bound and costs about as much as the rest of a round).
+    """
     t0 = time.perf_counter()
+    if mean_value is None:
+        mean_value = not affine
     box = problem.box
     width = box[:, 1] - box[:, 0]
     if resolution is None:
@@ -411,7 +458,7 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
         queue_lo, queue_hi, depth_q = queue_lo[batch:], queue_hi[batch:], depth_q[batch:]
         n_boxes += len(lo)
         max_depth = max(max_depth, int(dq.max()))
-        enc, Fc, J, chk, chk_c = _enclose(problem, lo, hi, mean_value, affine)
+        enc, Fc, J, chk, chk_c, sens = _enclose_all(problem, lo, hi, mean_value, affine)
         g_lo, g_hi = enc.lo[:, :m], enc.hi[:, :m]
         p_hi = enc.hi[:, m:]
         if chk is None:
@@ -467,6 +514,19 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
             dim = np.argmax(smear + 1e-300 * w_s, axis=1)
             flat = np.max(smear, axis=1) <= 0
             if chk is not None:  # no valid derivative on the box: bisect the widest side
+                flat |= np.any((chk.jump | chk.maybe)[split], axis=1)
+            dim[flat] = np.argmax(w_s[flat], axis=1)
+        elif sens is not None:
+            # the affine forms' input coefficients |g_ji| (half widths included): split
+            # where the active outputs' bounds are most sensitive
+            active = np.concatenate(
+                [(g_lo[split] <= 0) & (g_hi[split] > 0), p_hi[split] >= 0], axis=1)
+            if chk is not None:
+                active |= chk.maybe[split]
+            smear = np.max(sens[split] * active[:, :, None], axis=1)
+            dim = np.argmax(smear + 1e-300 * w_s, axis=1)
+            flat = np.max(smear, axis=1) <= 0
+            if chk is not None:
                 flat |= np.any((chk.jump | chk.maybe)[split], axis=1)
             dim[flat] = np.argmax(w_s[flat], axis=1)
         else:

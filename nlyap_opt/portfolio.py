@@ -152,10 +152,18 @@ def _check_seeds(seeds) -> list[int]:
     return out
 
 
-def _run_seed(system: str, cfg: dict, out: str, known_dynamics: bool) -> dict:
-    """Worker side: one pipeline run, its log in ``out/run.log``; a plain summary back."""
+def _run_seed(system: str, cfg: dict, out: str, known_dynamics: bool,
+              spec: str | None = None) -> dict:
+    """Worker side: one pipeline run, its log in ``out/run.log``; a plain summary back.
+
+    ``spec``: the system comes from this TOML spec file (loaded here, in the worker).
+    """
     from .pipeline import run
 
+    if spec is not None:
+        import systems as _systems
+
+        system = _systems.load_spec(spec)
     t = time.perf_counter()
     Path(out).mkdir(parents=True, exist_ok=True)
     with open(Path(out) / "run.log", "a", encoding="utf-8") as fh:
@@ -219,9 +227,9 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
 
     Parameters
     ----------
-    system : str or systems.System
-        A catalogue name (a ``System`` is sent by its name: it must be registered in the
-        worker processes too).
+    system : str, path or systems.System
+        A catalogue name, or a system spec file (TOML; each worker loads it). A ``System``
+        object is sent by its name: it must be registered in the worker processes too.
     cfg : dict
         A validated run configuration (:func:`nlyap_opt.configs.get_config`).
     out : path
@@ -259,10 +267,28 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
     if not isinstance(cfg, dict):
         raise ConfigError(f"cfg must be a run configuration dict, got {type(cfg).__name__}; "
                           "use nlyap_opt.configs.get_config(system, preset)")
+    import systems as _systems
+
+    from .configs import check_dynamics_box, validate_config
+
+    spec = None
+    if isinstance(system, (str, os.PathLike)) and (
+            str(system).endswith(".toml") or Path(system).is_file()):
+        spec = str(Path(system).resolve())  # a system spec file: each worker loads it
+        system = _systems.load_spec(spec)
+    elif spec is None and Path(str(getattr(system, "source", "") or "")).is_file():
+        spec = str(Path(system.source).resolve())  # a System loaded from a spec file
     name = system if isinstance(system, str) else getattr(system, "name", None)
     if not isinstance(name, str):
-        raise ConfigError(f"system must be a catalogue name or a systems.System, got "
-                          f"{system!r}")
+        raise ConfigError(f"system must be a catalogue name, a spec file or a systems.System, "
+                          f"got {system!r}")
+    if spec is None:
+        _systems.get(name)  # an unknown name fails here, before a cluster starts
+    if name in _systems.names():  # the checks pipeline.run makes, once for all seeds
+        for s in seed_list:
+            validate_config(seed_config(cfg, s), name)
+        if not known_dynamics:
+            check_dynamics_box(cfg)
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"out {out} is a file; pass a directory (new or of a portfolio)")
@@ -278,8 +304,8 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
         log(f"[portfolio] {name}: seeds {seed_list} on {n_workers} worker(s)")
 
         def submit(s):
-            return client.submit(_run_seed, name, seed_config(cfg, s), str(dirs[s]),
-                                 known_dynamics, pure=False)
+            return client.submit(_run_seed, name, seed_config(cfg, s), str(dirs[s].resolve()),
+                                 known_dynamics, spec, pure=False)
 
         first, rest = seed_list[0], seed_list[1:]
         futures = {first: submit(first)}

@@ -201,7 +201,6 @@ def test_executor_hook_of_verify_runs_on_dask(client):
         assert res.status == verify(problem).status == expected
 
 
-@pytest.mark.slow  # about 30 s on 2 busy cores: three Python processes start
 def test_existing_cluster_scheduler_and_two_worker_processes(tmp_path):
     """`dask scheduler` + two `dask worker` processes on 127.0.0.1, used through
     ``scheduler=``; the tool connects and leaves the cluster running."""
@@ -263,6 +262,19 @@ def test_portfolio_bad_seeds(tmp_path, seeds, match):
     with pytest.raises(ConfigError, match=match):
         run_portfolio("van_der_pol", _fast_vdp(), tmp_path, seeds=seeds, workers=1)
     assert not list(tmp_path.iterdir())  # nothing started
+
+
+def test_portfolio_bad_system_or_config_fails_before_any_work(tmp_path):
+    from nlyap_opt.errors import UnknownNameError
+    from nlyap_opt.portfolio import run_portfolio
+
+    with pytest.raises(UnknownNameError, match="no_such_system"):
+        run_portfolio("no_such_system", _fast_vdp(), tmp_path, seeds=2, workers=1)
+    bad = _fast_vdp()
+    bad["train"] = dict(bad["train"], steps=-1)
+    with pytest.raises(ConfigError, match="steps"):
+        run_portfolio("van_der_pol", bad, tmp_path, seeds=2, workers=1)
+    assert not list(tmp_path.iterdir())
 
 
 def test_seed_config_sets_both_training_seeds():

@@ -294,25 +294,38 @@ def _sq_aff(x: Affine) -> Affine:
 
 
 # --------------------------------------------------------------------------- relaxations
-def _d_at(f, t, alpha):
-    """Enclosures of ``d(t) = f(t) - α t`` and of ``f(t)`` at float points ``t`` (arrays)."""
-    fl, fh = f(t, t)
+def _d_from(ft, t, alpha):
+    """Enclosure of ``d(t) = f(t) - α t`` at float points ``t`` from one of ``f(t)``."""
     pl, ph = _mul(t, t, alpha, alpha)
-    return _sub(fl, fh, pl, ph), (fl, fh)
+    return _sub(ft[0], ft[1], pl, ph)
 
 
-def _piece_bounds(rel, a, b, alpha, convex: bool):
+def _f_at(rel, t, t_ref, f_ref):
+    """Enclosure of ``f(t)``: ``f_ref`` where ``t == t_ref``, evaluated elsewhere."""
+    new = t != t_ref
+    if not new.any():
+        return f_ref
+    fl, fh = f_ref[0].copy(), f_ref[1].copy()
+    nl, nh = rel.f(t[new], t[new])
+    fl[new] = nl
+    fh[new] = nh
+    return fl, fh
+
+
+def _piece_bounds(rel, a, b, alpha, convex: bool, fa, fb):
     """``(lo, hi)`` bounds of ``d = f - α t`` on pieces ``[a, b]`` of one convexity.
 
-    Convex ``d``: the maximum is at an end; the minimum is above the tangent at any point
-    ``p`` of the piece (``p`` near the critical point ``f'(p) = α``), whose smallest value
-    on ``[a, b]`` is at ``a`` or ``b``. Concave: mirrored.
+    ``fa``, ``fb``: enclosures of ``f(a)``, ``f(b)``. Convex ``d``: the maximum is at an
+    end; the minimum is above the tangent at any point ``p`` of the piece (``p`` near the
+    critical point ``f'(p) = α``), whose smallest value on ``[a, b]`` is at ``a`` or
+    ``b``. Concave: mirrored.
     """
     p = np.minimum(np.maximum(rel.crit(alpha, a, b), a), b)
     p = np.where(p == p, p, a)  # NaN (no critical point): any point of the piece will do
-    (al, ah), _ = _d_at(rel.f, a, alpha)
-    (bl, bh), _ = _d_at(rel.f, b, alpha)
-    (dl, dh), fp = _d_at(rel.f, p, alpha)
+    al, ah = _d_from(fa, a, alpha)
+    bl, bh = _d_from(fb, b, alpha)
+    fp = rel.f(p, p)
+    dl, dh = _d_from(fp, p, alpha)
     sl, sh = rel.df(p, fp)  # enclosure of f'(p)
     sl, sh = _sub(sl, sh, alpha, alpha)  # d'(p)
     out = None
@@ -327,18 +340,17 @@ def _piece_bounds(rel, a, b, alpha, convex: bool):
     return np.minimum(al, bl), out
 
 
-def _piece(rel, a, b, alpha, convex, rows):
-    """Bounds on the pieces ``rows`` (flat indices) only; ``convex``: bool or array."""
-    a, b, alpha = a.ravel()[rows], b.ravel()[rows], alpha.ravel()[rows]
+def _piece(rel, a, b, alpha, convex, fa, fb):
+    """:func:`_piece_bounds` for a convexity flag that is a bool or a per-element array."""
     if isinstance(convex, (bool, np.bool_)):
-        return _piece_bounds(rel, a, b, alpha, bool(convex))
-    convex = np.asarray(convex).ravel()[rows]  # an array of the shape of a
-    out_lo = np.empty(len(rows))
-    out_hi = np.empty(len(rows))
+        return _piece_bounds(rel, a, b, alpha, bool(convex), fa, fb)
+    out_lo = np.empty(len(a))
+    out_hi = np.empty(len(a))
     for flag in (True, False):
         sel = convex == flag
         if sel.any():
-            lo, hi = _piece_bounds(rel, a[sel], b[sel], alpha[sel], flag)
+            lo, hi = _piece_bounds(rel, a[sel], b[sel], alpha[sel], flag,
+                                   (fa[0][sel], fa[1][sel]), (fb[0][sel], fb[1][sel]))
             out_lo[sel] = lo
             out_hi[sel] = hi
     return out_lo, out_hi
@@ -348,7 +360,7 @@ class _Relax:
     """A smooth unary function with known inflection points, for :func:`_relax_unary`.
 
     ``f(lo, hi)``: interval enclosure (rigorous); ``df(t, ft)``: enclosure of ``f'`` at
-    float points ``t`` (``ft``: the enclosure of ``f(t)``); ``slope(l, h)``: a float
+    float points ``t`` (``ft``: the enclosure of ``f(t)``); ``slope(l, h, fl, fh)``: a float
     slope (any value is sound); ``crit(α, a, b)``: a point near where ``f' = α`` in
     ``[a, b]`` (heuristic: any point of the piece is sound); ``pieces(l, h)``: ``(ok,
     q_lo, q_hi, convex_left, convex_right)``: where ``ok``, ``[l, h]`` has at most one
@@ -369,27 +381,44 @@ def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
     if x.g is None or not ok.any():
         return Affine.from_interval(_IA.unary(op, rng))
     # work on finite stand-ins where not ok (results replaced by the interval fallback)
-    tl = np.where(ok, lo, 0.0)
-    th = np.where(ok, hi, 1.0)
-    alpha = np.where(ok, rel.slope(tl, th), 0.0)
-    alpha = np.where(np.isfinite(alpha), alpha, 0.0)
+    tl = np.where(ok, lo, 0.0).ravel()
+    th = np.where(ok, hi, 1.0).ravel()
+    fl = rel.f(tl, tl)  # enclosures of f at the ends of the range
+    fh = rel.f(th, th)
+    alpha = rel.slope(tl, th, 0.5 * fl[0] + 0.5 * fl[1], 0.5 * fh[0] + 0.5 * fh[1])
+    alpha = np.where(ok.ravel() & np.isfinite(alpha), alpha, 0.0)
+    q_lo = np.broadcast_to(q_lo, lo.shape).ravel()
+    q_hi = np.broadcast_to(q_hi, lo.shape).ravel()
     # pieces: left [tl, min(th, q_lo)], sliver [q_lo, q_hi] ∩ [tl, th], right [max(tl, q_hi), th]
-    has_l = tl < q_lo
-    has_r = th > q_hi
-    b1 = np.minimum(th, q_lo)
-    a2 = np.maximum(tl, q_hi)
+    has_l = (tl < q_lo) & ok.ravel()
+    has_r = (th > q_hi) & ok.ravel()
     dl = np.full(tl.size, _INF)
     dh = np.full(tl.size, -_INF)
-    for has, pa, pb, cvx in ((has_l, tl, b1, cvx_l), (has_r, a2, th, cvx_r)):
-        rows = np.flatnonzero(has & ok)
+    for left, has, cvx in ((True, has_l, cvx_l), (False, has_r, cvx_r)):
+        rows = np.flatnonzero(has)
+        if not len(rows):
+            continue
+        a, b, al = tl[rows], th[rows], alpha[rows]
+        fa = (fl[0][rows], fl[1][rows])
+        fb = (fh[0][rows], fh[1][rows])
+        if left:
+            b_new = np.minimum(b, q_lo[rows])
+            fb = _f_at(rel, b_new, b, fb)
+            b = b_new
+        else:
+            a_new = np.maximum(a, q_hi[rows])
+            fa = _f_at(rel, a_new, a, fa)
+            a = a_new
         if not isinstance(cvx, (bool, np.bool_)):
-            cvx = np.broadcast_to(cvx, tl.shape)
-        if len(rows):
-            plo, phi = _piece(rel, pa, pb, alpha, cvx, rows)
-            dl[rows] = np.minimum(dl[rows], plo)
-            dh[rows] = np.maximum(dh[rows], phi)
-    dl = dl.reshape(tl.shape)
-    dh = dh.reshape(tl.shape)
+            cvx = np.broadcast_to(cvx, lo.shape).ravel()[rows]
+        plo, phi = _piece(rel, a, b, al, cvx, fa, fb)
+        dl[rows] = np.minimum(dl[rows], plo)
+        dh[rows] = np.maximum(dh[rows], phi)
+    shape = lo.shape
+    tl, th, alpha = tl.reshape(shape), th.reshape(shape), alpha.reshape(shape)
+    q_lo, q_hi = q_lo.reshape(shape), q_hi.reshape(shape)
+    dl = dl.reshape(shape)
+    dh = dh.reshape(shape)
     # the sliver around an inflection point: the interval extension of d there
     s_lo = np.maximum(tl, q_lo)
     s_hi = np.minimum(th, q_hi)
@@ -428,12 +457,16 @@ def _iv_fun(op):
     return f
 
 
-def _secant(fn, dfn):
-    def slope(tl, th):
+def _secant(dfn):
+    """Secant slope ``(f(th) - f(tl)) / (th - tl)`` from float values; ``f'`` (float) at the
+    midpoint of a narrow range. Any slope is sound: this one is near Chebyshev's."""
+    def slope(tl, th, ftl, fth):
         w = th - tl
-        s = (fn(th) - fn(tl)) / np.where(w > 0, w, 1.0)
+        s = (fth - ftl) / np.where(w > 0, w, 1.0)
         small = w <= 1e-9 * (np.abs(tl) + np.abs(th) + 1e-300)
-        return np.where(small, dfn(0.5 * tl + 0.5 * th), s)
+        if small.any():
+            s = np.where(small, dfn(0.5 * tl + 0.5 * th), s)
+        return s
     return slope
 
 
@@ -461,7 +494,7 @@ def _tanh_pieces(lo, hi):
 
 
 _TANH = _Relax(_iv_fun(ca.OP_TANH), _tanh_df,
-               _secant(np.tanh, lambda m: 1.0 - np.tanh(m) ** 2), _tanh_crit, _tanh_pieces)
+               _secant(lambda m: 1.0 - np.tanh(m) ** 2), _tanh_crit, _tanh_pieces)
 
 
 # exp: convex; f' = exp; f' = α at log α
@@ -469,7 +502,7 @@ def _exp_df(t, ft):
     return ft
 
 
-_EXP = _Relax(_iv_fun(ca.OP_EXP), _exp_df, _secant(np.exp, np.exp),
+_EXP = _Relax(_iv_fun(ca.OP_EXP), _exp_df, _secant(np.exp),
               lambda alpha, a, b: np.log(np.maximum(alpha, 1e-300)), _one_piece(True))
 
 
@@ -485,7 +518,7 @@ def _sqrt_pieces(lo, hi):
 
 
 _SQRT = _Relax(_iv_fun(ca.OP_SQRT), _sqrt_df,
-               _secant(np.sqrt, lambda m: 0.5 / np.sqrt(np.maximum(m, 1e-300))),
+               _secant(lambda m: 0.5 / np.sqrt(np.maximum(m, 1e-300))),
                lambda alpha, a, b: 0.25 / np.maximum(alpha, 1e-300) ** 2, _sqrt_pieces)
 
 
@@ -508,7 +541,7 @@ def _inv_crit(alpha, a, b):
 
 
 _INV = _Relax(_iv_fun(ca.OP_INV), _inv_df,
-              _secant(lambda t: 1.0 / t, lambda m: -1.0 / (m * m)), _inv_crit, _inv_pieces)
+              _secant(lambda m: -1.0 / (m * m)), _inv_crit, _inv_pieces)
 
 
 # sin / cos: inflection points at phase + kπ (phase 0 for sin, π/2 for cos); f is concave
@@ -554,7 +587,7 @@ def _sincos_relax(op: int, fn, dfn, phase: float):
         t = np.where(np.sin(m) >= 0, 2 * _PI * k + ac, 2 * _PI * (k + 1) - ac)
         return t - s
 
-    return _Relax(f, df, _secant(fn, dfn), crit, pieces)
+    return _Relax(f, df, _secant(dfn), crit, pieces)
 
 
 _SIN = _sincos_relax(ca.OP_SIN, np.sin, np.cos, _PI / 2 * 0.0)

@@ -287,11 +287,11 @@ def _root_task(problem, options: dict, presearch: int, initial_boxes: int,
 
 
 def verify_distributed(problem, client, *, resolution: float | None = None,
-                       max_boxes: int = 2_000_000, batch: int = 8192, mean_value: bool = True,
-                       presearch: int = 500, stop_at_first: bool = True,
-                       keep_leaves: bool = False, seed: int = 0, initial_boxes: int = 256,
-                       task_boxes: int = 16384, tasks_per_worker: int = 2,
-                       root_boxes: int = 1, stats: dict | None = None):
+                       max_boxes: int = 2_000_000, presearch: int = 500,
+                       stop_at_first: bool = True, keep_leaves: bool = False,
+                       initial_boxes: int = 256, task_boxes: int = 16384,
+                       tasks_per_worker: int = 2, root_boxes: int = 1,
+                       stats: dict | None = None, **options):
     """Decide ``problem`` with the interval verifier on a Dask cluster, load-balanced.
 
     The hard boxes of a Lyapunov problem are few (near the level set, near the inner
@@ -323,8 +323,7 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     problem : verification.VerificationProblem
     client : distributed.Client
         From :func:`dask_client`.
-    resolution, max_boxes, batch, mean_value, presearch, stop_at_first, keep_leaves, seed, \
-initial_boxes
+    resolution, max_boxes, presearch, stop_at_first, keep_leaves, initial_boxes
         As in :func:`verification.verify` (interval backend); ``resolution`` is the root
         problem's; ``max_boxes`` bounds the boxes of all tasks together (each new task gets
         a share of what is left; a first grid is always evaluated whole, as serially).
@@ -339,6 +338,9 @@ initial_boxes
         Filled with ``tasks`` (count), ``root_cpu`` (CPU seconds of step 1) and
         ``cpu_by_worker`` (CPU seconds of the other tasks per worker process): the load
         balance, independent of other load on the machines.
+    **options
+        Any other option of the interval verifier (``batch``, ``mean_value``, ``affine``,
+        ``seed``, ...), passed to every task.
 
     Returns
     -------
@@ -349,13 +351,20 @@ initial_boxes
     ------
     ConfigError
         A count is not a positive integer.
+    TypeError
+        An option the interval verifier does not have.
     """
     from verification.problem import VerificationResult
-    from verification.verify import split_box
+    from verification.verify import split_box, verify_interval
 
+    known = set(inspect.signature(verify_interval).parameters) - {
+        "problem", "executor", "n_tasks", "progress", "boxes"}
+    for name in options:
+        if name not in known:
+            raise TypeError(f"verify_distributed() got an unknown option {name!r}; options: "
+                            f"{', '.join(sorted(known))}")
     for name, v in (("task_boxes", task_boxes), ("tasks_per_worker", tasks_per_worker),
-                    ("root_boxes", root_boxes),
-                    ("max_boxes", max_boxes), ("batch", batch),
+                    ("root_boxes", root_boxes), ("max_boxes", max_boxes),
                     ("initial_boxes", initial_boxes)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ConfigError(f"{name} must be an integer >= 1, got {v!r}")
@@ -366,9 +375,8 @@ initial_boxes
     if resolution is None:
         resolution = 1e-4 * float(np.max(root_w))
     batched = _starts_from_boxes()
-    options = {"resolution": float(resolution), "batch": int(batch),
-               "mean_value": bool(mean_value), "stop_at_first": bool(stop_at_first),
-               "keep_leaves": bool(keep_leaves), "seed": int(seed)}
+    options = dict(options, resolution=float(resolution), stop_at_first=bool(stop_at_first),
+                   keep_leaves=bool(keep_leaves))
     if not batched:  # each fixed sub-box starts from its own grid
         options["initial_boxes"] = int(initial_boxes)
     n_workers = client_workers(client)

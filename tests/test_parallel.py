@@ -112,6 +112,10 @@ def test_missing_dask_names_the_install_command(monkeypatch):
 def test_bad_verify_options(client):
     with pytest.raises(ConfigError, match="task_boxes"):
         verify_distributed(_vdp_problem(1.0), client, task_boxes=0)
+    with pytest.raises(TypeError, match="unknown option 'executor'"):
+        verify_distributed(_vdp_problem(1.0), client, executor=None)
+    with pytest.raises(TypeError, match="unknown option 'resolutoin'"):
+        verify_distributed(_vdp_problem(1.0), client, resolutoin=0.1)
 
 
 # ----------------------------------------------------------------------------- the cluster

@@ -508,7 +508,10 @@ def _inner_ellipse(problem: RoaProblem) -> tuple[dict, str | None]:
         except ImportError:
             prove_inner_ellipse_from_data = None
         if prove_inner_ellipse_from_data is not None:
-            res = prove_inner_ellipse_from_data(sysm, problem.controller, problem.inner)
+            res = prove_inner_ellipse_from_data(
+                sysm, problem.controller, problem.inner, dynamics=problem.dynamics,
+                eta=problem.eta, eta_state_box=problem.dynamics_box,
+                eta_input_box=problem.input_box, verify_options=problem.verify_options)
             return res, res.get("proved_from", "samples and the declared bound H")
     return _assumed_ellipse(problem), None
 

@@ -194,8 +194,16 @@ class LyapunovLearner:
             out = self.phi(torch.cat([x, u], dim=1))
         if learned is None or list(learned) == list(range(s.nx)):
             return out
-        f = s.evaluate_torch(x, u)
-        cols = [out[:, learned.index(i)] if i in learned else f[:, i] for i in range(s.nx)]
+        if getattr(s, "has_model", True):
+            f = s.evaluate_torch(x, u)
+            cols = [out[:, learned.index(i)] if i in learned else f[:, i] for i in range(s.nx)]
+        else:  # no model: the components known exactly, through their CasADi graph
+            from .walker import ArrayArithmetic, evaluate
+
+            kf = evaluate(s.known_function(), [x, u], ArrayArithmetic("torch"))[0]
+            known = list(s.known_state_derivatives)
+            cols = [out[:, learned.index(i)] if i in learned else kf[:, known.index(i)]
+                    for i in range(s.nx)]
         return torch.stack(cols, dim=1)
 
     def closed_loop_jacobian(self):

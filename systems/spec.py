@@ -696,6 +696,12 @@ def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
             dyn = {"model": "control_affine", "grid_counts": smp.counts[:system.nx].tolist()}
         else:
             dyn = {"model": "full", "grid_counts": smp.counts.tolist()}
+    elif system.nu and system.declarations is not None \
+            and system.declarations.input_matrix is not None:
+        # a declared B: learn φ₀(x) on an x-grid (the control-affine model; u adds B u)
+        d = system.nx
+        n = int(2 * max(1, math.floor((grid_budget ** (1.0 / d) - 1) / 2)) + 1)
+        dyn = {"model": "control_affine", "grid_counts": [n] * d}
     else:
         d = system.nx + system.nu
         n = int(2 * max(1, math.floor((grid_budget ** (1.0 / d) - 1) / 2)) + 1)

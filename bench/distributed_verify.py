@@ -5,8 +5,8 @@ Two certificate queries, each decided serially (``verification.verify``), then b
 and by the executor hook ``verify(problem, executor=client.get_executor())`` (a fixed split
 into ``n_tasks`` sub-boxes) for comparison:
 
-(A) 4-D: two coupled reversed Van der Pol oscillators, a quadratic V with a 16-neuron tanh
-    factor, decrease on 0.1 ≤ ‖x‖ ≤ 1.1 (about 10⁵ boxes serially);
+(A) 4-D: two coupled reversed Van der Pol oscillators, a quadratic V with a 64-neuron tanh
+    factor, decrease on 0.1 ≤ ‖x‖ ≤ 1.1 (about 6·10⁴ boxes serially);
 (B) 2-D: bench/verify.py's 2-30-30 tanh V on Van der Pol, r = 2.5, at 0.99 × the IPOPT
     candidate level (bench/data/vdp_V30x30.json; run bench/verify.py once to create it).
 
@@ -34,8 +34,9 @@ from verification import lyapunov_problem, verify
 DATA = Path(__file__).parent / "data"
 
 
-def problem_4d(outer: float = 1.1):
-    """Two coupled reversed Van der Pol oscillators; ``V = xᵀ(I₂⊗P)x·(1 + 0.05·aᵀtanh(Wx+b)/4)``."""
+def problem_4d(outer: float = 1.1, neurons: int = 16):
+    """Two coupled reversed Van der Pol oscillators; ``V = xᵀ(I₂⊗P)x·(1 + 0.05·aᵀtanh(Wx+b)/4)``
+    with ``neurons`` tanh units."""
     x = ca.MX.sym("x", 4)
     P = np.array([[1.5, -0.5], [-0.5, 1.0]])
 
@@ -45,7 +46,8 @@ def problem_4d(outer: float = 1.1):
     f = ca.vertcat(vdp(x[0], x[1]), vdp(x[2], x[3])) + 0.1 * ca.vertcat(
         x[2] * x[1], 0, -x[0] * x[3], 0)
     rng = np.random.default_rng(0)
-    W, b, a = rng.normal(0, 1, (16, 4)), rng.normal(0, 0.5, 16), rng.normal(0, 1, 16)
+    W, b = rng.normal(0, 1, (neurons, 4)), rng.normal(0, 0.5, neurons)
+    a = rng.normal(0, 1, neurons) * np.sqrt(16 / neurons)
     h = ca.tanh(ca.mtimes(ca.DM(W), x) + ca.DM(b))
     V = ca.bilin(ca.DM(np.kron(np.eye(2), P)), x, x) * (1 + 0.05 * ca.dot(ca.DM(a), h) / 4)
     lie = ca.dot(ca.gradient(V, x), f)
@@ -81,7 +83,7 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--n-tasks", type=int, default=8, help="sub-boxes of the executor hook")
     args = ap.parse_args(argv)
-    queries = [("(A) 4-D, 16-neuron V factor", problem_4d())]
+    queries = [("(A) 4-D, 64-neuron V factor", problem_4d(1.1, 64))]
     p = problem_vdp30()
     if p is not None:
         queries.append(("(B) 2-D, V 2-30-30, r = 2.5", p))

@@ -29,6 +29,7 @@ def main(argv=None):
     ap.add_argument("--learned", action="store_true", help="learned φ (default: true f)")
     args = ap.parse_args(argv)
     cfg = get_config(args.system, args.preset)
+    load = os.getloadavg()[0]
     rows = []
     with tempfile.TemporaryDirectory(prefix="nlyap-portfolio-") as tmp:
         for w in args.workers:
@@ -39,7 +40,8 @@ def main(argv=None):
             rows.append((w, time.perf_counter() - t, res))
     base = rows[0][1]
     print(f"{args.system}, preset {args.preset}, {'learned φ' if args.learned else 'true f'}, "
-          f"{args.seeds} seeds; load average before: {os.getloadavg()[0]:.2f}")
+          f"{args.seeds} seeds; load average before: {load:.2f}, after: "
+          f"{os.getloadavg()[0]:.2f} ({os.cpu_count()} cores)")
     print("| workers | seconds | speed-up | sum of seed seconds | best seed | best area | "
           "certified seeds |")
     print("|---|---|---|---|---|---|---|")

@@ -345,7 +345,9 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     Returns
     -------
     verification.VerificationResult
-        ``depth`` is the deepest bisection level below the root box (or its first grid).
+        ``depth``: the deepest bisection level below the root box, counting a first grid
+        of ``k`` cells per side as ``log2 k`` levels (an upper bound: each task's deepest
+        level plus that of its deepest starting box).
 
     Raises
     ------
@@ -390,7 +392,9 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
 
     tally = {"tasks": 0, "root_cpu": None, "cpu_by_worker": {}}
 
-    def absorb(out) -> np.ndarray:
+    offsets: dict = {}  # task key -> bisection depth of its deepest starting box
+
+    def absorb(out, offset: int = 0) -> np.ndarray:
         tally["tasks"] += 1
         if tally["root_cpu"] is None:
             tally["root_cpu"] = out["cpu"]
@@ -402,7 +406,8 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
             unknown.append(out["unknown"])
         leaves.extend(out["leaves"])
         state["boxes"] += out["boxes"]
-        state["depth"] = max(state["depth"], out["depth"], _depth(out["open"], root_w))
+        state["depth"] = max(state["depth"], offset + out["depth"],
+                             _depth(out["open"], root_w))
         return out["open"]
 
     def deal(open_boxes: np.ndarray, parts: int) -> None:
@@ -417,8 +422,9 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         share = max(1, left // math.ceil(k / size))  # of the global budget, per new task
         budget = min(task_boxes, share) if batched else share
         for i in range(0, k, size):
-            fut = client.submit(_box_task, pf, open_boxes[i:i + size], budget, options,
-                                batched, pure=False)
+            chunk = open_boxes[i:i + size]
+            fut = client.submit(_box_task, pf, chunk, budget, options, batched, pure=False)
+            offsets[fut.key] = _depth(chunk, root_w)
             submitted.append(fut)
             ac.add(fut)
             state["running"] += 1
@@ -433,12 +439,14 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
             if not batched and len(opened):  # fixed split, scheduled as workers free up
                 parts = 1 << max(0, math.ceil(math.log2(4 * target)))
                 opened = np.stack([b for ob in opened for b in split_box(ob, parts)])
+                # the sub-boxes' first grids together about as fine as the serial one
+                options["initial_boxes"] = max(1, int(initial_boxes) // parts)
                 deal(opened, len(opened))
             else:
                 deal(opened, target)
             for fut in ac:
                 state["running"] -= 1
-                opened = absorb(fut.result())
+                opened = absorb(fut.result(), offsets.pop(fut.key, 0))
                 fut.release()
                 if found and stop_at_first:
                     break

@@ -53,7 +53,7 @@ from .interval import (
     _PI,
     Interval,
     IntervalArithmetic,
-    _add,
+    _dn,
     _dn_s,
     _gamma,
     _guard,
@@ -62,6 +62,7 @@ from .interval import (
     _period_index,
     _sq,
     _sub,
+    _up,
     _up_s,
 )
 
@@ -312,32 +313,48 @@ def _f_at(rel, t, t_ref, f_ref):
     return fl, fh
 
 
+def _d_side(f_side, t, alpha, upper: bool):
+    """Upper (lower) bound of ``d(t) = f(t) - α t`` from an upper (lower) bound of ``f(t)``."""
+    prod = t * alpha
+    if upper:
+        return _up_s(f_side - _dn(prod))
+    return _dn_s(f_side - _up(prod))
+
+
 def _piece_bounds(rel, a, b, alpha, convex: bool, fa, fb):
     """``(lo, hi)`` bounds of ``d = f - α t`` on pieces ``[a, b]`` of one convexity.
 
     ``fa``, ``fb``: enclosures of ``f(a)``, ``f(b)``. Convex ``d``: the maximum is at an
     end; the minimum is above the tangent at any point ``p`` of the piece (``p`` near the
     critical point ``f'(p) = α``), whose smallest value on ``[a, b]`` is at ``a`` or
-    ``b``. Concave: mirrored.
+    ``b``. Concave: mirrored. Only the bounds that are needed are computed (one side of
+    each enclosure), with outward rounding.
     """
     p = np.minimum(np.maximum(rel.crit(alpha, a, b), a), b)
     p = np.where(p == p, p, a)  # NaN (no critical point): any point of the piece will do
-    al, ah = _d_from(fa, a, alpha)
-    bl, bh = _d_from(fb, b, alpha)
     fp = rel.f(p, p)
-    dl, dh = _d_from(fp, p, alpha)
+    # tangent T(t) = d(p) + d'(p) (t - p) at t = a (t - p <= 0) and t = b (t - p >= 0):
+    # convex: lower bounds, from d(p)_lo and the lower bound of d'(p) (t - p); concave:
+    # upper bounds. With s = d'(p) in [sl, sh] and w = t - p in [wl, wh] of one sign,
+    # the extreme of s w is at the end of s that the sign of w picks
     sl, sh = rel.df(p, fp)  # enclosure of f'(p)
     sl, sh = _sub(sl, sh, alpha, alpha)  # d'(p)
-    out = None
-    for t in (a, b):
-        wl, wh = _sub(t, t, p, p)
-        ml, mh = _mul(sl, sh, wl, wh)
-        vl, vh = _add(dl, dh, ml, mh)
-        v = vl if convex else vh
-        out = v if out is None else (np.minimum(out, v) if convex else np.maximum(out, v))
+    dp = _d_side(fp[1] if not convex else fp[0], p, alpha, upper=not convex)
+    wal, wah = _sub(a, a, p, p)  # <= 0
+    wbl, wbh = _sub(b, b, p, p)  # >= 0
     if convex:
-        return out, np.maximum(ah, bh)
-    return np.minimum(al, bl), out
+        ma = _dn(np.minimum(sh * wal, sh * wah))
+        mb = _dn(np.minimum(sl * wbl, sl * wbh))
+        tan = np.minimum(_dn_s(dp + ma), _dn_s(dp + mb))
+        da = _d_side(fa[1], a, alpha, upper=True)
+        db = _d_side(fb[1], b, alpha, upper=True)
+        return _guard(tan, np.maximum(da, db))
+    ma = _up(np.maximum(sl * wal, sl * wah))
+    mb = _up(np.maximum(sh * wbl, sh * wbh))
+    tan = np.maximum(_up_s(dp + ma), _up_s(dp + mb))
+    da = _d_side(fa[0], a, alpha, upper=False)
+    db = _d_side(fb[0], b, alpha, upper=False)
+    return _guard(np.minimum(da, db), tan)
 
 
 def _piece(rel, a, b, alpha, convex, fa, fb):

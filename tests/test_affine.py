@@ -278,3 +278,40 @@ def test_the_checker_sees_missing_rounding_slack(monkeypatch):
             bad += _violations(z, _value(a, j, eps, eta[0]) + _value(b, j, eps, eta[1]),
                                eps, j)
     assert bad > 0
+
+
+def test_split_rule_follows_the_affine_sensitivities(monkeypatch):
+    """A 3-D problem whose last input is scaled by 8 (its box side is 8 times shorter, the
+    function 8 times steeper along it): splitting where the affine bounds are most
+    sensitive needs far fewer boxes than splitting the widest side; same verdict."""
+    from scipy.linalg import solve_continuous_lyapunov
+
+    from verification import VerificationProblem
+
+    vv = __import__("sys").modules["verification.verify"]
+    rng = np.random.default_rng(3)
+    n = 3
+    z = ca.SX.sym("z", n)
+    scale = np.array([1.0, 1.0, 8.0])
+    y = ca.diag(ca.DM(scale)) @ z
+    A = np.array([[-1.0, 0.5, 0.2], [-0.5, -1.0, 0.3], [0.1, -0.3, -1.5]])  # Hurwitz
+    W = rng.normal(size=(16, n)) * 0.7
+    W2 = rng.normal(size=(n, 16)) * 0.1
+    fy = (ca.mtimes(ca.DM(A), y) + ca.mtimes(ca.DM(W2), ca.tanh(ca.mtimes(ca.DM(W), y)))
+          - ca.mtimes(ca.DM(W2 @ W), y))
+    V = ca.bilin(ca.DM(solve_continuous_lyapunov(A.T, -np.eye(n))), y, y)
+    lie = ca.dot(ca.gradient(V, z), ca.diag(ca.DM(1 / scale)) @ fy)
+    box = np.array([[-1.0, 1.0], [-1.0, 1.0], [-1 / 8, 1 / 8]])
+    r2 = ca.sumsqr(y)
+    p = VerificationProblem(z, box, [r2 - 1.0, 0.01 - r2], [-V, lie])
+    by_sens = verify(p)
+    orig = vv._affine_enclosure
+
+    def no_sensitivities(problem, lo, hi):
+        enc, sens = orig(problem, lo, hi)
+        return enc, np.zeros_like(sens)  # every box "flat": the widest side is split
+
+    monkeypatch.setattr(vv, "_affine_enclosure", no_sensitivities)
+    widest = verify(p)
+    assert by_sens.status == widest.status == "verified"
+    assert 2 * by_sens.boxes < widest.boxes

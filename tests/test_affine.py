@@ -202,7 +202,8 @@ def _fns(sym=ca.MX):
     return x, {
         "net": net,
         "lie": ca.dot(ca.gradient(net, x), ca.vertcat(x[1], -ca.sin(x[0]) - 0.5 * x[1])),
-        "mixed": ca.exp(-ca.sumsqr(x)) * ca.cos(3 * x[0]) + ca.sqrt(1 + x[1] ** 2) / (2 + x[0]),
+        "mixed": (ca.exp(-ca.sumsqr(x)) * ca.cos(3 * x[0]) + ca.sqrt(1 + x[1] ** 2) / (2 + x[0])
+                  + x[0] ** 3 - x[1] ** 4 + ca.sin(5 * x[1]) / (3 - x[1])),
         "jumps": ca.fabs(x[0]) + ca.sign(x[1]) * ca.fmax(x[0], x[1]) + ca.floor(2 * x[1]),
     }
 

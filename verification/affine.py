@@ -431,23 +431,21 @@ def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
         plo, phi = _piece(rel, a, b, al, cvx, fa, fb)
         dl[rows] = np.minimum(dl[rows], plo)
         dh[rows] = np.maximum(dh[rows], phi)
+    # the sliver [q_lo, q_hi] ∩ [tl, th] around an inflection point: the interval
+    # extension of d there
+    rows = np.flatnonzero((np.maximum(tl, q_lo) <= np.minimum(th, q_hi)) & ok.ravel())
+    if len(rows):
+        s_lo = np.maximum(tl[rows], q_lo[rows])
+        s_hi = np.minimum(th[rows], q_hi[rows])
+        vl, vh = rel.f(s_lo, s_hi)
+        pl, ph = _mul(s_lo, s_hi, alpha[rows], alpha[rows])
+        sl, sh = _sub(vl, vh, pl, ph)
+        dl[rows] = np.minimum(dl[rows], sl)
+        dh[rows] = np.maximum(dh[rows], sh)
     shape = lo.shape
-    tl, th, alpha = tl.reshape(shape), th.reshape(shape), alpha.reshape(shape)
-    q_lo, q_hi = q_lo.reshape(shape), q_hi.reshape(shape)
+    alpha = alpha.reshape(shape)
     dl = dl.reshape(shape)
     dh = dh.reshape(shape)
-    # the sliver around an inflection point: the interval extension of d there
-    s_lo = np.maximum(tl, q_lo)
-    s_hi = np.minimum(th, q_hi)
-    sliver = s_lo <= s_hi
-    if sliver.any():
-        s_lo = np.where(sliver, s_lo, tl)
-        s_hi = np.where(sliver, s_hi, tl)
-        fl, fh = rel.f(s_lo, s_hi)
-        pl, ph = _mul(s_lo, s_hi, alpha, alpha)
-        sl, sh = _sub(fl, fh, pl, ph)
-        dl = np.where(sliver, np.minimum(dl, sl), dl)
-        dh = np.where(sliver, np.maximum(dh, sh), dh)
     ok &= np.isfinite(dl) & np.isfinite(dh) & (dl <= dh)
     # β, δ: centre and radius of [dl, dh] (outward)
     beta = 0.5 * dl + 0.5 * dh

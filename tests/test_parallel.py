@@ -205,6 +205,7 @@ def test_executor_hook_of_verify_runs_on_dask(client):
         assert res.status == verify(problem).status == expected
 
 
+@pytest.mark.slow  # 8-29 s on the shared 2 cores: three Python processes start
 def test_existing_cluster_scheduler_and_two_worker_processes(tmp_path):
     """`dask scheduler` + two `dask worker` processes on 127.0.0.1, used through
     ``scheduler=``; the tool connects and leaves the cluster running."""

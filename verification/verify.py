@@ -346,9 +346,33 @@ def _with_affine(problem, lo, hi, enc: Interval, chk):
     Affine arithmetic encloses every operation it evaluates, across jumps too (non-smooth
     operations run on intervals), but the checked path's rule is kept: a column whose box
     may hold a kink or jump, or an operation not proved inside its domain, keeps ``enc``.
-    Returns the enclosure and the sensitivities of :func:`_affine_enclosure`.
+    Boxes that ``enc`` decides already are left out of the affine pass. Returns the
+    enclosure and the sensitivities of :func:`_affine_enclosure`.
     """
-    aff, sens = _affine_enclosure(problem, lo, hi)
+    m = problem.n_constraints
+    B, n = lo.shape
+    # boxes that the interval enclosure decides already (outside, or all properties hold)
+    # need no affine pass
+    decided = np.all(enc.hi[:, m:] < 0, axis=1)
+    if m:
+        decided |= np.any(enc.lo[:, :m] > 0, axis=1)
+    if decided.all():
+        r = hi - lo
+        frac = r / np.maximum(r.sum(axis=1, keepdims=True), 1e-300)
+        return enc, np.broadcast_to(frac[:, None, :], enc.lo.shape + (n,))
+    if decided.any():
+        rows = np.flatnonzero(~decided)
+        part, part_sens = _affine_enclosure(problem, lo[rows], hi[rows])
+        r = hi - lo
+        sens = np.repeat((r / np.maximum(r.sum(axis=1, keepdims=True), 1e-300))[:, None, :],
+                         enc.lo.shape[1], axis=1)
+        sens[rows] = part_sens
+        alo, ahi = enc.lo.copy(), enc.hi.copy()
+        alo[rows] = part.lo
+        ahi[rows] = part.hi
+        aff = Interval(alo, ahi)
+    else:
+        aff, sens = _affine_enclosure(problem, lo, hi)
     both = _IA.intersect(enc, aff)
     keep = ~(both.lo <= both.hi)  # empty: cannot happen for sound enclosures
     if chk is not None:

@@ -85,6 +85,43 @@ def _seed(text: str) -> int:
     return v
 
 
+def _seeds(text: str) -> int | list[int]:
+    """``--seeds K`` (seeds 0..K-1) or ``--seeds 0,3,7``."""
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        vals = [int(p) for p in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a count K >= 1 or seeds like 0,3,7, got {text!r}") from None
+    if len(vals) == 1 and "," not in text:
+        if vals[0] < 1:
+            raise argparse.ArgumentTypeError(f"the number of seeds must be >= 1, got {vals[0]}")
+        return vals[0]
+    if any(v < 0 for v in vals) or len(set(vals)) != len(vals):
+        raise argparse.ArgumentTypeError(f"seeds must be distinct integers >= 0, got {text!r}")
+    return vals
+
+
+def _workers(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {v}")
+    return v
+
+
+def _dask_args(sp) -> None:
+    sp.add_argument("--workers", type=_workers,
+                    help="Dask worker processes of a local cluster started and stopped by "
+                         "nlyap (default: one per CPU core); with --scheduler: workers to "
+                         "wait for")
+    sp.add_argument("--scheduler", metavar="ADDRESS",
+                    help="tcp://HOST:PORT of an existing Dask cluster (`dask scheduler`); "
+                         "it is used, never closed")
+
+
 def _matrix_arg(text: str | None, option: str):
     """Parse ``"1,0;0,1"`` (rows separated by ';') or a scalar into an array."""
     if text is None:
@@ -172,6 +209,7 @@ def _check_paths(args) -> None:
     """Refuse missing inputs and unusable outputs before any work starts."""
     if getattr(args, "system", None) is not None:
         if _is_spec(args.system):   # --system FILE.toml / run FILE.toml
+            args.system_file = str(Path(args.system).resolve())  # Dask workers load it
             args.system = _spec_system(args.system)
         _catalogue_system(args.system)
     for attr in ("config", "lyapunov", "controller", "dynamics", "certificate"):
@@ -311,7 +349,16 @@ def cmd_verify(args) -> int:
         opts = {"resolution": args.resolution, "progress": args.progress}
     elif args.precision is not None:
         opts = {"precision": args.precision}
-    res = verify(problem, backend=args.backend, **opts)
+    if args.workers is not None or args.scheduler is not None:
+        if args.backend != "interval":
+            raise UsageError("--workers/--scheduler run the interval backend on Dask; drop "
+                             "them or use --backend interval")
+        from .parallel import dask_client, verify_distributed
+
+        with dask_client(args.workers, args.scheduler) as client:
+            res = verify_distributed(problem, client, resolution=args.resolution)
+    else:
+        res = verify(problem, backend=args.backend, **opts)
     region = f"{args.inner:g} <= |x| <= {args.outer:g}" + (
         f" and V <= {args.level:g}" if args.level is not None else "")
     extra = f" + {eta:g}|∇V|" if eta else ""
@@ -351,6 +398,15 @@ def cmd_run(args) -> int:
     cfg = _run_config(args, learned=not args.known_dynamics)
     out = args.out or f"runs/{args.system}{'_known' if args.known_dynamics else ''}"
     _check_writable(Path(out), "--out", directory=True)
+    if args.seeds is not None:  # a portfolio of seeded candidates on Dask, the best kept
+        from .portfolio import run_portfolio
+
+        pres = run_portfolio(getattr(args, "system_file", None) or args.system, cfg, out,
+                             seeds=args.seeds, workers=args.workers,
+                             scheduler=args.scheduler, known_dynamics=args.known_dynamics)
+        return 0 if pres.certified else 2
+    if args.workers is not None or args.scheduler is not None:
+        raise UsageError("--workers/--scheduler run a portfolio: add --seeds K (or drop them)")
     res = run(args.system, cfg, out, known_dynamics=args.known_dynamics)
     status = res["status"] if isinstance(res, dict) else res.status
     return 0 if getattr(status, "value", status) == "certified" else 2
@@ -441,6 +497,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--precision", type=_positive, help="delta of the dreal backend")
     sp.add_argument("--progress", action="store_true")
     sp.add_argument("--json", help="write status, seconds, boxes, counterexample here")
+    _dask_args(sp)
     sp.set_defaults(func=cmd_verify)
 
     sp = add("run", help="learn f (unless --known-dynamics), V and κ; certify the ROA")
@@ -450,6 +507,11 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--known-dynamics", action="store_true",
                     help="use the true f (the paper's 'actual dynamics' setting)")
     sp.add_argument("--out", help="output directory (default runs/NAME[_known])")
+    sp.add_argument("--seeds", type=_seeds,
+                    help="K (seeds 0..K-1) or 0,3,7: train one candidate per seed in "
+                         "parallel on Dask (OUT/seed_k), keep the largest certified area "
+                         "(OUT/portfolio.md)")
+    _dask_args(sp)
     sp.set_defaults(func=cmd_run)
 
     sp = add("compare", help="LQR, SOS and neural ROAs, all certified, vs true ROA")

@@ -254,8 +254,11 @@ def _inner_ellipse(cl, J, P, inner, verify_options):
     S = S + S.T
     minors = _leading_minors(S)
     props = [-((-1) ** k) * m for k, m in enumerate(minors, start=1)]  # (-1)^k m_k > 0
-    prob = VerificationProblem(cl.x, np.stack([-a, a], axis=1), [], props,
-                               [], [f"minor{k}" for k in range(1, n + 1)])
+    # J only matters on E (convex: it holds every segment [0, x]); the box's corners reach
+    # V = n·c_q, so the region is E itself
+    Vq = ca.bilin(ca.DM(P), cl.x, cl.x)
+    prob = VerificationProblem(cl.x, np.stack([-a, a], axis=1), [Vq - c_q], props,
+                               ["ellipse"], [f"minor{k}" for k in range(1, n + 1)])
     res = verify(prob, **(verify_options or {}))
     status = "certified" if res.status == "verified" else f"inner ellipse {res.status}"
     return {"status": status, "P": P, "level": c_q, "box": a, "result": res}

@@ -9,7 +9,7 @@ Examples
 --------
 >>> import systems
 >>> sorted(systems.names())
-['inverted_pendulum', 'unicycle_path_following', 'van_der_pol']
+['cartpole', 'inverted_pendulum', 'planar_quadrotor', 'unicycle_path_following', 'van_der_pol']
 >>> systems.get("van_der_pol").nx
 2
 """
@@ -32,7 +32,8 @@ from .declarations import Declarations, check_declarations
 from .jacobian import JacobianBound, jacobian_from_data
 from .samples import SampleSet, load_samples, sample_function, save_samples
 
-__all__ = ["System", "get", "names", "register", "REGISTRY", "ModelUnavailableError",
+__all__ = ["System", "SEED_SYSTEMS", "get", "names", "register", "REGISTRY",
+           "ModelUnavailableError",
            "Declarations", "check_declarations", "SampleSet", "load_samples", "save_samples",
            "sample_function", "load_spec", "default_run_settings", "JacobianBound",
            "jacobian_from_data"]

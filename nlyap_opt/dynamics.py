@@ -51,7 +51,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -61,6 +61,7 @@ import numpy as np
 from .determinism import deterministic_torch
 from .dynamics_config import MODELS, DynamicsConfig, dynamics_config, load_dynamics_config
 from .errors import ConfigError, DimensionError, NetworkFileError
+from .grid import GridNodes
 from .network import Network
 from .phi_training import (  # noqa: F401  (_LevenbergMarquardt, _assemble: older imports)
     _assemble,
@@ -82,7 +83,7 @@ _U = 2.0 ** -53  # unit roundoff of float64
 
 
 # ============================================================================ grid
-class Grid:
+class Grid(GridNodes):
     r"""A regular grid over a box, with its exact covering radius.
 
     Node ``k`` on axis ``i`` is ``lo_i + k h_i``, ``h_i = (hi_i - lo_i) / (n_i - 1)``; both box
@@ -148,32 +149,6 @@ class Grid:
             raise ConfigError(f"grid spacing must be positive, got {spacing}")
         counts = [int(math.ceil((hi - lo) / h - 1e-9)) + 1 for (lo, hi), h in zip(box, spacing)]
         return cls(box, counts)
-
-    @property
-    def dim(self) -> int:
-        return self.box.shape[0]
-
-    @property
-    def size(self) -> int:
-        """Number of nodes."""
-        return int(np.prod(self.counts))
-
-    def points(self, index) -> np.ndarray:
-        """Nodes with flat (C-order) indices ``index``, shape ``(N, d)``."""
-        idx = np.unravel_index(np.asarray(index, dtype=np.int64), tuple(self.counts))
-        return np.stack([ax[i] for ax, i in zip(self.axes, idx)], axis=-1)
-
-    def batches(self, batch_size: int = 1 << 18) -> Iterator[np.ndarray]:
-        """Yield all nodes in C order as float64 arrays of at most ``batch_size`` rows."""
-        batch_size = max(int(batch_size), 1)
-        for start in range(0, self.size, batch_size):
-            yield self.points(np.arange(start, min(start + batch_size, self.size)))
-
-    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        """``n`` distinct random nodes (all nodes, in order, if ``n >= size``)."""
-        if n >= self.size:
-            return self.points(np.arange(self.size))
-        return self.points(np.sort(rng.choice(self.size, size=n, replace=False)))
 
     def to_dict(self) -> dict:
         return {"box": self.box.tolist(), "counts": self.counts.tolist(),

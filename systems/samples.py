@@ -31,12 +31,13 @@ from __future__ import annotations
 
 import csv
 import difflib
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from nlyap_opt.errors import ConfigError, DimensionError
+from nlyap_opt.grid import GridNodes
 
 __all__ = ["SampleSet", "load_samples", "save_samples", "sample_function", "RTOL_GRID"]
 
@@ -61,7 +62,7 @@ def _nodes(lo: float, hi: float, n: int) -> np.ndarray:
     return ax
 
 
-class SampleSet:
+class SampleSet(GridNodes):
     r"""Values of ``f`` at every node of a regular grid over :math:`X \times U`.
 
     Build it with :func:`load_samples` (from a file) or :func:`sample_function` (from a
@@ -220,33 +221,6 @@ class SampleSet:
     def input_slice(self) -> bool:
         """True when some input has a single level (samples of ``f(x, u0)`` only)."""
         return bool(np.any(self.counts[self.nx:] == 1))
-
-    @property
-    def dim(self) -> int:
-        """Number of axes, ``nx + nu``."""
-        return self.box.shape[0]
-
-    @property
-    def size(self) -> int:
-        """Number of nodes (= samples)."""
-        return int(np.prod(self.counts))
-
-    def points(self, index) -> np.ndarray:
-        """Nodes with flat (C-order) indices ``index``, shape ``(N, d)``."""
-        idx = np.unravel_index(np.asarray(index, dtype=np.int64), tuple(self.counts))
-        return np.stack([ax[i] for ax, i in zip(self.axes, idx)], axis=-1)
-
-    def batches(self, batch_size: int = 1 << 18) -> Iterator[np.ndarray]:
-        """Yield all nodes in C order as float64 arrays of at most ``batch_size`` rows."""
-        batch_size = max(int(batch_size), 1)
-        for start in range(0, self.size, batch_size):
-            yield self.points(np.arange(start, min(start + batch_size, self.size)))
-
-    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        """``n`` distinct random nodes (all nodes, in order, if ``n >= size``), as ``Grid``."""
-        if n >= self.size:
-            return self.points(np.arange(self.size))
-        return self.points(np.sort(rng.choice(self.size, size=n, replace=False)))
 
     def index_of(self, z) -> np.ndarray:
         """Flat indices of the nodes ``z`` ``(N, d)``; a point that is not a node is an error.

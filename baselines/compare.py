@@ -82,7 +82,7 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
     from nlyap_opt.certificate import recheck_certificate, save_certificate
     from nlyap_opt.control import linear_controller, lqr, quadratic_lyapunov, saturated_controller
     from nlyap_opt.pipeline import run
-    from nlyap_opt.roa import true_roa_mask
+    from nlyap_opt.roa import axis_count, true_roa_mask
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -158,7 +158,7 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
                     else system.input_box, out=out / "lqr_learned", log=log))
     # true ROA and areas
     box = np.asarray(cfg["eval_box"], dtype=float)
-    n = int(cfg["eval_grid"])
+    n = axis_count(int(cfg["eval_points"]), system.nx)
     feedback = None if sat is None else (lambda z: sat.numpy(z))
     true_mask = true_roa_mask(system, feedback, box, n)
     if system.nu:

@@ -20,7 +20,7 @@ from .determinism import deterministic_torch
 from .errors import InputRangeError
 from .learning import LyapunovLearner, TrainConfig, sample_ball, sample_sphere
 from .network import Network
-from .roa import candidate_level
+from .roa import axis_count, candidate_level
 from .simulate import simulate
 
 __all__ = ["CegisConfig", "CegisResult", "cegis"]
@@ -41,14 +41,14 @@ class CegisConfig:
     # in between, the sampled violations of the candidate level are the counterexamples
     target_fraction: float = 0.99    # stop when certified level >= this fraction of candidate
     min_iterations: int = 1          # ... but not before this many iterations (best area kept)
-    area_grid: int = 200
+    area_points: int = 40000         # grid of the certified areas (total points)
     verify_options: dict = field(default_factory=dict)
     train: TrainConfig = field(default_factory=TrainConfig)
     seed: int = 0
     inner_samples: int = 0           # extra training states in ε ≤ ‖x‖ ≤ 3ε
     boundary_samples: int = 0        # extra training states near the model's ROA boundary
     sim_dt: float = 0.02             # RK4 step of those simulations
-    sim_grid: int = 0                # learned φ: table nodes per axis for them (0: no table)
+    sim_points: int = 0              # learned φ: table of it for them, total nodes (0: none)
     sim_time: float = 20.0           # simulated horizon of the training states (convergence, cost)
     # learned dynamics: "pointwise" verifies ∇V·φ + η‖∇V(x)‖ < 0 (Cauchy–Schwarz: implies
     # ∇V·f < 0 wherever ‖f − φ‖ ≤ η); "global" verifies the paper's ∇V·φ < −β, β = M·η
@@ -83,7 +83,7 @@ class CegisResult:
 def _simulation_rhs(learner, system, cfg, tabulate: bool):
     """The closed-loop model as a numpy function for the training simulations.
 
-    A learned φ (a wide network) is tabulated once on a ``sim_grid``-per-axis grid over the
+    A learned φ (a wide network) is tabulated once on a grid of ``sim_points`` nodes over the
     ball's box and interpolated (multilinear, SciPy) when the state has at most 3
     dimensions: the simulations only shape the training targets, and a table is an order of
     magnitude faster than the network over ~10⁴ steps.
@@ -94,13 +94,14 @@ def _simulation_rhs(learner, system, cfg, tabulate: bool):
         with torch.no_grad():
             return learner.rhs(torch.as_tensor(x)).numpy()
 
-    if not tabulate or system.nx > 3 or not cfg.sim_grid:
+    if not tabulate or system.nx > 3 or not cfg.sim_points:
         return rhs_np
     from scipy.interpolate import RegularGridInterpolator
 
-    axes = [np.linspace(-cfg.outer, cfg.outer, cfg.sim_grid)] * system.nx
+    m = axis_count(cfg.sim_points, system.nx)
+    axes = [np.linspace(-cfg.outer, cfg.outer, m)] * system.nx
     nodes = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, system.nx)
-    table = rhs_np(nodes).reshape(*[cfg.sim_grid] * system.nx, system.nx)
+    table = rhs_np(nodes).reshape(*[m] * system.nx, system.nx)
     return RegularGridInterpolator(axes, table, bounds_error=False, fill_value=None)
 
 
@@ -220,7 +221,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
             cert = RoaCertificate(CertStatus.NOT_CERTIFIED, "not verified (candidate only)",
                                   system.name, "known" if dynamics is None else "learned",
                                   0.0, cfg.inner, cfg.outer, counterexamples=cand.violations)
-        area = cert.area(box, cfg.area_grid) if cert.certified else 0.0
+        area = cert.area(box, axis_count(cfg.area_points, n)) if cert.certified else 0.0
         entry = {"iteration": it, "loss": info["loss"], "train_steps": info["steps"],
                  "margin_mode": cfg.margin_mode if eta > 0 else "none",
                  "train_seconds": info["seconds"], "candidate_level": cand.level,

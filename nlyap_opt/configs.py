@@ -14,7 +14,7 @@ any stage runs. Sections and keys:
 - ``train``: the fields of :class:`nlyap_opt.learning.TrainConfig`;
 - ``cegis``: the fields of :class:`nlyap_opt.cegis.CegisConfig` except ``inner``, ``outer``
   and ``train`` (given above);
-- ``eval_box`` (one ``[lo, hi]`` row per state), ``eval_grid`` (nodes per axis): box and
+- ``eval_box`` (one ``[lo, hi]`` row per state), ``eval_points`` (total point budget): box and
   grid of the areas and of the simulated true ROA;
 - ``dynamics``: the learned-dynamics stage, keys of
   :class:`nlyap_opt.dynamics_config.DynamicsConfig` (``preset``: ``"default"`` or ``"fast"``);
@@ -71,7 +71,7 @@ PRESETS: dict[str, dict[str, dict]] = {
             "outer": 1.2, "inner": 0.2, "controller_scale": None,
             "train": {"hidden": [16], "features": 4, "steps": 1500, "lr": 0.01},
             "cegis": {"iterations": 4, "steps": 500},
-            "eval_box": _VDP_BOX, "eval_grid": 300,
+            "eval_box": _VDP_BOX, "eval_points": 90000,
             "dynamics": {"preset": "default"},
         },
         "large": {
@@ -83,9 +83,9 @@ PRESETS: dict[str, dict[str, dict]] = {
                       "relative_decrease": True, "w_fit": 10.0, "w_pde": 1.0,
                       "w_local": 10.0},
             "cegis": {"iterations": 6, "steps": 500, "verify_every": 3, "sim_time": 30.0,
-                      "sim_dt": 0.04, "sim_grid": 301,
+                      "sim_dt": 0.04, "sim_points": 90601,
                       "inner_samples": 2000, "boundary_samples": 20000},
-            "eval_box": _VDP_BOX, "eval_grid": 300,
+            "eval_box": _VDP_BOX, "eval_points": 90000,
             # φ must be bounded on a box that holds the verification ball r = 3
             "dynamics": {"preset": "default", "state_box": [[-3.0, 3.0], [-3.0, 3.0]],
                          "grid_counts": [1201, 1201]},
@@ -96,7 +96,7 @@ PRESETS: dict[str, dict[str, dict]] = {
             "outer": 1.0, "inner": 0.3, "controller_scale": None,
             "train": {"hidden": [6], "features": 3, "steps": 300, "lr": 0.02},
             "cegis": {"iterations": 2, "steps": 100, "samples": 4000},
-            "eval_box": _VDP_BOX, "eval_grid": 100,
+            "eval_box": _VDP_BOX, "eval_points": 10000,
             "dynamics": {"preset": "fast"},
         },
     },
@@ -104,16 +104,16 @@ PRESETS: dict[str, dict[str, dict]] = {
         "paper": {
             "outer": 0.8, "inner": 0.1, "controller_scale": 5.0,
             "train": {"hidden": [16], "features": 4, "steps": 1500, "lr": 0.01},
-            # sim_grid: the training simulations run on a table of the learned φ
-            "cegis": {"iterations": 6, "steps": 500, "sim_grid": 301},
-            "eval_box": [[-0.8, 0.8], [-0.8, 0.8]], "eval_grid": 200,
+            # sim_points: the training simulations run on a table of the learned φ
+            "cegis": {"iterations": 6, "steps": 500, "sim_points": 90601},
+            "eval_box": [[-0.8, 0.8], [-0.8, 0.8]], "eval_points": 40000,
             "dynamics": {"preset": "default"},
         },
         "fast": {
             "outer": 0.8, "inner": 0.1, "controller_scale": 5.0,
             "train": {"hidden": [6], "features": 3, "steps": 300, "lr": 0.02},
             "cegis": {"iterations": 2, "steps": 100, "samples": 4000},
-            "eval_box": [[-0.8, 0.8], [-0.8, 0.8]], "eval_grid": 100,
+            "eval_box": [[-0.8, 0.8], [-0.8, 0.8]], "eval_points": 10000,
             # the full-model fast φ of path following has η ≈ 0.4, too coarse for ε = 0.1;
             # the control-affine model on a 161² x-grid reaches η ≈ 0.01 in ~13 s
             "dynamics": {"preset": "fast", "model": "control_affine", "hidden": 60,
@@ -133,8 +133,8 @@ PRESETS: dict[str, dict[str, dict]] = {
             # some iterations without it); at least two iterations, the best area kept
             "train": {"hidden": [32], "features": 8, "steps": 3000, "lr": 0.01,
                       "w_inside": 1.0, "w_local": 10.0, "lr_schedule": "cosine"},
-            "cegis": {"iterations": 4, "min_iterations": 2, "steps": 500, "sim_grid": 301},
-            "eval_box": [[-4.0, 4.0], [-4.0, 4.0]], "eval_grid": 200,
+            "cegis": {"iterations": 4, "min_iterations": 2, "steps": 500, "sim_points": 90601},
+            "eval_box": [[-4.0, 4.0], [-4.0, 4.0]], "eval_points": 40000,
             "dynamics": {"preset": "default"},
         },
         "fast": {
@@ -142,7 +142,7 @@ PRESETS: dict[str, dict[str, dict]] = {
             "lqr": {"Q": [[1.0, 0.0], [0.0, 20.0]], "R": 1.0},
             "train": {"hidden": [6], "features": 3, "steps": 300, "lr": 0.02},
             "cegis": {"iterations": 2, "steps": 100, "samples": 4000},
-            "eval_box": [[-4.0, 4.0], [-4.0, 4.0]], "eval_grid": 100,
+            "eval_box": [[-4.0, 4.0], [-4.0, 4.0]], "eval_points": 10000,
             "dynamics": {"preset": "fast", "model": "control_affine", "hidden": 40,
                          "grid_counts": [201, 201], "train_points": 3000, "steps": 600,
                          "lm_iterations": 40, "minimax_rounds": 2,
@@ -163,8 +163,8 @@ PRESETS["cartpole"] = {
     "fast": {
         "outer": 0.5, "inner": 0.1, "controller_scale": 10.0,
         "train": {"hidden": [8], "features": 4, "steps": 300, "lr": 0.02},
-        "cegis": {"iterations": 2, "steps": 100, "samples": 4000, "area_grid": 11},
-        "eval_box": _CARTPOLE_BOX, "eval_grid": 11,
+        "cegis": {"iterations": 2, "steps": 100, "samples": 4000, "area_points": 14641},
+        "eval_box": _CARTPOLE_BOX, "eval_points": 14641,
         "dynamics": {"preset": "fast", "model": "full", "hidden": 24,
                      "grid_counts": [5, 5, 13, 13, 9], "train_points": 3000,
                      "boundary_points": 300, "steps": 300, "lm_iterations": 30,
@@ -178,8 +178,8 @@ PRESETS["cartpole"] = {
                 "R": 1.0},
         "train": {"hidden": [16], "features": 6, "steps": 1500, "lr": 0.01,
                   "w_local": 10.0, "lr_schedule": "cosine"},
-        "cegis": {"iterations": 4, "steps": 500, "samples": 20000, "area_grid": 15},
-        "eval_box": _CARTPOLE_BOX, "eval_grid": 15,
+        "cegis": {"iterations": 4, "steps": 500, "samples": 20000, "area_points": 50625},
+        "eval_box": _CARTPOLE_BOX, "eval_points": 50625,
         "dynamics": {"preset": "default", "model": "full", "hidden": 100,
                      "grid_counts": [9, 9, 41, 41, 21], "train_points": 8000,
                      "boundary_points": 1000, "steps": 2000, "interval_boxes": 16384},
@@ -189,8 +189,8 @@ PRESETS["planar_quadrotor"] = {
     "fast": {
         "outer": 0.5, "inner": 0.1, "controller_scale": 0.486 * 9.81,  # m g
         "train": {"hidden": [8], "features": 6, "steps": 300, "lr": 0.02},
-        "cegis": {"iterations": 2, "steps": 100, "samples": 4000, "area_grid": 7},
-        "eval_box": _QUAD_BOX, "eval_grid": 7,
+        "cegis": {"iterations": 2, "steps": 100, "samples": 4000, "area_points": 117649},
+        "eval_box": _QUAD_BOX, "eval_points": 117649,
         "dynamics": {"preset": "fast", "model": "full", "hidden": 36,
                      "grid_counts": [3, 3, 9, 3, 3, 3, 7, 7], "train_points": 3000,
                      "boundary_points": 300, "steps": 300, "lm_iterations": 30,
@@ -201,8 +201,8 @@ PRESETS["planar_quadrotor"] = {
         "outer": 1.0, "inner": 0.1, "controller_scale": 0.486 * 9.81,  # m g
         "train": {"hidden": [16], "features": 8, "steps": 1500, "lr": 0.01,
                   "w_local": 10.0, "lr_schedule": "cosine"},
-        "cegis": {"iterations": 4, "steps": 500, "samples": 20000, "area_grid": 9},
-        "eval_box": _QUAD_BOX, "eval_grid": 9,
+        "cegis": {"iterations": 4, "steps": 500, "samples": 20000, "area_points": 531441},
+        "eval_box": _QUAD_BOX, "eval_points": 531441,
         "dynamics": {"preset": "default", "model": "full", "hidden": 150,
                      "grid_counts": [3, 3, 21, 3, 3, 3, 11, 11], "train_points": 8000,
                      "boundary_points": 1000, "steps": 2000, "interval_boxes": 16384},
@@ -216,7 +216,7 @@ PRESETS["inverted_pendulum"]["large"] = PRESETS["inverted_pendulum"]["paper"]
 
 #: the base of ``make_config(name, preset=None, ...)`` for a system without a preset: the
 #: caller supplies ``outer``, ``inner`` (and ``controller_scale`` for a system with inputs)
-_GENERIC: dict = {"controller_scale": None, "train": {}, "cegis": {}, "eval_grid": 200,
+_GENERIC: dict = {"controller_scale": None, "train": {}, "cegis": {}, "eval_points": 40000,
                   "dynamics": {"preset": "default"}}
 
 
@@ -298,9 +298,9 @@ _RULES: dict[str, dict[str, dict]] = {
         "iterations": _COUNT, "samples": _COUNT, "sphere_samples": _COUNT,
         "max_counterexamples": _COUNT, "neighbours": _NONNEG, "first_steps": _COUNT,
         "steps": _COUNT, "verify_every": _COUNT, "target_fraction": _UNIT,
-        "min_iterations": _COUNT, "area_grid": {"lo": 2}, "seed": _NONNEG,
+        "min_iterations": _COUNT, "area_points": {"lo": 4}, "seed": _NONNEG,
         "inner_samples": _NONNEG, "boundary_samples": _NONNEG, "sim_dt": _POS,
-        "sim_grid": _NONNEG, "sim_time": _POS,
+        "sim_points": _NONNEG, "sim_time": _POS,
         "margin_mode": {"choices": ("pointwise", "global")}, "norm_smoothing": _NONNEG,
     },
 }
@@ -311,6 +311,10 @@ _EXCLUDED = {"train": {"time_budget"}, "cegis": {"inner", "outer", "train", "tim
 
 #: keys that are gone, with the fix to print
 _REMOVED = {
+    "eval_grid": "grids are total point budgets now: use 'eval_points' (n per axis = "
+                 "n^nx points, e.g. 200 per axis in 2-D is eval_points 40000)",
+    "area_grid": "grids are total point budgets now: use 'cegis.area_points' (n^nx points)",
+    "sim_grid": "grids are total point budgets now: use 'cegis.sim_points' (n^nx points)",
     "time_budget": "wall-clock budgets were removed (PITFALLS P12: the same config must give "
                    "the same result on any machine load); budgets are counted in steps: "
                    "set 'steps' / 'iterations' instead",
@@ -324,7 +328,7 @@ _TOP_DOCS = {
     "train": "V and κ training (nlyap_opt.learning.TrainConfig)",
     "cegis": "CEGIS loop (nlyap_opt.cegis.CegisConfig)",
     "eval_box": "box of the area grid and of the simulated true ROA",
-    "eval_grid": "nodes per axis of that grid",
+    "eval_points": "total point budget of that grid (per axis: the largest n with n^nx <= it)",
     "dynamics": "learned-dynamics stage (nlyap_opt.dynamics_config.DynamicsConfig)",
     "system": "informational; must name the system being run",
     "preset": "informational; must name the preset the file is merged over",
@@ -421,7 +425,7 @@ def schema() -> dict[str, dict[str, Key]]:
         "train": Key("train", "section", {}, doc=d["train"]),
         "cegis": Key("cegis", "section", {}, doc=d["cegis"]),
         "eval_box": Key("eval_box", "box", None, doc=d["eval_box"]),
-        "eval_grid": Key("eval_grid", "int", 200, lo=2, doc=d["eval_grid"]),
+        "eval_points": Key("eval_points", "int", 40000, lo=4, doc=d["eval_points"]),
         "dynamics": Key("dynamics", "section", {}, doc=d["dynamics"]),
         "system": Key("system", "str", doc=d["system"]),
         "preset": Key("preset", "str", optional=True, doc=d["preset"]),
@@ -605,7 +609,7 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
 
     sch = schema()
     _check_keys(cfg, where)
-    for name in ("outer", "inner", "eval_box", "eval_grid"):
+    for name in ("outer", "inner", "eval_box", "eval_points"):
         if name not in cfg:
             raise ConfigError(f"{where}: missing key {name!r} ({_TOP_DOCS[name]}); add it")
     for name, v in cfg.items():
@@ -627,8 +631,9 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
     if cg.get("min_iterations", 1) > it:
         raise ConfigError(f"{where}: cegis.min_iterations ({cg['min_iterations']}) exceeds "
                           f"cegis.iterations ({it}); lower it or raise iterations")
-    if cg.get("sim_grid", 0) == 1:
-        raise ConfigError(f"{where}: cegis.sim_grid must be 0 (no table) or >= 2, got 1")
+    if 0 < cg.get("sim_points", 0) < 4:
+        raise ConfigError(f"{where}: cegis.sim_points must be 0 (no table) or >= 4, got "
+                          f"{cg['sim_points']}")
 
     s = systems.get(system)
     box = cfg["eval_box"]

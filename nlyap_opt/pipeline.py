@@ -383,10 +383,10 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     true f (a benchmark, not part of a learned-f certificate)."""
     from verification import closed_loop_problem, verify
 
-    from .roa import grid_area, grid_points, true_roa_mask
+    from .roa import axis_count, grid_area, grid_points, true_roa_mask
 
     box = np.asarray(cfg["eval_box"], dtype=float)
-    n = int(cfg["eval_grid"])
+    n = axis_count(int(cfg["eval_points"]), system.nx)   # nodes per axis
     pts, shape = grid_points(box, n)
     omega = cert.contains(pts).reshape(shape)
     controller = problem.controller
@@ -444,4 +444,5 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         "true_dynamics_check": true_check,
         "eval_box": box.tolist(),
         "eval_grid": n,
+        "eval_points": int(cfg["eval_points"]),
     }

@@ -33,7 +33,7 @@ import numpy as np
 from .walker import evaluate
 
 __all__ = [
-    "LevelCandidate", "candidate_level", "certify_level", "certify_inner_ellipse",
+    "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_ellipse",
     "grid_area", "true_roa_mask",
 ]
 
@@ -268,6 +268,21 @@ def grid_area(mask: np.ndarray, box: np.ndarray) -> float:
     """Area (volume) of a boolean grid mask over ``box`` (cell-centred grid)."""
     cells = np.prod((box[:, 1] - box[:, 0]) / np.array(mask.shape))
     return float(mask.sum() * cells)
+
+
+def axis_count(points: int, dim: int) -> int:
+    """Nodes per axis of a grid with at most ``points`` nodes in ``dim`` dimensions (≥ 2).
+
+    Every grid of a run configuration is a total point budget, so that a setting keeps its
+    cost in any dimension (200 per axis is 40,000 points in 2-D, but 1.6·10⁹ in 4-D).
+
+    >>> axis_count(40000, 2), axis_count(14641, 4), axis_count(10, 3)
+    (200, 11, 2)
+    """
+    n = max(2, int(round(points ** (1.0 / dim))))
+    while n > 2 and n**dim > points:
+        n -= 1
+    return n
 
 
 def grid_points(box: np.ndarray, n: int) -> tuple[np.ndarray, tuple]:

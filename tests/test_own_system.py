@@ -24,7 +24,7 @@ lipschitz = 20.0
 [run]
 outer = 1.0
 inner = 0.2
-eval_grid = 60
+eval_points = 3600
 
 [run.train]
 hidden = [6]

@@ -99,7 +99,7 @@ def test_falsifier_first_cegis_verifies_what_it_returns():
                         lr_schedule="cosine")
     cfg = CegisConfig(inner=0.3, outer=1.5, iterations=4, steps=100, verify_every=2,
                       samples=3000, sphere_samples=500, inner_samples=300,
-                      boundary_samples=1000, sim_dt=0.05, train=train, area_grid=80)
+                      boundary_samples=1000, sim_dt=0.05, train=train, area_points=6400)
     res = cegis(s, None, None, cfg, log=lambda m: None)
     assert len(res.history) >= 2
     for i, h in enumerate(res.history):
@@ -126,9 +126,9 @@ def test_tabulated_simulation_rhs_interpolates_the_model():
 
     s = systems.get("van_der_pol")
     L = LyapunovLearner(s, None, None, TrainConfig(hidden=[4], features=2))
-    cfg = CegisConfig(inner=0.2, outer=2.0, sim_grid=201)
+    cfg = CegisConfig(inner=0.2, outer=2.0, sim_points=40401)
     table = _simulation_rhs(L, s, cfg, tabulate=True)
-    direct = _simulation_rhs(L, s, CegisConfig(inner=0.2, outer=2.0, sim_grid=0),
+    direct = _simulation_rhs(L, s, CegisConfig(inner=0.2, outer=2.0, sim_points=0),
                              tabulate=True)
     x = np.random.default_rng(0).uniform(-2, 2, (5000, 2))
     err = np.abs(table(x) - s.evaluate(x, None)).max()

@@ -290,3 +290,30 @@ def test_fast_certificates_are_identical_to_the_reference(known_runs, learned_ru
         got = {"level": cert["level"], "certified_area": cert["certified_area"],
                "eta": cert.get("eta", 0.0)}
         assert got == want, (setting, got, want)
+
+
+def test_interrupt_after_the_dynamics_files_are_written(tmp_path, monkeypatch):
+    """SIGINT right after φ's files are written but before the stage is recorded: the rerun
+    learns φ again (deterministically: the same φ) and its certificate re-verifies."""
+    import hashlib
+
+    from nlyap_opt.certificate import recheck_certificate
+    from nlyap_opt.dynamics_stage import DynamicsStage
+
+    cfg = get_config("van_der_pol", "fast")
+    save = DynamicsStage.save
+
+    def save_then_interrupt(self, out):
+        save(self, out)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(DynamicsStage, "save", save_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        run("van_der_pol", cfg, tmp_path, log=lambda m: None)
+    first = hashlib.sha256((tmp_path / "dynamics.json").read_bytes()).hexdigest()
+    monkeypatch.undo()
+    logs = []
+    res = run("van_der_pol", cfg, tmp_path, log=logs.append)
+    assert not any("[dynamics] loaded" in m for m in logs)
+    assert hashlib.sha256((tmp_path / "dynamics.json").read_bytes()).hexdigest() == first
+    assert res.certified and recheck_certificate(tmp_path, log=lambda m: None).certified

@@ -309,10 +309,33 @@ def test_split_rule_follows_the_affine_sensitivities(monkeypatch):
     orig = vv._affine_enclosure
 
     def no_sensitivities(problem, lo, hi):
-        enc, sens = orig(problem, lo, hi)
-        return enc, np.zeros_like(sens)  # every box "flat": the widest side is split
+        enc, sens, lag = orig(problem, lo, hi)
+        return enc, np.zeros_like(sens), lag  # every box "flat": the widest side is split
 
     monkeypatch.setattr(vv, "_affine_enclosure", no_sensitivities)
     widest = verify(p)
     assert by_sens.status == widest.status == "verified"
     assert 2 * by_sens.boxes < widest.boxes
+
+
+def _strip_problem(shift: float):
+    """Region x0 <= 0.3 in [-1, 1]²; property x0 + 0.05 x1² - 0.3 - shift < 0."""
+    x = ca.SX.sym("x", 2)
+    from verification import VerificationProblem
+
+    return VerificationProblem(x, [[-1.0, 1.0], [-1.0, 1.0]], [x[0] - 0.3],
+                               [x[0] + 0.05 * x[1] ** 2 - 0.3 - shift])
+
+
+def test_constraint_boundary_boxes_are_decided_soundly():
+    """A box across the region's boundary is proved by p - λ g < 0 (λ >= 0) only when
+    p < 0 on its part inside the region: the property failing in a thin sliver inside the
+    region (x0 > 0.295 near |x1| = 1) is found; failing everywhere outside the region
+    (x0 > 0.3) is not a violation, and is proved with fewer boxes."""
+    bad = verify(_strip_problem(0.045), presearch=0, resolution=1e-3)
+    assert bad.status == "counterexample"
+    pt = bad.counterexample.point
+    assert pt[0] <= 0.3 and pt[0] + 0.05 * pt[1] ** 2 - 0.345 >= 0
+    good = verify(_strip_problem(0.055), presearch=0)
+    assert good.status == "verified"
+    assert good.boxes < verify(_strip_problem(0.055), presearch=0, affine=False).boxes

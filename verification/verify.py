@@ -321,7 +321,7 @@ def _lagrangian_holds(out, m: int, shape) -> np.ndarray | None:
 
 
 def _enclose(problem, lo, hi, mean_value: bool, affine: bool = False):
-    """See :func:`_enclose_all`; without the sensitivities."""
+    """See :func:`_enclose_all`; without its last item (affine sensitivities, λ proofs)."""
     return _enclose_all(problem, lo, hi, mean_value, affine)[:5]
 
 

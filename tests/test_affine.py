@@ -305,7 +305,7 @@ def test_split_rule_follows_the_affine_sensitivities(monkeypatch):
     box = np.array([[-1.0, 1.0], [-1.0, 1.0], [-1 / 8, 1 / 8]])
     r2 = ca.sumsqr(y)
     p = VerificationProblem(z, box, [r2 - 1.0, 0.01 - r2], [-V, lie])
-    by_sens = verify(p)
+    by_sens = verify(p, mean_value=False)  # the affine sensitivities decide the splits
     orig = vv._affine_enclosure
 
     def no_sensitivities(problem, lo, hi):
@@ -313,9 +313,13 @@ def test_split_rule_follows_the_affine_sensitivities(monkeypatch):
         return enc, np.zeros_like(sens), lag  # every box "flat": the widest side is split
 
     monkeypatch.setattr(vv, "_affine_enclosure", no_sensitivities)
-    widest = verify(p)
+    widest = verify(p, mean_value=False)
     assert by_sens.status == widest.status == "verified"
     assert 2 * by_sens.boxes < widest.boxes
+    # the default (the mean-value pass on undecided boxes, split by the Jacobian's smear)
+    monkeypatch.setattr(vv, "_affine_enclosure", orig)
+    default = verify(p)
+    assert default.status == "verified" and 2 * default.boxes < widest.boxes
 
 
 def _strip_problem(shift: float):

@@ -8,19 +8,20 @@ Each round evaluates a whole batch of boxes in a few walker passes (numpy arrays
    relaxations of the nonlinear operations; the ranges of the output forms are
    intersected with (1) (the tighter bound wins per box and output);
 3. mean-value form ``F(c) + J(X)·(X − c)`` with the interval Jacobian from the CasADi
-   Jacobian graph, intersected with (1) (option ``mean_value``; by default only without
-   affine arithmetic);
+   Jacobian graph, intersected with (1) (option ``mean_value``; by default, with affine
+   arithmetic, only on the boxes that (1) and (2) leave undecided: the Jacobian pass is
+   the costliest);
 4. a box is *decided* when some ``g_i > 0`` on all of it (outside the region) or every
    ``p_j < 0`` on all of it (properties hold), or, with affine forms, on the part of it
    where some ``g_k ≤ 0`` (``p_j − λ g_k < 0`` on the box for a ``λ ≥ 0``: boxes across
    the region's boundary); ``F(c)`` at the centre, evaluated rigorously, confirms
    counterexamples (centre inside the region and some ``p_j ≥ 0``);
 5. undecided boxes are bisected along the dimension to which the bounds of the
-   undecided outputs are most sensitive: ``max_j (|g_ji| + e_j w_i / Σ_k w_k)`` for the
-   affine forms ``c_j + Σ_i g_ji ε_i ± e_j`` (linear part, and the remainder shared in
-   proportion to the widths), or the smear ``max_j |J_ji|·w_i`` of the interval
-   Jacobian with the mean-value form; boxes narrower than ``resolution`` are reported
-   ``unknown``.
+   undecided outputs are most sensitive: the smear ``max_j |J_ji|·w_i`` of the interval
+   Jacobian where the mean-value pass ran, else (``mean_value=False``) the affine forms'
+   ``max_j (|g_ji| + e_j w_i / Σ_k w_k)`` for ``c_j + Σ_i g_ji ε_i ± e_j`` (linear part,
+   and the remainder shared in proportion to the widths); boxes narrower than
+   ``resolution`` are reported ``unknown``.
 
 Non-smooth and partial operations (``nlyap_opt.walker.OP_TABLE``; problems whose
 ``checked`` flag is set) are walked with
@@ -339,6 +340,10 @@ def _enclose_all(problem, lo, hi, mean_value: bool, affine: bool = False):
     B, n = lo.shape
     c = _centres(lo, hi)
     checked = problem.checked
+    if mean_value == "undecided":
+        enc, Fc, _, chk, chk_c, aux = _enclose_all(problem, lo, hi, False, affine)
+        enc, J = _mean_value_where_undecided(problem, lo, hi, enc, Fc, chk, aux)
+        return enc, Fc, J, chk, chk_c, aux
     if not mean_value:
         if checked:
             both, _, chk = _checked_eval(problem, np.vstack([lo, c]), np.vstack([hi, c]),
@@ -381,6 +386,61 @@ def _enclose_all(problem, lo, hi, mean_value: bool, affine: bool = False):
     if affine:
         enc, aux = _with_affine(problem, lo, hi, enc, chk)
     return enc, Fc, J, chk, chk_c, aux
+
+
+def _mean_value_where_undecided(problem, lo, hi, enc: Interval, Fc: Interval, chk, aux):
+    """``enc`` intersected with the mean-value form on the boxes it leaves undecided.
+
+    The default with affine arithmetic: the Jacobian pass (the costliest) only for the
+    boxes that the interval and affine bounds leave undecided (the decision rule of the
+    branch-and-prune loop), with the per-column rule of :func:`_enclose_all` for kinks,
+    jumps and domains. Returns the enclosure and the interval Jacobian ``(B, K, n)`` for
+    the splitting rule (zero on decided boxes, which are not split), or ``None``.
+    """
+    m = problem.n_constraints
+    lag = aux[1] if aux is not None else None
+    pos = enc.hi[:, m:] < 0
+    if lag is not None:
+        pos = pos | lag
+    g_pos = enc.lo[:, :m] > 0
+    if chk is not None:
+        defined = ~chk.maybe
+        g_pos = g_pos & defined[:, :m]
+        pos = pos & defined[:, m:]
+    done = np.all(pos, axis=1)
+    if m:
+        done |= np.any(g_pos, axis=1)
+    rows = np.flatnonzero(~done)
+    if not len(rows):
+        return enc, None
+    lo_r, hi_r = lo[rows], hi[rows]
+    B, n = lo_r.shape
+    if problem.checked:
+        nat, Jall, _ = _checked_eval(problem, lo_r, hi_r, jacobian=True)
+    else:
+        nat, Jall = evaluate(problem.function_jacobian, [Interval(lo_r, hi_r)], _IA)
+    mk = nat.lo.shape[1]
+    J = _IA.structural(lambda a: np.swapaxes(a.reshape(B, n, mk), 1, 2), Jall)
+    mag = np.maximum(np.abs(J.lo), np.abs(J.hi)) * 2.0**-30 + 2.0**-1000  # as _enclose_all
+    J = Interval(J.lo - mag, J.hi + mag)
+    c = _centres(lo_r, hi_r)
+    D = _IA.binary(ca.OP_SUB, Interval(lo_r, hi_r), Interval(c, c))  # rigorous X - c
+    D = _IA.structural(lambda a: a[:, None, :], D)
+    Fc_r = Interval(Fc.lo[rows], Fc.hi[rows])
+    mv = _IA.binary(ca.OP_ADD, Fc_r, _IA.sum(_IA.binary(ca.OP_MUL, J, D), -1))
+    old = Interval(enc.lo[rows], enc.hi[rows])
+    new = _IA.intersect(old, _IA.intersect(nat, mv))
+    bad = ~(new.lo <= new.hi)  # empty intersection cannot happen for sound enclosures
+    if chk is not None:
+        bad |= (chk.jump | chk.maybe)[rows]  # no (valid) derivative on the box
+    lo_new, hi_new = enc.lo.copy(), enc.hi.copy()
+    lo_new[rows] = np.where(bad, old.lo, new.lo)
+    hi_new[rows] = np.where(bad, old.hi, new.hi)
+    J_lo = np.zeros((len(lo), mk, n))
+    J_hi = np.zeros((len(lo), mk, n))
+    J_lo[rows] = J.lo
+    J_hi[rows] = J.hi
+    return Interval(lo_new, hi_new), Interval(J_lo, J_hi)
 
 
 def _with_affine(problem, lo, hi, enc: Interval, chk):
@@ -484,15 +544,16 @@ def verify_interval(
     """Decide ``problem`` with interval branch-and-prune; see :func:`verification.verify`.
 
     ``affine`` (default): intersect the enclosures with the ranges of affine forms
-    (:mod:`verification.affine`) and split boxes where those bounds are most sensitive.
-    ``mean_value``: intersect with the mean-value form ``F(c) + J(X)(X − c)`` (one more
-    walker pass, over the Jacobian graph) and split by the interval Jacobian's smear;
-    ``None`` (default): only without ``affine`` (with it, the mean-value form rarely
-    tightens a bound and costs about as much as the rest of a round).
+    (:mod:`verification.affine`) and decide boxes across a constraint's boundary by
+    ``p − λ g < 0``. ``mean_value``: intersect with the mean-value form
+    ``F(c) + J(X)(X − c)`` (one more walker pass, over the Jacobian graph) and split by
+    the interval Jacobian's smear; ``None`` (default): on every box without ``affine``,
+    with it on the boxes the other bounds leave undecided (the boxes to split);
+    ``False`` with ``affine``: split where the affine bounds are most sensitive.
     """
     t0 = time.perf_counter()
-    if mean_value is None:
-        mean_value = not affine
+    if mean_value is None:  # with affine forms: the mean-value form on undecided boxes
+        mean_value = "undecided" if affine else True
     box = problem.box
     width = box[:, 1] - box[:, 0]
     if resolution is None:

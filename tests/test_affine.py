@@ -343,3 +343,19 @@ def test_constraint_boundary_boxes_are_decided_soundly():
     good = verify(_strip_problem(0.055), presearch=0)
     assert good.status == "verified"
     assert good.boxes < verify(_strip_problem(0.055), presearch=0, affine=False).boxes
+
+
+def test_constant_outputs_folded_by_casadi():
+    """A property that CasADi folds to a constant (no batch dimension in the walker's
+    output) is decided like any other, with and without affine arithmetic."""
+    from verification import VerificationProblem
+
+    x = ca.SX.sym("x", 1)
+    holds = VerificationProblem(x, [[-1.0, 1.0]], [], [ca.SX(-1.0) + 0 * x[0]])
+    fails = VerificationProblem(x, [[-1.0, 1.0]], [x[0] - 0.5], [ca.SX(1.0) + 0 * x[0]])
+    X = ca.MX.sym("x", 2)
+    mx = VerificationProblem(X, [[-1.0, 1.0]] * 2, [ca.sumsqr(X) - 1.0], [ca.MX(-2.0)])
+    for kw in ({}, {"affine": False}, {"mean_value": False}):
+        assert verify(holds, **kw).status == "verified"
+        assert verify(fails, **kw).status == "counterexample"
+        assert verify(mx, **kw).status == "verified"

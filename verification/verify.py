@@ -115,9 +115,23 @@ def _single_thread_blas():
         put(n)
 
 
+def _rows(x, N: int):
+    """A walker output as ``(N, k)`` rows: constant outputs (the graph folded them) come
+    back without the batch dimension. Arrays or :class:`Interval`."""
+    if isinstance(x, Interval):
+        if x.lo.ndim == 2 and x.lo.shape[0] == N:
+            return x
+        return Interval(np.broadcast_to(x.lo, (N, x.lo.shape[-1])),
+                        np.broadcast_to(x.hi, (N, x.hi.shape[-1])))
+    x = np.asarray(x)
+    if x.ndim == 2 and x.shape[0] == N:
+        return x
+    return np.broadcast_to(x, (N, x.shape[-1]))
+
+
 def _point_enclosure(problem: VerificationProblem, pts: np.ndarray) -> Interval:
     """Rigorous enclosure of ``F`` at points ``(N, n)`` (degenerate boxes)."""
-    return evaluate(problem.function, [Interval(pts, pts.copy())], _IA)[0]
+    return _rows(evaluate(problem.function, [Interval(pts, pts.copy())], _IA)[0], len(pts))
 
 
 def _columns(outs, B: int) -> Interval:
@@ -218,7 +232,7 @@ def _presearch(problem, n_samples: int, rng: np.random.Generator, steps: int = 4
     lo, hi = problem.box[:, 0], problem.box[:, 1]
     pts = lo + (hi - lo) * rng.random((n_samples, problem.n))
     m = problem.n_constraints
-    F = evaluate(problem.function, [pts], NUMPY)[0]
+    F = _rows(evaluate(problem.function, [pts], NUMPY)[0], len(pts))
     score = _float_score(F, m)
     keep = np.argsort(-score)[: max(8, n_samples // 20)]
     pts = pts[keep]
@@ -226,6 +240,7 @@ def _presearch(problem, n_samples: int, rng: np.random.Generator, steps: int = 4
     FJ = problem.function_jacobian  # one pass for F and J (shared subexpressions)
     for _ in range(steps):
         F, J = evaluate(FJ, [pts], NUMPY)
+        F, J = _rows(F, len(pts)), _rows(J, len(pts))
         J = np.swapaxes(J.reshape(len(pts), problem.n, -1), 1, 2)  # (N, m + k, n)
         j = m + np.argmax(F[:, m:], axis=1)
         grad = J[np.arange(len(pts)), j]
@@ -233,7 +248,7 @@ def _presearch(problem, n_samples: int, rng: np.random.Generator, steps: int = 4
         pts = pts + step * np.sign(grad)
         if m:
             Fg, Jg = evaluate(FJ, [pts], NUMPY)
-            Fg = Fg[:, :m]
+            Fg, Jg = _rows(Fg, len(pts))[:, :m], _rows(Jg, len(pts))
             Jg = np.swapaxes(Jg.reshape(len(pts), problem.n, -1), 1, 2)[:, :m]
             for i in range(m):
                 bad = Fg[:, i] > 0
@@ -243,7 +258,7 @@ def _presearch(problem, n_samples: int, rng: np.random.Generator, steps: int = 4
                     pts[bad] -= (1.0 + 1e-9) * (Fg[bad, i] / nrm)[:, None] * gi
         pts = np.clip(pts, lo, hi)
         step *= 0.6
-    F = evaluate(problem.function, [pts], NUMPY)[0]
+    F = _rows(evaluate(problem.function, [pts], NUMPY)[0], len(pts))
     score = _float_score(F, m)
     return pts[np.argsort(-score)][: 64]
 
@@ -353,8 +368,9 @@ def _enclose_all(problem, lo, hi, mean_value: bool, affine: bool = False):
             if affine:
                 enc, aux = _with_affine(problem, lo, hi, enc, chk_b)
             return enc, both[B:], None, chk_b, chk[B:], aux
-        both = evaluate(problem.function, [Interval(np.vstack([lo, c]), np.vstack([hi, c]))],
-                        _IA)[0]
+        both = _rows(evaluate(problem.function,
+                              [Interval(np.vstack([lo, c]), np.vstack([hi, c]))], _IA)[0],
+                     2 * B)
         enc, aux = (_with_affine(problem, lo, hi, both[:B], None) if affine
                     else (both[:B], None))
         return enc, both[B:], None, None, None, aux
@@ -364,6 +380,7 @@ def _enclose_all(problem, lo, hi, mean_value: bool, affine: bool = False):
         Fc, _, chk_c = _checked_eval(problem, c, c.copy(), jacobian=False)
     else:
         nat, Jall = evaluate(problem.function_jacobian, [Interval(lo, hi)], _IA)
+        nat, Jall = _rows(nat, B), _rows(Jall, B)
         Fc = _point_enclosure(problem, c)
     mk = nat.lo.shape[1]
     J = _IA.structural(lambda a: np.swapaxes(a.reshape(B, n, mk), 1, 2), Jall)
@@ -419,6 +436,7 @@ def _mean_value_where_undecided(problem, lo, hi, enc: Interval, Fc: Interval, ch
         nat, Jall, _ = _checked_eval(problem, lo_r, hi_r, jacobian=True)
     else:
         nat, Jall = evaluate(problem.function_jacobian, [Interval(lo_r, hi_r)], _IA)
+        nat, Jall = _rows(nat, B), _rows(Jall, B)
     mk = nat.lo.shape[1]
     J = _IA.structural(lambda a: np.swapaxes(a.reshape(B, n, mk), 1, 2), Jall)
     mag = np.maximum(np.abs(J.lo), np.abs(J.hi)) * 2.0**-30 + 2.0**-1000  # as _enclose_all

@@ -62,6 +62,7 @@ from .determinism import deterministic_torch
 from .dynamics_config import MODELS, DynamicsConfig, dynamics_config, load_dynamics_config
 from .errors import ConfigError, DimensionError, NetworkFileError
 from .grid import GridNodes
+from .grid import norm2_up as _norm2_up
 from .network import Network
 from .phi_training import (  # noqa: F401  (_LevenbergMarquardt, _assemble: older imports)
     _assemble,
@@ -156,15 +157,6 @@ class Grid(GridNodes):
 
     def __repr__(self) -> str:
         return f"Grid(counts={self.counts.tolist()}, spacing={self.spacing.tolist()})"
-
-
-def _norm2_up(v, axis=None):
-    """Upper bound of ``‖v‖₂`` in float64 (covers the rounding of squares, sum and sqrt)."""
-    v = np.abs(np.asarray(v, dtype=float))
-    n = v.size if axis is None else v.shape[axis]
-    s = np.sum(v * v, axis=axis) * (1.0 + 2.0 * (n + 2) * _U)
-    r = np.nextafter(np.nextafter(np.sqrt(s), np.inf), np.inf)
-    return float(r) if np.ndim(r) == 0 else r
 
 
 # ============================================================================ models

@@ -38,21 +38,12 @@ import numpy as np
 
 from nlyap_opt.errors import ConfigError, DimensionError
 from nlyap_opt.grid import GridNodes
+from nlyap_opt.grid import norm2_up as _norm2_up
 
 __all__ = ["SampleSet", "load_samples", "save_samples", "sample_function", "RTOL_GRID"]
 
 #: relative tolerance (of the spacing h) for a coordinate to count as a grid node
 RTOL_GRID = 1e-9
-_U = 2.0**-53
-
-
-def _norm2_up(v, axis=None):
-    """Upper bound of ``‖v‖₂`` in float64; identical to ``nlyap_opt.dynamics._norm2_up``."""
-    v = np.abs(np.asarray(v, dtype=float))
-    n = v.size if axis is None else v.shape[axis]
-    s = np.sum(v * v, axis=axis) * (1.0 + 2.0 * (n + 2) * _U)
-    r = np.nextafter(np.nextafter(np.sqrt(s), np.inf), np.inf)
-    return float(r) if np.ndim(r) == 0 else r
 
 
 def _nodes(lo: float, hi: float, n: int) -> np.ndarray:

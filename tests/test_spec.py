@@ -45,9 +45,11 @@ def test_lorenz_spec_equals_hand_written_model(rng):
     assert s.declarations.B.ravel().tolist() == [0, 1, 0]
     d = systems.default_run_settings(s)
     assert (d["outer"], d["inner"], d["controller_scale"]) == (1.0, 0.1, 40.0)
+    # a declared B: φ₀(x) is learned on an x-grid (control-affine model)
+    assert d["dynamics"]["model"] == "control_affine"
     counts = d["dynamics"]["grid_counts"]
-    assert len(counts) == 4 and all(c % 2 == 1 for c in counts)
-    assert counts == [21] * 4 and np.prod(counts) <= 200_000
+    assert len(counts) == 3 and all(c % 2 == 1 for c in counts)
+    assert counts == [57] * 3 and np.prod(counts) <= 200_000 < np.prod([59] * 3)
 
 
 def test_two_machine_spec_equals_hand_written_model(rng):
@@ -68,7 +70,9 @@ def test_two_machine_spec_equals_hand_written_model(rng):
 
 def test_factory_spec_and_csv_spec(tmp_path):
     s = systems.load_spec(EXAMPLES / "blackbox_pendulum.toml")
-    assert s.kind == "callable" and s.run_overrides == {"outer": 4.0, "inner": 0.4}
+    assert s.kind == "callable"
+    assert (s.run_overrides["outer"], s.run_overrides["inner"]) == (4.0, 0.4)
+    assert s.run_overrides["dynamics"]["model"] == "control_affine"
     assert s.source.endswith("blackbox_pendulum.toml")
     # the csv spec, pointed at a freshly written small csv
     import importlib.util

@@ -637,6 +637,22 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
             return _refused(saved, f"artifact {art['file']} ({role}) changed since the "
                             f"certificate was written (sha256 {digest[:12]}… ≠ "
                             f"{art['sha256'][:12]}…)")
+        if art.get("kind") == "bounds":
+            try:
+                b = json.loads(f.read_text())
+                eta = float(b["eta"])
+            except (ValueError, KeyError, TypeError) as err:
+                return _refused(saved, f"artifact {art['file']} cannot be read: {err}")
+            if eta != saved.eta:
+                return _refused(saved, f"the certificate's η = {saved.eta!r} is not the η = "
+                                f"{eta!r} of {art['file']}")
+            box = np.asarray(b.get("grid", {}).get("box", []), dtype=float)
+            dbox = np.asarray(problem_d.get("dynamics_box") or [], dtype=float)
+            if dbox.size == 0 or box.shape[0] < dbox.shape[0] or \
+                    not np.array_equal(box[:dbox.shape[0]], dbox):
+                return _refused(saved, f"the certificate's dynamics box {dbox.tolist()} is "
+                                f"not the box of {art['file']}")
+            continue
         try:
             nets[role] = Network.load(f) if art.get("kind", "network") == "network" \
                 else _CasadiV(ca.Function.load(str(f)))
@@ -644,6 +660,13 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
             return _refused(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
     if "V" not in nets:
         raise ConfigError(f"certificate {path} lists no V artifact; rerun the command")
+    if saved.system not in systems.names() and d.get("system_source"):
+        src = Path(d["system_source"])
+        if not src.is_file():
+            raise ConfigError(f"certificate {path} is about system {saved.system!r} from "
+                              f"{src}, which no longer exists; restore the spec file")
+        spec = systems.load_spec(src)
+        systems.REGISTRY.setdefault(spec.name, lambda _s=spec: _s)
     system = systems.get(saved.system)
     problem = RoaProblem(
         system, nets["V"], nets.get("controller"), nets.get("dynamics"),
@@ -714,9 +737,17 @@ def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
             x = ca.SX.sym("x", problem.system.nx)
             ca.Function("V", [x], [obj.casadi(x)]).save(str(f))
             arts[role] = {"file": f.name, "sha256": sha256_file(f), "kind": "casadi"}
+    if problem.dynamics is not None and (out / "bounds.json").exists():
+        # η and its box come from the dynamics stage's bounds.json: hashed, and checked
+        # against the certificate's own numbers on re-check
+        arts["bounds"] = {"file": "bounds.json", "sha256": sha256_file(out / "bounds.json"),
+                          "kind": "bounds"}
     cert.artifacts = arts
     d = cert.to_dict()
     d["problem"] = problem_to_dict(problem)
+    source = getattr(problem.system, "source", "") or ""
+    if str(source).endswith(".toml"):  # a spec-file system: re-checkable in a new process
+        d["system_source"] = str(Path(source).resolve())
     d.update(extra or {})
     path = out / name
     write_json_atomic(path, d)

@@ -103,3 +103,17 @@ def test_known_dynamics_needs_a_model(tmp_path, capsys):
                  "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert code == 3 and "no model" in err, err
+
+
+def test_spec_system_certificate_rechecks_in_a_new_process(tmp_path):
+    """The certificate of a spec-file system names its file, so a fresh process (where the
+    system is not registered) re-checks it."""
+    import subprocess
+    import sys
+
+    spec = _spec(tmp_path, name="own_cubic_c")
+    out = tmp_path / "run"
+    assert main(["run", str(spec), "--known-dynamics", "--out", str(out)]) == 0
+    proc = subprocess.run([sys.executable, "-m", "nlyap_opt.cli", "verify", "--certificate",
+                           str(out)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr

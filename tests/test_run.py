@@ -317,3 +317,20 @@ def test_interrupt_after_the_dynamics_files_are_written(tmp_path, monkeypatch):
     assert not any("[dynamics] loaded" in m for m in logs)
     assert hashlib.sha256((tmp_path / "dynamics.json").read_bytes()).hexdigest() == first
     assert res.certified and recheck_certificate(tmp_path, log=lambda m: None).certified
+
+
+def test_recheck_refuses_a_certificate_whose_eta_was_lowered(learned_runs, tmp_path):
+    """η is the bound the certificate rests on: a certificate.json edited to a smaller η is
+    refused against the hashed bounds.json of the run, not re-verified with the lower η."""
+    import shutil
+
+    from nlyap_opt.certificate import recheck_certificate
+
+    d, cert = learned_runs["van_der_pol"]
+    shutil.copytree(d, tmp_path / "run")
+    assert recheck_certificate(tmp_path / "run", log=lambda m: None).certified
+    c = json.loads((tmp_path / "run" / "certificate.json").read_text())
+    c["eta"] = c["eta"] / 10
+    (tmp_path / "run" / "certificate.json").write_text(json.dumps(c))
+    again = recheck_certificate(tmp_path / "run", log=lambda m: None)
+    assert not again.certified and "η" in again.reason

@@ -178,7 +178,7 @@ class SOSResult:
 # --------------------------------------------------------------------------- entry point
 def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=None,
             multiplier_degree: int | None = None, epsilon: float = 1e-6,
-            iterations: int = 20, time_budget: float = 60.0, backoff: float = 0.01,
+            iterations: int = 20, backoff: float = 0.01,
             push: float = 1.05, solver: str = "CLARABEL",
             outer_margin: float = 0.05, certify: bool = True,
             verify_options: dict | None = None,
@@ -189,10 +189,10 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     (2) the quadratic :math:`V = x^\top P x` (``P`` from :func:`nlyap_opt.control.lqr`, or
     ``V0``) and its largest SOS level by bisection (:func:`sos_level`); (3) for
     ``degree > 2`` the V–s iteration (see the module docstring) for at most ``iterations``
-    rounds or ``time_budget`` seconds; (4) certification of the final ``(V, c)`` on the
-    true CasADi closed loop: :func:`nlyap_opt.certificate.certify_roa` (conditions (a), (b),
-    (c), the level searched downwards from the SDP level) with ``inner = ε`` and
-    ``outer = r``, the ray-sampled extent of :math:`\{V \le c\}` times
+    rounds (a count: no wall clock decides the result); (4) certification of the final
+    ``(V, c)`` on the true CasADi closed loop: :func:`nlyap_opt.certificate.certify_roa`
+    (conditions (a), (b), (c), the level searched downwards from the SDP level) with
+    ``inner = ε`` and ``outer = r``, the ray-sampled extent of :math:`\{V \le c\}` times
     ``1 + outer_margin``.
 
     Parameters
@@ -211,8 +211,8 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
         level of the quadratic ``V``; two more in the V–s iteration, which needs the room).
     epsilon : float
         Strictness of the SOS decrease and positivity constraints.
-    iterations, time_budget : int, float
-        Budget of the V–s iteration (``degree > 2``): rounds per degree, seconds in all.
+    iterations : int
+        Budget of the V–s iteration (``degree > 2``): rounds per degree.
     backoff : float
         The multiplier of each V step is taken at level ``(1 - backoff)`` times the
         largest SOS level, so that the V step has an interior point.
@@ -280,7 +280,7 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     elif degree > 2:
         V, level = vs_iteration(Vq, ls.level, f, degree, history, notes, t0=t0,
                                 multiplier_degree=multiplier_degree, epsilon=epsilon,
-                                iterations=iterations, time_budget=time_budget,
+                                iterations=iterations,
                                 backoff=backoff, push=push, radius=radius, solver=solver,
                                 say=say)
     sdp_seconds = time.perf_counter() - t0

@@ -294,7 +294,7 @@ def v_step(V: Polynomial, inside: np.ndarray, level: float, s: dict, f: list[Pol
 
 def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: int,
                  history: list, notes: list, *, t0: float, multiplier_degree: int | None,
-                 epsilon: float, iterations: int, time_budget: float, backoff: float,
+                 epsilon: float, iterations: int, backoff: float,
                  push: float, radius: float, solver: str,
                  say: Callable[[str], None]) -> tuple[Polynomial, float]:
     """V–s iteration with degree continuation 4, 6, ..., ``degree``; the best ``(V, level)``.
@@ -320,10 +320,6 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
             s = level_of(V).backoff_multiplier
         stalled = 0
         for it in range(iterations):
-            if time.perf_counter() - t0 > time_budget:
-                notes.append(f"V–s iteration stopped by the time budget ({time_budget} s) at "
-                             f"degree {stage}, round {it + 1}")
-                return best[0], best[1]
             bnd = boundary_points(V, lev)
             Vn = v_step(V, bnd, lev, s, f, stage, push * bnd, epsilon=epsilon, solver=solver)
             if Vn is None:

@@ -41,7 +41,7 @@ def quadratic(vdp):
 
 @pytest.fixture(scope="module")
 def quartic(vdp):
-    return sos_roa(vdp, degree=4, inner=0.1, time_budget=60.0)
+    return sos_roa(vdp, degree=4, inner=0.1)
 
 
 def _lie(system, V: Polynomial, pts, h=1e-6):
@@ -188,7 +188,7 @@ def test_quartic_v_certified_and_larger(vdp, quadratic, quartic):
 
 @pytest.mark.slow
 def test_sextic_v_close_to_true_roa(vdp):
-    res = sos_roa(vdp, degree=6, inner=0.1, time_budget=60.0)
+    res = sos_roa(vdp, degree=6, inner=0.1)
     assert res.status == "certified", res.status
     area = res.area(BOX, 300)
     assert 0.9 * TRUE_ROA_AREA < area < TRUE_ROA_AREA

@@ -38,6 +38,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from .domain import Ball, Region, as_domain, parse_set
 from .errors import ConfigError, DimensionError, InputRangeError, NetworkFileError
 from .network import Network
 from .walker import evaluate
@@ -48,7 +49,9 @@ __all__ = [
 ]
 
 FORMAT = "nlyap-roa-certificate"
-VERSION = 2
+VERSION = 3
+#: versions this nlyap reads (2: before domains; its region is the ball of outer_radius)
+READABLE_VERSIONS = (2, 3)
 
 
 class CertStatus(str, Enum):
@@ -142,6 +145,12 @@ class RoaProblem:
         Learned ``φ``; ``None``: the true ``f`` (known-dynamics setting).
     inner, outer : float
         ``0 ≤ ε < r``: the excluded ball ``B_ε`` and the verification ball ``B_r``.
+    domain : Region or dict, optional
+        The verification domain ``D`` (:mod:`nlyap_opt.domain`: a ball, a box or an
+        ellipsoid holding the origin inside) in place of the ball ``B_r``; ``outer`` is then
+        ``max ‖x‖`` over ``D`` (information only). ``B_ε`` must lie inside ``D``.
+    initial_set : Region or dict, optional
+        ``X_I``: a set that must lie in the certified set (``X_I ⊆ D`` and ``V < c`` on it).
     eta : float
         ``‖f − φ‖ ≤ η`` on ``dynamics_box × input_box`` (learned dynamics only).
     margin_mode : {"pointwise", "global"}
@@ -172,13 +181,25 @@ class RoaProblem:
     input_box: np.ndarray | None = None
     dynamics_assumptions: list = field(default_factory=list)
     verify_options: dict = field(default_factory=dict)
+    domain: Region | None = None
+    initial_set: Region | None = None
 
     def __post_init__(self):
+        nx = self.system.nx
         self.inner = _finite("inner radius", self.inner, low=0.0)
-        self.outer = _finite("outer radius", self.outer, low=0.0, strict=True)
-        if not self.inner < self.outer:
-            raise ConfigError(f"need 0 <= inner < outer, got inner={self.inner:g}, "
-                              f"outer={self.outer:g}; choose a smaller inner radius")
+        if self.domain is None:
+            self.outer = _finite("outer radius", self.outer, low=0.0, strict=True)
+            self.domain = Ball(self.outer, nx)
+        else:
+            self.domain = as_domain(self.domain, nx)
+            self.outer = self.domain.max_norm()
+        if not self.inner < self.domain.inradius():
+            raise ConfigError(
+                f"need 0 <= inner < {self.domain.inradius():g} (the inner ball inside the "
+                f"domain {self.domain.describe()}), got inner={self.inner:g}; choose a "
+                "smaller inner radius")
+        if self.initial_set is not None:
+            self.initial_set = parse_set(self.initial_set, nx, "initial_set", domain=False)
         self.eta = _finite("eta", self.eta, low=0.0)
         if self.smoothing is not None:
             self.smoothing = _finite("smoothing", self.smoothing, low=0.0)
@@ -186,7 +207,6 @@ class RoaProblem:
         if self.margin_mode not in ("pointwise", "global"):
             raise ConfigError(f"margin_mode must be 'pointwise' or 'global', got "
                               f"{self.margin_mode!r}")
-        nx = self.system.nx
         if isinstance(self.V, Network) and (self.V.n_in != nx or self.V.n_out != 1):
             raise DimensionError(f"V must map R^{nx} -> R (system {self.system.name!r}), got "
                                  f"R^{self.V.n_in} -> R^{self.V.n_out}")
@@ -209,7 +229,8 @@ class RoaProblem:
 
     @property
     def ball_box(self) -> np.ndarray:
-        return np.tile([-self.outer, self.outer], (self.system.nx, 1))
+        """The bounding box of the domain ``D``."""
+        return self.domain.bounding_box()
 
     def V_expr(self, x):
         """``V`` as a CasADi expression of ``x``."""
@@ -218,8 +239,8 @@ class RoaProblem:
     def decrease(self) -> Decrease:
         """The symbolic decrease condition ``lie + margin < 0`` (built once, cached).
 
-        For learned dynamics this computes the rigorous ``M ≥ sup_{B_r} ‖∇V‖`` and checks
-        ``κ(B_r) ⊆ U`` and ``B_r ⊆`` dynamics box (:func:`nlyap_opt.bounds.gradient_bound`);
+        For learned dynamics this computes the rigorous ``M ≥ sup_D ‖∇V‖`` and checks
+        ``κ(D) ⊆ U`` and ``D ⊆`` dynamics box (on ``D``'s bounding box) (:func:`nlyap_opt.bounds.gradient_bound`);
         :class:`~nlyap_opt.errors.InputRangeError` when they fail.
         """
         if getattr(self, "_decrease", None) is not None:
@@ -285,6 +306,14 @@ class RoaCertificate:
     artifacts: dict = field(default_factory=dict)  # role -> {"file", "sha256"}
     declared: list = field(default_factory=list)   # assumptions declared by the user
     V: object = field(default=None, repr=False)
+    domain: Region | None = None                   # D (None: the ball of radius outer)
+    initial_set: Region | None = None              # X_I, proved inside the certified set
+
+    def region_text(self) -> str:
+        """``ε ≤ ‖x‖ ≤ r`` (the ball) or ``‖x‖ ≥ ε in D`` in words."""
+        if self.domain is None or (isinstance(self.domain, Ball) and self.domain.centre is None):
+            return f"{self.inner:g} ≤ ‖x‖ ≤ {self.outer:g}"
+        return f"‖x‖ ≥ {self.inner:g} in {self.domain.describe()}"
 
     @property
     def certified(self) -> bool:
@@ -293,8 +322,8 @@ class RoaCertificate:
     def summary(self) -> str:
         """One line: status, level, reason."""
         if self.certified:
-            return (f"certified: level {self.level:.6g} on {self.inner:g} ≤ ‖x‖ ≤ "
-                    f"{self.outer:g} ({self.setting} dynamics)")
+            return (f"certified: level {self.level:.6g} on {self.region_text()} "
+                    f"({self.setting} dynamics)")
         return f"{self.status.value}: {self.reason}"
 
     # ------------------------------------------------------------------ the certified set
@@ -307,7 +336,9 @@ class RoaCertificate:
             raise ValueError("this certificate holds no V (loaded without artifacts); "
                              "use recheck_certificate() to load it with its networks")
         v = self.V.numpy(pts)[:, 0] if isinstance(self.V, Network) else _numpy_of(self.V, pts)
-        m = (np.linalg.norm(pts, axis=1) <= self.outer) & (v <= self.level)
+        in_d = np.linalg.norm(pts, axis=1) <= self.outer if self.domain is None \
+            else self.domain.contains(pts)
+        m = in_d & (v <= self.level)
         if self.inner_ellipse is not None:
             m |= self.inner_ellipse.contains(pts)
         return m
@@ -337,6 +368,9 @@ class RoaCertificate:
             "assumptions_declared_by_user": list(self.declared), "history": self.history,
             "counterexamples": np.asarray(self.counterexamples).tolist(),
             "verify_seconds": self.seconds, "artifacts": dict(self.artifacts),
+            "state_dimension": None if self.domain is None else self.domain.n,
+            "domain": None if self.domain is None else self.domain.to_dict(),
+            "initial_set": None if self.initial_set is None else self.initial_set.to_dict(),
         }
 
     @classmethod
@@ -344,10 +378,15 @@ class RoaCertificate:
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise ConfigError(f"not an nlyap certificate (expected format {FORMAT!r}); "
                               "pass the certificate.json written by `nlyap run`/`compare`")
-        if d.get("version") != VERSION:
+        if d.get("version") not in READABLE_VERSIONS:
             raise ConfigError(f"certificate version {d.get('version')!r} is not supported "
-                              f"(this nlyap reads version {VERSION}); rerun the command")
+                              f"(this nlyap reads versions "
+                              f"{', '.join(map(str, READABLE_VERSIONS))}); rerun the command")
         try:
+            ce = np.asarray(d["counterexamples"], dtype=float)
+            sets = {key: parse_set(d[key], int(d["state_dimension"]), key,
+                                   domain=key == "domain")
+                    for key in ("domain", "initial_set") if d.get(key) is not None}
             return cls(
                 CertStatus(d["status"]), str(d["reason"]), str(d["system"]), str(d["setting"]),
                 float(d["level"]), float(d["inner_radius"]), float(d["outer_radius"]),
@@ -357,9 +396,10 @@ class RoaCertificate:
                 None if d["inner_ellipse"] is None
                 else InnerEllipse.from_dict(d["inner_ellipse"]),
                 list(d["assumptions"]), list(d["history"]),
-                np.asarray(d["counterexamples"], dtype=float), float(d["verify_seconds"]),
-                dict(d["artifacts"]), list(d.get("assumptions_declared_by_user", [])))
-        except (KeyError, TypeError, ValueError) as err:
+                ce, float(d["verify_seconds"]),
+                dict(d["artifacts"]), list(d.get("assumptions_declared_by_user", [])),
+                domain=sets.get("domain"), initial_set=sets.get("initial_set"))
+        except (KeyError, TypeError, ValueError, ConfigError) as err:
             raise ConfigError(f"malformed certificate: {type(err).__name__}: {err}; rerun "
                               "the command that wrote it") from None
 
@@ -408,7 +448,8 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     setting = "known" if problem.known else "learned"
     base = dict(system=sysm.name, setting=setting, inner=problem.inner, outer=problem.outer,
                 eta=problem.eta, margin_mode="none" if problem.known else problem.margin_mode,
-                V=problem.V, declared=_declared(sysm))
+                V=problem.V, declared=_declared(sysm), domain=problem.domain,
+                initial_set=problem.initial_set)
     assumptions = ["V and κ are the float64 networks saved with this certificate "
                    "(verified as saved)"]
     if not problem.known:
@@ -426,13 +467,17 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
                               seconds=time.perf_counter() - t0, **base)
     M, margin, smoothing = dec.M, dec.margin, dec.smoothing
     lc = certify_level(dec.x, dec.V, dec.lie, level=level, inner=problem.inner,
-                       outer=problem.outer, margin=margin, max_tries=8 if search else 1,
+                       domain=problem.domain, margin=margin, max_tries=8 if search else 1,
                        shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
                        log=log)
     last = lc.history[-1] if lc.history else {}
+    ball = isinstance(problem.domain, Ball) and problem.domain.centre is None
     checks = {"(a) decrease": last.get("decrease") or "not run",
-              "(b) V > level on ‖x‖ = r": last.get("containment") or "not run",
+              "(b) V > level on ‖x‖ = r" if ball else "(b) V > level on ∂D":
+              last.get("containment") or "not run",
               "(b) B_ε ⊆ Ω_c": last.get("contains_inner_ball") or "not run"}
+    if problem.initial_set is not None:
+        checks["(d) X_I ⊆ Ω_c"] = "not run"
     common = dict(M=M, margin=margin, smoothing=smoothing, checks=checks,
                   decrease_condition=_decrease_text(problem, margin, smoothing),
                   history=lc.history, counterexamples=lc.counterexamples, **base)
@@ -445,6 +490,18 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     level = float(lc.level)
     ellipse = None
     status, reason = CertStatus.CERTIFIED, "conditions (a), (b) and (c) verified"
+    if problem.initial_set is not None:
+        res = _initial_set_check(problem, dec, level)
+        checks["(d) X_I ⊆ Ω_c"] = res.status
+        if res.status != "verified":
+            return RoaCertificate(
+                CertStatus.COUNTEREXAMPLE if res.status == "counterexample" and not search
+                else CertStatus.NOT_CERTIFIED,
+                f"the initial set X_I = {problem.initial_set.describe()} is not proved inside "
+                f"Ω_c at level {level:.6g} ({res.status}: X_I must lie in D with V < level "
+                "on it); shrink X_I or enlarge the domain", level=0.0 if search else level,
+                assumptions=assumptions, seconds=time.perf_counter() - t0, **common)
+        reason = "conditions (a), (b), (c) and X_I ⊆ Ω_c verified"
     if check_inner_ellipse:
         inner, proved_from = _inner_ellipse(problem)
         ok = inner["status"] == "certified"
@@ -478,6 +535,20 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
         reason = "conditions (a) and (b) verified; (c) not checked"
     return RoaCertificate(status, reason, level=level, inner_ellipse=ellipse,
                           assumptions=assumptions, seconds=time.perf_counter() - t0, **common)
+
+
+def _initial_set_check(problem: RoaProblem, dec: Decrease, level: float):
+    """``X_I ⊆ Ω_c``: on ``X_I``, ``V < level`` and every inequality of ``D`` holds strictly."""
+    from verification import VerificationProblem, verify
+
+    XI = problem.initial_set
+    cons = XI.constraints(dec.x)
+    dom = problem.domain.inequalities(dec.x)
+    prob = VerificationProblem(dec.x, XI.bounding_box(), [g for g, _ in cons],
+                               [dec.V - level] + [g for g, _ in dom],
+                               [nm for _, nm in cons],
+                               ["V<level on X_I"] + [f"X_I in D ({nm})" for _, nm in dom])
+    return verify(prob, **problem.verify_options)
 
 
 def _declared(system) -> list[str]:
@@ -571,13 +642,13 @@ abla V\|` (learned f) can beat it;
     first, tried = None, []
     for f in factors:
         eps = problem.inner * f
-        if not 0 < eps < problem.outer:
+        if not 0 < eps < problem.domain.inradius():
             continue
         p = problem if f == 1.0 else replace(problem, inner=eps)
         p._decrease = dec
         lv = level
         if lv is None:
-            lv = candidate_level(dec.x, dec.V, dec.lie, inner=eps, outer=p.outer,
+            lv = candidate_level(dec.x, dec.V, dec.lie, inner=eps, domain=p.domain,
                                  margin=dec.margin).level
         if not lv > 0:
             tried.append({"inner": eps, "status": "no positive candidate level"})
@@ -595,7 +666,8 @@ abla V\|` (learned f) can beat it;
             cert.history = list(cert.history) + [{"inner_radius_search": tried}]
             return cert
     if first is None:
-        raise ConfigError(f"no inner radius to try below outer = {problem.outer:g}")
+        raise ConfigError(f"no inner radius to try inside the domain "
+                          f"{problem.domain.describe()}")
     first.history = list(first.history) + [{"inner_radius_search": tried}]
     return first
 
@@ -670,7 +742,8 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
     system = systems.get(saved.system)
     problem = RoaProblem(
         system, nets["V"], nets.get("controller"), nets.get("dynamics"),
-        inner=saved.inner, outer=saved.outer, eta=saved.eta,
+        inner=saved.inner, outer=saved.outer, eta=saved.eta, domain=saved.domain,
+        initial_set=saved.initial_set,
         margin_mode=problem_d.get("margin_mode", "pointwise"), smoothing=saved.smoothing,
         dynamics_box=problem_d.get("dynamics_box"), input_box=problem_d.get("input_box"),
         dynamics_assumptions=list(problem_d.get("dynamics_assumptions", [])))

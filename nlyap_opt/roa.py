@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from .domain import Ball, as_domain
 from .walker import evaluate
 
 __all__ = [
@@ -52,23 +53,24 @@ def _fun(x, *outs):
     return ca.Function("f", [x], list(outs))
 
 
-def candidate_level(x: ca.MX, V: ca.MX, lie: ca.MX, *, inner: float, outer: float,
+def candidate_level(x: ca.MX, V: ca.MX, lie: ca.MX, *, inner: float, outer=None,
                     margin: float = 0.0, n_starts: int = 12, n_samples: int = 20000,
-                    seed: int = 0) -> LevelCandidate:
-    r"""Least ``V`` over :math:`\{x \in B_r\setminus B_\varepsilon: \nabla V\cdot g \ge -\beta\}
-    \cup \{\|x\| = r\}`: sampling, then IPOPT from the best samples (multi-start).
+                    seed: int = 0, domain=None) -> LevelCandidate:
+    r"""Least ``V`` over :math:`\{x \in D\setminus B_\varepsilon: \nabla V\cdot g \ge -\beta\}
+    \cup \partial D`: sampling, then IPOPT from the best samples (multi-start).
 
+    ``D`` is ``domain`` (a :class:`nlyap_opt.domain.Region`) or the ball ``‖x‖ ≤ outer``.
     The value is a *candidate* only: :func:`certify_level` proves a level.
     """
     t0 = time.perf_counter()
     n = x.numel()
+    D = _domain(domain, outer, n)
     rng = np.random.default_rng(seed)
-    from .sampling import sample_ball, sample_sphere
 
     F = _fun(x, V, lie)
-    pts = sample_ball(n_samples, n, outer, rng, inner)
+    pts = D.sample(n_samples, rng, inner)
     v, d = (a[:, 0] for a in evaluate(F, [pts]))
-    sph = sample_sphere(max(2000, n_samples // 10), n, outer, rng)
+    sph = D.sample_boundary(max(2000, n_samples // 10), rng)
     vs = evaluate(F, [sph])[0][:, 0]
     best = (float(vs.min()), sph[np.argmin(vs)], "sphere")
     bad = d >= -margin
@@ -80,37 +82,57 @@ def candidate_level(x: ca.MX, V: ca.MX, lie: ca.MX, *, inner: float, outer: floa
     opts = {"ipopt.print_level": 0, "print_time": 0, "ipopt.sb": "yes",
             "ipopt.max_iter": 200, "ipopt.tol": 1e-10}
     r2 = ca.sumsqr(x)
-    nlp_dec = ca.nlpsol("lev_dec", "ipopt", {"x": x, "f": V, "g": ca.vertcat(lie + margin, r2)},
-                        opts)
-    nlp_sph = ca.nlpsol("lev_sph", "ipopt", {"x": x, "f": V, "g": r2}, opts)
+    plain = isinstance(D, Ball) and D.centre is None   # the ball: ‖x‖² ≤ r² in one row
+    region = [] if plain else [g for g, _ in D.constraints(x)]
+    ub_r2 = D.radius**2 if plain else np.inf
+    nlp_dec = ca.nlpsol("lev_dec", "ipopt",
+                        {"x": x, "f": V, "g": ca.vertcat(lie + margin, r2, *region)}, opts)
+    bb = D.bounding_box()
+    bounds = {} if plain else {"lbx": bb[:, 0], "ubx": bb[:, 1]}
     starts_dec = pts[np.argsort(np.where(bad, v, np.inf))[:n_starts]][: int(bad.sum())]
     starts_dec = np.vstack([starts_dec, pts[np.argsort(-d)[: max(1, n_starts // 3)]]])
     for x0 in starts_dec:
         try:
-            sol = nlp_dec(x0=x0, lbg=[0.0, inner**2], ubg=[np.inf, outer**2])
+            sol = nlp_dec(x0=x0, lbg=[0.0, inner**2] + [-np.inf] * len(region),
+                          ubg=[np.inf, ub_r2] + [0.0] * len(region), **bounds)
         except RuntimeError:
             continue
         xs = np.array(sol["x"]).ravel()
         vv, dd = (float(a) for a in F(xs))
-        ok = dd >= -margin - 1e-9 and inner**2 - 1e-9 <= xs @ xs <= outer**2 + 1e-9
+        inside = xs @ xs <= ub_r2 + 1e-9 if plain else bool(D.contains(xs, tol=1e-9)[0])
+        ok = dd >= -margin - 1e-9 and inner**2 - 1e-9 <= xs @ xs and inside
         if ok and vv < best[0]:
             best = (vv, xs, "decrease")
-    for x0 in sph[np.argsort(vs)[:n_starts]]:
-        try:
-            sol = nlp_sph(x0=x0, lbg=outer**2, ubg=outer**2)
-        except RuntimeError:
-            continue
-        xs = np.array(sol["x"]).ravel()
-        if abs(xs @ xs - outer**2) < 1e-8:
-            vv = float(F(xs)[0])
-            if vv < best[0]:
-                best = (vv, xs, "sphere")
+    for piece in D.boundary_nlp(x):
+        g = piece.get("g")
+        nlp_b = ca.nlpsol("lev_sph", "ipopt", {"x": x, "f": V, "g": g if g is not None
+                                              else type(x)()}, opts)
+        on = np.flatnonzero(piece["on"](sph))
+        for x0 in sph[on[np.argsort(vs[on])[:n_starts]]]:
+            kw = {k: piece[k] for k in ("lbg", "ubg", "lbx", "ubx") if k in piece}
+            try:
+                sol = nlp_b(x0=x0, **kw)
+            except RuntimeError:
+                continue
+            xs = np.array(sol["x"]).ravel()
+            if piece["check"](xs):
+                vv = float(F(xs)[0])
+                if vv < best[0]:
+                    best = (vv, xs, "sphere")
     order = np.argsort(np.where(bad, v, np.inf))[: min(int(bad.sum()), 4 * n_starts)]
     viol = pts[order]
     if best[2] == "decrease":
         viol = np.vstack([np.asarray(best[1])[None], viol])
     return LevelCandidate(best[0], np.asarray(best[1]), best[2], time.perf_counter() - t0,
                           viol.reshape(-1, n))
+
+
+def _domain(domain, outer, n: int):
+    if domain is None:
+        if outer is None:
+            raise ValueError("give the outer radius or a domain")
+        return as_domain(float(outer), n)
+    return as_domain(domain, n)
 
 
 @dataclass
@@ -126,11 +148,13 @@ class LevelCertificate:
     seconds: float = 0.0
 
 
-def certify_level(x, V, lie, *, level: float, inner: float, outer: float, margin: float,
+def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: float,
                   max_tries: int = 8, shrink: float = 1e-3, verify_options: dict | None = None,
-                  log=print) -> LevelCertificate:
+                  log=print, domain=None) -> LevelCertificate:
     """Prove (a) and (b) at the largest level we can reach from ``level`` downwards.
 
+    The region is ``domain`` (a :class:`nlyap_opt.domain.Region`) or the ball
+    ``‖x‖ ≤ outer``; (b) is checked on every piece of its boundary (each face of a box).
     Counterexamples lower the level to just below ``V`` at the counterexample; ``unknown``
     verdicts lower it by 0.5 %, then 1.5 %, 4.5 %, 13.5 %, 30 %, ... (an ``unknown`` is
     usually a near-tangency that a small step resolves). Returns the certified level or
@@ -143,17 +167,27 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer: float, margin
     Vf = _fun(x, V)
     r2 = ca.sumsqr(x)
     n = x.numel()
-    box = np.tile([-outer, outer], (n, 1))
+    D = _domain(domain, outer, n)
+    box = D.bounding_box()
+    pieces = D.boundary_pieces(x)
     c = level * (1.0 - shrink)
     drop = 0.005
     hist, cexs = [], []
     for _ in range(max_tries):
         if not c > 0:
             break
-        prob_b = VerificationProblem(x, box, [r2 - outer**2, outer**2 - r2], [c - V],
-                                     ["outer", "sphere"], ["V>level on sphere"])
-        res_b = verify(prob_b, **opts)
-        prob_a = lyapunov_problem(x, V, lie, inner=inner, outer=outer, level=c, margin=margin,
+        res_b = None
+        for pbox, cons, label in pieces:   # V > c on each piece of the boundary
+            prob_b = VerificationProblem(x, pbox, [g for g, _ in cons], [c - V],
+                                         [nm for _, nm in cons], [f"V>level on {label}"])
+            r = verify(prob_b, **opts)
+            if res_b is not None:
+                r.seconds += res_b.seconds
+                r.boxes += res_b.boxes
+            res_b = r
+            if r.status != "verified":
+                break
+        prob_a = lyapunov_problem(x, V, lie, inner=inner, domain=D, level=c, margin=margin,
                                   box=box, check_positive=False)
         res_a = verify(prob_a, **opts) if res_b.status == "verified" else None
         hist.append({"level": c, "containment": res_b.status,

@@ -218,23 +218,32 @@ class VerificationResult:
         }
 
 
-def lyapunov_problem(x, V, lie, *, inner: float, outer: float, level: float | None = None,
-                     margin: float = 0.0, box=None, check_positive: bool = True
-                     ) -> VerificationProblem:
-    r"""The Lyapunov falsification problem on :math:`\{\varepsilon \le \|x\|_2 \le r\}`.
+def lyapunov_problem(x, V, lie, *, inner: float, outer=None, level: float | None = None,
+                     margin: float = 0.0, box=None, check_positive: bool = True,
+                     domain=None) -> VerificationProblem:
+    r"""The Lyapunov falsification problem on :math:`\{x \in D : \|x\|_2 \ge \varepsilon\}`.
 
     Properties: :math:`V(x) > 0` (as ``-V < 0``) and
-    :math:`\nabla V \cdot g(x) < -\beta` (as ``lie + margin < 0``); region: the annulus,
-    intersected with :math:`V(x) \le c` when ``level`` is given.
+    :math:`\nabla V \cdot g(x) < -\beta` (as ``lie + margin < 0``); region: the domain ``D``
+    (``domain``, a :class:`nlyap_opt.domain.Region`; default the ball ``‖x‖ ≤ outer``) minus
+    the open inner ball, intersected with :math:`V(x) \le c` when ``level`` is given.
     """
-    if not (0 <= inner < outer):
-        raise ValueError(f"need 0 <= inner < outer, got inner={inner}, outer={outer}")
+    from nlyap_opt.domain import as_domain
+
+    n = x.numel()
+    if domain is None:
+        if outer is None:
+            raise ValueError("give the outer radius or a domain")
+        domain = as_domain(float(outer), n)
+    if not (0 <= inner < domain.inradius()):
+        raise ValueError(f"need 0 <= inner < {domain.inradius():g} (the inner ball inside "
+                         f"the domain {domain.describe()}), got inner={inner}")
     if margin < 0:
         raise ValueError(f"margin must be >= 0, got {margin}")
-    n = x.numel()
     r2 = ca.sumsqr(x)
-    cons = [r2 - outer**2]
-    names = ["outer"]
+    region = domain.constraints(x)
+    cons = [g for g, _ in region]
+    names = [nm for _, nm in region]
     if inner > 0:
         cons.append(inner**2 - r2)
         names.append("inner")
@@ -247,14 +256,14 @@ def lyapunov_problem(x, V, lie, *, inner: float, outer: float, level: float | No
         pnames.append("V>0")
     props.append(lie + margin if margin else lie)
     pnames.append("decrease")
-    box = np.tile([-outer, outer], (n, 1)) if box is None else box
+    box = domain.bounding_box() if box is None else box
     return VerificationProblem(x, box, cons, props, names, pnames)
 
 
 def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: float,
-                        outer: float, level: float | None = None, margin: float = 0.0,
+                        outer=None, level: float | None = None, margin: float = 0.0,
                         eta: float = 0.0, smoothing: float = 0.0, strict: bool = False,
-                        check_positive: bool = True) -> VerificationProblem:
+                        check_positive: bool = True, domain=None) -> VerificationProblem:
     """Lyapunov problem for saved networks: ``V``, ``κ`` and optionally learned ``φ``.
 
     Parameters
@@ -263,6 +272,7 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     V, controller, dynamics : nlyap_opt.network.Network
         ``dynamics`` (learned φ) replaces the system's ``f`` in the Lie derivative.
     inner, outer : float      annulus ``inner ≤ ‖x‖₂ ≤ outer``
+    domain : Region, optional ``D`` in place of the ball ``‖x‖ ≤ outer``
     level : float, optional   intersect with ``V(x) ≤ level``
     margin : float            β: require ``∇V·g < −β``
     eta : float               pointwise robust margin: require ``∇V·g + η‖∇V‖ < −β``
@@ -286,4 +296,4 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
 
         lie = robust_lie(lie, Vx, cl.x, eta, smoothing)
     return lyapunov_problem(cl.x, Vx, lie, inner=inner, outer=outer, level=level,
-                            margin=margin, check_positive=check_positive)
+                            margin=margin, check_positive=check_positive, domain=domain)

@@ -38,15 +38,18 @@ def quadratic_row(system, cfg: dict, V, controller, *, method: str, dynamics=Non
     t0 = time.perf_counter()
     # a quadratic V needs no large excluded ball: B_ε only has to lie in the certified inner
     # ellipse, and a thin LQR ellipse cannot contain the neural runs' B_ε (B_ε ⊆ Ω_c fails)
-    r, eps = float(cfg["outer"]), float(cfg["inner"]) / 4
-    problem = RoaProblem(system, V, controller, dynamics, inner=eps, outer=r, eta=eta,
+    from nlyap_opt.configs import domain_of
+
+    D = domain_of(cfg, system.nx)[0]
+    eps = float(cfg["inner"]) / 4
+    problem = RoaProblem(system, V, controller, dynamics, inner=eps, eta=eta, domain=D,
                          dynamics_box=dynamics_box, input_box=input_box)
     try:
         dec = problem.decrease()
     except InputRangeError as err:
         return {"method": method, "level": 0.0, "certified": False,
                 "status": f"not certified: {err}", "seconds": time.perf_counter() - t0}
-    cand = candidate_level(dec.x, dec.V, dec.lie, inner=eps, outer=r, margin=dec.margin)
+    cand = candidate_level(dec.x, dec.V, dec.lie, inner=eps, domain=D, margin=dec.margin)
     cert = certify_roa(problem, cand.level, search=True, log=lambda m: None)
     row = {"method": method, "level": cert.level if cert.certified else 0.0,
            "certified": cert.certified,
@@ -80,6 +83,7 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
     """Run every method for ``system_name``; write comparison.{json,md,png} into ``out``."""
     import systems
     from nlyap_opt.certificate import recheck_certificate, save_certificate
+    from nlyap_opt.configs import domain_of
     from nlyap_opt.control import linear_controller, lqr, quadratic_lyapunov, saturated_controller
     from nlyap_opt.pipeline import run
     from nlyap_opt.roa import axis_count, true_roa_mask
@@ -87,6 +91,8 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     system = systems.get(system_name)
+    D = domain_of(cfg, system.nx)[0]
+    declared = cfg.get("domain") is not None   # every row (SOS too) on the declared D
     rows: list[dict] = []
     lq = cfg.get("lqr", {})
     res = lqr(system, lq.get("Q"), lq.get("R"))
@@ -109,7 +115,8 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
 
         for deg in (2, 4, 6):
             t0 = time.perf_counter()
-            sos = sos_roa(system, degree=deg, inner=cfg["inner"])
+            sos = sos_roa(system, degree=deg, inner=cfg["inner"],
+                          domain=D if declared else None)
             row = {"method": f"sos (degree {deg}, true f)", "level": sos.certified_level or 0.0,
                    "certified": sos.certified, "status": sos.status,
                    "sdp_level": sos.sdp_level, "seconds": time.perf_counter() - t0,
@@ -161,11 +168,11 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
     n = axis_count(int(cfg["eval_points"]), system.nx)
     feedback = None if sat is None else (lambda z: sat.numpy(z))
     true_mask = true_roa_mask(system, feedback, box, n)
-    if system.nu:
+    if system.nu or declared:   # as in the pipeline: within the disc, or within D
         from nlyap_opt.roa import grid_points
 
         pts, shape = grid_points(box, n)
-        true_mask &= (np.linalg.norm(pts, axis=1) <= float(cfg["outer"])).reshape(shape)
+        true_mask &= D.contains(pts).reshape(shape)
     true_area = _areas(rows, system, cfg, true_mask, box, n)
     _write(out, system, rows, true_area, true_mask, box, cfg)
     return rows
@@ -178,7 +185,9 @@ def _write(out, system, rows, true_area, true_mask, box, cfg):
         default=float))
     lines = [f"# {system.name}: certified regions of attraction", "",
              f"True ROA area (simulation, {len(true_mask)}² grid over {box.tolist()}"
-             + (", within the disc" if system.nu else "") + f"): {true_area:.4g}", "",
+             + (f", within D = {domain_of(cfg, system.nx)[0].describe()}"
+                if cfg.get("domain") is not None else ", within the disc" if system.nu else "")
+             + f"): {true_area:.4g}", "",
              "| method | certified | level | area | % of true ROA | seconds | status |",
              "|---|---|---|---|---|---|---|"]
     for r in public:
@@ -213,9 +222,10 @@ def _plot(path, system, rows, true_mask, box, cfg):
         ax.contour(X1, X2, r["_mask"].astype(float), levels=[0.5], colors=[c], linewidths=1.5)
         handles.append(plt.Line2D([], [], color=c,
                                   label=f"{r['method']}: {100 * r['fraction_of_true_roa']:.1f}%"))
-    th = np.linspace(0, 2 * np.pi, 400)
-    ax.plot(cfg["outer"] * np.cos(th), cfg["outer"] * np.sin(th), "r--", lw=1)
-    handles.append(plt.Line2D([], [], color="r", ls="--", label="verification disc"))
+    from nlyap_opt.configs import domain_of
+
+    ax.plot(*domain_of(cfg, system.nx)[0].outline_2d(0, 1).T, "r--", lw=1)
+    handles.append(plt.Line2D([], [], color="r", ls="--", label="verification domain"))
     from nlyap_opt.roa import grid_points
 
     g = 25

@@ -181,7 +181,7 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
             iterations: int = 20, backoff: float = 0.01,
             push: float = 1.05, solver: str = "CLARABEL",
             outer_margin: float = 0.05, certify: bool = True,
-            verify_options: dict | None = None,
+            verify_options: dict | None = None, domain=None,
             log: Callable[[str], None] | None = None) -> SOSResult:
     r"""SOS estimate of the region of attraction, certified by the interval verifier.
 
@@ -206,6 +206,9 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
         Feedback ``κ`` (``None``: ``u_eq``). Must give a polynomial closed loop.
     V0 : (nx, nx) array_like, optional
         Matrix of the initial quadratic ``V`` (default: the closed-loop Lyapunov matrix).
+    domain : nlyap_opt.domain.Region, optional
+        Certify on this verification domain ``D`` (a declared domain: the same set as the
+        other rows of a comparison) instead of the ball around the SOS level set.
     multiplier_degree : int, optional
         Degree of the S-procedure multiplier ``s`` (default: the least that matches for the
         level of the quadratic ``V``; two more in the V–s iteration, which needs the room).
@@ -293,13 +296,13 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     # ---- re-certification on the true closed loop (the only claim)
     t1 = time.perf_counter()
     extent = float(np.linalg.norm(boundary_points(V, level), axis=1).max())
-    res.outer = outer = extent * (1 + outer_margin)
-    if not outer > inner:
+    res.outer = outer = extent * (1 + outer_margin) if domain is None else domain.max_norm()
+    if domain is None and not outer > inner:
         res.status = (f"not certified: the SOS level set (extent {extent:.4g}) does not "
                       f"contain the excluded ball B_ε (ε = {inner:g})")
         res.seconds = time.perf_counter() - t0
         return res
-    res.problem = RoaProblem(system, V, controller, inner=inner, outer=outer,
+    res.problem = RoaProblem(system, V, controller, inner=inner, outer=outer, domain=domain,
                              verify_options=dict(verify_options or {}))
     cert = certify_roa(res.problem, level, search=True,
                        log=(lambda m: say("[sos] certify" + m)))

@@ -17,8 +17,9 @@ import numpy as np
 
 from .certificate import CertStatus, RoaCertificate, RoaProblem, certify_roa
 from .determinism import deterministic_torch
+from .domain import Ball, as_domain, parse_set
 from .errors import InputRangeError
-from .learning import LyapunovLearner, TrainConfig, sample_ball, sample_sphere
+from .learning import LyapunovLearner, TrainConfig, sample_ball
 from .network import Network
 from .roa import axis_count, candidate_level
 from .simulate import simulate
@@ -56,6 +57,11 @@ class CegisConfig:
     # pointwise mode: verify with sqrt(‖∇V‖² + s²), s = norm_smoothing·M (costs at most
     # norm_smoothing·β of slack; keeps the verifier's mean-value form near the inner ball)
     norm_smoothing: float = 1e-3
+    # the verification domain D (None: the ball of radius outer) and the initial set X_I
+    # (given in the run config's top-level 'domain' and 'initial_set' keys)
+    domain: object = None
+    initial_set: object = None
+    initial_samples: int = 2000      # training states in X_I (pulled into V ≤ level)
 
 
 @dataclass
@@ -99,10 +105,16 @@ def _simulation_rhs(learner, system, cfg, tabulate: bool):
     from scipy.interpolate import RegularGridInterpolator
 
     m = axis_count(cfg.sim_points, system.nx)
-    axes = [np.linspace(-cfg.outer, cfg.outer, m)] * system.nx
+    box = _domain(cfg, system.nx).bounding_box()
+    axes = [np.linspace(lo, hi, m) for lo, hi in box]
     nodes = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, system.nx)
     table = rhs_np(nodes).reshape(*[m] * system.nx, system.nx)
     return RegularGridInterpolator(axes, table, bounds_error=False, fill_value=None)
+
+
+def _domain(cfg: CegisConfig, nx: int):
+    """``D`` of the configuration: its ``domain``, else the ball of radius ``outer``."""
+    return Ball(cfg.outer, nx) if cfg.domain is None else as_domain(cfg.domain, nx)
 
 
 def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float,
@@ -155,10 +167,18 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     t0 = time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
     n = system.nx
-    X = sample_ball(cfg.samples, n, cfg.outer, rng)
+    D = _domain(cfg, n)
+    XI = None if cfg.initial_set is None else \
+        parse_set(cfg.initial_set, n, "initial_set", domain=False)
+    scale = D.max_norm()    # the ball's radius; jitter of extra states is relative to it
+    X = D.sample(cfg.samples, rng)
     if cfg.inner_samples:  # the decrease is hardest to learn next to the inner ball
-        X = np.vstack([X, sample_ball(cfg.inner_samples, n, 3 * cfg.inner, rng, cfg.inner)])
-    S = sample_sphere(cfg.sphere_samples, n, cfg.outer, rng)
+        near = sample_ball(cfg.inner_samples, n, 3 * cfg.inner, rng, cfg.inner)
+        X = np.vstack([X, near[D.contains(near)]])
+    S = D.sample_boundary(cfg.sphere_samples, rng)
+    if XI is not None and cfg.initial_samples:   # X_I must end inside V ≤ level
+        xi = XI.sample(cfg.initial_samples, rng)
+        X = np.vstack([X, xi[D.contains(xi)]])
     learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
 
     rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
@@ -175,15 +195,15 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
             near = X[(T >= 0.8) & (T < tc.fit_cap)]
             if len(near):
                 extra = near[rng.integers(0, len(near), cfg.boundary_samples)]
-                extra = extra + 0.03 * cfg.outer * rng.standard_normal(extra.shape)
-                extra = extra[np.linalg.norm(extra, axis=1) <= cfg.outer]
+                extra = extra + 0.03 * scale * rng.standard_normal(extra.shape)
+                extra = extra[D.contains(extra)]
                 c2, w2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=cfg.sim_dt, tol=1e-2)
                 X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
         targets, rates = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)
         weights = (conv & (cost <= w_c)).astype(float)
         log(f"  cegis: fitting V to the trajectory cost ({tc.fit_transform}; level 1 at cost "
             f"{w_c:.4g}, {len(X)} states)")
-    box = np.tile([-cfg.outer, cfg.outer], (n, 1))
+    box = D.bounding_box()
     cex = np.zeros((0, n))
     best: CegisResult | None = None
     history = []
@@ -200,7 +220,8 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         problem = RoaProblem(system, V, ctrl, dynamics, inner=cfg.inner, outer=cfg.outer,
                              eta=eta, margin_mode=cfg.margin_mode,
                              norm_smoothing=cfg.norm_smoothing, dynamics_box=dynamics_box,
-                             input_box=input_box, verify_options=cfg.verify_options)
+                             input_box=input_box, verify_options=cfg.verify_options,
+                             domain=D, initial_set=XI)
         try:
             dec = problem.decrease()
         except InputRangeError as err:  # κ leaves U: no certificate for this iterate
@@ -209,7 +230,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                             "level": 0.0, "area": 0.0})
             continue
         M, margin, smoothing = dec.M, dec.margin, dec.smoothing
-        cand = candidate_level(dec.x, dec.V, dec.lie, inner=cfg.inner, outer=cfg.outer,
+        cand = candidate_level(dec.x, dec.V, dec.lie, inner=cfg.inner, domain=D,
                                margin=dec.margin, seed=cfg.seed + it)
         last = it == cfg.iterations - 1
         if last or (it + 1) % cfg.verify_every == 0:
@@ -220,7 +241,8 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         if cert is None:  # falsifier only: the sampled violations that limit the candidate
             cert = RoaCertificate(CertStatus.NOT_CERTIFIED, "not verified (candidate only)",
                                   system.name, "known" if dynamics is None else "learned",
-                                  0.0, cfg.inner, cfg.outer, counterexamples=cand.violations)
+                                  0.0, cfg.inner, problem.outer, counterexamples=cand.violations,
+                                  domain=D)
         area = cert.area(box, axis_count(cfg.area_points, n)) if cert.certified else 0.0
         entry = {"iteration": it, "loss": info["loss"], "train_steps": info["steps"],
                  "margin_mode": cfg.margin_mode if eta > 0 else "none",
@@ -245,7 +267,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
             break
         new = cert.counterexamples
         if len(new):
-            jitter = new[:, None, :] + 0.01 * cfg.outer * rng.standard_normal(
+            jitter = new[:, None, :] + 0.01 * scale * rng.standard_normal(
                 (len(new), cfg.neighbours, n))
             new = np.vstack([new, jitter.reshape(-1, n)])
             cex = np.vstack([cex, new])[-cfg.max_counterexamples:]

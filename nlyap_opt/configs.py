@@ -7,6 +7,9 @@ merge a JSON file and a dict of overrides over a preset and validate the result 
 any stage runs. Sections and keys:
 
 - ``outer`` (r), ``inner`` (ε): the verification annulus, finite, ``0 < inner < outer``;
+- ``domain``: the verification domain ``D`` in place of the ball ``‖x‖ ≤ outer`` (a box,
+  an ellipsoid or a ball, :func:`nlyap_opt.domain.parse_set`; ``outer`` is then null),
+  ``initial_set``: a set ``X_I`` the certificate must prove inside the certified set;
 - ``controller_scale`` (C): actuator limit of ``u = C·tanh(Kx + b)`` (``null`` for a system
   without inputs, a positive number otherwise);
 - ``lqr``: ``{"Q": ..., "R": ...}`` weights of the initial LQR gain (scalar or matrix;
@@ -265,6 +268,7 @@ class Key:
                     "dict": "a JSON object", "matrix": "a finite number or a square matrix",
                     "box": "a list of [lo, hi] rows with finite lo < hi",
                     "section": "a JSON object", "any": "a JSON value",
+                    "set": "a set: a JSON object with 'type' ball, box or ellipsoid",
                     "scale": "a finite number or a list of them (one per input)"}[self.kind]
             rng = []
             if self.lo is not None:
@@ -302,12 +306,14 @@ _RULES: dict[str, dict[str, dict]] = {
         "inner_samples": _NONNEG, "boundary_samples": _NONNEG, "sim_dt": _POS,
         "sim_points": _NONNEG, "sim_time": _POS,
         "margin_mode": {"choices": ("pointwise", "global")}, "norm_smoothing": _NONNEG,
+        "initial_samples": _NONNEG,
     },
 }
 
 #: dataclass fields that are not configuration keys: given elsewhere in the run config
 #: (inner, outer, train), or removed (wall-clock budgets, PITFALLS P12)
-_EXCLUDED = {"train": {"time_budget"}, "cegis": {"inner", "outer", "train", "time_budget"}}
+_EXCLUDED = {"train": {"time_budget"},
+             "cegis": {"inner", "outer", "train", "time_budget", "domain", "initial_set"}}
 
 #: keys that are gone, with the fix to print
 _REMOVED = {
@@ -321,8 +327,13 @@ _REMOVED = {
 }
 
 _TOP_DOCS = {
-    "outer": "r: outer radius of the verification ball",
-    "inner": "ε: radius of the excluded inner ball (0 < inner < outer)",
+    "outer": "r: outer radius of the verification ball (null when 'domain' is given)",
+    "inner": "ε: radius of the excluded inner ball (0 < inner < outer; B_ε inside the domain)",
+    "domain": "verification domain D instead of the ball: {\"type\": \"box\", \"box\": "
+              "[[lo, hi], ...]}, {\"type\": \"ellipsoid\", \"semi_axes\": [...]} or "
+              "{... \"matrix\": Q}, {\"type\": \"ball\", \"radius\": r}; the origin inside",
+    "initial_set": "X_I (same forms, a centre allowed): proved inside the certified set "
+                   "(X_I ⊆ D and V < level on it), else the run is not certified",
     "controller_scale": "C of u = C·tanh(Kx + b); null for a system without inputs",
     "lqr": "weights {Q, R} of the initial LQR gain",
     "train": "V and κ training (nlyap_opt.learning.TrainConfig)",
@@ -417,8 +428,10 @@ def schema() -> dict[str, dict[str, Key]]:
 
     d = _TOP_DOCS
     top = {
-        "outer": Key("outer", "float", None, False, **_POS, doc=d["outer"]),
+        "outer": Key("outer", "float", None, True, **_POS, doc=d["outer"]),
         "inner": Key("inner", "float", None, False, **_POS, doc=d["inner"]),
+        "domain": Key("domain", "set", None, True, doc=d["domain"]),
+        "initial_set": Key("initial_set", "set", None, True, doc=d["initial_set"]),
         "controller_scale": Key("controller_scale", "scale", None, True, **_POS,
                                 doc=d["controller_scale"]),
         "lqr": Key("lqr", "section", {}, doc=d["lqr"]),
@@ -505,7 +518,7 @@ def _check_value(key: Key, v, where: str) -> None:
         if not isinstance(v, (list, tuple)) or not v or \
                 not all(_is_int(h) and _in_range(key, h) for h in v):
             bad()
-    elif k in ("dict", "section"):
+    elif k in ("dict", "section", "set"):
         if not isinstance(v, dict):
             bad()
     elif k == "box":
@@ -605,13 +618,22 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
         The first problem found, naming the key, what it accepts and what came.
     """
 
+    import numpy as np
+
     import systems
 
     sch = schema()
     _check_keys(cfg, where)
-    for name in ("outer", "inner", "eval_box", "eval_points"):
+    for name in ("inner", "eval_box", "eval_points"):
         if name not in cfg:
             raise ConfigError(f"{where}: missing key {name!r} ({_TOP_DOCS[name]}); add it")
+    if cfg.get("outer") is None and cfg.get("domain") is None:
+        raise ConfigError(f"{where}: missing key 'outer' (the radius of the verification "
+                          "ball) or 'domain' (a box, ellipsoid or ball); add one of them")
+    if cfg.get("outer") is not None and cfg.get("domain") is not None:
+        raise ConfigError(f"{where}: both 'outer' ({cfg['outer']}) and 'domain' are given; "
+                          "the domain replaces the ball ‖x‖ ≤ outer: set outer to null or drop "
+                          "the domain")
     for name, v in cfg.items():
         key = sch[""][name]
         _check_value(key, v, where)
@@ -622,10 +644,21 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
     for opt, ov in opts.items():
         _check_value(sch["cegis.verify_options"][opt], ov, where)
 
-    inner, outer = cfg["inner"], cfg["outer"]
-    if not inner < outer:
+    s = systems.get(system)
+    inner, outer = cfg["inner"], cfg.get("outer")
+    if outer is not None and not inner < outer:
         raise ConfigError(f"{where}: need 0 < inner < outer, got inner = {inner:g}, "
                           f"outer = {outer:g}; make inner smaller than outer")
+    D, XI = domain_of(cfg, s.nx, where)
+    if outer is None and not inner < D.inradius():
+        raise ConfigError(f"{where}: the inner ball ‖x‖ < {inner:g} leaves the domain "
+                          f"{D.describe()} (distance from 0 to its boundary "
+                          f"{D.inradius():.6g}); make inner smaller")
+    if XI is not None and not np.all((XI.bounding_box()[:, 0] >= D.bounding_box()[:, 0])
+                                     & (XI.bounding_box()[:, 1] <= D.bounding_box()[:, 1])):
+        raise ConfigError(f"{where}: the initial set {XI.describe()} leaves the bounding box "
+                          f"of the domain {D.describe()}; shrink initial_set or enlarge the "
+                          "domain")
     cg = cfg.get("cegis", {})
     it = cg.get("iterations", sch["cegis"]["iterations"].default)
     if cg.get("min_iterations", 1) > it:
@@ -635,7 +668,6 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
         raise ConfigError(f"{where}: cegis.sim_points must be 0 (no table) or >= 4, got "
                           f"{cg['sim_points']}")
 
-    s = systems.get(system)
     box = cfg["eval_box"]
     if len(box) != s.nx:
         raise ConfigError(f"{where}: eval_box has {len(box)} rows; {system} has {s.nx} states, "
@@ -735,13 +767,37 @@ def check_dynamics_box(cfg: dict) -> None:
     s = systems.get(cfg["system"])
     box = cfg.get("dynamics", {}).get("state_box")
     box = np.asarray(s.state_box if box is None else box, dtype=float)
-    r = float(cfg["outer"])
-    if np.any(box[:, 0] > -r) or np.any(box[:, 1] < r):
+    D = domain_of(cfg, s.nx)[0]
+    bb = D.bounding_box()
+    if np.any(box[:, 0] > bb[:, 0]) or np.any(box[:, 1] < bb[:, 1]):
+        what = f"ball r = {cfg['outer']:g}" if cfg.get("outer") is not None else \
+            f"domain {D.describe()}"
         raise ConfigError(
-            f"the verification ball r = {r:g} leaves the box {box.tolist()} on which "
+            f"the verification {what} leaves the box {box.tolist()} on which "
             "‖f − φ‖ ≤ η will be established; set dynamics.state_box to cover "
-            f"[-{r:g}, {r:g}] on every axis or reduce 'outer'"
+            f"{bb.tolist()} or shrink the {'outer radius' if cfg.get('outer') else 'domain'}"
         )
+
+
+def domain_of(cfg: dict, nx: int, where: str = "run config"):
+    """``(D, X_I)`` of a run configuration: the :class:`~nlyap_opt.domain.Region` of its
+    ``domain`` (else the ball of radius ``outer``) and of its ``initial_set`` (or ``None``).
+
+    Raises
+    ------
+    ConfigError
+        A malformed set, one of the wrong dimension, or a domain without the origin inside.
+    """
+    from .domain import Ball, parse_set
+
+    try:
+        D = Ball(float(cfg["outer"]), nx) if cfg.get("domain") is None else \
+            parse_set(cfg["domain"], nx, "domain")
+        XI = None if cfg.get("initial_set") is None else \
+            parse_set(cfg["initial_set"], nx, "initial_set", domain=False)
+    except ConfigError as err:
+        raise ConfigError(f"{where}: {err}") from None
+    return D, XI
 
 
 def _check_dynamics(dyn, system: str, where: str) -> None:
@@ -757,8 +813,15 @@ def _check_dynamics(dyn, system: str, where: str) -> None:
 
 def _merge(base: dict, over: dict) -> dict:
     out = copy.deepcopy(base)
+    # a region given one way replaces the other way of the layer below: a domain replaces
+    # the ball's radius, a radius the domain
+    if over.get("domain") is not None and "outer" not in over:
+        out["outer"] = None
+    if over.get("outer") is not None and "domain" not in over:
+        out.pop("domain", None)
     for k, v in over.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
+        if isinstance(v, dict) and isinstance(out.get(k), dict) and \
+                k not in ("domain", "initial_set"):   # a set is replaced whole
             sub = dict(out[k])
             if k == "dynamics":  # a grid given one way replaces the preset's other way
                 for a, b in (("grid_spacing", "grid_counts"), ("grid_counts", "grid_spacing")):

@@ -86,7 +86,7 @@ class RunResult:
 _STAGE_KEYS = {
     "dynamics": ("dynamics",),
     "controller": ("lqr", "controller_scale"),
-    "cegis": ("inner", "outer", "train", "cegis"),
+    "cegis": ("inner", "outer", "domain", "initial_set", "train", "cegis"),
 }
 #: the files each stage writes (the sha256 of each is recorded)
 _STAGE_FILES = {
@@ -245,8 +245,11 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
     cfg = dict(cfg, known_dynamics=known_dynamics)
     stages = _Stages(out, system.name, cfg, log)
     seconds: dict[str, float] = {}
-    r, eps = float(cfg["outer"]), float(cfg["inner"])
-    ball_box = np.tile([-r, r], (system.nx, 1))
+    from .configs import domain_of
+
+    D, XI = domain_of(cfg, system.nx)
+    r, eps = D.max_norm(), float(cfg["inner"])
+    ball_box = D.bounding_box()
 
     # ---------------------------------------------------------------- 1. dynamics
     dynamics, eta, bounds_info, dyn_box, input_box = None, 0.0, None, None, None
@@ -270,7 +273,7 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
                 f"{gate.get('advice', '')}"
             log(f"[done] status: not certified (dynamics stage): {reason}")
             cert = RoaCertificate(CertStatus.NOT_CERTIFIED, reason, system.name, "learned",
-                                  0.0, eps, r, eta=eta)
+                                  0.0, eps, r, eta=eta, domain=D, initial_set=XI)
             summary = dict(cert.to_dict(), problem={}, stage="dynamics", gate=gate)
             write_json_atomic(out / "certificate.json", summary)
             return RunResult(cert, CertStatus.NOT_CERTIFIED, summary, out, reason)
@@ -281,8 +284,9 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
         input_box = grid_box[system.nx:] if len(grid_box) > system.nx else system.input_box
         if np.any(ball_box[:, 0] < dyn_box[:, 0]) or np.any(ball_box[:, 1] > dyn_box[:, 1]):
             raise ConfigError(
-                f"the verification ball r={r} leaves the box {dyn_box.tolist()} on which "
-                "‖f − φ‖ ≤ η was established; enlarge the dynamics box or reduce 'outer'"
+                f"the verification domain {D.describe()} leaves the box {dyn_box.tolist()} on "
+                "which ‖f − φ‖ ≤ η was established; enlarge the dynamics box or shrink the "
+                "domain ('outer' or 'domain')"
             )
         log(f"[dynamics] η = {eta:.4g} ({bounds_info['bound_model']['name']} bound)")
 
@@ -306,9 +310,13 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
     if not stages.finished("cegis", *deps):
         t = time.perf_counter()
         train = TrainConfig(**cfg.get("train", {}))
-        ccfg = CegisConfig(inner=eps, outer=r, train=train, **cfg.get("cegis", {}))
-        log(f"[cegis] learning V{' and κ' if controller is not None else ''} on "
-            f"{eps:g} ≤ ‖x‖ ≤ {r:g}" + (f" with η = {eta:.3g}" if eta else " (true f)"))
+        ccfg = CegisConfig(inner=eps, outer=r, train=train, domain=D, initial_set=XI,
+                           **cfg.get("cegis", {}))
+        where = f"{eps:g} ≤ ‖x‖ ≤ {r:g}" if cfg.get("domain") is None else \
+            f"‖x‖ ≥ {eps:g} in {D.describe()}"
+        log(f"[cegis] learning V{' and κ' if controller is not None else ''} on {where}"
+            + (f", X_I = {XI.describe()}" if XI is not None else "")
+            + (f" with η = {eta:.3g}" if eta else " (true f)"))
         res = cegis(system, controller, dynamics, ccfg, eta=eta, dynamics_box=dyn_box,
                     input_box=input_box, log=log)
         res.V.save(out / "V.json")
@@ -329,6 +337,7 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
     mode = cfg.get("cegis", {}).get("margin_mode", "pointwise")
     problem = RoaProblem(
         system, V, controller, dynamics, inner=eps, outer=r, eta=eta, margin_mode=mode,
+        domain=D, initial_set=XI,
         smoothing=float(cg.get("smoothing", 0.0)) if mode == "pointwise" else None,
         dynamics_box=dyn_box, input_box=input_box,
         dynamics_assumptions=[] if bounds_info is None else
@@ -415,9 +424,10 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         tmp = out / ".true_roa.tmp.npz"
         np.savez_compressed(tmp, mask=true_mask, key=ckey)
         tmp.replace(cache)
-    if system.nu:  # the paper's comparison for controlled systems: within the disc
-        disc = (np.linalg.norm(pts, axis=1) <= problem.outer).reshape(shape)
-        true_mask = true_mask & disc
+    if system.nu or cfg.get("domain") is not None:
+        # the paper's comparison for controlled systems: within the disc; with a declared
+        # domain D, always within D (areas and shares on the same set)
+        true_mask = true_mask & problem.domain.contains(pts).reshape(shape)
     cert_area = grid_area(omega, box)
     true_area = grid_area(true_mask, box)
     true_check = None
@@ -425,7 +435,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         not_available.append("check of the same V and κ against the true f (no model of f)")
     elif cert.certified and not problem.known:
         prob = closed_loop_problem(system, problem.V, controller, None, inner=problem.inner,
-                                   outer=problem.outer, level=cert.level, margin=0.0,
+                                   domain=problem.domain, level=cert.level, margin=0.0,
                                    strict=False, check_positive=False)
         res = verify(prob)
         true_check = {"decrease_true_f": res.status,

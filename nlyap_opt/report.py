@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .domain import Ball, parse_set
+
 __all__ = ["write_report", "plot_roa"]
 
 
@@ -15,6 +17,15 @@ def _fmt(v, digits=4):
     if isinstance(v, float):
         return f"{v:.{digits}g}"
     return str(v)
+
+
+def _sets(cert: dict, nx: int):
+    """``(D, X_I, is_plain_ball)`` of a certificate dict (version 2: the ball of outer_radius)."""
+    D = Ball(cert["outer_radius"], nx) if cert.get("domain") is None else \
+        parse_set(cert["domain"], nx)
+    XI = None if cert.get("initial_set") is None else \
+        parse_set(cert["initial_set"], nx, "initial_set", domain=False)
+    return D, XI, isinstance(D, Ball) and D.centre is None
 
 
 def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, cg: dict):
@@ -34,11 +45,16 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
         cert["level"])) + " |")
     lines += ["", "## What is certified", ""]
     r, eps = cert["outer_radius"], cert["inner_radius"]
+    D, XI, ball = _sets(cert, system.nx)
+    if not ball:
+        lines += [f"Verification domain D = {D.describe()} (r above: max ‖x‖ over D).", ""]
+    region = f"{eps:g} ≤ ‖x‖ ≤ {r:g}" if ball else f"x ∈ D, ‖x‖ ≥ {eps:g}"
     lines += [
         f"- (a) decrease {cert.get('decrease_condition', '')} on "
-        f"{{{eps:g} ≤ ‖x‖ ≤ {r:g}, V(x) ≤ {cert['level']:.6g}}} — interval verifier "
+        f"{{{region}, V(x) ≤ {cert['level']:.6g}}} — interval verifier "
         "(outward rounding);",
-        f"- (b) containment: V(x) > {cert['level']:.6g} on ‖x‖ = {r:g};",
+        f"- (b) containment: V(x) > {cert['level']:.6g} on "
+        + (f"‖x‖ = {r:g};" if ball else "the boundary of D (every face of a box);"),
     ]
     ie = cert.get("inner_ellipse")
     if ie:
@@ -48,7 +64,11 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                f"{ie['status']}" if ie.get("proved") else
                "assumed (paper's Assumption 3) for the unknown f; the tool's check on the "
                f"true f: {ie['status']}"))
-    lines += ["", "Certified set: Ω_c ∪ E with Ω_c = {x ∈ B_r : V(x) ≤ level}.", "",
+    if XI is not None:
+        lines.append(f"- (d) initial set X_I = {XI.describe()} ⊆ Ω_c (X_I ⊆ D and V < level "
+                     f"on X_I): {cert.get('checks', {}).get('(d) X_I ⊆ Ω_c', 'not run')}")
+    lines += ["", "Certified set: Ω_c ∪ E with Ω_c = {x ∈ " + ("B_r" if ball else "D")
+              + " : V(x) ≤ level}.", "",
               "### Checks (interval verifier)", ""]
     lines += [f"- {k}: {v}" for k, v in cert.get("checks", {}).items()]
     lines += ["", "### Assumptions", ""] + [f"- {a}" for a in cert["assumptions"]]
@@ -70,7 +90,8 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   f"{100 * cert['fraction_of_true_roa']:.1f}% |", "",
                   f"True ROA: simulated closed loop (true f) from a {cert['eval_grid']}^{n_x} "
                   f"grid over {np.asarray(cert['eval_box']).tolist()}"
-                  + (", intersected with the ball ‖x‖ ≤ r" if system.nu else "")
+                  + (", intersected with D" if cert.get("domain") is not None else
+                     ", intersected with the ball ‖x‖ ≤ r" if system.nu else "")
                   + f". Every certified grid point converges in simulation: "
                   f"{cert['certified_points_converge_in_simulation']}.", ""]
     tc = cert.get("true_dynamics_check")
@@ -80,7 +101,7 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   f"{tc['decrease_true_f']}",
                   f"- inner ellipse under the true f: {tc['inner_ball_true_f']}", ""]
     lines += ["## CEGIS history", "", "| it | loss | candidate level | status | level | area "
-              "in ball | margin | verify s |", "|---|---|---|---|---|---|---|---|"]
+              f"in {'ball' if ball else 'D'} | margin | verify s |", "|---|---|---|---|---|---|---|---|"]
     for h in cg.get("history", []):
         lines.append(f"| {h['iteration']} | {h['loss']:.3g} | {h['candidate_level']:.4g} | "
                      f"{h['status']} | {h['level']:.4g} | {h['area']:.4g} | "
@@ -110,6 +131,7 @@ def plot_roa(path, system, cert: dict, out: Path):
     from .roa import grid_points
 
     V = Network.load(out / "V.json")
+    D, XI, _ = _sets(cert, system.nx)
     ctrl = Network.load(out / "controller.json") if (out / "controller.json").exists() else None
     box = np.asarray(cert["eval_box"], dtype=float)
     nx = len(box)
@@ -130,8 +152,7 @@ def plot_roa(path, system, cert: dict, out: Path):
     if lv > 0 and cert["status"] == "certified":
         ax.contour(X1, X2, v, levels=np.linspace(lv / 8, 2 * lv, 9), colors="0.75",
                    linewidths=0.6)
-        inside = (v <= lv) & (np.linalg.norm(pts, axis=1).reshape(shape)
-                              <= cert["outer_radius"])
+        inside = (v <= lv) & D.contains(pts).reshape(shape)
         ax.contourf(X1, X2, inside.astype(float), levels=[0.5, 1.5], colors=["tab:blue"],
                     alpha=0.35)
         ax.contour(X1, X2, v, levels=[lv], colors="tab:blue", linewidths=2)
@@ -146,8 +167,11 @@ def plot_roa(path, system, cert: dict, out: Path):
         T1, T2 = np.meshgrid(xt[0], xt[1], indexing="ij")
         ax.contour(T1, T2, m.astype(float), levels=[0.5], colors="k", linewidths=1.5)
     th = np.linspace(0, 2 * np.pi, 400)
-    for rad, style in ((cert["outer_radius"], "--"), (cert["inner_radius"], ":")):
-        ax.plot(rad * np.cos(th), rad * np.sin(th), "r" + style, lw=1)
+    ax.plot(*D.outline_2d(0, 1).T, "r--", lw=1)
+    rad = cert["inner_radius"]
+    ax.plot(rad * np.cos(th), rad * np.sin(th), "r:", lw=1)
+    if XI is not None:
+        ax.plot(*XI.outline_2d(0, 1).T, color="tab:orange", lw=1.5)
     if getattr(system, "can_simulate", True):
         g = 25
         gp2, gs = grid_points(box[:2], g)
@@ -168,7 +192,8 @@ def plot_roa(path, system, cert: dict, out: Path):
         f"certified {100 * frac:.1f}% of the true ROA"
     where = "" if nx == 2 else f" (slice {', '.join(system.state_names[2:])} = 0)"
     ax.set_title(f"{system.name}: {cert['status']} — {share}{where}\n"
-                 "blue: Ω_c (V ≤ level in B_r), green: E, black: true ROA, red: B_r, B_ε",
+                 "blue: Ω_c (V ≤ level in D), green: E, black: true ROA, red: D, B_ε"
+                 + (", orange: X_I" if XI is not None else ""),
                  fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

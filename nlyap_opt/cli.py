@@ -197,8 +197,7 @@ def _spec_system(path: str) -> str:
         raise UsageError(f"system file {p}: no such file; check the path (or pass a "
                          "catalogue name, see 'nlyap systems')")
     s = systems.load_spec(p)
-    if s.name in systems.names() and getattr(systems.get(s.name), "source", None) != \
-            getattr(s, "source", None):
+    if s.name in systems.CATALOGUE:   # another spec file of this process may be replaced
         raise UsageError(f"system file {p} names its system {s.name!r}, which is a catalogue "
                          "system; choose another name in the file")
     systems.REGISTRY[s.name] = lambda _s=s: _s

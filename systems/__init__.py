@@ -32,7 +32,7 @@ from .declarations import Declarations, check_declarations
 from .jacobian import JacobianBound, jacobian_from_data
 from .samples import SampleSet, load_samples, sample_function, save_samples
 
-__all__ = ["System", "SEED_SYSTEMS", "get", "names", "register", "REGISTRY",
+__all__ = ["System", "SEED_SYSTEMS", "get", "names", "register", "REGISTRY", "CATALOGUE",
            "ModelUnavailableError",
            "Declarations", "check_declarations", "SampleSet", "load_samples", "save_samples",
            "sample_function", "load_spec", "default_run_settings", "JacobianBound",
@@ -45,6 +45,8 @@ REGISTRY: dict[str, Callable[..., System]] = {
     "cartpole": cartpole,
     "planar_quadrotor": planar_quadrotor,
 }
+#: the built-in catalogue's names (a spec file may not reuse them)
+CATALOGUE = tuple(REGISTRY)
 
 #: the paper's 2-D seed systems: what the default test suite and benchmarks iterate over
 #: (the 4-D / 6-D catalogue systems have their own tests, ``tests/test_highdim.py``)

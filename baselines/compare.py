@@ -179,6 +179,8 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
 
 
 def _write(out, system, rows, true_area, true_mask, box, cfg):
+    from nlyap_opt.configs import domain_of
+
     public = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
     (out / "comparison.json").write_text(json.dumps(
         {"system": system.name, "true_roa_area": true_area, "rows": public}, indent=1,

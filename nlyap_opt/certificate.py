@@ -240,7 +240,8 @@ class RoaProblem:
         """The symbolic decrease condition ``lie + margin < 0`` (built once, cached).
 
         For learned dynamics this computes the rigorous ``M ≥ sup_D ‖∇V‖`` and checks
-        ``κ(D) ⊆ U`` and ``D ⊆`` dynamics box (on ``D``'s bounding box) (:func:`nlyap_opt.bounds.gradient_bound`);
+        ``κ(D) ⊆ U`` and ``D ⊆`` dynamics box, all on ``D``'s bounding box
+        (:func:`nlyap_opt.bounds.gradient_bound`);
         :class:`~nlyap_opt.errors.InputRangeError` when they fail.
         """
         if getattr(self, "_decrease", None) is not None:

@@ -101,7 +101,8 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   f"{tc['decrease_true_f']}",
                   f"- inner ellipse under the true f: {tc['inner_ball_true_f']}", ""]
     lines += ["## CEGIS history", "", "| it | loss | candidate level | status | level | area "
-              f"in {'ball' if ball else 'D'} | margin | verify s |", "|---|---|---|---|---|---|---|---|"]
+              f"in {'ball' if ball else 'D'} | margin | verify s |",
+              "|---|---|---|---|---|---|---|---|"]
     for h in cg.get("history", []):
         lines.append(f"| {h['iteration']} | {h['loss']:.3g} | {h['candidate_level']:.4g} | "
                      f"{h['status']} | {h['level']:.4g} | {h['area']:.4g} | "

@@ -238,3 +238,25 @@ def test_box_domain_example_certifies_its_initial_set_and_rechecks(tmp_path, cap
     again = recheck_certificate(out, log=lambda m: None)
     assert not again.certified
     assert again.checks["(b) V > level on ∂D"] == "counterexample"
+
+
+def test_compare_rows_are_certified_on_the_declared_domain(tmp_path):
+    from baselines.compare import compare
+
+    box = {"type": "box", "box": [[-1.5, 1.5], [-1.2, 1.2]]}
+    cfg = make_config("van_der_pol", "fast", overrides={"domain": box})
+    rows = compare("van_der_pol", cfg, tmp_path, log=lambda m: None, include_neural=False)
+    certified = [r for r in rows if r["certified"]]
+    assert any(r["method"].startswith("sos") for r in certified)
+    D = Box(box["box"])
+    pts = D.sample(4000, np.random.default_rng(0))
+    for r in certified:   # the LQR and the SOS rows: the same D, re-checkable
+        saved = json.loads(Path(r["certificate"]).read_text())
+        assert saved["domain"] == box
+        cert = recheck_certificate(r["certificate"], log=lambda m: None)
+        assert cert.certified
+        far = np.vstack([pts, 2 * pts])
+        inside = cert.contains(far)
+        assert np.all(D.contains(far)[inside] | cert.inner_ellipse.contains(far)[inside])
+    md = (tmp_path / "comparison.md").read_text()
+    assert "within D = box [-1.5, 1.5] × [-1.2, 1.2]" in md

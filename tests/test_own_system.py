@@ -117,3 +117,11 @@ def test_spec_system_certificate_rechecks_in_a_new_process(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "nlyap_opt.cli", "verify", "--certificate",
                            str(out)], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_spec_file_may_not_take_a_catalogue_name(tmp_path, capsys):
+    spec = _spec(tmp_path, name="van_der_pol")
+    assert main(["run", str(spec), "--known-dynamics", "--out", str(tmp_path / "o")]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "catalogue system" in err[0] and "another name" in err[0]
+    assert not (tmp_path / "o" / "V.json").exists()

@@ -110,6 +110,11 @@ class Region:
         return f"{type(self).__name__}({self.describe()})"
 
 
+def _outward(lo, hi) -> np.ndarray:
+    """``(n, 2)`` rows ``[lo, hi]``, each bound moved one ulp outwards (rounding)."""
+    return np.stack([np.nextafter(lo, -np.inf), np.nextafter(hi, np.inf)], axis=1)
+
+
 def _reject_inner(draw, n: int, rng, inner: float) -> np.ndarray:
     """``n`` points of ``draw(k, rng)`` with ``‖x‖ ≥ inner`` (vectorised rejection)."""
     if inner <= 0:
@@ -144,8 +149,10 @@ class Ball(Region):
         return np.zeros(self.n) if self.centre is None else self.centre
 
     def bounding_box(self):
-        c = self._c()
-        return np.stack([c - self.radius, c + self.radius], axis=1)
+        if self.centre is None:     # exact: [-r, r]
+            return np.stack([np.full(self.n, -self.radius), np.full(self.n, self.radius)],
+                            axis=1)
+        return _outward(self.centre - self.radius, self.centre + self.radius)
 
     def contains(self, pts, tol=0.0):
         pts = np.atleast_2d(np.asarray(pts, dtype=float))
@@ -305,9 +312,11 @@ class Ellipsoid(Region):
         return np.zeros(self.n) if self.centre is None else self.centre
 
     def bounding_box(self):
-        h = np.sqrt(np.diag(np.linalg.inv(self.Q))) * (1 + 1e-12)
+        # half-widths sqrt((Q⁻¹)_ii), widened well beyond the error of the inverse (the
+        # verifier's root box must hold the set; the constraint xᵀQx ≤ 1 cuts the rest)
+        h = np.sqrt(np.diag(np.linalg.inv(self.Q))) * (1 + 1e-8)
         c = self._c()
-        return np.stack([c - h, c + h], axis=1)
+        return _outward(c - h, c + h)
 
     def contains(self, pts, tol=0.0):
         z = np.atleast_2d(np.asarray(pts, dtype=float)) - self._c()

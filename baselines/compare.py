@@ -174,20 +174,18 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
         pts, shape = grid_points(box, n)
         true_mask &= D.contains(pts).reshape(shape)
     true_area = _areas(rows, system, cfg, true_mask, box, n)
-    _write(out, system, rows, true_area, true_mask, box, cfg)
+    _write(out, system, rows, true_area, true_mask, box, cfg, D)
     return rows
 
 
-def _write(out, system, rows, true_area, true_mask, box, cfg):
-    from nlyap_opt.configs import domain_of
-
+def _write(out, system, rows, true_area, true_mask, box, cfg, D):
     public = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
     (out / "comparison.json").write_text(json.dumps(
         {"system": system.name, "true_roa_area": true_area, "rows": public}, indent=1,
         default=float))
     lines = [f"# {system.name}: certified regions of attraction", "",
              f"True ROA area (simulation, {len(true_mask)}² grid over {box.tolist()}"
-             + (f", within D = {domain_of(cfg, system.nx)[0].describe()}"
+             + (f", within D = {D.describe()}"
                 if cfg.get("domain") is not None else ", within the disc" if system.nu else "")
              + f"): {true_area:.4g}", "",
              "| method | certified | level | area | % of true ROA | seconds | status |",
@@ -201,10 +199,10 @@ def _write(out, system, rows, true_area, true_mask, box, cfg):
     if notes:
         lines += ["", "Notes:"] + [f"- {r['method']}: {r['notes']}" for r in notes]
     (out / "comparison.md").write_text("\n".join(lines) + "\n")
-    _plot(out / "comparison.png", system, rows, true_mask, box, cfg)
+    _plot(out / "comparison.png", system, rows, true_mask, box, cfg, D)
 
 
-def _plot(path, system, rows, true_mask, box, cfg):
+def _plot(path, system, rows, true_mask, box, cfg, D):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -224,9 +222,7 @@ def _plot(path, system, rows, true_mask, box, cfg):
         ax.contour(X1, X2, r["_mask"].astype(float), levels=[0.5], colors=[c], linewidths=1.5)
         handles.append(plt.Line2D([], [], color=c,
                                   label=f"{r['method']}: {100 * r['fraction_of_true_roa']:.1f}%"))
-    from nlyap_opt.configs import domain_of
-
-    ax.plot(*domain_of(cfg, system.nx)[0].outline_2d(0, 1).T, "r--", lw=1)
+    ax.plot(*D.outline_2d(0, 1).T, "r--", lw=1)
     handles.append(plt.Line2D([], [], color="r", ls="--", label="verification domain"))
     from nlyap_opt.roa import grid_points
 

@@ -312,7 +312,7 @@ class RoaCertificate:
 
     def region_text(self) -> str:
         """``ε ≤ ‖x‖ ≤ r`` (the ball) or ``‖x‖ ≥ ε in D`` in words."""
-        if self.domain is None or (isinstance(self.domain, Ball) and self.domain.centre is None):
+        if self.domain is None or self.domain.plain_ball:
             return f"{self.inner:g} ≤ ‖x‖ ≤ {self.outer:g}"
         return f"‖x‖ ≥ {self.inner:g} in {self.domain.describe()}"
 
@@ -472,9 +472,8 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
                        shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
                        log=log)
     last = lc.history[-1] if lc.history else {}
-    ball = isinstance(problem.domain, Ball) and problem.domain.centre is None
     checks = {"(a) decrease": last.get("decrease") or "not run",
-              "(b) V > level on ‖x‖ = r" if ball else "(b) V > level on ∂D":
+              "(b) V > level on ‖x‖ = r" if problem.domain.plain_ball else "(b) V > level on ∂D":
               last.get("containment") or "not run",
               "(b) B_ε ⊆ Ω_c": last.get("contains_inner_ball") or "not run"}
     if problem.initial_set is not None:

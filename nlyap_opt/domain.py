@@ -44,6 +44,9 @@ class Region:
 
     kind = ""
     n: int
+    #: the origin-centred ball ``‖x‖ ≤ r``: the default region, kept in its original form
+    #: (one ``‖x‖² ≤ r²`` row in the level NLP, ``ε ≤ ‖x‖ ≤ r`` in texts)
+    plain_ball = False
 
     # ------------------------------------------------------------------ geometry
     def bounding_box(self) -> np.ndarray:
@@ -144,6 +147,10 @@ class Ball(Region):
         self.n = int(n)
         self.centre = None if centre is None or not np.any(centre) else \
             np.asarray(centre, dtype=float).reshape(self.n)
+
+    @property
+    def plain_ball(self):
+        return self.centre is None
 
     def _c(self):
         return np.zeros(self.n) if self.centre is None else self.centre

@@ -25,7 +25,7 @@ def _sets(cert: dict, nx: int):
         parse_set(cert["domain"], nx)
     XI = None if cert.get("initial_set") is None else \
         parse_set(cert["initial_set"], nx, "initial_set", domain=False)
-    return D, XI, isinstance(D, Ball) and D.centre is None
+    return D, XI, D.plain_ball
 
 
 def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, cg: dict):

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from .domain import Ball, as_domain
+from .domain import as_domain
 from .walker import evaluate
 
 __all__ = [
@@ -82,7 +82,7 @@ def candidate_level(x: ca.MX, V: ca.MX, lie: ca.MX, *, inner: float, outer=None,
     opts = {"ipopt.print_level": 0, "print_time": 0, "ipopt.sb": "yes",
             "ipopt.max_iter": 200, "ipopt.tol": 1e-10}
     r2 = ca.sumsqr(x)
-    plain = isinstance(D, Ball) and D.centre is None   # the ball: ‖x‖² ≤ r² in one row
+    plain = D.plain_ball   # the ball: ‖x‖² ≤ r² in one row
     region = [] if plain else [g for g, _ in D.constraints(x)]
     ub_r2 = D.radius**2 if plain else np.inf
     nlp_dec = ca.nlpsol("lev_dec", "ipopt",

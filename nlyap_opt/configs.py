@@ -215,7 +215,11 @@ PRESETS["planar_quadrotor"] = {
 # the path-following and pendulum "large" configurations are the paper's discs: the true ROA
 # of the closed loop covers them, so the target is the whole disc
 PRESETS["unicycle_path_following"]["large"] = PRESETS["unicycle_path_following"]["paper"]
-PRESETS["inverted_pendulum"]["large"] = PRESETS["inverted_pendulum"]["paper"]
+# The pendulum's CEGIS may lose its level for an iteration when counterexamples come in (seed
+# 1 of bench/seeds.py: areas 37.4, 9.4, 10.7, 42.7, 46.7 over its first five iterations):
+# a budget of 8 iterations (the stop rule ends good seeds after 2-3) lets such seeds recover.
+PRESETS["inverted_pendulum"]["large"] = copy.deepcopy(PRESETS["inverted_pendulum"]["paper"])
+PRESETS["inverted_pendulum"]["large"]["cegis"]["iterations"] = 8
 
 #: the base of ``make_config(name, preset=None, ...)`` for a system without a preset: the
 #: caller supplies ``outer``, ``inner`` (and ``controller_scale`` for a system with inputs)

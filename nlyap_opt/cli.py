@@ -3,7 +3,11 @@
 Exit codes (every command; see :data:`EXIT_CODES`): 0 success / verified / certified;
 1 counterexample (``verify`` only); 2 unknown / not certified; 3 input or usage error (one
 line ``nlyap: error: <problem>; <fix>``, no traceback); 4 internal error (one line; the
-traceback only with ``nlyap --debug ...``); 130 interrupted.
+traceback only with ``nlyap --debug ...``); 5 stopped by ``--time-limit`` (the finished
+stages are kept; the same command resumes); 130 interrupted.
+
+No result depends on the wall clock: every budget is a count of steps. ``--time-limit`` is
+only a guard that stops a run, with its own exit code, never a shorter training.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ EXIT_CODES: dict[int, str] = {
     2: "unknown / not certified (learn-dynamics: η above the config's eta_target)",
     3: "input or usage error (one line: the problem and its fix)",
     4: "internal error (one line; rerun with --debug for the traceback)",
+    5: "stopped at --time-limit (finished stages kept; rerun the same command to resume)",
     130: "interrupted (Ctrl-C); rerun the same command to resume",
 }
 
@@ -42,9 +47,9 @@ def _epilog(codes) -> str:
 
 _EPILOGS = {
     "verify": _epilog([0, 1, 2, 3, 4, 130]),
-    "run": _epilog([0, 2, 3, 4, 130]),
-    "compare": _epilog([0, 2, 3, 4, 130]),
-    "learn-dynamics": _epilog([0, 2, 3, 4, 130]),
+    "run": _epilog([0, 2, 3, 4, 5, 130]),
+    "compare": _epilog([0, 2, 3, 4, 5, 130]),
+    "learn-dynamics": _epilog([0, 2, 3, 4, 5, 130]),
 }
 _DEFAULT_EPILOG = _epilog([0, 3, 4, 130])
 
@@ -120,6 +125,46 @@ def _dask_args(sp) -> None:
     sp.add_argument("--scheduler", metavar="ADDRESS",
                     help="tcp://HOST:PORT of an existing Dask cluster (`dask scheduler`); "
                          "it is used, never closed")
+
+
+def time_limit_arg(sp) -> None:
+    """Add ``--time-limit SECONDS`` (a guard that stops the command, exit 5) to ``sp``."""
+    sp.add_argument("--time-limit", type=_positive, metavar="SECONDS", dest="time_limit",
+                    help="stop after SECONDS of wall time with exit code 5, keeping the "
+                         "finished stages (the same command resumes); results never depend "
+                         "on it: every training budget is a count of steps")
+
+
+class TimeLimitReached(KeyboardInterrupt):
+    """Raised in the main thread when ``--time-limit`` runs out.
+
+    A subclass of :class:`KeyboardInterrupt`, so that it unwinds exactly like Ctrl-C: no
+    stage is saved half-done, and the stages finished before it stay on disk for resume.
+    """
+
+
+@contextlib.contextmanager
+def _time_guard(seconds: float | None):
+    """Raise :class:`TimeLimitReached` after ``seconds`` of wall time (``None``: no guard)."""
+    if seconds is None:
+        yield
+        return
+    import signal
+
+    if not hasattr(signal, "setitimer"):
+        raise UsageError("--time-limit needs POSIX interval timers, which this platform "
+                         "lacks; drop --time-limit (or stop the run with Ctrl-C)")
+
+    def _stop(signum, frame):
+        raise TimeLimitReached(seconds)
+
+    old = signal.signal(signal.SIGALRM, _stop)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
 
 
 def _matrix_arg(text: str | None, option: str):
@@ -511,6 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "parallel on Dask (OUT/seed_k), keep the largest certified area "
                          "(OUT/portfolio.md)")
     _dask_args(sp)
+    time_limit_arg(sp)
     sp.set_defaults(func=cmd_run)
 
     sp = add("compare", help="LQR, SOS and neural ROAs, all certified, vs true ROA")
@@ -519,6 +565,7 @@ def build_parser() -> argparse.ArgumentParser:
     _preset_arg(sp)
     sp.add_argument("--out", help="output directory (default runs/compare_NAME)")
     sp.add_argument("--no-neural", action="store_true", help="baselines only")
+    time_limit_arg(sp)
     sp.set_defaults(func=cmd_compare)
 
     sp = add("config", help="print the validated run configuration (or every key)",
@@ -581,7 +628,14 @@ def main(argv: list[str] | None = None) -> int:
             return stop.code if isinstance(stop.code, int) else 0
         command = args.command
         _check_paths(args)
-        return int(args.func(args) or 0)
+        with _time_guard(getattr(args, "time_limit", None)):
+            return int(args.func(args) or 0)
+    except TimeLimitReached as stop:
+        where = getattr(args, "out", None) or "the output directory"
+        print(f"nlyap: stopped at --time-limit {stop.args[0]:g} s; the stages finished "
+              f"before it are kept in {where}; rerun the same command to resume (with a "
+              "larger --time-limit, or none, to finish)", file=sys.stderr)
+        return 5
     except KeyboardInterrupt:
         print("nlyap: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130

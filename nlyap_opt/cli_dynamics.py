@@ -50,6 +50,8 @@ def cmd_learn_dynamics(args) -> int:
 
 def register_cli(sub) -> None:
     """Add ``nlyap learn-dynamics NAME [--config FILE] --out DIR`` to a subparsers object."""
+    from .cli import time_limit_arg
+
     sp = sub.add_parser("learn-dynamics",
                         help="learn φ ≈ f on a grid and compute α, δ, K_f, K_φ, η")
     sp.add_argument("system", help="catalogue system name")
@@ -60,4 +62,5 @@ def register_cli(sub) -> None:
     sp.add_argument("--bound", help=f"bound option: best or one of {', '.join(BOUND_OPTIONS)}")
     sp.add_argument("--seed", type=int)
     sp.add_argument("--no-progress", action="store_true", dest="no_progress")
+    time_limit_arg(sp)
     sp.set_defaults(func=cmd_learn_dynamics)

@@ -1,6 +1,6 @@
 """The exit-code contract of ``nlyap``: 0 success, 1 counterexample (verify only), 2 unknown /
-not certified, 3 input or usage error, 4 internal error, 130 interrupted; one line, no
-traceback unless ``--debug``."""
+not certified, 3 input or usage error, 4 internal error, 5 stopped by ``--time-limit``, 130
+interrupted; one line, no traceback unless ``--debug``."""
 
 import argparse
 import json
@@ -37,7 +37,11 @@ def test_every_command_documents_the_exit_codes(capsys):
     assert main(["verify", "--help"]) == 0
     text = capsys.readouterr().out
     assert "  1    counterexample" in text and "  2    unknown" in text
-    assert set(EXIT_CODES) == {0, 1, 2, 3, 4, 130}
+    assert set(EXIT_CODES) == {0, 1, 2, 3, 4, 5, 130}
+    for name in ("run", "compare", "learn-dynamics"):
+        assert main([name, "--help"]) == 0
+        text = capsys.readouterr().out
+        assert "  5    stopped at --time-limit" in text and "--time-limit SECONDS" in text
 
 
 @pytest.fixture(scope="module")
@@ -195,3 +199,35 @@ def test_sigint_during_a_run_exits_130(tmp_path):
     assert "Traceback" not in err
     assert err.strip().splitlines()[-1] == \
         "nlyap: interrupted; rerun the same command to resume"
+
+
+@pytest.mark.parametrize("bad", ["0", "-3", "nan", "soon"])
+def test_time_limit_must_be_a_positive_number(bad, capsys):
+    assert main(["run", "van_der_pol", "--time-limit", bad]) == 3
+    (line,) = _err_lines(capsys)
+    assert "--time-limit" in line and "a finite number > 0" in line
+
+
+def test_time_limit_stops_with_exit_5_and_the_rerun_gives_the_reference(tmp_path):
+    """--time-limit is a guard, not a budget: it stops a fast learned run part-way (exit 5,
+    one line naming the output directory), and the same command without it resumes from the
+    kept stages to the recorded fast certificate, bit for bit."""
+    import pathlib
+
+    out = tmp_path / "run"
+    p = _nlyap("run", "van_der_pol", "--preset", "fast", "--out", str(out),
+               "--time-limit", "2")
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 5, err
+    assert "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("nlyap: stopped at --time-limit 2 s;") and str(out) in last
+    assert not (out / "certificate.json").exists()
+    p = _nlyap("run", "van_der_pol", "--preset", "fast", "--out", str(out))
+    _, err = p.communicate(timeout=600)
+    assert p.returncode == 0, err
+    cert = json.loads((out / "certificate.json").read_text())
+    ref = json.loads((pathlib.Path(__file__).parent / "data" /
+                      "fast_certificates.json").read_text())["van_der_pol/learned"]
+    assert {"level": cert["level"], "certified_area": cert["certified_area"],
+            "eta": cert["eta"]} == ref

@@ -397,6 +397,8 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         options["initial_boxes"] = int(initial_boxes)
     n_workers = client_workers(client)
     target = tasks_per_worker * n_workers
+    if options.get("second_order"):
+        problem.second_order_functions  # built before pickling: workers get them
     [pf] = client.scatter([problem], broadcast=True, hash=False)
 
     found, unknown, leaves = [], [], []

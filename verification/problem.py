@@ -124,6 +124,24 @@ class VerificationProblem:
     def n(self) -> int:
         return self.x.numel()
 
+    @property
+    def second_order_functions(self) -> tuple[ca.Function, ca.Function]:
+        """``(G, H)``: the properties' gradient graph ``G(x)`` (``(k, n)``) and their Hessian
+        graphs ``H(x)`` (``k`` outputs, ``(n, n)`` each), for the verifier's second-order
+        centred form (option ``second_order``). Built on first use from the property
+        expressions and kept (they travel with the pickled problem)."""
+        fns = getattr(self, "_second_order", None)
+        if fns is None:
+            if self.properties is None:  # unpickled before they were built
+                raise ValueError("the second-order functions of an unpickled problem must be "
+                                 "built before pickling; call second_order_functions first")
+            P = ca.vertcat(*self.properties)
+            G = ca.densify(ca.jacobian(P, self.x))
+            Hs = [ca.densify(ca.jacobian(G[j, :].T, self.x)) for j in range(self.n_properties)]
+            fns = (ca.Function("PG", [self.x], [G]), ca.Function("PH", [self.x], Hs))
+            self._second_order = fns
+        return fns
+
     def restricted(self, box) -> VerificationProblem:
         """The same problem on a sub-box (used to split work across executors)."""
         return VerificationProblem(self.x, box, self.constraints, self.properties,
@@ -140,7 +158,9 @@ class VerificationProblem:
                 "box": self.box, "n_constraints": self.n_constraints,
                 "n_properties": self.n_properties,
                 "constraint_names": self.constraint_names,
-                "property_names": self.property_names, "n": self.n}
+                "property_names": self.property_names, "n": self.n,
+                "second_order": None if getattr(self, "_second_order", None) is None
+                else tuple(f.serialize() for f in self._second_order)}
 
     def __setstate__(self, st):
         self.function = ca.Function.deserialize(st["function"])
@@ -158,6 +178,9 @@ class VerificationProblem:
         self.constraint_names = st["constraint_names"]
         self.property_names = st["property_names"]
         self.x = ca.MX.sym("x", st["n"])
+        so = st.get("second_order")
+        self._second_order = None if so is None else tuple(ca.Function.deserialize(f)
+                                                           for f in so)
         self.constraints = self.properties = None
 
 

@@ -14,9 +14,9 @@ Two tables (issue 15, item 6):
   ways: the true ``f``; its closed-loop linearisation written as the certificate writes a
   Lie derivative, ``2(Px)·(A_cl x)``; and the same quadratic simplified to ``−xᵀx``. The
   gap between the last two is the interval dependency problem (``Px`` and ``A_cl x`` are
-  enclosed independently). A fourth row measures a second-order centred form
-  (:func:`second_order_boxes`, a prototype that counts boxes, not a certificate) on the
-  true ``f``: what the verifier would need with it.
+  enclosed independently). A fourth row runs the true ``f`` with the verifier's
+  second-order centred form (``verify(..., second_order=True)``), which the 4-D and 6-D
+  presets use.
 - **width** (8, 16, 32, [64]): Van der Pol, ``V(x) = ‖N(x) − N(0)‖²`` with a one-hidden-
   layer tanh network ``N`` whose first ``n`` neurons carry ``a·Lx`` (``LᵀL = P``, read back
   by the output layer with ``1/a``) and the other ``width − n`` are random with output
@@ -39,11 +39,9 @@ import systems
 from nlyap_opt.certificate import RoaProblem
 from nlyap_opt.control import linear_controller, lqr, lyapunov_matrix, quadratic_lyapunov
 from nlyap_opt.network import Layer, Network
-from nlyap_opt.walker import evaluate
 from verification import lyapunov_problem, verify
-from verification.interval import Interval, IntervalArithmetic
 
-__all__ = ["cartpole_reduced", "dimension_rows", "second_order_boxes", "width_rows", "main"]
+__all__ = ["cartpole_reduced", "dimension_rows", "width_rows", "main"]
 
 
 def cartpole_reduced() -> systems.System:
@@ -86,12 +84,12 @@ def _quadratic_queries(system, r: float):
     probs = {k: lyapunov_problem(x, dec.V, lie, inner=eps, outer=r, level=c,
                                  check_positive=False)  # V > 0 by construction (P ≻ 0)
              for k, lie in lies.items()}
-    return probs, ev[-1] / ev[0], eps, c, (x, dec.V, dec.lie)
+    return probs, ev[-1] / ev[0], eps, c
 
 
-def _run(vp, max_boxes: int) -> dict:
+def _run(vp, max_boxes: int, **options) -> dict:
     t0 = time.perf_counter()
-    res = verify(vp, max_boxes=max_boxes)
+    res = verify(vp, max_boxes=max_boxes, **options)
     sec = time.perf_counter() - t0
     return {"status": res.status, "boxes": int(res.boxes), "seconds": sec,
             "boxes_per_s": res.boxes / sec if sec > 0 else float("nan"), "depth": res.depth}
@@ -104,10 +102,10 @@ def dimension_rows(max_boxes: int = 1_000_000, r: float = 0.1,
     rows = []
     for name in names:
         s = cartpole_reduced() if name == "cartpole_reduced" else systems.get(name)
-        probs, cp, eps, c, (x, V, lie) = _quadratic_queries(s, r)
+        probs, cp, eps, c = _quadratic_queries(s, r)
         runs = {k: (lambda vp=vp: _run(vp, max_boxes)) for k, vp in probs.items()}
-        runs["true f, second-order form (prototype)"] = lambda: second_order_boxes(
-            x, V, lie, inner=eps, outer=r, level=c, max_boxes=max_boxes)
+        runs["true f, second-order form"] = lambda vp=probs["true f"]: _run(
+            vp, max_boxes, second_order=True)
         for variant, fn in runs.items():
             try:
                 out = fn()
@@ -120,71 +118,6 @@ def dimension_rows(max_boxes: int = 1_000_000, r: float = 0.1,
                 f"{row['boxes']} boxes")
             rows.append(row)
     return rows
-
-
-def second_order_boxes(x, V, lie, *, inner: float, outer: float, level: float,
-                       max_boxes: int = 1_000_000, batch: int = 8192) -> dict:
-    r"""Box count of the decrease condition with a second-order centred form (prototype).
-
-    On a box ``X = c + [−h, h]``:
-    ``max_X L ≤ L(c) + Σ_i max_{|t| ≤ h_i} (|g_i| t + ½ H_ii⁺ t²) + ½ Σ_{i≠j} |H_ij| h_i h_j``
-    with ``g = ∇L(c)`` (interval evaluation at the point), ``H = ∇²L(X)`` the interval
-    Hessian of the CasADi graph on the box and ``H_ii⁺`` the upper end of its diagonal (a
-    concave 1-D maximum when negative). The linear and quadratic parts of ``L`` are then
-    evaluated at a point and as one matrix, so the interval dependency between ``Px`` and
-    ``f(x)`` in ``2(Px)·f(x)`` only enters through the width of ``H(X)``. Region pruning:
-    exact bounds of ``‖x‖²`` and the natural interval extension of ``V``; bisection of the
-    widest side.
-
-    A measurement of what such a form would cost in the verifier, **not a certificate**:
-    the final sums are float (no outward rounding) and there is no counterexample search.
-    """
-    ia = IntervalArithmetic()
-    n = x.numel()
-    fLg = ca.Function("Lg", [x], [lie, ca.gradient(lie, x)])
-    fH = ca.Function("H", [x], [ca.hessian(lie, x)[0]])
-    fV = ca.Function("V", [x], [V])
-    lo, hi = -outer * np.ones((1, n)), outer * np.ones((1, n))
-    boxes, left, t0 = 0, 0, time.perf_counter()
-    diag = np.arange(n)
-    while len(lo):
-        blo, bhi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
-        boxes += len(blo)
-        sqmin = np.where((blo <= 0) & (bhi >= 0), 0.0, np.minimum(blo**2, bhi**2)).sum(1)
-        sqmax = np.maximum(blo**2, bhi**2).sum(1)
-        Vx = evaluate(fV, [Interval(blo, bhi)], ia)[0]
-        outside = ((sqmin > outer**2) | (sqmax < inner**2)
-                   | (np.asarray(Vx.lo).reshape(-1) > level))
-        c, h = 0.5 * (blo + bhi), 0.5 * (bhi - blo)
-        Lc, gc = evaluate(fLg, [Interval(c, c.copy())], ia)
-        H = evaluate(fH, [Interval(blo, bhi)], ia)[0]
-        Hlo = np.asarray(H.lo).reshape(len(blo), n, n)
-        Hhi = np.asarray(H.hi).reshape(len(blo), n, n)
-        g = np.maximum(np.abs(np.asarray(gc.lo).reshape(-1, n)),
-                       np.abs(np.asarray(gc.hi).reshape(-1, n)))
-        Hd = Hhi[:, diag, diag]
-        t = np.where(Hd < 0, np.minimum(h, g / np.maximum(-Hd, 1e-300)), h)
-        Habs = np.maximum(np.abs(Hlo), np.abs(Hhi))
-        Habs[:, diag, diag] = 0.0
-        ub = (np.asarray(Lc.hi).reshape(-1) + (g * t + 0.5 * Hd * t**2).sum(1)
-              + 0.5 * np.einsum("bi,bij,bj->b", h, Habs, h))
-        rest = ~(outside | (ub < 0))
-        if not rest.any():
-            continue
-        if boxes + len(lo) > max_boxes:
-            left += int(rest.sum())
-            continue
-        rlo, rhi = blo[rest], bhi[rest]
-        d = np.argmax(rhi - rlo, axis=1)
-        rows = np.arange(len(rlo))
-        mid = 0.5 * (rlo[rows, d] + rhi[rows, d])
-        lhi, rlo2 = rhi.copy(), rlo.copy()
-        lhi[rows, d] = mid
-        rlo2[rows, d] = mid
-        lo, hi = np.concatenate([rlo, rlo2, lo]), np.concatenate([lhi, rhi, hi])
-    sec = time.perf_counter() - t0
-    return {"status": "verified" if left == 0 else "unknown", "boxes": boxes, "seconds": sec,
-            "boxes_per_s": boxes / sec if sec > 0 else float("nan"), "depth": 0}
 
 
 def _width_network(P: np.ndarray, width: int, *, a: float = 0.3, delta: float = 0.1,

@@ -42,6 +42,10 @@ class CegisConfig:
     # in between, the sampled violations of the candidate level are the counterexamples
     target_fraction: float = 0.99    # stop when certified level >= this fraction of candidate
     min_iterations: int = 1          # ... but not before this many iterations (best area kept)
+    # ... and, when the candidate is limited by sampled decrease violations (source
+    # "decrease", which more training may remove), only once the certified area grew by less
+    # than this fraction over the best earlier one
+    plateau: float = 0.01
     area_points: int = 40000         # grid of the certified areas (total points)
     verify_options: dict = field(default_factory=dict)
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -143,6 +147,17 @@ def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float
     return np.where(capped, cap, T), np.where(capped, 0.0, dg / gc)
 
 
+def _level_settled(source: str, area: float, prev_area: float, plateau: float) -> bool:
+    """Whether CEGIS may stop at a certified level that reaches its candidate.
+
+    A candidate on the domain's boundary (``"sphere"``) cannot grow inside the domain. A
+    candidate limited by sampled decrease violations (``"decrease"``) may grow when training
+    removes them, so CEGIS goes on until the certified area stops growing: by less than
+    ``plateau`` (a fraction) over the best earlier certified area.
+    """
+    return source != "decrease" or (prev_area > 0 and area <= (1 + plateau) * prev_area)
+
+
 def cegis(system, controller: Network | None, dynamics: Network | None, cfg: CegisConfig, *,
           eta: float = 0.0, dynamics_box=None, input_box=None, log=print,
           V0: Network | None = None) -> CegisResult:
@@ -206,6 +221,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     box = D.bounding_box()
     cex = np.zeros((0, n))
     best: CegisResult | None = None
+    best_area = 0.0
     history = []
     margin = 0.0
     M = None
@@ -259,11 +275,14 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
             f"{cand.level:.4g} ({cand.source}), "
             f"{'certified' if cert.certified else cert.reason} level {cert.level:.4g}, "
             f"area {area:.4g}, margin {margin:.3g}")
+        prev_area = best_area
         if cert.certified and (best is None or area > best.area):
             best = CegisResult(CertStatus.CERTIFIED, V, ctrl, cert.level, margin, M, area,
                                history, 0.0, smoothing)
+        best_area = best.area if best is not None else 0.0
         if cert.certified and cert.level >= cfg.target_fraction * cand.level \
-                and not len(cert.counterexamples) and it + 1 >= cfg.min_iterations:
+                and not len(cert.counterexamples) and it + 1 >= cfg.min_iterations \
+                and _level_settled(cand.source, area, prev_area, cfg.plateau):
             break
         new = cert.counterexamples
         if len(new):

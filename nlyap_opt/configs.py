@@ -311,7 +311,7 @@ _RULES: dict[str, dict[str, dict]] = {
         "iterations": _COUNT, "samples": _COUNT, "sphere_samples": _COUNT,
         "max_counterexamples": _COUNT, "neighbours": _NONNEG, "first_steps": _COUNT,
         "steps": _COUNT, "verify_every": _COUNT, "target_fraction": _UNIT,
-        "min_iterations": _COUNT, "area_points": {"lo": 4}, "seed": _NONNEG,
+        "min_iterations": _COUNT, "plateau": _NONNEG, "area_points": {"lo": 4}, "seed": _NONNEG,
         "inner_samples": _NONNEG, "boundary_samples": _NONNEG, "sim_dt": _POS,
         "sim_points": _NONNEG, "sim_time": _POS,
         "margin_mode": {"choices": ("pointwise", "global")}, "norm_smoothing": _NONNEG,

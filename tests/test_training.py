@@ -7,7 +7,7 @@ import torch
 
 import systems
 from baselines.lqr import lqr, saturated_controller
-from nlyap_opt.cegis import CegisConfig, cegis, cost_targets
+from nlyap_opt.cegis import CegisConfig, _level_settled, cegis, cost_targets
 from nlyap_opt.learning import LyapunovLearner, TrainConfig, _body_jacobian_at_zero
 from nlyap_opt.simulate import simulate, simulate_converges
 
@@ -87,6 +87,33 @@ def test_local_term_trains_a_lyapunov_quadratic():
     assert np.linalg.eigvalsh(s.A.T @ H + H @ s.A)[-1] < 0
 
 
+def _assert_stop_rule(history, cfg):
+    """CEGIS ended where its stop rule first held, or at the iteration budget."""
+    best = 0.0
+    for i, h in enumerate(history):
+        stop = (h["status"] == "certified" and h["counterexamples"] == 0
+                and h["level"] >= cfg.target_fraction * h["candidate_level"]
+                and i + 1 >= cfg.min_iterations
+                and (h["candidate_source"] != "decrease"
+                     or (best > 0 and h["area"] <= (1 + cfg.plateau) * best)))
+        if i < len(history) - 1:
+            assert not stop, (i, h)
+        elif len(history) < cfg.iterations:
+            assert stop, (i, h)
+        best = max(best, h["area"])
+
+
+def test_stop_rule_goes_on_while_decrease_violations_limit_a_growing_level():
+    """A candidate on the domain's boundary is final; one limited by sampled decrease
+    violations is final only once the certified area stops growing (plateau fraction)."""
+    assert _level_settled("sphere", 1.0, 0.0, 0.01)
+    assert not _level_settled("decrease", 1.0, 0.0, 0.01)     # first certified level
+    assert not _level_settled("decrease", 1.02, 1.0, 0.01)    # grew by 2 %
+    assert _level_settled("decrease", 1.01, 1.0, 0.01)        # grew by 1 %: settled
+    assert _level_settled("decrease", 0.9, 1.0, 0.01)         # shrank
+    assert not _level_settled("decrease", 1.005, 1.0, 0.0)
+
+
 def test_falsifier_first_cegis_verifies_what_it_returns():
     """With verify_every = 2, only odd iterations (and the last) run the verifier; the
     returned level is one the verifier proved (re-checked here)."""
@@ -111,6 +138,7 @@ def test_falsifier_first_cegis_verifies_what_it_returns():
         else:
             assert h["boxes"] > 0, h
     assert res.status == "certified" and res.level > 0 and res.area > 0
+    _assert_stop_rule(res.history, cfg)
     cl = closed_loop(s, None, None, strict=True)
     Vx = res.V.casadi(cl.x)
     prob = lyapunov_problem(cl.x, Vx, lie_derivative(Vx, cl.x, cl.rhs), inner=0.3,

@@ -539,7 +539,9 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
 
 def _initial_set_check(problem: RoaProblem, dec: Decrease, level: float):
     """``X_I ⊆ Ω_c``: on ``X_I``, ``V < level`` and every inequality of ``D`` holds strictly."""
-    from verification import VerificationProblem, verify
+    from verification import VerificationProblem
+
+    from .parallel import check as verify
 
     XI = problem.initial_set
     cons = XI.constraints(dec.x)

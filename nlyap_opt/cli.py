@@ -121,7 +121,8 @@ def _dask_args(sp) -> None:
     sp.add_argument("--workers", type=_workers,
                     help="Dask worker processes of a local cluster started and stopped by "
                          "nlyap (default: one per CPU core); with --scheduler: workers to "
-                         "wait for")
+                         "wait for. run: with --seeds the portfolio's candidates, without "
+                         "it the certificate stage's checks run on the cluster")
     sp.add_argument("--scheduler", metavar="ADDRESS",
                     help="tcp://HOST:PORT of an existing Dask cluster (`dask scheduler`); "
                          "it is used, never closed")
@@ -449,9 +450,9 @@ def cmd_run(args) -> int:
                              seeds=args.seeds, workers=args.workers,
                              scheduler=args.scheduler, known_dynamics=args.known_dynamics)
         return 0 if pres.certified else 2
-    if args.workers is not None or args.scheduler is not None:
-        raise UsageError("--workers/--scheduler run a portfolio: add --seeds K (or drop them)")
-    res = run(args.system, cfg, out, known_dynamics=args.known_dynamics)
+    # without --seeds, --workers/--scheduler run the certificate stage's checks on Dask
+    res = run(args.system, cfg, out, known_dynamics=args.known_dynamics,
+              workers=args.workers, scheduler=args.scheduler)
     status = res["status"] if isinstance(res, dict) else res.status
     return 0 if getattr(status, "value", status) == "certified" else 2
 

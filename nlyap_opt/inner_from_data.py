@@ -585,10 +585,11 @@ def _check(P, ctx) -> dict:
 
 def _extend_with_phi(P, ctx, dynamics, eta, eta_state_box, eta_input_box, verify_options):
     """The data proof on a small ellipse, the learned φ with η on the rest (same ``P``)."""
-    from verification import VerificationProblem, verify
+    from verification import VerificationProblem
 
     from .bounds import check_input_range
     from .errors import InputRangeError
+    from .parallel import check as verify
     from .symbolic import closed_loop
 
     system, controller = ctx["system"], ctx["controller"]

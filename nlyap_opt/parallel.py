@@ -42,6 +42,7 @@ scheduler only listens where ``--host`` says; keep it on a private network.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import copy
 import inspect
 import math
@@ -54,7 +55,8 @@ import numpy as np
 
 from .errors import BackendUnavailableError, ConfigError
 
-__all__ = ["dask_client", "verify_distributed", "parse_scheduler", "client_workers", "cpu_cores"]
+__all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "parse_scheduler",
+           "client_workers", "cpu_cores"]
 
 #: ``tcp://HOST:PORT`` (also ``tls://``); a bare ``HOST:PORT`` means ``tcp://``
 _ADDRESS = re.compile(r"^(?:(tcp|tls)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):(\d{1,5})$")
@@ -482,6 +484,53 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
                                   state["depth"], seconds, leaves_out)
     return VerificationResult("unknown" if len(und) else "verified", None, [], und,
                               state["boxes"], state["depth"], seconds, leaves_out)
+
+
+#: the Dask client that :func:`check` sends its problems to (set by :func:`verifying_on`)
+_CLUSTER: contextvars.ContextVar = contextvars.ContextVar("nlyap_verify_cluster", default=None)
+
+
+@contextlib.contextmanager
+def verifying_on(client) -> Iterator:
+    """Within this block, :func:`check` decides its problems on ``client``'s cluster.
+
+    The certificate's checks (:func:`nlyap_opt.roa.certify_level`, the inner ellipse, the
+    initial set) call :func:`check`; the pipeline's certificate stage runs them inside this
+    block when ``nlyap run --workers/--scheduler`` is given. ``client=None`` runs them
+    serially.
+
+    Examples
+    --------
+    >>> with dask_client(workers=2) as client, verifying_on(client):   # doctest: +SKIP
+    ...     cert = certify_roa(problem, level)
+    """
+    token = _CLUSTER.set(client)
+    try:
+        yield client
+    finally:
+        _CLUSTER.reset(token)
+
+
+def check(problem, **options):
+    """:func:`verification.verify` (interval backend), on the cluster of :func:`verifying_on`.
+
+    On a cluster, a ``verified`` verdict is taken from :func:`verify_distributed` (every box
+    decided by the serial rules: the serial verdict). Any other verdict is decided again by
+    the serial verifier, so that the counterexample, and every level a search derives from
+    it, are the serial ones: the results are the same bit for bit with or without a
+    cluster, and the cluster only speeds up the checks that hold (in a certificate stage,
+    almost all of them).
+    """
+    from verification import verify
+
+    client = _CLUSTER.get()
+    if client is None:
+        return verify(problem, **options)
+    opts = {k: v for k, v in options.items() if k not in ("n_tasks", "executor", "progress")}
+    res = verify_distributed(problem, client, **opts)
+    if res.status == "verified":
+        return res
+    return verify(problem, **options)
 
 
 def _depth(boxes: np.ndarray, root_w: np.ndarray) -> int:

@@ -21,6 +21,7 @@ file keeps a second concurrent run out of the same directory.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -203,7 +204,7 @@ def _out_dir(out) -> Path:
 
 
 def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
-        log=print) -> RunResult:
+        log=print, workers: int | None = None, scheduler: str | None = None) -> RunResult:
     """Run the pipeline for ``system`` with the run configuration ``cfg`` into ``out``.
 
     Parameters
@@ -216,6 +217,11 @@ def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
         Output directory (created; an earlier run's directory is resumed).
     known_dynamics : bool
         Use the true f (the paper's "actual dynamics" setting) instead of learning φ.
+    workers, scheduler : optional
+        Run the certificate stage's interval checks on Dask
+        (:func:`nlyap_opt.parallel.dask_client`: a local cluster of ``workers`` processes,
+        or the existing cluster at ``scheduler``). The certificate is the serial one, bit
+        for bit (:func:`nlyap_opt.parallel.check`).
 
     Returns
     -------
@@ -231,11 +237,25 @@ def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
         if not known_dynamics:
             check_dynamics_box(cfg)
     out = _out_dir(out)
-    with _OutLock(out, log):
-        return _run(system, cfg, out, known_dynamics, log)
+    with _OutLock(out, log), _client(workers, scheduler, log) as client:
+        return _run(system, cfg, out, known_dynamics, log, client)
 
 
-def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
+@contextlib.contextmanager
+def _client(workers, scheduler, log):
+    """``None`` (serial), or a Dask client for the certificate stage's checks: connected
+    before any stage runs, so that a bad address fails before the training."""
+    if workers is None and scheduler is None:
+        yield None
+        return
+    from .parallel import client_workers, dask_client
+
+    with dask_client(workers, scheduler) as client:
+        log(f"[dask] certificate checks on {client_workers(client)} workers")
+        yield client
+
+
+def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunResult:
     from .control import lqr, saturated_controller
 
     has_model = getattr(system, "has_model", True)
@@ -352,9 +372,12 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log) -> RunResult:
             "trying the last V with other inner radii")
     # the saved level at the configured ε first (exact re-verification); other radii only
     # if that is refused (the same V and κ; no retraining)
-    cert = certify_with_inner_search(problem, float(cg["level"]) if claimed else None,
-                                     log=lambda m: log("  " + m))
-    extra = _areas_and_checks(system, cfg, cert, problem, out, log)
+    from .parallel import verifying_on
+
+    with verifying_on(client):   # client None: serial
+        cert = certify_with_inner_search(problem, float(cg["level"]) if claimed else None,
+                                         log=lambda m: log("  " + m))
+        extra = _areas_and_checks(system, cfg, cert, problem, out, log)
     seconds["certificate"] = time.perf_counter() - t
     sec_file = out / "seconds.json"
     prev = {}
@@ -390,8 +413,9 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
                       log) -> dict:
     """Certified and true-ROA areas on the evaluation grid; the same V and κ against the
     true f (a benchmark, not part of a learned-f certificate)."""
-    from verification import closed_loop_problem, verify
+    from verification import closed_loop_problem
 
+    from .parallel import check as verify
     from .roa import axis_count, grid_area, grid_points, true_roa_mask
 
     box = np.asarray(cfg["eval_box"], dtype=float)

@@ -160,7 +160,9 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     usually a near-tangency that a small step resolves). Returns the certified level or
     why none was found.
     """
-    from verification import VerificationProblem, lyapunov_problem, verify
+    from verification import VerificationProblem, lyapunov_problem
+
+    from .parallel import check as verify  # serial, or on the cluster of verifying_on()
 
     t0 = time.perf_counter()
     opts = dict(verify_options or {})
@@ -277,7 +279,9 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
 
 
 def _inner_ellipse(cl, J, P, inner, verify_options):
-    from verification import VerificationProblem, verify
+    from verification import VerificationProblem
+
+    from .parallel import check as verify
 
     n = P.shape[0]
     lam = np.linalg.eigvalsh(P)

@@ -19,12 +19,15 @@ from certcheck import assert_confirmed
 
 import systems
 from baselines.lqr import quadratic_lyapunov
+from nlyap_opt import parallel
 from nlyap_opt.errors import BackendUnavailableError, ConfigError
 from nlyap_opt.parallel import (
     _starts_from_boxes,
+    check,
     dask_client,
     parse_scheduler,
     verify_distributed,
+    verifying_on,
 )
 from verification import VerificationProblem, closed_loop_problem, verify
 
@@ -203,6 +206,72 @@ def test_executor_hook_of_verify_runs_on_dask(client):
         problem = _vdp_problem(outer)
         res = verify(problem, executor=client.get_executor(), n_tasks=4)
         assert res.status == verify(problem).status == expected
+
+
+# ------------------------------------------------------- the certificate's checks on Dask
+def _counting(monkeypatch):
+    calls = []
+    real = parallel.verify_distributed
+
+    def counted(problem, client, **options):
+        res = real(problem, client, **options)
+        calls.append(res.status)
+        return res
+
+    monkeypatch.setattr(parallel, "verify_distributed", counted)
+    return calls
+
+
+@pytest.mark.parametrize("outer", [1.0, 1.2, 1.6])
+def test_check_on_a_cluster_returns_the_serial_result(client, monkeypatch, outer):
+    """``check`` inside ``verifying_on``: the verdict is decided on the cluster, and every
+    result (the counterexample and its point too) is the serial one."""
+    problem = _vdp_problem(outer)
+    serial = verify(problem)
+    calls = _counting(monkeypatch)
+    with verifying_on(client):
+        res = check(problem)
+    assert calls, "the cluster was not used"
+    assert res.status == serial.status
+    if serial.status == "counterexample":
+        assert calls == ["counterexample"]          # decided there, then again serially
+        np.testing.assert_array_equal(res.counterexample.point, serial.counterexample.point)
+    with verifying_on(None):                         # no cluster: serial
+        calls.clear()
+        assert check(problem).status == serial.status and not calls
+
+
+def test_run_with_dask_certificate_stage_gives_the_serial_certificate(client, tmp_path,
+                                                                      monkeypatch):
+    """``run(..., scheduler=...)``: the certificate stage's checks run on the cluster and the
+    certificate is the serial run's, bit for bit."""
+    from nlyap_opt.configs import make_config
+    from nlyap_opt.pipeline import run
+
+    cfg = make_config("van_der_pol", "fast")
+    serial = run("van_der_pol", cfg, tmp_path / "serial", known_dynamics=True,
+                 log=lambda m: None)
+    calls = _counting(monkeypatch)
+    dist = run("van_der_pol", cfg, tmp_path / "dask", known_dynamics=True,
+               log=lambda m: None, scheduler=client.scheduler.address)
+    assert calls and all(c == "verified" for c in calls)
+    assert serial.certified and dist.certified
+    a, b = (json.loads((d / "certificate.json").read_text())
+            for d in (tmp_path / "serial", tmp_path / "dask"))
+    for key in ("status", "level", "certified_area", "checks", "inner_ellipse", "artifacts"):
+        assert a.get(key) == b.get(key), key
+
+
+@pytest.mark.parametrize("kwargs, match", [({"scheduler": "localhost"}, "tcp://HOST:PORT"),
+                                           ({"workers": 0}, "workers must be an integer")])
+def test_run_with_bad_dask_options_fails_before_any_stage(tmp_path, kwargs, match):
+    from nlyap_opt.configs import make_config
+    from nlyap_opt.pipeline import run
+
+    cfg = make_config("van_der_pol", "fast")
+    with pytest.raises(ConfigError, match=match):
+        run("van_der_pol", cfg, tmp_path, known_dynamics=True, log=lambda m: None, **kwargs)
+    assert not (tmp_path / "V.json").exists() and not (tmp_path / "stages.json").exists()
 
 
 @pytest.mark.slow  # 8-29 s on the shared 2 cores: three Python processes start

@@ -305,6 +305,7 @@ _RULES: dict[str, dict[str, dict]] = {
         "w_fit": _NONNEG, "fit_quantile": _UNIT, "fit_cap": _POS,
         "fit_transform": {"choices": ("log", "linear")}, "w_pde": _NONNEG,
         "w_local": _NONNEG, "lr_schedule": {"choices": ("constant", "cosine")},
+        "activation": {"choices": ("tanh", "square", "linear")},
         "seed": _NONNEG, "threads": _COUNT,
     },
     "cegis": {

@@ -60,6 +60,9 @@ class TrainConfig:
 
     hidden: list[int] = field(default_factory=lambda: [6])
     features: int = 3          # outputs of N in V = ||N(x) - N(0)||² + eps||x||²
+    # of N's hidden layers: "tanh"; "square" (z²: V a polynomial, of degree 4 with one
+    # hidden layer, as Fossil's square-activation V); "linear" (V a quadratic form)
+    activation: str = "tanh"
     eps: float = 1e-3
     lr: float = 1e-2
     steps: int = 1000
@@ -97,6 +100,8 @@ def _body_jacobian_at_zero(body, n: int):
         elif isinstance(m, torch.nn.Tanh):
             h = torch.tanh(h)
             J = (1 - h * h)[:, None] * J
+        elif type(m).__name__ == "Square":
+            h, J = h * h, (2 * h)[:, None] * J
         elif hasattr(m, "scale"):
             h, J = m(h), m.scale.reshape(-1, 1) * J
         else:
@@ -130,7 +135,7 @@ class LyapunovLearner:
         self.rng = np.random.default_rng(config.seed)
         if V is None:
             sizes = [system.nx, *config.hidden, config.features]
-            V = dense_network(sizes, "tanh", seed=config.seed)
+            V = dense_network(sizes, config.activation, seed=config.seed)
             V.head = {"type": "sum_of_squares", "eps": config.eps}
             V.__post_init__()
         self.V = V.torch_module()

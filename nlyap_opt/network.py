@@ -78,7 +78,8 @@ class Activation:
         ``ops.fmax``): :data:`CASADI_OPS` builds the CasADi graph, :data:`NUMPY_OPS`
         evaluates in float64 numpy.
     torch : str or None
-        Class name in ``torch.nn`` of the same function (``None``: identity, no module).
+        Class name of the same function: in ``torch.nn``, or one of this module's own torch
+        classes (``Square``); ``None``: identity, no module.
     """
 
     name: str
@@ -96,6 +97,9 @@ ACTIVATIONS: dict[str, Activation] = {a.name: a for a in (
     Activation("relu", lambda z, ops: ops.fmax(z, 0.0), "ReLU"),
     Activation("sigmoid", lambda z, ops: 1.0 / (1.0 + ops.exp(-z)), "Sigmoid"),
     Activation("linear", lambda z, ops: z, None),
+    # z²: with the sum-of-squares head, V is a polynomial (degree 4 with one hidden layer);
+    # ``z**2`` is CasADi's OP_SQ, whose interval enclosure is exact
+    Activation("square", lambda z, ops: z**2, "Square"),
 )}
 
 
@@ -350,8 +354,9 @@ class Network:
             mods.append(lin)
             act = ACTIVATIONS[layer.activation].torch
             if act is not None:
-                mods.append(getattr(nn, act)())
-        scale_cls, head_cls = _torch_classes()
+                own = {c.__name__: c for c in _torch_classes()}
+                mods.append((own[act] if act in own else getattr(nn, act))())
+        scale_cls, head_cls, _ = _torch_classes()
         if self.output_scale.ndim > 0 or float(self.output_scale) != 1.0:
             mods.append(scale_cls(torch.as_tensor(self.output_scale, dtype=dtype)))
         body = nn.Sequential(*mods)
@@ -620,7 +625,8 @@ _TORCH_CLASSES: tuple | None = None
 
 
 def _torch_classes():
-    """``(Scale, CentredSumOfSquares)``, defined on first use (torch is imported lazily)."""
+    """``(Scale, CentredSumOfSquares, Square)``, defined on first use (torch is imported
+    lazily)."""
     global _TORCH_CLASSES
     if _TORCH_CLASSES is not None:
         return _TORCH_CLASSES
@@ -654,7 +660,13 @@ def _torch_classes():
             return Network(net.layers, net.output_scale, {}, {"type": "sum_of_squares",
                                                                  "eps": self.eps})
 
-    _TORCH_CLASSES = (Scale, CentredSumOfSquares)
+    class Square(nn.Module):
+        """Elementwise ``z²`` (the ``square`` activation)."""
+
+        def forward(self, h):
+            return h * h
+
+    _TORCH_CLASSES = (Scale, CentredSumOfSquares, Square)
     return _TORCH_CLASSES
 
 

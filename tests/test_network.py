@@ -59,7 +59,7 @@ def _build(depth, width, act, scale, head, n_in=3, n_out=2, seed=0):
 ARCH = list(itertools.product(
     [1, 2, 3],                                # depth (number of layers)
     [1, 7],                                   # hidden width
-    list(ACTIVATIONS),                        # tanh, relu, sigmoid, linear
+    list(ACTIVATIONS),                        # tanh, relu, sigmoid, linear, square
     ["one", "scalar", "vector"],              # output_scale
     [None, 1e-3],                             # no head / V = ||N(x) - N(0)||² + eps||x||²
 ))
@@ -122,7 +122,7 @@ def test_activation_table_matches_its_definition(act):
     """Each activation in numpy and CasADi equals its textbook formula."""
     z = np.linspace(-4, 4, 41)
     want = {"tanh": np.tanh(z), "relu": np.where(z > 0, z, 0.0),
-            "sigmoid": 1 / (1 + np.exp(-z)), "linear": z}[act]
+            "sigmoid": 1 / (1 + np.exp(-z)), "linear": z, "square": z * z}[act]
     net = Network([Layer(np.eye(1), [0.0], act)])
     _close(net.numpy(z[:, None])[:, 0], want)
     x = ca.SX.sym("x")

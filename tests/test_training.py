@@ -45,12 +45,18 @@ def test_cost_targets_are_monotone_capped_and_their_rates_are_derivatives(transf
         cost_targets(conv, cost, 20.0, 2.0, "cubic")
 
 
+@pytest.mark.parametrize("act", ["tanh", "square", "linear"])
 @pytest.mark.parametrize("name", ["van_der_pol", "inverted_pendulum",
                                   "unicycle_path_following"])
-def test_local_term_matches_autograd_hessian_and_jacobian(name):
+def test_local_term_matches_autograd_hessian_and_jacobian(name, act):
+    """∇²V(0) = 2(JᵀJ + εI) with J = ∂N/∂x(0) from the forward-mode Jacobian, for every V
+    family (tanh, square: V a polynomial, linear: V quadratic)."""
     s = systems.get(name)
     ctrl = saturated_controller(s, lqr(s).K, 5.0) if s.nu else None
-    L = LyapunovLearner(s, ctrl, None, TrainConfig(hidden=[7, 5], features=4, seed=3))
+    L = LyapunovLearner(s, ctrl, None, TrainConfig(hidden=[7, 5], features=4, seed=3,
+                                                   activation=act))
+    want = {"tanh": {"Tanh"}, "square": {"Square"}, "linear": set()}[act]
+    assert {type(m).__name__ for m in L.V.body} & {"Tanh", "Square"} == want
     if ctrl is not None:  # a gain away from the LQR start
         with torch.no_grad():
             L.G.add_(0.1 * torch.randn_like(L.G))

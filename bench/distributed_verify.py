@@ -8,12 +8,14 @@ into ``n_tasks`` sub-boxes) for comparison:
 (A) 4-D: two coupled reversed Van der Pol oscillators, a quadratic V with a 64-neuron tanh
     factor, decrease on 0.1 ≤ ‖x‖ ≤ 1.1 (about 6·10⁴ boxes serially);
 (B) 2-D: bench/verify.py's 2-30-30 tanh V on Van der Pol, r = 2.5, at 0.99 × the IPOPT
-    candidate level (bench/data/vdp_V30x30.json; run bench/verify.py once to create it).
+    candidate level (bench/data/vdp_V30x30.json; run bench/verify.py once to create it);
+(C) 4-D: the cartpole's LQR quadratic certificate, decrease on the true f
+    (``bench/scale.py``'s query, ball ``r``), with the second-order form as its preset.
 
 Seconds are the best of ``--repeat`` runs (cluster start-up excluded). Figures are printed,
 not asserted; on a shared machine read them with the load average printed beside them.
 
-    python bench/distributed_verify.py [--repeat 3] [--workers 1 2]
+    python bench/distributed_verify.py [--repeat 3] [--workers 1 2] [--cartpole-r 0.5]
 """
 
 from __future__ import annotations
@@ -82,31 +84,38 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--n-tasks", type=int, default=8, help="sub-boxes of the executor hook")
+    ap.add_argument("--cartpole-r", type=float, default=0.5,
+                    help="ball radius of query (C)")
     args = ap.parse_args(argv)
-    queries = [("(A) 4-D, 64-neuron V factor", problem_4d(1.1, 64))]
+    queries = [("(A) 4-D, 64-neuron V factor", problem_4d(1.1, 64), {})]
     p = problem_vdp30()
     if p is not None:
-        queries.append(("(B) 2-D, V 2-30-30, r = 2.5", p))
+        queries.append(("(B) 2-D, V 2-30-30, r = 2.5", p, {}))
+    from scale import quadratic_queries  # bench/scale.py, beside this file
+
+    cp = quadratic_queries(systems.get("cartpole"), args.cartpole_r)[0]["true f"]
+    queries.append((f"(C) 4-D cartpole LQR, r = {args.cartpole_r:g}", cp,
+                    {"second_order": True}))
     mode = "batched hand-out of open boxes" if _starts_from_boxes() else \
         "fixed split (verify_interval has no boxes=)"
     print(f"verify_distributed mode: {mode}; load average: {os.getloadavg()[0]:.2f}")
     rows, balance = [], []
-    for label, prob in queries:
-        t, r = _best(lambda prob=prob: verify(prob), args.repeat)
+    for label, prob, opt in queries:
+        t, r = _best(lambda prob=prob, opt=opt: verify(prob, **opt), args.repeat)
         rows.append((label, "serial verify()", "–", t, r))
     for w in args.workers:
         with dask_client(workers=w) as client:
             client.submit(sum, [1]).result()  # workers up
-            for label, prob in queries:
+            for label, prob, opt in queries:
                 st: dict = {}
-                t, r = _best(lambda prob=prob, st=st: verify_distributed(prob, client,
-                                                                         stats=st),
-                             args.repeat)
+                t, r = _best(lambda prob=prob, st=st, opt=opt: verify_distributed(
+                    prob, client, stats=st, **opt), args.repeat)
                 rows.append((label, "verify_distributed", w, t, r))
                 by = list(st["cpu_by_worker"].values()) or [0.0]
                 balance.append((label, w, st["tasks"], st["root_cpu"], sum(by), max(by)))
-                t, r = _best(lambda prob=prob: verify(prob, executor=client.get_executor(),
-                                                      n_tasks=args.n_tasks), args.repeat)
+                t, r = _best(lambda prob=prob, opt=opt: verify(
+                    prob, executor=client.get_executor(), n_tasks=args.n_tasks, **opt),
+                    args.repeat)
                 rows.append((label, f"executor hook, n_tasks={args.n_tasks}", w, t, r))
     print("| query | how | workers | seconds (best) | speed-up vs 1 worker | boxes | verdict |")
     print("|---|---|---|---|---|---|---|")

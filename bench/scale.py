@@ -41,7 +41,7 @@ from nlyap_opt.control import linear_controller, lqr, lyapunov_matrix, quadratic
 from nlyap_opt.network import Layer, Network
 from verification import lyapunov_problem, verify
 
-__all__ = ["cartpole_reduced", "dimension_rows", "width_rows", "main"]
+__all__ = ["cartpole_reduced", "dimension_rows", "quadratic_queries", "width_rows", "main"]
 
 
 def cartpole_reduced() -> systems.System:
@@ -57,7 +57,7 @@ def cartpole_reduced() -> systems.System:
                           state_names=["v", "theta", "omega"], input_names=["force"])
 
 
-def _quadratic_queries(system, r: float):
+def quadratic_queries(system, r: float):
     """``({variant: problem}, cond P, ε, c)`` of the dimension table.
 
     Variants of the decrease condition on the same region: ``true f`` (the certificate's
@@ -102,7 +102,7 @@ def dimension_rows(max_boxes: int = 1_000_000, r: float = 0.1,
     rows = []
     for name in names:
         s = cartpole_reduced() if name == "cartpole_reduced" else systems.get(name)
-        probs, cp, eps, c = _quadratic_queries(s, r)
+        probs, cp, eps, c = quadratic_queries(s, r)
         runs = {k: (lambda vp=vp: _run(vp, max_boxes)) for k, vp in probs.items()}
         runs["true f, second-order form"] = lambda vp=probs["true f"]: _run(
             vp, max_boxes, second_order=True)

@@ -243,8 +243,9 @@ def test_check_on_a_cluster_returns_the_serial_result(client, monkeypatch, outer
 
 def test_run_with_dask_certificate_stage_gives_the_serial_certificate(client, tmp_path,
                                                                       monkeypatch):
-    """``run(..., scheduler=...)``: the certificate stage's checks run on the cluster and the
-    certificate is the serial run's, bit for bit."""
+    """``nlyap run NAME --scheduler ADDR`` (no ``--seeds``): the certificate stage's checks
+    run on the cluster and the certificate is the serial run's, bit for bit."""
+    from nlyap_opt.cli import main
     from nlyap_opt.configs import make_config
     from nlyap_opt.pipeline import run
 
@@ -252,10 +253,10 @@ def test_run_with_dask_certificate_stage_gives_the_serial_certificate(client, tm
     serial = run("van_der_pol", cfg, tmp_path / "serial", known_dynamics=True,
                  log=lambda m: None)
     calls = _counting(monkeypatch)
-    dist = run("van_der_pol", cfg, tmp_path / "dask", known_dynamics=True,
-               log=lambda m: None, scheduler=client.scheduler.address)
+    code = main(["run", "van_der_pol", "--preset", "fast", "--known-dynamics",
+                 "--scheduler", client.scheduler.address, "--out", str(tmp_path / "dask")])
     assert calls and all(c == "verified" for c in calls)
-    assert serial.certified and dist.certified
+    assert serial.certified and code == 0
     a, b = (json.loads((d / "certificate.json").read_text())
             for d in (tmp_path / "serial", tmp_path / "dask"))
     for key in ("status", "level", "certified_area", "checks", "inner_ellipse", "artifacts"):

@@ -416,7 +416,8 @@ def _verify_option_keys() -> dict[str, Key]:
     hints = typing.get_type_hints(verify_interval)
     out = {}
     for name, par in inspect.signature(verify_interval).parameters.items():
-        if par.kind is not inspect.Parameter.KEYWORD_ONLY or name in ("executor", "progress"):
+        if par.kind is not inspect.Parameter.KEYWORD_ONLY or \
+                name in ("executor", "progress", "boxes"):
             continue
         kind, optional = _kind_of(hints.get(name, object))
         rule = {"lo": 0, "lo_open": True} if kind == "float" else \

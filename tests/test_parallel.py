@@ -201,6 +201,22 @@ def test_keep_leaves_cover_the_root_box(client):
     assert vol == pytest.approx(np.prod(np.diff(problem.box, axis=1)), rel=1e-12)
 
 
+def test_unpickled_copies_of_a_problem_share_their_compiled_graphs():
+    """A worker receiving the same problem in many tasks compiles its graphs once: every
+    unpickled copy holds the same Function objects (the walker caches per object)."""
+    import pickle
+
+    from nlyap_opt.walker import compile_function
+
+    problem = _vdp_problem(1.0)
+    problem.second_order_functions
+    a, b = (pickle.loads(pickle.dumps(problem)) for _ in range(2))
+    assert a.function_jacobian is b.function_jacobian and a.jacobian is b.jacobian
+    assert a.second_order_functions[1] is b.second_order_functions[1]
+    assert compile_function(a.function_jacobian) is compile_function(b.function_jacobian)
+    assert verify(a).status == verify(problem).status == "verified"
+
+
 def test_executor_hook_of_verify_runs_on_dask(client):
     for outer, expected in ((1.0, "verified"), (1.2, "counterexample")):
         problem = _vdp_problem(outer)

@@ -17,6 +17,7 @@ Outcomes (never blurred):
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -163,15 +164,14 @@ class VerificationProblem:
                 else tuple(f.serialize() for f in self._second_order)}
 
     def __setstate__(self, st):
-        self.function = ca.Function.deserialize(st["function"])
-        self.jacobian = ca.Function.deserialize(st["jacobian"])
-        self.function_jacobian = ca.Function.deserialize(st["function_jacobian"])
+        self.function = _deserialize(st["function"])
+        self.jacobian = _deserialize(st["jacobian"])
+        self.function_jacobian = _deserialize(st["function_jacobian"])
         self.checked = st["checked"]
         self.function_checked = self.function_jacobian_checked = None
         if self.checked:
-            self.function_checked = ca.Function.deserialize(st["function_checked"])
-            self.function_jacobian_checked = ca.Function.deserialize(
-                st["function_jacobian_checked"])
+            self.function_checked = _deserialize(st["function_checked"])
+            self.function_jacobian_checked = _deserialize(st["function_jacobian_checked"])
         self.box = st["box"]
         self.n_constraints = st["n_constraints"]
         self.n_properties = st["n_properties"]
@@ -179,9 +179,19 @@ class VerificationProblem:
         self.property_names = st["property_names"]
         self.x = ca.MX.sym("x", st["n"])
         so = st.get("second_order")
-        self._second_order = None if so is None else tuple(ca.Function.deserialize(f)
-                                                           for f in so)
+        self._second_order = None if so is None else tuple(_deserialize(f) for f in so)
         self.constraints = self.properties = None
+
+
+@functools.lru_cache(maxsize=64)
+def _deserialize(text: str) -> ca.Function:
+    """``ca.Function.deserialize``, one Function object per serialised text in a process.
+
+    The walker compiles each Function object once (:func:`nlyap_opt.walker.compile_function`);
+    a worker that receives the same problem in many tasks (sub-boxes of one verification,
+    the level steps of a certificate) then compiles its graphs once, not once per task.
+    """
+    return ca.Function.deserialize(text)
 
 
 @dataclass

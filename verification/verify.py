@@ -57,6 +57,7 @@ from concurrent.futures import Executor
 import casadi as ca
 import numpy as np
 
+from nlyap_opt.errors import DimensionError
 from nlyap_opt.walker import NUMPY, compile_function, evaluate, op_name
 
 from .affine import Affine, AffineArithmetic
@@ -685,6 +686,7 @@ def verify_interval(
     n_tasks: int | None = None,
     progress: bool = False,
     second_order: bool = False,
+    boxes: np.ndarray | None = None,
 ) -> VerificationResult:
     """Decide ``problem`` with interval branch-and-prune; see :func:`verification.verify`.
 
@@ -701,7 +703,9 @@ def verify_interval(
     of kinks and jumps; ignored without ``mean_value``). It removes the interval
     dependency of Lie derivatives such as ``2(Px)·f(x)``, which otherwise needs boxes ever
     smaller next to the inner ball and grows as ``(1/width)^n``; worth its cost from 3 or
-    4 states on.
+    4 states on. ``boxes`` (``(k, n, 2)``, sub-boxes of the problem's box): start from them,
+    all in one batch, instead of the root box's grid (the load-balanced tasks of
+    :func:`nlyap_opt.parallel.verify_distributed`; the verdict is about their union).
     """
     t0 = time.perf_counter()
     if mean_value is None:  # with affine forms: the mean-value form on undecided boxes
@@ -719,15 +723,23 @@ def verify_interval(
                                    affine=affine, presearch=presearch, stop_at_first=stop_at_first,
                                    keep_leaves=keep_leaves, seed=seed,
                                    initial_boxes=initial_boxes, second_order=second_order)
+    if boxes is not None:
+        boxes = np.asarray(boxes, dtype=float)
+        if boxes.ndim != 3 or boxes.shape[1:] != (problem.n, 2) or \
+                np.any(boxes[:, :, 0] > boxes[:, :, 1]):
+            raise DimensionError(f"boxes must have shape (k, {problem.n}, 2) with lower <= "
+                                 f"upper, got {boxes.shape}")
+        if executor is not None:
+            raise ValueError("boxes and executor exclude each other")
     with _single_thread_blas():
         return _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
                              stop_at_first, keep_leaves, seed, initial_boxes, progress,
-                             affine, second_order)
+                             affine, second_order, boxes)
 
 
 def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
                   stop_at_first, keep_leaves, seed, initial_boxes, progress, affine=False,
-                  second_order=False):
+                  second_order=False, boxes=None):
     box = problem.box
     compile_function(problem.function_jacobian)
     rng = np.random.default_rng(seed)
@@ -738,7 +750,10 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
             return VerificationResult("counterexample", found[0], found, boxes=0, depth=0,
                                       seconds=time.perf_counter() - t0)
     m = problem.n_constraints
-    queue_lo, queue_hi = _initial_boxes(box, initial_boxes)
+    if boxes is None:
+        queue_lo, queue_hi = _initial_boxes(box, initial_boxes)
+    else:   # given sub-boxes of the root box (a task of nlyap_opt.parallel), all in one batch
+        queue_lo, queue_hi = boxes[:, :, 0].copy(), boxes[:, :, 1].copy()
     depth_q = np.zeros(len(queue_lo), dtype=int)
     undecided: list[np.ndarray] = []
     leaves: list[dict] | None = [] if keep_leaves else None

@@ -183,7 +183,7 @@ class VerificationProblem:
         self.constraints = self.properties = None
 
 
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=32)   # a few problems of a few graphs each
 def _deserialize(text: str) -> ca.Function:
     """``ca.Function.deserialize``, one Function object per serialised text in a process.
 

@@ -221,7 +221,6 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     box = D.bounding_box()
     cex = np.zeros((0, n))
     best: CegisResult | None = None
-    best_area = 0.0
     history = []
     margin = 0.0
     M = None
@@ -275,11 +274,10 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
             f"{cand.level:.4g} ({cand.source}), "
             f"{'certified' if cert.certified else cert.reason} level {cert.level:.4g}, "
             f"area {area:.4g}, margin {margin:.3g}")
-        prev_area = best_area
+        prev_area = best.area if best is not None else 0.0
         if cert.certified and (best is None or area > best.area):
             best = CegisResult(CertStatus.CERTIFIED, V, ctrl, cert.level, margin, M, area,
                                history, 0.0, smoothing)
-        best_area = best.area if best is not None else 0.0
         if cert.certified and cert.level >= cfg.target_fraction * cand.level \
                 and not len(cert.counterexamples) and it + 1 >= cfg.min_iterations \
                 and _level_settled(cand.source, area, prev_area, cfg.plateau):

@@ -515,11 +515,14 @@ def check(problem, **options):
     """:func:`verification.verify` (interval backend), on the cluster of :func:`verifying_on`.
 
     On a cluster, a ``verified`` verdict is taken from :func:`verify_distributed` (every box
-    decided by the serial rules: the serial verdict). Any other verdict is decided again by
-    the serial verifier, so that the counterexample, and every level a search derives from
-    it, are the serial ones: the results are the same bit for bit with or without a
-    cluster, and the cluster only speeds up the checks that hold (in a certificate stage,
-    almost all of them).
+    decided by the serial rules). Any other verdict is decided again by the serial
+    verifier, so that the counterexample, and every level a search derives from it, are the
+    serial ones: verdicts, levels and saved artifacts are those of a serial run, and the
+    cluster only speeds up the checks that hold (in a certificate stage, almost all of
+    them). The statistics differ (box counts by a few per cent: the tasks start from other
+    batches; seconds), and so may a verdict at the edge of the box budget: a cluster run may
+    prove within ``max_boxes`` what a serial run leaves ``unknown`` there (never the reverse
+    for a property that fails: that is decided serially).
     """
     from verification import verify
 

@@ -220,8 +220,9 @@ def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
     workers, scheduler : optional
         Run the certificate stage's interval checks on Dask
         (:func:`nlyap_opt.parallel.dask_client`: a local cluster of ``workers`` processes,
-        or the existing cluster at ``scheduler``). The certificate is the serial one, bit
-        for bit (:func:`nlyap_opt.parallel.check`).
+        or the existing cluster at ``scheduler``). Status, level, checks and artifacts are
+        the serial run's; the verification statistics (boxes, seconds) differ
+        (:func:`nlyap_opt.parallel.check`).
 
     Returns
     -------

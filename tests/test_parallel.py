@@ -260,7 +260,7 @@ def test_check_on_a_cluster_returns_the_serial_result(client, monkeypatch, outer
 def test_run_with_dask_certificate_stage_gives_the_serial_certificate(client, tmp_path,
                                                                       monkeypatch):
     """``nlyap run NAME --scheduler ADDR`` (no ``--seeds``): the certificate stage's checks
-    run on the cluster and the certificate is the serial run's, bit for bit."""
+    run on the cluster; status, level, area, checks and artifact hashes are the serial run's."""
     from nlyap_opt.cli import main
     from nlyap_opt.configs import make_config
     from nlyap_opt.pipeline import run

@@ -251,10 +251,9 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
     jac : systems.JacobianBound, optional
         From :func:`systems.jacobian.jacobian_from_data` (computed when omitted).
     P : (nx, nx) array_like, optional
-        The quadratic form; by default candidates solve
-        :math:`G^\top P + P G = -Q` for ``Q = I`` and ``I`` with one diagonal entry scaled
-        by 100 or 0.01 (as :func:`nlyap_opt.roa.certify_inner_ellipse`); the first one
-        that proves is returned.
+        The quadratic form; by default the candidates of
+        :func:`nlyap_opt.control.ellipse_candidates` for ``G`` (as
+        :func:`nlyap_opt.roa.certify_inner_ellipse`); the first one that proves is returned.
     dynamics, eta : Network, float, optional
         A learned ``φ`` with its bound ``‖f − φ‖₂ ≤ η`` (on ``eta_state_box`` ×
         ``eta_input_box``, default the system's boxes). When the data alone prove (c) only
@@ -400,15 +399,9 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
     if P is not None:
         candidates = [np.asarray(P, dtype=float)]
     else:
-        from .control import lyapunov_matrix
+        from .control import ellipse_candidates
 
-        weights = [np.ones(n)]
-        for i in range(n):
-            for f in (100.0, 0.01):
-                w = np.ones(n)
-                w[i] = f
-                weights.append(w)
-        candidates = [lyapunov_matrix(G, np.diag(w)) for w in weights]
+        candidates = ellipse_candidates(G)
     ctx = {"system": system, "controller": controller, "x": x, "Jk": Jk, "Hk": Hk,
            "k": ksym, "H": H, "G": G, "D": D, "D_norm": D_norm, "J_hat": J_hat, "E": E,
            "known": known_parts, "inner": inner}

@@ -245,12 +245,12 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     r"""Condition (c) for the true closed loop: ``E = {xᵀPx ≤ c_q} ⊇ B_ε`` is a certified
     quadratic Lyapunov sublevel set (``P J(y) + J(y)ᵀ P ≺ 0`` on a box containing ``E``).
 
-    Without ``P``, candidates ``P`` solve ``A_clᵀP + P A_cl = −Q_V`` for ``Q_V = I`` and
-    for ``I`` with one diagonal entry scaled by 100 or 0.01 (``A_cl`` the closed-loop
-    linearisation); the first one that certifies is returned. Returns a dict with
+    Without ``P``, the candidates of :func:`nlyap_opt.control.ellipse_candidates` for the
+    closed-loop linearisation ``A_cl`` are tried in turn; the first one that certifies is
+    returned. Returns a dict with
     ``status`` (``"certified"`` or why not), ``P``, ``level`` (``c_q``), ``box``.
     """
-    from .control import lyapunov_matrix
+    from .control import ellipse_candidates
     from .symbolic import closed_loop
 
     cl = closed_loop(system, controller, strict=True)
@@ -262,13 +262,7 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
         if np.max(np.linalg.eigvals(A_cl).real) >= 0:
             return {"status": "closed-loop linearisation not Hurwitz", "P": np.eye(system.nx),
                     "level": 0.0, "box": np.zeros(system.nx), "result": None}
-        weights = [np.ones(system.nx)]
-        for i in range(system.nx):
-            for f in (100.0, 0.01):
-                w = np.ones(system.nx)
-                w[i] = f
-                weights.append(w)
-        candidates = [lyapunov_matrix(A_cl, np.diag(w)) for w in weights]
+        candidates = ellipse_candidates(A_cl)
     first = None
     for Pc in candidates:
         out = _inner_ellipse(cl, J, Pc, inner, verify_options)
@@ -279,6 +273,25 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
 
 
 def _inner_ellipse(cl, J, P, inner, verify_options):
+    """Verify ``P J(y) + J(y)ᵀP ≺ 0`` on ``E = {xᵀPx ≤ c_q}`` (``c_q = λ_max(P) ε²``).
+
+    Two sufficient forms of ``S(y) = P J(y) + J(y)ᵀP ≺ 0``; the first that verifies wins:
+
+    - ``minors``: Sylvester's criterion, the leading minors of ``S`` alternate in sign.
+      Exact at a point (its counterexample is a point where ``S`` is not negative definite),
+      but the interval enclosure of a k×k determinant loosens quickly with k.
+    - ``frobenius``: with ``T`` the eigenvectors of ``S(0)`` scaled so that
+      ``TᵀS(0)T = −I`` and ``E(y) = Tᵀ(S(y) − S(0))T``: ``‖E(y)‖_F² < 1``. Then
+      ``TᵀS(y)T = −I + E(y)`` has ``λ_max ≤ −1 + ‖E‖₂ ≤ −1 + ‖E‖_F < 0``, and ``T`` is
+      invertible, so ``S(y) ≺ 0``. One smooth property, zero at ``y = 0``, whose terms
+      are quadratic in the variation of ``J`` (no cancellation of large entries for the
+      intervals to lose, no kink to disable the mean-value and affine forms). Measured on
+      the cartpole's saturated LQR loop with the round ``P`` at ε = 0.05: verified in
+      5.6·10⁵ boxes, while the minors stay unknown after 10⁶.
+
+    In up to 3 dimensions the minors go first (cheap and exact there), from 4 on the
+    Frobenius form.
+    """
     from verification import VerificationProblem
 
     from .parallel import check as verify
@@ -290,16 +303,27 @@ def _inner_ellipse(cl, J, P, inner, verify_options):
     a = np.sqrt(c_q * np.diag(np.linalg.inv(P))) * (1 + 1e-9)
     S = ca.mtimes(ca.DM(P), J)
     S = S + S.T
-    minors = _leading_minors(S)
-    props = [-((-1) ** k) * m for k, m in enumerate(minors, start=1)]  # (-1)^k m_k > 0
     # J only matters on E (convex: it holds every segment [0, x]); the box's corners reach
     # V = n·c_q, so the region is E itself
     Vq = ca.bilin(ca.DM(P), cl.x, cl.x)
-    prob = VerificationProblem(cl.x, np.stack([-a, a], axis=1), [Vq - c_q], props,
-                               ["ellipse"], [f"minor{k}" for k in range(1, n + 1)])
-    res = verify(prob, **(verify_options or {}))
+    box = np.stack([-a, a], axis=1)
+    minors = _leading_minors(S)
+    forms = [("minors", [-((-1) ** k) * m for k, m in enumerate(minors, start=1)])]
+    S0 = np.array(_fun(cl.x, S)(np.zeros(n)), dtype=float)
+    w, T = np.linalg.eigh(0.5 * (S0 + S0.T))
+    if np.all(np.isfinite(w)) and w[-1] < 0:
+        Tn = ca.DM(T / np.sqrt(-w))
+        E = ca.mtimes([Tn.T, S - ca.DM(S0), Tn])
+        frob = ("frobenius", [ca.sumsqr(E) - 1.0])
+        forms = forms + [frob] if n <= 3 else [frob] + forms
+    for form, props in forms:
+        prob = VerificationProblem(cl.x, box, [Vq - c_q], props, ["ellipse"],
+                                   [f"{form}{k}" for k in range(1, len(props) + 1)])
+        res = verify(prob, **(verify_options or {}))
+        if res.status == "verified":
+            break
     status = "certified" if res.status == "verified" else f"inner ellipse {res.status}"
-    return {"status": status, "P": P, "level": c_q, "box": a, "result": res}
+    return {"status": status, "P": P, "level": c_q, "box": a, "result": res, "form": form}
 
 
 def grid_area(mask: np.ndarray, box: np.ndarray) -> float:

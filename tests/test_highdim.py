@@ -217,3 +217,70 @@ def test_broken_controller_is_refused(name):
     assert not cert.certified
     assert cert.status is CertStatus.COUNTEREXAMPLE
     assert len(cert.counterexamples)
+
+
+# ------------------------------------------------------------------ condition (c) in 4-D / 6-D
+def _saturated_lqr_loop(name):
+    s = systems.get(name)
+    cfg = get_config(name, "large")
+    lq = cfg.get("lqr", {})
+    res = lqr(s, lq.get("Q"), lq.get("R"))
+    return s, res, saturated_controller(s, res.K, cfg["controller_scale"])
+
+
+@pytest.mark.parametrize("name", HIGHDIM)
+def test_round_lyapunov_matrix_solves_the_lmi_with_a_small_condition_number(name):
+    from nlyap_opt.control import ellipse_candidates, lyapunov_matrix, round_lyapunov_matrix
+
+    _, res, _ = _saturated_lqr_loop(name)
+    A = res.A - res.B @ res.K
+    P = round_lyapunov_matrix(A, decay_fraction=0.1)
+    alpha = 0.1 * -np.max(np.linalg.eigvals(A).real)
+    lam = np.linalg.eigvalsh(P)
+    assert lam[0] >= 1 - 1e-6
+    lmi = np.linalg.eigvalsh(A.T @ P + P @ A + 2 * alpha * P)
+    assert lmi[-1] <= 1e-6 * lam[-1]
+    # measured: cartpole 60 against 328, planar quadrotor 71 against 1194
+    assert np.linalg.cond(P) < 0.25 * np.linalg.cond(lyapunov_matrix(A))
+    cands = ellipse_candidates(A)
+    assert len(cands) == 2 + 2 * len(A)
+    np.testing.assert_allclose(cands[0], lyapunov_matrix(A))
+    np.testing.assert_allclose(cands[1], P)
+    assert round_lyapunov_matrix(-A) is None            # not Hurwitz: no candidate
+
+
+def test_inner_ellipse_of_the_saturated_cartpole_loop_needs_the_round_matrix():
+    """Condition (c) at ε = 0.025 for the cartpole's saturated LQR loop: the Lyapunov matrix
+    of Q_V = I (condition number 328) is refuted: its ellipse reaches 0.4 from the origin,
+    and the counterexample is a point where P J + JᵀP is not negative definite; the round
+    matrix (condition number 60) is certified by the Frobenius form."""
+    import casadi as ca
+
+    from nlyap_opt.control import lyapunov_matrix
+    from nlyap_opt.roa import certify_inner_ellipse
+    from nlyap_opt.symbolic import closed_loop
+
+    s, res, sat = _saturated_lqr_loop("cartpole")
+    opts = {"second_order": True}
+    P_I = lyapunov_matrix(res.A - res.B @ res.K)
+    bad = certify_inner_ellipse(s, sat, 0.025, P=P_I, verify_options=opts)
+    assert bad["status"] == "inner ellipse counterexample" and bad["form"] == "minors"
+    cl = closed_loop(s, sat, strict=True)
+    Jf = ca.Function("J", [cl.x], [ca.jacobian(cl.rhs, cl.x)])
+    for ce in bad["result"].counterexamples:
+        y = np.asarray(ce.point, dtype=float)
+        assert y @ P_I @ y <= bad["level"] * (1 + 1e-9)
+        Jy = np.array(Jf(y), dtype=float)
+        assert np.linalg.eigvalsh(P_I @ Jy + Jy.T @ P_I)[-1] >= -1e-9
+
+    good = certify_inner_ellipse(s, sat, 0.025, verify_options=opts)
+    assert good["status"] == "certified" and good["form"] == "frobenius"
+    assert np.linalg.cond(good["P"]) < 100
+    # sampled: P J + JᵀP ≺ 0 on the certified ellipse
+    rng = np.random.default_rng(0)
+    z = rng.normal(size=(300, 4))
+    z *= (rng.random((300, 1)) ** 0.25) / np.linalg.norm(z, axis=1, keepdims=True)
+    L = np.linalg.cholesky(good["P"])
+    for y in np.linalg.solve(L.T, (np.sqrt(good["level"]) * z).T).T:
+        Jy = np.array(Jf(y), dtype=float)
+        assert np.linalg.eigvalsh(good["P"] @ Jy + Jy.T @ good["P"])[-1] < 0

@@ -281,9 +281,10 @@ def _inner_ellipse(cl, J, P, inner, verify_options):
       Exact at a point (its counterexample is a point where ``S`` is not negative definite),
       but the interval enclosure of a k×k determinant loosens quickly with k.
     - ``frobenius``: with ``T`` the eigenvectors of ``S(0)`` scaled so that
-      ``TᵀS(0)T = −I`` and ``E(y) = Tᵀ(S(y) − S(0))T``: ``‖E(y)‖_F² < 1``. Then
-      ``TᵀS(y)T = −I + E(y)`` has ``λ_max ≤ −1 + ‖E‖₂ ≤ −1 + ‖E‖_F < 0``, and ``T`` is
-      invertible, so ``S(y) ≺ 0``. One smooth property, zero at ``y = 0``, whose terms
+      ``TᵀS(0)T = −I`` and ``E(y) = Tᵀ(S(y) − S(0))T``: ``‖E(y)‖_F < 1 − d``, with ``d``
+      a bound of the rounding residual ``‖TᵀS(0)T + I‖_F``. Then ``TᵀS(y)T`` has
+      ``λ_max ≤ −1 + d + ‖E‖₂ ≤ −1 + d + ‖E‖_F < 0``, and ``T`` is invertible, so
+      ``S(y) ≺ 0``. One smooth property, zero at ``y = 0``, whose terms
       are quadratic in the variation of ``J`` (no cancellation of large entries for the
       intervals to lose, no kink to disable the mean-value and affine forms). Measured on
       the cartpole's saturated LQR loop with the round ``P`` at ε = 0.05: verified in
@@ -312,10 +313,16 @@ def _inner_ellipse(cl, J, P, inner, verify_options):
     S0 = np.array(_fun(cl.x, S)(np.zeros(n)), dtype=float)
     w, T = np.linalg.eigh(0.5 * (S0 + S0.T))
     if np.all(np.isfinite(w)) and w[-1] < 0:
-        Tn = ca.DM(T / np.sqrt(-w))
-        E = ca.mtimes([Tn.T, S - ca.DM(S0), Tn])
-        frob = ("frobenius", [ca.sumsqr(E) - 1.0])
-        forms = forms + [frob] if n <= 3 else [frob] + forms
+        Tn = T / np.sqrt(-w)
+        E = ca.mtimes([ca.DM(Tn).T, S - ca.DM(S0), ca.DM(Tn)])
+        # TᵀS(0)T is −I only up to rounding: λ_max(TᵀS(y)T) ≤ −1 + d + ‖E‖₂ with d ≥
+        # ‖TᵀS(0)T + I‖_F (float residual plus the bound γ_2n |T|ᵀ|S(0)||T| of the products)
+        d = (np.linalg.norm(Tn.T @ S0 @ Tn + np.eye(n))
+             + 4 * n * np.finfo(float).eps * np.linalg.norm(np.abs(Tn).T @ np.abs(S0)
+                                                            @ np.abs(Tn))) * (1 + 1e-6)
+        if d < 0.5:     # (1 − d)² is the bound only while d < 1
+            frob = ("frobenius", [ca.sumsqr(E) - (1.0 - d) ** 2])
+            forms = forms + [frob] if n <= 3 else [frob] + forms
     for form, props in forms:
         prob = VerificationProblem(cl.x, box, [Vq - c_q], props, ["ellipse"],
                                    [f"{form}{k}" for k in range(1, len(props) + 1)])

@@ -140,25 +140,24 @@ def round_lyapunov_matrix(A_cl, decay_fraction: float = 0.1) -> np.ndarray | Non
     return None
 
 
-def ellipse_candidates(A_cl) -> list[np.ndarray]:
+def ellipse_candidates(A_cl):
     """Candidate matrices ``P`` of condition (c)'s quadratic ``xᵀPx``, in the order tried.
 
     The Lyapunov matrix of ``Q_V = I``; the round one (:func:`round_lyapunov_matrix`);
     then those of ``Q_V = I`` with one diagonal entry scaled by 100 or 0.01. Each is only a
-    candidate: the caller verifies condition (c) with it.
+    candidate: the caller verifies condition (c) with it. A generator: a caller that stops
+    at the first certified candidate solves no SDP when ``Q_V = I`` already certifies.
     """
     n = np.asarray(A_cl).shape[0]
-    weights = []
+    yield lyapunov_matrix(A_cl)
+    P = round_lyapunov_matrix(A_cl)
+    if P is not None:
+        yield P
     for i in range(n):
         for f in (100.0, 0.01):
             w = np.ones(n)
             w[i] = f
-            weights.append(w)
-    out = [lyapunov_matrix(A_cl)]
-    P = round_lyapunov_matrix(A_cl)
-    if P is not None:
-        out.append(P)
-    return out + [lyapunov_matrix(A_cl, np.diag(w)) for w in weights]
+            yield lyapunov_matrix(A_cl, np.diag(w))
 
 
 def linearisation(system, dynamics: Network | None = None) -> tuple[np.ndarray, np.ndarray]:

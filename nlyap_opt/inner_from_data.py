@@ -401,7 +401,7 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
     else:
         from .control import ellipse_candidates
 
-        candidates = ellipse_candidates(G)
+        candidates = list(ellipse_candidates(G))  # iterated twice below
     ctx = {"system": system, "controller": controller, "x": x, "Jk": Jk, "Hk": Hk,
            "k": ksym, "H": H, "G": G, "D": D, "D_norm": D_norm, "J_hat": J_hat, "E": E,
            "known": known_parts, "inner": inner}

@@ -242,7 +242,7 @@ def test_round_lyapunov_matrix_solves_the_lmi_with_a_small_condition_number(name
     assert lmi[-1] <= 1e-6 * lam[-1]
     # measured: cartpole 60 against 328, planar quadrotor 71 against 1194
     assert np.linalg.cond(P) < 0.25 * np.linalg.cond(lyapunov_matrix(A))
-    cands = ellipse_candidates(A)
+    cands = list(ellipse_candidates(A))
     assert len(cands) == 2 + 2 * len(A)
     np.testing.assert_allclose(cands[0], lyapunov_matrix(A))
     np.testing.assert_allclose(cands[1], P)

@@ -286,3 +286,14 @@ def test_robust_lie_with_smoothing_bounds_every_perturbed_lie_derivative():
     assert np.all(L + np.sum(G * e, axis=0) <= Rs + 1e-15)
     with pytest.raises(ValueError, match="smoothing"):
         robust_lie(lie, V, x, eta, -1.0)
+
+
+def test_boxes_and_executor_exclude_each_other():
+    """``boxes=`` (a task's sub-boxes) with an executor is refused, not silently ignored."""
+    from verification.verify import verify_interval
+
+    x = ca.MX.sym("x", 1)
+    prob = VerificationProblem(x, np.array([[-1.0, 1.0]]), [], [x[0] - 2.0], [], ["p"])
+    with ThreadPoolExecutor(1) as ex, pytest.raises(ValueError, match="exclude each other"):
+        verify_interval(prob, boxes=np.array([[[-1.0, 0.0]]]), executor=ex)
+    assert verify_interval(prob, boxes=np.array([[[-1.0, 0.0]]])).status == "verified"

@@ -717,12 +717,6 @@ def verify_interval(
     second_order = bool(second_order) and bool(mean_value)
     if second_order:
         problem.second_order_functions  # built here, so that they travel to workers
-    if executor is not None:
-        return _verify_distributed(problem, executor, n_tasks, t0, resolution=resolution,
-                                   max_boxes=max_boxes, batch=batch, mean_value=mean_value,
-                                   affine=affine, presearch=presearch, stop_at_first=stop_at_first,
-                                   keep_leaves=keep_leaves, seed=seed,
-                                   initial_boxes=initial_boxes, second_order=second_order)
     if boxes is not None:
         boxes = np.asarray(boxes, dtype=float)
         if boxes.ndim != 3 or boxes.shape[1:] != (problem.n, 2) or \
@@ -730,7 +724,13 @@ def verify_interval(
             raise DimensionError(f"boxes must have shape (k, {problem.n}, 2) with lower <= "
                                  f"upper, got {boxes.shape}")
         if executor is not None:
-            raise ValueError("boxes and executor exclude each other")
+            raise ValueError("boxes and executor exclude each other: give one of them")
+    if executor is not None:
+        return _verify_distributed(problem, executor, n_tasks, t0, resolution=resolution,
+                                   max_boxes=max_boxes, batch=batch, mean_value=mean_value,
+                                   affine=affine, presearch=presearch, stop_at_first=stop_at_first,
+                                   keep_leaves=keep_leaves, seed=seed,
+                                   initial_boxes=initial_boxes, second_order=second_order)
     with _single_thread_blas():
         return _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
                              stop_at_first, keep_leaves, seed, initial_boxes, progress,

@@ -421,7 +421,8 @@ def _decrease_text(problem: RoaProblem, margin: float, smoothing: float) -> str:
 
 
 def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
-                check_inner_ellipse: bool = True, log=print) -> RoaCertificate:
+                check_inner_ellipse: bool = True, follow_violations: bool = False,
+                log=print) -> RoaCertificate:
     r"""Prove conditions (a), (b), (c) at ``level`` (or, with ``search``, at the largest level
     reachable from it downwards; see :func:`nlyap_opt.roa.certify_level`).
 
@@ -435,6 +436,9 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     check_inner_ellipse : bool
         Run condition (c) (``False`` only inside CEGIS iterations, which certify (c) once
         at the end through the pipeline's certificate stage).
+    follow_violations : bool
+        With ``search``: follow decrease counterexamples down to the least ``V`` of a
+        violation (:func:`nlyap_opt.roa.certify_level`).
 
     Returns
     -------
@@ -470,7 +474,7 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     lc = certify_level(dec.x, dec.V, dec.lie, level=level, inner=problem.inner,
                        domain=problem.domain, margin=margin, max_tries=8 if search else 1,
                        shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
-                       log=log)
+                       log=log, follow_violations=follow_violations)
     last = lc.history[-1] if lc.history else {}
     checks = {"(a) decrease": last.get("decrease") or "not run",
               "(b) V > level on ‖x‖ = r" if problem.domain.plain_ball else "(b) V > level on ∂D":
@@ -620,7 +624,8 @@ INNER_FACTORS = (1.0, 0.5, 0.25, 2.0, 0.125, 3.0)
 
 
 def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
-                              factors=INNER_FACTORS, log=print) -> RoaCertificate:
+                              factors=INNER_FACTORS, follow_violations: bool = False,
+                              log=print) -> RoaCertificate:
     r""":func:`certify_roa` at the configured inner radius ε, then at other radii.
 
     The inner radius is a trade-off the user should not have to tune: a small ε makes
@@ -630,8 +635,9 @@ abla V\|` (learned f) can beat it;
     a large ε the other way round. The same ``V`` and ``κ`` are re-checked with
     ``ε·factor`` for each factor (no retraining); the first radius that certifies wins (the
     configured one first). Without ``level`` each radius gets its own candidate level
-    (:func:`nlyap_opt.roa.candidate_level`). Returns the certificate (its ``history`` lists
-    every radius tried) or the configured radius's refusal.
+    (:func:`nlyap_opt.roa.candidate_level`); ``follow_violations`` goes to
+    :func:`certify_roa`. Returns the certificate (its ``history`` lists every radius tried)
+    or the configured radius's refusal.
     """
     from dataclasses import replace
 
@@ -655,7 +661,8 @@ abla V\|` (learned f) can beat it;
         if not lv > 0:
             tried.append({"inner": eps, "status": "no positive candidate level"})
             continue
-        cert = certify_roa(p, lv, search=f != 1.0 or level is None, log=log)
+        cert = certify_roa(p, lv, search=f != 1.0 or level is None,
+                           follow_violations=follow_violations, log=log)
         tried.append({"inner": eps, "status": cert.status.value, "reason": cert.reason,
                       "level": cert.level})
         first = first or cert
@@ -787,11 +794,13 @@ def problem_to_dict(problem: RoaProblem) -> dict:
 
 
 def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
-                     extra: dict | None = None, *, name: str = "certificate.json") -> Path:
+                     extra: dict | None = None, *, name: str = "certificate.json",
+                     files: dict | None = None) -> Path:
     """Write the certificate with its artifacts into directory ``out``.
 
-    Networks are saved (``V.json``, ``controller.json``, ``dynamics.json``; other ``V`` as a
-    CasADi Function ``V.casadi``) unless a file with that name already holds them, and each is
+    Networks are saved (``V.json``, ``controller.json``, ``dynamics.json``, or the names
+    ``files`` gives per role, e.g. ``{"V": "V_quadratic.json"}``; other ``V`` as a CasADi
+    Function ``V.casadi``) unless a file with that name already holds them, and each is
     recorded with its sha256. ``extra`` (areas, true-f checks, timings) is stored beside the
     certificate's own fields. The file is written atomically.
     """
@@ -803,7 +812,7 @@ def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
         if obj is None:
             continue
         if isinstance(obj, Network):
-            f = out / f"{role}.json"
+            f = out / (files or {}).get(role, f"{role}.json")
             if not f.exists() or Network.load(f).to_dict() != obj.to_dict():
                 obj.save(f)
             arts[role] = {"file": f.name, "sha256": sha256_file(f), "kind": "network"}

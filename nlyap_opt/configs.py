@@ -181,6 +181,10 @@ PRESETS["cartpole"] = {
         # Q = diag(10, 1, 1, 1): the best-conditioned LQR P of a small weight scan (cond 330)
         "lqr": {"Q": [[10.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]],
                 "R": 1.0},
+        # the cheap certificates first (nlyap_opt.quadratic): the LQR P certifies level
+        # 0.0193 (volume 0.0032), the round P level 0.999 (volume 0.154, 48 times); the
+        # neural V must beat the better one or the quadratic is the run's certificate
+        "quadratic": ["lyapunov", "round"],
         "train": {"hidden": [16], "features": 6, "steps": 1500, "lr": 0.01,
                   "w_local": 10.0, "lr_schedule": "cosine"},
         "cegis": {"iterations": 4, "steps": 500, "samples": 20000, "area_points": 50625,
@@ -269,7 +273,9 @@ class Key:
 
     def describe(self) -> str:
         """What the key accepts, in words (``"an integer >= 1"``)."""
-        if self.choices:
+        if self.choices and self.kind == "str_list":
+            want = "a list of names from " + ", ".join(repr(c) for c in self.choices)
+        elif self.choices:
             want = "one of " + ", ".join(repr(c) for c in self.choices)
         else:
             want = {"int": "an integer", "float": "a finite number", "bool": "true or false",
@@ -351,6 +357,9 @@ _TOP_DOCS = {
     "eval_box": "box of the area grid and of the simulated true ROA",
     "eval_points": "total point budget of that grid (per axis: the largest n with n^nx <= it)",
     "dynamics": "learned-dynamics stage (nlyap_opt.dynamics_config.DynamicsConfig)",
+    "quadratic": "quadratic V = xᵀPx certified before the neural stage, under the initial "
+                 "controller ('lyapunov': A_clᵀP + PA_cl = -I, 'round': min cond P); the "
+                 "larger certified volume wins ([]: off; nlyap_opt.quadratic)",
     "system": "informational; must name the system being run",
     "preset": "informational; must name the preset the file is merged over",
     "comment": "free text",
@@ -426,6 +435,12 @@ def _verify_option_keys() -> dict[str, Key]:
     return out
 
 
+def _quadratic_names() -> tuple:
+    from .quadratic import QUADRATIC_CANDIDATES
+
+    return tuple(QUADRATIC_CANDIDATES)
+
+
 @functools.cache
 def schema() -> dict[str, dict[str, Key]]:
     """Every key of the run configuration: ``{section: {key: Key}}``, ``""`` the top level.
@@ -451,6 +466,8 @@ def schema() -> dict[str, dict[str, Key]]:
         "eval_box": Key("eval_box", "box", None, doc=d["eval_box"]),
         "eval_points": Key("eval_points", "int", 40000, lo=4, doc=d["eval_points"]),
         "dynamics": Key("dynamics", "section", {}, doc=d["dynamics"]),
+        "quadratic": Key("quadratic", "str_list", [], choices=_quadratic_names(),
+                         doc=d["quadratic"]),
         "system": Key("system", "str", doc=d["system"]),
         "preset": Key("preset", "str", optional=True, doc=d["preset"]),
         "comment": Key("comment", "str", doc=d["comment"]),
@@ -525,6 +542,18 @@ def _check_value(key: Key, v, where: str) -> None:
         if not vals or not all(_is_real(a) and math.isfinite(a) and _in_range(key, a)
                                for a in vals):
             bad()
+    elif k == "str_list":
+        if not isinstance(v, (list, tuple)) or not all(isinstance(h, str) for h in v):
+            bad()
+        for h in v:
+            if h not in key.choices:
+                close = difflib.get_close_matches(h, key.choices, n=1)
+                hint = f"; did you mean {close[0]!r}?" if close else ""
+                raise ConfigError(f"{where}: {key.name} must be {key.describe()}, "
+                                  f"got {h!r} in it{hint}")
+        if len(set(v)) != len(v):
+            raise ConfigError(f"{where}: {key.name} lists a name twice ({_show(v)}); list "
+                              "each candidate once")
     elif k == "int_list":
         if not isinstance(v, (list, tuple)) or not v or \
                 not all(_is_int(h) and _in_range(key, h) for h in v):

@@ -6,11 +6,17 @@ configuration loads finished stages instead of recomputing them):
 1. ``dynamics`` — learn φ on a grid, compute α, δ, K_f, K_φ, η (skipped with
    ``known_dynamics``);
 2. ``controller`` — LQR on the linearisation, saturated controller with solved bias;
-3. ``cegis`` — learn V and κ, certify conditions (a) and (b) at a level;
-4. ``certificate`` — always rerun: the saved V, κ, φ are verified again at the saved level
+3. ``quadratic`` — only when the configuration lists ``quadratic`` candidates: the cheap
+   certificates ``V = xᵀPx`` under the initial controller (:mod:`nlyap_opt.quadratic`);
+   the best one is saved as ``V_quadratic.json``;
+4. ``cegis`` — learn V and κ, certify conditions (a) and (b) at a level;
+5. ``certificate`` — always rerun: the saved V, κ, φ are verified again at the saved level
    with conditions (a), (b), (c) (:func:`nlyap_opt.certificate.certify_roa`) before
-   ``certified`` is written; certified and true-ROA areas, the check of the *same* V and κ
-   against the true f (a benchmark, reported separately); ``report.md`` and ``roa.png``.
+   ``certified`` is written, and so is the saved quadratic; the larger certified volume on
+   the evaluation grid wins (the neural V on a tie) and is written as ``certificate.json``,
+   the other listed under ``candidates``; certified and true-ROA areas, the check of the
+   *same* V and κ against the true f (a benchmark, reported separately); ``report.md`` and
+   ``roa.png``.
 
 Nothing on disk is trusted without a check: ``stages.json`` records, per stage, the hash of
 the configuration it read and the sha256 of every file it wrote; a stage whose files changed
@@ -87,12 +93,15 @@ class RunResult:
 _STAGE_KEYS = {
     "dynamics": ("dynamics",),
     "controller": ("lqr", "controller_scale"),
+    "quadratic": ("inner", "outer", "domain", "initial_set", "quadratic", "cegis", "eval_box",
+                  "eval_points"),
     "cegis": ("inner", "outer", "domain", "initial_set", "train", "cegis"),
 }
 #: the files each stage writes (the sha256 of each is recorded)
 _STAGE_FILES = {
     "dynamics": ("dynamics.json", "bounds.json"),
     "controller": ("controller_init.json", "lqr.json"),
+    "quadratic": ("quadratic.json", "V_quadratic.json"),
     "cegis": ("V.json", "controller.json", "cegis.json"),
 }
 
@@ -326,7 +335,20 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
             stages.mark("controller", *cdeps)
         controller = Network.load(out / "controller_init.json")
 
-    # ---------------------------------------------------------------- 3. CEGIS
+    mode = cfg.get("cegis", {}).get("margin_mode", "pointwise")
+    assumed = [] if bounds_info is None else \
+        [f"{bounds_info['bound_model']['name']} bound"] + list(
+            bounds_info["bound_model"].get("assumptions", []))
+
+    def problem_of(V, ctrl, **kw):
+        return RoaProblem(system, V, ctrl, dynamics, inner=eps, outer=r, eta=eta,
+                          margin_mode=mode, domain=D, initial_set=XI, dynamics_box=dyn_box,
+                          input_box=input_box, dynamics_assumptions=assumed, **kw)
+
+    # ---------------------------------------------------------------- 3. quadratic
+    quad = _quadratic_stage(system, cfg, out, stages, controller, problem_of, log)
+
+    # ---------------------------------------------------------------- 4. CEGIS
     deps = ("dynamics", "controller")
     if not stages.finished("cegis", *deps):
         t = time.perf_counter()
@@ -338,6 +360,9 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
         log(f"[cegis] learning V{' and κ' if controller is not None else ''} on {where}"
             + (f", X_I = {XI.describe()}" if XI is not None else "")
             + (f" with η = {eta:.3g}" if eta else " (true f)"))
+        if quad is not None:
+            log(f"[cegis] the certificate to beat: quadratic {quad['name']}, volume "
+                f"{quad['volume']:.4g} on the evaluation grid")
         res = cegis(system, controller, dynamics, ccfg, eta=eta, dynamics_box=dyn_box,
                     input_box=input_box, log=log)
         res.V.save(out / "V.json")
@@ -353,17 +378,10 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
     V = Network.load(out / "V.json")
     controller = Network.load(out / "controller.json") if controller is not None else None
 
-    # ---------------------------------------------------------------- 4. certificate
+    # ---------------------------------------------------------------- 5. certificate
     t = time.perf_counter()
-    mode = cfg.get("cegis", {}).get("margin_mode", "pointwise")
-    problem = RoaProblem(
-        system, V, controller, dynamics, inner=eps, outer=r, eta=eta, margin_mode=mode,
-        domain=D, initial_set=XI,
-        smoothing=float(cg.get("smoothing", 0.0)) if mode == "pointwise" else None,
-        dynamics_box=dyn_box, input_box=input_box,
-        dynamics_assumptions=[] if bounds_info is None else
-        [f"{bounds_info['bound_model']['name']} bound"] + list(
-            bounds_info["bound_model"].get("assumptions", [])))
+    problem = problem_of(V, controller, smoothing=float(cg.get("smoothing", 0.0))
+                         if mode == "pointwise" else None)
     claimed = cg["status"] == CertStatus.CERTIFIED.value and float(cg["level"]) > 0
     if claimed:
         log(f"[certificate] verifying the saved V{', κ' if controller else ''}"
@@ -378,7 +396,11 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
     with verifying_on(client):   # client None: serial
         cert = certify_with_inner_search(problem, float(cg["level"]) if claimed else None,
                                          log=lambda m: log("  " + m))
+        cert, problem, files, compared = _best_certificate(
+            system, cfg, out, cert, problem, quad, problem_of, log)
         extra = _areas_and_checks(system, cfg, cert, problem, out, log)
+        if compared:
+            extra["candidates"] = compared
     seconds["certificate"] = time.perf_counter() - t
     sec_file = out / "seconds.json"
     prev = {}
@@ -393,7 +415,7 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
     if bounds_info is not None:
         extra["dynamics_bound"] = {k: bounds_info.get(k) for k in
                                    ("eta", "alpha", "delta", "K_f", "K_phi", "bound_model")}
-    path = save_certificate(cert, problem, out, extra)
+    path = save_certificate(cert, problem, out, extra, files=files)
     summary = json.loads(path.read_text())
     from .report import write_report
 
@@ -410,6 +432,93 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
     return RunResult(cert, cert.status, summary, out, cert.reason)
 
 
+def _eval_grid(system, cfg) -> tuple[np.ndarray, int]:
+    from .roa import axis_count
+
+    return np.asarray(cfg["eval_box"], dtype=float), axis_count(int(cfg["eval_points"]),
+                                                                system.nx)
+
+
+def _quadratic_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> dict | None:
+    """Stage 3: the quadratic candidates of ``cfg["quadratic"]``; returns the best certified
+    one's record (``quadratic.json``'s ``best``) or ``None``."""
+    names = list(cfg.get("quadratic") or [])
+    if not names:
+        return None
+    from .control import quadratic_lyapunov
+    from .quadratic import certify_quadratics
+
+    deps = ("dynamics", "controller")
+    if not stages.finished("quadratic", *deps):
+        t = time.perf_counter()
+        log(f"[quadratic] certifying V = xᵀPx under the initial controller: "
+            f"{', '.join(names)}")
+        box, n = _eval_grid(system, cfg)
+        opts = dict(cfg.get("cegis", {}).get("verify_options", {}))
+        found = certify_quadratics(problem_of(quadratic_lyapunov(np.eye(system.nx)),
+                                              controller, verify_options=opts),
+                                   names, box=box, n=n, log=log)
+        ok = [c for c in found if c.certified]
+        best = max(ok, key=lambda c: c.volume) if ok else None
+        (out / "V_quadratic.json").unlink(missing_ok=True)
+        if best is not None:
+            quadratic_lyapunov(best.P).save(out / "V_quadratic.json")
+        write_json_atomic(out / "quadratic.json", {
+            "candidates": [c.to_dict() for c in found],
+            "best": None if best is None else dict(best.to_dict(), verify_options=opts),
+            "seconds": time.perf_counter() - t})
+        stages.mark("quadratic", *deps)
+        log(f"[quadratic] {'best: ' + best.name if best else 'none certified'} "
+            f"({time.perf_counter() - t:.1f} s)")
+    rec = json.loads((out / "quadratic.json").read_text())
+    return rec.get("best")
+
+
+def _best_certificate(system, cfg, out: Path, cert, problem, quad, problem_of, log):
+    """The best certificate wins: re-verify the saved quadratic at its saved level and ε,
+    keep the larger certified volume on the evaluation grid (the neural V on a tie).
+
+    Returns ``(cert, problem, files, compared)``: the winner, its problem, the artifact file
+    names of :func:`save_certificate` and the table of both (``[]`` without a quadratic).
+    """
+    from dataclasses import replace
+
+    from .certificate import certify_roa
+
+    if quad is None:
+        return cert, problem, None, []
+    box, n = _eval_grid(system, cfg)
+    ctrl0 = Network.load(out / "controller_init.json") if system.nu else None
+    pq = replace(problem, V=Network.load(out / "V_quadratic.json"), controller=ctrl0,
+                 inner=float(quad["inner"]), smoothing=None,
+                 verify_options=dict(quad.get("verify_options") or {}))
+    log(f"[certificate] verifying the saved quadratic {quad['name']} (V_quadratic.json) at its "
+        f"saved level {float(quad['level']):.6g}, ε = {float(quad['inner']):g}")
+    qcert = certify_roa(pq, float(quad["level"]), log=lambda m: log("  " + m))
+    vol_n = cert.area(box, n) if cert.certified else 0.0
+    vol_q = qcert.area(box, n) if qcert.certified else 0.0
+    quad_wins = qcert.certified and (vol_q > vol_n or not cert.certified)
+    compared = [
+        {"V": "neural (V.json)", "controller": "controller.json" if system.nu else None,
+         "status": cert.status.value, "reason": cert.reason, "level": cert.level,
+         "inner": cert.inner, "certified_volume": vol_n, "winner": not quad_wins},
+        {"V": f"quadratic {quad['name']} (V_quadratic.json)",
+         "controller": "controller_init.json" if system.nu else None,
+         "status": qcert.status.value, "reason": qcert.reason, "level": qcert.level,
+         "inner": qcert.inner, "certified_volume": vol_q, "winner": quad_wins}]
+    log(f"[certificate] best certificate: {'quadratic ' + quad['name'] if quad_wins else 'neural'}"
+        f" (certified volume {max(vol_n, vol_q) if quad_wins else vol_n:.4g}; neural "
+        f"{cert.status.value} {vol_n:.4g}, quadratic {qcert.status.value} {vol_q:.4g})")
+    if not quad_wins:
+        return cert, problem, None, compared
+    qcert.assumptions.append(
+        f"the certified V is the quadratic xᵀPx ({quad['name']} candidate, V_quadratic.json) "
+        "under the initial controller (controller_init.json): it covers a larger volume than "
+        "the neural V")
+    files = {"V": "V_quadratic.json", "controller": "controller_init.json"}
+    return qcert, pq, files, compared
+
+
 def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, out: Path,
                       log) -> dict:
     """Certified and true-ROA areas on the evaluation grid; the same V and κ against the
@@ -417,10 +526,9 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     from verification import closed_loop_problem
 
     from .parallel import check as verify
-    from .roa import axis_count, grid_area, grid_points, true_roa_mask
+    from .roa import grid_area, grid_points, true_roa_mask
 
-    box = np.asarray(cfg["eval_box"], dtype=float)
-    n = axis_count(int(cfg["eval_points"]), system.nx)   # nodes per axis
+    box, n = _eval_grid(system, cfg)   # n: nodes per axis
     pts, shape = grid_points(box, n)
     omega = cert.contains(pts).reshape(shape)
     controller = problem.controller

@@ -100,6 +100,14 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   "", f"- decrease of the same V under the true f at the same level: "
                   f"{tc['decrease_true_f']}",
                   f"- inner ellipse under the true f: {tc['inner_ball_true_f']}", ""]
+    if cert.get("candidates"):
+        lines += ["## Best certificate (the larger certified volume wins)", "",
+                  "| V | κ | status | level | ε | certified volume | winner |",
+                  "|---|---|---|---|---|---|---|"]
+        lines += [f"| {c['V']} | {c['controller'] or '—'} | {c['status']} | "
+                  f"{c['level']:.6g} | {c['inner']:g} | {c['certified_volume']:.4g} | "
+                  f"{'**yes**' if c['winner'] else 'no'} |" for c in cert["candidates"]]
+        lines.append("")
     lines += ["## CEGIS history", "", "| it | loss | candidate level | status | level | area "
               f"in {'ball' if ball else 'D'} | margin | verify s |",
               "|---|---|---|---|---|---|---|---|"]
@@ -131,9 +139,11 @@ def plot_roa(path, system, cert: dict, out: Path):
     from .network import Network
     from .roa import grid_points
 
-    V = Network.load(out / "V.json")
+    arts = cert.get("artifacts", {})   # the certified V and κ (the neural or a quadratic)
+    V = Network.load(out / arts.get("V", {}).get("file", "V.json"))
     D, XI, _ = _sets(cert, system.nx)
-    ctrl = Network.load(out / "controller.json") if (out / "controller.json").exists() else None
+    cfile = out / arts.get("controller", {}).get("file", "controller.json")
+    ctrl = Network.load(cfile) if system.nu and cfile.exists() else None
     box = np.asarray(cert["eval_box"], dtype=float)
     nx = len(box)
     n = 300

@@ -79,34 +79,15 @@ def candidate_level(x: ca.MX, V: ca.MX, lie: ca.MX, *, inner: float, outer=None,
         if v[i] < best[0]:
             best = (float(v[i]), pts[i], "decrease")
     # IPOPT refinement (multi-start) of both parts
-    opts = {"ipopt.print_level": 0, "print_time": 0, "ipopt.sb": "yes",
-            "ipopt.max_iter": 200, "ipopt.tol": 1e-10}
-    r2 = ca.sumsqr(x)
-    plain = D.plain_ball   # the ball: ‖x‖² ≤ r² in one row
-    region = [] if plain else [g for g, _ in D.constraints(x)]
-    ub_r2 = D.radius**2 if plain else np.inf
-    nlp_dec = ca.nlpsol("lev_dec", "ipopt",
-                        {"x": x, "f": V, "g": ca.vertcat(lie + margin, r2, *region)}, opts)
-    bb = D.bounding_box()
-    bounds = {} if plain else {"lbx": bb[:, 0], "ubx": bb[:, 1]}
     starts_dec = pts[np.argsort(np.where(bad, v, np.inf))[:n_starts]][: int(bad.sum())]
     starts_dec = np.vstack([starts_dec, pts[np.argsort(-d)[: max(1, n_starts // 3)]]])
-    for x0 in starts_dec:
-        try:
-            sol = nlp_dec(x0=x0, lbg=[0.0, inner**2] + [-np.inf] * len(region),
-                          ubg=[np.inf, ub_r2] + [0.0] * len(region), **bounds)
-        except RuntimeError:
-            continue
-        xs = np.array(sol["x"]).ravel()
-        vv, dd = (float(a) for a in F(xs))
-        inside = xs @ xs <= ub_r2 + 1e-9 if plain else bool(D.contains(xs, tol=1e-9)[0])
-        ok = dd >= -margin - 1e-9 and inner**2 - 1e-9 <= xs @ xs and inside
-        if ok and vv < best[0]:
-            best = (vv, xs, "decrease")
+    found = least_violation(x, V, lie, starts_dec, inner=inner, domain=D, margin=margin)
+    if found is not None and found[0] < best[0]:
+        best = (found[0], found[1], "decrease")
     for piece in D.boundary_nlp(x):
         g = piece.get("g")
         nlp_b = ca.nlpsol("lev_sph", "ipopt", {"x": x, "f": V, "g": g if g is not None
-                                              else type(x)()}, opts)
+                                              else type(x)()}, _IPOPT)
         on = np.flatnonzero(piece["on"](sph))
         for x0 in sph[on[np.argsort(vs[on])[:n_starts]]]:
             kw = {k: piece[k] for k in ("lbg", "ubg", "lbx", "ubx") if k in piece}
@@ -125,6 +106,47 @@ def candidate_level(x: ca.MX, V: ca.MX, lie: ca.MX, *, inner: float, outer=None,
         viol = np.vstack([np.asarray(best[1])[None], viol])
     return LevelCandidate(best[0], np.asarray(best[1]), best[2], time.perf_counter() - t0,
                           viol.reshape(-1, n))
+
+
+_IPOPT = {"ipopt.print_level": 0, "print_time": 0, "ipopt.sb": "yes", "ipopt.max_iter": 200,
+          "ipopt.tol": 1e-10}
+
+
+def least_violation(x, V, lie, starts, *, inner: float, domain, margin: float = 0.0,
+                    tol: float = 1e-9):
+    r"""Least ``V`` over :math:`\{x \in D\setminus B_\varepsilon: \nabla V\cdot g + \beta
+    \ge 0\}` by IPOPT from each start: ``(V, x)`` of the best point that satisfies the
+    constraints when re-evaluated, or ``None``.
+
+    With ``tol = 0`` no level at or above the returned ``V`` can satisfy condition (a): the
+    point violates the decrease inside it (a local search: smaller violations may exist).
+    IPOPT ends on the constraint ``∇V·g + β ≥ 0`` from inside, a little below zero (about
+    −1e-8); ``tol`` accepts such points. Only a level to try comes from here, never a proof.
+    """
+    D = domain
+    F = _fun(x, V, lie)
+    r2 = ca.sumsqr(x)
+    plain = D.plain_ball   # the ball: ‖x‖² ≤ r² in one row
+    region = [] if plain else [g for g, _ in D.constraints(x)]
+    ub_r2 = D.radius**2 if plain else np.inf
+    nlp = ca.nlpsol("lev_dec", "ipopt",
+                    {"x": x, "f": V, "g": ca.vertcat(lie + margin, r2, *region)}, _IPOPT)
+    bb = D.bounding_box()
+    bounds = {} if plain else {"lbx": bb[:, 0], "ubx": bb[:, 1]}
+    best = None
+    for x0 in np.atleast_2d(np.asarray(starts, dtype=float)):
+        try:
+            sol = nlp(x0=x0, lbg=[0.0, inner**2] + [-np.inf] * len(region),
+                      ubg=[np.inf, ub_r2] + [0.0] * len(region), **bounds)
+        except RuntimeError:
+            continue
+        xs = np.array(sol["x"]).ravel()
+        vv, dd = (float(a) for a in F(xs))
+        inside = xs @ xs <= ub_r2 + 1e-9 if plain else bool(D.contains(xs, tol=1e-9)[0])
+        ok = dd >= -margin - tol and inner**2 - 1e-9 <= xs @ xs and inside
+        if ok and (best is None or vv < best[0]):
+            best = (vv, xs)
+    return best
 
 
 def _domain(domain, outer, n: int):
@@ -150,14 +172,18 @@ class LevelCertificate:
 
 def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: float,
                   max_tries: int = 8, shrink: float = 1e-3, verify_options: dict | None = None,
-                  log=print, domain=None) -> LevelCertificate:
+                  log=print, domain=None, follow_violations: bool = False) -> LevelCertificate:
     """Prove (a) and (b) at the largest level we can reach from ``level`` downwards.
 
     The region is ``domain`` (a :class:`nlyap_opt.domain.Region`) or the ball
     ``‖x‖ ≤ outer``; (b) is checked on every piece of its boundary (each face of a box).
     Counterexamples lower the level to just below ``V`` at the counterexample; ``unknown``
     verdicts lower it by 0.5 %, then 1.5 %, 4.5 %, 13.5 %, 30 %, ... (an ``unknown`` is
-    usually a near-tangency that a small step resolves). Returns the certified level or
+    usually a near-tangency that a small step resolves). With ``follow_violations``, a
+    decrease counterexample is followed down by :func:`least_violation` (IPOPT from the
+    counterexamples) and the level drops to just below the least ``V`` found: in 4-D and up
+    the violation set is thin and the counterexamples' own ``V`` only creeps down (off by
+    default, so that existing certificates do not move). Returns the certified level or
     why none was found.
     """
     from verification import VerificationProblem, lyapunov_problem
@@ -214,6 +240,12 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
             pts = np.array([ce.point for ce in bad.counterexamples])
             cexs += list(pts)
             vmin = float(np.min(evaluate(Vf, [pts])[0]))
+            if follow_violations and bad is res_a:   # the least V of a violation nearby
+                found = least_violation(x, V, lie, pts[:4], inner=inner, domain=D,
+                                        margin=margin, tol=1e-7)
+                if found is not None and found[0] < vmin:
+                    vmin = found[0]
+                    cexs.append(found[1])
             c = min(vmin * (1.0 - 1e-3), c * 0.995)
         else:
             c *= 1.0 - drop

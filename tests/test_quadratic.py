@@ -1,0 +1,161 @@
+"""The cheap quadratic certificates before the neural stage, the best certificate wins, and the
+level search that follows a decrease counterexample down (issue 15, item 5)."""
+
+import json
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import systems
+from nlyap_opt.certificate import RoaProblem, recheck_certificate
+from nlyap_opt.configs import get_config, make_config
+from nlyap_opt.control import lqr, saturated_controller
+from nlyap_opt.domain import Ball
+from nlyap_opt.errors import ConfigError
+from nlyap_opt.network import Network
+from nlyap_opt.pipeline import run
+from nlyap_opt.quadratic import certify_quadratics, closed_loop_matrix
+from nlyap_opt.roa import certify_level, least_violation
+
+
+# --------------------------------------------------------------------------- level search
+def _shell():
+    """``V = ‖x‖²`` under ``f = x(‖x‖² − 1/4)``: ``V̇ = 2‖x‖²(‖x‖² − 1/4)`` is negative
+    exactly for ``‖x‖ < 1/2``, so the largest certifiable level is ``V = 1/4``."""
+    x = ca.MX.sym("x", 2)
+    V = ca.sumsqr(x)
+    lie = 2 * V * (V - 0.25)
+    return x, V, lie
+
+
+def test_least_violation_finds_the_edge_of_the_violation_set():
+    x, V, lie = _shell()
+    found = least_violation(x, V, lie, [[0.6, 0.5], [-0.1, 0.9]], inner=0.05,
+                            domain=Ball(1.0, 2), tol=1e-7)
+    assert found is not None
+    assert found[0] == pytest.approx(0.25, abs=1e-6)
+    assert np.linalg.norm(found[1]) == pytest.approx(0.5, abs=1e-6)
+    # strict tolerance: IPOPT ends just inside the constraint, which tol = 0 refuses
+    pts = np.array([[0.9, 0.0]])
+    strict = least_violation(x, V, lie, pts, inner=0.05, domain=Ball(1.0, 2), tol=0.0)
+    assert strict is None or 2 * strict[0] * (strict[0] - 0.25) >= 0
+
+
+def test_a_decrease_counterexample_drops_the_level_to_the_violation_edge():
+    x, V, lie = _shell()
+    lc = certify_level(x, V, lie, level=0.8, inner=0.05, outer=1.0, margin=0.0,
+                       max_tries=3, log=lambda m: None, follow_violations=True)
+    assert lc.status == "certified", lc.history
+    assert 0.24 < lc.level < 0.25
+    assert lc.history[0]["decrease"] == "counterexample"
+    assert len(lc.history) <= 3
+    # the refuted levels were real: V̇ ≥ 0 somewhere below each of them
+    assert all(h["level"] > 0.25 for h in lc.history[:-1])
+
+
+# --------------------------------------------------------------------------- candidates
+def _pendulum_problem(controller_scale=20.0):
+    s = systems.get("inverted_pendulum")
+    cfg = get_config("inverted_pendulum", "fast")
+    res = lqr(s, cfg["lqr"]["Q"], cfg["lqr"]["R"])
+    ctrl = saturated_controller(s, res.K, controller_scale)
+    from nlyap_opt.control import quadratic_lyapunov
+
+    return s, cfg, res, RoaProblem(s, quadratic_lyapunov(np.eye(2)), ctrl, None, inner=0.4,
+                                   outer=4.0)
+
+
+def test_quadratic_candidates_solve_their_matrix_equations_and_certify():
+    s, cfg, res, problem = _pendulum_problem()
+    A_cl = closed_loop_matrix(problem)
+    np.testing.assert_allclose(A_cl, res.A - res.B @ res.K, atol=1e-9)
+    box = np.asarray(cfg["eval_box"], dtype=float)
+    found = certify_quadratics(problem, ["lyapunov", "round"], box=box, n=101,
+                               log=lambda m: None)
+    assert [c.name for c in found] == ["lyapunov", "round"]
+    lyap, rnd = found
+    np.testing.assert_allclose(A_cl.T @ lyap.P + lyap.P @ A_cl, -np.eye(2), atol=1e-8)
+    assert np.linalg.eigvalsh(rnd.P)[0] >= 1 - 1e-6
+    assert np.linalg.cond(rnd.P) <= np.linalg.cond(lyap.P) + 1e-6
+    for c in found:
+        assert c.certified, c.certificate.reason
+        assert c.certificate.inner == pytest.approx(0.1)   # ε/4 of the problem's 0.4
+        assert c.volume > 0
+        # the certified sublevel set really has V̇ < 0 (sampled, true f, saturated κ)
+        rng = np.random.default_rng(0)
+        pts = rng.uniform(-4, 4, (20000, 2))
+        q = np.einsum("ij,jk,ik->i", pts, c.P, pts)
+        r = np.linalg.norm(pts, axis=1)
+        inside = (q <= c.certificate.level) & (r >= c.certificate.inner) & (r <= 4)
+        f = s.evaluate(pts[inside], problem.controller.numpy(pts[inside]))
+        assert np.all(np.einsum("ij,jk,ik->i", pts[inside], c.P, f) < 0)
+
+
+def test_unknown_or_repeated_quadratic_names_are_config_errors():
+    with pytest.raises(ConfigError, match=r"quadratic.*'rond'.*did you mean 'round'"):
+        make_config("inverted_pendulum", "fast", overrides={"quadratic": ["rond"]})
+    with pytest.raises(ConfigError, match="twice"):
+        make_config("inverted_pendulum", "fast", overrides={"quadratic": ["round", "round"]})
+    with pytest.raises(ConfigError, match="quadratic"):
+        make_config("inverted_pendulum", "fast", overrides={"quadratic": "round"})
+
+
+# --------------------------------------------------------------------------- pipeline
+@pytest.fixture(scope="module")
+def quad_run(tmp_path_factory):
+    """Inverted pendulum, true f, with the quadratic candidates and a neural stage cut to
+    one step (so that the quadratic must win)."""
+    d = tmp_path_factory.mktemp("quad")
+    cfg = make_config("inverted_pendulum", "fast", overrides={
+        "quadratic": ["lyapunov", "round"], "train": {"steps": 1},
+        "cegis": {"iterations": 1, "steps": 1}})
+    logs = []
+    res = run("inverted_pendulum", cfg, d, known_dynamics=True, log=logs.append)
+    return d, cfg, res, logs
+
+
+def test_the_larger_certified_volume_wins_and_is_saved_with_its_artifacts(quad_run):
+    d, cfg, res, logs = quad_run
+    summary = json.loads((d / "certificate.json").read_text())
+    cands = summary["candidates"]
+    assert [c["winner"] for c in cands].count(True) == 1
+    win = next(c for c in cands if c["winner"])
+    lose = next(c for c in cands if not c["winner"])
+    assert win["certified_volume"] >= lose["certified_volume"]
+    assert res.certified and summary["status"] == "certified"
+    assert win["V"].startswith("quadratic")     # the one-step neural V loses
+    assert summary["artifacts"]["V"]["file"] == "V_quadratic.json"
+    assert summary["artifacts"]["controller"]["file"] == "controller_init.json"
+    assert summary["certified_area"] == pytest.approx(win["certified_volume"])
+    assert any("quadratic" in a for a in summary["assumptions"])
+    # the saved quadratic is the matrix of quadratic.json's best candidate
+    best = json.loads((d / "quadratic.json").read_text())["best"]
+    V = Network.load(d / "V_quadratic.json")
+    P = np.asarray(best["P"])
+    z = np.random.default_rng(1).normal(size=(50, 2))
+    np.testing.assert_allclose(V.numpy(z)[:, 0], np.einsum("ij,jk,ik->i", z, P, z),
+                               rtol=1e-12, atol=1e-12)
+    assert "certificate to beat" in "\n".join(logs)
+    report = (d / "report.md").read_text()
+    assert "## Best certificate" in report and "V_quadratic.json" in report
+
+
+def test_the_winning_quadratic_rechecks_and_a_tampered_one_does_not(quad_run, tmp_path):
+    import shutil
+
+    d, cfg, _, _ = quad_run
+    assert recheck_certificate(d, log=lambda m: None).certified
+    e = tmp_path / "copy"
+    shutil.copytree(d, e)
+    V = Network.load(e / "V_quadratic.json")
+    V.layers[0].weight = V.layers[0].weight * 0.5      # a flatter V: a larger set
+    V.save(e / "V_quadratic.json")
+    again = recheck_certificate(e, log=lambda m: None)
+    assert not again.certified and "changed" in again.reason
+    # a resumed run recomputes the quadratic stage instead of trusting the file
+    logs = []
+    res = run("inverted_pendulum", cfg, e, known_dynamics=True, log=logs.append)
+    assert "[quadratic] V_quadratic.json changed" in "\n".join(logs)
+    assert res.certified
+    assert recheck_certificate(e, log=lambda m: None).certified

@@ -153,6 +153,15 @@ def test_the_winning_quadratic_rechecks_and_a_tampered_one_does_not(quad_run, tm
     V.save(e / "V_quadratic.json")
     again = recheck_certificate(e, log=lambda m: None)
     assert not again.certified and "changed" in again.reason
+    # the verifier options the certificate was proved with are saved and checked on re-check
+    cert = json.loads((d / "certificate.json").read_text())
+    assert cert["problem"]["verify_options"] == cfg.get("cegis", {}).get("verify_options", {})
+    f = tmp_path / "bad_opts"
+    shutil.copytree(d, f)
+    cert["problem"]["verify_options"] = {"max_boxes": "many", "rm": True}
+    (f / "certificate.json").write_text(json.dumps(cert))
+    with pytest.raises(ConfigError, match="verify_options"):
+        recheck_certificate(f, log=lambda m: None)
     # a resumed run recomputes the quadratic stage instead of trusting the file
     logs = []
     res = run("inverted_pendulum", cfg, e, known_dynamics=True, log=logs.append)

@@ -690,6 +690,7 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
     ``CERTIFIED`` with the reason.
     """
     import systems
+    from verification.verify import check_file_options
 
     path = Path(path)
     if path.is_dir():
@@ -756,7 +757,9 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
         margin_mode=problem_d.get("margin_mode", "pointwise"), smoothing=saved.smoothing,
         dynamics_box=problem_d.get("dynamics_box"), input_box=problem_d.get("input_box"),
         dynamics_assumptions=list(problem_d.get("dynamics_assumptions", [])),
-        verify_options=_saved_verify_options(problem_d.get("verify_options"), path))
+        verify_options=check_file_options(problem_d.get("verify_options"),
+                                          f"certificate {path}",
+                                          "rerun the command that wrote it"))
     if saved.status is not CertStatus.CERTIFIED or saved.level <= 0:
         return _refused(saved, f"the certificate does not claim a level ({saved.status.value}: "
                         f"{saved.reason})")
@@ -782,26 +785,6 @@ class _CasadiV:
 def _refused(saved: RoaCertificate, reason: str) -> RoaCertificate:
     saved.status, saved.reason = CertStatus.NOT_CERTIFIED, reason
     return saved
-
-
-def _saved_verify_options(opts, path) -> dict:
-    """The verifier options a certificate was proved with, checked: a dict of the interval
-    verifier's keyword options with scalar values (options change effort, never the
-    verdict's soundness)."""
-    import inspect
-
-    from verification.verify import verify_interval
-
-    if opts is None:
-        return {}
-    allowed = {n for n, p in inspect.signature(verify_interval).parameters.items()
-               if p.kind is inspect.Parameter.KEYWORD_ONLY} - {"executor", "progress", "boxes"}
-    if not isinstance(opts, dict) or any(k not in allowed for k in opts) or not all(
-            v is None or isinstance(v, (bool, int, float)) for v in opts.values()):
-        raise ConfigError(f"certificate {path}: 'problem.verify_options' must map options of "
-                          f"the interval verifier ({', '.join(sorted(allowed))}) to numbers "
-                          f"or booleans, got {opts!r}; rerun the command that wrote it")
-    return dict(opts)
 
 
 def problem_to_dict(problem: RoaProblem) -> dict:

@@ -46,7 +46,6 @@ import copy
 import dataclasses
 import difflib
 import functools
-import inspect
 import json
 import math
 import types
@@ -420,18 +419,13 @@ def _dynamics_keys() -> dict[str, Key]:
 
 def _verify_option_keys() -> dict[str, Key]:
     """Keyword options of the interval verifier that a JSON file can hold."""
-    from verification.verify import verify_interval
+    from verification.verify import file_options
 
-    hints = typing.get_type_hints(verify_interval)
     out = {}
-    for name, par in inspect.signature(verify_interval).parameters.items():
-        if par.kind is not inspect.Parameter.KEYWORD_ONLY or \
-                name in ("executor", "progress", "boxes"):
-            continue
-        kind, optional = _kind_of(hints.get(name, object))
-        rule = {"lo": 0, "lo_open": True} if kind == "float" else \
-            {"lo": 0 if name in ("seed", "presearch") else 1} if kind == "int" else {}
-        out[name] = Key(f"cegis.verify_options.{name}", kind, par.default, optional, **rule)
+    for name, (hint, default, lo, lo_open) in file_options().items():
+        kind, optional = _kind_of(hint)
+        rule = {} if lo is None else {"lo": lo, "lo_open": lo_open}
+        out[name] = Key(f"cegis.verify_options.{name}", kind, default, optional, **rule)
     return out
 
 

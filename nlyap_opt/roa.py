@@ -243,9 +243,8 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
             if follow_violations and bad is res_a:   # the least V of a violation nearby
                 found = least_violation(x, V, lie, pts[:4], inner=inner, domain=D,
                                         margin=margin, tol=1e-7)
-                if found is not None and found[0] < vmin:
-                    vmin = found[0]
-                    cexs.append(found[1])
+                if found is not None:   # a level to try, not a counterexample (tol)
+                    vmin = min(vmin, found[0])
             c = min(vmin * (1.0 - 1e-3), c * 0.995)
         else:
             c *= 1.0 - drop

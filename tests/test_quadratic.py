@@ -158,10 +158,17 @@ def test_the_winning_quadratic_rechecks_and_a_tampered_one_does_not(quad_run, tm
     assert cert["problem"]["verify_options"] == cfg.get("cegis", {}).get("verify_options", {})
     f = tmp_path / "bad_opts"
     shutil.copytree(d, f)
-    cert["problem"]["verify_options"] = {"max_boxes": "many", "rm": True}
+    cert["problem"]["verify_options"] = {"rm": True}
     (f / "certificate.json").write_text(json.dumps(cert))
-    with pytest.raises(ConfigError, match="verify_options"):
+    with pytest.raises(ConfigError, match="unknown verifier option 'rm'"):
         recheck_certificate(f, log=lambda m: None)
+    cert["problem"]["verify_options"] = {"batch": 0}     # would crash the verifier
+    (f / "certificate.json").write_text(json.dumps(cert))
+    with pytest.raises(ConfigError, match=r"'batch' must be an integer >= 1, got 0; rerun"):
+        recheck_certificate(f, log=lambda m: None)
+    from nlyap_opt.cli import main
+
+    assert main(["verify", "--certificate", str(f / "certificate.json")]) == 3
     # a resumed run recomputes the quadratic stage instead of trusting the file
     logs = []
     res = run("inverted_pendulum", cfg, e, known_dynamics=True, log=logs.append)

@@ -894,3 +894,83 @@ def _verify_distributed(problem, executor, n_tasks, t0, **kwargs) -> Verificatio
                                   leaves)
     return VerificationResult("unknown" if len(und) else "verified", None, [], und, boxes,
                               depth, seconds, leaves)
+
+
+# ============================================================================ options in files
+#: keyword options of :func:`verify_interval` that are run-time objects, not settings a file
+#: (a run configuration, a certificate) can hold
+RUNTIME_OPTIONS = ("executor", "progress", "boxes")
+
+
+def file_options() -> dict[str, tuple]:
+    """The options of :func:`verify_interval` a file may hold, with their ranges:
+    ``name -> (type hint, default, lowest value or None, lowest value excluded)``.
+
+    The one definition behind the run configuration's ``cegis.verify_options`` keys
+    (:func:`nlyap_opt.configs.schema`) and the check of the options a certificate was proved
+    with (:func:`check_file_options`).
+    """
+    import inspect
+    import typing
+
+    hints = typing.get_type_hints(verify_interval)
+    out = {}
+    for name, par in inspect.signature(verify_interval).parameters.items():
+        if par.kind is not inspect.Parameter.KEYWORD_ONLY or name in RUNTIME_OPTIONS:
+            continue
+        hint = hints.get(name, object)
+        base = _plain_type(hint)
+        lo = (0, True) if base is float else \
+            (0 if name in ("seed", "presearch") else 1, False) if base is int else (None, False)
+        out[name] = (hint, par.default, *lo)
+    return out
+
+
+def _plain_type(hint):
+    """``int`` of ``int | None`` (else the hint itself)."""
+    import types
+    import typing
+
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        rest = [a for a in typing.get_args(hint) if a is not type(None)]
+        return rest[0] if len(rest) == 1 else hint
+    return hint
+
+
+def check_file_options(opts, where: str, fix: str) -> dict:
+    """Options read from a file, checked against :func:`file_options` (names, types,
+    ranges); a one-line :class:`~nlyap_opt.errors.ConfigError` naming ``where``, the first
+    bad option and ``fix``."""
+    from nlyap_opt.errors import ConfigError
+
+    if opts is None:
+        return {}
+    known = file_options()
+    if not isinstance(opts, dict):
+        raise ConfigError(f"{where}: verify_options must be a JSON object of verifier options "
+                          f"({', '.join(known)}), got {opts!r}; {fix}")
+    for name, v in opts.items():
+        if name not in known:
+            raise ConfigError(f"{where}: unknown verifier option {name!r} (options: "
+                              f"{', '.join(known)}); {fix}")
+        hint, default, lo, lo_open = known[name]
+        base = _plain_type(hint)
+        if v is None:
+            ok = base is not hint   # an optional option
+        elif base is bool:
+            ok = isinstance(v, bool)
+        elif base is int:
+            ok = isinstance(v, int) and not isinstance(v, bool)
+        elif base is float:
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+        else:
+            ok = True
+        if ok and v is not None and lo is not None and (v < lo or (lo_open and v == lo)):
+            ok = False
+        if not ok:
+            what = {bool: "true or false", int: "an integer", float: "a finite number"}.get(
+                base, str(base))
+            rng = "" if lo is None else f" {'>' if lo_open else '>='} {lo}"
+            raise ConfigError(f"{where}: verifier option {name!r} must be {what}{rng}, got "
+                              f"{v!r}; {fix}")
+    return dict(opts)

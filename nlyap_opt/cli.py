@@ -345,7 +345,21 @@ def _verify_certificate(args) -> int:
         path = path / "certificate.json"
     from .certificate import CertStatus, recheck_certificate
 
-    cert = recheck_certificate(path)
+    verifier = [o for o, given in (("--backend", args.backend != "interval"),
+                                   ("--precision", args.precision is not None),
+                                   ("--resolution", args.resolution is not None)) if given]
+    if verifier:
+        raise UsageError("--certificate re-checks with the interval verifier and the options "
+                         f"saved in the certificate; drop {', '.join(verifier)}")
+    if args.workers is not None or args.scheduler is not None:
+        # the conditions' checks run on the cluster (nlyap_opt.parallel.check): a
+        # "verified" comes from it, any other verdict is decided again serially
+        from .parallel import dask_client, verifying_on
+
+        with dask_client(args.workers, args.scheduler) as client, verifying_on(client):
+            cert = recheck_certificate(path)
+    else:
+        cert = recheck_certificate(path)
     print(cert.summary())
     if args.json:
         _write_json(args.json, cert.to_dict() if hasattr(cert, "to_dict") else

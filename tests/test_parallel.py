@@ -277,6 +277,11 @@ def test_run_with_dask_certificate_stage_gives_the_serial_certificate(client, tm
             for d in (tmp_path / "serial", tmp_path / "dask"))
     for key in ("status", "level", "certified_area", "checks", "inner_ellipse", "artifacts"):
         assert a.get(key) == b.get(key), key
+    # the re-check of the saved certificate runs its checks on the cluster too
+    calls.clear()
+    code = main(["verify", "--certificate", str(tmp_path / "serial"),
+                 "--scheduler", client.scheduler.address])
+    assert code == 0 and calls and all(c == "verified" for c in calls)
 
 
 @pytest.mark.parametrize("kwargs, match", [({"scheduler": "localhost"}, "tcp://HOST:PORT"),

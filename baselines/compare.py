@@ -4,7 +4,7 @@ Rows (each certified with conditions (a), (b) and the inner-ball condition (c), 
 the neural certificates, so no baseline looks better or worse through a softer standard):
 
 - ``lqr`` — ``V = xᵀPx`` with the LQR controller (linear and saturated variants), true f;
-- ``lqr-learned`` — the same with learned φ and the pointwise robust margin η‖∇V‖;
+- ``lqr-learned`` — the same with learned φ and the pointwise robust margin η‖∇_L V‖;
 - ``sos-2``, ``sos-4`` — SOS (cvxpy) where the closed loop is polynomial, re-certified;
 - ``neural-learned`` / ``neural-true`` — the main pipeline with learned φ / with the true f.
 """

@@ -246,7 +246,7 @@ class RoaProblem:
         """
         if getattr(self, "_decrease", None) is not None:
             return self._decrease
-        from .symbolic import closed_loop, lie_derivative, robust_lie
+        from .symbolic import closed_loop, learned_components_of, lie_derivative, robust_lie
 
         M, margin, s = None, 0.0, 0.0
         if not self.known:
@@ -264,7 +264,8 @@ class RoaProblem:
         Vx = self.V_expr(cl.x)
         lie = lie_derivative(Vx, cl.x, cl.rhs)
         if not self.known and self.margin_mode == "pointwise":
-            lie = robust_lie(lie, Vx, cl.x, self.eta, s)
+            lie = robust_lie(lie, Vx, cl.x, self.eta, s,
+                             learned_components_of(self.system, self.dynamics))
         self._decrease = Decrease(cl.x, Vx, lie, margin, M, s)
         return self._decrease
 

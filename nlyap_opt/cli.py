@@ -543,7 +543,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--dynamics", help="learned dynamics network JSON (replaces f)")
     sp.add_argument("--margin", type=_nonneg, help="beta >= 0: require dV/dt < -beta")
     sp.add_argument("--eta", type=_nonneg,
-                    help="pointwise robust margin >= 0: require dV/dt + eta*|grad V| < -beta")
+                    help="pointwise robust margin >= 0: require dV/dt + eta*|grad V| < -beta "
+                         "(grad V: its entries of the components --dynamics learns)")
     sp.add_argument("--smoothing", type=_nonneg,
                     help="s >= 0: with --eta use sqrt(|grad V|^2 + s^2) (certificate.json's "
                          "norm_smoothing)")

@@ -62,7 +62,8 @@ The proof
    data alone prove (c) only for small ε (the black-box pendulum with H = 26: ε ≤ 0.018).
    Given a learned ``φ`` with ``‖f − φ‖₂ ≤ η`` on a box, the data prove the decrease on a
    small ellipse :math:`E_s = \{x^\top P x \le c_s\}` and the interval verifier proves
-   :math:`2x^\top P\varphi(x, \kappa(x)) + \eta\|2Px\|_2 < 0` on
+   :math:`2x^\top P\varphi(x, \kappa(x)) + \eta\|(2Px)_L\|_2 < 0` (``L``: φ's learned
+   components, :func:`nlyap_opt.symbolic.robust_lie`) on
    :math:`c_s \le x^\top P x \le c_q` (Cauchy–Schwarz: then :math:`2x^\top P f < 0` there),
    with the same ``P``: together :math:`\dot V_q < 0` on :math:`E \setminus \{0\}`. This
    needs η below about :math:`\varepsilon_s / (2\lambda_{\max}(P))`.
@@ -583,7 +584,7 @@ def _extend_with_phi(P, ctx, dynamics, eta, eta_state_box, eta_input_box, verify
     from .bounds import check_input_range
     from .errors import InputRangeError
     from .parallel import check as verify
-    from .symbolic import closed_loop
+    from .symbolic import closed_loop, learned_components_of, robust_lie
 
     system, controller = ctx["system"], ctx["controller"]
     if not (np.isfinite(eta) and eta >= 0):
@@ -629,10 +630,11 @@ def _extend_with_phi(P, ctx, dynamics, eta, eta_state_box, eta_input_box, verify
     x = cl.x
     Px = ca.mtimes(ca.DM(P), x)
     V = ca.dot(x, Px)
-    lie = 2.0 * ca.dot(Px, cl.rhs) + _up(eta) * ca.sqrt(ca.sumsqr(2.0 * Px))
+    lie = robust_lie(2.0 * ca.dot(Px, cl.rhs), V, x, _up(eta),
+                     components=learned_components_of(system, dynamics))
     prob = VerificationProblem(x, box, [c_s - V, V - c_q], [lie],
                                ["outside the data-proved ellipse", "inside E"],
-                               ["2x'Pφ + η‖2Px‖ < 0"])
+                               ["2x'Pφ + η‖(2Px)_L‖ < 0"])
     res = verify(prob, **(verify_options or {}))
     out["result"] = res
     phi_part["status"] = res.status

@@ -313,7 +313,7 @@ class LyapunovLearner:
                 wb = torch.cat([wb, torch.ones(len(cidx), dtype=torch.float64)])
             v, lie, g = self.value_and_lie(xb.clone())
             active = (v <= 1.0 + cfg.level_slack).to(v.dtype)
-            if eta_pointwise:
+            if eta_pointwise:  # the full ‖∇V‖ ≥ the verified ‖∇_L V‖: a training buffer
                 lie = lie + eta_pointwise * g.norm(dim=1)
             hinge = torch.relu(lie + margin + cfg.decay * v)
             if cfg.relative_decrease:  # scale-free: as strong near the origin as far out

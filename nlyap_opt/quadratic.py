@@ -4,7 +4,7 @@ Run before the neural stage when the configuration lists ``quadratic`` candidate
 item 5): each candidate matrix ``P`` of the closed loop's linearisation ``A_cl`` (of the true
 ``f``, or of the learned ``φ``) gives ``V = xᵀPx``, certified by exactly the machinery of the
 neural certificates (:func:`nlyap_opt.certificate.certify_with_inner_search`: conditions
-(a), (b), (c), the robust margin ``η‖∇V‖`` for learned dynamics, the same domain and initial
+(a), (b), (c), the robust margin ``η‖∇_L V‖`` for learned dynamics, the same domain and initial
 set). The pipeline then re-verifies the best certified quadratic at its saved level and keeps
 whichever certificate -- the neural one or the quadratic one -- covers the larger volume.
 
@@ -17,12 +17,16 @@ Candidates (:data:`QUADRATIC_CANDIDATES`, a registry of ``A_cl -> P or None``):
   away from the thin directions of a badly conditioned one (cartpole: condition number 60
   against 328, a certified volume about 45 times that of the LQR ``P``).
 
-The quadratic's inner radius is ``inner_fraction`` times the run's ``ε`` (default 1/4, as
-the ``nlyap compare`` LQR rows): a quadratic ``V`` needs no large excluded ball, and
-condition (c) on a small ball is cheap in many dimensions. The level search follows decrease
-counterexamples down to the least ``V`` of a violation (``follow_violations``): the LQR ``P``
-of the cartpole is then certified at level 0.0193 after two refuted levels, where the
-creeping search stopped at 0.025 after eight.
+The quadratic's inner radius is ``inner_fraction`` times the run's ``ε``. With the true f
+the default is 1/4, as the ``nlyap compare`` LQR rows: a quadratic ``V`` needs no large
+excluded ball, and condition (c) on a small ball is cheap in many dimensions. With learned
+dynamics it is the run's ``ε`` itself, the neural ``V``'s: there the inner ball is the
+paper's assumption rather than a proof, and near the origin the robust margin
+``η‖∇_L V‖ ~ η‖x‖`` outweighs a quadratic's decrease ``~ ‖x‖²`` (the cartpole's LQR ``P``
+with the large preset's η = 0.019 is refuted at every level with ε/4). The level search
+follows decrease counterexamples down to the least ``V`` of a violation
+(``follow_violations``): the LQR ``P`` of the cartpole is then certified at level 0.0193
+after two refuted levels, where the creeping search stopped at 0.025 after eight.
 """
 
 from __future__ import annotations
@@ -52,8 +56,9 @@ def _round(A_cl):
 #: name -> ``A_cl -> P`` (``None``: no candidate); the names a configuration may list
 QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": _lyapunov, "round": _round}
 
-#: the ε of the quadratic certificates, as a fraction of the run's ``inner``
+#: the ε of the quadratic certificates, as a fraction of the run's ``inner``: true f, learned φ
 INNER_FRACTION = 0.25
+LEARNED_INNER_FRACTION = 1.0
 
 
 @dataclass
@@ -104,7 +109,7 @@ def closed_loop_matrix(problem) -> np.ndarray:
         np.zeros(problem.system.nx)), dtype=float)
 
 
-def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float = INNER_FRACTION,
+def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | None = None,
                        log=print) -> list[QuadraticCandidate]:
     """Certify ``V = xᵀPx`` for each named candidate ``P``; volumes on the ``n^nx`` grid.
 
@@ -113,7 +118,8 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float = I
     problem : RoaProblem
         The run's problem (system, controller, φ and η, domain, initial set, verifier
         options); its ``V`` is replaced by each quadratic and its ``inner`` by
-        ``inner_fraction·inner``.
+        ``inner_fraction·inner`` (default :data:`INNER_FRACTION` with the true f,
+        :data:`LEARNED_INNER_FRACTION` with learned dynamics).
     names : sequence of str
         Keys of :data:`QUADRATIC_CANDIDATES`, tried in this order.
     box, n :
@@ -132,6 +138,8 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float = I
     if unknown:
         raise ConfigError(f"unknown quadratic candidate {unknown[0]!r}; use some of "
                           f"{', '.join(QUADRATIC_CANDIDATES)}")
+    if inner_fraction is None:
+        inner_fraction = INNER_FRACTION if problem.known else LEARNED_INNER_FRACTION
     A_cl = closed_loop_matrix(problem)
     hurwitz = bool(np.all(np.isfinite(A_cl))) and np.max(np.linalg.eigvals(A_cl).real) < 0
     out = []

@@ -222,6 +222,9 @@ class VerificationResult:
     depth : int                     deepest bisection level
     seconds : float
     leaves : list of dict or None   decided leaf boxes with their enclosures (``keep_leaves``)
+    open : (k, n, 2) ndarray or None  ``hand_back``: halves still to decide, not evaluated
+                                    (the status is then ``unknown`` unless a counterexample
+                                    was found)
     """
 
     status: str
@@ -233,6 +236,7 @@ class VerificationResult:
     seconds: float = 0.0
     leaves: list | None = None
     backend: str = "interval"
+    open: np.ndarray | None = None
 
     @property
     def success(self) -> bool:
@@ -308,8 +312,9 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     domain : Region, optional ``D`` in place of the ball ``‖x‖ ≤ outer``
     level : float, optional   intersect with ``V(x) ≤ level``
     margin : float            β: require ``∇V·g < −β``
-    eta : float               pointwise robust margin: require ``∇V·g + η‖∇V‖ < −β``
-                              (with ``g = φ`` this implies ``∇V·f < −β`` where ``‖f − φ‖ ≤ η``)
+    eta : float               pointwise robust margin: require ``∇V·g + η‖∇_L V‖ < −β``
+                              (with ``g = φ`` this implies ``∇V·f < −β`` where ``‖f − φ‖ ≤ η``;
+                              ``L``: φ's learned components, the others known exactly)
     smoothing : float         ``s``: use ``sqrt(‖∇V‖² + s²)`` for ``‖∇V‖`` (stronger, and
                               cheaper to verify; see :func:`nlyap_opt.symbolic.robust_lie`)
     strict : bool             raise (True) or warn (False) if 0 is not an equilibrium
@@ -325,8 +330,9 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     Vx = V.casadi(cl.x)
     lie = lie_derivative(Vx, cl.x, cl.rhs)
     if eta:
-        from nlyap_opt.symbolic import robust_lie
+        from nlyap_opt.symbolic import learned_components_of, robust_lie
 
-        lie = robust_lie(lie, Vx, cl.x, eta, smoothing)
+        comps = None if dynamics is None else learned_components_of(system, dynamics)
+        lie = robust_lie(lie, Vx, cl.x, eta, smoothing, comps)
     return lyapunov_problem(cl.x, Vx, lie, inner=inner, outer=outer, level=level,
                             margin=margin, check_positive=check_positive, domain=domain)

@@ -12,10 +12,18 @@ into ``n_tasks`` sub-boxes) for comparison:
 (C) 4-D: the cartpole's LQR quadratic certificate, decrease on the true f
     (``bench/scale.py``'s query, ball ``r``), with the second-order form as its preset.
 
+(D) 4-D: the certificate of ``nlyap run cartpole --preset large --known-dynamics`` (the
+    round quadratic under the saturated LQR controller, conditions (a), (b), (c) at the level
+    its search certifies, found first, serially), re-checked as ``nlyap verify
+    --certificate`` does: :func:`nlyap_opt.certificate.certify_roa` serially and inside
+    :func:`nlyap_opt.parallel.verifying_on` (every check on the cluster). ``--no-certificate``
+    skips it (about 3 minutes).
+
 Seconds are the best of ``--repeat`` runs (cluster start-up excluded). Figures are printed,
 not asserted; on a shared machine read them with the load average printed beside them.
 
     python bench/distributed_verify.py [--repeat 3] [--workers 1 2] [--cartpole-r 0.5]
+                                       [--no-certificate]
 """
 
 from __future__ import annotations
@@ -70,6 +78,58 @@ def problem_vdp30():
     return lyapunov_problem(cl.x, Vx, lie, inner=0.2, outer=2.5, level=0.99 * cand.level)
 
 
+def cartpole_certificate():
+    """(problem, level) of the cartpole large preset's certificate with the true f: the round
+    quadratic at the level :func:`nlyap_opt.quadratic.certify_quadratics` certifies."""
+    from dataclasses import replace
+
+    from nlyap_opt.certificate import RoaProblem
+    from nlyap_opt.configs import domain_of, make_config
+    from nlyap_opt.control import lqr, quadratic_lyapunov, saturated_controller
+    from nlyap_opt.quadratic import certify_quadratics
+
+    s = systems.get("cartpole")
+    cfg = make_config("cartpole", "large")
+    res = lqr(s, cfg["lqr"]["Q"], cfg["lqr"]["R"])
+    base = RoaProblem(s, quadratic_lyapunov(res.P),
+                      saturated_controller(s, res.K, cfg["controller_scale"]),
+                      inner=float(cfg["inner"]), domain=domain_of(cfg, s.nx)[0],
+                      verify_options=cfg["cegis"]["verify_options"])
+    [cand] = certify_quadratics(base, ["round"], box=cfg["eval_box"], n=4, log=lambda m: None)
+    cert = cand.certificate
+    if not cert.certified:
+        raise SystemExit(f"query (D): the round quadratic was not certified ({cert.reason})")
+    return replace(base, V=quadratic_lyapunov(cand.P), inner=cert.inner), cert.level
+
+
+def certificate_rows(workers, repeat):
+    """Seconds of certify_roa on query (D): serial, then on clusters of ``workers``."""
+    from dataclasses import replace
+
+    from nlyap_opt.certificate import certify_roa
+    from nlyap_opt.parallel import verifying_on
+
+    problem, level = cartpole_certificate()
+
+    def once():  # a fresh problem: no compiled check is reused between timings
+        return certify_roa(replace(problem), level, log=lambda m: None)
+
+    rows = [("serial", *_best(once, repeat))]
+    for w in workers:
+        with dask_client(workers=w) as client, verifying_on(client):
+            client.submit(sum, [1]).result()  # workers up
+            rows.append((w, *_best(once, repeat)))
+    print(f"(D) cartpole certificate (round quadratic, level {level:.6g}, ε = "
+          f"{problem.inner:g}): conditions (a), (b), (c) re-checked")
+    print("| workers | seconds (best) | speed-up vs 1 worker | status |")
+    print("|---|---|---|---|")
+    one = [t for w, t, _ in rows if w == 1]
+    for w, t, c in rows:
+        up = f"{one[0] / t:.2f}" if one and w != "serial" else "–"
+        print(f"| {w} | {t:.2f} | {up} | {c.status.value} |")
+    print()
+
+
 def _best(fn, repeat):
     best, res = np.inf, None
     for _ in range(repeat):
@@ -86,7 +146,11 @@ def main(argv=None):
     ap.add_argument("--n-tasks", type=int, default=8, help="sub-boxes of the executor hook")
     ap.add_argument("--cartpole-r", type=float, default=0.5,
                     help="ball radius of query (C)")
+    ap.add_argument("--no-certificate", action="store_true",
+                    help="skip query (D), the cartpole certificate (about 3 minutes)")
     args = ap.parse_args(argv)
+    if not args.no_certificate:
+        certificate_rows(args.workers, args.repeat)
     queries = [("(A) 4-D, 64-neuron V factor", problem_4d(1.1, 64), {})]
     p = problem_vdp30()
     if p is not None:

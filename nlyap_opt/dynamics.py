@@ -77,7 +77,7 @@ __all__ = [
     "measure_alpha", "default_config", "load_config", "merge_config", "as_config",
     "DynamicsConfig", "dynamics_config", "sampling_box", "learned_components",
     "network_error_bound", "check_dynamics_network", "MODELS", "make_grid", "SampleGrid",
-    "affine_base_input", "check_declared",
+    "affine_base_input", "check_declared", "input_columns",
 ]
 
 _U = 2.0 ** -53  # unit roundoff of float64
@@ -255,6 +255,44 @@ def sampling_box(system, model: str = "full", config: dict | None = None) -> np.
     ubox = config.get("input_box")
     ubox = np.array(system.input_box if ubox is None else ubox, dtype=float)
     return np.vstack([xbox.reshape(system.nx, 2), ubox.reshape(system.nu, 2)])
+
+
+def input_columns(system, model: str, comp: list[int], inputs: str = "all"
+                  ) -> list[list[int]]:
+    """Per learned component, the grid columns (of ``(x, u)``, or ``x`` for the
+    control-affine model) its block of φ takes as inputs.
+
+    ``inputs="model"``: the variables that component of the model ``f`` depends on
+    (``casadi.depends_on``, symbolic; for ``control_affine`` the ``x`` of ``f(x, u)``);
+    every column without a model, with ``inputs="all"``, or where a component depends on
+    none. The bound η does not rest on this choice: it is measured for the φ that results.
+    """
+    d = system.nx + (0 if model == "control_affine" else system.nu)
+    every = list(range(d))
+    if inputs == "all" or not _has_model(system):
+        return [every for _ in comp]
+    z = [system.x[i] for i in range(system.nx)]
+    if model != "control_affine":
+        z += [system.u[j] for j in range(system.nu)]
+    out = []
+    for k in comp:
+        cols = [i for i, zi in enumerate(z) if ca.depends_on(system.f[k], zi)]
+        out.append(cols or every)
+    return out
+
+
+def _widen(blocks, cols: list[list[int]], d: int) -> list:
+    """The blocks' hidden weights as ``(H, d)`` matrices: zeros outside each block's columns
+    (exact zeros, kept by :func:`nlyap_opt.phi_training.assemble`'s folding)."""
+    out = []
+    for (W0, b0, w1, b1), c in zip(blocks, cols):
+        if len(c) == d:
+            out.append((W0, b0, w1, b1))
+            continue
+        W = np.zeros((W0.shape[0], d))
+        W[:, c] = W0
+        out.append((W, b0, w1, b1))
+    return out
 
 
 def _target(system, model: str, comp: list[int], z: np.ndarray) -> np.ndarray:
@@ -762,26 +800,33 @@ def learn_dynamics(system, config: DynamicsConfig | dict | None = None, *,
     t0 = time.perf_counter()
     history: list[dict] = []
     blocks = []
+    cols = input_columns(system, model, comp, cfg.inputs)
     with deterministic_torch(cfg.threads):
         for k in range(len(comp)):
+            zk = zn if len(cols[k]) == zn.shape[1] else zn[:, cols[k]]
             blocks.append(_train_component(
-                zn, yn[:, k], hidden[k], cfg, cfg.seed + 7919 * k, progress, history,
+                zk, yn[:, k], hidden[k], cfg, cfg.seed + 7919 * k, progress, history,
                 f"φ[{comp[k]}] {system.name}", t0))
     seconds["training"] = time.perf_counter() - t0
     state = {"z": z, "centre": centre, "radius": radius, "mu": mu, "sigma": sigma,
-             "blocks": blocks, "B": B, "hidden": hidden, "declarations_check": declared}
+             "blocks": blocks, "inputs": cols, "B": B, "hidden": hidden,
+             "declarations_check": declared}
     return _finish(system, cfg, grid, model, comp, state, seconds, history, 0)
 
 
 def _finish(system, cfg: DynamicsConfig, grid: Grid, model: str, comp: list[int], state: dict,
             seconds: dict, history: list, rounds: int) -> DynamicsResult:
     """Assemble the network from the trained blocks and measure α on every grid node."""
-    network = _assemble(state["blocks"], state["centre"], state["radius"], state["mu"],
-                        state["sigma"], cfg.prune)
+    d = grid.dim
+    cols = state.get("inputs") or [list(range(d)) for _ in comp]
+    network = _assemble(_widen(state["blocks"], cols, d), state["centre"], state["radius"],
+                        state["mu"], state["sigma"], cfg.prune)
     network.meta.update({
         "kind": "dynamics", "system": system.name, "model": model,
         "learned_components": comp, "grid": grid.to_dict(), "config": _jsonable(cfg.to_dict()),
     })
+    if any(len(c) < d for c in cols):
+        network.meta["inputs"] = cols  # per component: the grid columns its block reads
     if rounds:
         network.meta["refinement_rounds"] = rounds
     if state["B"] is not None:
@@ -836,11 +881,13 @@ def refine_dynamics(result: DynamicsResult, *, points: int | None = None,
     history = list(result.history)
     blocks = []
     rnd = result.rounds + 1
+    cols = st.get("inputs") or [list(range(zn.shape[1])) for _ in comp]
     for k, block in enumerate(st["blocks"]):
         theta = np.concatenate([np.ravel(a) for a in block])
         total = cfg.lm_iterations + cfg.minimax_rounds * cfg.minimax_iterations
         bar = _bar(total, progress, f"φ[{comp[k]}] refine {rnd}")
-        blocks.append(_polish(zn, yn[:, k], len(block[1]), cfg, theta, bar, history,
+        zk = zn if len(cols[k]) == zn.shape[1] else zn[:, cols[k]]
+        blocks.append(_polish(zk, yn[:, k], len(block[1]), cfg, theta, bar, history,
                               f"φ[{comp[k]}] {system.name} round {rnd}", t0))
         if bar is not None:
             bar.close()

@@ -69,6 +69,13 @@ class DynamicsConfig:
     learned_components : list of int, optional
         State derivatives to learn (default: those not in
         ``system.known_state_derivatives``).
+    inputs : {"all", "model"}
+        The inputs of each learned component's block of φ: ``"all"`` (default) every grid
+        variable; ``"model"`` the grid variables that component of the model ``f`` depends
+        on (symbolically; all of them for a system without a model). The cartpole's
+        accelerations depend on ``(θ, ω, F)`` only: φ then ignores the cart's position and
+        velocity, so ``f − φ`` is constant along those axes and two grid nodes per such
+        axis suffice (their interpolation term is exactly 0).
     state_box, input_box : list of [lo, hi], optional
         Sampling box (default: the system's X and U).
     train_points, boundary_points : int
@@ -126,6 +133,7 @@ class DynamicsConfig:
     grid_counts: list[int] | None = None
     grid_spacing: float | list[float] | None = None
     learned_components: list[int] | None = None
+    inputs: str = "all"
     state_box: list[list[float]] | None = None
     input_box: list[list[float]] | None = None
     train_points: int = 8000
@@ -394,6 +402,8 @@ def _validate(cfg: DynamicsConfig) -> None:
             _fail(key, getattr(cfg, key), "a string")
     if cfg.model not in MODELS:
         _fail("model", cfg.model, f"one of {', '.join(MODELS)}")
+    if cfg.inputs not in ("model", "all"):
+        _fail("inputs", cfg.inputs, "'model' or 'all'")
     if cfg.train_dtype not in ("float32", "float64"):
         _fail("train_dtype", cfg.train_dtype, "'float32' or 'float64'")
     h = cfg.hidden

@@ -284,3 +284,79 @@ def test_inner_ellipse_of_the_saturated_cartpole_loop_needs_the_round_matrix():
     for y in np.linalg.solve(L.T, (np.sqrt(good["level"]) * z).T).T:
         Jy = np.array(Jf(y), dtype=float)
         assert np.linalg.eigvalsh(good["P"] @ Jy + Jy.T @ good["P"])[-1] < 0
+
+
+# ------------------------------------------------ learned dynamics on the variables f reads
+def test_input_columns_are_the_models_dependencies():
+    from nlyap_opt.dynamics import input_columns, learned_components
+
+    cp, q = systems.get("cartpole"), systems.get("planar_quadrotor")
+    # cartpole (p, v, θ, ω | F): v' and ω' read θ, ω and F only
+    assert input_columns(cp, "full", learned_components(cp), "model") == [[2, 3, 4]] * 2
+    assert input_columns(cp, "full", learned_components(cp), "all") == [list(range(5))] * 2
+    # quadrotor (x, y, θ, ẋ, ẏ, ω | u1, u2): ẍ, ÿ read θ and the thrusts, ω' the thrusts
+    assert input_columns(q, "full", learned_components(q), "model") == \
+        [[2, 6, 7], [2, 6, 7], [6, 7]]
+
+
+def _tiny_phi(inputs):
+    from nlyap_opt.dynamics import learn_dynamics
+
+    return learn_dynamics(systems.get("cartpole"), {
+        "preset": "fast", "inputs": inputs, "hidden": 8, "grid_counts": [2, 2, 9, 9, 5],
+        "train_points": 400, "boundary_points": 0, "steps": 30, "lm_iterations": 3,
+        "minimax_rounds": 0, "progress": False})
+
+
+def test_phi_on_the_models_dependencies_ignores_the_other_axes():
+    """``inputs: model``: φ's hidden weights are exact zeros on the cart's position and
+    velocity, so φ (and f − φ) is constant along them: the second-order bound's curvature
+    terms of those axes are exactly 0, and α is the same on every (p, v) slice."""
+    from nlyap_opt.error_models import compute_bounds
+
+    res = _tiny_phi("model")
+    W0 = res.network.layers[0].weight
+    assert np.all(W0[:, :2] == 0.0) and np.all(np.any(W0[:, 2:] != 0.0, axis=0))
+    assert res.network.meta["inputs"] == [[2, 3, 4]] * 2
+    z = np.random.default_rng(0).uniform(-1, 1, (50, 5)) * [1, 1, 1, 1, 10]
+    z2 = z.copy()
+    z2[:, :2] = -z2[:, :2]
+    np.testing.assert_array_equal(res.network.numpy(z), res.network.numpy(z2))
+    b = compute_bounds(res.system, res.network, res.grid, res.alpha,
+                       options=["second_order"], boxes=256, check_points=1000)
+    D = np.asarray(b.options["second_order"].terms["D"])
+    assert np.all(D[:, :2] == 0.0) and np.all(D[:, 2:4] > 0.0)
+    full = _tiny_phi("all")
+    assert np.any(full.network.layers[0].weight[:, :2] != 0.0)
+    assert "inputs" not in full.network.meta
+
+
+def test_robust_margin_takes_the_learned_components_only():
+    """``∇V·(f − φ) = ∇_L V·(f_L − φ_L)`` when the other components are known exactly: the
+    pointwise margin of the decrease is ``η‖∇_L V‖`` (cartpole: ∂V/∂v, ∂V/∂ω)."""
+    import casadi as ca
+
+    from nlyap_opt.symbolic import robust_lie
+
+    x = ca.SX.sym("x", 4)
+    V = ca.sumsqr(x) + x[0] * x[2]
+    lie = ca.SX(0)
+    f = ca.Function("m", [x], [robust_lie(lie, V, x, 0.5, components=[1, 3])])
+    g = ca.Function("m", [x], [robust_lie(lie, V, x, 0.5)])
+    p = np.array([0.3, -0.2, 0.7, 0.1])
+    grad = 2 * p + np.array([p[2], 0, p[0], 0])
+    assert float(f(p)) == pytest.approx(0.5 * np.linalg.norm(grad[[1, 3]]), rel=1e-14)
+    assert float(g(p)) == pytest.approx(0.5 * np.linalg.norm(grad), rel=1e-14)
+    res = _tiny_phi("model")
+    prob = RoaProblem(systems.get("cartpole"), quadratic_lyapunov(np.eye(4)), None,
+                      res.network, inner=0.1, outer=0.5, eta=0.5, smoothing=0.0,
+                      dynamics_box=res.grid.box[:4], input_box=res.grid.box[4:])
+    dec = prob.decrease()
+    from nlyap_opt.symbolic import closed_loop, lie_derivative
+
+    cl = closed_loop(systems.get("cartpole"), None, res.network, x=dec.x, strict=False)
+    robust = ca.Function("d", [dec.x], [dec.lie])
+    plain = ca.Function("p", [dec.x], [lie_derivative(dec.V, dec.x, cl.rhs)])
+    # V = ‖x‖²: ∇_L V = 2 (v, ω)
+    assert float(robust(p)) - float(plain(p)) == pytest.approx(
+        0.5 * 2 * np.linalg.norm(p[[1, 3]]), rel=1e-12)

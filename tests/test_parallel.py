@@ -250,11 +250,64 @@ def test_check_on_a_cluster_returns_the_serial_result(client, monkeypatch, outer
     assert calls, "the cluster was not used"
     assert res.status == serial.status
     if serial.status == "counterexample":
-        assert calls == ["counterexample"]          # decided there, then again serially
+        assert calls == ["counterexample"]  # decided there (and again serially unless the
+        # root task found it alone: then it is the serial run's own first steps)
         np.testing.assert_array_equal(res.counterexample.point, serial.counterexample.point)
+        assert res.counterexample.property == serial.counterexample.property
+        assert [c.point.tolist() for c in res.counterexamples] == \
+            [c.point.tolist() for c in serial.counterexamples]
     with verifying_on(None):                         # no cluster: serial
         calls.clear()
         assert check(problem).status == serial.status and not calls
+
+
+@pytest.mark.parametrize("outer, presearch, tasks", [(1.6, 500, 1), (1.2, 0, 1), (1.15, 0, 2)])
+def test_root_task_counterexample_is_the_serial_one(client, monkeypatch, outer, presearch,
+                                                    tasks):
+    """A counterexample the root task finds alone (pre-search, first grid) is the serial
+    run's, to the last bit: ``check`` keeps it without deciding again. One found by a
+    branch task is decided again serially. Either way, the result is the serial one."""
+    import verification
+
+    problem = _vdp_problem(outer)
+    serial = verify(problem, presearch=presearch)
+    st: dict = {}
+    dist = verify_distributed(problem, client, stats=st, presearch=presearch)
+    assert serial.status == dist.status == "counterexample" and st["tasks"] == tasks
+    if tasks == 1:
+        np.testing.assert_array_equal(dist.counterexample.point, serial.counterexample.point)
+        assert [c.point.tolist() for c in dist.counterexamples] == \
+            [c.point.tolist() for c in serial.counterexamples]
+    serial_calls = []
+    real = verification.verify
+    monkeypatch.setattr(verification, "verify",
+                        lambda *a, **k: serial_calls.append(1) or real(*a, **k))
+    with verifying_on(client):
+        res = check(problem, presearch=presearch)
+    assert len(serial_calls) == (tasks > 1)
+    np.testing.assert_array_equal(res.counterexample.point, serial.counterexample.point)
+    assert res.counterexample.property == serial.counterexample.property
+
+
+def test_hand_back_evaluates_no_box_twice():
+    """``hand_back``: a task that spends its budget hands back the halves of the boxes it
+    would still bisect, unevaluated, so that the tasks together process exactly the serial
+    run's boxes; without it the boxes come back whole (undecided) and are evaluated again."""
+    from verification.verify import verify_interval
+
+    problem = _vdp_problem(1.0)
+    serial = verify(problem)
+    assert serial.status == "verified"
+    first = verify_interval(problem, max_boxes=1, hand_back=True)
+    total, open_ = first.boxes, first.open
+    assert first.status == "unknown" and len(first.undecided) == 0 and len(open_)
+    while len(open_):
+        r = verify_interval(problem, boxes=open_, presearch=0, max_boxes=500, hand_back=True)
+        assert r.status != "counterexample" and len(r.undecided) == 0
+        total, open_ = total + r.boxes, r.open
+    assert total == serial.boxes
+    whole = verify_interval(problem, max_boxes=1)   # the old hand-out: boxes come back whole
+    assert whole.open is None and len(whole.undecided) == len(first.open) // 2
 
 
 def test_run_with_dask_certificate_stage_gives_the_serial_certificate(client, tmp_path,

@@ -687,6 +687,7 @@ def verify_interval(
     progress: bool = False,
     second_order: bool = False,
     boxes: np.ndarray | None = None,
+    hand_back: bool = False,
 ) -> VerificationResult:
     """Decide ``problem`` with interval branch-and-prune; see :func:`verification.verify`.
 
@@ -706,6 +707,9 @@ def verify_interval(
     4 states on. ``boxes`` (``(k, n, 2)``, sub-boxes of the problem's box): start from them,
     all in one batch, instead of the root box's grid (the load-balanced tasks of
     :func:`nlyap_opt.parallel.verify_distributed`; the verdict is about their union).
+    ``hand_back``: once ``max_boxes`` are spent, a box still to bisect is bisected by the
+    usual rule and its two halves come back *unevaluated* in ``result.open`` (not in
+    ``undecided``), so that the task that takes them on evaluates no box twice.
     """
     t0 = time.perf_counter()
     if mean_value is None:  # with affine forms: the mean-value form on undecided boxes
@@ -734,12 +738,12 @@ def verify_interval(
     with _single_thread_blas():
         return _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
                              stop_at_first, keep_leaves, seed, initial_boxes, progress,
-                             affine, second_order, boxes)
+                             affine, second_order, boxes, hand_back)
 
 
 def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
                   stop_at_first, keep_leaves, seed, initial_boxes, progress, affine=False,
-                  second_order=False, boxes=None):
+                  second_order=False, boxes=None, hand_back=False):
     box = problem.box
     compile_function(problem.function_jacobian)
     rng = np.random.default_rng(seed)
@@ -756,6 +760,7 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
         queue_lo, queue_hi = boxes[:, :, 0].copy(), boxes[:, :, 1].copy()
     depth_q = np.zeros(len(queue_lo), dtype=int)
     undecided: list[np.ndarray] = []
+    opened: list[np.ndarray] = []  # hand_back: halves not evaluated here
     leaves: list[dict] | None = [] if keep_leaves else None
     n_boxes = 0
     max_depth = 0
@@ -808,7 +813,8 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
         split = rest & ~small
         if not split.any():
             continue
-        if n_boxes + len(queue_lo) > max_boxes:
+        over = n_boxes + len(queue_lo) > max_boxes
+        if over and not hand_back:
             undecided.append(np.stack([lo[split], hi[split]], axis=-1))
             continue
         lo_s, hi_s, w_s = lo[split], hi[split], w[split]
@@ -849,6 +855,10 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
         right_lo = lo_s.copy()
         right_lo[rows, dim] = mid
         d = dq[split] + 1
+        if over:  # hand_back: the halves go to another task, unevaluated
+            opened.append(np.stack([np.concatenate([lo_s, right_lo]),
+                                    np.concatenate([left_hi, hi_s])], axis=-1))
+            continue
         # depth-first-ish: put children in front so the queue stays small
         queue_lo = np.concatenate([lo_s, right_lo, queue_lo])
         queue_hi = np.concatenate([left_hi, hi_s, queue_hi])
@@ -858,12 +868,14 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
                   flush=True)
     seconds = time.perf_counter() - t0
     und = np.concatenate(undecided) if undecided else np.zeros((0, problem.n, 2))
+    opn = np.concatenate(opened) if opened else np.zeros((0, problem.n, 2))
     if found:
         found.sort(key=lambda c: -c.value_lower)
         return VerificationResult("counterexample", found[0], found, und, n_boxes, max_depth,
-                                  seconds, leaves)
-    status = "unknown" if len(und) else "verified"
-    return VerificationResult(status, None, [], und, n_boxes, max_depth, seconds, leaves)
+                                  seconds, leaves, open=opn if hand_back else None)
+    status = "unknown" if len(und) or len(opn) else "verified"
+    return VerificationResult(status, None, [], und, n_boxes, max_depth, seconds, leaves,
+                              open=opn if hand_back else None)
 
 
 def _run_sub(problem, kwargs):
@@ -899,7 +911,7 @@ def _verify_distributed(problem, executor, n_tasks, t0, **kwargs) -> Verificatio
 # ============================================================================ options in files
 #: keyword options of :func:`verify_interval` that are run-time objects, not settings a file
 #: (a run configuration, a certificate) can hold
-RUNTIME_OPTIONS = ("executor", "progress", "boxes")
+RUNTIME_OPTIONS = ("executor", "progress", "boxes", "hand_back")
 
 
 def file_options() -> dict[str, tuple]:

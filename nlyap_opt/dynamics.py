@@ -71,6 +71,7 @@ from .phi_training import (  # noqa: F401  (_LevenbergMarquardt, _assemble: olde
     _polish,
     _train_component,
 )
+from .symbolic import learned_components_of
 
 __all__ = [
     "Grid", "DynamicsResult", "AlphaResult", "learn_dynamics", "refine_dynamics",
@@ -328,16 +329,12 @@ def check_dynamics_network(system, network: Network) -> tuple[str, list[int]]:
         raise NetworkFileError(
             f"dynamics network meta['model'] is {model!r}; expected one of {MODELS}"
         )
-    comp = meta.get("learned_components", list(range(system.nx)))
-    try:
-        comp = sorted(int(i) for i in comp)
-    except (TypeError, ValueError):
-        raise NetworkFileError("meta['learned_components'] must be a list of ints") from None
-    if not comp or comp[0] < 0 or comp[-1] >= system.nx or len(set(comp)) != len(comp):
-        raise NetworkFileError(
-            f"meta['learned_components'] {comp} is not a set of distinct state indices in "
-            f"0..{system.nx - 1} of system {system.name!r}"
-        )
+    # in the network's output order: α pairs output k with f's component comp[k], as
+    # learned_rhs does (a sorted copy paired a file listing [3, 1] with the wrong rows)
+    comp = learned_components_of(system, network)
+    if not comp:
+        raise NetworkFileError("meta['learned_components'] is empty; list the state "
+                               "derivatives the network outputs")
     known = set(system.known_state_derivatives)
     missing = [i for i in range(system.nx) if i not in comp and i not in known]
     if missing:

@@ -544,7 +544,7 @@ def check(problem, **options):
     if res.status == "verified":
         return res
     if res.status == "counterexample" and st.get("tasks") == 1 and \
-            opts.get("stop_at_first", True):
+            opts.get("stop_at_first", True) and _starts_from_boxes():
         # found by the root task alone: its pre-search and first grid are the serial run's
         # first steps (same seed, grid and batch), which stops there with this very result
         return res

@@ -109,7 +109,7 @@ def learned_components_of(system, dynamics: Network) -> list[int]:
     if not isinstance(learned, (list, tuple)) or not all(
             isinstance(i, int) and not isinstance(i, bool) for i in learned):
         raise NetworkFileError(f"dynamics network meta.learned_components must be a list "
-                               f"of state indices, got {learned!r}")
+                               f"of ints (state indices), got {learned!r}; fix the file's meta")
     learned = list(learned)
     if len(set(learned)) != len(learned) or not all(0 <= i < system.nx for i in learned):
         raise NetworkFileError(

@@ -437,6 +437,8 @@ CLI_CASES = [
     _c("cfg dynamics preset", RUN, ["preset", "slow"], {"dynamics": {"preset": "slow"}}),
     _c("cfg dynamics model", RUN, ["model", "quadratic"], {"dynamics": {"model": "quadratic"}}),
     _c("cfg dynamics steps", RUN, ["steps", "-1"], {"dynamics": {"steps": -1}}),
+    _c("cfg dynamics inputs", RUN, ["inputs", "'model' or 'all'"],
+       {"dynamics": {"inputs": "some"}}),
     _c("cfg dynamics box too small", RUN, ["state_box", "outer"],
        {"dynamics": {"state_box": [[-0.5, 0.5], [-0.5, 0.5]]}}),
     _c("cfg section not an object", RUN, ["train", "json object"], {"train": 5}),

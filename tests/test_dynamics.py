@@ -386,3 +386,34 @@ def test_eta_limit_linear_matches_the_closed_form():
     assert np.all(-np.sum(x * x, axis=1) + 0.999 * lim * np.linalg.norm(grad, axis=1) < 0)
     with pytest.raises(ConfigError, match="not Hurwitz"):
         eta_limit_linear(np.eye(2), 0.2)
+
+
+def test_alpha_pairs_each_output_with_its_listed_component():
+    """A network that lists its learned components out of order ([1, 0]) is measured in
+    that order, as learned_rhs uses it: the same φ with its outputs swapped has the same α
+    (a sorted copy of the list paired each output with the other component of f)."""
+    import copy
+
+    from nlyap_opt.dynamics import Grid, learn_dynamics, measure_alpha
+
+    s = systems.get("unicycle_path_following")
+    res = learn_dynamics(s, {"preset": "fast", "model": "full", "hidden": 8,
+                             "grid_counts": [9, 9, 5], "train_points": 300,
+                             "boundary_points": 0, "steps": 30, "lm_iterations": 3,
+                             "minimax_rounds": 0, "progress": False})
+    assert res.network.meta["learned_components"] == [0, 1]
+    swapped = copy.deepcopy(res.network)
+    out = swapped.layers[-1]
+    out.weight, out.bias = out.weight[::-1].copy(), out.bias[::-1].copy()
+    swapped.meta["learned_components"] = [1, 0]
+    grid = Grid(res.grid.box, [9, 9, 5])
+    a, b = measure_alpha(s, res.network, grid), measure_alpha(s, swapped, grid)
+    assert b.alpha == pytest.approx(a.alpha, rel=1e-12)
+    wrong = copy.deepcopy(swapped)                  # the pairing a sorted list gave
+    wrong.meta["learned_components"] = [0, 1]
+    assert measure_alpha(s, wrong, grid).alpha > 2 * a.alpha
+    x, u = ca.MX.sym("x", 2), ca.MX.sym("u", 1)
+    fa = ca.Function("a", [x, u], [learned_rhs(s, res.network, x, u)])
+    fb = ca.Function("b", [x, u], [learned_rhs(s, swapped, x, u)])
+    np.testing.assert_allclose(np.array(fa([0.2, -0.3], [0.5])),
+                               np.array(fb([0.2, -0.3], [0.5])), rtol=1e-13)

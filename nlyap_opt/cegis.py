@@ -55,6 +55,9 @@ class CegisConfig:
     sim_dt: float = 0.02             # RK4 step of those simulations
     sim_points: int = 0              # learned φ: table of it for them, total nodes (0: none)
     sim_time: float = 20.0           # simulated horizon of the training states (convergence, cost)
+    # a training state 'converges' once ‖x‖ < sim_tol within sim_time (raise it, up to the
+    # inner radius, for an origin that attracts slowly: x' = -x³ takes 5000 s to 0.01)
+    sim_tol: float = 1e-2
     # learned dynamics: "pointwise" verifies ∇V·φ + η‖∇V(x)‖ < 0 (Cauchy–Schwarz: implies
     # ∇V·f < 0 wherever ‖f − φ‖ ≤ η); "global" verifies the paper's ∇V·φ < −β, β = M·η
     margin_mode: str = "pointwise"
@@ -197,7 +200,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
 
     rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
-    conv, cost = simulate(rhs_np, X, t_final=cfg.sim_time, dt=cfg.sim_dt, tol=1e-2)
+    conv, cost = simulate(rhs_np, X, t_final=cfg.sim_time, dt=cfg.sim_dt, tol=cfg.sim_tol)
     log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model")
     weights = conv.astype(float)
     targets, rates = None, None
@@ -212,7 +215,8 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                 extra = near[rng.integers(0, len(near), cfg.boundary_samples)]
                 extra = extra + 0.03 * scale * rng.standard_normal(extra.shape)
                 extra = extra[D.contains(extra)]
-                c2, w2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=cfg.sim_dt, tol=1e-2)
+                c2, w2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=cfg.sim_dt,
+                                  tol=cfg.sim_tol)
                 X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
         targets, rates = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)
         weights = (conv & (cost <= w_c)).astype(float)

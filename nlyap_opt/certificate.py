@@ -103,18 +103,24 @@ class InnerEllipse:
     level: float
     half_widths: np.ndarray
     proved: bool
+    #: how ``V̇_q < 0`` on ``E∖{0}`` was proved: ``"minors"`` or ``"frobenius"`` (``P J + JᵀP
+    #: ≺ 0``, exponential), ``"blow-up w=[…], m=…"`` (:func:`nlyap_opt.roa.certify_inner_blowup`,
+    #: a centre manifold), ``""`` when not proved
+    form: str = ""
 
     def contains(self, pts: np.ndarray) -> np.ndarray:
         return np.einsum("ij,jk,ik->i", pts, self.P, pts) <= self.level
 
     def to_dict(self) -> dict:
         return {"status": self.status, "P": np.asarray(self.P).tolist(), "level": self.level,
-                "box_half_widths": np.asarray(self.half_widths).tolist(), "proved": self.proved}
+                "box_half_widths": np.asarray(self.half_widths).tolist(), "proved": self.proved,
+                "form": self.form}
 
     @classmethod
     def from_dict(cls, d: dict) -> InnerEllipse:
         return cls(str(d["status"]), np.asarray(d["P"], dtype=float), float(d["level"]),
-                   np.asarray(d.get("box_half_widths", []), dtype=float), bool(d["proved"]))
+                   np.asarray(d.get("box_half_widths", []), dtype=float), bool(d["proved"]),
+                   str(d.get("form", "")))
 
 
 @dataclass
@@ -515,7 +521,8 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
         if ok or not proved:
             ellipse = InnerEllipse(inner["status"], np.asarray(inner["P"]),
                                    float(inner["level"]), np.asarray(inner["box"]),
-                                   proved=proved and ok)
+                                   proved=proved and ok,
+                                   form=str(inner.get("form", "")) if ok else "")
         if proved and not ok:
             status, reason = CertStatus.NOT_CERTIFIED, f"condition (c): {inner['status']}"
         elif proved_from is not None:

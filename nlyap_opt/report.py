@@ -58,9 +58,14 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
     ]
     ie = cert.get("inner_ellipse")
     if ie:
+        blowup = str(ie.get("form", "")).startswith("blow-up")
         lines.append(
             f"- (c) inner ball: E = {{xᵀPx ≤ {ie['level']:.4g}}} ⊇ B_ε; "
-            + ("P·J(y) + J(y)ᵀ·P ≺ 0 verified on a box containing E (true f): "
+            + (f"V̇_q < 0 on E∖{{0}} by a weighted blow-up of the origin ({ie['form']}: "
+               "∂ᵐ/∂rᵐ of V̇_q(r^w·u) < 0 for r ∈ [0, R] on the faces of the unit cube; "
+               "the linearisation is not exponentially stable) (true f): "
+               f"{ie['status']}" if ie.get("proved") and blowup else
+               "P·J(y) + J(y)ᵀ·P ≺ 0 verified on a box containing E (true f): "
                f"{ie['status']}" if ie.get("proved") else
                "assumed (paper's Assumption 3) for the unknown f; the tool's check on the "
                f"true f: {ie['status']}"))

@@ -17,6 +17,11 @@ region of attraction of the **true** closed loop when
   on :math:`E \setminus \{0\}`). For unknown ``f`` it is the paper's assumption
   (LQR region of attraction contains :math:`B_\varepsilon`) and is reported as such.
 
+  When the closed loop's linearisation has eigenvalues on the imaginary axis (a centre
+  manifold, e.g. :math:`x' = -x^3`), no ``P`` makes ``P J + JᵀP ≺ 0`` at 0; for known, smooth
+  ``f`` the non-exponential form :func:`certify_inner_blowup` then proves
+  :math:`\dot V_q < 0` on :math:`E \setminus \{0\}` by a weighted blow-up of the origin.
+
 Every trajectory from :math:`\Omega_c` decreases ``V`` until it enters
 :math:`B_\varepsilon \subseteq E`, which is forward invariant and converges to 0; so
 :math:`\Omega_c \cup E` is certified.
@@ -34,8 +39,8 @@ from .domain import as_domain
 from .walker import evaluate
 
 __all__ = [
-    "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_ellipse",
-    "grid_area", "true_roa_mask",
+    "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
+    "certify_inner_ellipse", "grid_area", "true_roa_mask",
 ]
 
 
@@ -291,6 +296,9 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
         candidates = [np.asarray(P, dtype=float)]
     else:
         if np.max(np.linalg.eigvals(A_cl).real) >= 0:
+            out = certify_inner_blowup(cl, A_cl, inner, verify_options=verify_options)
+            if out is not None:
+                return out
             return {"status": "closed-loop linearisation not Hurwitz", "P": np.eye(system.nx),
                     "level": 0.0, "box": np.zeros(system.nx), "result": None}
         candidates = ellipse_candidates(A_cl)
@@ -329,10 +337,7 @@ def _inner_ellipse(cl, J, P, inner, verify_options):
     from .parallel import check as verify
 
     n = P.shape[0]
-    lam = np.linalg.eigvalsh(P)
-    c_q = float(lam[-1]) * inner**2 * (1 + 1e-9)
-    # E ⊆ box [-a, a]^n with a_i = sqrt(c_q (P^-1)_ii)
-    a = np.sqrt(c_q * np.diag(np.linalg.inv(P))) * (1 + 1e-9)
+    c_q, a = _ellipse_box(P, inner)
     S = ca.mtimes(ca.DM(P), J)
     S = S + S.T
     # J only matters on E (convex: it holds every segment [0, x]); the box's corners reach
@@ -362,6 +367,151 @@ def _inner_ellipse(cl, J, P, inner, verify_options):
             break
     status = "certified" if res.status == "verified" else f"inner ellipse {res.status}"
     return {"status": status, "P": P, "level": c_q, "box": a, "result": res, "form": form}
+
+
+def _ellipse_box(P, inner: float) -> tuple[float, np.ndarray]:
+    """``(c_q, a)``: the least level with ``B_ε ⊆ E = {xᵀPx ≤ c_q}`` (rounded up) and the
+    half-widths of a box containing ``E`` (``a_i = sqrt(c_q (P⁻¹)_ii)``, rounded up)."""
+    c_q = float(np.linalg.eigvalsh(P)[-1]) * inner**2 * (1 + 1e-9)
+    return c_q, np.sqrt(c_q * np.diag(np.linalg.inv(P))) * (1 + 1e-9)
+
+
+#: the weight of the non-centre coordinates in :func:`certify_inner_blowup`, in the order tried
+BLOWUP_WEIGHTS = (2, 3, 4)
+#: the highest order ``m`` of the blow-up's leading term (its derivative graphs grow with ``m``)
+BLOWUP_MAX_ORDER = 8
+
+
+def _blowup_candidates(A_cl: np.ndarray):
+    """``(P, w)`` pairs for a linearisation with eigenvalues on the imaginary axis.
+
+    The centre coordinates are those whose row and column of ``A_cl`` vanish (the centre
+    subspace must be spanned by coordinate axes); the others' block ``A_hh`` must be
+    Hurwitz. ``P`` is the identity on the centre block and the Lyapunov matrix of ``A_hh``
+    (then the identity) on the rest; the centre coordinates get weight 1, the others
+    :data:`BLOWUP_WEIGHTS` (a centre decaying like ``x' = -x^{2k+1}`` balances a hyperbolic
+    ``y' = -y`` under the weights ``(1, k + 1)``).
+    """
+    from .control import lyapunov_matrix
+
+    n = A_cl.shape[0]
+    scale = max(1.0, float(np.max(np.abs(A_cl))))
+    zero = np.abs(A_cl) <= 1e-12 * scale
+    centre = [i for i in range(n) if zero[i, :].all() and zero[:, i].all()]
+    if not centre:
+        return []
+    hyp = [i for i in range(n) if i not in centre]
+    Ps = [np.eye(n)]
+    if hyp:
+        A_hh = A_cl[np.ix_(hyp, hyp)]
+        if np.max(np.linalg.eigvals(A_hh).real) >= 0:
+            return []
+        P = np.eye(n)
+        P[np.ix_(hyp, hyp)] = lyapunov_matrix(A_hh)
+        Ps.insert(0, P)
+    weights = [(1,) * n] if not hyp else [
+        tuple(1 if i in centre else k for i in range(n)) for k in BLOWUP_WEIGHTS]
+    return [(P, w) for P in Ps for w in weights]
+
+
+def _leading_term(h_sub, r, max_order: int):
+    """``(m, D_m)``: the least ``m`` whose ``∂ᵐh/∂rᵐ`` at ``r = 0`` is not structurally zero,
+    and that derivative as a function of ``r`` (``None`` past ``max_order``)."""
+    D = h_sub
+    for m in range(max_order + 1):
+        if not ca.substitute(D, r, ca.SX(0)).is_zero():
+            return m, D
+        D = ca.jacobian(D, r)
+    return None, None
+
+
+def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None = None):
+    r"""Condition (c) without exponential stability: :math:`\dot V_q < 0` on
+    :math:`E \setminus \{0\}`, ``E = {xᵀPx ≤ c_q} ⊇ B_ε``, by a weighted blow-up.
+
+    Every ``x ≠ 0`` with :math:`|x_i| \le R^{w_i}` is :math:`x = r^w \odot u` with
+    :math:`r = \max_i |x_i|^{1/w_i} \in (0, R]` and ``u`` on a face of the unit cube
+    (:math:`|u_j| \le 1`, :math:`u_i = \pm 1` for the maximising ``i``). Let
+    :math:`h(r, u) = \nabla V_q \cdot f(r^w \odot u)`, :math:`V_q = x^\top P x`, and ``m``
+    the least order whose :math:`\partial_r^m h(0, u)` is not structurally zero
+    (CasADi's symbolic derivatives). Taylor's theorem with the Lagrange remainder gives
+    :math:`h(r, u) = \frac{r^m}{m!}\,\partial_r^m h(\xi, u)` for some
+    :math:`\xi \in (0, r)`, so :math:`\partial_r^m h(s, u) < 0` for every
+    :math:`s \in [0, R]` and ``u`` on each of the ``2n`` faces (interval verifier) proves
+    :math:`\dot V_q(x) < 0` on that box minus the origin, which contains ``E``: ``E`` is
+    then forward invariant and every trajectory in it converges to 0 (Lyapunov). Needs a
+    closed loop that is smooth on all of :math:`\mathbb{R}^n` (no kink, jump or partial
+    operation of the walker's op table; constant arguments excepted), so that ``h`` is
+    :math:`C^m` along every segment.
+
+    Returns ``None`` when no candidate applies (unstable or non-smooth closed loop, centre
+    directions off the axes), else the dict of :func:`certify_inner_ellipse` with
+    ``form = "blow-up w=…, m=…"``: the first ``(P, w)`` of :func:`_blowup_candidates`
+    whose leading term is negative on sampled face points and then verifies, or the last
+    verified failure.
+    """
+    from verification import VerificationProblem
+
+    from .parallel import check as verify
+    from .walker import compile_function
+
+    n = A_cl.shape[0]
+    if np.max(np.linalg.eigvals(A_cl).real) > 1e-9 * max(1.0, float(np.max(np.abs(A_cl)))):
+        return None
+    F = ca.Function("f", [cl.x], [cl.rhs])
+    if isinstance(cl.x, ca.MX):
+        F = F.expand()
+    if compile_function(F).checked:
+        return None
+    x = ca.SX.sym("x", n)
+    rhs = F(x)
+    r = ca.SX.sym("r")
+    u = ca.SX.sym("u", n)
+    rng = np.random.default_rng(0)
+    first = None
+    for P, w in _blowup_candidates(A_cl):
+        h = 2 * ca.dot(x, ca.mtimes(ca.DM(P), rhs))
+        h_sub = ca.substitute(h, x, ca.vertcat(*[r**wi * u[i] for i, wi in enumerate(w)]))
+        m, D = _leading_term(h_sub, r, BLOWUP_MAX_ORDER)
+        if m is None:
+            continue
+        form = f"blow-up w={list(w)}, m={m}"
+        c_q, a = _ellipse_box(P, inner)
+        R = float(np.max(a ** (1.0 / np.asarray(w, dtype=float)))) * (1 + 1e-9)
+        # the leading term at r = 0 must be negative on the faces: a cheap sampled screen
+        U = rng.uniform(-1, 1, size=(4000, n))
+        U[np.arange(len(U)), rng.integers(0, n, len(U))] = rng.choice([-1.0, 1.0], len(U))
+        lead = np.array(_fun(u, ca.substitute(D, r, ca.SX(0)))(U.T), dtype=float).ravel()
+        if not np.all(lead < 0):
+            first = first or {"status": f"inner ellipse counterexample ({form}: leading term "
+                                        f"≥ 0 at a face point)", "P": P, "level": c_q,
+                              "box": a, "result": None, "form": form}
+            continue
+        res = None
+        for i in range(n):
+            for sign in (-1.0, 1.0):
+                free = [j for j in range(n) if j != i]
+                z = ca.SX.sym("z", n)     # (s, u without u_i)
+                uz = [None] * n
+                uz[i] = ca.SX(sign)
+                for k, j in enumerate(free):
+                    uz[j] = z[k + 1]
+                prop = ca.substitute(D, ca.vertcat(r, u), ca.vertcat(z[0], *uz))
+                box = np.array([[0.0, R]] + [[-1.0, 1.0]] * (n - 1))
+                prob = VerificationProblem(z, box, [], [prop],
+                                           [], [f"d^{m}h/dr^{m} < 0 on face u{i + 1}={sign:+g}"])
+                res = verify(prob, **(verify_options or {}))
+                if res.status != "verified":
+                    break
+            if res.status != "verified":
+                break
+        out = {"status": "certified" if res.status == "verified"
+               else f"inner ellipse {res.status}", "P": P, "level": c_q, "box": a,
+               "result": res, "form": form}
+        if out["status"] == "certified":
+            return out
+        first = first or out
+    return first
 
 
 def grid_area(mask: np.ndarray, box: np.ndarray) -> float:

@@ -38,7 +38,7 @@ def _config(tmp_path, cfg: dict) -> Path:
 
 
 @pytest.mark.parametrize("name", ["two_machine_power", "lorenz_controlled", "fossil_nonpoly2",
-                                  "fossil_nonpoly3"])
+                                  "fossil_nonpoly3", "fossil_poly1"])
 def test_model_examples_certify_and_recheck(name, tmp_path, capsys):
     out = tmp_path / name
     code = main(["run", str(EXAMPLES / f"{name}.toml"), "--known-dynamics", "--config",

@@ -341,6 +341,9 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
             bounds_info["bound_model"].get("assumptions", []))
 
     def problem_of(V, ctrl, **kw):
+        # the verifier options CEGIS certified with (cegis.verify_options) hold for every
+        # check of the run: the certificate stage re-verifies under the same ones
+        kw.setdefault("verify_options", dict(cfg.get("cegis", {}).get("verify_options", {})))
         return RoaProblem(system, V, ctrl, dynamics, inner=eps, outer=r, eta=eta,
                           margin_mode=mode, domain=D, initial_set=XI, dynamics_box=dyn_box,
                           input_box=input_box, dynamics_assumptions=assumed, **kw)

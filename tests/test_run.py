@@ -334,3 +334,16 @@ def test_recheck_refuses_a_certificate_whose_eta_was_lowered(learned_runs, tmp_p
     (tmp_path / "run" / "certificate.json").write_text(json.dumps(c))
     again = recheck_certificate(tmp_path / "run", log=lambda m: None)
     assert not again.certified and "η" in again.reason
+
+
+def test_certificate_stage_verifies_with_the_cegis_verifier_options(tmp_path):
+    """cegis.verify_options hold for the certificate stage too: the saved problem carries
+    them, so the run's own re-verification and `nlyap verify --certificate` use them."""
+    from nlyap_opt.configs import make_config
+
+    opts = {"second_order": True, "max_boxes": 300000}
+    cfg = make_config("van_der_pol", "fast", overrides={"cegis": {"verify_options": opts}})
+    res = run("van_der_pol", cfg, tmp_path / "r", known_dynamics=True, log=lambda m: None)
+    saved = json.loads((tmp_path / "r" / "certificate.json").read_text())
+    assert saved["problem"]["verify_options"] == opts
+    assert res.status.value == "certified"

@@ -483,7 +483,8 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
         U[np.arange(len(U)), rng.integers(0, n, len(U))] = rng.choice([-1.0, 1.0], len(U))
         lead = np.array(_fun(u, ca.substitute(D, r, ca.SX(0)))(U.T), dtype=float).ravel()
         if not np.all(lead < 0):
-            first = first or {"status": f"inner ellipse counterexample ({form}: leading term "
+            # not a counterexample of V̇_q < 0 (higher orders may still decide): unproved
+            first = first or {"status": f"inner ellipse not proved ({form}: leading term "
                                         f"≥ 0 at a face point)", "P": P, "level": c_q,
                               "box": a, "result": None, "form": form}
             continue

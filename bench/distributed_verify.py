@@ -14,10 +14,10 @@ into ``n_tasks`` sub-boxes) for comparison:
 
 (D) 4-D: the certificate of ``nlyap run cartpole --preset large --known-dynamics`` (the
     round quadratic under the saturated LQR controller, conditions (a), (b), (c) at the level
-    its search certifies, found first, serially), re-checked as ``nlyap verify
-    --certificate`` does: :func:`nlyap_opt.certificate.certify_roa` serially and inside
-    :func:`nlyap_opt.parallel.verifying_on` (every check on the cluster). ``--no-certificate``
-    skips it (about 3 minutes).
+    its search certifies, found first, serially, and saved), re-checked as ``nlyap verify
+    --certificate DIR [--workers W]`` does: :func:`nlyap_opt.certificate.recheck_certificate`
+    serially and inside :func:`nlyap_opt.parallel.verifying_on` (every check on the
+    cluster). ``--no-certificate`` skips it (about 3 minutes).
 
 Seconds are the best of ``--repeat`` runs (cluster start-up excluded). Figures are printed,
 not asserted; on a shared machine read them with the load average printed beside them.
@@ -103,24 +103,32 @@ def cartpole_certificate():
 
 
 def certificate_rows(workers, repeat):
-    """Seconds of certify_roa on query (D): serial, then on clusters of ``workers``."""
-    from dataclasses import replace
+    """Seconds of ``nlyap verify --certificate`` on query (D): serial, then on clusters of
+    ``workers`` (:func:`nlyap_opt.certificate.recheck_certificate` of the saved certificate,
+    inside :func:`nlyap_opt.parallel.verifying_on` as the CLI runs it)."""
+    import tempfile
 
-    from nlyap_opt.certificate import certify_roa
+    from nlyap_opt.certificate import certify_roa, recheck_certificate, save_certificate
     from nlyap_opt.parallel import verifying_on
 
     problem, level = cartpole_certificate()
+    cert = certify_roa(problem, level, log=lambda m: None)
+    if not cert.certified:
+        raise SystemExit(f"query (D): not certified at level {level:g} ({cert.reason})")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = save_certificate(cert, problem, tmp)
 
-    def once():  # a fresh problem: no compiled check is reused between timings
-        return certify_roa(replace(problem), level, log=lambda m: None)
+        def once():  # reads the artifacts again: no compiled check is reused between timings
+            return recheck_certificate(path, log=lambda m: None)
 
-    rows = [("serial", *_best(once, repeat))]
-    for w in workers:
-        with dask_client(workers=w) as client, verifying_on(client):
-            client.submit(sum, [1]).result()  # workers up
-            rows.append((w, *_best(once, repeat)))
+        rows = [("serial", *_best(once, repeat))]
+        for w in workers:
+            with dask_client(workers=w) as client, verifying_on(client):
+                client.submit(sum, [1]).result()  # workers up
+                rows.append((w, *_best(once, repeat)))
     print(f"(D) cartpole certificate (round quadratic, level {level:.6g}, ε = "
-          f"{problem.inner:g}): conditions (a), (b), (c) re-checked")
+          f"{problem.inner:g}, (c) by the {cert.inner_ellipse.form} form): "
+          "nlyap verify --certificate, conditions (a), (b), (c) re-checked")
     print("| workers | seconds (best) | speed-up vs 1 worker | status |")
     print("|---|---|---|---|")
     one = [t for w, t, _ in rows if w == 1]

@@ -429,7 +429,7 @@ def _decrease_text(problem: RoaProblem, margin: float, smoothing: float) -> str:
 
 def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
                 check_inner_ellipse: bool = True, follow_violations: bool = False,
-                log=print) -> RoaCertificate:
+                inner_ellipse: InnerEllipse | None = None, log=print) -> RoaCertificate:
     r"""Prove conditions (a), (b), (c) at ``level`` (or, with ``search``, at the largest level
     reachable from it downwards; see :func:`nlyap_opt.roa.certify_level`).
 
@@ -446,6 +446,10 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     follow_violations : bool
         With ``search``: follow decrease counterexamples down to the least ``V`` of a
         violation (:func:`nlyap_opt.roa.certify_level`).
+    inner_ellipse : InnerEllipse, optional
+        A saved certificate's proved ellipse: condition (c) checks exactly its ``P`` in its
+        ``form`` instead of searching the candidates (:func:`recheck_certificate`). Used
+        where (c) is checked on the true closed loop; ignored otherwise.
 
     Returns
     -------
@@ -514,7 +518,7 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
                 assumptions=assumptions, seconds=time.perf_counter() - t0, **common)
         reason = "conditions (a), (b), (c) and X_I ⊆ Ω_c verified"
     if check_inner_ellipse:
-        inner, proved_from = _inner_ellipse(problem)
+        inner, proved_from = _inner_ellipse(problem, inner_ellipse)
         ok = inner["status"] == "certified"
         checks["(c) inner ellipse" + ("" if proved_from else ", true f")] = inner["status"]
         proved = problem.known or proved_from is not None
@@ -571,11 +575,13 @@ def _declared(system) -> list[str]:
     return list(describe()) if describe is not None else []
 
 
-def _inner_ellipse(problem: RoaProblem) -> tuple[dict, str | None]:
+def _inner_ellipse(problem: RoaProblem, saved: InnerEllipse | None = None
+                   ) -> tuple[dict, str | None]:
     """Condition (c): ``(result, proved_from)``.
 
     With a model: :func:`nlyap_opt.roa.certify_inner_ellipse` on the true closed loop (a proof
-    for known f, a check of the assumption for learned φ). Without a model: proved from the
+    for known f, a check of the assumption for learned φ); of the ``saved`` ellipse alone
+    when it was certified there (its ``P`` and ``form``). Without a model: proved from the
     samples when the user declared a second-derivative bound
     (:func:`nlyap_opt.inner_from_data.prove_inner_ellipse_from_data`), else the ellipse of
     the learned closed loop's linearisation, *assumed* (``checked: False``).
@@ -584,8 +590,11 @@ def _inner_ellipse(problem: RoaProblem) -> tuple[dict, str | None]:
 
     sysm = problem.system
     if getattr(sysm, "has_model", True):
+        again = {}
+        if saved is not None and saved.status == "certified" and saved.form:
+            again = {"P": saved.P, "form": saved.form}
         return certify_inner_ellipse(sysm, problem.controller, problem.inner,
-                                     verify_options=problem.verify_options), None
+                                     verify_options=problem.verify_options, **again), None
     decl = getattr(sysm, "declarations", None)
     if decl is not None and getattr(decl, "hessian", None) is not None:
         try:
@@ -772,7 +781,8 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
         return _refused(saved, f"the certificate does not claim a level ({saved.status.value}: "
                         f"{saved.reason})")
     new = certify_roa(problem, saved.level, search=False,
-                      check_inner_ellipse=saved.inner_ellipse is not None, log=log)
+                      check_inner_ellipse=saved.inner_ellipse is not None,
+                      inner_ellipse=saved.inner_ellipse, log=log)
     new.artifacts = saved.artifacts
     return new
 

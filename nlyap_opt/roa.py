@@ -29,6 +29,7 @@ Every trajectory from :math:`\Omega_c` decreases ``V`` until it enters
 
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass, field
 
@@ -276,15 +277,19 @@ def _leading_minors(S):
     return [det(S[:k, :k]) for k in range(1, S.shape[0] + 1)]
 
 
-def certify_inner_ellipse(system, controller, inner: float, *, P=None,
+def certify_inner_ellipse(system, controller, inner: float, *, P=None, form: str | None = None,
                           verify_options: dict | None = None) -> dict:
     r"""Condition (c) for the true closed loop: ``E = {xᵀPx ≤ c_q} ⊇ B_ε`` is a certified
-    quadratic Lyapunov sublevel set (``P J(y) + J(y)ᵀ P ≺ 0`` on a box containing ``E``).
+    quadratic Lyapunov sublevel set (``P J(y) + J(y)ᵀ P ≺ 0`` on a box containing ``E``, or
+    :func:`certify_inner_blowup` where the linearisation has a centre).
 
     Without ``P``, the candidates of :func:`nlyap_opt.control.ellipse_candidates` for the
     closed-loop linearisation ``A_cl`` are tried in turn; the first one that certifies is
-    returned. Returns a dict with
-    ``status`` (``"certified"`` or why not), ``P``, ``level`` (``c_q``), ``box``.
+    returned. With ``P`` and ``form`` (``InnerEllipse.form`` of a saved certificate:
+    ``"minors"``, ``"frobenius"`` or ``"blow-up w=[…], m=…"``), exactly that claim is
+    checked again, without any search (:func:`nlyap_opt.certificate.recheck_certificate`).
+    Returns a dict with ``status`` (``"certified"`` or why not), ``P``, ``level``
+    (``c_q``), ``box``, ``form``.
     """
     from .control import ellipse_candidates
     from .symbolic import closed_loop
@@ -292,8 +297,31 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     cl = closed_loop(system, controller, strict=True)
     J = ca.jacobian(cl.rhs, cl.x)
     A_cl = np.array(_fun(cl.x, J)(np.zeros(system.nx)), dtype=float)
+    if form and P is None:
+        raise ValueError("form names the saved P's form: give P with it")
     if P is not None:
-        candidates = [np.asarray(P, dtype=float)]
+        P = np.asarray(P, dtype=float)
+        n = system.nx
+        if P.shape != (n, n) or not np.all(np.isfinite(P)) or not np.array_equal(P, P.T) \
+                or np.linalg.eigvalsh(P)[0] <= 0:
+            return {"status": f"inner ellipse not proved (P must be a symmetric positive "
+                              f"definite {n}x{n} matrix)", "P": np.eye(n), "level": 0.0,
+                    "box": np.zeros(n), "result": None, "form": form or ""}
+    if form and form.startswith("blow-up"):
+        m = re.fullmatch(r"blow-up w=\[([0-9, ]+)\], m=\d+", form)
+        w = tuple(int(v) for v in m.group(1).split(",")) if m else ()
+        out = None
+        if len(w) == system.nx:
+            out = certify_inner_blowup(cl, A_cl, inner, verify_options=verify_options,
+                                       candidates=[(P, w)])
+        if out is None:
+            c_q, a = _ellipse_box(P, inner)
+            out = {"status": f"inner ellipse not proved ({form} does not apply to this "
+                             "closed loop)", "P": P, "level": c_q, "box": a, "result": None,
+                   "form": form}
+        return out
+    if P is not None:
+        candidates = [P]
     else:
         if np.max(np.linalg.eigvals(A_cl).real) >= 0:
             out = certify_inner_blowup(cl, A_cl, inner, verify_options=verify_options)
@@ -304,14 +332,14 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
         candidates = ellipse_candidates(A_cl)
     first = None
     for Pc in candidates:
-        out = _inner_ellipse(cl, J, Pc, inner, verify_options)
+        out = _inner_ellipse(cl, J, Pc, inner, verify_options, only=form or None)
         if out["status"] == "certified":
             return out
         first = first or out
     return first
 
 
-def _inner_ellipse(cl, J, P, inner, verify_options):
+def _inner_ellipse(cl, J, P, inner, verify_options, only: str | None = None):
     """Verify ``P J(y) + J(y)ᵀP ≺ 0`` on ``E = {xᵀPx ≤ c_q}`` (``c_q = λ_max(P) ε²``).
 
     Two sufficient forms of ``S(y) = P J(y) + J(y)ᵀP ≺ 0``; the first that verifies wins:
@@ -330,7 +358,7 @@ def _inner_ellipse(cl, J, P, inner, verify_options):
       5.6·10⁵ boxes, while the minors stay unknown after 10⁶.
 
     In up to 3 dimensions the minors go first (cheap and exact there), from 4 on the
-    Frobenius form.
+    Frobenius form. ``only``: check that form alone (the re-check of a saved claim).
     """
     from verification import VerificationProblem
 
@@ -359,6 +387,12 @@ def _inner_ellipse(cl, J, P, inner, verify_options):
         if d < 0.5:     # (1 − d)² is the bound only while d < 1
             frob = ("frobenius", [ca.sumsqr(E) - (1.0 - d) ** 2])
             forms = forms + [frob] if n <= 3 else [frob] + forms
+    if only is not None:
+        forms = [fp for fp in forms if fp[0] == only]
+        if not forms:
+            return {"status": f"inner ellipse not proved (the {only} form does not apply to "
+                              "this P)", "P": P, "level": c_q, "box": a, "result": None,
+                    "form": only}
     for form, props in forms:
         prob = VerificationProblem(cl.x, box, [Vq - c_q], props, ["ellipse"],
                                    [f"{form}{k}" for k in range(1, len(props) + 1)])
@@ -425,7 +459,8 @@ def _leading_term(h_sub, r, max_order: int):
     return None, None
 
 
-def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None = None):
+def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None = None,
+                         candidates=None):
     r"""Condition (c) without exponential stability: :math:`\dot V_q < 0` on
     :math:`E \setminus \{0\}`, ``E = {xᵀPx ≤ c_q} ⊇ B_ε``, by a weighted blow-up.
 
@@ -448,7 +483,7 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
     directions off the axes), else the dict of :func:`certify_inner_ellipse` with
     ``form = "blow-up w=…, m=…"``: the first ``(P, w)`` of :func:`_blowup_candidates`
     whose leading term is negative on sampled face points and then verifies, or the last
-    verified failure.
+    verified failure. ``candidates``: these ``(P, w)`` pairs instead (a saved claim).
     """
     from verification import VerificationProblem
 
@@ -469,7 +504,7 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
     u = ca.SX.sym("u", n)
     rng = np.random.default_rng(0)
     first = None
-    for P, w in _blowup_candidates(A_cl):
+    for P, w in (_blowup_candidates(A_cl) if candidates is None else candidates):
         h = 2 * ca.dot(x, ca.mtimes(ca.DM(P), rhs))
         h_sub = ca.substitute(h, x, ca.vertcat(*[r**wi * u[i] for i, wi in enumerate(w)]))
         m, D = _leading_term(h_sub, r, BLOWUP_MAX_ORDER)

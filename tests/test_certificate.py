@@ -144,6 +144,36 @@ def test_json_round_trip_and_recheck(tmp_path):
     assert not refused.certified and "changed" in refused.reason
 
 
+def test_recheck_checks_the_saved_inner_ellipse_without_a_search(tmp_path, monkeypatch):
+    """Condition (c) is re-checked for the saved P in its saved form, not searched again: a
+    certificate.json whose P was replaced by one that fails (P A + AᵀP not negative
+    definite at 0) or by an indefinite matrix is not certified any more."""
+    import json
+
+    import nlyap_opt.roa as roa
+
+    s, V, P = _vdp_quadratic()
+    prob = RoaProblem(s, V, inner=0.05, outer=2.0)
+    cert = certify_roa(prob, 0.5 * _min_V_where_decrease_fails(P, s, 2.0), **QUIET)
+    assert cert.certified and cert.inner_ellipse.form in ("minors", "frobenius")
+    path = save_certificate(cert, prob, tmp_path)
+    calls = []
+    real = roa._inner_ellipse
+    monkeypatch.setattr(roa, "_inner_ellipse", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    again = recheck_certificate(path, **QUIET)
+    assert again.certified and len(calls) == 1
+    np.testing.assert_array_equal(calls[0], cert.inner_ellipse.P)
+    A = np.array(ca.Function("J", [s.x], [ca.jacobian(s.f, s.x)])(np.zeros(2)), dtype=float)
+    bad = np.diag([1.0, 100.0])
+    assert np.linalg.eigvalsh(bad @ A + A.T @ bad)[-1] > 0     # fails at the origin itself
+    d = json.loads(path.read_text())
+    for P_bad, words in ((bad, "counterexample"), (np.diag([1.0, -1.0]), "positive definite")):
+        d["inner_ellipse"]["P"] = P_bad.tolist()
+        path.write_text(json.dumps(d))
+        refused = recheck_certificate(path, **QUIET)
+        assert not refused.certified and "(c)" in refused.reason and words in refused.reason
+
+
 def test_recheck_rejects_non_certificates(tmp_path):
     (tmp_path / "c.json").write_text('{"a": 1}')
     with pytest.raises(ConfigError):

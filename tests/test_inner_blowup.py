@@ -95,3 +95,28 @@ def test_hyperbolic_loop_keeps_the_exponential_form():
     s = _system(lambda x: [-x[0] + x[1] ** 2, -2 * x[1]], 2)
     out = certify_inner_ellipse(s, None, 0.1)
     assert out["status"] == "certified" and out["form"] in ("minors", "frobenius")
+
+
+def test_saved_blowup_claim_is_checked_again_without_a_search():
+    """A re-check (``P`` and ``form`` of a saved certificate) verifies exactly that claim: the
+    Poly1 claim holds again; the same weights on x' = +x³ (a false property) or a form whose
+    weights do not fit the state are not certified."""
+    s = systems.load_spec(EXAMPLES / "fossil_poly1.toml")
+    out = certify_inner_ellipse(s, None, 0.5)
+    again = certify_inner_ellipse(s, None, 0.5, P=out["P"], form=out["form"])
+    assert again["status"] == "certified" and again["form"] == out["form"]
+    assert again["level"] == out["level"]
+    wrong = certify_inner_ellipse(s, None, 0.5, P=out["P"], form="blow-up w=[1, 2], m=4")
+    assert wrong["status"] != "certified" and "does not apply" in wrong["status"]
+    up = _system(lambda x: [x[0] ** 3, -x[1]], 2)
+    claim = certify_inner_ellipse(up, None, 0.1, P=np.diag([1.0, 0.5]),
+                                  form="blow-up w=[1, 2], m=4")
+    assert claim["status"] != "certified"
+
+
+@pytest.mark.parametrize("P", [np.diag([1.0, -1.0]), np.array([[1.0, 0.5], [0.4, 1.0]]),
+                               np.eye(3), np.diag([1.0, np.nan])])
+def test_saved_P_must_be_symmetric_positive_definite(P):
+    s = _system(lambda x: [-x[0] + x[1] ** 2, -2 * x[1]], 2)
+    out = certify_inner_ellipse(s, None, 0.1, P=P, form="minors")
+    assert out["status"] != "certified" and "positive definite" in out["status"]

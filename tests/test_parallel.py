@@ -159,6 +159,25 @@ def test_distributed_verdict_equals_serial(client, mode, outer, expected):
         assert len(dist.undecided) == 0 and dist.boxes >= 0.5 * serial.boxes
 
 
+def test_no_task_starts_from_fewer_than_min_task_boxes(client):
+    """Open boxes are dealt out in chunks of at least ``min_task_boxes`` (a task that starts
+    from a few boxes pays the walker's fixed cost per pass for them); the verdict and the
+    boxes processed stay the serial ones. Without the floor, tiny starts happen here."""
+    problem = _vdp_problem(1.0)
+    serial = verify(problem)
+    tiny: dict = {}
+    verify_distributed(problem, client, task_boxes=64, min_task_boxes=1, stats=tiny)
+    assert min(tiny["starts"]) < 16
+    st: dict = {}
+    dist = verify_distributed(problem, client, task_boxes=64, min_task_boxes=16, stats=st)
+    assert dist.status == serial.status == "verified" and dist.boxes == serial.boxes
+    assert st["starts"] and min(st["starts"]) >= 16
+    # default: the root processes a quarter batch first, so a small check is decided there
+    small: dict = {}
+    res = verify_distributed(problem, client, stats=small)
+    assert res.status == "verified" and (small["tasks"] == 1) is (serial.boxes <= 2048)
+
+
 def test_counterexample_found_by_branching_not_presearch(client, mode):
     """No pre-search: the counterexample comes from a worker's box, confirmed there."""
     problem = _vdp_problem(1.2)
@@ -261,20 +280,22 @@ def test_check_on_a_cluster_returns_the_serial_result(client, monkeypatch, outer
         assert check(problem).status == serial.status and not calls
 
 
-@pytest.mark.parametrize("outer, presearch, tasks", [(1.6, 500, 1), (1.2, 0, 1), (1.15, 0, 2)])
+@pytest.mark.parametrize("outer, presearch, batch, alone", [
+    (1.6, 500, 8192, True), (1.2, 0, 8192, True), (1.15, 0, 8192, True), (1.15, 0, 64, False)])
 def test_root_task_counterexample_is_the_serial_one(client, monkeypatch, outer, presearch,
-                                                    tasks):
-    """A counterexample the root task finds alone (pre-search, first grid) is the serial
-    run's, to the last bit: ``check`` keeps it without deciding again. One found by a
-    branch task is decided again serially. Either way, the result is the serial one."""
+                                                    batch, alone):
+    """A counterexample the root task finds alone (pre-search, its first batch) is the
+    serial run's, to the last bit: ``check`` keeps it without deciding again. One found by
+    a branch task (the root's batch of 64 boxes is too small to reach it) is decided again
+    serially. Either way, the result is the serial one."""
     import verification
 
     problem = _vdp_problem(outer)
-    serial = verify(problem, presearch=presearch)
+    serial = verify(problem, presearch=presearch, batch=batch)
     st: dict = {}
-    dist = verify_distributed(problem, client, stats=st, presearch=presearch)
-    assert serial.status == dist.status == "counterexample" and st["tasks"] == tasks
-    if tasks == 1:
+    dist = verify_distributed(problem, client, stats=st, presearch=presearch, batch=batch)
+    assert serial.status == dist.status == "counterexample" and (st["tasks"] == 1) is alone
+    if alone:
         np.testing.assert_array_equal(dist.counterexample.point, serial.counterexample.point)
         assert [c.point.tolist() for c in dist.counterexamples] == \
             [c.point.tolist() for c in serial.counterexamples]
@@ -283,8 +304,8 @@ def test_root_task_counterexample_is_the_serial_one(client, monkeypatch, outer, 
     monkeypatch.setattr(verification, "verify",
                         lambda *a, **k: serial_calls.append(1) or real(*a, **k))
     with verifying_on(client):
-        res = check(problem, presearch=presearch)
-    assert len(serial_calls) == (tasks > 1)
+        res = check(problem, presearch=presearch, batch=batch)
+    assert len(serial_calls) == (not alone)
     np.testing.assert_array_equal(res.counterexample.point, serial.counterexample.point)
     assert res.counterexample.property == serial.counterexample.property
 

@@ -104,8 +104,9 @@ class InnerEllipse:
     half_widths: np.ndarray
     proved: bool
     #: how ``V̇_q < 0`` on ``E∖{0}`` was proved: ``"minors"`` or ``"frobenius"`` (``P J + JᵀP
-    #: ≺ 0``, exponential), ``"blow-up w=[…], m=…"`` (:func:`nlyap_opt.roa.certify_inner_blowup`,
-    #: a centre manifold), ``""`` when not proved
+    #: ≺ 0``, exponential), ``"shell r=ε_s + minors|frobenius"`` (``V̇_q < 0`` directly on
+    #: ``E∖B_{ε_s}``, one of those on a small ellipse), ``"blow-up w=[…], m=…"``
+    #: (:func:`nlyap_opt.roa.certify_inner_blowup`, a centre manifold), ``""`` when not proved
     form: str = ""
 
     def contains(self, pts: np.ndarray) -> np.ndarray:

@@ -208,19 +208,23 @@ def test_lyapunov_matrix_is_the_lyapunov_solution():
 
 
 def test_inner_radius_is_chosen_by_the_tool_without_retraining():
-    """ε = 1 is refused for the Van der Pol LQR quadratic ((c) fails on so large an ellipse);
-    the same V certifies with a smaller ε, and the certificate says which and why."""
+    """ε = 1.2 is refused for the Van der Pol LQR quadratic at level 2 (Ω_2 does not hold
+    B_1.2, and condition (c) fails on so large an ellipse: every candidate quadratic
+    increases somewhere on it, sampled V̇_q up to 0.28); the same V certifies with a
+    smaller ε, and the certificate says which and why."""
     from nlyap_opt.certificate import certify_with_inner_search
+    from nlyap_opt.roa import certify_inner_ellipse
 
     s, V, P = _vdp_quadratic()
-    prob = RoaProblem(s, V, inner=1.0, outer=2.0)
+    prob = RoaProblem(s, V, inner=1.2, outer=2.0)
     refused = certify_roa(prob, 2.0, **QUIET)
-    assert not refused.certified and "(c)" in refused.reason
+    assert not refused.certified and "inner ball" in refused.reason
+    assert certify_inner_ellipse(s, None, 1.2)["status"] == "inner ellipse counterexample"
     cert = certify_with_inner_search(prob, 2.0, **QUIET)
-    assert cert.certified and cert.inner < 1.0
+    assert cert.certified and cert.inner < 1.2
     assert any("chosen by the tool" in a for a in cert.assumptions)
     tried = cert.history[-1]["inner_radius_search"]
-    assert tried[0]["inner"] == 1.0 and tried[-1]["inner"] == cert.inner
+    assert tried[0]["inner"] == 1.2 and tried[-1]["inner"] == cert.inner
     # and it is a real certificate: re-check it at its own radius
     again = certify_roa(RoaProblem(s, V, inner=cert.inner, outer=2.0), cert.level, **QUIET)
     assert again.certified

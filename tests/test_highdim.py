@@ -249,39 +249,54 @@ def test_round_lyapunov_matrix_solves_the_lmi_with_a_small_condition_number(name
     assert round_lyapunov_matrix(-A) is None            # not Hurwitz: no candidate
 
 
-def test_inner_ellipse_of_the_saturated_cartpole_loop_needs_the_round_matrix():
-    """Condition (c) at ε = 0.025 for the cartpole's saturated LQR loop: the Lyapunov matrix
-    of Q_V = I (condition number 328) is refuted: its ellipse reaches 0.4 from the origin,
-    and the counterexample is a point where P J + JᵀP is not negative definite; the round
-    matrix (condition number 60) is certified by the Frobenius form."""
+def test_inner_ellipse_of_the_saturated_cartpole_loop():
+    """Condition (c) at ε = 0.025 for the cartpole's saturated LQR loop. The Lyapunov matrix
+    of Q_V = I (condition number 328) fails the Jacobian forms: its ellipse reaches 0.4 from
+    the origin, and the minors' counterexample is a point where P J + JᵀP is not negative
+    definite. Its quadratic still decreases on E∖{0} (sampled), and the shell form proves
+    it; the round matrix (condition number 60) is certified by the Frobenius form alone."""
     import casadi as ca
 
-    from nlyap_opt.control import lyapunov_matrix
+    from nlyap_opt.control import lyapunov_matrix, round_lyapunov_matrix
     from nlyap_opt.roa import certify_inner_ellipse
     from nlyap_opt.symbolic import closed_loop
 
     s, res, sat = _saturated_lqr_loop("cartpole")
     opts = {"second_order": True}
-    P_I = lyapunov_matrix(res.A - res.B @ res.K)
-    bad = certify_inner_ellipse(s, sat, 0.025, P=P_I, verify_options=opts)
+    A_cl = res.A - res.B @ res.K
+    P_I = lyapunov_matrix(A_cl)
+    bad = certify_inner_ellipse(s, sat, 0.025, P=P_I, form="minors", verify_options=opts)
     assert bad["status"] == "inner ellipse counterexample" and bad["form"] == "minors"
     cl = closed_loop(s, sat, strict=True)
     Jf = ca.Function("J", [cl.x], [ca.jacobian(cl.rhs, cl.x)])
+    Ff = ca.Function("f", [cl.x], [cl.rhs])
+    assert len(bad["result"].counterexamples)
     for ce in bad["result"].counterexamples:
         y = np.asarray(ce.point, dtype=float)
         assert y @ P_I @ y <= bad["level"] * (1 + 1e-9)
         Jy = np.array(Jf(y), dtype=float)
         assert np.linalg.eigvalsh(P_I @ Jy + Jy.T @ P_I)[-1] >= -1e-9
 
-    good = certify_inner_ellipse(s, sat, 0.025, verify_options=opts)
-    assert good["status"] == "certified" and good["form"] == "frobenius"
-    assert np.linalg.cond(good["P"]) < 100
-    # sampled: P J + JᵀP ≺ 0 on the certified ellipse
     rng = np.random.default_rng(0)
-    z = rng.normal(size=(300, 4))
-    z *= (rng.random((300, 1)) ** 0.25) / np.linalg.norm(z, axis=1, keepdims=True)
-    L = np.linalg.cholesky(good["P"])
-    for y in np.linalg.solve(L.T, (np.sqrt(good["level"]) * z).T).T:
+
+    def in_ellipse(P, level, k=300):
+        z = rng.normal(size=(k, 4))
+        z *= (rng.random((k, 1)) ** 0.25) / np.linalg.norm(z, axis=1, keepdims=True)
+        return np.linalg.solve(np.linalg.cholesky(P).T, (np.sqrt(level) * z).T).T
+
+    shell = certify_inner_ellipse(s, sat, 0.025, P=P_I, verify_options=opts)
+    assert shell["status"] == "certified" and shell["form"].startswith("shell r=")
+    ys = in_ellipse(P_I, shell["level"], 2000)
+    f = np.array(Ff(ys.T), dtype=float).T
+    assert np.all(2 * np.einsum("ij,jk,ik->i", ys, P_I, f) < 0)      # V̇_q < 0 on E∖{0}
+
+    P_round = round_lyapunov_matrix(A_cl)
+    assert np.linalg.cond(P_round) < 100
+    good = certify_inner_ellipse(s, sat, 0.025, P=P_round, form="frobenius",
+                                 verify_options=opts)
+    assert good["status"] == "certified" and good["form"] == "frobenius"
+    # sampled: P J + JᵀP ≺ 0 on the certified ellipse
+    for y in in_ellipse(good["P"], good["level"]):
         Jy = np.array(Jf(y), dtype=float)
         assert np.linalg.eigvalsh(good["P"] @ Jy + Jy.T @ good["P"])[-1] < 0
 

@@ -1,0 +1,92 @@
+"""Condition (c) by the shell form: ``V̇_q < 0`` on ``E ∖ B_{ε_s}`` directly, and the
+Jacobian form on the small ellipse around ``B_{ε_s}``.
+
+The test system ``x' = −x + a·x·‖x‖²`` has, with ``P ∝ I``, ``V̇_q ∝ −2‖x‖²(1 − a‖x‖²)``
+and a Jacobian whose largest eigenvalue is ``−1 + 3a‖x‖²`` (along ``x``). With
+``a = 0.5/ε²`` the quadratic decreases on all of ``E = B_ε`` while ``P J + JᵀP`` is
+indefinite near ``‖x‖ = ε``: the minors and Frobenius forms must be refuted there, the shell
+form must prove (c). With ``a = 1.5/ε²`` the property is false (``V̇_q > 0`` for
+``‖x‖² > 1/a``) and nothing may certify it, nor a saved shell claim on it.
+"""
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import systems
+from nlyap_opt.roa import SHELL_FRACTION, certify_inner_ellipse
+
+EPS = 0.2
+
+
+def _system(a: float, n: int = 2):
+    x = ca.SX.sym("x", n)
+    rhs = -x + a * x * ca.sumsqr(x)
+    return systems.System("shell", x, None, rhs, state_box=[[-3.0, 3.0]] * n)
+
+
+def _vdot(s, P, pts):
+    F = ca.Function("f", [s.x], [s.f])
+    f = np.array(F(pts.T), dtype=float).T
+    return 2 * np.einsum("ij,jk,ik->i", pts, P, f)
+
+
+def _points_in(P, level, n, rng, k=20000):
+    d = rng.standard_normal((k, n))
+    q = np.einsum("ij,jk,ik->i", d, P, d)
+    return d * np.sqrt(level / q)[:, None] * rng.uniform(1e-3, 1, (k, 1))
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_shell_proves_decrease_where_the_jacobian_forms_are_refuted(n):
+    s = _system(0.5 / EPS**2, n)
+    out = certify_inner_ellipse(s, None, EPS)
+    assert out["status"] == "certified"
+    eps_s = EPS * SHELL_FRACTION
+    assert out["form"] == f"shell r={eps_s!r} + minors"
+    P = np.asarray(out["P"])
+    assert out["level"] >= np.linalg.eigvalsh(P)[-1] * EPS**2          # B_ε ⊆ E
+    pts = _points_in(P, out["level"], n, np.random.default_rng(0))
+    assert np.all(_vdot(s, P, pts) < 0)                                 # the truth on E
+    # the Jacobian forms alone are refuted on E; the minors (exact at a point) at points
+    # where P J + JᵀP is not ≺ 0
+    Jf = ca.Function("J", [s.x], [ca.jacobian(s.f, s.x)])
+    for form in ("frobenius", "minors"):
+        alone = certify_inner_ellipse(s, None, EPS, P=P, form=form)
+        assert alone["status"] == "inner ellipse counterexample"
+    assert len(alone["result"].counterexamples)
+    for ce in alone["result"].counterexamples:
+        y = np.asarray(ce.point, dtype=float)
+        Jy = np.array(Jf(y), dtype=float)
+        assert np.linalg.eigvalsh(P @ Jy + Jy.T @ P)[-1] >= -1e-9
+
+
+def test_false_property_is_not_certified_by_any_form():
+    """a = 1.5/ε²: V̇_q > 0 on E near ‖x‖ = ε; the shell's counterexample is such a point."""
+    s = _system(1.5 / EPS**2)
+    out = certify_inner_ellipse(s, None, EPS)
+    assert out["status"] != "certified"
+    P = np.eye(2)
+    shell = certify_inner_ellipse(s, None, EPS, P=P, form=f"shell r={EPS / 4!r} + minors")
+    assert shell["status"] == "inner ellipse counterexample"
+    pts = np.array([ce.point for ce in shell["result"].counterexamples])
+    assert len(pts) and np.all(_vdot(s, P, pts) >= -1e-12)
+    assert np.all(np.einsum("ij,ij->i", pts, pts) <= shell["level"] * (1 + 1e-9))
+
+
+def test_saved_shell_claim_is_checked_again_and_tampering_is_refused():
+    s = _system(0.5 / EPS**2)
+    out = certify_inner_ellipse(s, None, EPS)
+    again = certify_inner_ellipse(s, None, EPS, P=out["P"], form=out["form"])
+    assert again["status"] == "certified" and again["form"] == out["form"]
+    assert again["level"] == out["level"]
+    # a shell needs 0 < r ≤ ε and a Jacobian form inside; anything else does not apply
+    for bad in ("shell r=0.0 + minors", "shell r=nan + minors", "shell r=1..2 + minors",
+                f"shell r={2 * EPS!r} + minors", "shell r=0.05 + shell r=0.01 + minors",
+                "shell", "shell r=-0.05 + frobenius"):
+        refused = certify_inner_ellipse(s, None, EPS, P=out["P"], form=bad)
+        assert refused["status"] != "certified" and "does not apply" in refused["status"], bad
+    # the inner ellipse is the Jacobian form's: r = ε makes the shell empty, and then the
+    # minors must hold on all of E, which they do not
+    whole = certify_inner_ellipse(s, None, EPS, P=out["P"], form=f"shell r={EPS!r} + minors")
+    assert whole["status"] == "inner ellipse counterexample"

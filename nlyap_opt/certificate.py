@@ -643,7 +643,7 @@ INNER_FACTORS = (1.0, 0.5, 0.25, 2.0, 0.125, 3.0)
 
 def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
                               factors=INNER_FACTORS, follow_violations: bool = False,
-                              log=print) -> RoaCertificate:
+                              smallest_level: bool = False, log=print) -> RoaCertificate:
     r""":func:`certify_roa` at the configured inner radius ε, then at other radii.
 
     The inner radius is a trade-off the user should not have to tune: a small ε makes
@@ -654,12 +654,16 @@ abla V\|` (learned f) can beat it;
     ``ε·factor`` for each factor (no retraining); the first radius that certifies wins (the
     configured one first). Without ``level`` each radius gets its own candidate level
     (:func:`nlyap_opt.roa.candidate_level`); ``follow_violations`` goes to
-    :func:`certify_roa`. Returns the certificate (its ``history`` lists every radius tried)
-    or the configured radius's refusal.
+    :func:`certify_roa`. With ``smallest_level`` (and no ``level``) each radius starts at
+    the smallest level that can hold its inner ball, ``(1 +``
+    :data:`nlyap_opt.roa.INNER_LEVEL_MARGIN` ``)·max_{‖x‖=ε} V``, and is skipped when the
+    candidate level lies below that (a sampled violation or the boundary inside every
+    ``Ω_c ⊇ B_ε``). Returns the certificate (its ``history`` lists every radius tried) or
+    the configured radius's refusal.
     """
     from dataclasses import replace
 
-    from .roa import candidate_level
+    from .roa import INNER_LEVEL_MARGIN, candidate_level, inner_ball_level
 
     try:  # the decrease condition does not depend on ε: built once, shared
         dec = problem.decrease()
@@ -679,6 +683,15 @@ abla V\|` (learned f) can beat it;
         if not lv > 0:
             tried.append({"inner": eps, "status": "no positive candidate level"})
             continue
+        if smallest_level and level is None:
+            m = inner_ball_level(dec.x, dec.V, eps)
+            if not lv > m * (1.0 + INNER_LEVEL_MARGIN):
+                tried.append({"inner": eps, "status": f"candidate level {lv:.4g} below the "
+                              f"inner ball's level {m:.4g}"})
+                log(f"inner radius {eps:g}: candidate level {lv:.4g} lies below the inner "
+                    f"ball's level {m:.4g}; skipped")
+                continue
+            lv = m * (1.0 + INNER_LEVEL_MARGIN)
         cert = certify_roa(p, lv, search=f != 1.0 or level is None,
                            follow_violations=follow_violations, log=log)
         tried.append({"inner": eps, "status": cert.status.value, "reason": cert.reason,
@@ -689,7 +702,7 @@ abla V\|` (learned f) can beat it;
                 log(f"inner radius {problem.inner:g} refused; certified with ε = {eps:g}")
                 cert.assumptions.append(
                     f"inner radius ε = {eps:g} chosen by the tool (configured "
-                    f"{problem.inner:g}: {tried[0]['reason']})")
+                    f"{problem.inner:g}: {tried[0].get('reason', tried[0]['status'])})")
             cert.history = list(cert.history) + [{"inner_radius_search": tried}]
             return cert
     if first is None:

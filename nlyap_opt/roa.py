@@ -45,7 +45,7 @@ from .walker import evaluate
 
 __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
-    "certify_inner_ellipse", "grid_area", "true_roa_mask",
+    "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask",
 ]
 
 
@@ -159,6 +159,42 @@ def least_violation(x, V, lie, starts, *, inner: float, domain, margin: float = 
     return best
 
 
+#: the level tried when a level search would drop below the inner ball's:
+#: ``(1 + INNER_LEVEL_MARGIN)·max_{‖x‖=ε} V`` (room for the strict ``V < c`` on the sphere)
+INNER_LEVEL_MARGIN = 0.02
+
+
+def inner_ball_level(x, V, inner: float, *, n_samples: int = 4000, n_starts: int = 4,
+                     seed: int = 0) -> float:
+    r"""``max V`` on the sphere :math:`\|x\| = \varepsilon` (sampled, then IPOPT from the
+    best samples; every value is ``V`` evaluated at a point of the sphere).
+
+    No level ``c`` at or below it can hold :math:`B_\varepsilon \subseteq \Omega_c` (``V ≥
+    c`` at that point of the sphere): a level search that would go there has nothing left
+    to try. A lower estimate of the true maximum, used to choose levels, never as a proof
+    (condition (b)'s ``V < c`` on the sphere is verified).
+    """
+    n = x.numel()
+    rng = np.random.default_rng(seed)
+    d = rng.standard_normal((max(n_samples, 2 * n), n))
+    d[:n] = np.eye(n)
+    d[n:2 * n] = -np.eye(n)
+    pts = inner * d / np.linalg.norm(d, axis=1, keepdims=True)
+    Vf = _fun(x, V)
+    v = evaluate(Vf, [pts])[0][:, 0]
+    best = float(np.max(v))
+    nlp = ca.nlpsol("lev_in", "ipopt", {"x": x, "f": -V, "g": ca.sumsqr(x)}, _IPOPT)
+    for x0 in pts[np.argsort(-v)[:n_starts]]:
+        try:
+            xs = np.array(nlp(x0=x0, lbg=inner**2, ubg=inner**2)["x"]).ravel()
+        except RuntimeError:
+            continue
+        nrm = float(np.linalg.norm(xs))
+        if np.all(np.isfinite(xs)) and nrm > 0:
+            best = max(best, float(Vf(xs * (inner / nrm))))
+    return best
+
+
 def _domain(domain, outer, n: int):
     if domain is None:
         if outer is None:
@@ -193,8 +229,11 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     decrease counterexample is followed down by :func:`least_violation` (IPOPT from the
     counterexamples) and the level drops to just below the least ``V`` found: in 4-D and up
     the violation set is thin and the counterexamples' own ``V`` only creeps down (off by
-    default, so that existing certificates do not move). Returns the certified level or
-    why none was found.
+    default, so that existing certificates do not move). A search never goes to a level at
+    or below :func:`inner_ball_level` (no such ``Ω_c`` holds ``B_ε``): the first step that
+    would tries ``(1 +`` :data:`INNER_LEVEL_MARGIN` ``)`` times it instead, the smallest level
+    that can hold the inner ball, and the search ends after that. Returns the certified
+    level or why none was found.
     """
     from verification import VerificationProblem, lyapunov_problem
 
@@ -211,8 +250,25 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     c = level * (1.0 - shrink)
     drop = 0.005
     hist, cexs = [], []
+    floor = {}          # max V on the inner sphere, computed when a step first needs it
+
+    def lower(c_old, c_new):
+        """The next level: ``c_new``, the inner ball's level instead, or ``None`` (stop)."""
+        if inner <= 0 or not c_new > 0:
+            return c_new
+        if "m" not in floor:
+            floor["m"] = inner_ball_level(x, V, inner)
+        m = floor["m"]
+        if c_new > m:
+            return c_new
+        target = m * (1.0 + INNER_LEVEL_MARGIN)
+        if target < c_old:
+            log(f"    level {c_new:.6g} would not hold the inner ball (max V = {m:.6g} on "
+                f"‖x‖ = {inner:g}): trying {target:.6g}, the smallest that can")
+            return target
+        return None
     for _ in range(max_tries):
-        if not c > 0:
+        if c is None or not c > 0:
             break
         res_b = None
         for pbox, cons, label in pieces:   # V > c on each piece of the boundary
@@ -255,11 +311,15 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                                         margin=margin, tol=1e-7)
                 if found is not None:   # a level to try, not a counterexample (tol)
                     vmin = min(vmin, found[0])
-            c = min(vmin * (1.0 - 1e-3), c * 0.995)
+            c = lower(c, min(vmin * (1.0 - 1e-3), c * 0.995))
         else:
-            c *= 1.0 - drop
+            c = lower(c, c * (1.0 - drop))
             drop = min(3.0 * drop, 0.3)
-    return LevelCertificate("no level certified", 0.0, None, None, hist,
+    why = "no level certified"
+    if c is None:
+        why += (f" (none above the inner ball's level {floor['m']:.6g}, max V on ‖x‖ = "
+                f"{inner:g}, holds)")
+    return LevelCertificate(why, 0.0, None, None, hist,
                             np.array(cexs).reshape(-1, n), time.perf_counter() - t0)
 
 

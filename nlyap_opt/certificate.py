@@ -648,8 +648,7 @@ def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
 
     The inner radius is a trade-off the user should not have to tune: a small ε makes
     condition (c) easy (a small ellipse around the origin) but the decrease (a) must then hold
-    close to the origin, where a robust margin :math:`\eta\|
-abla V\|` (learned f) can beat it;
+    close to the origin, where a robust margin :math:`\eta\|\nabla V\|` (learned f) can beat it;
     a large ε the other way round. The same ``V`` and ``κ`` are re-checked with
     ``ε·factor`` for each factor (no retraining); the first radius that certifies wins (the
     configured one first). Without ``level`` each radius gets its own candidate level
@@ -658,8 +657,8 @@ abla V\|` (learned f) can beat it;
     the smallest level that can hold its inner ball, ``(1 +``
     :data:`nlyap_opt.roa.INNER_LEVEL_MARGIN` ``)·max_{‖x‖=ε} V``, and is skipped when the
     candidate level lies below that (a sampled violation or the boundary inside every
-    ``Ω_c ⊇ B_ε``). Returns the certificate (its ``history`` lists every radius tried) or
-    the configured radius's refusal.
+    ``Ω_c ⊇ B_ε``); that one level is checked, no search below it. Returns the certificate
+    (its ``history`` lists every radius tried) or the configured radius's refusal.
     """
     from dataclasses import replace
 
@@ -683,7 +682,8 @@ abla V\|` (learned f) can beat it;
         if not lv > 0:
             tried.append({"inner": eps, "status": "no positive candidate level"})
             continue
-        if smallest_level and level is None:
+        smallest = smallest_level and level is None
+        if smallest:
             m = inner_ball_level(dec.x, dec.V, eps)
             if not lv > m * (1.0 + INNER_LEVEL_MARGIN):
                 tried.append({"inner": eps, "status": f"candidate level {lv:.4g} below the "
@@ -692,7 +692,7 @@ abla V\|` (learned f) can beat it;
                     f"ball's level {m:.4g}; skipped")
                 continue
             lv = m * (1.0 + INNER_LEVEL_MARGIN)
-        cert = certify_roa(p, lv, search=f != 1.0 or level is None,
+        cert = certify_roa(p, lv, search=(f != 1.0 or level is None) and not smallest,
                            follow_violations=follow_violations, log=log)
         tried.append({"inner": eps, "status": cert.status.value, "reason": cert.reason,
                       "level": cert.level})

@@ -267,7 +267,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                 f"‖x‖ = {inner:g}): trying {target:.6g}, the smallest that can")
             return target
         return None
-    for _ in range(max_tries):
+    for k in range(max_tries):
         if c is None or not c > 0:
             break
         res_b = None
@@ -305,6 +305,8 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
         if bad.status == "counterexample":
             pts = np.array([ce.point for ce in bad.counterexamples])
             cexs += list(pts)
+            if k + 1 == max_tries:      # no try left: no next level to look for
+                break
             vmin = float(np.min(evaluate(Vf, [pts])[0]))
             if follow_violations and bad is res_a:   # the least V of a violation nearby
                 found = least_violation(x, V, lie, pts[:4], inner=inner, domain=D,
@@ -312,7 +314,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                 if found is not None:   # a level to try, not a counterexample (tol)
                     vmin = min(vmin, found[0])
             c = lower(c, min(vmin * (1.0 - 1e-3), c * 0.995))
-        else:
+        elif k + 1 < max_tries:
             c = lower(c, c * (1.0 - drop))
             drop = min(3.0 * drop, 0.3)
     why = "no level certified"

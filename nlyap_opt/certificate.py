@@ -462,11 +462,7 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     t0 = time.perf_counter()
     level = _finite("level", level, low=0.0, strict=True)
     sysm = problem.system
-    setting = "known" if problem.known else "learned"
-    base = dict(system=sysm.name, setting=setting, inner=problem.inner, outer=problem.outer,
-                eta=problem.eta, margin_mode="none" if problem.known else problem.margin_mode,
-                V=problem.V, declared=_declared(sysm), domain=problem.domain,
-                initial_set=problem.initial_set)
+    base = _identity(problem)
     assumptions = ["V and κ are the float64 networks saved with this certificate "
                    "(verified as saved)"]
     if not problem.known:
@@ -552,6 +548,15 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
         reason = "conditions (a) and (b) verified; (c) not checked"
     return RoaCertificate(status, reason, level=level, inner_ellipse=ellipse,
                           assumptions=assumptions, seconds=time.perf_counter() - t0, **common)
+
+
+def _identity(problem: RoaProblem) -> dict:
+    """The fields of a :class:`RoaCertificate` that describe the problem, not the verdict."""
+    return dict(system=problem.system.name, setting="known" if problem.known else "learned",
+                inner=problem.inner, outer=problem.outer, eta=problem.eta,
+                margin_mode="none" if problem.known else problem.margin_mode, V=problem.V,
+                declared=_declared(problem.system), domain=problem.domain,
+                initial_set=problem.initial_set)
 
 
 def _initial_set_check(problem: RoaProblem, dec: Decrease, level: float):
@@ -705,9 +710,14 @@ def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
                     f"{problem.inner:g}: {tried[0].get('reason', tried[0]['status'])})")
             cert.history = list(cert.history) + [{"inner_radius_search": tried}]
             return cert
-    if first is None:
+    if first is None and not tried:
         raise ConfigError(f"no inner radius to try inside the domain "
                           f"{problem.domain.describe()}")
+    if first is None:       # every radius skipped before any check: a refusal, not an error
+        first = RoaCertificate(
+            CertStatus.NOT_CERTIFIED, "no inner radius left to check: "
+            + "; ".join(f"ε = {t['inner']:g}: {t['status']}" for t in tried), level=0.0,
+            assumptions=[], **_identity(problem))
     first.history = list(first.history) + [{"inner_radius_search": tried}]
     return first
 

@@ -95,3 +95,19 @@ def test_smallest_level_start_and_radii_below_their_inner_ball_are_skipped():
     assert cert.certified and cert.inner == pytest.approx(0.3)
     assert cert.level == pytest.approx(0.09 * (1 + INNER_LEVEL_MARGIN), rel=1e-9)
     assert cert.level < 0.25                                 # below the violations
+
+
+def test_every_radius_skipped_is_a_refusal_not_an_error():
+    """The learned-f cartpole's LQR matrix: every radius skipped (its candidate level lies
+    below each inner ball's); the run must go on to the next candidate, not stop with an
+    input error. Same situation here with the radii 0.6 and 1.2."""
+    from nlyap_opt.certificate import certify_with_inner_search
+
+    x = ca.SX.sym("x", 2)
+    s = systems.System("shell", x, None, x * (ca.sumsqr(x) - 0.25), state_box=[[-3.0, 3.0]] * 2)
+    p = RoaProblem(s, quadratic_lyapunov(np.eye(2)), inner=0.6, outer=2.0)
+    cert = certify_with_inner_search(p, None, factors=(1.0, 2.0), smallest_level=True,
+                                     log=lambda m: None)
+    assert not cert.certified and cert.status.value == "not certified"
+    assert "ε = 0.6" in cert.reason and "below the inner ball's level" in cert.reason
+    assert cert.history[-1]["inner_radius_search"][0]["inner"] == 0.6

@@ -628,6 +628,17 @@ def _classify(err: BaseException, command: str | None) -> tuple[int, str]:
     return 4, f"{type(err).__name__}: {_one_line(err)}; rerun with --debug for the traceback"
 
 
+def _close_progress_bars() -> None:
+    """Close progress bars an exception left open, so that the one-line message starts its
+    own line (a bar stopped mid-line by --time-limit had the message appended to it)."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", None) or []):
+        try:
+            bar.close()
+        except Exception:  # noqa: BLE001 - a broken bar must not hide the message
+            pass
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``nlyap`` with ``argv`` (default ``sys.argv[1:]``); return the exit code.
 
@@ -647,12 +658,14 @@ def main(argv: list[str] | None = None) -> int:
         with _time_guard(getattr(args, "time_limit", None)):
             return int(args.func(args) or 0)
     except TimeLimitReached as stop:
+        _close_progress_bars()
         where = getattr(args, "out", None) or "the output directory"
         print(f"nlyap: stopped at --time-limit {stop.args[0]:g} s; the stages finished "
               f"before it are kept in {where}; rerun the same command to resume (with a "
               "larger --time-limit, or none, to finish)", file=sys.stderr)
         return 5
     except KeyboardInterrupt:
+        _close_progress_bars()
         print("nlyap: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130
     except SystemExit as stop:
@@ -663,6 +676,7 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - the exit-code contract maps every exception
         code, msg = _classify(exc, command)
         err = exc
+    _close_progress_bars()
     if debug:
         traceback.print_exception(err)
     print(f"nlyap: {'internal error' if code == 4 else 'error'}: {msg}", file=sys.stderr)

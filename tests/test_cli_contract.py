@@ -231,3 +231,22 @@ def test_time_limit_stops_with_exit_5_and_the_rerun_gives_the_reference(tmp_path
                       "fast_certificates.json").read_text())["van_der_pol/learned"]
     assert {"level": cert["level"], "certified_area": cert["certified_area"],
             "eta": cert["eta"]} == ref
+
+
+def test_an_open_progress_bar_does_not_swallow_the_one_line_message(capsys):
+    """A run stopped mid-bar (--time-limit during φ's training) left the bar's line open and
+    the message was appended to it; the CLI closes open bars before its message."""
+    import sys
+
+    from tqdm import tqdm
+
+    from nlyap_opt.cli import _close_progress_bars
+
+    bar = tqdm(total=10, desc="φ[1] test", leave=False, mininterval=0)
+    bar.update(3)
+    _close_progress_bars()
+    print("nlyap: stopped", file=sys.stderr)
+    err = capsys.readouterr().err
+    assert "3/10" in err                                      # the bar was drawn
+    assert err.strip().splitlines()[-1] == "nlyap: stopped"
+    assert bar.disable or bar not in getattr(tqdm, "_instances", set())

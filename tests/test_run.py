@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+from certcheck import assert_matches_reference, fast_reference
 
 import systems
 from nlyap_opt.cli import main
@@ -273,23 +274,21 @@ def test_interrupted_run_resumes_to_a_certificate_that_reverifies(stage, tmp_pat
 
 
 # ------------------------------------------------------------------ regression (issue 11)
-def _reference():
-    from pathlib import Path
-
-    return json.loads((Path(__file__).parent / "data" / "fast_certificates.json").read_text())
-
-
 @pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
 def test_fast_certificates_are_identical_to_the_reference(known_runs, learned_runs, name):
-    """Refactors must not move a certificate: the fast presets' levels, areas and η are the
-    recorded ones bit for bit (tests/data/fast_certificates.json says where they come from)."""
-    ref = _reference()
+    """Refactors must not move a certificate: the fast presets' areas are the recorded ones
+    exactly, their levels and η to 1e-8 relative (``certcheck.REFERENCE_RTOL``; bit for bit
+    on one machine). The learned-f values are recorded per OpenBLAS kernel: another kernel's
+    rounding gives the fast presets' φ another fit (tests/data/fast_certificates.json)."""
+    kernel, ref, recorded = fast_reference()
     for setting, runs in (("known", known_runs), ("learned", learned_runs)):
         cert = runs[name][1]
-        want = ref[f"{name}/{setting}"]
         got = {"level": cert["level"], "certified_area": cert["certified_area"],
                "eta": cert.get("eta", 0.0)}
-        assert got == want, (setting, got, want)
+        if setting == "learned" and not recorded:
+            pytest.skip(f"no learned-f reference for the OpenBLAS kernel {kernel!r}; record "
+                        "one with python tests/record_fast_certificates.py")
+        assert_matches_reference(got, ref[f"{name}/{setting}"], setting)
 
 
 def test_interrupt_after_the_dynamics_files_are_written(tmp_path, monkeypatch):

@@ -27,6 +27,7 @@ membership test, its area and its JSON form (``certificate.json``), and
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -41,6 +42,7 @@ import numpy as np
 from .domain import Ball, Region, as_domain, parse_set
 from .errors import ConfigError, DimensionError, InputRangeError, NetworkFileError
 from .network import Network
+from .parallel import ahead
 from .walker import evaluate
 
 __all__ = [
@@ -457,10 +459,20 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     RoaCertificate
         ``CERTIFIED`` only when every condition was verified by the interval verifier.
     """
+    level = _finite("level", level, low=0.0, strict=True)
+    # (c) does not depend on the level: on a cluster it runs beside (a) and (b), whose
+    # narrow checks leave workers idle; serially it runs after them, and only if they hold
+    job = ahead(_inner_ellipse, problem, inner_ellipse) if check_inner_ellipse else None
+    with job or contextlib.nullcontext():
+        return _certify_roa(problem, level, search, follow_violations, job, log)
+
+
+def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violations: bool,
+                 inner_job, log) -> RoaCertificate:
+    """:func:`certify_roa`'s body; ``inner_job``: condition (c)'s :class:`Ahead`, or ``None``."""
     from .roa import certify_level
 
     t0 = time.perf_counter()
-    level = _finite("level", level, low=0.0, strict=True)
     sysm = problem.system
     base = _identity(problem)
     assumptions = ["V and κ are the float64 networks saved with this certificate "
@@ -514,8 +526,8 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
                 "on it); shrink X_I or enlarge the domain", level=0.0 if search else level,
                 assumptions=assumptions, seconds=time.perf_counter() - t0, **common)
         reason = "conditions (a), (b), (c) and X_I ⊆ Ω_c verified"
-    if check_inner_ellipse:
-        inner, proved_from = _inner_ellipse(problem, inner_ellipse)
+    if inner_job is not None:
+        inner, proved_from = inner_job.result()
         ok = inner["status"] == "certified"
         checks["(c) inner ellipse" + ("" if proved_from else ", true f")] = inner["status"]
         proved = problem.known or proved_from is not None

@@ -23,6 +23,7 @@ from nlyap_opt import parallel
 from nlyap_opt.errors import BackendUnavailableError, ConfigError
 from nlyap_opt.parallel import (
     _starts_from_boxes,
+    ahead,
     check,
     dask_client,
     parse_scheduler,
@@ -329,6 +330,103 @@ def test_hand_back_evaluates_no_box_twice():
     assert total == serial.boxes
     whole = verify_interval(problem, max_boxes=1)   # the old hand-out: boxes come back whole
     assert whole.open is None and len(whole.undecided) == len(first.open) // 2
+
+
+# ------------------------------------------------------------------ checks ahead of turn
+def _ahead_threads():
+    return [t for t in __import__("threading").enumerate() if t.name == "nlyap-ahead"]
+
+
+def test_ahead_without_a_cluster_runs_where_its_result_is_asked_for():
+    """Serially ``ahead`` starts nothing: ``fn`` runs at ``result()`` (once), not at all if
+    the result is never asked for, and its exception is raised there."""
+    calls = []
+
+    def fn(v):
+        calls.append(v)
+        if v < 0:
+            raise ValueError("negative")
+        return 2 * v
+
+    with ahead(fn, 3) as job:
+        assert calls == [] and not _ahead_threads()
+        assert job.result() == 6 and job.result() == 6 and calls == [3]
+    with ahead(fn, 4):
+        pass
+    assert calls == [3]
+    with pytest.raises(ValueError, match="negative"), ahead(fn, -1) as job:
+        job.result()
+
+
+def test_ahead_on_a_cluster_runs_beside_the_caller_with_serial_verdicts(client, monkeypatch):
+    """On a cluster the job's checks run while the caller waits for its own: the job's first
+    check starts before the caller's first check ends (the caller hands over its turn while
+    it waits), and both verdicts, counterexample points included, are the serial ones."""
+    import threading
+
+    spans = []
+    real = parallel.verify_distributed
+
+    def spanned(problem, client, **options):
+        t0 = time.perf_counter()
+        res = real(problem, client, **options)
+        spans.append((threading.current_thread().name, t0, time.perf_counter()))
+        return res
+
+    monkeypatch.setattr(parallel, "verify_distributed", spanned)
+    pa, pb = _vdp_problem(1.0), _vdp_problem(1.2)
+    sa, sb = verify(pa), verify(pb)
+    with verifying_on(client), ahead(check, pb) as job:
+        ra = check(pa)
+        rb = job.result()
+    assert (ra.status, rb.status) == (sa.status, sb.status) == ("verified", "counterexample")
+    np.testing.assert_array_equal(rb.counterexample.point, sb.counterexample.point)
+    main = [s for s in spans if s[0] != "nlyap-ahead"]
+    side = [s for s in spans if s[0] == "nlyap-ahead"]
+    assert main and side and side[0][1] < main[0][2]
+    assert not _ahead_threads() and not parallel._TURN.locked()
+
+
+def test_ahead_left_early_stops_its_job_at_the_next_wait(client):
+    """Leaving the block without the result (an early return: a level that failed) stops
+    the job at its next wait for the cluster, before any of its checks completes, and gives
+    the turn back; so does leaving it on an exception (without waiting for the job)."""
+    done = []
+
+    def many():
+        for _ in range(50):
+            done.append(check(_vdp_problem(1.0)).status)
+
+    with verifying_on(client):
+        with ahead(many):
+            pass
+        assert done == [] and not _ahead_threads() and not parallel._TURN.locked()
+        with pytest.raises(KeyError), ahead(many):
+            raise KeyError("unwinding")
+    for t in _ahead_threads():
+        t.join(60)
+    assert done == [] and not parallel._TURN.locked()
+
+
+def test_certify_roa_on_a_cluster_checks_c_beside_a_and_b(client, monkeypatch):
+    """``certify_roa`` inside ``verifying_on``: condition (c) runs ahead, beside (a) and (b),
+    and the certificate (status, level, checks, proved ellipse) is the serial one."""
+    from nlyap_opt.certificate import RoaProblem, certify_roa
+
+    s = systems.get("van_der_pol")
+    prob = RoaProblem(s, quadratic_lyapunov(P_VDP), inner=0.3, outer=1.5)
+    serial = certify_roa(prob, 1.0, log=lambda m: None)
+    names = []
+    real = parallel.verify_distributed
+    monkeypatch.setattr(parallel, "verify_distributed", lambda *a, **k: names.append(
+        __import__("threading").current_thread().name) or real(*a, **k))
+    with verifying_on(client):
+        dist = certify_roa(prob, 1.0, log=lambda m: None)
+    assert serial.status.value == dist.status.value == "certified"
+    assert (dist.level, dist.checks) == (serial.level, serial.checks)
+    np.testing.assert_array_equal(dist.inner_ellipse.P, serial.inner_ellipse.P)
+    assert dist.inner_ellipse.form == serial.inner_ellipse.form
+    assert "nlyap-ahead" in names and "MainThread" in names
 
 
 def test_run_with_dask_certificate_stage_gives_the_serial_certificate(client, tmp_path,

@@ -78,7 +78,7 @@ __all__ = [
     "measure_alpha", "default_config", "load_config", "merge_config", "as_config",
     "DynamicsConfig", "dynamics_config", "sampling_box", "learned_components",
     "network_error_bound", "check_dynamics_network", "MODELS", "make_grid", "SampleGrid",
-    "affine_base_input", "check_declared", "input_columns",
+    "affine_base_input", "check_declared", "input_columns", "declared_dependencies",
 ]
 
 _U = 2.0 ** -53  # unit roundoff of float64
@@ -264,14 +264,19 @@ def input_columns(system, model: str, comp: list[int], inputs: str = "all"
     control-affine model) its block of φ takes as inputs.
 
     ``inputs="model"``: the variables that component of the model ``f`` depends on
-    (``casadi.depends_on``, symbolic; for ``control_affine`` the ``x`` of ``f(x, u)``);
-    every column without a model, with ``inputs="all"``, or where a component depends on
-    none. The bound η does not rest on this choice: it is measured for the φ that results.
+    (``casadi.depends_on``, symbolic), or without a model those of the user's declaration
+    (``Declarations.depends_on``; a component not listed reads every column); for
+    ``control_affine`` the ``x`` of ``f(x, u)``. Every column with ``inputs="all"``, without
+    a model or a declaration, or where a component depends on none. The bound η does not
+    rest on this choice: it is measured for the φ that results.
     """
     d = system.nx + (0 if model == "control_affine" else system.nu)
     every = list(range(d))
-    if inputs == "all" or not _has_model(system):
+    if inputs == "all":
         return [every for _ in comp]
+    if not _has_model(system):
+        deps = declared_dependencies(system, d)
+        return [list(deps[k]) if deps.get(k) else every for k in comp]
     z = [system.x[i] for i in range(system.nx)]
     if model != "control_affine":
         z += [system.u[j] for j in range(system.nu)]
@@ -280,6 +285,16 @@ def input_columns(system, model: str, comp: list[int], inputs: str = "all"
         cols = [i for i, zi in enumerate(z) if ca.depends_on(system.f[k], zi)]
         out.append(cols or every)
     return out
+
+
+def declared_dependencies(system, d: int) -> dict[int, tuple[int, ...]]:
+    """``{k: columns}`` of a system's declared ``depends_on`` on a grid of ``d`` columns
+    (``(x, u)``, or ``x`` alone for control-affine data: inputs dropped); ``{}`` if none."""
+    decl = getattr(system, "declarations", None)
+    if decl is None or decl.depends_on is None:
+        return {}
+    deps = decl.dependencies(system.state_names, system.input_names)
+    return {k: tuple(i for i in cols if i < d) for k, cols in deps.items()}
 
 
 def _widen(blocks, cols: list[list[int]], d: int) -> list:

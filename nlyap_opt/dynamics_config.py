@@ -72,7 +72,9 @@ class DynamicsConfig:
     inputs : {"all", "model"}
         The inputs of each learned component's block of φ: ``"all"`` (default) every grid
         variable; ``"model"`` the grid variables that component of the model ``f`` depends
-        on (symbolically; all of them for a system without a model). The cartpole's
+        on (symbolically), or for a system without a model those its declaration
+        ``depends_on`` lists (:class:`systems.Declarations`; every variable where nothing
+        is declared; the second-order bound then drops ``H`` along the others). The cartpole's
         accelerations depend on ``(θ, ω, F)`` only: φ then ignores the cart's position and
         velocity, so ``f − φ`` is constant along those axes and two grid nodes per such
         axis suffice (their interpolation term is exactly 0).

@@ -61,7 +61,14 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from .dynamics import AlphaResult, Grid, _norm2_up, check_dynamics_network, measure_alpha
+from .dynamics import (
+    AlphaResult,
+    Grid,
+    _norm2_up,
+    check_dynamics_network,
+    declared_dependencies,
+    measure_alpha,
+)
 from .errors import ConfigError, DimensionError, UnknownNameError
 from .interval_sup import _add_up, _counts_for, _interval_sup, _matrix_norm_up, _mul_up
 from .lipschitz import _up
@@ -384,9 +391,13 @@ def _option_second_order(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: di
             raise _Skip("the sample file's rows are off the regular nodes (offset "
                         f"{grid.offset:.3g}); the interpolation bound needs values at the "
                         "nodes (write the file with 17 significant digits)")
-        # |∂²_i e_k| ≤ |∂²_i f_k| + |∂²_i φ_k| ≤ H + sup |∂²_i φ_k|
+        # |∂²_i e_k| ≤ |∂²_i f_k| + |∂²_i φ_k| ≤ H + sup |∂²_i φ_k|; ∂²_i f_k ≡ 0 along a
+        # variable z_i that f_k is declared not to depend on (Declarations.depends_on)
         D2p, n = _interval_sup(em.D2_phi, em.box, counts, red)
-        D = np.vectorize(lambda v: _add_up(H, v))(np.max(D2p, axis=0))
+        deps = declared_dependencies(em.system, d)
+        Hk = np.array([[H if k not in deps or i in deps[k] else 0.0 for i in range(d)]
+                       for k in em.comp])
+        D = np.vectorize(_add_up)(Hk, np.max(D2p, axis=0))
     else:
         D2, n = _interval_sup(em.D2_e, em.box, counts, red)
         D = np.max(D2, axis=0)  # (m, d)
@@ -399,7 +410,9 @@ def _option_second_order(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: di
     how = ("here rigorous from the CasADi model by interval evaluation of the diagonal "
            f"Hessian of f − φ on {n} sub-boxes") if H is None else \
         (f"declared by the user: |∂²f_k/∂z_i∂z_j| ≤ H = {H:.6g}; D = H + the interval sup of "
-         f"|∂²φ_k/∂z_i²| on {n} sub-boxes")
+         f"|∂²φ_k/∂z_i²| on {n} sub-boxes"
+         + ("; H is 0 along the variables f_k is declared not to depend on (depends_on)"
+            if deps else ""))
     return BoundOption(
         "second_order", eta,
         _common_assumptions(em, grid) + [

@@ -390,6 +390,8 @@ class System:
             raise TypeError("declarations must be a systems.Declarations")
         self.declarations = None if declarations is None else declarations.validate(
             self.nx, self.nu)
+        if self.declarations is not None:  # depends_on names the system's own variables
+            self.declarations.dependencies(self.state_names, self.input_names)
         self.run_overrides = dict(run_overrides or {})
         self.source = str(source)
         self._f = self._f_fun = self._A = self._B = None

@@ -17,7 +17,9 @@ Declarations are never trusted blindly where data can refute them:
   (each equals a second derivative of a :math:`C^2` function at some point, or its mean
   over the cell);
 - a declared ``B`` with :math:`f(x, u_1) - f(x, u_2) \ne B (u_1 - u_2)` between neighbours
-  along an input axis.
+  along an input axis;
+- a declared dependency (``depends_on``) where ``f_k`` changes between neighbours along a
+  variable it is declared not to depend on.
 
 Each sample value is taken as exact to within an absolute ``value_tolerance`` (default: 8
 units in the last place of the largest :math:`|f|`, i.e. float64 rounding of the data); the
@@ -82,6 +84,14 @@ class Declarations:
         :math:`\varepsilon`: every sample value (or callable output) ``s`` is within
         :math:`\|s - f(z)\|_2 \le \varepsilon` of the true ``f`` (noise, a simulator's
         tolerance); add it to α. Not declared: the data are taken as exact.
+    depends_on : mapping, optional
+        ``{state: [variables]}``: the state derivative ``f_k`` (a state name or index) depends
+        on the listed variables of ``z = (x, u)`` only (names, or indices with the states
+        first), i.e. :math:`\partial f_k / \partial z_i \equiv 0` on :math:`X \times U` for
+        every other ``z_i``; states not listed may depend on everything. φ's block for
+        ``f_k`` then reads only those variables (dynamics config ``inputs: model``), and
+        the second-order error bound drops ``H`` on the other axes, where ``f_k − φ_k`` is
+        constant: a 4-D grid needs no fine spacing along a variable ``f_k`` ignores.
 
     Examples
     --------
@@ -96,6 +106,7 @@ class Declarations:
     hessian: float | None = None
     input_matrix: tuple[tuple[float, ...], ...] | None = None
     sample_error: float | None = None
+    depends_on: tuple[tuple[int | str, tuple[int | str, ...]], ...] | None = None
     source: str = field(default="", compare=False)
 
     def __post_init__(self):
@@ -132,13 +143,15 @@ class Declarations:
                     f"declared input_matrix must be a finite (nx, nu) matrix, got shape {b.shape}"
                 )
             object.__setattr__(self, "input_matrix", tuple(tuple(r) for r in b.tolist()))
+        if self.depends_on is not None:
+            object.__setattr__(self, "depends_on", _dependency_pairs(self.depends_on))
 
     # ------------------------------------------------------------------ queries
     @property
     def empty(self) -> bool:
         """True when nothing is declared."""
         return (self.lipschitz is None and self.hessian is None and self.input_matrix is None
-                and self.sample_error is None)
+                and self.sample_error is None and self.depends_on is None)
 
     @property
     def B(self) -> np.ndarray | None:
@@ -152,6 +165,9 @@ class Declarations:
                 f"declared lipschitz has {len(self.lipschitz)} entries; give one number, or one "
                 f"per state ({nx})"
             )
+        if self.depends_on is not None:
+            self.dependencies([f"x{i + 1}" for i in range(nx)], [f"u{j + 1}" for j in range(nu)],
+                              names_given=False)
         if self.input_matrix is not None:
             shape = self.B.shape
             if nu == 0:
@@ -162,6 +178,46 @@ class Declarations:
                     "(one row per state, one column per input)"
                 )
         return self
+
+    def dependencies(self, state_names: Sequence[str], input_names: Sequence[str] = (), *,
+                     names_given: bool = True) -> dict[int, tuple[int, ...]]:
+        """The declared ``depends_on`` as ``{k: columns of z = (x, u)}`` (sorted indices).
+
+        Raises
+        ------
+        ConfigError
+            A state or variable that the system does not have (by name, or an index out of
+            range), or a state listed twice.
+        """
+        if self.depends_on is None:
+            return {}
+        xs, us = list(state_names), list(input_names)
+        zs = xs + us
+
+        def index(v, among, what):
+            if isinstance(v, str):
+                if v in among:
+                    return among.index(v)
+                if not names_given:  # names are checked once the system's are known
+                    return None
+                raise ConfigError(f"declared depends_on names {what} {v!r}; the system has "
+                                  f"{', '.join(among) or 'none'}")
+            if not 0 <= v < len(among):
+                raise ConfigError(f"declared depends_on: {what} index {v} is out of range "
+                                  f"0..{len(among) - 1}")
+            return v
+
+        out: dict[int, tuple[int, ...]] = {}
+        for key, cols in self.depends_on:
+            k = index(key, xs, "state")
+            if k is None:
+                continue
+            if k in out:
+                raise ConfigError(f"declared depends_on lists state {xs[k]!r} twice; give it "
+                                  "once")
+            idx = [index(c, zs, "variable") for c in cols]
+            out[k] = tuple(sorted({i for i in idx if i is not None}))
+        return out
 
     def lipschitz_bound(self, components: Sequence[int] | None = None) -> float | None:
         r"""A global :math:`K_f` for the components ``components`` (default: all).
@@ -214,6 +270,18 @@ class Declarations:
                 "Sample error (declared): every sample value s of f at a node z satisfies "
                 f"‖s − f(z)‖₂ ≤ ε = {_fmt(self.sample_error)}"
             )
+        if self.depends_on is not None:
+            xs = list(state_names or [])
+            us = list(input_names or [])
+            if len(xs) and all(isinstance(k, str) or k < len(xs) for k, _ in self.depends_on):
+                deps = self.dependencies(xs, us, names_given=False)
+                zs = xs + us
+                parts = [f"{xs[k]}' depends on ({', '.join(zs[i] for i in cols)}) only"
+                         for k, cols in sorted(deps.items())]
+            else:
+                parts = [f"f_{k} depends on {list(c)} only" for k, c in self.depends_on]
+            out.append("Dependency structure (declared): " + "; ".join(parts) + " on X × U "
+                       "(∂f_k/∂z_i ≡ 0 for every other variable z_i)")
         return out
 
     def to_dict(self) -> dict:
@@ -221,7 +289,32 @@ class Declarations:
         lip = list(self.lipschitz) if isinstance(self.lipschitz, tuple) else self.lipschitz
         return {"lipschitz": lip, "hessian": self.hessian,
                 "input_matrix": None if self.B is None else self.B.tolist(),
-                "sample_error": self.sample_error}
+                "sample_error": self.sample_error,
+                "depends_on": None if self.depends_on is None
+                else {str(k): list(c) for k, c in self.depends_on}}
+
+
+def _dependency_pairs(dep) -> tuple:
+    """``depends_on`` as sorted ``((state, (variables...)), ...)`` of names or indices."""
+    if not isinstance(dep, dict) or not dep:
+        raise ConfigError("declared depends_on must be a table {state: [variables]} (names or "
+                          f"indices), got {dep!r}")
+
+    def key(v, what):
+        if isinstance(v, str) and v:
+            return v
+        if isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 0:
+            return int(v)
+        raise ConfigError(f"declared depends_on: a {what} must be a name or an index >= 0, "
+                          f"got {v!r}")
+
+    out = []
+    for k, cols in dep.items():
+        if isinstance(cols, (str, bytes)) or not isinstance(cols, (list, tuple)):
+            raise ConfigError(f"declared depends_on[{k!r}] must be a list of variables, got "
+                              f"{cols!r}")
+        out.append((key(k, "state"), tuple(key(c, "variable") for c in cols)))
+    return tuple(sorted(out, key=lambda p: (isinstance(p[0], str), str(p[0]))))
 
 
 # ============================================================================ checks
@@ -404,6 +497,28 @@ def check_declarations(
             f"declare H ≥ {_fmt(best2[0])} (a second difference equals a second derivative "
             "somewhere in its stencil) or check the data"
         )
+
+    # ---- declared dependency: f_k does not change along a variable it ignores
+    names_d = list(names or [])
+    if declarations.depends_on is not None and len(names_d) == d:
+        # an x-grid of control-affine data has no input axes: inputs are not checked here
+        deps = declarations.dependencies(names_d[:nx], names_d[nx:], names_given=nu > 0)
+        out["dependency_error"] = 0.0
+        for k, cols in deps.items():
+            for i in range(d):
+                if i in cols or counts[i] < 2:
+                    continue
+                dv = np.abs(np.diff(V[..., k], axis=i))
+                m = int(np.argmax(dv))
+                worst = float(dv.flat[m])
+                out["dependency_error"] = max(out["dependency_error"], worst)
+                if worst > 2.0 * tau:
+                    idx = np.unravel_index(m, dv.shape)
+                    raise ConfigError(
+                        f"{pre}declared depends_on is contradicted by the samples: "
+                        f"{znames[k]}' changes by {_fmt(worst)} between z = {_node(axes, idx)} "
+                        f"and the next node along {znames[i]!r}, which it is declared not to "
+                        f"depend on; add {znames[i]!r} to its variables or drop the entry")
 
     # ---- declared B: f(x, u + h e_j) − f(x, u) = B[:, j] h between input neighbours
     B = declarations.B

@@ -25,6 +25,7 @@ A spec file gives a system in one of three ways: the right-hand side as expressi
     hessian = 80.0                      # H: |∂²f_k/∂z_i∂z_j| <= H
     input_matrix = [[0.0], [26.666666666666668]]  # control-affine f = f0(x) + B u
     sample_error = 1e-6                 # data within 1e-6 of f (2-norm); default: exact
+    depends_on = { omega = ["theta", "omega", "torque"] }  # f_k reads only these variables
 
     [run]                               # run-config overrides, passed on as a dict
     outer = 4.0
@@ -85,7 +86,7 @@ SPEC_KEYS = {
     "": {"name", "description", "states", "inputs", "state_box", "input_box", "u_eq", "known",
          "parameters", "rhs", "samples", "factory", "declared", "run"},
     "samples": {"file", "columns"},
-    "declared": {"lipschitz", "hessian", "input_matrix", "sample_error"},
+    "declared": {"lipschitz", "hessian", "input_matrix", "sample_error", "depends_on"},
 }
 
 
@@ -442,7 +443,7 @@ def _declarations(path, spec: dict) -> Declarations | None:
     _check_keys(path, d, SPEC_KEYS["declared"], "declared")
     try:
         return Declarations(d.get("lipschitz"), d.get("hessian"), d.get("input_matrix"),
-                            d.get("sample_error"), source=str(path))
+                            d.get("sample_error"), d.get("depends_on"), source=str(path))
     except ConfigError as exc:
         raise _err(path, "declared", str(exc)) from None
 
@@ -552,6 +553,7 @@ def load_spec(path) -> System:
                            "declare them in one place")
             try:
                 system.declarations = decl.validate(system.nx, system.nu)
+                decl.dependencies(system.state_names, system.input_names)
             except ConfigError as exc:
                 raise _err(path, "declared", str(exc)) from None
             if system.kind == "samples":

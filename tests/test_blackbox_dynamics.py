@@ -214,3 +214,73 @@ def test_a_declared_input_matrix_that_the_black_box_contradicts_is_refused(pend)
         declarations=systems.Declarations(lipschitz=34.5, input_matrix=[[0.0], [20.0]]))
     with pytest.raises(ConfigError, match="declared input matrix B is contradicted"):
         learn_dynamics(wrong, FAST | {"model": "control_affine", "grid_counts": [11, 11]})
+
+
+# ------------------------------------------------------ declared dependencies (issue 15)
+#: the cartpole's learned derivatives read (θ, ω, force) only; p' = v and θ' = ω are known
+CARTPOLE_DEPS = {"v": ["theta", "omega", "force"], "omega": ["theta", "omega", "force"]}
+
+
+def _bb_cartpole(depends_on=None, name="bb_cartpole"):
+    """The catalogue cartpole as a black box (a callable), with declared K_f, H (generous
+    bounds of the true ones on X × U) and, optionally, its dependency structure."""
+    cp = systems.get("cartpole")
+    return systems.System.from_callable(
+        name, cp.evaluate, nx=4, nu=1, state_box=cp.state_box, input_box=cp.input_box,
+        u_eq=[0.0], state_names=cp.state_names, input_names=cp.input_names,
+        known_rhs={"p": lambda x, u: x[1], "theta": lambda x, u: x[3]},
+        declarations=systems.Declarations(lipschitz=100.0, hessian=200.0,
+                                          depends_on=depends_on))
+
+
+def test_declared_dependencies_shape_phi_and_drop_H_along_the_ignored_axes():
+    """A black box with no model: with ``depends_on`` declared, each block of φ reads only
+    its component's variables (exact zero weights on p and v), and the second-order bound
+    drops H along p and v, where f_k − φ_k is constant; a 2-node grid along them then
+    costs nothing. The bound still holds off the grid (the stage's sampled check), and the
+    declaration is listed among the certificate's assumptions."""
+    cfg = FAST | {"model": "full", "grid_counts": [2, 2, 17, 17, 41], "inputs": "model"}
+    st_all = dynamics_stage(_bb_cartpole(), cfg, log=None)
+    bb = _bb_cartpole(CARTPOLE_DEPS)
+    st_dec = dynamics_stage(bb, cfg, log=None)
+    assert st_dec.status == st_all.status == "ok"
+    W_dec = st_dec.network.layers[0].weight
+    W_all = st_all.network.layers[0].weight
+    assert np.all(W_dec[:, :2] == 0) and np.all(np.any(W_dec[:, 2:] != 0, axis=0))
+    assert np.any(W_all[:, :2] != 0)
+    so_dec, so_all = (st.bounds.options["second_order"] for st in (st_dec, st_all))
+    D_dec, D_all = np.array(so_dec.terms["D"]), np.array(so_all.terms["D"])
+    assert np.all(D_dec[:, :2] <= 1e-300) and np.all(D_all[:, :2] >= 200.0)  # 0, rounded up
+    assert np.all(D_dec[:, 2:] >= 200.0)          # H stays on the variables f_k reads
+    # the gaps along p and v are 2: their term H·2²/8 = 100 per axis is gone; the other
+    # axes' terms are 200·(0.125² + 0.125² + 0.5²)/8 = 7 per component
+    assert so_dec.terms["interpolation_term"] < 0.1 * so_all.terms["interpolation_term"]
+    assert so_dec.eta < 0.1 * so_all.eta
+    assert any("depends_on" in a for a in so_dec.assumptions)
+    chk = st_dec.bounds.to_dict()["check"]
+    assert chk["passed"] is True and chk["eta_sampled"] <= st_dec.eta
+    said = [a for a in bb.describe_assumptions() if a.startswith("Dependency structure")]
+    assert said == ["Dependency structure (declared): v' depends on (theta, omega, force) "
+                    "only; omega' depends on (theta, omega, force) only on X × U "
+                    "(∂f_k/∂z_i ≡ 0 for every other variable z_i)"]
+    assert bb.declarations.to_dict()["depends_on"] == {"omega": ["theta", "omega", "force"],
+                                                       "v": ["theta", "omega", "force"]}
+
+
+def test_a_declared_dependency_the_samples_contradict_is_refused_before_training():
+    wrong = _bb_cartpole({"v": ["omega", "force"], "omega": ["theta", "omega", "force"]},
+                         name="bb_cartpole_wrong")      # v' depends on θ too
+    with pytest.raises(ConfigError, match=r"declared depends_on is contradicted by the "
+                                          r"samples: v' changes .* along 'theta'"):
+        learn_dynamics(wrong, FAST | {"model": "full", "grid_counts": [2, 2, 5, 5, 3]})
+
+
+@pytest.mark.parametrize("deps, match", [
+    (["v"], "must be a table"), ({"v": "theta"}, "must be a list of variables"),
+    ({"v": [1.5]}, "a name or an index"), ({True: [0]}, "a name or an index"),
+    ({"vv": ["theta"]}, "names state 'vv'"), ({"v": ["thetaa"]}, "names variable 'thetaa'"),
+    ({"v": [7]}, "index 7 is out of range"), ({"v": [2], 1: [3]}, "lists state 'v' twice"),
+])
+def test_bad_depends_on_declarations_are_config_errors(deps, match):
+    with pytest.raises(ConfigError, match=match):
+        _bb_cartpole(deps)

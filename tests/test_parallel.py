@@ -167,10 +167,14 @@ def test_no_task_starts_from_fewer_than_min_task_boxes(client):
     problem = _vdp_problem(1.0)
     serial = verify(problem)
     tiny: dict = {}
-    verify_distributed(problem, client, task_boxes=64, min_task_boxes=1, stats=tiny)
+    # four tasks per worker: open sets are dealt in eight parts (the default, one per
+    # worker, deals them whole)
+    verify_distributed(problem, client, task_boxes=64, min_task_boxes=1, stats=tiny,
+                       tasks_per_worker=4)
     assert min(tiny["starts"]) < 16
     st: dict = {}
-    dist = verify_distributed(problem, client, task_boxes=64, min_task_boxes=16, stats=st)
+    dist = verify_distributed(problem, client, task_boxes=64, min_task_boxes=16, stats=st,
+                              tasks_per_worker=4)
     assert dist.status == serial.status == "verified" and dist.boxes == serial.boxes
     assert st["starts"] and min(st["starts"]) >= 16
     # default: the root processes a quarter batch first, so a small check is decided there

@@ -14,15 +14,17 @@ Two tables (issue 15, item 6):
   ways: the true ``f``; its closed-loop linearisation written as the certificate writes a
   Lie derivative, ``2(Px)·(A_cl x)``; and the same quadratic simplified to ``−xᵀx``. The
   gap between the last two is the interval dependency problem (``Px`` and ``A_cl x`` are
-  enclosed independently). A fourth row runs the true ``f`` with the verifier's
-  second-order centred form (``verify(..., second_order=True)``), which the 4-D and 6-D
-  presets use.
+  enclosed independently). Two more rows run the true ``f`` with intervals only (the
+  natural extension and the mean-value form, ``affine=False``: no linear relaxation) and
+  with the verifier's second-order centred form (``verify(..., second_order=True)``), which
+  the 4-D and 6-D presets use.
 - **width** (8, 16, 32, [64]): Van der Pol, ``V(x) = ‖N(x) − N(0)‖²`` with a one-hidden-
   layer tanh network ``N`` whose first ``n`` neurons carry ``a·Lx`` (``LᵀL = P``, read back
   by the output layer with ``1/a``) and the other ``width − n`` are random with output
   weights ``δ``: a true Lyapunov function close to ``xᵀPx`` in which every neuron enters
   the enclosures. Annulus ``0.1 ≤ ‖x‖ ≤ 0.6``, level ``0.9·min V`` on the outer circle
-  (sampled).
+  (sampled). Each width runs with the linear relaxation (the default) and with intervals
+  only (``affine=False``).
 
 Figures only (no assertions); run ``python bench/scale.py [--max-boxes N] [--widths ...]``.
 """
@@ -104,6 +106,8 @@ def dimension_rows(max_boxes: int = 1_000_000, r: float = 0.1,
         s = cartpole_reduced() if name == "cartpole_reduced" else systems.get(name)
         probs, cp, eps, c = quadratic_queries(s, r)
         runs = {k: (lambda vp=vp: _run(vp, max_boxes)) for k, vp in probs.items()}
+        runs["true f, intervals only"] = lambda vp=probs["true f"]: _run(
+            vp, max_boxes, affine=False)
         runs["true f, second-order form"] = lambda vp=probs["true f"]: _run(
             vp, max_boxes, second_order=True)
         for variant, fn in runs.items():
@@ -149,9 +153,12 @@ def width_rows(widths=(8, 16, 32), max_boxes: int = 1_000_000, inner: float = 0.
         dec = prob.decrease()
         vp = lyapunov_problem(dec.x, dec.V, dec.lie, inner=inner, outer=outer, level=c,
                               check_positive=False)
-        row = {"system": "van_der_pol", "width": w, "level": c, **_run(vp, max_boxes)}
-        log(f"  width {w}: {row['status']} in {row['seconds']:.2f} s, {row['boxes']} boxes")
-        rows.append(row)
+        for how, opts in (("linear relaxation", {}), ("intervals only", {"affine": False})):
+            row = {"system": "van_der_pol", "width": w, "level": c, "bound": how,
+                   **_run(vp, max_boxes, **opts)}
+            log(f"  width {w} ({how}): {row['status']} in {row['seconds']:.2f} s, "
+                f"{row['boxes']} boxes")
+            rows.append(row)
     return rows
 
 
@@ -160,7 +167,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--max-boxes", type=int, default=1_000_000)
     ap.add_argument("--radius", type=float, default=0.1, help="r of the dimension table")
-    ap.add_argument("--widths", type=int, nargs="*", default=[8, 16, 32])
+    ap.add_argument("--widths", type=int, nargs="*", default=[8, 16, 32, 64])
     ap.add_argument("--skip-dimension", action="store_true")
     args = ap.parse_args(argv)
     if not args.skip_dimension:
@@ -175,11 +182,11 @@ def main(argv=None) -> None:
                   f"{r['boxes_per_s']:.0f} |")
     print(f"## width (Van der Pol, V = ‖N(x) − N(0)‖², max {args.max_boxes} boxes)")
     rows = width_rows(tuple(args.widths), args.max_boxes)
-    print("| width | status | boxes | s | boxes/s |")
-    print("|---|---|---|---|---|")
+    print("| width | bound | status | boxes | s | boxes/s |")
+    print("|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['width']} | {r['status']} | {r['boxes']} | {r['seconds']:.2f} | "
-              f"{r['boxes_per_s']:.0f} |")
+        print(f"| {r['width']} | {r['bound']} | {r['status']} | {r['boxes']} | "
+              f"{r['seconds']:.2f} | {r['boxes_per_s']:.0f} |")
 
 
 if __name__ == "__main__":

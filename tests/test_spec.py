@@ -276,6 +276,15 @@ BAD = [
      r"u_eq: the system has no inputs; remove it"),
     ("K_f per component length", GOOD + "[declared]\nlipschitz = [1, 2, 3]\n", None,
      r"declared lipschitz has 3 entries"),
+    ("depends_on contradicted", SAMPLES + '[declared]\ndepends_on = { x2 = ["x1", "u"] }\n',
+     _csv(), r"declared depends_on is contradicted by the samples: x2' changes by 1 "
+             r"between z = .* along 'x2'"),
+    ("depends_on unknown variable", GOOD + '[declared]\ndepends_on = { x2 = ["x1", "y"] }\n',
+     None, r"declared depends_on names variable 'y'; the system has x1, x2, u"),
+    ("depends_on unknown state", SAMPLES + '[declared]\ndepends_on = { x3 = ["x1"] }\n',
+     _csv(), r"declared depends_on names state 'x3'; the system has x1, x2"),
+    ("depends_on not a table", GOOD + '[declared]\ndepends_on = ["x2"]\n', None,
+     r"declared depends_on must be a table \{state: \[variables\]\}"),
     ("known without expression", SAMPLES.replace('u_eq', 'known = ["x1"]\nu_eq'), _csv(),
      r"known components \['x1'\] need an expression in \[rhs\]"),
     ("sample file missing", SAMPLES.replace("s.csv", "none.csv"), None,
@@ -329,3 +338,19 @@ def test_docstring_example_spec_loads(tmp_path):
     assert s.has_model and s.run_overrides == {"outer": 4.0}
     assert len(s.describe_assumptions()) == 4
     np.testing.assert_allclose(s.B.ravel(), s.declarations.B.ravel(), rtol=1e-15)
+
+
+def test_a_dependency_the_samples_agree_with_is_kept_and_listed(tmp_path):
+    """``x1' = x2`` reads only x2: declared so, it passes the check on the samples and is
+    listed with the assumptions; ``inputs: model`` gives φ's block that column alone."""
+    from nlyap_opt.dynamics import input_columns
+
+    path = tmp_path / "sys.toml"
+    path.write_text(SAMPLES + '[declared]\ndepends_on = { x1 = ["x2"], x2 = [0, "x2", "u"] }\n')
+    (tmp_path / "s.csv").write_text(_csv())
+    s = systems.load_spec(path)
+    assert s.declarations.dependencies(s.state_names, s.input_names) == {0: (1,), 1: (0, 1, 2)}
+    said = [a for a in s.describe_assumptions() if a.startswith("Dependency structure")]
+    assert said and "x1' depends on (x2) only; x2' depends on (x1, x2, u) only" in said[0]
+    assert input_columns(s, "full", [0, 1], "model") == [[1], [0, 1, 2]]
+    assert input_columns(s, "full", [0, 1], "all") == [[0, 1, 2], [0, 1, 2]]

@@ -461,8 +461,11 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     """
     level = _finite("level", level, low=0.0, strict=True)
     # (c) does not depend on the level: on a cluster it runs beside (a) and (b), whose
-    # narrow checks leave workers idle; serially it runs after them, and only if they hold
-    job = ahead(_inner_ellipse, problem, inner_ellipse) if check_inner_ellipse else None
+    # narrow checks leave workers idle, when the level is expected to hold (a re-check);
+    # in a search, which may end without a level, and serially, it runs after (a) and (b)
+    # and only if they hold
+    job = ahead(_inner_ellipse, problem, inner_ellipse, when=not search) \
+        if check_inner_ellipse else None
     with job or contextlib.nullcontext():
         return _certify_roa(problem, level, search, follow_violations, job, log)
 

@@ -639,13 +639,13 @@ class Ahead:
     3
     """
 
-    def __init__(self, fn, *args, **kwargs):
+    def __init__(self, fn, *args, _defer: bool = False, **kwargs):
         self._fn = lambda: fn(*args, **kwargs)
         self._cancel = threading.Event()
         self._thread = None
         self._took = False          # the caller took the turn to start the thread
         self._out: tuple | None = None
-        if _CLUSTER.get() is None or getattr(_LOCAL, "job", None) is not None:
+        if _defer or _CLUSTER.get() is None or getattr(_LOCAL, "job", None) is not None:
             return
         if not getattr(_LOCAL, "holds", False):
             _TURN.acquire()
@@ -703,10 +703,14 @@ class Ahead:
         return False
 
 
-def ahead(fn, *args, **kwargs) -> Ahead:
+def ahead(fn, *args, when: bool = True, **kwargs) -> Ahead:
     """``Ahead(fn, *args, **kwargs)``: start ``fn`` now on the cluster of
-    :func:`verifying_on`, or run it when its result is asked for (see :class:`Ahead`)."""
-    return Ahead(fn, *args, **kwargs)
+    :func:`verifying_on`, or run it when its result is asked for (see :class:`Ahead`).
+
+    ``when=False``: never start early (the serial behaviour on a cluster too), for work
+    that is likely to be thrown away, e.g. condition (c) during a level search that may
+    end without a level."""
+    return Ahead(fn, *args, **kwargs, _defer=not when)
 
 
 def _depth(boxes: np.ndarray, root_w: np.ndarray) -> int:

@@ -431,6 +431,19 @@ def test_certify_roa_on_a_cluster_checks_c_beside_a_and_b(client, monkeypatch):
     np.testing.assert_array_equal(dist.inner_ellipse.P, serial.inner_ellipse.P)
     assert dist.inner_ellipse.form == serial.inner_ellipse.form
     assert "nlyap-ahead" in names and "MainThread" in names
+    # a level search may end without a level: there (c) waits for a certified level
+    names.clear()
+    with verifying_on(client):
+        found = certify_roa(prob, 1.0, search=True, log=lambda m: None)
+    assert found.status.value == "certified"
+    assert names and "nlyap-ahead" not in names
+
+
+def test_ahead_when_false_starts_nothing_on_a_cluster(client):
+    calls = []
+    with verifying_on(client), ahead(calls.append, 1, when=False) as job:
+        assert not _ahead_threads() and calls == []
+        assert job.result() is None and calls == [1]
 
 
 def test_run_with_dask_certificate_stage_gives_the_serial_certificate(client, tmp_path,

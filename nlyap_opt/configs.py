@@ -321,6 +321,7 @@ _RULES: dict[str, dict[str, dict]] = {
         "fit_transform": {"choices": ("log", "linear")}, "w_pde": _NONNEG,
         "w_local": _NONNEG, "lr_schedule": {"choices": ("constant", "cosine")},
         "activation": {"choices": ("tanh", "square", "linear")},
+        "init": {"choices": ("random", "quadratic")},
         "seed": _NONNEG, "threads": _COUNT,
     },
     "cegis": {
@@ -703,6 +704,21 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
         raise ConfigError(f"{where}: the initial set {XI.describe()} leaves the bounding box "
                           f"of the domain {D.describe()}; shrink initial_set or enlarge the "
                           "domain")
+    tr = cfg.get("train", {})
+    if tr.get("init", "random") == "quadratic":
+        if not cfg.get("quadratic"):
+            raise ConfigError(f"{where}: train.init 'quadratic' starts V at the best certified "
+                              "quadratic, but no quadratic candidates are listed; set e.g. "
+                              "quadratic: [\"lyapunov\", \"round\"] or init 'random'")
+        hidden = tr.get("hidden", sch["train"]["hidden"].default)
+        hidden = [hidden] if isinstance(hidden, int) else list(hidden)
+        act = tr.get("activation", "tanh")
+        feats = tr.get("features", sch["train"]["features"].default)
+        if act != "tanh" or len(hidden) != 1 or hidden[0] < s.nx or feats < s.nx:
+            raise ConfigError(f"{where}: train.init 'quadratic' needs one tanh hidden layer of "
+                              f"at least {s.nx} neurons and features >= {s.nx}, got activation "
+                              f"{act!r}, hidden {hidden}, features {feats}; change them or use "
+                              "init 'random'")
     cg = cfg.get("cegis", {})
     it = cg.get("iterations", sch["cegis"]["iterations"].default)
     if cg.get("min_iterations", 1) > it:

@@ -83,10 +83,65 @@ class TrainConfig:
     w_local: float = 0.0       # first-order decrease at the origin (see local_violation)
     relative_decrease: bool = False  # divide the decrease hinge by ‖x‖²
     lr_schedule: str = "constant"  # or "cosine": lr → lr/100 over each train() call
+    # where V starts: "random" (Glorot, seeded), or "quadratic": at the run's best certified
+    # quadratic xᵀPx (config key quadratic), scaled so that V's level 1 is its certified set
+    # (quadratic_start; one tanh hidden layer of at least nx neurons, features >= nx)
+    init: str = "random"
     seed: int = 0
     threads: int = 1           # torch threads while training (set and restored): fixed, so
     #                            that results do not depend on the machine; small batches
     #                            run fastest single-threaded
+
+
+#: slope of the neurons that carry ``Lx`` in :func:`quadratic_start` (tanh(a·Lx)/a ≈ Lx)
+QUADRATIC_START_SLOPE = 0.3
+
+
+def quadratic_start(P: np.ndarray, level: float, config: TrainConfig) -> Network:
+    r"""A V of ``config``'s architecture that starts at the quadratic ``xᵀPx / level``.
+
+    ``V(x) = ‖N(x) − N(0)‖² + ε‖x‖²`` with one tanh hidden layer: its first ``n`` neurons
+    carry ``a·Lx`` (``LᵀL = P/level − εI``, ``a`` = :data:`QUADRATIC_START_SLOPE`), read back
+    by the output layer with ``1/a``; the other neurons start random (``config.seed``) with
+    output weights ``10⁻³``. Then ``V(x) = xᵀPx/level + O(a²‖x‖⁴)``: level 1 of V is, near
+    the origin, the certified set ``{xᵀPx ≤ level}`` of the quadratic stage, which training
+    starts from instead of a random V (the issue's warm start from the cheap certificate).
+
+    Raises
+    ------
+    ConfigError
+        The architecture cannot hold it (not one tanh hidden layer of at least ``n``
+        neurons with at least ``n`` features), or ``P/level − εI`` is not positive definite.
+    """
+    P = np.asarray(P, dtype=float)
+    n = P.shape[0]
+    H = list(config.hidden)
+    if config.activation != "tanh" or len(H) != 1 or H[0] < n or config.features < n:
+        raise ConfigError(
+            f"train.init 'quadratic' needs one tanh hidden layer of at least {n} neurons and "
+            f"features >= {n}, got activation {config.activation!r}, hidden {H}, features "
+            f"{config.features}; change them or use init 'random'")
+    if not (np.isfinite(level) and level > 0):
+        raise ConfigError(f"train.init 'quadratic': the quadratic's level must be > 0, got "
+                          f"{level!r}")
+    M = 0.5 * (P + P.T) / level - config.eps * np.eye(n)
+    try:
+        L = np.linalg.cholesky(M).T
+    except np.linalg.LinAlgError:
+        raise ConfigError("train.init 'quadratic': P/level − eps·I is not positive definite; "
+                          "lower train.eps or use init 'random'") from None
+    a, F, h = QUADRATIC_START_SLOPE, config.features, H[0]
+    rnd = dense_network([n, h, F], "tanh", seed=config.seed)
+    W1, b1 = rnd.layers[0].weight.copy(), rnd.layers[0].bias.copy()
+    W1[:n], b1[:n] = a * L, 0.0
+    W2 = 1e-3 * rnd.layers[1].weight
+    W2[:n, :n] = np.eye(n) / a
+    W2[:n, n:] = 0.0
+    W2[n:, :n] = 0.0
+    V = Network([Layer(W1, b1, "tanh"), Layer(W2, np.zeros(F), "linear")],
+                head={"type": "sum_of_squares", "eps": config.eps})
+    V.__post_init__()
+    return V
 
 
 def _body_jacobian_at_zero(body, n: int):

@@ -48,7 +48,7 @@ from .certificate import (
     write_json_atomic,
 )
 from .errors import ConfigError, NlyapError
-from .learning import TrainConfig
+from .learning import TrainConfig, quadratic_start
 from .network import Network
 
 __all__ = ["run", "RunResult", "RunLockedError"]
@@ -352,10 +352,19 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
     quad = _quadratic_stage(system, cfg, out, stages, controller, problem_of, log)
 
     # ---------------------------------------------------------------- 4. CEGIS
-    deps = ("dynamics", "controller")
+    train = TrainConfig(**cfg.get("train", {}))
+    warm = train.init == "quadratic"
+    deps = ("dynamics", "controller") + (("quadratic",) if warm else ())
     if not stages.finished("cegis", *deps):
         t = time.perf_counter()
-        train = TrainConfig(**cfg.get("train", {}))
+        V0 = None
+        if warm and quad is not None:
+            V0 = quadratic_start(np.asarray(quad["P"], dtype=float), float(quad["level"]),
+                                 train)
+            log(f"[cegis] V starts at the quadratic {quad['name']}: level 1 of V = its "
+                f"certified set (level {float(quad['level']):.6g})")
+        elif warm:
+            log("[cegis] no quadratic was certified: V starts at random (train.init)")
         ccfg = CegisConfig(inner=eps, outer=r, train=train, domain=D, initial_set=XI,
                            **cfg.get("cegis", {}))
         where = f"{eps:g} ≤ ‖x‖ ≤ {r:g}" if cfg.get("domain") is None else \
@@ -367,7 +376,7 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
             log(f"[cegis] the certificate to beat: quadratic {quad['name']}, volume "
                 f"{quad['volume']:.4g} on the evaluation grid")
         res = cegis(system, controller, dynamics, ccfg, eta=eta, dynamics_box=dyn_box,
-                    input_box=input_box, log=log)
+                    input_box=input_box, log=log, V0=V0)
         res.V.save(out / "V.json")
         if res.controller is not None:
             res.controller.save(out / "controller.json")

@@ -175,3 +175,62 @@ def test_the_winning_quadratic_rechecks_and_a_tampered_one_does_not(quad_run, tm
     assert "[quadratic] V_quadratic.json changed" in "\n".join(logs)
     assert res.certified
     assert recheck_certificate(e, log=lambda m: None).certified
+
+
+# ------------------------------------------------------------- V warm-started (train.init)
+def test_quadratic_start_is_the_quadratic_over_its_level_near_the_origin():
+    """V = ‖N(x) − N(0)‖² + ε‖x‖² with a·Lx in its first neurons equals xᵀPx/level up to
+    the tanh's cubic term: |V − q| ≤ a²‖Lx‖⁴/level-scale (checked at 2000 points of
+    growing radius); V(0) = 0 exactly; the architecture is the configured one."""
+    from nlyap_opt.learning import QUADRATIC_START_SLOPE, TrainConfig, quadratic_start
+
+    P = np.array([[2.0, 0.3, 0.0], [0.3, 1.0, 0.1], [0.0, 0.1, 0.5]])
+    cfg = TrainConfig(hidden=[8], features=4, eps=1e-3, seed=3)
+    V = quadratic_start(P, 0.5, cfg)
+    assert [w.weight.shape for w in V.layers] == [(8, 3), (4, 8)]
+    assert V.numpy(np.zeros((1, 3)))[0, 0] == 0.0
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(2000, 3)) * rng.uniform(0, 1, (2000, 1))
+    q = np.einsum("ij,jk,ik->i", x, P / 0.5, x)
+    v = V.numpy(x)[:, 0]
+    a = QUADRATIC_START_SLOPE
+    # tanh(t)/a = Lx − a²(Lx)³/3 + ...: the squares differ by at most (2/3)a²‖Lx‖₄⁴ plus
+    # the random neurons' 1e-3 read-out, both small against q near the origin
+    assert np.all(np.abs(v - q) <= 0.7 * a**2 * q**2 + 1e-2 * np.maximum(q, 1e-6) + 1e-12)
+    small = np.linalg.norm(x, axis=1) < 0.1
+    np.testing.assert_allclose(v[small], q[small], rtol=0.02)
+
+
+@pytest.mark.parametrize("train, match", [
+    ({"init": "warm"}, r"train\.init.*'random', 'quadratic'|must be one of"),
+    ({"init": "quadratic", "activation": "square"}, "one tanh hidden layer"),
+    ({"init": "quadratic", "hidden": [6, 6]}, "one tanh hidden layer"),
+    ({"init": "quadratic", "features": 1}, "features >= 2"),
+])
+def test_bad_warm_start_settings_are_config_errors(train, match):
+    with pytest.raises(ConfigError, match=match):
+        make_config("inverted_pendulum", "fast",
+                    overrides={"quadratic": ["lyapunov"], "train": train})
+    with pytest.raises(ConfigError, match="no quadratic candidates are listed"):
+        make_config("inverted_pendulum", "fast", overrides={"train": {"init": "quadratic"}})
+
+
+def test_a_run_with_init_quadratic_starts_cegis_at_the_certified_quadratic(tmp_path):
+    """The pendulum with ``train.init: quadratic``: CEGIS starts from the quadratic stage's
+    winner (logged), its stage depends on the quadratic stage's files, and the run is
+    certified; a changed V_quadratic.json reruns the quadratic stage and CEGIS after it."""
+    cfg = make_config("inverted_pendulum", "fast", overrides={
+        "quadratic": ["lyapunov"], "train": {"init": "quadratic"}})
+    logs = []
+    res = run("inverted_pendulum", cfg, tmp_path, known_dynamics=True, log=logs.append)
+    text = "\n".join(logs)
+    assert res.certified
+    assert "[cegis] V starts at the quadratic lyapunov" in text
+    stages = json.loads((tmp_path / "stages.json").read_text())
+    f = tmp_path / "V_quadratic.json"
+    f.write_text(f.read_text().replace("1", "2", 1))   # tampered: both stages recompute
+    logs.clear()
+    run("inverted_pendulum", cfg, tmp_path, known_dynamics=True, log=logs.append)
+    text = "\n".join(logs)
+    assert "[cegis] V starts at the quadratic" in text and "[quadratic] certifying" in text
+    assert "quadratic" in stages and "cegis" in stages

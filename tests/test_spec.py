@@ -336,7 +336,9 @@ def test_docstring_example_spec_loads(tmp_path):
     (tmp_path / "p.toml").write_text(textwrap.dedent(text))
     s = systems.load_spec(tmp_path / "p.toml")
     assert s.has_model and s.run_overrides == {"outer": 4.0}
-    assert len(s.describe_assumptions()) == 4
+    said = s.describe_assumptions()   # K_f, H, B, sample error, dependency structure
+    assert len(said) == 5 and said[-1].startswith(
+        "Dependency structure (declared): omega' depends on (theta, omega, torque) only")
     np.testing.assert_allclose(s.B.ravel(), s.declarations.B.ravel(), rtol=1e-15)
 
 

@@ -9,11 +9,11 @@ from vdp_reference import vdp_lyapunov_matrix, vdp_quadratic_level
 import systems
 from baselines.compare import compare
 from baselines.lqr import linear_controller, lqr, saturated_controller
-from baselines.sos import sos_roa
 from nlyap_opt.certificate import recheck_certificate
 from nlyap_opt.configs import get_config
 from nlyap_opt.roa import grid_points
 from nlyap_opt.simulate import simulate_converges
+from nlyap_opt.sos import sos_roa
 
 # The non-polynomial operations of each seed system's SOS closed loop (u = u_eq), read off the
 # model equations (systems/catalogue.py):

@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 import systems
-from baselines.polynomial import (
+from nlyap_opt import walker
+from nlyap_opt.errors import UnsupportedOperationError
+from nlyap_opt.polynomial import (
     CONDITIONAL_OPS,
     POLYNOMIAL_OPS,
     NotPolynomialError,
@@ -20,8 +22,6 @@ from baselines.polynomial import (
     monomials,
     polynomial_closed_loop,
 )
-from nlyap_opt import walker
-from nlyap_opt.errors import UnsupportedOperationError
 from nlyap_opt.walker import op_name
 
 PTS = np.random.default_rng(7).uniform(-2.0, 2.0, (64, 2))

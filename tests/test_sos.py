@@ -11,7 +11,6 @@ from scipy.optimize import minimize
 from vdp_reference import vdp_lyapunov_matrix, vdp_quadratic_level, vdp_sampled_level
 
 import systems
-from baselines.sos import Polynomial, SOSResult, sos_roa
 from nlyap_opt.certificate import (
     CertStatus,
     RoaProblem,
@@ -20,6 +19,7 @@ from nlyap_opt.certificate import (
     save_certificate,
 )
 from nlyap_opt.roa import grid_points
+from nlyap_opt.sos import Polynomial, SOSResult, sos_roa
 
 # V = xᵀPx with AᵀP + PA = -I for the linearisation of reversed Van der Pol (μ = 1), and the
 # supremum c* of the levels with V̇ < 0 on {V ≤ c} \ {0}: c* = 2.30448 (vdp_reference.py)
@@ -211,11 +211,19 @@ def test_bad_input(vdp, kwargs, exc, msg):
 
 
 def test_public_names_kept_after_the_split():
-    """``baselines.sos`` still exports what it exported before it was split."""
+    """``baselines.sos`` still exports what it exported before it was split, and the
+    baselines' modules are the core's (moved below the pipeline, which runs SOS too)."""
     import baselines
     import baselines.polynomial as poly
     import baselines.sos as sos
     import baselines.sos_sdp as sdp
+    import nlyap_opt.polynomial
+    import nlyap_opt.sos
+    import nlyap_opt.sos_sdp
+
+    assert sos.sos_roa is nlyap_opt.sos.sos_roa and sos.SOSResult is nlyap_opt.sos.SOSResult
+    assert poly.Polynomial is nlyap_opt.polynomial.Polynomial
+    assert sdp.vs_iteration is nlyap_opt.sos_sdp.vs_iteration
 
     assert sos.NotPolynomialError is poly.NotPolynomialError
     assert sos.Polynomial is poly.Polynomial

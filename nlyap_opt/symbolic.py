@@ -60,8 +60,9 @@ def closed_loop(system, controller: Network | None = None, dynamics: Network | N
         :class:`EquilibriumError` (training) or only warn (verification of user networks).
     """
     x = ca.MX.sym("x", system.nx) if x is None else x
+    sym = ca.SX if isinstance(x, ca.SX) else ca.MX   # u of x's type (an SX x with MX u fails)
     if controller is None:
-        u = ca.MX(ca.DM(system.u_eq)) if system.nu else ca.MX(0, 1)
+        u = sym(ca.DM(system.u_eq)) if system.nu else sym(0, 1)
     else:
         if controller.n_in != system.nx or controller.n_out != system.nu:
             raise DimensionError(
@@ -81,7 +82,7 @@ def closed_loop(system, controller: Network | None = None, dynamics: Network | N
         plant = system.f_fun(x, u)
         what = "rhs(0)"
     else:
-        plant = u - ca.DM(system.u_eq) if system.nu else ca.MX(0, 1)
+        plant = u - ca.DM(system.u_eq) if system.nu else sym(0, 1)
         what = "κ(0) − u_eq"
     at0 = np.array(ca.Function("r", [x], [plant])(np.zeros(system.nx)), dtype=float).ravel()
     if np.max(np.abs(at0), initial=0.0) > 1e-8:

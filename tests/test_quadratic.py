@@ -234,3 +234,23 @@ def test_a_run_with_init_quadratic_starts_cegis_at_the_certified_quadratic(tmp_p
     text = "\n".join(logs)
     assert "[cegis] V starts at the quadratic" in text and "[quadratic] certifying" in text
     assert "quadratic" in stages and "cegis" in stages
+
+
+@pytest.mark.parametrize("name", ["van_der_pol", "inverted_pendulum"])
+def test_closed_loop_matrix_without_a_controller(name):
+    """An autonomous system (no input) and a controlled one at u_eq: the SX closed loop of
+    the quadratic candidates (an MX input beside an SX state used to fail) gives the
+    Jacobian of f(x, u_eq) at 0 (central differences of the system's own evaluator)."""
+    from nlyap_opt.control import quadratic_lyapunov
+    from nlyap_opt.symbolic import closed_loop
+
+    s = systems.get(name)
+    p = RoaProblem(s, quadratic_lyapunov(np.eye(s.nx)), None, inner=0.1, outer=1.0)
+    A = closed_loop_matrix(p)
+    h = 1e-6
+    u = None if not s.nu else np.tile(np.asarray(s.u_eq, dtype=float), (1, 1))
+    fd = np.stack([(s.evaluate(h * e[None], u) - s.evaluate(-h * e[None], u))[0] / (2 * h)
+                   for e in np.eye(s.nx)], axis=1)
+    np.testing.assert_allclose(A, fd, atol=1e-6)
+    cl = closed_loop(s, None, x=ca.SX.sym("x", s.nx))
+    assert isinstance(cl.u, ca.SX) and isinstance(cl.rhs, ca.SX)

@@ -47,7 +47,8 @@ from .walker import evaluate
 
 __all__ = [
     "CertStatus", "Decrease", "RoaProblem", "RoaCertificate", "InnerEllipse", "certify_roa",
-    "recheck_certificate", "certify_with_inner_search", "sha256_file", "FORMAT", "VERSION",
+    "recheck_certificate", "certify_with_inner_search", "load_artifact", "sha256_file", "FORMAT",
+    "VERSION",
 ]
 
 FORMAT = "nlyap-roa-certificate"
@@ -792,8 +793,7 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
                                 f"not the box of {art['file']}")
             continue
         try:
-            nets[role] = Network.load(f) if art.get("kind", "network") == "network" \
-                else _CasadiV(ca.Function.load(str(f)))
+            nets[role] = load_artifact(f, art.get("kind", "network"))
         except (NetworkFileError, RuntimeError) as err:
             return _refused(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
     if "V" not in nets:
@@ -837,6 +837,18 @@ class _CasadiV:
 
     def numpy(self, pts):
         return evaluate(self.fn, [np.asarray(pts, dtype=float)])[0]
+
+
+def load_artifact(path, kind: str = "network"):
+    """A saved V, κ or φ of ``certificate.json``'s ``artifacts``: a network file (``kind``
+    ``"network"``: :class:`~nlyap_opt.network.Network`), or a CasADi Function of a V that is
+    not a network (``"casadi"``: a quadratic or SOS polynomial), with ``casadi(x)`` and
+    ``numpy(points) -> (N, 1)``. The caller checks the file's sha256 first."""
+    if kind == "network":
+        return Network.load(path)
+    if kind == "casadi":
+        return _CasadiV(ca.Function.load(str(path)))
+    raise ValueError(f"unknown artifact kind {kind!r} (network or casadi)")
 
 
 def _refused(saved: RoaCertificate, reason: str) -> RoaCertificate:

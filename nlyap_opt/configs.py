@@ -264,7 +264,7 @@ class Key:
     lo, hi : float, optional
         Bounds; ``lo_open`` / ``hi_open`` make them strict.
     choices : tuple
-        Admissible values of a ``"str"`` key.
+        Admissible values of a ``"str"``, ``"str_list"`` or ``"int"`` key.
     doc : str
         One line for :func:`config_reference`.
     """
@@ -370,6 +370,9 @@ _TOP_DOCS = {
     "quadratic": "quadratic V = xᵀPx certified before the neural stage, under the initial "
                  "controller ('lyapunov': A_clᵀP + PA_cl = -I, 'round': min cond P); the "
                  "larger certified volume wins ([]: off; nlyap_opt.quadratic)",
+    "sos": "an SOS V certified before the neural stage where f is known and the closed loop "
+           "polynomial (nlyap_opt.sos.SOSConfig: degree, 0 off; iterations); the largest "
+           "certified volume wins",
     "system": "informational; must name the system being run",
     "preset": "informational; must name the preset the file is merged over",
     "comment": "free text",
@@ -456,6 +459,7 @@ def schema() -> dict[str, dict[str, Key]]:
     """
     from .cegis import CegisConfig
     from .learning import TrainConfig
+    from .sos import SOSConfig
 
     d = _TOP_DOCS
     top = {
@@ -473,6 +477,7 @@ def schema() -> dict[str, dict[str, Key]]:
         "dynamics": Key("dynamics", "section", {}, doc=d["dynamics"]),
         "quadratic": Key("quadratic", "str_list", [], choices=_quadratic_names(),
                          doc=d["quadratic"]),
+        "sos": Key("sos", "section", {}, doc=d["sos"]),
         "system": Key("system", "str", doc=d["system"]),
         "preset": Key("preset", "str", optional=True, doc=d["preset"]),
         "comment": Key("comment", "str", doc=d["comment"]),
@@ -484,6 +489,7 @@ def schema() -> dict[str, dict[str, Key]]:
         "train": _keys_of(TrainConfig, "train"),
         "cegis": _keys_of(CegisConfig, "cegis"),
         "dynamics": _dynamics_keys(),
+        "sos": _keys_of(SOSConfig, "sos"),
         "cegis.verify_options": _verify_option_keys(),
     }
 
@@ -537,7 +543,7 @@ def _check_value(key: Key, v, where: str) -> None:
                                   f"got {v!r}{hint}")
             bad()
     elif k == "int":
-        if not _is_int(v) or not _in_range(key, v):
+        if not _is_int(v) or not _in_range(key, v) or (key.choices and v not in key.choices):
             bad()
     elif k == "float":
         if not _is_real(v) or not math.isfinite(v) or not _in_range(key, v):
@@ -607,7 +613,7 @@ def _unknown(section: str, name, known: dict, where: str, sch: dict) -> ConfigEr
         full = f"{section}.{close[0]}" if section else close[0]
         return ConfigError(f"{where}: unknown key {dotted!r}; did you mean {full!r}?")
     if not section:  # a section key at the top level?
-        homes = [s for s in ("train", "cegis", "dynamics", "lqr") if name in sch[s]]
+        homes = [s for s in ("train", "cegis", "dynamics", "lqr", "sos") if name in sch[s]]
         if homes:
             return ConfigError(f"{where}: unknown top-level key {name!r}; it belongs in a "
                                f"section: {' or '.join(f'{s}.{name}' for s in homes)}")
@@ -682,7 +688,7 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
     for name, v in cfg.items():
         key = sch[""][name]
         _check_value(key, v, where)
-        if key.kind == "section" and name in ("lqr", "train", "cegis"):
+        if key.kind == "section" and name in ("lqr", "train", "cegis", "sos"):
             for sub, sv in v.items():
                 _check_value(sch[name][sub], sv, where)
     opts = cfg.get("cegis", {}).get("verify_options", {})
@@ -996,7 +1002,7 @@ def config_reference() -> str:
     """A Markdown table of every run-configuration key, its type, default and range."""
     rows = ["| key | accepts | default |", "| --- | --- | --- |"]
     sch = schema()
-    for section in ("", "lqr", "train", "cegis", "cegis.verify_options", "dynamics"):
+    for section in ("", "lqr", "train", "cegis", "cegis.verify_options", "sos", "dynamics"):
         if section == "dynamics":
             rows.append("| `dynamics.*` | the fields of nlyap_opt.dynamics_config.DynamicsConfig; "
                         "ranges checked by dynamics_config() | |")

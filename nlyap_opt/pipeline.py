@@ -9,14 +9,16 @@ configuration loads finished stages instead of recomputing them):
 3. ``quadratic`` — only when the configuration lists ``quadratic`` candidates: the cheap
    certificates ``V = xᵀPx`` under the initial controller (:mod:`nlyap_opt.quadratic`);
    the best one is saved as ``V_quadratic.json``;
+   ``sos`` — only when ``sos.degree`` > 0: an SOS ``V`` (:mod:`nlyap_opt.sos`) where f is
+   known and the closed loop polynomial, saved as ``V_sos.json`` when certified;
 4. ``cegis`` — learn V and κ, certify conditions (a) and (b) at a level;
 5. ``certificate`` — always rerun: the saved V, κ, φ are verified again at the saved level
    with conditions (a), (b), (c) (:func:`nlyap_opt.certificate.certify_roa`) before
-   ``certified`` is written, and so is the saved quadratic; the larger certified volume on
-   the evaluation grid wins (the neural V on a tie) and is written as ``certificate.json``,
-   the other listed under ``candidates``; certified and true-ROA areas, the check of the
-   *same* V and κ against the true f (a benchmark, reported separately); ``report.md`` and
-   ``roa.png``.
+   ``certified`` is written, and so are the saved quadratic and SOS V; the largest
+   certified volume on the evaluation grid wins (the neural V on a tie) and is written as
+   ``certificate.json``, the others listed under ``candidates``; certified and true-ROA
+   areas, the check of the *same* V and κ against the true f (a benchmark, reported
+   separately); ``report.md`` and ``roa.png``.
 
 Nothing on disk is trusted without a check: ``stages.json`` records, per stage, the hash of
 the configuration it read and the sha256 of every file it wrote; a stage whose files changed
@@ -95,6 +97,8 @@ _STAGE_KEYS = {
     "controller": ("lqr", "controller_scale"),
     "quadratic": ("inner", "outer", "domain", "initial_set", "quadratic", "cegis", "eval_box",
                   "eval_points"),
+    "sos": ("inner", "outer", "domain", "initial_set", "sos", "cegis", "eval_box",
+            "eval_points"),
     "cegis": ("inner", "outer", "domain", "initial_set", "train", "cegis"),
 }
 #: the files each stage writes (the sha256 of each is recorded)
@@ -102,6 +106,7 @@ _STAGE_FILES = {
     "dynamics": ("dynamics.json", "bounds.json"),
     "controller": ("controller_init.json", "lqr.json"),
     "quadratic": ("quadratic.json", "V_quadratic.json"),
+    "sos": ("sos.json", "V_sos.json"),
     "cegis": ("V.json", "controller.json", "cegis.json"),
 }
 
@@ -350,6 +355,8 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
 
     # ---------------------------------------------------------------- 3. quadratic
     quad = _quadratic_stage(system, cfg, out, stages, controller, problem_of, log)
+    sos = _sos_stage(system, cfg, out, stages, controller, problem_of, log)
+    cheap = [c for c in (quad, sos) if c is not None]
 
     # ---------------------------------------------------------------- 4. CEGIS
     train = TrainConfig(**cfg.get("train", {}))
@@ -372,9 +379,10 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
         log(f"[cegis] learning V{' and κ' if controller is not None else ''} on {where}"
             + (f", X_I = {XI.describe()}" if XI is not None else "")
             + (f" with η = {eta:.3g}" if eta else " (true f)"))
-        if quad is not None:
-            log(f"[cegis] the certificate to beat: quadratic {quad['name']}, volume "
-                f"{quad['volume']:.4g} on the evaluation grid")
+        if cheap:
+            best = max(cheap, key=lambda c: c["volume"])
+            log(f"[cegis] the certificate to beat: {best['label']}, volume "
+                f"{best['volume']:.4g} on the evaluation grid")
         res = cegis(system, controller, dynamics, ccfg, eta=eta, dynamics_box=dyn_box,
                     input_box=input_box, log=log, V0=V0)
         res.V.save(out / "V.json")
@@ -409,7 +417,7 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
         cert = certify_with_inner_search(problem, float(cg["level"]) if claimed else None,
                                          log=lambda m: log("  " + m))
         cert, problem, files, compared = _best_certificate(
-            system, cfg, out, cert, problem, quad, problem_of, log)
+            system, cfg, out, cert, problem, cheap, log)
         extra = _areas_and_checks(system, cfg, cert, problem, out, log)
         if compared:
             extra["candidates"] = compared
@@ -482,53 +490,125 @@ def _quadratic_stage(system, cfg, out: Path, stages, controller, problem_of, log
         stages.mark("quadratic", *deps)
         log(f"[quadratic] {'best: ' + best.name if best else 'none certified'} "
             f"({time.perf_counter() - t:.1f} s)")
-    rec = json.loads((out / "quadratic.json").read_text())
-    return rec.get("best")
+    best = json.loads((out / "quadratic.json").read_text()).get("best")
+    return None if best is None else dict(best, kind="quadratic", label=f"quadratic {best['name']}",
+                                          file="V_quadratic.json")
 
 
-def _best_certificate(system, cfg, out: Path, cert, problem, quad, problem_of, log):
-    """The best certificate wins: re-verify the saved quadratic at its saved level and ε,
-    keep the larger certified volume on the evaluation grid (the neural V on a tie).
+def _sos_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> dict | None:
+    """Stage 3b: the SOS candidate of ``cfg["sos"]`` (:func:`nlyap_opt.sos.certify_sos`);
+    returns its record (``sos.json``'s ``best``) when certified, else ``None``."""
+    from .sos import SOSConfig
 
-    Returns ``(cert, problem, files, compared)``: the winner, its problem, the artifact file
-    names of :func:`save_certificate` and the table of both (``[]`` without a quadratic).
-    """
+    sc = SOSConfig(**(cfg.get("sos") or {}))
+    if not sc.degree:
+        return None
+    from .control import quadratic_lyapunov
+    from .sos import certify_sos
+
+    deps = ("dynamics", "controller")
+    if not stages.finished("sos", *deps):
+        t = time.perf_counter()
+        log(f"[sos] SOS V of degree {sc.degree} under the initial controller "
+            f"({sc.iterations} V-s rounds per degree at most)")
+        opts = dict(cfg.get("cegis", {}).get("verify_options", {}))
+        res = certify_sos(problem_of(quadratic_lyapunov(np.eye(system.nx)), controller,
+                                     verify_options=opts), sc, log=log)
+        box, n = _eval_grid(system, cfg)
+        vol = res.area(box, n) if res.certified else 0.0
+        (out / "V_sos.json").unlink(missing_ok=True)
+        best = None
+        if res.certified:
+            write_json_atomic(out / "V_sos.json", res.V.as_json())
+            best = {"kind": "sos", "label": f"SOS degree {res.degree}", "file": "V_sos.json",
+                    "level": res.certified_level, "inner": res.inner, "volume": vol,
+                    "verify_options": opts}
+        write_json_atomic(out / "sos.json", {
+            "degree": sc.degree, "V_degree": res.degree, "status": res.status,
+            "sdp_level": res.sdp_level,
+            "level": res.certified_level, "inner": res.inner, "volume": vol,
+            "history": res.history, "notes": res.notes,
+            "non_polynomial": dict(res.non_polynomial), "best": best,
+            "seconds": time.perf_counter() - t})
+        stages.mark("sos", *deps)
+        for note in res.notes:
+            log(f"[sos] note: {note}")
+        log(f"[sos] {res.status}" + (f", volume {vol:.4g}" if res.certified else "")
+            + f" ({time.perf_counter() - t:.1f} s)")
+    return json.loads((out / "sos.json").read_text()).get("best")
+
+
+def _cheap_problem(system, out: Path, problem: RoaProblem, rec: dict) -> RoaProblem:
+    """The problem of a saved cheap certificate: its V file, the initial controller, its ε
+    and verifier options (the file's hash was checked by its stage)."""
     from dataclasses import replace
 
+    if rec["kind"] == "quadratic":
+        V = Network.load(out / rec["file"])
+    else:
+        from .polynomial import Polynomial
+
+        try:
+            V = Polynomial.from_json(json.loads((out / rec["file"]).read_text()))
+        except ValueError as err:
+            raise ConfigError(f"{out / rec['file']} cannot be read ({err}); delete it and "
+                              "rerun (the SOS stage is recomputed)") from None
+    ctrl0 = Network.load(out / "controller_init.json") if system.nu else None
+    return replace(problem, V=V, controller=ctrl0, inner=float(rec["inner"]), smoothing=None,
+                   verify_options=dict(rec.get("verify_options") or {}))
+
+
+def _best_certificate(system, cfg, out: Path, cert, problem, cheap: list, log):
+    """The best certificate wins: re-verify each saved cheap certificate (quadratic, SOS) at
+    its saved level and ε, keep the largest certified volume on the evaluation grid (the
+    neural V on a tie, then the earlier candidate).
+
+    Returns ``(cert, problem, files, compared)``: the winner, its problem, the artifact file
+    names of :func:`save_certificate` and the table of every candidate (``[]`` without a
+    cheap certificate).
+    """
     from .certificate import certify_roa
 
-    if quad is None:
+    if not cheap:
         return cert, problem, None, []
     box, n = _eval_grid(system, cfg)
-    ctrl0 = Network.load(out / "controller_init.json") if system.nu else None
-    pq = replace(problem, V=Network.load(out / "V_quadratic.json"), controller=ctrl0,
-                 inner=float(quad["inner"]), smoothing=None,
-                 verify_options=dict(quad.get("verify_options") or {}))
-    log(f"[certificate] verifying the saved quadratic {quad['name']} (V_quadratic.json) at its "
-        f"saved level {float(quad['level']):.6g}, ε = {float(quad['inner']):g}")
-    qcert = certify_roa(pq, float(quad["level"]), log=lambda m: log("  " + m))
     vol_n = cert.area(box, n) if cert.certified else 0.0
-    vol_q = qcert.area(box, n) if qcert.certified else 0.0
-    quad_wins = qcert.certified and (vol_q > vol_n or not cert.certified)
     compared = [
         {"V": "neural (V.json)", "controller": "controller.json" if system.nu else None,
          "status": cert.status.value, "reason": cert.reason, "level": cert.level,
-         "inner": cert.inner, "certified_volume": vol_n, "winner": not quad_wins},
-        {"V": f"quadratic {quad['name']} (V_quadratic.json)",
-         "controller": "controller_init.json" if system.nu else None,
-         "status": qcert.status.value, "reason": qcert.reason, "level": qcert.level,
-         "inner": qcert.inner, "certified_volume": vol_q, "winner": quad_wins}]
-    log(f"[certificate] best certificate: {'quadratic ' + quad['name'] if quad_wins else 'neural'}"
-        f" (certified volume {max(vol_n, vol_q) if quad_wins else vol_n:.4g}; neural "
-        f"{cert.status.value} {vol_n:.4g}, quadratic {qcert.status.value} {vol_q:.4g})")
-    if not quad_wins:
+         "inner": cert.inner, "certified_volume": vol_n, "winner": False}]
+    best = (vol_n if cert.certified else -1.0, cert, problem, None, compared[0], None)
+    for rec in cheap:
+        pc = _cheap_problem(system, out, problem, rec)
+        log(f"[certificate] verifying the saved {rec['label']} ({rec['file']}) at its saved "
+            f"level {float(rec['level']):.6g}, ε = {float(rec['inner']):g}")
+        c = certify_roa(pc, float(rec["level"]), log=lambda m: log("  " + m))
+        vol = c.area(box, n) if c.certified else 0.0
+        row = {"V": f"{rec['label']} ({rec['file']})",
+               "controller": "controller_init.json" if system.nu else None,
+               "status": c.status.value, "reason": c.reason, "level": c.level,
+               "inner": c.inner, "certified_volume": vol, "winner": False}
+        compared.append(row)
+        if c.certified and vol > best[0]:
+            best = (vol, c, pc, rec, row, None)
+    _, win, wp, rec, row, _ = best
+    row["winner"] = True
+    log(f"[certificate] best certificate: {'neural' if rec is None else rec['label']} ("
+        + "; ".join(f"{r['V']} {r['status']} {r['certified_volume']:.4g}" for r in compared)
+        + ")")
+    if rec is None:
         return cert, problem, None, compared
-    qcert.assumptions.append(
-        f"the certified V is the quadratic xᵀPx ({quad['name']} candidate, V_quadratic.json) "
-        "under the initial controller (controller_init.json): it covers a larger volume than "
-        "the neural V")
-    files = {"V": "V_quadratic.json", "controller": "controller_init.json"}
-    return qcert, pq, files, compared
+    if rec["kind"] == "quadratic":
+        what = f"the quadratic xᵀPx ({rec['name']} candidate, {rec['file']})"
+        files = {"V": rec["file"], "controller": "controller_init.json"}
+    else:
+        what = f"the {rec['label']} polynomial ({rec['file']}; saved as V.casadi)"
+        files = {"controller": "controller_init.json"}
+    win.assumptions.append(
+        f"the certified V is {what} under the initial controller"
+        + (" (controller_init.json)" if system.nu else "")
+        + ": it covers a larger volume than the neural V")
+    return win, wp, files, compared
 
 
 def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, out: Path,

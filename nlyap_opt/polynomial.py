@@ -254,6 +254,23 @@ class Polynomial:
         """``{"exponents": [[...], ...], "coefficients": [...]}``."""
         return {"exponents": self.exponents.tolist(), "coefficients": self.coefficients.tolist()}
 
+    @classmethod
+    def from_json(cls, d) -> Polynomial:
+        """Inverse of :meth:`as_json`; a malformed object raises ``ValueError`` naming what
+        is wrong (a saved file is checked, not trusted)."""
+        try:
+            exps = np.asarray(d["exponents"])
+            coef = np.asarray(d["coefficients"], dtype=float)
+        except (TypeError, KeyError, ValueError) as err:
+            raise ValueError(f"a polynomial needs 'exponents' and 'coefficients' lists: "
+                             f"{err}") from None
+        if exps.ndim != 2 or exps.shape[0] != coef.shape[0] or coef.ndim != 1 or \
+                exps.shape[1] < 1 or not np.issubdtype(exps.dtype, np.integer) or \
+                np.any(exps < 0) or not np.all(np.isfinite(coef)):
+            raise ValueError("a polynomial needs a (k, nx) array of non-negative integer "
+                             "exponents and k finite coefficients")
+        return cls(exps.astype(int), coef)
+
 
 # --------------------------------------------------------------------------- arithmetic
 class PolynomialArithmetic:

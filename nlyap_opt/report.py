@@ -141,11 +141,13 @@ def plot_roa(path, system, cert: dict, out: Path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from .certificate import load_artifact
     from .network import Network
     from .roa import grid_points
 
-    arts = cert.get("artifacts", {})   # the certified V and κ (the neural or a quadratic)
-    V = Network.load(out / arts.get("V", {}).get("file", "V.json"))
+    arts = cert.get("artifacts", {})   # the certified V and κ (the neural or a cheap one)
+    V = load_artifact(out / arts.get("V", {}).get("file", "V.json"),
+                      arts.get("V", {}).get("kind", "network"))
     D, XI, _ = _sets(cert, system.nx)
     cfile = out / arts.get("controller", {}).get("file", "controller.json")
     ctrl = Network.load(cfile) if system.nu and cfile.exists() else None

@@ -55,19 +55,19 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .certificate import InnerEllipse, RoaCertificate, RoaProblem, certify_roa
 from .control import lqr
 from .polynomial import NotPolynomialError, Polynomial, polynomial_closed_loop
-from .roa import grid_area, grid_points
+from .roa import candidate_level, grid_area, grid_points
 from .sos_sdp import SOSLevel, boundary_points, sos_level, star_area, vs_iteration
 
 __all__ = [
-    "NotPolynomialError", "Polynomial", "SOSLevel", "SOSResult", "polynomial_closed_loop",
-    "sos_level", "sos_roa",
+    "NotPolynomialError", "Polynomial", "SOSConfig", "SOSLevel", "SOSResult", "certify_sos",
+    "polynomial_closed_loop", "sos_level", "sos_roa",
 ]
 
 
@@ -315,4 +315,100 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     res.seconds = time.perf_counter() - t0
     say(f"[sos] degree {V.degree}: SDP level {level:.6g}, certified {res.certified_level:.6g} "
         f"({res.status}, {res.seconds:.2f} s)")
+    return res
+
+
+# --------------------------------------------------------------------------- the pipeline's
+@dataclass
+class SOSConfig:
+    """The ``sos`` section of a run configuration: an SOS certificate before the neural stage.
+
+    Attributes
+    ----------
+    degree : {0, 2, 4, 6}
+        Degree of the SOS ``V`` (0: no SOS stage).
+    iterations : int
+        Budget of the V–s iteration, in rounds per degree (``degree > 2``).
+    """
+
+    degree: int = field(default=0, metadata={
+        "choices": (0, 2, 4, 6),
+        "doc": "degree of an SOS V certified before the neural stage where the closed loop "
+               "is polynomial and f is known (0: off; nlyap_opt.sos)"})
+    iterations: int = field(default=20, metadata={
+        "lo": 1, "doc": "V-s iteration rounds per degree (a count, never a time)"})
+
+
+def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = None,
+                log=print) -> SOSResult:
+    r"""The pipeline's SOS candidate: :func:`sos_roa`'s ``V`` certified on ``problem``.
+
+    The SOS programs run on the polynomial closed loop of ``problem.system`` under
+    ``problem.controller``; the resulting ``(V, c)`` is then certified by
+    :func:`nlyap_opt.certificate.certify_roa` on ``problem`` with its ``V`` replaced (the run's
+    verification domain, initial set and verifier options; the level searched downwards
+    from the SDP level), so that the SOS certificate and the neural one claim sets of the
+    same kind and are compared on the same grid.
+
+    Not applicable (``status`` ``"not applicable: ..."``, no SDP solved) with learned
+    dynamics -- the SOS programs would use the model of ``f``, which an unknown system does
+    not have, and ``φ`` is a tanh network -- or when the closed loop is not polynomial (a
+    saturated ``tanh`` controller, ``sin``, ...).
+
+    Parameters
+    ----------
+    problem : RoaProblem
+        The run's problem; its ``V`` is ignored.
+    config : SOSConfig
+        ``degree`` (> 0) and ``iterations``.
+    inner_fraction : float, optional
+        The SOS certificate's ``ε`` as a fraction of ``problem.inner`` (default
+        :data:`nlyap_opt.quadratic.INNER_FRACTION`, as the quadratic candidates with the
+        true ``f``).
+    log : callable
+
+    Returns
+    -------
+    SOSResult
+        With :attr:`~SOSResult.certificate` and :attr:`~SOSResult.problem` set when the
+        verifier ran.
+    """
+    from .quadratic import INNER_FRACTION
+
+    if not config.degree:
+        raise ValueError("SOSConfig.degree is 0: the SOS stage is off")
+    eps = problem.inner * (INNER_FRACTION if inner_fraction is None else inner_fraction)
+    t0 = time.perf_counter()
+    if not problem.known:
+        reason = ("learned dynamics: the SOS programs need the polynomial model of f, which "
+                  "an unknown system does not have (and φ is a tanh network); the quadratic "
+                  "candidates and the neural V cover this run")
+        return SOSResult("not applicable: " + reason, config.degree, notes=[reason],
+                         inner=eps, non_polynomial={"learned dynamics": "φ"})
+    res = sos_roa(problem.system, degree=config.degree, inner=eps,
+                  controller=problem.controller, iterations=config.iterations,
+                  certify=False, log=log)
+    if not res.applicable or res.V is None or not res.sdp_level > 0:
+        return res
+    res.problem = p = replace(problem, V=res.V, inner=eps)
+    t1 = time.perf_counter()
+    # the SDP level is a candidate on R^n; on the run's domain D the level must also keep
+    # {V <= c} off ∂D: start at the lesser of the SDP level and the least V on ∂D or at a
+    # sampled / IPOPT decrease violation (nlyap_opt.roa.candidate_level)
+    dec = p.decrease()
+    start = min(res.sdp_level, candidate_level(dec.x, dec.V, dec.lie, inner=eps,
+                                               domain=p.domain, margin=dec.margin).level)
+    if not start > 0:
+        res.status = "not certified: no positive candidate level on the domain"
+        res.seconds = time.perf_counter() - t0
+        return res
+    cert = certify_roa(p, start, search=True, follow_violations=True,
+                       log=lambda m: log("  " + m))
+    res.certificate, res.certify_seconds = cert, time.perf_counter() - t1
+    res.outer = float(problem.domain.max_norm())
+    if cert.certified:
+        res.status, res.certified_level = "certified", float(cert.level)
+    else:
+        res.status = f"not certified: {cert.reason}"
+    res.seconds = time.perf_counter() - t0
     return res

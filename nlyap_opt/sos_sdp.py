@@ -16,8 +16,12 @@ coefficients of every monomial (no SOS toolbox: cvxpy directly).
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
+import os
+import sys
+import tempfile
 import time
 import warnings
 from collections.abc import Callable
@@ -133,20 +137,54 @@ def _even_up(d: int) -> int:
     return d + (d % 2)
 
 
+@contextlib.contextmanager
+def _stderr_held():
+    """Hold what native code writes to file descriptor 2 (a Rust panic's message and, under
+    ``RUST_BACKTRACE``, its backtrace); yields a list whose first item, set to ``True`` by
+    the caller, drops it, else it is written out unchanged afterwards."""
+    drop = [False]
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):   # no real stderr (captured): nothing to do
+        yield drop
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), fd)
+        try:
+            yield drop
+        finally:
+            os.dup2(saved, fd)
+            os.close(saved)
+            if not drop[0]:
+                tmp.seek(0)
+                text = tmp.read()
+                if text:
+                    os.write(fd, text)
+
+
 def _solve(prob, solver: str) -> bool:
-    """Solve; ``True`` only for status ``optimal`` (inaccurate solutions count as failures)."""
+    """Solve; ``True`` only for status ``optimal`` (inaccurate solutions count as failures).
+
+    A solver that fails -- cvxpy's ``SolverError``, or a panic inside Clarabel's Rust code
+    (eigenvalue failures on badly scaled SOS programs of degree 4 in 3-D) -- counts as an
+    infeasible program; the panic's message is not printed (it is no error of the run:
+    the V-s iteration keeps its last good ``V``)."""
     import cvxpy as cp
 
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            prob.solve(solver=solver)
-    except cp.SolverError:
-        return False
-    except BaseException as err:  # Clarabel's Rust panics derive from BaseException
-        if type(err).__name__ != "PanicException":
-            raise
-        return False
+    with _stderr_held() as drop:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                prob.solve(solver=solver)
+        except cp.SolverError:
+            return False
+        except BaseException as err:  # Clarabel's Rust panics derive from BaseException
+            if type(err).__name__ != "PanicException":
+                raise
+            drop[0] = True
+            return False
     return prob.status == cp.OPTIMAL
 
 

@@ -1,0 +1,191 @@
+"""SOS as a cheap certificate of the pipeline (issue 15, item 5): the ``sos`` section, the
+``sos`` stage, the best certificate among neural, quadratic and SOS, and what is refused."""
+
+import json
+import os
+import shutil
+import sys
+
+import numpy as np
+import pytest
+
+import systems
+from nlyap_opt.certificate import RoaProblem, recheck_certificate
+from nlyap_opt.configs import make_config
+from nlyap_opt.control import lqr, quadratic_lyapunov, saturated_controller
+from nlyap_opt.errors import ConfigError
+from nlyap_opt.network import Layer, Network
+from nlyap_opt.pipeline import run
+from nlyap_opt.polynomial import Polynomial
+from nlyap_opt.sos import SOSConfig, certify_sos
+
+
+# --------------------------------------------------------------------------- configuration
+@pytest.mark.parametrize("sos, msg", [
+    ({"degree": 3}, r"sos\.degree must be one of 0, 2, 4, 6, got 3"),
+    ({"degree": 2.0}, r"sos\.degree must be one of"),
+    ({"degre": 2}, r"unknown key 'sos\.degre'; did you mean 'sos\.degree'"),
+    ({"iterations": 0}, r"sos\.iterations must be an integer >= 1, got 0"),
+    (4, r"sos must be a JSON object"),
+])
+def test_bad_sos_sections_are_config_errors(sos, msg):
+    with pytest.raises(ConfigError, match=msg):
+        make_config("van_der_pol", "fast", overrides={"sos": sos})
+
+
+def test_a_misplaced_degree_names_its_section():
+    with pytest.raises(ConfigError, match=r"it belongs in a section: sos\.degree"):
+        make_config("van_der_pol", "fast", overrides={"degree": 4})
+
+
+# --------------------------------------------------------------------------- not applicable
+def test_a_saturated_controller_makes_sos_not_applicable():
+    """tanh in the closed loop: no SDP is set up and the reason names the operation."""
+    s = systems.get("inverted_pendulum")
+    ctrl = saturated_controller(s, lqr(s).K, 20.0)
+    p = RoaProblem(s, quadratic_lyapunov(np.eye(2)), ctrl, inner=0.1, outer=1.0)
+    res = certify_sos(p, SOSConfig(degree=2), log=lambda m: None)
+    assert not res.applicable and not res.certified
+    assert res.status.startswith("not applicable") and res.certificate is None
+    assert "tanh" in res.non_polynomial
+
+
+def test_learned_dynamics_make_sos_not_applicable():
+    """With φ in place of f the SOS programs would need the model an unknown system does
+    not have: refused before any SDP, whatever φ is."""
+    s = systems.get("van_der_pol")
+    phi = Network([Layer(np.full((3, 2), 0.1), np.zeros(3), "tanh"),
+                   Layer(-np.eye(2, 3), np.zeros(2), "linear")])
+    p = RoaProblem(s, quadratic_lyapunov(np.eye(2)), None, phi, inner=0.1, outer=1.0,
+                   eta=0.01, dynamics_box=[[-2, 2], [-2, 2]])
+    res = certify_sos(p, SOSConfig(degree=4), log=lambda m: None)
+    assert res.status.startswith("not applicable: learned dynamics")
+    assert res.V is None and res.history == [] and res.certificate is None
+
+
+def test_degree_zero_is_off():
+    s = systems.get("van_der_pol")
+    p = RoaProblem(s, quadratic_lyapunov(np.eye(2)), None, inner=0.1, outer=1.0)
+    with pytest.raises(ValueError, match="off"):
+        certify_sos(p, SOSConfig())
+
+
+# --------------------------------------------------------------------------- pipeline
+@pytest.fixture(scope="module")
+def sos_run(tmp_path_factory):
+    """Van der Pol, true f, an SOS V of degree 2 and a neural stage cut to one step (so
+    that SOS must win)."""
+    d = tmp_path_factory.mktemp("sos")
+    cfg = make_config("van_der_pol", "fast", overrides={
+        "sos": {"degree": 2}, "train": {"steps": 1}, "cegis": {"iterations": 1, "steps": 1}})
+    logs = []
+    res = run("van_der_pol", cfg, d, known_dynamics=True, log=logs.append)
+    return d, cfg, res, logs
+
+
+def test_the_sos_certificate_wins_and_is_saved_with_its_artifacts(sos_run):
+    d, cfg, res, logs = sos_run
+    summary = json.loads((d / "certificate.json").read_text())
+    assert res.certified and summary["status"] == "certified"
+    cands = summary["candidates"]
+    assert [c["V"] for c in cands] == ["neural (V.json)", "SOS degree 2 (V_sos.json)"]
+    assert [c["winner"] for c in cands] == [False, True]
+    assert summary["artifacts"]["V"] == {**summary["artifacts"]["V"], "file": "V.casadi",
+                                         "kind": "casadi"}
+    assert summary["certified_area"] == pytest.approx(cands[1]["certified_volume"])
+    assert any("SOS degree 2 polynomial" in a for a in summary["assumptions"])
+    rec = json.loads((d / "sos.json").read_text())
+    assert rec["status"] == "certified" and rec["best"]["level"] == summary["level"]
+    assert summary["inner_radius"] == pytest.approx(0.25 * cfg["inner"])
+    text = "\n".join(logs)
+    assert "[cegis] the certificate to beat: SOS degree 2" in text
+    assert "[certificate] verifying the saved SOS degree 2 (V_sos.json)" in text
+    report = (d / "report.md").read_text()
+    assert "## Best certificate" in report and "V_sos.json" in report
+    assert (d / "roa.png").stat().st_size > 10_000
+
+
+def test_the_saved_sos_v_really_decreases_on_its_certified_set(sos_run):
+    """The claim, checked by sampling: V̇ = ∇V·f < 0 on {ε ≤ ‖x‖ ≤ r, V ≤ c} for the saved
+    polynomial and the true f, and V(0) = 0 < V elsewhere (central differences)."""
+    d, cfg, _, _ = sos_run
+    s = systems.get("van_der_pol")
+    summary = json.loads((d / "certificate.json").read_text())
+    V = Polynomial.from_json(json.loads((d / "V_sos.json").read_text()))
+    c, eps, r = summary["level"], summary["inner_radius"], cfg["outer"]
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-r, r, (40000, 2))
+    n = np.linalg.norm(x, axis=1)
+    x = x[(n >= eps) & (n <= r) & (V(x) <= c)]
+    assert len(x) > 5000
+    h = 1e-6
+    grad = np.stack([(V(x + h * e) - V(x - h * e)) / (2 * h) for e in np.eye(2)], axis=1)
+    assert np.all(np.einsum("ij,ij->i", grad, s.evaluate(x)) < 0)
+    assert V(np.zeros((1, 2)))[0] == 0.0 and np.all(V(x) > 0)
+
+
+def test_the_sos_certificate_rechecks_and_a_tampered_one_does_not(sos_run, tmp_path):
+    d, cfg, _, _ = sos_run
+    assert recheck_certificate(d, log=lambda m: None).certified
+    e = tmp_path / "copy"
+    shutil.copytree(d, e)
+    # a flatter V would claim a larger set: the saved polynomial is hashed
+    V = Polynomial.from_json(json.loads((e / "V_sos.json").read_text()))
+    (e / "V_sos.json").write_text(json.dumps(V.scaled(0.5).as_json()))
+    logs = []
+    res = run("van_der_pol", cfg, e, known_dynamics=True, log=logs.append)
+    text = "\n".join(logs)
+    assert "[sos] V_sos.json changed since this stage wrote it" in text
+    assert "[sos] SOS V of degree 2" in text               # recomputed, not trusted
+    assert res.certified
+    assert json.loads((e / "V_sos.json").read_text()) == \
+        json.loads((d / "V_sos.json").read_text())
+    # and the certificate's own V artifact is hashed too
+    f = e / "V.casadi"
+    f.write_bytes(f.read_bytes() + b"\n")
+    again = recheck_certificate(e, log=lambda m: None)
+    assert not again.certified and "changed" in again.reason
+
+
+def test_a_malformed_sos_file_with_a_matching_hash_is_a_one_line_error(sos_run, tmp_path):
+    """A V_sos.json whose content was replaced together with the stage record (hash
+    matching) is still parsed, not trusted: a ConfigError naming the file and the fix."""
+    from nlyap_opt.certificate import sha256_file
+
+    d, cfg, _, _ = sos_run
+    e = tmp_path / "copy2"
+    shutil.copytree(d, e)
+    (e / "V_sos.json").write_text(json.dumps({"exponents": [[1.5, 0]], "coefficients": [1]}))
+    st = json.loads((e / "stages.json").read_text())
+    st["sos"]["files"]["V_sos.json"] = sha256_file(e / "V_sos.json")
+    (e / "stages.json").write_text(json.dumps(st))
+    with pytest.raises(ConfigError, match=r"V_sos\.json cannot be read .*delete it and rerun"):
+        run("van_der_pol", cfg, e, known_dynamics=True, log=lambda m: None)
+
+
+def test_polynomial_json_round_trip_and_refusals():
+    p = Polynomial.quadratic([[2.0, 0.3], [0.3, 1.0]])
+    q = Polynomial.from_json(json.loads(json.dumps(p.as_json())))
+    z = np.random.default_rng(0).normal(size=(20, 2))
+    np.testing.assert_array_equal(p(z), q(z))
+    for bad in ({}, {"exponents": [[1, 0]]}, {"exponents": [[1, 0]], "coefficients": [1, 2]},
+                {"exponents": [[-1, 0]], "coefficients": [1]},
+                {"exponents": [[1, 0]], "coefficients": [float("nan")]}, [1, 2]):
+        with pytest.raises(ValueError, match="polynomial needs"):
+            Polynomial.from_json(bad)
+
+
+# --------------------------------------------------------------------------- solver noise
+def test_a_solver_panic_message_is_held_back_other_output_is_not(capfd):
+    """Clarabel's Rust panics print to file descriptor 2 (with a backtrace under
+    RUST_BACKTRACE) although the failure is handled; what the solver writes otherwise
+    passes through unchanged."""
+    from nlyap_opt.sos_sdp import _stderr_held
+
+    with _stderr_held() as drop:
+        os.write(sys.stderr.fileno(), b"thread '<unnamed>' panicked at solver.rs\n")
+        drop[0] = True
+    with _stderr_held():
+        os.write(sys.stderr.fileno(), b"solver warning kept\n")
+    err = capfd.readouterr().err
+    assert "panicked" not in err and "solver warning kept" in err

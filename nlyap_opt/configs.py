@@ -321,7 +321,7 @@ _RULES: dict[str, dict[str, dict]] = {
         "fit_transform": {"choices": ("log", "linear")}, "w_pde": _NONNEG,
         "w_local": _NONNEG, "lr_schedule": {"choices": ("constant", "cosine")},
         "activation": {"choices": ("tanh", "square", "linear")},
-        "init": {"choices": ("random", "quadratic")},
+        "init": {"choices": ("random", "quadratic", "sos")},
         "seed": _NONNEG, "threads": _COUNT,
     },
     "cegis": {
@@ -711,20 +711,25 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
                           f"of the domain {D.describe()}; shrink initial_set or enlarge the "
                           "domain")
     tr = cfg.get("train", {})
-    if tr.get("init", "random") == "quadratic":
-        if not cfg.get("quadratic"):
-            raise ConfigError(f"{where}: train.init 'quadratic' starts V at the best certified "
-                              "quadratic, but no quadratic candidates are listed; set e.g. "
-                              "quadratic: [\"lyapunov\", \"round\"] or init 'random'")
-        hidden = tr.get("hidden", sch["train"]["hidden"].default)
-        hidden = [hidden] if isinstance(hidden, int) else list(hidden)
-        act = tr.get("activation", "tanh")
-        feats = tr.get("features", sch["train"]["features"].default)
-        if act != "tanh" or len(hidden) != 1 or hidden[0] < s.nx or feats < s.nx:
-            raise ConfigError(f"{where}: train.init 'quadratic' needs one tanh hidden layer of "
-                              f"at least {s.nx} neurons and features >= {s.nx}, got activation "
-                              f"{act!r}, hidden {hidden}, features {feats}; change them or use "
-                              "init 'random'")
+    init = tr.get("init", "random")
+    if init == "quadratic" and not cfg.get("quadratic"):
+        raise ConfigError(f"{where}: train.init 'quadratic' starts V at the best certified "
+                          "quadratic, but no quadratic candidates are listed; set e.g. "
+                          "quadratic: [\"lyapunov\", \"round\"] or init 'random'")
+    sos_degree = (cfg.get("sos") or {}).get("degree", 0)
+    if init == "sos" and not sos_degree:
+        raise ConfigError(f"{where}: train.init 'sos' starts V at the certified SOS V, but the "
+                          "SOS stage is off; set sos: {\"degree\": 4} (or 2) or init 'random'")
+    if init != "random":
+        from .learning import check_start_architecture
+
+        try:
+            check_start_architecture(init, s.nx, tr.get("activation", "tanh"),
+                                     tr.get("hidden", sch["train"]["hidden"].default),
+                                     tr.get("features", sch["train"]["features"].default),
+                                     sos_degree)
+        except ConfigError as err:
+            raise ConfigError(f"{where}: {err}") from None
     cg = cfg.get("cegis", {})
     it = cg.get("iterations", sch["cegis"]["iterations"].default)
     if cg.get("min_iterations", 1) > it:

@@ -85,7 +85,9 @@ class TrainConfig:
     lr_schedule: str = "constant"  # or "cosine": lr → lr/100 over each train() call
     # where V starts: "random" (Glorot, seeded), or "quadratic": at the run's best certified
     # quadratic xᵀPx (config key quadratic), scaled so that V's level 1 is its certified set
-    # (quadratic_start; one tanh hidden layer of at least nx neurons, features >= nx)
+    # (quadratic_start; one tanh hidden layer of at least nx neurons, features >= nx); or
+    # "sos": at the run's certified SOS V of degree 2 or 4 (config section sos), exactly
+    # (sos_start; one square hidden layer of at least nx(nx+3)/2 neurons)
     init: str = "random"
     seed: int = 0
     threads: int = 1           # torch threads while training (set and restored): fixed, so
@@ -95,6 +97,34 @@ class TrainConfig:
 
 #: slope of the neurons that carry ``Lx`` in :func:`quadratic_start` (tanh(a·Lx)/a ≈ Lx)
 QUADRATIC_START_SLOPE = 0.3
+
+
+def check_start_architecture(init: str, nx: int, activation: str, hidden, features: int,
+                             degree: int = 2) -> None:
+    """Refuse a V architecture that cannot hold the warm start ``init`` (ConfigError naming
+    what it needs): ``"quadratic"``: one tanh hidden layer of at least ``nx`` neurons,
+    ``features >= nx`` (:func:`quadratic_start`); ``"sos"``: one square hidden layer of at
+    least ``2·nx`` (degree 2) or ``nx(nx+3)/2`` (degree 4) neurons and ``features`` >= the
+    number of monomials of degree 1..degree/2 (:func:`sos_start`)."""
+    hidden = [hidden] if isinstance(hidden, int) else list(hidden)
+    if init == "quadratic":
+        act, need, feats = "tanh", nx, nx
+    elif init == "sos":
+        if degree not in (2, 4):
+            raise ConfigError(f"train.init 'sos' needs an SOS V of degree 2 or 4 (one square "
+                              f"layer holds a quadratic N(x)), got degree {degree}; set "
+                              "sos.degree to 2 or 4 or use init 'random'")
+        act = "square"
+        need = 2 * nx + (nx * (nx - 1) // 2 if degree == 4 else 0)
+        feats = nx + (nx * (nx + 1) // 2 if degree == 4 else 0)
+    else:
+        return
+    if activation != act or len(hidden) != 1 or hidden[0] < need or features < feats:
+        raise ConfigError(
+            f"train.init {init!r}{f' (degree {degree})' if init == 'sos' else ''} needs one "
+            f"{act} hidden layer of at least {need} neurons and features >= {feats}, got "
+            f"activation {activation!r}, hidden {hidden}, features {features}; change them "
+            "or use init 'random'")
 
 
 def quadratic_start(P: np.ndarray, level: float, config: TrainConfig) -> Network:
@@ -116,11 +146,7 @@ def quadratic_start(P: np.ndarray, level: float, config: TrainConfig) -> Network
     P = np.asarray(P, dtype=float)
     n = P.shape[0]
     H = list(config.hidden)
-    if config.activation != "tanh" or len(H) != 1 or H[0] < n or config.features < n:
-        raise ConfigError(
-            f"train.init 'quadratic' needs one tanh hidden layer of at least {n} neurons and "
-            f"features >= {n}, got activation {config.activation!r}, hidden {H}, features "
-            f"{config.features}; change them or use init 'random'")
+    check_start_architecture("quadratic", n, config.activation, H, config.features)
     if not (np.isfinite(level) and level > 0):
         raise ConfigError(f"train.init 'quadratic': the quadratic's level must be > 0, got "
                           f"{level!r}")
@@ -142,6 +168,65 @@ def quadratic_start(P: np.ndarray, level: float, config: TrainConfig) -> Network
                 head={"type": "sum_of_squares", "eps": config.eps})
     V.__post_init__()
     return V
+
+
+def sos_start(V, level: float, config: TrainConfig) -> Network:
+    r"""A V of ``config``'s architecture equal to the SOS polynomial ``V/level + ε‖x‖²``.
+
+    With one ``square`` hidden layer the network's ``N(x)`` is a quadratic polynomial, so a
+    degree-4 (or 2) SOS ``V = ‖L z(x)‖²`` (``z``: the monomials of degree 1..2, ``L`` from a
+    Gram matrix, :func:`nlyap_opt.sos_sdp.gram_factor`) is represented exactly: the hidden
+    neurons ``x_i²``, ``(x_i + 1)²`` and ``(x_i + x_j)²`` (``i < j``; degree 4 only) give every
+    monomial of ``z`` up to a constant (``x_i = ((x_i + 1)² − x_i² − 1)/2``,
+    ``x_i x_j = ((x_i + x_j)² − x_i² − x_j²)/2``), which ``N(x) − N(0)`` removes, and the
+    output layer applies ``L/√level``. Then ``V_net = V/level + ε‖x‖²``: level 1 of the
+    network is (up to the ``ε`` term, the Gram factor's rounding and float64) the SOS
+    stage's certified set. The other neurons start random (``config.seed``) with output
+    weights ``10⁻³``. A starting point of training, never a claim.
+
+    Raises
+    ------
+    ConfigError
+        The architecture cannot hold it (not one ``square`` hidden layer of at least
+        ``nx(nx+3)/2`` neurons (``2·nx`` for degree 2) and ``features`` >= the number of
+        monomials), ``V`` is not of degree 2 or 4, or ``level`` is not > 0.
+    """
+    from .sos_sdp import gram_factor
+
+    n, deg = V.nx, V.degree
+    H = list(config.hidden)
+    check_start_architecture("sos", n, config.activation, H, config.features, deg)
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)] if deg == 4 else []
+    need = 2 * n + len(pairs)
+    if not (np.isfinite(level) and level > 0):
+        raise ConfigError(f"train.init 'sos': the SOS level must be > 0, got {level!r}")
+    try:
+        z, L = gram_factor(V)
+    except ValueError as err:
+        raise ConfigError(f"train.init 'sos': {err}; use init 'random'") from None
+    h, F = H[0], config.features
+    rnd = dense_network([n, h, F], "square", seed=config.seed)
+    W1, b1 = rnd.layers[0].weight.copy(), rnd.layers[0].bias.copy()
+    W1[:need], b1[:need] = 0.0, 0.0
+    T = np.zeros((len(z), h))              # z(x) = T·hidden(x) + constant
+    for i in range(n):
+        W1[i, i] = 1.0                     # x_i²
+        W1[n + i, i], b1[n + i] = 1.0, 1.0  # (x_i + 1)²
+        T[z.index(tuple(int(k == i) for k in range(n))), [n + i, i]] = 0.5, -0.5
+        if deg == 4:
+            T[z.index(tuple(2 * int(k == i) for k in range(n))), i] = 1.0
+    for k, (i, j) in enumerate(pairs):
+        W1[2 * n + k, [i, j]] = 1.0        # (x_i + x_j)²
+        row = z.index(tuple(int(m in (i, j)) for m in range(n)))
+        T[row, [2 * n + k, i, j]] = 0.5, -0.5, -0.5
+    W2 = 1e-3 * rnd.layers[1].weight
+    W2[:, :need] = 0.0
+    W2[:len(z)] = (L @ T) / np.sqrt(level)
+    W2[:len(z), need:] = 0.0
+    net = Network([Layer(W1, b1, "square"), Layer(W2, np.zeros(F), "linear")],
+                  head={"type": "sum_of_squares", "eps": config.eps})
+    net.__post_init__()
+    return net
 
 
 def _body_jacobian_at_zero(body, n: int):

@@ -50,7 +50,7 @@ from .certificate import (
     write_json_atomic,
 )
 from .errors import ConfigError, NlyapError
-from .learning import TrainConfig, quadratic_start
+from .learning import TrainConfig, quadratic_start, sos_start
 from .network import Network
 
 __all__ = ["run", "RunResult", "RunLockedError"]
@@ -360,18 +360,23 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
 
     # ---------------------------------------------------------------- 4. CEGIS
     train = TrainConfig(**cfg.get("train", {}))
-    warm = train.init == "quadratic"
-    deps = ("dynamics", "controller") + (("quadratic",) if warm else ())
+    # train.init: V starts at a cheap certificate (the CEGIS stage then builds on its stage)
+    start = {"quadratic": quad, "sos": sos}.get(train.init)
+    deps = ("dynamics", "controller") + ((train.init,) if train.init != "random" else ())
     if not stages.finished("cegis", *deps):
         t = time.perf_counter()
         V0 = None
-        if warm and quad is not None:
-            V0 = quadratic_start(np.asarray(quad["P"], dtype=float), float(quad["level"]),
-                                 train)
-            log(f"[cegis] V starts at the quadratic {quad['name']}: level 1 of V = its "
-                f"certified set (level {float(quad['level']):.6g})")
-        elif warm:
-            log("[cegis] no quadratic was certified: V starts at random (train.init)")
+        if start is not None:
+            if train.init == "quadratic":
+                V0 = quadratic_start(np.asarray(start["P"], dtype=float),
+                                     float(start["level"]), train)
+            else:
+                V0 = sos_start(_cheap_V(out, start),
+                               float(start["level"]), train)
+            log(f"[cegis] V starts at the {start['label']}: level 1 of V = its certified set "
+                f"(level {float(start['level']):.6g})")
+        elif train.init != "random":
+            log(f"[cegis] no {train.init} certificate: V starts at random (train.init)")
         ccfg = CegisConfig(inner=eps, outer=r, train=train, domain=D, initial_set=XI,
                            **cfg.get("cegis", {}))
         where = f"{eps:g} ≤ ‖x‖ ≤ {r:g}" if cfg.get("domain") is None else \
@@ -538,11 +543,9 @@ def _sos_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> d
     return json.loads((out / "sos.json").read_text()).get("best")
 
 
-def _cheap_problem(system, out: Path, problem: RoaProblem, rec: dict) -> RoaProblem:
-    """The problem of a saved cheap certificate: its V file, the initial controller, its ε
-    and verifier options (the file's hash was checked by its stage)."""
-    from dataclasses import replace
-
+def _cheap_V(out: Path, rec: dict):
+    """The V of a saved cheap certificate (the file's hash was checked by its stage; its
+    content is parsed, not trusted)."""
     if rec["kind"] == "quadratic":
         V = Network.load(out / rec["file"])
     else:
@@ -553,6 +556,15 @@ def _cheap_problem(system, out: Path, problem: RoaProblem, rec: dict) -> RoaProb
         except ValueError as err:
             raise ConfigError(f"{out / rec['file']} cannot be read ({err}); delete it and "
                               "rerun (the SOS stage is recomputed)") from None
+    return V
+
+
+def _cheap_problem(system, out: Path, problem: RoaProblem, rec: dict) -> RoaProblem:
+    """The problem of a saved cheap certificate: its V file, the initial controller, its ε
+    and verifier options."""
+    from dataclasses import replace
+
+    V = _cheap_V(out, rec)
     ctrl0 = Network.load(out / "controller_init.json") if system.nu else None
     return replace(problem, V=V, controller=ctrl0, inner=float(rec["inner"]), smoothing=None,
                    verify_options=dict(rec.get("verify_options") or {}))

@@ -32,7 +32,8 @@ from scipy.sparse import coo_matrix
 
 from .polynomial import Polynomial, monomial_matrix, monomials
 
-__all__ = ["SOSLevel", "boundary_points", "sos_level", "star_area", "v_step", "vs_iteration"]
+__all__ = ["SOSLevel", "boundary_points", "gram_factor", "sos_level", "star_area", "v_step",
+           "vs_iteration"]
 
 
 # --------------------------------------------------------------------------- coefficient space
@@ -422,3 +423,44 @@ def star_area(V: Polynomial, level: float) -> float:
         return float(np.mean(np.linalg.norm(pts, axis=1)) ** V.nx)
     r = np.linalg.norm(pts, axis=1)
     return float(0.5 * np.sum(r**2) * (2 * math.pi / len(r)))
+
+
+# --------------------------------------------------------------------------- Gram factor
+def gram_factor(V: Polynomial, *, solver: str = "CLARABEL") -> tuple[list[tuple], np.ndarray]:
+    r"""A factor ``L`` with :math:`V(x) \approx \|L\,z(x)\|^2`, ``z`` the monomials of degree
+    ``1..deg V / 2``.
+
+    One SDP: a Gram matrix :math:`Q \succeq tI` with :math:`z^\top Q z = V` coefficient by
+    coefficient, maximising ``t`` (the most interior one, so that rounding its eigenvalues
+    at 0 changes little); ``L = diag(√λ) Uᵀ`` from its eigenvalues ``λ`` clipped at 0.
+    For a starting point of training (:func:`nlyap_opt.learning.sos_start`), never for a
+    claim.
+
+    Returns
+    -------
+    z : list of tuple
+        The exponents of the monomials.
+    L : (len(z), len(z)) ndarray
+
+    Raises
+    ------
+    ValueError
+        ``V`` has odd degree, a constant or linear term, or no Gram matrix was found.
+    """
+    import cvxpy as cp
+
+    if V.degree % 2 or V.degree < 2:
+        raise ValueError(f"a Gram factor needs an even degree >= 2, got {V.degree}")
+    if np.any(V.exponents.sum(axis=1) < 2):
+        raise ValueError("V has a constant or linear term: it is no Gram form of monomials "
+                         "of degree >= 1")
+    space = _Space(V.nx, V.degree)
+    z = monomials(V.nx, 1, V.degree // 2)
+    Q = cp.Variable((len(z), len(z)), symmetric=True)
+    t = cp.Variable()
+    prob = cp.Problem(cp.Maximize(t), [space.gram(z) @ _vec(Q) == space.vec(V.to_dict()),
+                                       Q - t * np.eye(len(z)) >> 0, t <= 1.0])
+    if not _solve(prob, solver) or Q.value is None:
+        raise ValueError(f"no Gram matrix of V was found (solver status {prob.status})")
+    lam, U = np.linalg.eigh(0.5 * (Q.value + Q.value.T))
+    return z, np.sqrt(np.clip(lam, 0.0, None))[:, None] * U.T

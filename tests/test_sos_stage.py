@@ -189,3 +189,82 @@ def test_a_solver_panic_message_is_held_back_other_output_is_not(capfd):
         os.write(sys.stderr.fileno(), b"solver warning kept\n")
     err = capfd.readouterr().err
     assert "panicked" not in err and "solver warning kept" in err
+
+
+# --------------------------------------------------------------------------- V starts at SOS
+def _random_sos(nx: int, degree: int, seed: int = 0) -> Polynomial:
+    """V = Σ_k (a_k · z(x))², z the monomials of degree 1..degree/2 (expanded exactly)."""
+    import casadi as ca
+
+    from nlyap_opt.polynomial import expand_polynomials, monomials
+
+    z_exp = monomials(nx, 1, degree // 2)
+    x = ca.SX.sym("x", nx)
+    z = ca.vertcat(*[ca.mtimes([x[i] ** int(e[i]) for i in range(nx)] + [1]) for e in z_exp])
+    A = np.random.default_rng(seed).normal(size=(len(z_exp), len(z_exp)))
+    V = ca.sumsqr(ca.mtimes(ca.DM(A), z))
+    return expand_polynomials(ca.Function("V", [x], [V]))[0]
+
+
+@pytest.mark.parametrize("nx, degree, hidden, features", [(2, 4, 7, 6), (3, 4, 9, 9),
+                                                          (3, 2, 6, 3)])
+def test_sos_start_is_the_sos_polynomial_over_its_level(nx, degree, hidden, features):
+    """V_net = V/level + ε‖x‖² at 2000 points (relative 1e-6: the Gram factor's rounding and
+    the random neurons' 1e-3 read-out), V_net(0) = 0, the configured architecture."""
+    from nlyap_opt.learning import TrainConfig, sos_start
+
+    V = _random_sos(nx, degree)
+    assert V.degree == degree
+    cfg = TrainConfig(hidden=[hidden], features=features, activation="square", eps=1e-3,
+                      seed=2)
+    net = sos_start(V, 0.4, cfg)
+    assert [ly.weight.shape for ly in net.layers] == [(hidden, nx), (features, hidden)]
+    assert [ly.activation for ly in net.layers] == ["square", "linear"]
+    x = np.random.default_rng(1).normal(size=(2000, nx))
+    ref = V(x) / 0.4 + 1e-3 * np.sum(x * x, axis=1)
+    np.testing.assert_allclose(net.numpy(x)[:, 0], ref, rtol=1e-6, atol=1e-9)
+    assert net.numpy(np.zeros((1, nx)))[0, 0] == 0.0
+
+
+@pytest.mark.parametrize("train, sos, msg", [
+    ({"init": "sos", "activation": "square", "hidden": [6], "features": 5}, {},
+     r"train.init 'sos' .* the SOS stage is off"),
+    ({"init": "sos", "hidden": [6], "features": 5}, {"degree": 4},
+     r"train.init 'sos' \(degree 4\) needs one square hidden layer of at least 5 neurons and "
+     r"features >= 5, got activation 'tanh'"),
+    ({"init": "sos", "activation": "square", "hidden": [4], "features": 5}, {"degree": 4},
+     r"at least 5 neurons"),
+    ({"init": "sos", "activation": "square", "hidden": [6], "features": 4}, {"degree": 4},
+     r"features >= 5"),
+    ({"init": "sos", "activation": "square", "hidden": [6, 6], "features": 5}, {"degree": 4},
+     r"one square hidden layer"),
+    ({"init": "sos", "activation": "square", "hidden": [6], "features": 5}, {"degree": 6},
+     r"SOS V of degree 2 or 4 .* got degree 6"),
+    ({"init": "quadratic", "activation": "square"}, {},
+     r"no quadratic candidates are listed"),
+])
+def test_sos_start_config_errors_before_any_stage(train, sos, msg):
+    with pytest.raises(ConfigError, match=msg):
+        make_config("van_der_pol", "fast", overrides={"train": train, "sos": sos})
+
+
+def test_a_run_starts_v_at_the_sos_certificate_and_builds_on_its_stage(tmp_path):
+    """train.init 'sos': CEGIS starts from the saved SOS V (logged), and a changed V_sos.json
+    reruns the SOS stage and the CEGIS stage after it."""
+    cfg = make_config("van_der_pol", "fast", overrides={
+        "sos": {"degree": 4, "iterations": 2},
+        "train": {"init": "sos", "activation": "square", "hidden": [6], "features": 5,
+                  "steps": 50},
+        "cegis": {"iterations": 1, "steps": 20}})
+    logs = []
+    res = run("van_der_pol", cfg, tmp_path, known_dynamics=True, log=logs.append)
+    text = "\n".join(logs)
+    assert "[cegis] V starts at the SOS degree" in text
+    assert res.certified
+    V = Polynomial.from_json(json.loads((tmp_path / "V_sos.json").read_text()))
+    (tmp_path / "V_sos.json").write_text(json.dumps(V.scaled(2.0).as_json()))
+    logs.clear()
+    run("van_der_pol", cfg, tmp_path, known_dynamics=True, log=logs.append)
+    text = "\n".join(logs)
+    assert "[sos] V_sos.json changed" in text
+    assert "[cegis] configuration or earlier stage changed: recomputing" in text

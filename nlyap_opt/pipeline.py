@@ -537,7 +537,8 @@ def _sos_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> d
             "seconds": time.perf_counter() - t})
         stages.mark("sos", *deps)
         for note in res.notes:
-            log(f"[sos] note: {note}")
+            if note not in res.status:
+                log(f"[sos] note: {note}")
         log(f"[sos] {res.status}" + (f", volume {vol:.4g}" if res.certified else "")
             + f" ({time.perf_counter() - t:.1f} s)")
     return json.loads((out / "sos.json").read_text()).get("best")

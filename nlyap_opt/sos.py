@@ -61,6 +61,7 @@ import numpy as np
 
 from .certificate import InnerEllipse, RoaCertificate, RoaProblem, certify_roa
 from .control import lqr
+from .errors import NotStabilizableError
 from .polynomial import NotPolynomialError, Polynomial, polynomial_closed_loop
 from .roa import candidate_level, grid_area, grid_points
 from .sos_sdp import SOSLevel, boundary_points, sos_level, star_area, vs_iteration
@@ -265,7 +266,16 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
         return SOSResult("not applicable: " + reason, degree, seconds=time.perf_counter() - t0,
                          notes=[reason], inner=inner, non_polynomial=err.operations)
     nx = system.nx
-    P = np.asarray(V0 if V0 is not None else lqr(system).P, dtype=float)
+    if V0 is None:
+        try:
+            V0 = lqr(system).P
+        except NotStabilizableError as err:
+            reason = (f"no quadratic V to start the SOS programs from: {err}. The V-s "
+                      "iteration starts at a quadratic Lyapunov function of the "
+                      "linearisation; the neural V covers such systems")
+            return SOSResult("no SOS level: " + reason, degree, notes=[reason],
+                             seconds=time.perf_counter() - t0, inner=inner)
+    P = np.asarray(V0, dtype=float)
     if P.shape != (nx, nx) or np.min(np.linalg.eigvalsh(0.5 * (P + P.T))) <= 0:
         raise ValueError(f"V0 must be a positive definite ({nx}, {nx}) matrix, got {P}")
     Vq = Polynomial.quadratic(P)

@@ -268,3 +268,15 @@ def test_a_run_starts_v_at_the_sos_certificate_and_builds_on_its_stage(tmp_path)
     text = "\n".join(logs)
     assert "[sos] V_sos.json changed" in text
     assert "[cegis] configuration or earlier stage changed: recomputing" in text
+
+
+def test_a_linearisation_without_a_quadratic_lyapunov_function_gives_no_sos_level():
+    """Fossil's Poly1 (linearisation diag(0, −1, −4)): no quadratic start for the V-s
+    iteration; a status saying so, not an exception (the run goes on to the neural V)."""
+    from pathlib import Path
+
+    s = systems.load_spec(Path(__file__).resolve().parents[1] / "examples" / "fossil_poly1.toml")
+    p = RoaProblem(s, quadratic_lyapunov(np.eye(3)), None, inner=0.1, outer=1.0)
+    res = certify_sos(p, SOSConfig(degree=4), log=lambda m: None)
+    assert res.status.startswith("no SOS level") and "not Hurwitz" in res.status
+    assert not res.certified and res.certificate is None and res.applicable

@@ -223,6 +223,18 @@ class Polynomial:
         """The polynomial ``factor · p``."""
         return Polynomial(self.exponents, self.coefficients * factor)
 
+    def substituted(self, scale: float) -> Polynomial:
+        """The polynomial ``y -> p(scale·y)`` (each coefficient times ``scale^|α|``).
+
+        Examples
+        --------
+        >>> p = Polynomial.from_dict({(2, 0): 1.0, (0, 1): 3.0})
+        >>> str(p.substituted(2.0))
+        '6*x2 +4*x1^2'
+        """
+        return Polynomial(self.exponents,
+                          self.coefficients * float(scale) ** self.exponents.sum(axis=1))
+
     def __call__(self, X) -> np.ndarray:
         """Evaluate on a batch ``X`` of shape ``(N, nx)``; returns ``(N,)``."""
         return monomial_matrix(X, self.exponents) @ self.coefficients

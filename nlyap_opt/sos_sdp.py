@@ -335,13 +335,15 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
                  history: list, notes: list, *, t0: float, multiplier_degree: int | None,
                  epsilon: float, iterations: int, backoff: float,
                  push: float, radius: float, solver: str,
-                 say: Callable[[str], None]) -> tuple[Polynomial, float]:
+                 say: Callable[[str], None],
+                 area_scale: float = 1.0) -> tuple[Polynomial, float]:
     """V–s iteration with degree continuation 4, 6, ..., ``degree``; the best ``(V, level)``.
 
     ``V`` is kept scaled so that its SDP level is 1. Each round: the multiplier ``s`` at
     level ``1 - backoff`` (interior), the ``V`` step, the level of the new ``V`` by bisection.
     The best iterate by area is returned; a stage ends when the area stops growing.
-    ``history`` and ``notes`` are appended to.
+    ``history`` and ``notes`` are appended to (areas times ``area_scale``: the data may be
+    in scaled units).
     """
     md = multiplier_degree or max(2, _even_up(max(p.degree for p in f) - 1)) + 2
     lev = 1.0 - backoff
@@ -351,7 +353,7 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
                          upper=lev, rtol=1e-3, backoff=backoff, **kw)
 
     V = Vq.scaled(1.0 / level_q)
-    best = (V, 1.0, history[-1]["area"])
+    best = (V, 1.0, star_area(V, 1.0))
     s = level_of(V).backoff_multiplier
     for stage in range(4, degree + 1, 2):
         V = best[0]
@@ -373,8 +375,8 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
             V, s = Vn.scaled(1.0 / ls.level), ls.backoff_multiplier
             area = star_area(V, 1.0)
             history.append({"degree": stage, "round": it + 1, "sdp_level": ls.level,
-                            "seconds": time.perf_counter() - t0, "area": area})
-            say(f"[sos] degree {stage}, round {it + 1}: area ≈ {area:.4g}")
+                            "seconds": time.perf_counter() - t0, "area": area * area_scale})
+            say(f"[sos] degree {stage}, round {it + 1}: area ≈ {area * area_scale:.4g}")
             if area > best[2] * (1 + 1e-3):
                 best, stalled = (V, 1.0, area), 0
             else:

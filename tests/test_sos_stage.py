@@ -280,3 +280,35 @@ def test_a_linearisation_without_a_quadratic_lyapunov_function_gives_no_sos_leve
     res = certify_sos(p, SOSConfig(degree=4), log=lambda m: None)
     assert res.status.startswith("no SOS level") and "not Hurwitz" in res.status
     assert not res.certified and res.certificate is None and res.applicable
+
+
+def test_a_badly_scaled_v_s_iteration_is_repeated_in_scaled_units():
+    """Fossil's NonPoly2: the quadratic's SOS set reaches |x| ≈ 8, where the degree-4 V step
+    fails in x; repeated with x = R·y it succeeds, and the V mapped back is the scaled
+    one's (V(x) = V_y(x/R)). Its decrease on the SDP level set is checked by sampling."""
+    from pathlib import Path
+
+    from nlyap_opt.sos import sos_roa
+
+    s = systems.load_spec(Path(__file__).resolve().parents[1] / "examples" /
+                          "fossil_nonpoly2.toml")
+    res = sos_roa(s, degree=4, iterations=1, certify=False, log=lambda m: None)
+    assert res.V.degree == 4
+    assert any("repeated in units" in n for n in res.notes)
+    assert [h["degree"] for h in res.history] == [2, 4]
+    # sampled: V̇ < 0 on {V ≤ 0.9·level} \ B_0.1 (the SDP's claim, away from its tolerance)
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-6, 6, (200000, 3))
+    x = x[(res.V(x) <= 0.9 * res.sdp_level) & (np.linalg.norm(x, axis=1) >= 0.1)]
+    assert len(x) > 1000
+    h = 1e-6
+    grad = np.stack([(res.V(x + h * e) - res.V(x - h * e)) / (2 * h) for e in np.eye(3)],
+                    axis=1)
+    assert np.all(np.einsum("ij,ij->i", grad, s.evaluate(x)) < 0)
+
+
+def test_substituted_is_composition_with_a_scaling():
+    p = Polynomial.from_dict({(4, 0): 2.0, (1, 1): -1.0, (0, 2): 0.5, (3, 1): 0.25})
+    x = np.random.default_rng(0).normal(size=(50, 2))
+    np.testing.assert_allclose(p.substituted(3.0)(x), p(3.0 * x), rtol=1e-12)
+    np.testing.assert_allclose(p.substituted(3.0).substituted(1 / 3.0)(x), p(x), rtol=1e-12)

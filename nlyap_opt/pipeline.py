@@ -464,6 +464,17 @@ def _eval_grid(system, cfg) -> tuple[np.ndarray, int]:
                                                                 system.nx)
 
 
+def _cheap_stage_problem(system, cfg, controller, problem_of) -> tuple[RoaProblem, dict]:
+    """The run's problem for the cheap certificates under the initial controller (its V a
+    placeholder that each candidate replaces) and the verifier options they are proved
+    with (the run's ``cegis.verify_options``, saved with each record)."""
+    from .control import quadratic_lyapunov
+
+    opts = dict(cfg.get("cegis", {}).get("verify_options", {}))
+    return problem_of(quadratic_lyapunov(np.eye(system.nx)), controller,
+                      verify_options=opts), opts
+
+
 def _quadratic_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> dict | None:
     """Stage 3: the quadratic candidates of ``cfg["quadratic"]``; returns the best certified
     one's record (``quadratic.json``'s ``best``) or ``None``."""
@@ -479,10 +490,8 @@ def _quadratic_stage(system, cfg, out: Path, stages, controller, problem_of, log
         log(f"[quadratic] certifying V = xᵀPx under the initial controller: "
             f"{', '.join(names)}")
         box, n = _eval_grid(system, cfg)
-        opts = dict(cfg.get("cegis", {}).get("verify_options", {}))
-        found = certify_quadratics(problem_of(quadratic_lyapunov(np.eye(system.nx)),
-                                              controller, verify_options=opts),
-                                   names, box=box, n=n, log=log)
+        problem, opts = _cheap_stage_problem(system, cfg, controller, problem_of)
+        found = certify_quadratics(problem, names, box=box, n=n, log=log)
         ok = [c for c in found if c.certified]
         best = max(ok, key=lambda c: c.volume) if ok else None
         (out / "V_quadratic.json").unlink(missing_ok=True)
@@ -508,7 +517,6 @@ def _sos_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> d
     sc = SOSConfig(**(cfg.get("sos") or {}))
     if not sc.degree:
         return None
-    from .control import quadratic_lyapunov
     from .sos import certify_sos
 
     deps = ("dynamics", "controller")
@@ -516,9 +524,8 @@ def _sos_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> d
         t = time.perf_counter()
         log(f"[sos] SOS V of degree {sc.degree} under the initial controller "
             f"({sc.iterations} V-s rounds per degree at most)")
-        opts = dict(cfg.get("cegis", {}).get("verify_options", {}))
-        res = certify_sos(problem_of(quadratic_lyapunov(np.eye(system.nx)), controller,
-                                     verify_options=opts), sc, log=log)
+        problem, opts = _cheap_stage_problem(system, cfg, controller, problem_of)
+        res = certify_sos(problem, sc, log=log)
         box, n = _eval_grid(system, cfg)
         vol = res.area(box, n) if res.certified else 0.0
         (out / "V_sos.json").unlink(missing_ok=True)

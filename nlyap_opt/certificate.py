@@ -794,7 +794,7 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
             continue
         try:
             nets[role] = load_artifact(f, art.get("kind", "network"))
-        except (NetworkFileError, RuntimeError) as err:
+        except (NetworkFileError, RuntimeError, ValueError) as err:
             return _refused(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
     if "V" not in nets:
         raise ConfigError(f"certificate {path} lists no V artifact; rerun the command")
@@ -819,8 +819,9 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
     if saved.status is not CertStatus.CERTIFIED or saved.level <= 0:
         return _refused(saved, f"the certificate does not claim a level ({saved.status.value}: "
                         f"{saved.reason})")
-    new = certify_roa(problem, saved.level, search=False,
-                      check_inner_ellipse=saved.inner_ellipse is not None,
+    # (c) is always proved again: the saved ellipse when there is one, else a new one (a
+    # certificate.json without its ellipse is never re-checked as (a) and (b) alone)
+    new = certify_roa(problem, saved.level, search=False, check_inner_ellipse=True,
                       inner_ellipse=saved.inner_ellipse, log=log)
     new.artifacts = saved.artifacts
     return new

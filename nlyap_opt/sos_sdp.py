@@ -142,27 +142,32 @@ def _even_up(d: int) -> int:
 def _stderr_held():
     """Hold what native code writes to file descriptor 2 (a Rust panic's message and, under
     ``RUST_BACKTRACE``, its backtrace); yields a list whose first item, set to ``True`` by
-    the caller, drops it, else it is written out unchanged afterwards."""
+    the caller, drops it, else it is written out unchanged afterwards (also when an
+    exception passes)."""
     drop = [False]
+    with contextlib.suppress(AttributeError, OSError, ValueError):
+        sys.stderr.flush()
     try:
-        fd = sys.stderr.fileno()
-    except (AttributeError, OSError, ValueError):   # no real stderr (captured): nothing to do
+        saved = os.dup(2)
+    except OSError:                       # no file descriptor 2: nothing to hold
         yield drop
         return
-    sys.stderr.flush()
-    saved = os.dup(fd)
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), fd)
-        try:
-            yield drop
-        finally:
-            os.dup2(saved, fd)
-            os.close(saved)
-            if not drop[0]:
-                tmp.seek(0)
-                text = tmp.read()
-                if text:
-                    os.write(fd, text)
+    try:
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield drop
+            finally:
+                with contextlib.suppress(AttributeError, OSError, ValueError):
+                    sys.stderr.flush()
+                os.dup2(saved, 2)
+                if not drop[0]:
+                    tmp.seek(0)
+                    text = tmp.read()
+                    if text:
+                        os.write(2, text)
+    finally:
+        os.close(saved)
 
 
 def _solve(prob, solver: str) -> bool:

@@ -4,7 +4,6 @@
 import json
 import os
 import shutil
-import sys
 
 import numpy as np
 import pytest
@@ -182,13 +181,22 @@ def test_a_solver_panic_message_is_held_back_other_output_is_not(capfd):
     passes through unchanged."""
     from nlyap_opt.sos_sdp import _stderr_held
 
-    with _stderr_held() as drop:
-        os.write(sys.stderr.fileno(), b"thread '<unnamed>' panicked at solver.rs\n")
+    with _stderr_held() as drop:             # native code writes to fd 2, whatever
+        os.write(2, b"thread '<unnamed>' panicked at solver.rs\n")   # sys.stderr is
         drop[0] = True
     with _stderr_held():
-        os.write(sys.stderr.fileno(), b"solver warning kept\n")
+        os.write(2, b"solver warning kept\n")
+    with pytest.raises(KeyboardInterrupt), _stderr_held():
+        os.write(2, b"written before an interrupt\n")
+        raise KeyboardInterrupt
     err = capfd.readouterr().err
     assert "panicked" not in err and "solver warning kept" in err
+    assert "written before an interrupt" in err
+    n_fds = len(os.listdir("/proc/self/fd"))
+    for _ in range(50):
+        with _stderr_held():
+            pass
+    assert len(os.listdir("/proc/self/fd")) == n_fds
 
 
 # --------------------------------------------------------------------------- V starts at SOS
@@ -312,3 +320,33 @@ def test_substituted_is_composition_with_a_scaling():
     x = np.random.default_rng(0).normal(size=(50, 2))
     np.testing.assert_allclose(p.substituted(3.0)(x), p(3.0 * x), rtol=1e-12)
     np.testing.assert_allclose(p.substituted(3.0).substituted(1 / 3.0)(x), p(x), rtol=1e-12)
+
+
+def test_a_recheck_always_proves_condition_c(sos_run, tmp_path):
+    """A certificate.json whose inner ellipse was removed is not re-checked as (a) and (b)
+    alone: (c) is proved again with a new ellipse."""
+    d, _, _, _ = sos_run
+    e = tmp_path / "no_ellipse"
+    shutil.copytree(d, e)
+    cert = json.loads((e / "certificate.json").read_text())
+    assert cert["inner_ellipse"] is not None
+    cert["inner_ellipse"] = None
+    (e / "certificate.json").write_text(json.dumps(cert))
+    again = recheck_certificate(e, log=lambda m: None)
+    assert again.certified and "(c)" in again.reason and "not checked" not in again.reason
+    assert again.inner_ellipse is not None and again.inner_ellipse.status == "certified"
+    assert any(k.startswith("(c)") for k in again.checks)
+
+
+def test_an_unknown_artifact_kind_is_refused_not_an_internal_error(sos_run, tmp_path):
+    from nlyap_opt.cli import main
+
+    d, _, _, _ = sos_run
+    e = tmp_path / "bogus_kind"
+    shutil.copytree(d, e)
+    cert = json.loads((e / "certificate.json").read_text())
+    cert["artifacts"]["V"]["kind"] = "bogus"
+    (e / "certificate.json").write_text(json.dumps(cert))
+    again = recheck_certificate(e, log=lambda m: None)
+    assert not again.certified and "cannot be read" in again.reason and "bogus" in again.reason
+    assert main(["verify", "--certificate", str(e / "certificate.json")]) not in (0, 4)

@@ -190,6 +190,8 @@ def sos_start(V, level: float, config: TrainConfig) -> Network:
         The architecture cannot hold it (not one ``square`` hidden layer of at least
         ``nx(nx+3)/2`` neurons (``2·nx`` for degree 2) and ``features`` >= the number of
         monomials), ``V`` is not of degree 2 or 4, or ``level`` is not > 0.
+    ValueError
+        No Gram matrix of ``V`` was found (the caller may start at random instead).
     """
     from .sos_sdp import gram_factor
 
@@ -200,10 +202,7 @@ def sos_start(V, level: float, config: TrainConfig) -> Network:
     need = 2 * n + len(pairs)
     if not (np.isfinite(level) and level > 0):
         raise ConfigError(f"train.init 'sos': the SOS level must be > 0, got {level!r}")
-    try:
-        z, L = gram_factor(V)
-    except ValueError as err:
-        raise ConfigError(f"train.init 'sos': {err}; use init 'random'") from None
+    z, L = gram_factor(V)     # ValueError (not a ConfigError) when no Gram matrix is found
     h, F = H[0], config.features
     rnd = dense_network([n, h, F], "square", seed=config.seed)
     W1, b1 = rnd.layers[0].weight.copy(), rnd.layers[0].bias.copy()

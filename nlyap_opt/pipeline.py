@@ -95,10 +95,12 @@ class RunResult:
 _STAGE_KEYS = {
     "dynamics": ("dynamics",),
     "controller": ("lqr", "controller_scale"),
-    "quadratic": ("inner", "outer", "domain", "initial_set", "quadratic", "cegis", "eval_box",
-                  "eval_points"),
-    "sos": ("inner", "outer", "domain", "initial_set", "sos", "cegis", "eval_box",
-            "eval_points"),
+    # the cheap certificates read only the verifier options and the margin mode of 'cegis'
+    # (a changed cegis.steps does not recompute them)
+    "quadratic": ("inner", "outer", "domain", "initial_set", "quadratic",
+                  "cegis.verify_options", "cegis.margin_mode", "eval_box", "eval_points"),
+    "sos": ("inner", "outer", "domain", "initial_set", "sos", "cegis.verify_options",
+            "cegis.margin_mode", "eval_box", "eval_points"),
     "cegis": ("inner", "outer", "domain", "initial_set", "train", "cegis"),
 }
 #: the files each stage writes (the sha256 of each is recorded)
@@ -134,8 +136,14 @@ class _Stages:
 
     def key(self, stage: str, *deps) -> str:
         return _hash([stage, self.system, self.cfg.get("known_dynamics"),
-                      {k: self.cfg.get(k) for k in _STAGE_KEYS[stage]},
+                      {k: self._get(k) for k in _STAGE_KEYS[stage]},
                       [self.done.get(d, {}).get("files") for d in deps]])
+
+    def _get(self, dotted: str):
+        """The configuration value of ``"key"`` or ``"section.key"`` (``None`` if absent)."""
+        head, _, sub = dotted.partition(".")
+        v = self.cfg.get(head)
+        return (v or {}).get(sub) if sub else v
 
     def finished(self, stage: str, *deps) -> bool:
         rec = self.done.get(stage)
@@ -277,6 +285,11 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
     if known_dynamics and not has_model:
         raise ConfigError(f"system {system.name!r} has no model of f ({system.kind}); it can "
                           "only be run with learned dynamics: drop --known-dynamics")
+    if (cfg.get("train") or {}).get("init") == "sos" and (not known_dynamics or system.nu):
+        raise ConfigError(
+            "train.init 'sos' starts V at the run's SOS certificate, which exists only with the "
+            "true f (--known-dynamics) and a closed loop without inputs (the controller "
+            "C·tanh(Kx + b) is not polynomial); use init 'random' or 'quadratic'")
     cfg = dict(cfg, known_dynamics=known_dynamics)
     stages = _Stages(out, system.name, cfg, log)
     seconds: dict[str, float] = {}
@@ -371,10 +384,16 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
                 V0 = quadratic_start(np.asarray(start["P"], dtype=float),
                                      float(start["level"]), train)
             else:
-                V0 = sos_start(_cheap_V(out, start),
-                               float(start["level"]), train)
-            log(f"[cegis] V starts at the {start['label']}: level 1 of V = its certified set "
-                f"(level {float(start['level']):.6g})")
+                try:
+                    V0 = sos_start(_cheap_V(out, start), float(start["level"]), train)
+                except ConfigError:
+                    raise
+                except ValueError as err:   # no Gram matrix found: a start, not a claim
+                    log(f"[cegis] V cannot start at the {start['label']} ({err}): V starts "
+                        "at random")
+            if V0 is not None:
+                log(f"[cegis] V starts at the {start['label']}: level 1 of V = its certified "
+                    f"set (level {float(start['level']):.6g})")
         elif train.init != "random":
             log(f"[cegis] no {train.init} certificate: V starts at random (train.init)")
         ccfg = CegisConfig(inner=eps, outer=r, train=train, domain=D, initial_set=XI,

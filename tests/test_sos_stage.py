@@ -350,3 +350,54 @@ def test_an_unknown_artifact_kind_is_refused_not_an_internal_error(sos_run, tmp_
     again = recheck_certificate(e, log=lambda m: None)
     assert not again.certified and "cannot be read" in again.reason and "bogus" in again.reason
     assert main(["verify", "--certificate", str(e / "certificate.json")]) not in (0, 4)
+
+
+@pytest.mark.parametrize("name, known", [("van_der_pol", False), ("inverted_pendulum", True)])
+def test_init_sos_where_sos_cannot_apply_is_refused_before_any_stage(name, known, tmp_path):
+    """Learned f, or a system with inputs (κ = C·tanh(Kx + b) is not polynomial): the SOS
+    start can never exist, so the run stops before any work, naming the fix."""
+    cfg = make_config(name, "fast", overrides={
+        "sos": {"degree": 2},
+        "train": {"init": "sos", "activation": "square", "hidden": [6], "features": 5}})
+    with pytest.raises(ConfigError, match=r"train.init 'sos' .*--known-dynamics.*without "
+                                          r"inputs.*init 'random' or 'quadratic'"):
+        run(name, cfg, tmp_path, known_dynamics=known, log=lambda m: None)
+    assert not (tmp_path / "stages.json").exists()
+
+
+def test_cegis_settings_do_not_recompute_the_cheap_stages(sos_run, tmp_path):
+    """The SOS stage reads cegis.verify_options and cegis.margin_mode only."""
+    d, cfg, _, _ = sos_run
+    e = tmp_path / "steps"
+    shutil.copytree(d, e)
+    logs = []
+    cfg2 = make_config("van_der_pol", "fast", overrides={
+        "sos": {"degree": 2}, "train": {"steps": 1}, "cegis": {"iterations": 1, "steps": 2}})
+    run("van_der_pol", cfg2, e, known_dynamics=True, log=logs.append)
+    text = "\n".join(logs)
+    assert "[sos] loaded from" in text and "[cegis] configuration or earlier stage changed" in text
+    cfg3 = make_config("van_der_pol", "fast", overrides={
+        "sos": {"degree": 2}, "train": {"steps": 1},
+        "cegis": {"iterations": 1, "steps": 2, "verify_options": {"batch": 512}}})
+    logs.clear()
+    run("van_der_pol", cfg3, e, known_dynamics=True, log=logs.append)
+    assert "[sos] configuration or earlier stage changed: recomputing" in "\n".join(logs)
+
+
+def test_no_gram_matrix_starts_v_at_random(monkeypatch, tmp_path):
+    import nlyap_opt.sos_sdp as sdp
+
+    def fail(V, **kw):
+        raise ValueError("no Gram matrix of V was found (solver status infeasible)")
+
+    monkeypatch.setattr(sdp, "gram_factor", fail)
+    cfg = make_config("van_der_pol", "fast", overrides={
+        "sos": {"degree": 2},
+        "train": {"init": "sos", "activation": "square", "hidden": [6], "features": 5,
+                  "steps": 20},
+        "cegis": {"iterations": 1, "steps": 5}})
+    logs = []
+    run("van_der_pol", cfg, tmp_path, known_dynamics=True, log=logs.append)
+    text = "\n".join(logs)
+    assert "[cegis] V cannot start at the SOS degree 2 (no Gram matrix" in text
+    assert "V starts at the SOS" not in text

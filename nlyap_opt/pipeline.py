@@ -616,7 +616,8 @@ def _best_certificate(system, cfg, out: Path, cert, problem, cheap: list, log):
         {"V": "neural (V.json)", "controller": "controller.json" if system.nu else None,
          "status": cert.status.value, "reason": cert.reason, "level": cert.level,
          "inner": cert.inner, "certified_volume": vol_n, "winner": False}]
-    best = (vol_n if cert.certified else -1.0, cert, problem, None, compared[0], None)
+    # (volume, certificate, problem, cheap record or None for the neural V, table row)
+    best = (vol_n if cert.certified else -1.0, cert, problem, None, compared[0])
     for rec in cheap:
         pc = _cheap_problem(system, out, problem, rec)
         log(f"[certificate] verifying the saved {rec['label']} ({rec['file']}) at its saved "
@@ -629,8 +630,8 @@ def _best_certificate(system, cfg, out: Path, cert, problem, cheap: list, log):
                "inner": c.inner, "certified_volume": vol, "winner": False}
         compared.append(row)
         if c.certified and vol > best[0]:
-            best = (vol, c, pc, rec, row, None)
-    _, win, wp, rec, row, _ = best
+            best = (vol, c, pc, rec, row)
+    _, win, wp, rec, row = best
     row["winner"] = True
     log(f"[certificate] best certificate: {'neural' if rec is None else rec['label']} ("
         + "; ".join(f"{r['V']} {r['status']} {r['certified_volume']:.4g}" for r in compared)

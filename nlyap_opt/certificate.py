@@ -43,6 +43,7 @@ from .domain import Ball, Region, as_domain, parse_set
 from .errors import ConfigError, DimensionError, InputRangeError, NetworkFileError
 from .network import Network
 from .parallel import ahead
+from .provenance import fingerprint
 from .walker import evaluate
 
 __all__ = [
@@ -909,6 +910,9 @@ def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
     if str(source).endswith(".toml"):  # a spec-file system: re-checkable in a new process
         d["system_source"] = str(Path(source).resolve())
     d.update(extra or {})
+    # what determined the numbers (versions, BLAS kernel, SIMD dispatch, CPU): a re-check
+    # elsewhere says so; the verdict itself does not depend on it
+    d.setdefault("provenance", fingerprint())
     path = out / name
     write_json_atomic(path, d)
     return path

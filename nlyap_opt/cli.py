@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import NlyapError, UsageError
+from .errors import ConfigError, NlyapError, UsageError
 
 __all__ = ["EXIT_CODES", "build_parser", "main"]
 
@@ -571,6 +571,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="K (seeds 0..K-1) or 0,3,7: train one candidate per seed in "
                          "parallel on Dask (OUT/seed_k), keep the largest certified area "
                          "(OUT/portfolio.md)")
+    sp.add_argument("--portable", action="store_true",
+                    help="pin numpy's, OpenBLAS's and torch's numeric kernels to their AVX2 "
+                         "code paths and one BLAS thread (the command restarts itself with "
+                         "the pins set), so that x86-64 machines with different CPUs train "
+                         "the same networks bit for bit; slower")
     _dask_args(sp)
     time_limit_arg(sp)
     sp.set_defaults(func=cmd_run)
@@ -639,12 +644,40 @@ def _close_progress_bars() -> None:
             pass
 
 
+def _enter_portable_mode(argv: list[str], may_restart: bool) -> None:
+    """Restart this command with the portable pins set, or check that they took effect.
+
+    The pins act only in a process that starts with them (numpy, OpenBLAS and torch read
+    them when they load), so the command replaces itself by a new process with them set.
+    """
+    from .provenance import PORTABLE_FLAG, portable_env, portable_problems
+
+    if os.environ.get(PORTABLE_FLAG) != "1":
+        if not may_restart:
+            raise ConfigError(
+                "--portable pins numeric kernels before numpy and torch load, which a call "
+                "from Python cannot do: run the nlyap command, or start Python with the "
+                "variables of nlyap_opt.provenance.portable_env() set")
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execve(sys.executable, [sys.executable, "-m", "nlyap_opt.cli", *argv],
+                  dict(os.environ, **portable_env()))
+    problems = portable_problems()
+    if problems:
+        raise ConfigError(
+            f"--portable cannot pin this machine's numeric kernels ({'; '.join(problems)}); "
+            "it needs an x86-64 CPU with AVX2 and FMA: run without --portable (then the "
+            "networks are bit for bit reproducible on this machine's fingerprint only)")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``nlyap`` with ``argv`` (default ``sys.argv[1:]``); return the exit code.
 
     Never raises: every outcome is an exit code of :data:`EXIT_CODES`.
     """
+    may_restart = argv is None   # the nlyap command itself, not a call from Python
     argv = list(sys.argv[1:] if argv is None else argv)
+    full_argv = list(argv)
     debug = "--debug" in argv
     argv = [a for a in argv if a != "--debug"]
     command = None
@@ -654,6 +687,8 @@ def main(argv: list[str] | None = None) -> int:
         except SystemExit as stop:  # --help
             return stop.code if isinstance(stop.code, int) else 0
         command = args.command
+        if getattr(args, "portable", False):
+            _enter_portable_mode(full_argv, may_restart)
         _check_paths(args)
         with _time_guard(getattr(args, "time_limit", None)):
             return int(args.func(args) or 0)

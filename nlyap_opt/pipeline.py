@@ -52,6 +52,7 @@ from .certificate import (
 from .errors import ConfigError, NlyapError
 from .learning import TrainConfig, quadratic_start, sos_start
 from .network import Network
+from .provenance import fingerprint, fingerprint_id
 
 __all__ = ["run", "RunResult", "RunLockedError"]
 
@@ -116,8 +117,10 @@ _STAGE_FILES = {
 class _Stages:
     """Stage bookkeeping in ``DIR/stages.json``: stage -> {key, files: {name: sha256}}.
 
-    A stage's key covers the system, the setting, every configuration key the stage reads
-    and the recorded file hashes of the stages it builds on.
+    A stage's key covers the system, the setting, the numeric environment
+    (:func:`~nlyap_opt.provenance.fingerprint_id`: a run resumed on another machine, another
+    package version or in portable mode computes its stages again), every configuration key
+    the stage reads and the recorded file hashes of the stages it builds on.
     """
 
     def __init__(self, out: Path, system: str, cfg: dict, log):
@@ -135,7 +138,7 @@ class _Stages:
                 log(f"warning: {self.file} is unreadable ({err}); recomputing every stage")
 
     def key(self, stage: str, *deps) -> str:
-        return _hash([stage, self.system, self.cfg.get("known_dynamics"),
+        return _hash([stage, self.system, self.cfg.get("known_dynamics"), fingerprint_id(),
                       {k: self._get(k) for k in _STAGE_KEYS[stage]},
                       [self.done.get(d, {}).get("files") for d in deps]])
 
@@ -322,7 +325,8 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
             log(f"[done] status: not certified (dynamics stage): {reason}")
             cert = RoaCertificate(CertStatus.NOT_CERTIFIED, reason, system.name, "learned",
                                   0.0, eps, r, eta=eta, domain=D, initial_set=XI)
-            summary = dict(cert.to_dict(), problem={}, stage="dynamics", gate=gate)
+            summary = dict(cert.to_dict(), problem={}, stage="dynamics", gate=gate,
+                           provenance=fingerprint())
             write_json_atomic(out / "certificate.json", summary)
             return RunResult(cert, CertStatus.NOT_CERTIFIED, summary, out, reason)
         grid_box = np.asarray(bounds_info["grid"]["box"], dtype=float)

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from .domain import Ball, parse_set
+from .provenance import describe
 
 __all__ = ["write_report", "plot_roa"]
 
@@ -120,6 +121,11 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
         lines.append(f"| {h['iteration']} | {h['loss']:.3g} | {h['candidate_level']:.4g} | "
                      f"{h['status']} | {h['level']:.4g} | {h['area']:.4g} | "
                      f"{h['margin']:.3g} | {h['verify_seconds']:.2f} |")
+    if cert.get("provenance"):
+        lines += ["", "## Numeric environment (what determined these numbers)", "",
+                  "The same input gives the same certificate bit for bit on the same "
+                  "fingerprint; re-checking the certificate gives the same verdict anywhere.",
+                  ""] + describe(cert["provenance"])
     lines += ["", "## Times (s)", ""] + [f"- {k}: {v:.1f}" for k, v in
                                          cert.get("seconds", {}).items()]
     lines += ["", "![ROA](roa.png)", ""]

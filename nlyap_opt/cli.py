@@ -335,6 +335,27 @@ _PROBLEM_OPTIONS = ("system", "lyapunov", "controller", "dynamics", "inner", "ou
                     "eta", "margin", "smoothing")
 
 
+def _note_other_fingerprint(path: Path) -> None:
+    """Say when a certificate was made in another numeric environment (the re-check's
+    verdict does not depend on it; a re-run of its training would)."""
+    from .provenance import differences, fingerprint_id
+
+    try:
+        stored = json.loads(path.read_text()).get("provenance")
+    except (OSError, ValueError, AttributeError):
+        return  # the re-check itself reports an unreadable certificate
+    diff = differences(stored)
+    if diff == ["unknown"]:
+        print("note: the certificate does not record the numeric environment it was made in "
+              "(written by an older nlyap); the re-check does not depend on it")
+    elif diff:
+        print(f"note: re-checking on another numeric environment (fingerprint "
+              f"{fingerprint_id()}, the certificate's {fingerprint_id(stored)}: "
+              f"{', '.join(diff)} differ); the verdict does not depend on it (interval "
+              "arithmetic with outward rounding), a re-run of the training may give other "
+              "networks (nlyap run --portable pins the numeric kernels)")
+
+
 def _verify_certificate(args) -> int:
     given = [f"--{o}" for o in _PROBLEM_OPTIONS if getattr(args, o) is not None]
     if given:
@@ -351,6 +372,7 @@ def _verify_certificate(args) -> int:
     if verifier:
         raise UsageError("--certificate re-checks with the interval verifier and the options "
                          f"saved in the certificate; drop {', '.join(verifier)}")
+    _note_other_fingerprint(path)
     if args.workers is not None or args.scheduler is not None:
         # the conditions' checks run on the cluster (nlyap_opt.parallel.check): a
         # "verified" comes from it, any other verdict is decided again serially

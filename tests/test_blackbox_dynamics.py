@@ -24,14 +24,13 @@ from nlyap_opt.errors import ConfigError
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 #: a fast configuration (seconds); the grid is given for the callable, the file's for samples.
-#: ``lm_ridge`` 1e-8: without it (1e-14) 30 LM iterations from 200 Adam steps end in a fit
-#: that depends on the CPU's BLAS kernel: K_φ = 24 (η 1.4) on OpenBLAS's SkylakeX and
-#: Sandybridge kernels, a steep neuron with K_φ = 322 (η 52) on its Haswell and Zen kernels;
-#: with it all four give η = 1.419 (measured with OPENBLAS_CORETYPE set to each)
+#: It relies on the default ``lm_ridge`` (1e-8): with 1e-14, 30 LM iterations from 200 Adam
+#: steps ended in a fit that depends on the CPU's BLAS kernel: K_φ = 24 (η 1.4) on
+#: OpenBLAS's SkylakeX and Sandybridge kernels, a steep neuron with K_φ = 322 (η 52) on its
+#: Haswell and Zen kernels; with 1e-8 all four give η = 1.419 (OPENBLAS_CORETYPE set to each)
 FAST = {"preset": "fast", "progress": False, "hidden": 12, "train_points": 600,
         "boundary_points": 100, "steps": 200, "lm_iterations": 30, "minimax_rounds": 1,
-        "minimax_iterations": 5, "interval_boxes": 1024, "check_points": 20000,
-        "lm_ridge": 1e-8}
+        "minimax_iterations": 5, "interval_boxes": 1024, "check_points": 20000}
 
 
 def _example(name: str):

@@ -545,7 +545,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_systems)
 
     sp = add("lqr", help="LQR gain and Lyapunov matrix of a catalogue system")
-    sp.add_argument("system")
+    sp.add_argument("system", help="a catalogue system name or a system spec file (.toml)")
     sp.add_argument("--Q", help="state weight: scalar or rows '1,0;0,1' (default I; symmetric "
                                 "positive semidefinite)")
     sp.add_argument("--R", help="input weight: scalar or rows (default I; symmetric positive "
@@ -559,7 +559,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--certificate",
                     help="re-check DIR/certificate.json of a run (artifacts hashed, conditions "
                          "verified again at the saved level); replaces the options below")
-    sp.add_argument("--system")
+    sp.add_argument("--system", help="the system of V (a catalogue name or a spec file)")
     sp.add_argument("--lyapunov", help="V network JSON")
     sp.add_argument("--controller", help="controller network JSON (feeds the inputs)")
     sp.add_argument("--dynamics", help="learned dynamics network JSON (replaces f)")
@@ -573,17 +573,18 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--inner", type=_nonneg, help="inner radius epsilon (0 <= inner < outer)")
     sp.add_argument("--outer", type=_positive, help="outer radius r")
     sp.add_argument("--level", type=_positive, help="restrict to V(x) <= level (> 0)")
-    sp.add_argument("--backend", default="interval", choices=["interval", "dreal"])
+    sp.add_argument("--backend", default="interval", choices=["interval", "dreal"],
+                    help="interval: the sound verifier; dreal: the optional second opinion")
     sp.add_argument("--resolution", type=_positive,
                     help="smallest box width (interval backend)")
     sp.add_argument("--precision", type=_positive, help="delta of the dreal backend")
-    sp.add_argument("--progress", action="store_true")
+    sp.add_argument("--progress", action="store_true", help="show a progress bar")
     sp.add_argument("--json", help="write status, seconds, boxes, counterexample here")
     _dask_args(sp)
     sp.set_defaults(func=cmd_verify)
 
     sp = add("run", help="learn f (unless --known-dynamics), V and κ; certify the ROA")
-    sp.add_argument("system")
+    sp.add_argument("system", help="a catalogue system name or a system spec file (.toml)")
     sp.add_argument("--config", help="JSON file merged over the preset (see 'nlyap config')")
     _preset_arg(sp)
     sp.add_argument("--known-dynamics", action="store_true",
@@ -603,7 +604,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_run)
 
     sp = add("compare", help="LQR, SOS and neural ROAs, all certified, vs true ROA")
-    sp.add_argument("system")
+    sp.add_argument("system", help="a catalogue system name or a system spec file (.toml)")
     sp.add_argument("--config", help="JSON file merged over the preset")
     _preset_arg(sp)
     sp.add_argument("--out", help="output directory (default runs/compare_NAME)")
@@ -614,7 +615,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp = add("config", help="print the validated run configuration (or every key)",
              description="Print the run configuration of SYSTEM (preset, then --config FILE "
                          "merged over it) after validating it; --keys lists every key.")
-    sp.add_argument("system", nargs="?")
+    sp.add_argument("system", nargs="?",
+                    help="a catalogue system name or a system spec file (.toml)")
     sp.add_argument("--config", help="JSON file merged over the preset")
     _preset_arg(sp)
     sp.add_argument("--keys", action="store_true", help="list every key, type and default")

@@ -58,9 +58,12 @@ def register_cli(sub) -> None:
     sp.add_argument("--config", help="JSON file overriding the default configuration")
     sp.add_argument("--out", required=True, help="directory for dynamics.json and bounds.json")
     sp.add_argument("--fast", action="store_true", help="tiny configuration (seconds)")
-    sp.add_argument("--model", choices=list(MODELS))
+    sp.add_argument("--model", choices=list(MODELS),
+                    help="learned-dynamics model (the config key dynamics.model)")
     sp.add_argument("--bound", help=f"bound option: best or one of {', '.join(BOUND_OPTIONS)}")
-    sp.add_argument("--seed", type=int)
-    sp.add_argument("--no-progress", action="store_true", dest="no_progress")
+    sp.add_argument("--seed", type=int, help="seed of the training-node draw and of φ "
+                    "(the config key dynamics.seed)")
+    sp.add_argument("--no-progress", action="store_true", dest="no_progress",
+                    help="no progress bars")
     time_limit_arg(sp)
     sp.set_defaults(func=cmd_learn_dynamics)

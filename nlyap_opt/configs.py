@@ -379,6 +379,149 @@ _TOP_DOCS = {
 }
 
 
+#: one line per key of the dataclass-derived sections (what ``nlyap config --keys`` and the
+#: documentation print); a field's ``metadata["doc"]`` wins where the dataclass gives one
+_FIELD_DOCS: dict[str, dict[str, str]] = {
+    "train": {
+        "hidden": "hidden-layer widths of N in V(x) = ‖N(x) − N(0)‖² + eps‖x‖²",
+        "features": "outputs of N (the number of squares summed in V)",
+        "activation": "activation of N's hidden layers: tanh; square (V a polynomial, "
+                      "Fossil's square activation); linear (V a quadratic form)",
+        "eps": "ε of the eps‖x‖² term of V: V > 0 away from 0 by construction",
+        "lr": "Adam learning rate of V and κ",
+        "steps": "training steps of the first CEGIS iteration (unless cegis.first_steps)",
+        "batch": "training states per step (plus a quarter batch of counterexamples and "
+                 "of boundary states)",
+        "decay": "τ: the decrease hinge asks for dV/dt ≤ −β − τ·V",
+        "level_slack": "s: the decrease is trained on V ≤ 1 + s and containment asks "
+                       "V ≥ 1 + s on the boundary of the domain",
+        "w_decrease": "weight of the decrease hinge (condition (a))",
+        "w_inside": "weight of relu(V − 1) on converging training states (pulls the level "
+                    "set outwards)",
+        "w_outside": "weight of relu(1 + s − V) on the domain's boundary (containment (b))",
+        "w_grad": "weight of mean ‖∇V‖ (keeps M and the margin β = M·η small; 0: off)",
+        "train_controller": "train the gain K of κ(x) = C·tanh(Kx + b) with V (false: keep "
+                            "the LQR gain)",
+        "w_anchor": "weight of ‖G − G_lqr‖², keeping the trained gain near its LQR start",
+        "w_fit": "weight of fitting V to the simulated trajectory cost target (0: off)",
+        "fit_quantile": "target level 1 = this quantile of the converging states' "
+                        "trajectory cost",
+        "fit_cap": "target of states that do not converge (and cap of the others)",
+        "fit_transform": "g of the target g(W)/g(W_c): log (tames the rise near the ROA "
+                         "boundary) or linear",
+        "w_pde": "weight of the relative residual of the target's decrease law (0: off)",
+        "w_local": "weight of the first-order decrease at the origin, "
+                   "relu(λ_max(AᵀH + HA + 2τH))/tr H (0: off)",
+        "relative_decrease": "divide the decrease hinge by ‖x‖² (states next to the inner "
+                             "ball weigh as much as the rest)",
+        "lr_schedule": "constant, or cosine: lr anneals to lr/100 over each training call",
+        "init": "where V starts: random (seeded), quadratic (the run's best certified "
+                "quadratic; needs 'quadratic') or sos (the certified SOS V; needs 'sos')",
+        "seed": "seed of V's initialisation and of the training minibatches",
+        "threads": "torch threads while training (fixed, so results do not depend on "
+                   "the machine)",
+    },
+    "cegis": {
+        "iterations": "most CEGIS iterations (train, candidate level, verify)",
+        "samples": "training states drawn in the domain",
+        "sphere_samples": "training states drawn on the domain's boundary (containment)",
+        "max_counterexamples": "most counterexamples (with neighbours) kept for training; "
+                               "the newest win",
+        "neighbours": "jittered copies added around each counterexample",
+        "first_steps": "training steps of the first iteration (null: train.steps)",
+        "steps": "training steps of each later iteration",
+        "verify_every": "run the verifier every k-th iteration and the last; in between "
+                        "the sampled violations are the counterexamples",
+        "target_fraction": "stop once the certified level reaches this fraction of the "
+                           "candidate level",
+        "min_iterations": "... but not before this many iterations (the best area is kept)",
+        "plateau": "a level limited by sampled decrease violations stops CEGIS only once "
+                   "the certified area grows by less than this fraction",
+        "area_points": "total point budget of the grid on which certified areas are "
+                       "compared",
+        "verify_options": "options of the interval verifier (the cegis.verify_options.* "
+                          "keys)",
+        "seed": "seed of the training states, counterexample jitter and level search",
+        "inner_samples": "extra training states in ε ≤ ‖x‖ ≤ 3ε (0: none)",
+        "boundary_samples": "extra training states near the model's ROA boundary (with "
+                            "train.w_fit; 0: none)",
+        "sim_dt": "RK4 step of the training simulations",
+        "sim_points": "learned φ: total nodes of a table of φ for the training simulations "
+                      "(0: evaluate the network)",
+        "sim_time": "simulated horizon of the training states (convergence, cost)",
+        "sim_tol": "a training state converges once ‖x‖ < sim_tol within sim_time",
+        "margin_mode": "learned f: pointwise verifies ∇V·φ + η‖∇_L V‖ < 0; global the "
+                       "paper's ∇V·φ < −β, β = M·η",
+        "norm_smoothing": "pointwise mode: s = norm_smoothing·M in sqrt(‖∇_L V‖² + s²) "
+                          "(costs at most this fraction of β)",
+        "initial_samples": "training states drawn in initial_set, pulled into V ≤ level",
+    },
+    "dynamics": {
+        "system": "catalogue name the settings were made for (informational)",
+        "preset": "default or fast: the per-system values the other keys override",
+        "comment": "free text, kept in the saved network's metadata",
+        "model": "full (φ(x, u) on a grid over X × U) or control_affine (φ0(x) on a grid "
+                 "over X, f = f0(x) + B u with the known B)",
+        "hidden": "hidden tanh neurons of φ: a total, or one width per learned component",
+        "grid_counts": "nodes per axis of the sampling grid (or grid_spacing)",
+        "grid_spacing": "largest spacing per axis: the coarsest grid within it (or "
+                        "grid_counts)",
+        "learned_components": "state derivatives to learn (null: those not known exactly)",
+        "inputs": "all: each learned block of φ reads every grid variable; model: only "
+                  "those that component of f depends on",
+        "state_box": "sampling box of the states, rows [lo, hi] (null: the system's X); "
+                     "must hold the verification domain",
+        "input_box": "sampling box of the inputs (null: the system's U)",
+        "train_points": "random distinct grid nodes φ is trained on",
+        "boundary_points": "random nodes on the box faces added to training",
+        "steps": "Adam steps per learned component",
+        "batch_size": "Adam minibatch size",
+        "lr": "Adam learning rate (cosine-annealed to lr_final)",
+        "lr_final": "Adam learning rate at the end of the schedule",
+        "train_dtype": "float32 or float64 for the Adam stage (LM runs in float64)",
+        "lm_iterations": "Levenberg–Marquardt iterations (mean squared error) after Adam",
+        "minimax_rounds": "Lawson-reweighted LM rounds lowering the maximum error",
+        "minimax_iterations": "LM iterations per minimax round",
+        "lm_ridge": "ridge weight on the hidden-layer weights in LM",
+        "prune": "neurons whose output weight is at most this in absolute value are "
+                 "removed before α is measured",
+        "seed": "seed of the training-node draw and of φ's initialisation",
+        "threads": "torch threads while training (fixed, so results do not depend on "
+                   "the machine)",
+        "bound_model": "best, or one η bound model (nlyap_opt.bounds.BOUND_OPTIONS)",
+        "bound_options": "η bound models computed (null: all)",
+        "interval_boxes": "about this many sub-boxes for the interval bounds (K_f, K_φ, "
+                          "L_i, D)",
+        "interval_counts": "sub-boxes per axis instead of interval_boxes",
+        "check_points": "random off-grid points where ‖f − φ‖ is evaluated as a test of η",
+        "eval_batch": "grid nodes per batch when α is measured",
+        "progress": "show progress bars",
+        "eta_target": "η gate: above it, up to eta_rounds refinement rounds, then the run "
+                      "stops before CEGIS with the cause (exit 2); null: no gate",
+        "eta_rounds": "most refinement rounds when η exceeds eta_target",
+        "refine_points": "grid nodes of largest error added to training per refinement "
+                         "round",
+    },
+    "cegis.verify_options": {
+        "resolution": "boxes narrower than this are left unknown (null: 10⁻⁴ of the "
+                      "widest side of the region)",
+        "max_boxes": "budget of interval boxes per check; beyond it the verdict is unknown",
+        "batch": "boxes evaluated per vectorised pass",
+        "mean_value": "mean-value form F(c) + J(X)(X − c): true on every box; null on the "
+                      "boxes the affine bounds leave undecided (on every box without them)",
+        "affine": "intersect the interval enclosures with affine-form ranges",
+        "presearch": "sampled points (with gradient ascent) searched for a counterexample "
+                     "before bisection (0: none)",
+        "stop_at_first": "stop at the first confirmed counterexample",
+        "keep_leaves": "keep the decided boxes in the result (diagnostics)",
+        "seed": "seed of the presearch samples",
+        "initial_boxes": "about this many sub-boxes in the starting grid",
+        "n_tasks": "sub-box tasks of a distributed check (null: 8)",
+        "second_order": "also the second-order centred form on undecided boxes (pays off "
+                        "from 3–4 states on)",
+    },
+}
+
 def _kind_of(tp) -> tuple[str, bool]:
     """``(kind, optional)`` of a type hint."""
     origin, args = typing.get_origin(tp), typing.get_args(tp)
@@ -416,7 +559,8 @@ def _keys_of(cls, section: str) -> dict[str, Key]:
             default = f.default_factory()
         else:
             default = None
-        rule = {**_RULES.get(section, {}).get(f.name, {}),
+        rule = {"doc": _FIELD_DOCS.get(section, {}).get(f.name, ""),
+                **_RULES.get(section, {}).get(f.name, {}),
                 **{k: v for k, v in f.metadata.items()
                    if k in ("lo", "lo_open", "hi", "hi_open", "choices", "doc")}}
         out[f.name] = Key(f"{section}.{f.name}", kind, default, optional, **rule)
@@ -439,6 +583,7 @@ def _verify_option_keys() -> dict[str, Key]:
     for name, (hint, default, lo, lo_open) in file_options().items():
         kind, optional = _kind_of(hint)
         rule = {} if lo is None else {"lo": lo, "lo_open": lo_open}
+        rule["doc"] = _FIELD_DOCS["cegis.verify_options"].get(name, "")
         out[name] = Key(f"cegis.verify_options.{name}", kind, default, optional, **rule)
     return out
 
@@ -1004,19 +1149,29 @@ def get_config(system: str, preset: str = "large", path: str | Path | None = Non
 
 
 def config_reference() -> str:
-    """A Markdown table of every run-configuration key, its type, default and range."""
-    rows = ["| key | accepts | default |", "| --- | --- | --- |"]
+    """Every run-configuration key as Markdown: one table per section with the key, what it
+    accepts (type and range), its default and a description (``nlyap config --keys``)."""
+    titles = {"": "Top level", "lqr": "lqr", "train": "train (V and κ training)",
+              "cegis": "cegis (the CEGIS loop)",
+              "cegis.verify_options": "cegis.verify_options (the interval verifier)",
+              "sos": "sos (an SOS certificate before the neural stage)",
+              "dynamics": "dynamics (the learned-dynamics stage; ranges checked by "
+                          "nlyap_opt.dynamics_config.dynamics_config)"}
+
+    def cell(text: str) -> str:
+        return text.replace("|", "\\|")
+
+    out = []
     sch = schema()
-    for section in ("", "lqr", "train", "cegis", "cegis.verify_options", "sos", "dynamics"):
-        if section == "dynamics":
-            rows.append("| `dynamics.*` | the fields of nlyap_opt.dynamics_config.DynamicsConfig; "
-                        "ranges checked by dynamics_config() | |")
-        for name, key in sch[section].items():
-            if section == "" and key.kind == "section":
-                rows.append(f"| `{name}` | section: {key.doc} | |")
+    for section, title in titles.items():
+        out += ["" if not out else "", f"## {title}", "",
+                "| key | accepts | default | description |", "| --- | --- | --- | --- |"]
+        for key in sch[section].values():
+            if key.kind == "section":
+                out.append(f"| `{key.name}` | a JSON object (section) | | {cell(key.doc)} |")
                 continue
             default = "" if key.default is None and not key.optional else \
-                json.dumps(key.default)
-            doc = f" ({key.doc})" if key.doc else ""
-            rows.append(f"| `{key.name}` | {key.describe()}{doc} | {default} |")
-    return "\n".join(rows)
+                f"`{json.dumps(key.default)}`"
+            out.append(f"| `{key.name}` | {cell(key.describe())} | {default} | "
+                       f"{cell(key.doc)} |")
+    return "\n".join(out).lstrip("\n")

@@ -624,7 +624,8 @@ def _samples_grid(system, cfg) -> Grid:
     return grid
 
 
-def check_declared(system, grid, model: str) -> dict | None:
+def check_declared(system, grid, model: str, *, probe_points: int = 0,
+                   seed: int = 0) -> dict | None:
     """Check the declarations of a system without a model against its values on ``grid``.
 
     The values of every component at every node (``f(x, u0)`` on an x-grid of the
@@ -638,11 +639,20 @@ def check_declared(system, grid, model: str) -> dict | None:
     ------
     ConfigError
         A declaration is contradicted by the data (both numbers in the message).
+
+    Notes
+    -----
+    For a black-box callable (``system.kind == "callable"``) ``probe_points`` evaluations
+    at seeded random points *between* the grid nodes follow
+    (:func:`systems.declarations.probe_declarations`: difference quotients against ``K_f``,
+    second differences against ``H``, changes along variables ``depends_on`` excludes, ``B``):
+    a narrow spike between nodes that the grid misses is refused before training. Sample
+    files cannot be probed (their ``f`` exists at the nodes only).
     """
     decl = getattr(system, "declarations", None)
     if _has_model(system) or decl is None or decl.empty:
         return None
-    from systems.declarations import check_declarations
+    from systems.declarations import check_declarations, probe_declarations
 
     nx, nu = system.nx, system.nu
     where = "(x, u)-space"
@@ -664,6 +674,15 @@ def check_declared(system, grid, model: str) -> dict | None:
     values = np.vstack(vals)
     names = list(system.state_names) + (list(system.input_names) if grid.dim > nx else [])
     out = check_declarations(grid, values, decl, names=names, source=system.source)
+    if getattr(system, "kind", None) == "callable" and probe_points > 0:
+        box, h = np.asarray(grid.box, dtype=float), np.asarray(grid.spacing, dtype=float)
+        if grid.dim == nx and nu:  # an x-grid: probe the inputs over U as well
+            ub = np.asarray(system.input_box, dtype=float)
+            box, h = np.vstack([box, ub]), np.concatenate([h, (ub[:, 1] - ub[:, 0]) / 2])
+        out["probe"] = probe_declarations(
+            system.evaluate, box, decl, nx=nx, points=probe_points, seed=seed,
+            spacing=h, names=list(system.state_names) + list(system.input_names),
+            source=system.source)
     out["grid"] = "x-space at u0 = " + str(affine_base_input(system).tolist()) \
         if grid.dim == nx and nu else where
     return out
@@ -784,7 +803,8 @@ def learn_dynamics(system, config: DynamicsConfig | dict | None = None, *,
     comp = learned_components(system, cfg)
     B = _input_matrix(system, comp) if model == "control_affine" else None
     grid = make_grid(system, cfg)
-    declared = check_declared(system, grid, model)  # fail fast, before any training
+    declared = check_declared(system, grid, model, probe_points=cfg.probe_points,
+                              seed=cfg.seed)  # fail fast, before any training
     hidden = [int(h) for h in np.atleast_1d(cfg.hidden)]
     if len(hidden) == 1 and len(comp) > 1:
         hidden = [max(hidden[0] // len(comp), 1)] * len(comp)

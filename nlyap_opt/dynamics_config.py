@@ -122,6 +122,10 @@ class DynamicsConfig:
         Sub-boxes per axis instead of ``interval_boxes``.
     check_points : int
         Random off-grid points where ‖f − φ‖ is evaluated as a test of η.
+    probe_points : int
+        Evaluations of a black-box callable at seeded random points between the grid
+        nodes, before training, that refute a declared ``K_f``, ``H``, ``depends_on`` or
+        ``B`` they contradict (``0``: grid check only; sample files cannot be probed).
     eval_batch : int
         Grid nodes per batch when α is measured.
     progress : bool
@@ -166,6 +170,7 @@ class DynamicsConfig:
     interval_boxes: int = 16384
     interval_counts: list[int] | None = None
     check_points: int = 200000
+    probe_points: int = 30000
     eval_batch: int = 1 << 17
     progress: bool = True
     eta_target: float | None = None
@@ -441,7 +446,8 @@ def _validate(cfg: DynamicsConfig) -> None:
     for key in ("train_points", "batch_size", "threads", "interval_boxes", "eval_batch"):
         _int(cfg, key, 1)
     for key in ("boundary_points", "steps", "lm_iterations", "minimax_rounds",
-                "minimax_iterations", "check_points", "seed", "eta_rounds", "refine_points"):
+                "minimax_iterations", "check_points", "probe_points", "seed", "eta_rounds",
+                "refine_points"):
         _int(cfg, key, 0)
     _real(cfg, "lr", positive=True)
     _real(cfg, "lr_final", positive=True)

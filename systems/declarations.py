@@ -39,7 +39,7 @@ import numpy as np
 
 from nlyap_opt.errors import ConfigError, DimensionError
 
-__all__ = ["Declarations", "check_declarations", "RTOL"]
+__all__ = ["Declarations", "check_declarations", "probe_declarations", "RTOL"]
 
 #: relative slack before a declaration counts as contradicted by an estimate from the data
 RTOL = 1e-6
@@ -551,4 +551,168 @@ def check_declarations(
                 f"{_fmt(change)}, but B[{k}, {j}]·step = {_fmt(B[k, j] * hgap)}; the system is "
                 "not control-affine with this B: fix B or drop input_matrix"
             )
+    return out
+
+
+# ============================================================================ off-grid probes
+def probe_declarations(
+    f,
+    box,
+    declarations: Declarations,
+    *,
+    nx: int,
+    points: int,
+    seed: int = 0,
+    spacing=None,
+    names: Sequence[str] | None = None,
+    source: str = "",
+) -> dict:
+    r"""Refute declarations with evaluations of a callable ``f`` *between* grid nodes.
+
+    A grid check (:func:`check_declarations`) sees ``f`` at the nodes only: a narrow spike
+    between two nodes passes it. A callable can be evaluated anywhere, so this draws
+    ``points // 3`` seeded random stencils ``(z - s e_i, z, z + s e_i)`` in ``box`` (a
+    random axis ``i`` and a step ``s`` between 5 % and 50 % of the grid spacing along it)
+    and checks, per stencil:
+
+    - ``K_f``: :math:`\|f(z_b) - f(z_a)\| / s \le K_f` for both neighbouring pairs (per
+      component when ``K_f`` is one number per state);
+    - ``H``: :math:`|f_k(z+s e_i) - 2 f_k(z) + f_k(z-s e_i)| / s^2 \le H` (it equals
+      :math:`\partial^2 f_k/\partial z_i^2` somewhere in the stencil);
+    - ``depends_on``: ``f_k`` does not change along an axis it is declared not to read;
+    - ``B`` (an input axis ``i = nx + j``): :math:`f(z + s e_i) - f(z) = B_{:,j} s`.
+
+    The same slack as on the grid (8 ulps of the largest value plus a declared
+    ``sample_error`` per value, relative ``RTOL`` on the constants). Deterministic: the
+    points depend on ``seed`` and ``points`` only.
+
+    Parameters
+    ----------
+    f : callable
+        Batched ``f(x, u) -> (N, nx)`` with ``x`` ``(N, nx)`` and ``u`` ``(N, nu)``.
+    box : (d, 2) array_like
+        The box ``X × U`` (``d = nx + nu``) the declarations are made on.
+    declarations : Declarations
+    nx : int
+    points : int
+        Evaluation budget (``0``: no probe).
+    seed : int
+    spacing : (d,) array_like, optional
+        Grid spacing per axis (default: a tenth of the box).
+    names : sequence of str, optional
+        The ``d`` axis names (states then inputs), for messages and ``depends_on``.
+    source : str, optional
+        Prefix of the messages.
+
+    Returns
+    -------
+    dict
+        ``points`` (evaluations made), ``slope``, ``second_difference`` (largest estimates).
+
+    Raises
+    ------
+    ConfigError
+        A declaration that an off-grid pair or stencil contradicts (both points and the
+        declared constant in the message), or a non-finite value of ``f``.
+    """
+    box = np.asarray(box, dtype=float)
+    d = box.shape[0]
+    nu = d - nx
+    m = int(points) // 3
+    out = {"points": 3 * m, "slope": 0.0, "second_difference": 0.0}
+    if m == 0 or declarations.empty:
+        return out
+    width = box[:, 1] - box[:, 0]
+    h = width / 10.0 if spacing is None else np.asarray(spacing, dtype=float)
+    h = np.where((h > 0) & np.isfinite(h), np.minimum(h, width), width)
+    rng = np.random.default_rng([int(seed), 0x9E3779B9])  # no wall clock: seed only
+    axis = rng.integers(d, size=m)
+    s = h[axis] * rng.uniform(0.05, 0.5, size=m)
+    z = box[:, 0] + width * rng.random((m, d))
+    rows = np.arange(m)
+    lo, hi = box[axis, 0] + s, box[axis, 1] - s
+    z[rows, axis] = np.clip(z[rows, axis], np.minimum(lo, hi), np.maximum(lo, hi))
+    zm, zp = z.copy(), z.copy()
+    zm[rows, axis] -= s
+    zp[rows, axis] += s
+    Z = np.vstack([zm, z, zp])
+    with np.errstate(all="ignore"):
+        V = np.asarray(f(Z[:, :nx], Z[:, nx:]), dtype=float).reshape(3 * m, nx)
+    znames = _z_names(names, d)
+    pre = f"{source}: " if source else ""
+    bad = ~np.all(np.isfinite(V), axis=1)
+    if bad.any():
+        r = int(np.flatnonzero(bad)[0])
+        raise ConfigError(f"{pre}the callable returned {V[r].tolist()} at z = {_fmt_vec(Z[r])} "
+                          "(an off-grid probe inside the box); f must be finite on the whole box")
+    Vm, V0, Vp = V[:m], V[m:2 * m], V[2 * m:]
+    scale = float(np.max(np.abs(V), initial=0.0))
+    tau = 8.0 * _EPS * scale + (declarations.sample_error or 0.0)
+
+    def refute(what: str, value: float, r: int, a, b, fix: str) -> ConfigError:
+        return ConfigError(
+            f"{pre}{what} is contradicted between grid nodes: {_fmt(value)} from f at z_a = "
+            f"{_fmt_vec(a)} and z_b = {_fmt_vec(b)} (a step {_fmt(s[r])} along "
+            f"{znames[axis[r]]!r}; off-grid probe {r + 1} of {m}, seed {seed}); {fix}")
+
+    # ---- K_f: difference quotients of both pairs
+    lip = declarations.lipschitz
+    for a, b, za, zb in ((Vm, V0, zm, z), (V0, Vp, z, zp)):
+        dv = b - a
+        slope = np.maximum(np.linalg.norm(dv, axis=1) - np.sqrt(nx) * 2 * tau, 0.0) / s
+        out["slope"] = max(out["slope"], float(slope.max()))
+        if lip is not None and not isinstance(lip, tuple):
+            r = int(np.argmax(slope))
+            if slope[r] > lip * (1 + RTOL):
+                raise refute(f"declared K_f = {_fmt(lip)}", slope[r], r, za[r], zb[r],
+                             f"a difference quotient ‖Δf‖/‖Δz‖ = {_fmt(slope[r])} needs K_f ≥ "
+                             "it; declare a larger K_f or check the callable")
+        if isinstance(lip, tuple):
+            sk = np.maximum(np.abs(dv) - 2 * tau, 0.0) / s[:, None]
+            for k in range(nx):
+                r = int(np.argmax(sk[:, k]))
+                if sk[r, k] > lip[k] * (1 + RTOL):
+                    raise refute(f"declared K_f for component {k} ({znames[k]}') = "
+                                 f"{_fmt(lip[k])}", sk[r, k], r, za[r], zb[r],
+                                 f"declare at least {_fmt(sk[r, k])} or check the callable")
+    # ---- H: second differences along the stencil's axis
+    dd = np.maximum(np.abs(Vp - 2.0 * V0 + Vm) - 4.0 * tau, 0.0) / (s * s)[:, None]
+    out["second_difference"] = float(dd.max())
+    H = declarations.hessian
+    if H is not None:
+        r, k = np.unravel_index(int(np.argmax(dd)), dd.shape)
+        if dd[r, k] > H * (1 + RTOL):
+            raise refute(f"declared H = {_fmt(H)}", dd[r, k], int(r), zm[r], zp[r],
+                         f"|f_{k}(z+) - 2 f_{k}(z) + f_{k}(z-)| / s² estimates "
+                         f"|∂²f_{k}/∂{znames[axis[r]]}²| = {_fmt(dd[r, k])} at the midpoint "
+                         f"{_fmt_vec(z[r])}; declare H ≥ it or check the callable")
+    # ---- depends_on: no change along an axis f_k is declared not to read
+    if declarations.depends_on is not None and names is not None and len(names) == d:
+        deps = declarations.dependencies(list(names[:nx]), list(names[nx:]))
+        for k, cols in deps.items():
+            off = ~np.isin(axis, cols)
+            for a, b, za, zb in ((Vm, V0, zm, z), (V0, Vp, z, zp)):
+                ch = np.where(off, np.abs(b[:, k] - a[:, k]), 0.0)
+                r = int(np.argmax(ch))
+                if ch[r] > 2.0 * tau:
+                    raise refute(f"declared depends_on for {znames[k]}'", ch[r], r, za[r], zb[r],
+                                 f"{znames[k]}' changes along {znames[axis[r]]!r}, which it is "
+                                 f"declared not to read; add {znames[axis[r]]!r} to its "
+                                 "variables or drop the entry")
+    # ---- B: f(z + s e_{nx+j}) - f(z) = B[:, j] s along an input axis
+    B = declarations.B
+    if B is not None and nu and B.shape == (nx, nu):
+        inp = axis >= nx
+        for a, b, za, zb in ((Vm, V0, zm, z), (V0, Vp, z, zp)):
+            j = np.clip(axis - nx, 0, nu - 1)
+            want = B[:, j].T * s[:, None]
+            err = np.abs((b - a) - want)
+            allow = 2.0 * tau + RTOL * (scale + np.abs(want))
+            ex = np.where(inp[:, None], np.maximum(err - allow, 0.0), 0.0)
+            r, k = np.unravel_index(int(np.argmax(ex)), ex.shape)
+            if ex[r, k] > 0:
+                raise refute(f"declared input matrix B[{k}, {j[r]}] = {_fmt(B[k, j[r]])}",
+                             float((b - a)[r, k] / s[r]), int(r), za[r], zb[r],
+                             f"Δf_{k}/Δu differs from B; the system is not control-affine with "
+                             "this B: fix B or drop input_matrix")
     return out

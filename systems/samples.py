@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import csv
 import difflib
+import unicodedata
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -280,11 +281,17 @@ def _is_number(s: str) -> bool:
 
 
 def _read_csv(path: Path, columns: Sequence[str] | None) -> tuple[list[str], np.ndarray]:
-    with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a spreadsheet's BOM
-        rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a spreadsheet's BOM
+            rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at "
+                          f"offset {exc.start}); save the csv as UTF-8") from None
+    except csv.Error as exc:
+        raise ConfigError(f"{path}: not a readable csv ({exc}); fix the file") from None
     if not rows:
         raise ConfigError(f"{path}: the sample file is empty; write one row per sample")
-    first = [c.strip() for c in rows[0]]
+    first = [unicodedata.normalize("NFKC", c.strip()) for c in rows[0]]
     header = None if all(_is_number(c) for c in first) else first
     data = rows[1:] if header is not None else rows
     width = len(rows[0])
@@ -296,7 +303,7 @@ def _read_csv(path: Path, columns: Sequence[str] | None) -> tuple[list[str], np.
                 "row needs the same columns (a ragged csv)"
             )
     if columns is not None:
-        columns = [str(c) for c in columns]
+        columns = [unicodedata.normalize("NFKC", str(c)) for c in columns]
         if header is not None and header != columns:
             raise ConfigError(
                 f"{path}: header {header} differs from the declared columns {columns}; "
@@ -317,6 +324,43 @@ def _read_csv(path: Path, columns: Sequence[str] | None) -> tuple[list[str], np.
     except ValueError as exc:
         raise ConfigError(f"{path}: a field is not a number ({exc}); fix the data") from None
     return names, arr.reshape(len(data), width)
+
+
+def _real_array(path: Path, name: str, a: np.ndarray) -> np.ndarray:
+    """``a`` as float64 if it holds real numbers (a complex, boolean, text or structured
+    array is refused: casting would drop an imaginary part or invent values)."""
+    if a.dtype.kind not in "iuf":
+        what = {"c": "complex", "b": "boolean", "U": "text", "S": "bytes", "V": "structured",
+                "O": "object"}.get(a.dtype.kind, str(a.dtype))
+        fix = "x.real, if the imaginary part is 0" if what == "complex" else "float64 arrays"
+        raise ConfigError(f"{path}: array {name!r} is {what} ({a.dtype}); an npz sample file "
+                          f"holds real numbers only (save {fix})")
+    return np.asarray(a, dtype=float)
+
+
+def _read_npz(path: Path, nx: int, nu: int):
+    """Arrays ``x``, ``u``, ``xdot`` of an npz file, read without pickle and checked."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            keys = set(npz.files)
+            need = {"x", "xdot"} | ({"u"} if nu else set())
+            extra = keys - need - {"u"}
+            if need - keys or extra:
+                raise ConfigError(
+                    f"{path}: an npz sample file holds arrays 'x' (N, {nx}), 'u' (N, {nu}) "
+                    f"and 'xdot' (N, {nx}); got {sorted(keys)}"
+                )
+            x = _real_array(path, "x", npz["x"])
+            xdot = _real_array(path, "xdot", npz["xdot"])
+            u = _real_array(path, "u", npz["u"]) if "u" in keys else np.zeros((len(x), 0))
+    except ConfigError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - zipfile, zlib, format and pickle errors alike
+        msg = " ".join(str(exc).split())[:200]
+        raise ConfigError(f"{path}: cannot be read as an npz sample file (truncated or corrupt: "
+                          f"{type(exc).__name__}{': ' + msg if msg else ''}); write it again "
+                          "with numpy.savez(path, x=..., u=..., xdot=...)") from None
+    return x, u, xdot
 
 
 def load_samples(path, *, states: Sequence[str], inputs: Sequence[str] = (),
@@ -343,23 +387,13 @@ def load_samples(path, *, states: Sequence[str], inputs: Sequence[str] = (),
         duplicate nodes (one line naming the problem and the fix).
     """
     path = Path(path)
-    states, inputs = [str(s) for s in states], [str(s) for s in inputs]
+    states = [unicodedata.normalize("NFKC", str(s)) for s in states]
+    inputs = [unicodedata.normalize("NFKC", str(s)) for s in inputs]
     nx, nu = len(states), len(inputs)
     if not path.is_file():
         raise ConfigError(f"sample file {str(path)!r} not found; check the path")
     if path.suffix.lower() == ".npz":
-        with np.load(path, allow_pickle=False) as npz:
-            keys = set(npz.files)
-            need = {"x", "xdot"} | ({"u"} if nu else set())
-            extra = keys - need - {"u"}
-            if need - keys or extra:
-                raise ConfigError(
-                    f"{path}: an npz sample file holds arrays 'x' (N, {nx}), 'u' (N, {nu}) "
-                    f"and 'xdot' (N, {nx}); got {sorted(keys)}"
-                )
-            x = np.asarray(npz["x"], dtype=float)
-            xdot = np.asarray(npz["xdot"], dtype=float)
-            u = np.asarray(npz["u"], dtype=float) if "u" in keys else np.zeros((len(x), 0))
+        x, u, xdot = _read_npz(path, nx, nu)
         x = x.reshape(len(x), -1) if x.ndim == 1 and nx == 1 else x
         xdot = xdot.reshape(len(xdot), -1) if xdot.ndim == 1 and nx == 1 else xdot
         u = u.reshape(len(u), -1) if u.ndim == 1 and nu == 1 else u

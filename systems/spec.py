@@ -49,9 +49,11 @@ import ast
 import difflib
 import importlib
 import importlib.util
+import inspect
 import keyword
 import math
 import sys
+import unicodedata
 from collections.abc import Callable
 from pathlib import Path
 
@@ -61,6 +63,7 @@ import sympy
 import tomllib
 
 from nlyap_opt.errors import ConfigError
+from nlyap_opt.walker import OP_TABLE
 
 from .base import System
 from .declarations import Declarations, check_declarations
@@ -298,33 +301,131 @@ def to_casadi(expr: sympy.Expr, symbols: dict[sympy.Symbol, ca.SX]) -> ca.SX:
         raise ConfigError(str(exc)) from None
 
 
-def _convert(e, symbols) -> ca.SX:
+#: CasADi operations defined on part of the reals only (the walker's table)
+_DOMAIN_OPS = frozenset(op for op, info in OP_TABLE.items() if info.domain is not None)
+#: SymPy functions defined on part of the reals only (``Pow``: see :func:`_is_partial`)
+_PARTIAL_FUNCS = (sympy.log, sympy.asin, sympy.acos, sympy.tan)
+
+
+def _is_partial(e) -> bool:
+    """True for a SymPy node defined on part of the reals only (as written)."""
+    if isinstance(e, sympy.Pow):
+        x = e.exp
+        return not (x.is_Integer and int(x) >= 0)  # 1/b, b^-2, sqrt(b), b^1.5, b^y
+    return isinstance(e, _PARTIAL_FUNCS)
+
+
+def _sx_nodes(roots, stop=frozenset()) -> dict[int, int]:
+    """``{node hash: op}`` of every node reachable from the scalar SX ``roots`` (iterative),
+    not descending into the nodes whose hash is in ``stop``."""
+    seen: dict[int, int] = {}
+    todo = list(roots)
+    while todo:
+        n = todo.pop()
+        h = n.element_hash()
+        if h in seen or h in stop:
+            continue
+        seen[h] = -1 if (n.is_symbolic() or n.is_constant()) else n.op()
+        todo.extend(n.dep(i) for i in range(n.n_dep()))
+    return seen
+
+
+def _convert(e, symbols, partial: list | None = None) -> ca.SX:
+    """SymPy -> CasADi; ``partial`` (if given) collects ``(node, hashes)`` for each partial
+    operation with a varying argument: the hashes of the CasADi nodes it created that carry
+    its domain (empty: CasADi simplified it away when it was built)."""
     if e.is_Symbol:
         try:
             return symbols[e]
         except KeyError:
             raise _ExprError(f"symbol {e} has no CasADi counterpart") from None
-    if e in (sympy.zoo, sympy.oo, -sympy.oo, sympy.nan) or e.has(sympy.zoo, sympy.nan):
+    # class flags and structural tests only: SymPy's assumption queries on unevaluated
+    # trees such as 0/0 depend on hash order (a different error on another PYTHONHASHSEED)
+    if isinstance(e, (sympy.core.numbers.NaN, sympy.core.numbers.ComplexInfinity,
+                      sympy.core.numbers.Infinity, sympy.core.numbers.NegativeInfinity)):
         raise _ExprError("the expression is infinite or undefined (a division by zero?)")
     if e.is_Number or e.is_NumberSymbol:
-        if not e.is_real:
-            raise _ExprError(f"the constant {e} is not a real number")
-        v = float(e)
+        try:
+            v = float(e)
+        except (TypeError, ValueError, OverflowError):
+            raise _ExprError(f"the constant {e} is not a finite real number") from None
         if not math.isfinite(v):
             raise _ExprError(f"the constant {e} is not finite")
         return ca.SX(v)
-    if e == sympy.I or (e.is_number and e.is_real is False):
-        raise _ExprError(f"the subexpression {e} is not a finite real number (a division by "
-                         "zero, or a complex value)")
     conv = SYMPY_TO_CASADI.get(type(e)) or SYMPY_TO_CASADI.get(e.func)
     if conv is None:
         raise _ExprError(f"the operation {e.func.__name__} ({e}) has no CasADi converter")
-    args = [_convert(a, symbols) for a in e.args]
+    args = [_convert(a, symbols, partial) for a in e.args]
     out = conv(*args, e)
-    if out.is_constant() and not math.isfinite(float(ca.evalf(out))):
-        raise _ExprError(f"the subexpression {e} is {float(ca.evalf(out))} (a division by "
-                         "zero or a value outside a function's domain)")
+    if out.is_constant():
+        v = float(ca.evalf(out))
+        if not math.isfinite(v):
+            raise _ExprError(f"the subexpression {e} is {v} (a division by zero or a value "
+                             "outside a function's domain)")
+    elif partial is not None and _is_partial(e) and not all(a.is_constant() for a in args):
+        stop = frozenset(a.element_hash() for a in args)
+        made = _sx_nodes([out], stop)
+        # ``out`` is kept with the hashes: it holds its nodes alive, so that a hash (the
+        # node's address) cannot be reused by another node while the check runs
+        partial.append((e, frozenset(h for h, op in made.items() if op in _DOMAIN_OPS), out))
     return out
+
+
+def _domain_text(e) -> str:
+    """The domain condition of the partial SymPy node ``e``, as text."""
+    if isinstance(e, sympy.Pow):
+        x = e.exp
+        if x.is_Integer:
+            return f"{e.base} != 0"
+        if x.is_Number and x > 0:
+            return f"{e.base} >= 0"
+        return f"{e.base} > 0" if x.is_Number else f"{e.base} > 0 (or integer powers)"
+    a = e.args[0]
+    if isinstance(e, sympy.log):
+        return f"{a} > 0"
+    if isinstance(e, (sympy.asin, sympy.acos)):
+        return f"-1 <= {a} <= 1"
+    return f"cos({a}) != 0"
+
+
+def _holds_everywhere(e) -> bool:
+    """True when SymPy proves the domain of the partial node ``e`` for every real value of
+    the symbols (then nothing is lost when CasADi simplifies ``e`` away, as for
+    ``sqrt(x^2)`` = ``|x|``). Anything SymPy cannot decide counts as not proved."""
+    try:
+        with sympy.evaluate(True):
+            if isinstance(e, sympy.Pow):
+                b, x = sympy.sympify(e.base.doit()), e.exp
+                if x.is_Integer:
+                    return b.is_zero is False
+                if x.is_Number and x > 0:
+                    return b.is_nonnegative is True
+                return x.is_Number and b.is_positive is True
+            a = sympy.sympify(e.args[0].doit())
+            if isinstance(e, sympy.log):
+                return a.is_positive is True
+            if isinstance(e, (sympy.asin, sympy.acos)):
+                return (a - 1).is_nonpositive is True and (a + 1).is_nonnegative is True
+    except Exception:  # noqa: BLE001 - an undecided SymPy query proves nothing
+        return False
+    return False
+
+
+def _check_partial_kept(partial: list, f: ca.SX) -> None:
+    """Refuse a partial operation (with a varying argument) that CasADi's simplification
+    dropped from ``f`` (a factor 0, ``sqrt(a)^2 = a``, ``x/x = 1``, ...) unless its domain
+    holds for all reals: the verifier proves domains of the operations in the graph only."""
+    if not partial:
+        return
+    kept = _sx_nodes([f[i] for i in range(f.numel())])
+    for e, made, _alive in partial:
+        if (not made or not made <= kept.keys()) and not _holds_everywhere(e):
+            raise _ExprError(
+                f"the partial operation {e} (defined only where {_domain_text(e)}) cancels "
+                "out of the expression when it is built (a factor 0, or a simplification "
+                "such as sqrt(a)^2 = a or x/x = 1), so its domain could not be checked; "
+                "remove the term, or write the expression without the cancellation"
+            )
 
 
 # ============================================================================ spec files
@@ -342,6 +443,33 @@ def _check_keys(path, table: dict, allowed: set, where: str) -> None:
             )
 
 
+def _short(v, n: int = 40) -> str:
+    """``repr(v)``, cut to about ``n`` characters (a 400-digit number in a message)."""
+    r = repr(v)
+    return r if len(r) <= n else f"{r[:n // 2]}...{r[-8:]} ({len(r)} characters)"
+
+
+def canonical_name(name: str) -> str:
+    """A name as the expression parser reads it: Unicode NFKC (Python's rule for identifiers,
+    so that ``𝐱`` (U+1D431) and ``x`` are one name)."""
+    return unicodedata.normalize("NFKC", name)
+
+
+def _canonical(path, where: str, names) -> list[str]:
+    """``names`` in NFKC form; two that become one are refused (one line, both named)."""
+    out: list[str] = []
+    first: dict[str, str] = {}
+    for s in names:
+        c = canonical_name(s)
+        if c in first:
+            same = f"{first[c]!r} and {s!r}" if first[c] != s else f"{s!r} twice"
+            raise _err(path, where, f"{same} are the same name once Unicode-normalised (NFKC, "
+                       "as Python reads identifiers); use distinct names")
+        first[c] = s
+        out.append(c)
+    return out
+
+
 def _names(path, spec: dict, key: str, required: bool) -> list[str]:
     v = spec.get(key)
     if v is None:
@@ -350,14 +478,13 @@ def _names(path, spec: dict, key: str, required: bool) -> list[str]:
         return []
     if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
         raise _err(path, key, f"must be a list of names, got {v!r}")
+    v = _canonical(path, key, v)
     for s in v:
         if not s.isidentifier() or keyword.iskeyword(s) or s.startswith("_") \
                 or s in FUNCTIONS or s in CONSTANTS:
             raise _err(path, key, f"{s!r} is not a usable name (an identifier that is not a "
                        "function or constant name and does not start with '_')")
-    if len(set(v)) != len(v):
-        raise _err(path, key, "names must be distinct")
-    return list(v)
+    return v
 
 
 def _box(path, spec: dict, key: str, n: int, required: bool):
@@ -383,7 +510,7 @@ def _parameters(path, spec: dict, reserved: set) -> dict[str, float]:
     if not isinstance(table, dict):
         raise _err(path, "parameters", "must be a table of name = value")
     out: dict[str, float] = {}
-    for name, v in table.items():
+    for name, v in zip(_canonical(path, "parameters", table), table.values()):
         where = f"parameters.{name}"
         if not name.isidentifier() or keyword.iskeyword(name) or name.startswith("_") \
                 or name in reserved or name in FUNCTIONS or name in CONSTANTS:
@@ -392,14 +519,20 @@ def _parameters(path, spec: dict, reserved: set) -> dict[str, float]:
         if isinstance(v, bool):
             raise _err(path, where, f"must be a number or an expression, got {v!r}")
         if isinstance(v, (int, float)):
-            val = float(v)
+            try:
+                val = float(v)
+            except OverflowError:  # a TOML integer of hundreds of digits
+                raise _err(path, where, f"the integer {_short(v)} is too large for a float "
+                           "(above 1.8e308); give a smaller value") from None
         else:
             try:
-                e = _parse(v, {k: sympy.Float(x) for k, x in out.items()})
-                val = float(e) if e.is_number and e.is_real else math.nan
+                # converted by the same checked route as [rhs] (no SymPy assumption queries:
+                # on unevaluated trees such as 0/0 their answers depend on hash order)
+                c = _convert(_parse(v, {k: sympy.Float(x) for k, x in out.items()}), {})
+                val = float(ca.evalf(c)) if c.is_constant() else math.nan
             except _ExprError as exc:
                 raise _err(path, where, str(exc)) from None
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, RecursionError):
                 val = math.nan
         if not math.isfinite(val):
             raise _err(path, where, f"must evaluate to a finite real number, got {v!r}")
@@ -415,7 +548,7 @@ def _expressions(path, table, states, inputs, params, xs, us, only=None) -> dict
     to_ca = {syms[n]: xs[i] for i, n in enumerate(states)}
     to_ca.update({syms[n]: us[i] for i, n in enumerate(inputs)})
     out: dict[int, ca.SX] = {}
-    for name, text in table.items():
+    for name, text in zip(_canonical(path, "rhs", table), table.values()):
         where = f"rhs.{name}"
         if name not in states:
             raise _err(path, where, f"{name!r} is not a state{_did_you_mean(name, states)} "
@@ -426,7 +559,10 @@ def _expressions(path, table, states, inputs, params, xs, us, only=None) -> dict
                        "derivative is exactly this expression)")
         try:
             try:
-                out[states.index(name)] = _convert(_parse(text, allowed), to_ca)
+                partial: list = []
+                fk = _convert(_parse(text, allowed), to_ca, partial)
+                _check_partial_kept(partial, fk)
+                out[states.index(name)] = fk
             except RecursionError:
                 raise _too_deep(text) from None
         except _ExprError as exc:
@@ -441,9 +577,15 @@ def _declarations(path, spec: dict) -> Declarations | None:
     if not isinstance(d, dict):
         raise _err(path, "declared", "must be a table (lipschitz, hessian, input_matrix)")
     _check_keys(path, d, SPEC_KEYS["declared"], "declared")
+    dep = d.get("depends_on")
+    if isinstance(dep, dict):  # names as the rest of the file reads them (NFKC)
+        dep = dict(zip(_canonical(path, "declared.depends_on", dep),
+                       [_canonical(path, f"declared.depends_on.{k}", v)
+                        if isinstance(v, list) and all(isinstance(n, str) for n in v) else v
+                        for k, v in dep.items()]))
     try:
         return Declarations(d.get("lipschitz"), d.get("hessian"), d.get("input_matrix"),
-                            d.get("sample_error"), d.get("depends_on"), source=str(path))
+                            d.get("sample_error"), dep, source=str(path))
     except ConfigError as exc:
         raise _err(path, "declared", str(exc)) from None
 
@@ -477,6 +619,32 @@ def _load_factory(path: Path, ref) -> Callable:
     if not callable(f):
         raise _err(path, "factory", f"{mod!r} has no function {fn!r}")
     return f
+
+
+def _call_factory(path: Path, ref: str, factory: Callable) -> System:
+    """Call the factory without arguments; whatever goes wrong is one line naming it."""
+    try:
+        sig = inspect.signature(factory)
+    except (TypeError, ValueError):
+        sig = None
+    if sig is not None:
+        need = [n for n, p in sig.parameters.items() if p.default is p.empty
+                and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+        if need:
+            raise _err(path, "factory", f"{ref!r} needs the arguments {need}, but a factory is "
+                       "called without arguments; give them defaults or wrap it in a function "
+                       "without parameters")
+    try:
+        system = factory()
+    except Exception as exc:  # noqa: BLE001 - the user's code: any failure is an input error
+        msg = " ".join(str(exc).split())
+        raise _err(path, "factory", f"{ref!r} raised {type(exc).__name__}"
+                   f"{': ' + _short(msg, 200)[1:-1] if msg else ''}; fix the factory (it is "
+                   "called without arguments and returns a systems.System)") from None
+    if not isinstance(system, System):
+        raise _err(path, "factory", f"{ref!r} returned {type(system).__name__}, not a "
+                   "systems.System; return the System the file describes")
+    return system
 
 
 def _quick_check(system: System, path) -> System:
@@ -528,8 +696,22 @@ def load_spec(path) -> System:
             spec = tomllib.load(fh)
     except FileNotFoundError:
         raise ConfigError(f"system spec {str(path)!r} not found; check the path") from None
+    except IsADirectoryError:
+        raise ConfigError(f"system spec {str(path)!r} is a directory; give the .toml file") \
+            from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at "
+                          f"offset {exc.start}); save the file as UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    try:
+        return _load_spec(path, spec)
+    except OverflowError as exc:  # a number of hundreds of digits anywhere in the file
+        raise ConfigError(f"{path}: a number is too large for a float ({exc}); give values "
+                          "below 1.8e308") from None
+
+
+def _load_spec(path: Path, spec: dict) -> System:
     _check_keys(path, spec, SPEC_KEYS[""], "")
     name = spec.get("name", path.stem)
     if not isinstance(name, str) or not name:
@@ -543,10 +725,7 @@ def load_spec(path) -> System:
         if clash:
             raise _err(path, "factory", f"the factory defines the system; remove {clash} "
                        "(a factory spec takes only name, description, declared and run)")
-        system = _load_factory(path, spec["factory"])()
-        if not isinstance(system, System):
-            raise _err(path, "factory", f"{spec['factory']!r} returned "
-                       f"{type(system).__name__}, not a systems.System")
+        system = _call_factory(path, spec["factory"], _load_factory(path, spec["factory"]))
         if decl is not None:
             if system.declarations is not None:
                 raise _err(path, "declared", "the factory's system has declarations already; "

@@ -70,6 +70,7 @@ from .dynamics import (
     measure_alpha,
 )
 from .errors import ConfigError, DimensionError, UnknownNameError
+from .jsonio import save_timings, split_timings
 from .interval_sup import _add_up, _counts_for, _interval_sup, _matrix_norm_up, _mul_up
 from .lipschitz import _up
 from .network import Network
@@ -619,7 +620,8 @@ def _sampled_error(em: ErrorModel, n: int, rng: np.random.Generator) -> float:
 # ============================================================================ output
 def write_bounds(path, bounds: BoundsResult, extra_seconds: dict | None = None,
                  network_path: str | None = None) -> Path:
-    """Write ``bounds.json`` (every term, the option used and its assumptions, timings)."""
+    """Write ``bounds.json`` (every term, the option used and its assumptions; its timings
+    go to ``timings.json`` beside it, :func:`~nlyap_opt.jsonio.load_with_timings`)."""
     d = bounds.to_dict()
     if extra_seconds:
         d["seconds"] = {**extra_seconds, **d["seconds"]}
@@ -634,7 +636,9 @@ def write_bounds(path, bounds: BoundsResult, extra_seconds: dict | None = None,
         d["network"] = {"path": shown,
                         "sha256": hashlib.sha256(Path(network_path).read_bytes()).hexdigest()}
     path.parent.mkdir(parents=True, exist_ok=True)
+    d, timings = split_timings(d)   # a hashed artifact: wall-clock timings go beside it
     path.write_text(json.dumps(_finite(d), indent=1, allow_nan=False, ensure_ascii=False))
+    save_timings(path, timings)
     return path
 
 

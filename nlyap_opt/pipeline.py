@@ -51,6 +51,7 @@ from .certificate import (
 )
 from .errors import ConfigError, NlyapError
 from .learning import TrainConfig, quadratic_start, sos_start
+from .jsonio import load_with_timings, save_timings, split_timings
 from .network import Network
 from .provenance import fingerprint, fingerprint_id
 
@@ -112,6 +113,14 @@ _STAGE_FILES = {
     "sos": ("sos.json", "V_sos.json"),
     "cegis": ("V.json", "controller.json", "cegis.json"),
 }
+
+
+def _write_stage_json(path: Path, data: dict) -> None:
+    """A stage file: hashed, so its wall-clock timings go to ``timings.json`` beside it
+    (the same input then gives the same bytes)."""
+    clean, timings = split_timings(data)
+    write_json_atomic(path, clean)
+    save_timings(path, timings)
 
 
 class _Stages:
@@ -316,7 +325,7 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
             seconds["dynamics"] = time.perf_counter() - t
             stages.mark("dynamics")
         dynamics = Network.load(out / "dynamics.json")
-        bounds_info = json.loads((out / "bounds.json").read_text())
+        bounds_info = load_with_timings(out / "bounds.json")
         eta = float(bounds_info["eta"])
         gate = bounds_info.get("gate") or {}
         if gate.get("status", "ok") != "ok":
@@ -416,13 +425,13 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
         res.V.save(out / "V.json")
         if res.controller is not None:
             res.controller.save(out / "controller.json")
-        write_json_atomic(out / "cegis.json", {
+        _write_stage_json(out / "cegis.json", {
             "status": res.status.value, "reason": res.reason, "level": res.level,
             "margin": res.margin, "M": res.M, "smoothing": res.smoothing,
             "area_in_ball": res.area, "history": res.history, "seconds": res.seconds})
         seconds["cegis"] = time.perf_counter() - t
         stages.mark("cegis", *deps)
-    cg = json.loads((out / "cegis.json").read_text())
+    cg = load_with_timings(out / "cegis.json")
     V = Network.load(out / "V.json")
     controller = Network.load(out / "controller.json") if controller is not None else None
 
@@ -520,7 +529,7 @@ def _quadratic_stage(system, cfg, out: Path, stages, controller, problem_of, log
         (out / "V_quadratic.json").unlink(missing_ok=True)
         if best is not None:
             quadratic_lyapunov(best.P).save(out / "V_quadratic.json")
-        write_json_atomic(out / "quadratic.json", {
+        _write_stage_json(out / "quadratic.json", {
             "candidates": [c.to_dict() for c in found],
             "best": None if best is None else dict(best.to_dict(), verify_options=opts),
             "seconds": time.perf_counter() - t})
@@ -558,7 +567,7 @@ def _sos_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> d
             best = {"kind": "sos", "label": f"SOS degree {res.degree}", "file": "V_sos.json",
                     "level": res.certified_level, "inner": res.inner, "volume": vol,
                     "verify_options": opts}
-        write_json_atomic(out / "sos.json", {
+        _write_stage_json(out / "sos.json", {
             "degree": sc.degree, "V_degree": res.degree, "status": res.status,
             "sdp_level": res.sdp_level,
             "level": res.certified_level, "inner": res.inner, "volume": vol,

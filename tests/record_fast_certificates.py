@@ -1,21 +1,30 @@
-"""Print the fast presets' certificates (level, certified area, η) as JSON, for
-``tests/data/fast_certificates.json`` under the OpenBLAS kernel this machine uses.
+"""Record the fast presets' certificates (level, certified area, η, sha256 of the saved
+networks) under this machine's numeric-environment fingerprint.
 
-    python tests/record_fast_certificates.py      # about two minutes on 2 cores
+    python tests/record_fast_certificates.py           # print them (about two minutes)
+    python tests/record_fast_certificates.py --write   # add them to tests/data/fast_certificates.json
 
-Record only for a new kernel or a deliberate change of the training, saying so in the commit.
+A recorded fingerprint makes the tests compare these runs bit for bit on machines with the
+same fingerprint (CPU model and flags, package versions, BLAS kernel and threads, numpy and
+torch dispatch: ``nlyap_opt.provenance``); elsewhere the tests check only the floors. Record
+for a new machine you want bit-for-bit regression checks on, or after a deliberate change of
+the training (then drop the old fingerprints, saying so in the commit). The floors are not
+written by this script: they are properties every machine must reach, set by hand with a
+stated margin.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 import tempfile
 
-from certcheck import blas_kernel
+from certcheck import _REFERENCE_FILE, fast_references, fast_summary
 
 import systems
 from nlyap_opt.configs import get_config
 from nlyap_opt.pipeline import run
+from nlyap_opt.provenance import fingerprint, fingerprint_id
 
 
 def record() -> dict:
@@ -25,11 +34,26 @@ def record() -> dict:
             with tempfile.TemporaryDirectory() as d:
                 c = run(name, get_config(name, "fast"), d, known_dynamics=setting == "known",
                         log=lambda m: None).summary
-            out[f"{name}/{setting}"] = {"level": c["level"],
-                                        "certified_area": c["certified_area"],
-                                        "eta": c.get("eta", 0.0)}
+                got = fast_summary(c, d)
+            del got["status"]
+            out[f"{name}/{setting}"] = got
     return out
 
 
+def main() -> None:
+    fp = fingerprint()
+    entry = {"machine": f"{fp['cpu']['model']}; BLAS {fp['blas'][0]['kernel'] if fp['blas'] else '?'}"
+                        f"; numpy {' '.join(fp['numpy_dispatch'])}; torch "
+                        f"{fp['torch']['cpu_capability']}" + ("; portable" if fp["portable"] else ""),
+             "values": record()}
+    if "--write" not in sys.argv[1:]:
+        print(json.dumps({fingerprint_id(fp): entry}, indent=1))
+        return
+    ref = fast_references()
+    ref["fingerprints"][fingerprint_id(fp)] = entry
+    _REFERENCE_FILE.write_text(json.dumps(ref, indent=1, ensure_ascii=False) + "\n")
+    print(f"recorded {fingerprint_id(fp)} ({entry['machine']}) in {_REFERENCE_FILE}")
+
+
 if __name__ == "__main__":
-    print(json.dumps({blas_kernel() or "unknown": record()}, indent=1))
+    main()

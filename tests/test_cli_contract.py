@@ -11,7 +11,7 @@ import types
 
 import numpy as np
 import pytest
-from certcheck import assert_matches_reference, fast_reference
+from certcheck import assert_fast_certificate
 
 import systems
 from nlyap_opt import cli
@@ -212,26 +212,24 @@ def test_time_limit_must_be_a_positive_number(bad, capsys):
 def test_time_limit_stops_with_exit_5_and_the_rerun_gives_the_reference(tmp_path):
     """--time-limit is a guard, not a budget: it stops a fast learned run part-way (exit 5,
     one line naming the output directory), and the same command without it resumes from the
-    kept stages to the recorded fast certificate (certcheck.assert_matches_reference)."""
+    kept stages to the fast certificate (its floors; bit for bit where this machine's
+    fingerprint is recorded: certcheck.assert_fast_certificate). The limit, 0.3 s, lies far
+    below the run's own work (φ's training, CEGIS, the certificate: seconds on any CPU), so
+    a fast machine is stopped too."""
     out = tmp_path / "run"
     p = _nlyap("run", "van_der_pol", "--preset", "fast", "--out", str(out),
-               "--time-limit", "2")
+               "--time-limit", "0.3")
     _, err = p.communicate(timeout=300)
     assert p.returncode == 5, err
     assert "Traceback" not in err
     last = err.strip().splitlines()[-1]
-    assert last.startswith("nlyap: stopped at --time-limit 2 s;") and str(out) in last
+    assert last.startswith("nlyap: stopped at --time-limit 0.3 s;") and str(out) in last
     assert not (out / "certificate.json").exists()
     p = _nlyap("run", "van_der_pol", "--preset", "fast", "--out", str(out))
     _, err = p.communicate(timeout=600)
     assert p.returncode == 0, err
     cert = json.loads((out / "certificate.json").read_text())
-    kernel, ref, recorded = fast_reference()
-    if not recorded:
-        pytest.skip(f"no learned-f reference for the OpenBLAS kernel {kernel!r}; record one "
-                    "with python tests/record_fast_certificates.py")
-    assert_matches_reference({"level": cert["level"], "certified_area": cert["certified_area"],
-                              "eta": cert["eta"]}, ref["van_der_pol/learned"])
+    assert_fast_certificate("van_der_pol/learned", cert, out)
 
 
 def test_an_open_progress_bar_does_not_swallow_the_one_line_message(capsys):

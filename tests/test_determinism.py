@@ -1,7 +1,6 @@
 """Same config and seed, same artifacts: whatever the clock says and whatever else runs.
 
-PITFALLS P12: a wall-clock budget gave a different φ (and no certificate) on a loaded
-machine. Every training budget is now a count; these tests run the φ and the V/κ training
+A wall-clock budget once gave a different φ (and no certificate) on a loaded machine. Every training budget is now a count; these tests run the φ and the V/κ training
 twice, once with the clock running 100 times fast and a sleep injected into the training
 loop (what a loaded machine looks like to a timed loop), and require the saved network
 JSON to be identical, byte for byte.
@@ -115,3 +114,53 @@ def test_deterministic_torch_is_scoped_and_checked():
         pass
     with pytest.raises(ConfigError, match="threads"):
         LyapunovLearner(systems.get("van_der_pol"), None, None, TrainConfig(threads=0))
+
+
+def _run_files(d):
+    """sha256 of every hashed artifact of a run (the stage files and the certificate's
+    artifacts) and certificate.json without its timings and numeric environment."""
+    import hashlib
+    from pathlib import Path
+
+    from nlyap_opt.jsonio import split_timings
+
+    d = Path(d)
+    names = {n for rec in json.loads((d / "stages.json").read_text()).values()
+             for n in rec["files"]}
+    cert = json.loads((d / "certificate.json").read_text())
+    names |= {a["file"] for a in cert["artifacts"].values()}
+    digests = {n: hashlib.sha256((d / n).read_bytes()).hexdigest() for n in sorted(names)}
+    cert.pop("provenance")
+    return digests, split_timings(cert)[0]
+
+
+def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_bytes(tmp_path):
+    """The fast learned Van der Pol run, once with one BLAS/OpenMP thread on an idle
+    machine, once with two threads and a busy process beside it: every hashed artifact
+    (φ, bounds, V, CEGIS record) has the same sha256, and the certificate the same content;
+    only wall-clock timings (kept in timings.json and seconds.json) differ."""
+    import os
+    import subprocess
+    import sys
+
+    def nlyap(out, threads):
+        env = dict(os.environ, OPENBLAS_NUM_THREADS=str(threads), OMP_NUM_THREADS=str(threads),
+                   MKL_NUM_THREADS=str(threads))
+        p = subprocess.run([sys.executable, "-m", "nlyap_opt.cli", "run", "van_der_pol",
+                            "--preset", "fast", "--out", str(out)], env=env, text=True,
+                           capture_output=True, timeout=600)
+        assert p.returncode == 0, p.stderr
+
+    nlyap(tmp_path / "a", 1)
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        nlyap(tmp_path / "b", 2)
+    finally:
+        busy.kill()
+        busy.wait()
+    files_a, cert_a = _run_files(tmp_path / "a")
+    files_b, cert_b = _run_files(tmp_path / "b")
+    assert {"dynamics.json", "bounds.json", "V.json", "cegis.json"} <= set(files_a)
+    assert files_a == files_b
+    assert cert_a == cert_b
+    assert json.loads((tmp_path / "a" / "timings.json").read_text())["cegis.json"]

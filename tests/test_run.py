@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 import pytest
-from certcheck import assert_matches_reference, fast_reference
+from certcheck import assert_fast_certificate
 
 import systems
 from nlyap_opt.cli import main
@@ -275,20 +275,17 @@ def test_interrupted_run_resumes_to_a_certificate_that_reverifies(stage, tmp_pat
 
 # ------------------------------------------------------------------ regression (issue 11)
 @pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
-def test_fast_certificates_are_identical_to_the_reference(known_runs, learned_runs, name):
-    """Refactors must not move a certificate: the fast presets' areas are the recorded ones
-    exactly, their levels and η to 1e-8 relative (``certcheck.REFERENCE_RTOL``; bit for bit
-    on one machine). The learned-f values are recorded per OpenBLAS kernel: another kernel's
-    rounding gives the fast presets' φ another fit (tests/data/fast_certificates.json)."""
-    kernel, ref, recorded = fast_reference()
+def test_fast_certificates_reach_their_floors_and_match_this_fingerprint(
+        known_runs, learned_runs, name):
+    """Refactors must not move a certificate. On any machine the fast presets' certificates
+    reach the floors of tests/data/fast_certificates.json (certified area, η: properties
+    with stated margins); on a machine whose numeric-environment fingerprint has a recorded
+    reference they are the recorded ones bit for bit, networks included
+    (``certcheck.assert_fast_certificate``). Another CPU, BLAS kernel or package version
+    trains another φ in its last bits, so no value recorded elsewhere is compared exactly."""
     for setting, runs in (("known", known_runs), ("learned", learned_runs)):
-        cert = runs[name][1]
-        got = {"level": cert["level"], "certified_area": cert["certified_area"],
-               "eta": cert.get("eta", 0.0)}
-        if setting == "learned" and not recorded:
-            pytest.skip(f"no learned-f reference for the OpenBLAS kernel {kernel!r}; record "
-                        "one with python tests/record_fast_certificates.py")
-        assert_matches_reference(got, ref[f"{name}/{setting}"], setting)
+        d, cert = runs[name]
+        assert_fast_certificate(f"{name}/{setting}", cert, d)
 
 
 def test_interrupt_after_the_dynamics_files_are_written(tmp_path, monkeypatch):

@@ -24,7 +24,8 @@ import numpy as np
 from scipy.linalg import solve_continuous_lyapunov
 from scipy.optimize import minimize_scalar
 
-__all__ = ["vdp_lyapunov_matrix", "vdp_quadratic_level", "vdp_sampled_level"]
+__all__ = ["vdp_limit_cycle", "vdp_lyapunov_matrix", "vdp_quadratic_level", "vdp_sampled_level",
+           "vdp_true_roa_area"]
 
 
 def vdp_lyapunov_matrix(mu: float = 1.0) -> np.ndarray:
@@ -69,3 +70,44 @@ def vdp_sampled_level(P, mu: float = 1.0, radius: float = 3.0, n: int = 1201) ->
     Vdot = 2 * ((P[0, 0] * X1 + P[0, 1] * X2) * f1 + (P[0, 1] * X1 + P[1, 1] * X2) * f2)
     bad = (Vdot >= 0) & (X1**2 + X2**2 > 1e-6)
     return float(V[bad].min())
+
+
+def vdp_limit_cycle(mu: float = 1.0, rtol: float = 1e-12) -> np.ndarray:
+    r"""The limit cycle bounding reversed Van der Pol's ROA, by an integrator the toolbox
+    does not use (SciPy's adaptive DOP853 on the forward-time system, whose cycle attracts).
+
+    Forward Van der Pol :math:`\dot x_1 = x_2,\ \dot x_2 = -x_1 + \mu(1 - x_1^2)x_2` is the
+    reversed system in reversed time, so its stable limit cycle is the boundary of the
+    reversed system's ROA. From (2, 0), 60 time units settle onto the cycle (its Floquet
+    multiplier at μ = 1 is about e^{-1.06 T}); one period is then cut between two upward
+    crossings of x₂ = 0 with x₁ > 0, located by dense output to ``rtol``.
+
+    Returns
+    -------
+    (N, 2) ndarray
+        Points of one period of the cycle (closed: the last equals the first to ``rtol``).
+    """
+    from scipy.integrate import solve_ivp
+
+    def forward(t, x):
+        return [x[1], -x[0] + mu * (1.0 - x[0] ** 2) * x[1]]
+
+    settle = solve_ivp(forward, (0.0, 60.0), [2.0, 0.0], method="DOP853", rtol=rtol,
+                       atol=rtol)
+
+    def crossing(t, x):
+        return x[1]
+
+    crossing.direction = -1.0   # x₂ falls through 0 at the cycle's rightmost point
+    cyc = solve_ivp(forward, (0.0, 30.0), settle.y[:, -1], method="DOP853", rtol=rtol,
+                    atol=rtol, events=crossing, dense_output=True)
+    t0, t1 = cyc.t_events[0][1], cyc.t_events[0][2]
+    ts = np.linspace(t0, t1, 20001)
+    return cyc.sol(ts).T
+
+
+def vdp_true_roa_area(mu: float = 1.0) -> float:
+    """Area inside :func:`vdp_limit_cycle` (the shoelace formula on 20 001 points; the
+    polygon's error is O(1/N²), far below 1e-6 here)."""
+    x, y = vdp_limit_cycle(mu).T
+    return 0.5 * abs(float(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1])))

@@ -80,9 +80,11 @@ _nonneg = _number(lambda v: v >= 0, "a finite number >= 0")
 _positive = _number(lambda v: v > 0, "a finite number > 0")
 #: the largest radius ``verify`` takes (its square, summed over the states, stays finite)
 RADIUS_MAX = 1e100
-_inner_radius = _number(lambda v: 0 <= v <= RADIUS_MAX, f"a number in [0, {RADIUS_MAX:g}]")
-_outer_radius = _number(lambda v: 0 < v <= RADIUS_MAX, f"a number in (0, {RADIUS_MAX:g}]")
-_connect_timeout = _number(lambda v: 0 < v <= 3600, "a number of seconds in (0, 3600]")
+_inner_radius = _number(lambda v: 0 <= v <= RADIUS_MAX,
+                        f"a finite number >= 0 and <= {RADIUS_MAX:g}")
+_outer_radius = _number(lambda v: 0 < v <= RADIUS_MAX,
+                        f"a finite number > 0 and <= {RADIUS_MAX:g}")
+_connect_timeout = _number(lambda v: 0 < v <= 3600, "a finite number of seconds in (0, 3600]")
 
 
 def _seed(text: str) -> int:

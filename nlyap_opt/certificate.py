@@ -49,13 +49,14 @@ from .walker import evaluate
 __all__ = [
     "CertStatus", "Decrease", "RoaProblem", "RoaCertificate", "InnerEllipse", "certify_roa",
     "recheck_certificate", "certify_with_inner_search", "load_artifact", "sha256_file", "FORMAT",
-    "VERSION",
+    "VERSION", "system_fingerprint", "system_binding", "spec_factory", "status_text",
 ]
 
 FORMAT = "nlyap-roa-certificate"
-VERSION = 3
-#: versions this nlyap reads (2: before domains; its region is the ball of outer_radius)
-READABLE_VERSIONS = (2, 3)
+VERSION = 4
+#: versions this nlyap reads (2: before domains, its region is the ball of outer_radius; 2
+#: and 3: before the system binding, displayed but not re-checked)
+READABLE_VERSIONS = (2, 3, 4)
 
 
 class CertStatus(str, Enum):
@@ -78,6 +79,113 @@ def sha256_file(path: str | Path) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+def status_text(status: str, declared) -> str:
+    """The status word of a certificate: ``"certified under the declared assumptions: …"``
+    when it is certified and rests on declarations about ``f`` (each named by the words
+    before its colon), else the status itself."""
+    status = str(getattr(status, "value", status))
+    if status != CertStatus.CERTIFIED.value or not declared:
+        return status
+    names = "; ".join(str(a).split(":")[0].strip() for a in declared)
+    return f"certified under the declared assumptions: {names}"
+
+
+# ============================================================================ system binding
+def _floats(a) -> list:
+    """An array as its shape and the exact hex of each float64 (no rounding, no locale)."""
+    a = np.asarray(a, dtype=float)
+    return [list(a.shape), [float(v).hex() for v in a.ravel()]]
+
+
+def _graph(F: ca.Function) -> list:
+    """The instruction list of an SX Function: operation codes, work-vector indices and the
+    exact constants, with the sparsity of every input and output."""
+    out: list = [[list(F.sparsity_in(i).get_triplet()) + [F.size1_in(i), F.size2_in(i)]
+                  for i in range(F.n_in())],
+                 [list(F.sparsity_out(i).get_triplet()) + [F.size1_out(i), F.size2_out(i)]
+                  for i in range(F.n_out())]]
+    for k in range(F.n_instructions()):
+        op = int(F.instruction_id(k))
+        row = [op, [int(i) for i in F.instruction_input(k)],
+               [int(i) for i in F.instruction_output(k)]]
+        if op == ca.OP_CONST:
+            row.append(float(F.instruction_constant(k)).hex())
+        out.append(row)
+    return out
+
+
+#: nodes per axis of the grid on which a black-box callable's values enter its fingerprint
+CALLABLE_NODES = 3
+
+
+def _system_parts(system) -> dict:
+    """What a certificate binds, part by part (plain JSON, deterministic)."""
+    parts = {
+        "kind": system.kind,
+        "dimensions and names": [system.nx, system.nu, list(system.state_names),
+                                 list(system.input_names)],
+        "state box": _floats(system.state_box),
+        "input box": _floats(system.input_box),
+        "equilibrium input u_eq": _floats(system.u_eq),
+        "known components": [int(i) for i in system.known_state_derivatives],
+        "declared assumptions": None if system.declarations is None
+        else system.declarations.to_dict(),
+    }
+    if system.kind == "model":
+        parts["f"] = _graph(system.f_fun)
+    else:
+        parts["known components"].append(_graph(system.known_function()))
+        if system.kind == "samples":
+            smp = system.samples
+            parts["f"] = [_floats(smp.box), [int(c) for c in smp.counts],
+                          hashlib.sha256(np.ascontiguousarray(smp.values, dtype="<f8")
+                                         .tobytes()).hexdigest()]
+        else:   # a callable: its values on a small grid of its sampling box, 12 digits
+            box = np.asarray(system.sampling_box, dtype=float)
+            n = CALLABLE_NODES if CALLABLE_NODES ** len(box) <= 3 ** 8 else 2
+            axes = [np.linspace(lo, hi, n) for lo, hi in box]
+            pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(box))
+            vals = system.evaluate(pts[:, :system.nx], pts[:, system.nx:] if system.nu
+                                   else None)
+            parts["f"] = [_floats(box), [f"{v:.12e}" for v in np.asarray(vals).ravel()]]
+    return parts
+
+
+def _digest(obj) -> str:
+    text = json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def system_binding(system) -> dict:
+    """``{"sha256": …, "parts": {part: sha256}}``: the canonical hash of a system and of
+    each of its parts (``f`` as the instruction list of its CasADi graph with the
+    parameters substituted and the constants exact; the state and input boxes; ``u_eq``;
+    the known components; the declared assumptions; for data, the sample values or a
+    callable's values on a fixed grid). Deterministic across processes and machines: no
+    Python ``hash()``, no object ids, floats as their exact hex."""
+    parts = {k: _digest(v) for k, v in _system_parts(system).items()}
+    return {"sha256": _digest(parts), "parts": parts}
+
+
+def system_fingerprint(system) -> str:
+    """The sha256 of :func:`system_binding` (one hex string per system)."""
+    return system_binding(system)["sha256"]
+
+
+def spec_factory(path: str | Path) -> str | None:
+    """The ``factory`` a system spec file names (Python code run when it is loaded), or
+    ``None``; read as TOML only (nothing imported). A file that cannot be read answers
+    ``None``: loading it then reports why."""
+    import tomllib
+
+    try:
+        with open(path, "rb") as fh:
+            spec = tomllib.load(fh)
+    except (OSError, tomllib.TOMLDecodeError):
+        return None
+    return None if "factory" not in spec else str(spec["factory"])
 
 
 def _finite(name: str, value, *, low: float | None = None, strict: bool = False) -> float:
@@ -335,8 +443,8 @@ class RoaCertificate:
     def summary(self) -> str:
         """One line: status, level, reason."""
         if self.certified:
-            return (f"certified: level {self.level:.6g} on {self.region_text()} "
-                    f"({self.setting} dynamics)")
+            return (f"{status_text(self.status, self.declared)}: level {self.level:.6g} on "
+                    f"{self.region_text()} ({self.setting} dynamics)")
         return f"{self.status.value}: {self.reason}"
 
     # ------------------------------------------------------------------ the certified set
@@ -739,15 +847,39 @@ def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
     return first
 
 
-def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
-    """Re-verify a saved ``certificate.json`` from its hashed artifacts.
+def recheck_certificate(path: str | Path, *, system=None, allow_factory: bool = False,
+                        log=print) -> RoaCertificate:
+    """Re-verify a saved ``certificate.json`` from its hashed artifacts, as written.
 
-    Every artifact (``V``, ``κ``, ``φ``) must match the sha256 recorded in the certificate;
-    the conditions are then verified again at the saved level (no search). A claim that
-    does not re-verify, or an artifact that changed, gives a certificate that is not
-    ``CERTIFIED`` with the reason.
+    Parameters
+    ----------
+    path : str or Path
+        The certificate file or the directory holding ``certificate.json``.
+    system : systems.System, str or Path, optional
+        The system to re-check against: a :class:`~systems.System`, a catalogue name or a
+        spec file (TOML). Default: the catalogue system the certificate names, else the
+        spec file it names, read as TOML only (one with a ``factory`` is refused).
+    allow_factory : bool
+        Run the ``factory`` (Python code) of the spec file given as ``system``. Without it
+        such a file is refused before anything is imported.
+    log : callable
+
+    Returns
+    -------
+    RoaCertificate
+        ``CERTIFIED`` only when every artifact matches its sha256, the system is the
+        certified one (:func:`system_binding`: ``"not the certified system: … differs"``
+        otherwise; a certificate without the binding is refused with how to rerun), the
+        conditions verify again at the saved level with the saved inner ellipse (no
+        search), and every stored number is what the re-check proves (the field named
+        otherwise).
+
+    Raises
+    ------
+    ConfigError
+        A file that is not a certificate, a system that cannot be found, a factory not
+        allowed.
     """
-    import systems
     from verification.verify import check_file_options
 
     path = Path(path)
@@ -766,6 +898,7 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
     if not isinstance(problem_d, dict):
         raise ConfigError(f"certificate {path} holds no 'problem' section; rerun the command "
                           "that wrote it")
+    sysm = _recheck_system(saved, d, path, system, allow_factory)
     base = path.parent
     nets: dict[str, object] = {}
     for role, art in saved.artifacts.items():
@@ -799,16 +932,11 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
             return _refused(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
     if "V" not in nets:
         raise ConfigError(f"certificate {path} lists no V artifact; rerun the command")
-    if saved.system not in systems.names() and d.get("system_source"):
-        src = Path(d["system_source"])
-        if not src.is_file():
-            raise ConfigError(f"certificate {path} is about system {saved.system!r} from "
-                              f"{src}, which no longer exists; restore the spec file")
-        spec = systems.load_spec(src)
-        systems.REGISTRY.setdefault(spec.name, lambda _s=spec: _s)
-    system = systems.get(saved.system)
+    refusal = _binding_refusal(d, sysm)
+    if refusal:
+        return _refused(saved, refusal)
     problem = RoaProblem(
-        system, nets["V"], nets.get("controller"), nets.get("dynamics"),
+        sysm, nets["V"], nets.get("controller"), nets.get("dynamics"),
         inner=saved.inner, outer=saved.outer, eta=saved.eta, domain=saved.domain,
         initial_set=saved.initial_set,
         margin_mode=problem_d.get("margin_mode", "pointwise"), smoothing=saved.smoothing,
@@ -825,7 +953,136 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
     new = certify_roa(problem, saved.level, search=False, check_inner_ellipse=True,
                       inner_ellipse=saved.inner_ellipse, log=log)
     new.artifacts = saved.artifacts
+    if new.certified:
+        wrong = _not_as_proved(saved, new)
+        if wrong:
+            return _refused(new, "the certificate states " + "; ".join(wrong)
+                            + ": not what the re-check proves (an edited certificate.json?); "
+                            "rerun the command that wrote it")
     return new
+
+
+def _recheck_system(saved: RoaCertificate, d: dict, path: Path, system, allow_factory: bool):
+    """The system a re-check runs against (module docstring of :func:`recheck_certificate`):
+    nothing named inside the certificate is executed."""
+    import systems
+    from systems import System
+
+    if isinstance(system, System):
+        return system
+    if system is not None:
+        if not isinstance(system, (str, Path)):
+            raise ConfigError(f"system must be a systems.System, a catalogue name or a spec "
+                              f"file, got {type(system).__name__}")
+        if isinstance(system, str) and system in systems.names() and not Path(system).is_file():
+            return systems.get(system)
+        p = Path(system)
+        if not p.is_file():
+            raise ConfigError(f"system {str(system)!r} is neither a registered system nor a "
+                              "spec file; pass a catalogue name (see 'nlyap systems') or the "
+                              "TOML file")
+        factory = spec_factory(p)
+        if factory is not None and not allow_factory:
+            raise ConfigError(
+                f"system file {p} defines its system with factory = {factory!r}, Python code "
+                "that runs only when asked; read it, then pass --system FILE.toml "
+                "--allow-factory (Python: allow_factory=True)")
+        return systems.load_spec(p)
+    if saved.system in systems.CATALOGUE:
+        return systems.get(saved.system)
+    src = d.get("system_source")
+    if src:
+        src = Path(str(src))
+        if not src.is_file():
+            raise ConfigError(f"certificate {path} is about system {saved.system!r} from "
+                              f"{src}, which does not exist; restore the spec file or pass "
+                              "--system FILE.toml")
+        factory = spec_factory(src)
+        if factory is not None:
+            # code named inside a certificate directory is never run on its own
+            raise ConfigError(
+                f"certificate {path} names the system file {src}, whose factory "
+                f"{factory!r} is Python code; a re-check never runs code named inside a "
+                "certificate: read the factory, then pass --system FILE.toml --allow-factory "
+                "(Python: system=FILE.toml, allow_factory=True)")
+        return systems.load_spec(src)       # expressions or samples: parsed, not executed
+    if saved.system in systems.names():     # registered in this process by its own code
+        return systems.get(saved.system)
+    raise ConfigError(f"certificate {path} is about system {saved.system!r}, which is not in "
+                      "the catalogue and names no spec file; pass --system NAME or "
+                      "--system FILE.toml")
+
+
+def _binding_refusal(d: dict, system) -> str:
+    """Why ``system`` is not the one the certificate binds (``""``: it is)."""
+    bound = d.get("system_binding")
+    if not isinstance(bound, dict) or not isinstance(bound.get("sha256"), str):
+        return ("the certificate does not record the system it was made for (no "
+                "system_binding: written by an older nlyap); rerun the command that wrote it "
+                "to certify again")
+    now = system_binding(system)
+    if now["sha256"] == bound["sha256"]:
+        return ""
+    was = bound.get("parts") if isinstance(bound.get("parts"), dict) else {}
+    differ = [k for k, v in now["parts"].items() if was.get(k) != v] or ["its hash"]
+    return (f"not the certified system: {', '.join(differ)} "
+            f"{'differs' if len(differ) == 1 else 'differ'} from the system the certificate "
+            f"was made for (sha256 {now['sha256'][:12]}… ≠ {bound['sha256'][:12]}…); "
+            "re-check against the certified system or certify this one")
+
+
+#: relative tolerance of the numbers a re-check derives again (M, β, the inner ellipse's box):
+#: the same computation on another machine may differ in the last bits
+DERIVED_RTOL = 1e-9
+
+
+def _close(a, b, rtol: float = DERIVED_RTOL) -> bool:
+    if a is None or b is None:
+        return a is b
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    return a.shape == b.shape and bool(np.all(np.isfinite(a)) and np.all(
+        np.abs(a - b) <= rtol * np.maximum(np.abs(a), np.abs(b))))
+
+
+def _not_as_proved(saved: RoaCertificate, new: RoaCertificate) -> list[str]:
+    """The stored fields of ``saved`` that are not what ``new`` (its re-check) proved.
+
+    The level, the radii, η, s, the domain and the inner ellipse's ``P`` and form are used
+    as written by the re-check, so they must equal the proved ones exactly; the derived
+    numbers (``M``, the margin β, the box around ``E``) to :data:`DERIVED_RTOL`; the inner
+    ellipse's level ``c_q`` may not exceed the proved one (a larger ``E`` is not proved)."""
+    out = []
+
+    def field(name, stored, proved, ok):
+        if not ok:
+            out.append(f"{name} = {stored!r}, the re-check proves {proved!r}")
+
+    for name, a, b in (("level", saved.level, new.level),
+                       ("inner_radius", saved.inner, new.inner),
+                       ("outer_radius", saved.outer, new.outer), ("eta", saved.eta, new.eta),
+                       ("norm_smoothing", saved.smoothing, new.smoothing),
+                       ("setting", saved.setting, new.setting),
+                       ("margin_mode", saved.margin_mode, new.margin_mode)):
+        field(name, a, b, a == b)
+    field("margin", saved.margin, new.margin, _close(saved.margin, new.margin))
+    field("M", saved.M, new.M, _close(saved.M, new.M))
+    field("assumptions_declared_by_user", saved.declared, new.declared,
+          list(saved.declared) == list(new.declared))
+    si, ni = saved.inner_ellipse, new.inner_ellipse
+    if (si is None) != (ni is None):
+        field("inner_ellipse", None if si is None else "an ellipse",
+              None if ni is None else "an ellipse", False)
+    elif si is not None:
+        field("inner_ellipse.P", np.asarray(si.P).tolist(), np.asarray(ni.P).tolist(),
+              np.array_equal(si.P, ni.P))
+        for name in ("status", "form", "proved"):
+            field(f"inner_ellipse.{name}", getattr(si, name), getattr(ni, name),
+                  getattr(si, name) == getattr(ni, name))
+        field("inner_ellipse.level", si.level, ni.level,
+              si.level <= ni.level and _close(si.level, ni.level, 1e-12))
+        field("inner_ellipse.box_half_widths", np.asarray(si.half_widths).tolist(),
+              np.asarray(ni.half_widths).tolist(), _close(si.half_widths, ni.half_widths))
+    return out
 
 
 class _CasadiV:
@@ -907,8 +1164,12 @@ def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
     d = cert.to_dict()
     d["problem"] = problem_to_dict(problem)
     source = getattr(problem.system, "source", "") or ""
+    binding = system_binding(problem.system)
     if str(source).endswith(".toml"):  # a spec-file system: re-checkable in a new process
         d["system_source"] = str(Path(source).resolve())
+        if Path(source).is_file():
+            binding["spec_sha256"] = sha256_file(source)
+    d["system_binding"] = binding
     d.update(extra or {})
     # what determined the numbers (versions, BLAS kernel, SIMD dispatch, CPU): a re-check
     # elsewhere says so; the verdict itself does not depend on it

@@ -78,6 +78,13 @@ def _number(check, want: str):
 
 _nonneg = _number(lambda v: v >= 0, "a finite number >= 0")
 _positive = _number(lambda v: v > 0, "a finite number > 0")
+#: the largest radius ``verify`` takes (its square, summed over the states, stays finite)
+RADIUS_MAX = 1e100
+_inner_radius = _number(lambda v: 0 <= v <= RADIUS_MAX,
+                        f"a finite number >= 0 and <= {RADIUS_MAX:g}")
+_outer_radius = _number(lambda v: 0 < v <= RADIUS_MAX,
+                        f"a finite number > 0 and <= {RADIUS_MAX:g}")
+_connect_timeout = _number(lambda v: 0 < v <= 3600, "a finite number of seconds in (0, 3600]")
 
 
 def _seed(text: str) -> int:
@@ -126,6 +133,30 @@ def _dask_args(sp) -> None:
     sp.add_argument("--scheduler", metavar="ADDRESS",
                     help="tcp://HOST:PORT of an existing Dask cluster (`dask scheduler`); "
                          "it is used, never closed")
+    sp.add_argument("--connect-timeout", type=_connect_timeout, metavar="SECONDS",
+                    dest="connect_timeout",
+                    help="with --scheduler: seconds to reach the scheduler and have it "
+                         "answer (default 10); a closed port fails at once")
+
+
+def _check_dask_args(args) -> None:
+    """``--workers`` bounded for a local cluster; ``--connect-timeout`` only with a scheduler."""
+    from .parallel import MAX_LOCAL_WORKERS
+
+    workers, scheduler = getattr(args, "workers", None), getattr(args, "scheduler", None)
+    if workers is not None and scheduler is None and workers > MAX_LOCAL_WORKERS:
+        raise UsageError(f"--workers {workers}: at most {MAX_LOCAL_WORKERS} local worker "
+                         "processes are started; pass fewer, or start a Dask cluster and "
+                         "give --scheduler ADDRESS")
+    if getattr(args, "connect_timeout", None) is not None and scheduler is None:
+        raise UsageError("--connect-timeout applies to --scheduler; drop it or give "
+                         "--scheduler ADDRESS")
+
+
+def _connect_kw(args) -> dict:
+    """``connect_timeout=`` of :func:`nlyap_opt.parallel.dask_client` from the arguments."""
+    t = getattr(args, "connect_timeout", None)
+    return {} if t is None else {"connect_timeout": t}
 
 
 def time_limit_arg(sp) -> None:
@@ -252,7 +283,17 @@ def _spec_system(path: str) -> str:
 
 def _check_paths(args) -> None:
     """Refuse missing inputs and unusable outputs before any work starts."""
+    _check_dask_args(args)
     if getattr(args, "system", None) is not None:
+        if _is_spec(args.system) and args.command == "verify" and \
+                not args.allow_factory and Path(args.system).is_file():
+            from .certificate import spec_factory
+
+            factory = spec_factory(args.system)
+            if factory is not None:
+                raise UsageError(f"--system {args.system} defines its system with factory = "
+                                 f"{factory!r}, Python code that verify runs only when asked: "
+                                 "read it, then add --allow-factory")
         if _is_spec(args.system):   # --system FILE.toml / run FILE.toml
             args.system_file = str(Path(args.system).resolve())  # Dask workers load it
             args.system = _spec_system(args.system)
@@ -357,10 +398,15 @@ def _note_other_fingerprint(path: Path) -> None:
 
 
 def _verify_certificate(args) -> int:
-    given = [f"--{o}" for o in _PROBLEM_OPTIONS if getattr(args, o) is not None]
+    given = [f"--{o}" for o in _PROBLEM_OPTIONS if o != "system" and getattr(args, o) is not None]
     if given:
         raise UsageError(f"--certificate re-checks a saved run with its own V, κ, φ, radii and "
                          f"level; drop {', '.join(given)}")
+    system = None
+    if args.system is not None:      # loaded by _check_paths (a factory only when allowed)
+        import systems
+
+        system = systems.get(args.system)
     path = Path(args.certificate)
     if path.is_dir():
         path = path / "certificate.json"
@@ -378,10 +424,11 @@ def _verify_certificate(args) -> int:
         # "verified" comes from it, any other verdict is decided again serially
         from .parallel import dask_client, verifying_on
 
-        with dask_client(args.workers, args.scheduler) as client, verifying_on(client):
-            cert = recheck_certificate(path)
+        with dask_client(args.workers, args.scheduler, **_connect_kw(args)) as client, \
+                verifying_on(client):
+            cert = recheck_certificate(path, system=system)
     else:
-        cert = recheck_certificate(path)
+        cert = recheck_certificate(path, system=system)
     print(cert.summary())
     if args.json:
         _write_json(args.json, cert.to_dict() if hasattr(cert, "to_dict") else
@@ -436,7 +483,7 @@ def cmd_verify(args) -> int:
                              "them or use --backend interval")
         from .parallel import dask_client, verify_distributed
 
-        with dask_client(args.workers, args.scheduler) as client:
+        with dask_client(args.workers, args.scheduler, **_connect_kw(args)) as client:
             res = verify_distributed(problem, client, resolution=args.resolution)
     else:
         res = verify(problem, backend=args.backend, **opts)
@@ -484,11 +531,13 @@ def cmd_run(args) -> int:
 
         pres = run_portfolio(getattr(args, "system_file", None) or args.system, cfg, out,
                              seeds=args.seeds, workers=args.workers,
-                             scheduler=args.scheduler, known_dynamics=args.known_dynamics)
+                             scheduler=args.scheduler, known_dynamics=args.known_dynamics,
+                             connect_timeout=args.connect_timeout)
         return 0 if pres.certified else 2
     # without --seeds, --workers/--scheduler run the certificate stage's checks on Dask
     res = run(args.system, cfg, out, known_dynamics=args.known_dynamics,
-              workers=args.workers, scheduler=args.scheduler)
+              workers=args.workers, scheduler=args.scheduler,
+              connect_timeout=args.connect_timeout)
     status = res["status"] if isinstance(res, dict) else res.status
     return 0 if getattr(status, "value", status) == "certified" else 2
 
@@ -557,9 +606,16 @@ def build_parser() -> argparse.ArgumentParser:
              description="Verify V > 0 and dV/dt < 0 on inner <= |x| <= outer (and V <= level), "
                          "or re-check a saved run with --certificate.")
     sp.add_argument("--certificate",
-                    help="re-check DIR/certificate.json of a run (artifacts hashed, conditions "
-                         "verified again at the saved level); replaces the options below")
-    sp.add_argument("--system", help="the system of V (a catalogue name or a spec file)")
+                    help="re-check DIR/certificate.json of a run (artifacts hashed, the system "
+                         "bound, conditions verified again at the saved numbers); replaces the "
+                         "options below but --system")
+    sp.add_argument("--system",
+                    help="catalogue name or spec file (TOML); with --certificate the system to "
+                         "re-check against (default: the catalogue system the certificate "
+                         "names, or the factory-free spec file it names)")
+    sp.add_argument("--allow-factory", action="store_true", dest="allow_factory",
+                    help="run the Python factory of the --system spec file (never run "
+                         "otherwise)")
     sp.add_argument("--lyapunov", help="V network JSON")
     sp.add_argument("--controller", help="controller network JSON (feeds the inputs)")
     sp.add_argument("--dynamics", help="learned dynamics network JSON (replaces f)")
@@ -570,8 +626,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--smoothing", type=_nonneg,
                     help="s >= 0: with --eta use sqrt(|grad V|^2 + s^2) (certificate.json's "
                          "norm_smoothing)")
-    sp.add_argument("--inner", type=_nonneg, help="inner radius epsilon (0 <= inner < outer)")
-    sp.add_argument("--outer", type=_positive, help="outer radius r")
+    sp.add_argument("--inner", type=_inner_radius,
+                    help="inner radius epsilon (0 <= inner < outer)")
+    sp.add_argument("--outer", type=_outer_radius, help=f"outer radius r (<= {RADIUS_MAX:g})")
     sp.add_argument("--level", type=_positive, help="restrict to V(x) <= level (> 0)")
     sp.add_argument("--backend", default="interval", choices=["interval", "dreal"],
                     help="interval: the sound verifier; dreal: the optional second opinion")

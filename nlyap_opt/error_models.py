@@ -70,8 +70,8 @@ from .dynamics import (
     measure_alpha,
 )
 from .errors import ConfigError, DimensionError, UnknownNameError
-from .jsonio import save_timings, split_timings
 from .interval_sup import _add_up, _counts_for, _interval_sup, _matrix_norm_up, _mul_up
+from .jsonio import save_timings, split_timings
 from .lipschitz import _up
 from .network import Network
 

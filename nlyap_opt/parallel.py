@@ -57,7 +57,8 @@ import numpy as np
 from .errors import BackendUnavailableError, ConfigError
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
-           "parse_scheduler", "client_workers", "cpu_cores"]
+           "parse_scheduler", "client_workers", "cpu_cores", "check_connect_timeout",
+           "MAX_LOCAL_WORKERS", "DEFAULT_CONNECT_TIMEOUT"]
 
 #: ``tcp://HOST:PORT`` (also ``tls://``); a bare ``HOST:PORT`` means ``tcp://``
 _ADDRESS = re.compile(r"^(?:(tcp|tls)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):(\d{1,5})$")
@@ -109,13 +110,88 @@ def parse_scheduler(address: str) -> str:
     return f"{proto}://{host}:{port}"
 
 
-def _check_workers(workers) -> int | None:
+#: the most worker processes of a local cluster (a cluster of more machines: a scheduler)
+MAX_LOCAL_WORKERS = 256
+#: seconds a connection to a scheduler may take, its first answer included
+DEFAULT_CONNECT_TIMEOUT = 10.0
+
+
+def _check_workers(workers, local: bool = True) -> int | None:
     if workers is None:
         return None
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ConfigError(f"workers must be an integer >= 1, got {workers!r}; "
                           "pass e.g. workers=2 (or leave it out: one per CPU core)")
+    if local and workers > MAX_LOCAL_WORKERS:
+        raise ConfigError(f"workers = {workers} local worker processes; at most "
+                          f"{MAX_LOCAL_WORKERS} are started on this machine: pass fewer, or "
+                          "start a cluster and give its scheduler address")
     return int(workers)
+
+
+def check_connect_timeout(seconds) -> float:
+    """``seconds`` as a finite positive number (:class:`ConfigError` otherwise)."""
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float, np.floating)) \
+            or not math.isfinite(seconds) or not 0 < seconds <= 3600:
+        raise ConfigError(f"connect timeout must be a number of seconds in (0, 3600], got "
+                          f"{seconds!r}; pass e.g. 10")
+    return float(seconds)
+
+
+def _probe_scheduler(address: str, timeout: float) -> None:
+    """Reach the scheduler at ``address`` and have it answer, all within ``timeout``.
+
+    A plain TCP connection first (a closed port is refused at once), then Dask's handshake
+    and one ``identity`` call on an event loop of its own in a helper thread, abandoned at
+    the deadline: a listener that accepts and never answers ends here, not in a hang.
+    :class:`ConfigError` with the address when either fails.
+    """
+    import asyncio
+    import socket
+
+    from distributed.comm import get_address_host_port
+
+    deadline = time.monotonic() + timeout
+
+    def fail(why: str):
+        return ConfigError(f"no Dask scheduler answered at {address} within {timeout:g} s "
+                           f"({why}); start `dask scheduler` there, fix the address, or "
+                           "raise the connect timeout")
+
+    try:
+        host, port = get_address_host_port(address)
+        with socket.create_connection((host, port), timeout=timeout):
+            pass
+    except (OSError, ValueError) as err:
+        raise fail(type(err).__name__) from None
+    if address.startswith("tls://"):   # the TLS handshake needs the security settings
+        return
+    outcome: list = []
+
+    def ask():
+        from distributed.core import rpc
+
+        async def identity():
+            async with rpc(address) as r:
+                return await r.identity()
+
+        async def bounded():
+            return await asyncio.wait_for(identity(), max(deadline - time.monotonic(), 0.01))
+
+        try:
+            outcome.append(asyncio.run(bounded()))
+        except BaseException as err:  # noqa: BLE001 - reported to the caller as a refusal
+            outcome.append(err)
+
+    t = threading.Thread(target=ask, name="nlyap-scheduler-probe", daemon=True)
+    t.start()
+    t.join(max(deadline - time.monotonic(), 0.0) + 1.0)
+    if t.is_alive() or not outcome:
+        raise fail("no answer")
+    if isinstance(outcome[0], BaseException):
+        raise fail(type(outcome[0]).__name__)
+    if not isinstance(outcome[0], dict) or outcome[0].get("type") != "Scheduler":
+        raise fail("not a scheduler")
 
 
 def cpu_cores() -> int:
@@ -128,7 +204,8 @@ def cpu_cores() -> int:
 
 @contextlib.contextmanager
 def dask_client(workers: int | None = None, scheduler: str | None = None, *,
-                timeout: float = 60.0) -> Iterator:
+                timeout: float = 60.0,
+                connect_timeout: float = DEFAULT_CONNECT_TIMEOUT) -> Iterator:
     """A Dask client: on a local cluster started here, or on an existing cluster.
 
     Parameters
@@ -136,14 +213,19 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
     workers : int, optional
         Without ``scheduler``: the number of worker processes of the ``LocalCluster``
         (default: the number of CPU cores this process may use). With ``scheduler``: wait
-        (up to ``timeout``) until at least this many workers are connected.
+        (up to ``timeout``) until at least this many workers are connected. At most
+        :data:`MAX_LOCAL_WORKERS` for a local cluster.
     scheduler : str, optional
         Address ``tcp://HOST:PORT`` of a running Dask scheduler. The cluster is connected
         to, never closed; without it a ``LocalCluster`` is started and closed on exit
         (processes, one thread per worker, ``dashboard_address=None``, host 127.0.0.1,
         logs at error level only).
     timeout : float
-        Seconds to wait for the scheduler and the workers.
+        Seconds to wait for the workers (and a local cluster to start).
+    connect_timeout : float
+        Seconds to reach the scheduler at ``scheduler`` and have it answer (default
+        :data:`DEFAULT_CONNECT_TIMEOUT`); a closed port fails at once, a listener that
+        never answers after this time.
 
     Yields
     ------
@@ -163,20 +245,23 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
     ...     client.submit(sum, [1, 2]).result()
     3
     """
-    workers = _check_workers(workers)
+    workers = _check_workers(workers, local=scheduler is None)
     address = None if scheduler is None else parse_scheduler(scheduler)
     if not (isinstance(timeout, (int, float)) and timeout > 0):
         raise ConfigError(f"timeout must be a positive number of seconds, got {timeout!r}")
+    connect_timeout = check_connect_timeout(connect_timeout)
     distributed = _distributed()
     import logging
 
     if address is not None:
+        _probe_scheduler(address, connect_timeout)
         try:
-            client = distributed.Client(address, timeout=timeout, set_as_default=False)
+            client = distributed.Client(address, timeout=connect_timeout,
+                                        set_as_default=False)
         except (OSError, TimeoutError) as err:
-            raise ConfigError(f"no Dask scheduler answered at {address} within {timeout:g} s "
-                              f"({type(err).__name__}); start `dask scheduler` there or fix "
-                              "the address") from None
+            raise ConfigError(f"no Dask scheduler answered at {address} within "
+                              f"{connect_timeout:g} s ({type(err).__name__}); start `dask "
+                              "scheduler` there or fix the address") from None
         try:
             if workers:
                 try:

@@ -50,8 +50,8 @@ from .certificate import (
     write_json_atomic,
 )
 from .errors import ConfigError, NlyapError
-from .learning import TrainConfig, quadratic_start, sos_start
 from .jsonio import load_with_timings, save_timings, split_timings
+from .learning import TrainConfig, quadratic_start, sos_start
 from .network import Network
 from .provenance import fingerprint, fingerprint_id
 
@@ -238,7 +238,8 @@ def _out_dir(out) -> Path:
 
 
 def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
-        log=print, workers: int | None = None, scheduler: str | None = None) -> RunResult:
+        log=print, workers: int | None = None, scheduler: str | None = None,
+        connect_timeout: float | None = None) -> RunResult:
     """Run the pipeline for ``system`` with the run configuration ``cfg`` into ``out``.
 
     Parameters
@@ -257,6 +258,9 @@ def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
         or the existing cluster at ``scheduler``). Status, level, checks and artifacts are
         the serial run's; the verification statistics (boxes, seconds) differ
         (:func:`nlyap_opt.parallel.check`).
+    connect_timeout : float, optional
+        Seconds to reach the scheduler (default
+        :data:`nlyap_opt.parallel.DEFAULT_CONNECT_TIMEOUT`).
 
     Returns
     -------
@@ -272,20 +276,21 @@ def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
         if not known_dynamics:
             check_dynamics_box(cfg)
     out = _out_dir(out)
-    with _OutLock(out, log), _client(workers, scheduler, log) as client:
+    with _OutLock(out, log), _client(workers, scheduler, log, connect_timeout) as client:
         return _run(system, cfg, out, known_dynamics, log, client)
 
 
 @contextlib.contextmanager
-def _client(workers, scheduler, log):
+def _client(workers, scheduler, log, connect_timeout=None):
     """``None`` (serial), or a Dask client for the certificate stage's checks: connected
     before any stage runs, so that a bad address fails before the training."""
     if workers is None and scheduler is None:
         yield None
         return
-    from .parallel import client_workers, dask_client
+    from .parallel import DEFAULT_CONNECT_TIMEOUT, client_workers, dask_client
 
-    with dask_client(workers, scheduler) as client:
+    with dask_client(workers, scheduler,
+                     connect_timeout=connect_timeout or DEFAULT_CONNECT_TIMEOUT) as client:
         log(f"[dask] certificate checks on {client_workers(client)} workers")
         yield client
 
@@ -474,14 +479,15 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
                                    ("eta", "alpha", "delta", "K_f", "K_phi", "bound_model")}
     path = save_certificate(cert, problem, out, extra, files=files)
     summary = json.loads(path.read_text())
-    from .report import write_report
+    from .report import status_line, write_report
 
     write_report(out, system, cfg, summary, bounds_info, cg)
     if cert.certified and summary["true_roa_area"] is None:
-        log(f"[done] status: certified; certified area {summary['certified_area']:.4g} "
-            f"(true ROA not available); see {out / 'report.md'}")
+        log(f"[done] status: {status_line(summary)}; certified area "
+            f"{summary['certified_area']:.4g} (true ROA not available); see {out / 'report.md'}")
     elif cert.certified:
-        log(f"[done] status: certified; certified area {summary['certified_area']:.4g} = "
+        log(f"[done] status: {status_line(summary)}; certified area "
+            f"{summary['certified_area']:.4g} = "
             f"{100 * summary['fraction_of_true_roa']:.1f}% of the true ROA "
             f"({summary['true_roa_area']:.4g}); see {out / 'report.md'}")
     else:

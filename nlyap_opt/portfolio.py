@@ -34,7 +34,7 @@ from pathlib import Path
 
 from .certificate import sha256_file, write_json_atomic
 from .errors import ConfigError
-from .parallel import client_workers, cpu_cores, dask_client
+from .parallel import DEFAULT_CONNECT_TIMEOUT, client_workers, cpu_cores, dask_client
 
 __all__ = ["run_portfolio", "PortfolioResult", "SeedRun", "seed_config"]
 
@@ -222,7 +222,8 @@ def _best(runs: list[SeedRun]) -> SeedRun | None:
 
 def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
                   workers: int | None = None, scheduler: str | None = None,
-                  known_dynamics: bool = False, log=print) -> PortfolioResult:
+                  known_dynamics: bool = False, log=print,
+                  connect_timeout: float | None = None) -> PortfolioResult:
     """Train and certify one candidate per seed in parallel; keep the best certified one.
 
     Parameters
@@ -242,6 +243,9 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
         ``scheduler``, the workers to wait for.
     scheduler : str, optional
         ``tcp://HOST:PORT`` of an existing Dask cluster (never closed here).
+    connect_timeout : float, optional
+        Seconds to reach the scheduler (default
+        :data:`nlyap_opt.parallel.DEFAULT_CONNECT_TIMEOUT`).
     known_dynamics : bool
         Use the true f instead of learned φ (then there is no dynamics stage to share).
     log : callable
@@ -299,7 +303,8 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
     t0 = time.perf_counter()
     results: dict[int, dict] = {}
     shared = None
-    with dask_client(workers=workers, scheduler=scheduler) as client:
+    with dask_client(workers=workers, scheduler=scheduler,
+                     connect_timeout=connect_timeout or DEFAULT_CONNECT_TIMEOUT) as client:
         n_workers = client_workers(client)
         log(f"[portfolio] {name}: seeds {seed_list} on {n_workers} worker(s)")
 

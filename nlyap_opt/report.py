@@ -9,7 +9,7 @@ import numpy as np
 from .domain import Ball, parse_set
 from .provenance import describe
 
-__all__ = ["write_report", "plot_roa"]
+__all__ = ["write_report", "plot_roa", "status_line"]
 
 
 def _fmt(v, digits=4):
@@ -29,11 +29,20 @@ def _sets(cert: dict, nx: int):
     return D, XI, D.plain_ball
 
 
+def status_line(cert: dict) -> str:
+    """The status of a certificate dict in words: ``"certified under the declared
+    assumptions: …"`` when it rests on declarations about ``f``
+    (:func:`nlyap_opt.certificate.status_text`)."""
+    from .certificate import status_text
+
+    return status_text(cert["status"], cert.get("assumptions_declared_by_user") or [])
+
+
 def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, cg: dict):
     """Write ``report.md`` (parameters, what is certified under which assumptions, times)
     and ``roa.png``."""
     lines = [f"# {system.name}: certified region of attraction", ""]
-    lines += [f"**Status: {cert['status']}** ({cert['dynamics']})", ""]
+    lines += [f"**Status: {status_line(cert)}** ({cert['dynamics']})", ""]
     if cert["status"] != "certified":
         lines += [f"Reason: {cert.get('reason', '')}", ""]
     lines += ["## Parameters (paper's Table layout)", "",

@@ -2,7 +2,7 @@
 networks) under this machine's numeric-environment fingerprint.
 
     python tests/record_fast_certificates.py           # print them (about two minutes)
-    python tests/record_fast_certificates.py --write   # add them to tests/data/fast_certificates.json
+    python tests/record_fast_certificates.py --write   # add them to the reference file
 
 A recorded fingerprint makes the tests compare these runs bit for bit on machines with the
 same fingerprint (CPU model and flags, package versions, BLAS kernel and threads, numpy and
@@ -42,10 +42,10 @@ def record() -> dict:
 
 def main() -> None:
     fp = fingerprint()
-    entry = {"machine": f"{fp['cpu']['model']}; BLAS {fp['blas'][0]['kernel'] if fp['blas'] else '?'}"
-                        f"; numpy {' '.join(fp['numpy_dispatch'])}; torch "
-                        f"{fp['torch']['cpu_capability']}" + ("; portable" if fp["portable"] else ""),
-             "values": record()}
+    kernel = fp["blas"][0]["kernel"] if fp["blas"] else "?"
+    machine = (f"{fp['cpu']['model']}; BLAS {kernel}; numpy {' '.join(fp['numpy_dispatch'])}; "
+               f"torch {fp['torch']['cpu_capability']}" + ("; portable" if fp["portable"] else ""))
+    entry = {"machine": machine, "values": record()}
     if "--write" not in sys.argv[1:]:
         print(json.dumps({fingerprint_id(fp): entry}, indent=1))
         return

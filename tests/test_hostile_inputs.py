@@ -199,7 +199,7 @@ def test_spec_not_utf8_exits_3(tmp_path, capsys):
 def test_400_digit_numbers_exit_3(where, tmp_path, capsys):
     big = "9" * 400
     body = {"parameters": f'[parameters]\nk = {big}\n[rhs]\nx = "-k*x"',
-            "box": f'[rhs]\nx = "-x"',
+            "box": '[rhs]\nx = "-x"',
             "lipschitz": f'[declared]\nlipschitz = {big}\n[rhs]\nx = "-x"',
             "rhs": f'[rhs]\nx = "-x*{big}"'}[where]
     box = f"[[-1, {big}]]" if where == "box" else "[[-1, 1]]"

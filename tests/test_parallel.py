@@ -3,6 +3,7 @@
 Clusters bind to 127.0.0.1, have no dashboard and are closed by the test that starts them.
 """
 
+import contextlib
 import json
 import os
 import socket
@@ -507,6 +508,12 @@ def test_existing_cluster_scheduler_and_two_worker_processes(tmp_path):
                  "--no-dashboard", "--no-nanny", "--name", f"w{i}", "--death-timeout", "60",
                  "--local-directory", str(tmp_path / f"w{i}")],
                 stdout=logs, stderr=logs, env=env, cwd=tmp_path))
+        # a closed port is refused at once: wait until the scheduler listens
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 60:
+            with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), 1):
+                break
+            time.sleep(0.2)
         with dask_client(workers=2, scheduler=address, timeout=60) as c:
             assert len(c.scheduler_info()["workers"]) == 2
             for outer, expected in ((1.0, "verified"), (1.2, "counterexample")):

@@ -8,8 +8,12 @@ The polynomial data themselves (Polynomial, the walker's polynomial arithmetic) 
 import numpy as np
 import pytest
 from scipy.optimize import minimize
-from vdp_reference import (vdp_lyapunov_matrix, vdp_quadratic_level, vdp_sampled_level,
-                           vdp_true_roa_area)
+from vdp_reference import (
+    vdp_lyapunov_matrix,
+    vdp_quadratic_level,
+    vdp_sampled_level,
+    vdp_true_roa_area,
+)
 
 import systems
 from nlyap_opt.certificate import (

@@ -35,8 +35,8 @@ from nlyap_opt.walker import (
     evaluate,
 )
 from verification import VerificationProblem, closed_loop_problem, verify
-from verification.verify import confirm_points
 from verification.interval import _DOMAINS, _JUMPS, Interval, IntervalArithmetic
+from verification.verify import confirm_points
 
 IA = IntervalArithmetic()
 WIDTHS = [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7]

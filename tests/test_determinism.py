@@ -1,9 +1,10 @@
 """Same config and seed, same artifacts: whatever the clock says and whatever else runs.
 
 A wall-clock budget once gave a different φ (and no certificate) on a loaded machine.
-Every training budget is now a count; these tests run the φ and the V/κ training twice, once with the clock running 100 times fast and a sleep injected into the training
-loop (what a loaded machine looks like to a timed loop), and require the saved network
-JSON to be identical, byte for byte.
+Every training budget is now a count; these tests run the φ and the V/κ training twice,
+once with the clock running 100 times fast and a sleep injected into the training loop
+(what a loaded machine looks like to a timed loop), and require the saved network JSON to
+be identical, byte for byte.
 """
 
 from __future__ import annotations

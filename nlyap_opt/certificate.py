@@ -752,9 +752,10 @@ def _assumed_ellipse(problem: RoaProblem) -> dict:
     if np.max(np.linalg.eigvals(J).real) >= 0:
         return {"status": "closed-loop linearisation of φ not Hurwitz", "P": np.eye(len(J)),
                 "level": 0.0, "box": np.zeros(len(J)), "checked": False}
+    from .roa import ellipse_around_ball
+
     P = lyapunov_matrix(J)
-    c_q = float(np.linalg.eigvalsh(P)[-1]) * problem.inner**2 * (1 + 1e-9)
-    a = np.sqrt(c_q * np.diag(np.linalg.inv(P))) * (1 + 1e-9)
+    c_q, a = ellipse_around_ball(P, problem.inner)
     return {"status": "assumed (no model to check it)", "P": P, "level": c_q, "box": a,
             "checked": False}
 

@@ -33,6 +33,7 @@ Every trajectory from :math:`\Omega_c` decreases ``V`` until it enters
 
 from __future__ import annotations
 
+import math
 import re
 import time
 from dataclasses import dataclass, field
@@ -383,7 +384,7 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None, form: str
             out = certify_inner_blowup(cl, A_cl, inner, verify_options=verify_options,
                                        candidates=[(P, w)])
         if out is None:
-            c_q, a = _ellipse_box(P, inner)
+            c_q, a = ellipse_around_ball(P, inner)
             out = {"status": f"inner ellipse not proved ({form} does not apply to this "
                              "closed loop)", "P": P, "level": c_q, "box": a, "result": None,
                    "form": form}
@@ -445,7 +446,7 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: str | None = None, *,
     from .parallel import check as verify
 
     n = P.shape[0]
-    c_q, a = _ellipse_box(P, inner)
+    c_q, a = ellipse_around_ball(P, inner)
     if only is not None and only.startswith("shell"):
         m = re.fullmatch(r"shell r=([0-9.eE+-]+) \+ (minors|frobenius)", only) if shell else None
         try:
@@ -523,7 +524,7 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
     from .parallel import check as verify
 
     eps_s = inner * SHELL_FRACTION if eps_s is None else float(eps_s)
-    c_q, a = _ellipse_box(P, inner)
+    c_q, a = ellipse_around_ball(P, inner)
     x = cl.x
     Vq = ca.bilin(ca.DM(P), x, x)
     dV = 2 * ca.dot(x, ca.mtimes(ca.DM(P), cl.rhs))
@@ -540,11 +541,19 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
             "form": f"{form} + {core['form']}"}
 
 
-def _ellipse_box(P, inner: float) -> tuple[float, np.ndarray]:
+def ellipse_around_ball(P, inner: float) -> tuple[float, np.ndarray]:
     """``(c_q, a)``: the least level with ``B_ε ⊆ E = {xᵀPx ≤ c_q}`` (rounded up) and the
-    half-widths of a box containing ``E`` (``a_i = sqrt(c_q (P⁻¹)_ii)``, rounded up)."""
-    c_q = float(np.linalg.eigvalsh(P)[-1]) * inner**2 * (1 + 1e-9)
-    return c_q, np.sqrt(c_q * np.diag(np.linalg.inv(P))) * (1 + 1e-9)
+    half-widths of a box containing ``E`` (``a_i = sqrt(c_q (P⁻¹)_ii)``, rounded up).
+
+    ``c_q = λ_max(P)·ε²·(1 + 10⁻⁹)`` rounded up to 12 significant digits: the factor covers
+    LAPACK's error in λ_max by far, and the rounding makes the level the same number on
+    machines whose eigensolvers differ in the last bits, so that a certificate re-checked
+    elsewhere finds the level it stores."""
+    c = float(np.linalg.eigvalsh(P)[-1]) * inner**2 * (1 + 1e-9)
+    if c > 0 and math.isfinite(c):
+        q = 10.0 ** (math.floor(math.log10(c)) - 11)
+        c = math.ceil(c / q) * q
+    return c, np.sqrt(c * np.diag(np.linalg.inv(P))) * (1 + 1e-9)
 
 
 #: the weight of the non-centre coordinates in :func:`certify_inner_blowup`, in the order tried
@@ -648,7 +657,7 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
         if m is None:
             continue
         form = f"blow-up w={list(w)}, m={m}"
-        c_q, a = _ellipse_box(P, inner)
+        c_q, a = ellipse_around_ball(P, inner)
         R = float(np.max(a ** (1.0 / np.asarray(w, dtype=float)))) * (1 + 1e-9)
         # the leading term at r = 0 must be negative on the faces: a cheap sampled screen
         U = rng.uniform(-1, 1, size=(4000, n))

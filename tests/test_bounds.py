@@ -21,6 +21,7 @@ from nlyap_opt.bounds import (
 )
 from nlyap_opt.dynamics import Grid, measure_alpha
 from nlyap_opt.errors import ConfigError, InputRangeError, UnknownNameError
+from nlyap_opt.jsonio import load_with_timings, split_timings
 from nlyap_opt.lipschitz import lipschitz_sampled
 from nlyap_opt.network import Layer, Network, dense_network
 
@@ -240,10 +241,13 @@ def test_cli_learn_dynamics_writes_bounds_json(tmp_path, capsys):
     for word in ("K_f", "K_φ", "δ", "α", "η", "second_order"):
         assert word in printed
     d = json.loads((out / "bounds.json").read_text())
-    for key in ("alpha", "delta", "K_f", "K_phi", "eta", "grid", "bound_model", "seconds"):
+    for key in ("alpha", "delta", "K_f", "K_phi", "eta", "grid", "bound_model"):
         assert key in d
+    assert "seconds" not in d    # a hashed artifact: the same input gives the same bytes
     assert set(d["grid"]) >= {"spacing", "counts"}
-    assert set(d["seconds"]) >= {"data", "training", "bounds"}
+    timed = load_with_timings(out / "bounds.json")      # the timings, kept beside it
+    assert set(timed["seconds"]) >= {"data", "training", "bounds"}
+    assert split_timings(timed)[0] == d
     assert d["bound_model"]["name"] in BOUND_OPTIONS and d["bound_model"]["assumptions"]
     assert d["eta"] == d["options"][d["bound_model"]["name"]]["eta"]
     assert d["eta"] >= d["check"]["eta_sampled"] and d["check"]["passed"]

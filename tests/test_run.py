@@ -11,6 +11,7 @@ from nlyap_opt.cli import main
 from nlyap_opt.configs import get_config
 from nlyap_opt.network import Network
 from nlyap_opt.pipeline import run
+from nlyap_opt.provenance import fingerprint, fingerprint_id
 from nlyap_opt.roa import grid_points
 from nlyap_opt.simulate import simulate_converges
 
@@ -48,6 +49,8 @@ def test_fast_known_dynamics_run_is_certified(known_runs, name):
     assert CERT_KEYS <= set(cert)
     saved = json.loads((d / "certificate.json").read_text())
     assert saved["status"] == "certified" and saved["level"] == cert["level"]
+    assert saved["provenance"] == fingerprint()        # what determined these numbers
+    assert f"fingerprint: {fingerprint_id()}" in (d / "report.md").read_text()
     for f in ("V.json", "report.md", "roa.png", "cegis.json"):
         assert (d / f).exists(), f
     assert 0 < cert["certified_area"] <= cert["true_roa_area"] * 1.02

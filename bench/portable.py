@@ -1,0 +1,77 @@
+"""The cost of portable mode: fast-preset runs with and without ``--portable``.
+
+Usage: python bench/portable.py [--systems a,b] [--repeat 2] [--known]
+
+Runs ``nlyap run NAME --preset fast [--known-dynamics] [--portable]`` as a fresh process for
+each system (learned f unless --known), alternating the two modes, and prints the best wall
+time of each with the machine's numeric-environment fingerprint, plus whether the networks
+(V.json, dynamics.json) of the portable runs are identical whatever the shell's
+OPENBLAS_CORETYPE (the portable pins override it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+SEED_SYSTEMS = ("van_der_pol", "unicycle_path_following", "inverted_pendulum")
+
+
+def _run(name: str, out: Path, portable: bool, known: bool, env: dict | None = None) -> float:
+    cmd = [sys.executable, "-m", "nlyap_opt.cli", "run", name, "--preset", "fast",
+           "--out", str(out)] + (["--portable"] if portable else []) + \
+        (["--known-dynamics"] if known else [])
+    t = time.perf_counter()
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if p.returncode not in (0, 2):
+        raise SystemExit(f"{' '.join(cmd)} failed ({p.returncode}): {p.stderr.strip()[-300:]}")
+    return time.perf_counter() - t
+
+
+def _digest(d: Path) -> str:
+    h = hashlib.sha256()
+    for f in ("V.json", "dynamics.json", "controller.json"):
+        if (d / f).exists():
+            h.update((d / f).read_bytes())
+    return h.hexdigest()[:16]
+
+
+def main() -> None:
+    from nlyap_opt.provenance import fingerprint, fingerprint_id
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--systems", default=",".join(SEED_SYSTEMS))
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--known", action="store_true", help="true f (default: learned f)")
+    args = ap.parse_args()
+    fp = fingerprint()
+    print(f"machine: {fp['cpu']['model']} ({os.cpu_count()} CPUs), fingerprint "
+          f"{fingerprint_id(fp)}; command: python bench/portable.py "
+          f"--systems {args.systems} --repeat {args.repeat}" + (" --known" if args.known else ""))
+    print(f"{'system':<26} {'plain s':>8} {'portable s':>11} {'ratio':>6}  portable networks "
+          "identical under OPENBLAS_CORETYPE=SkylakeX/Haswell/Zen")
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for name in args.systems.split(","):
+            best = {False: float("inf"), True: float("inf")}
+            for r in range(args.repeat):
+                for portable in (False, True):
+                    t = _run(name, tmp / f"{name}_{portable}_{r}", portable, args.known)
+                    best[portable] = min(best[portable], t)
+            digests = set()
+            for core in ("SkylakeX", "Haswell", "Zen"):
+                d = tmp / f"{name}_core_{core}"
+                _run(name, d, True, args.known, env=dict(os.environ, OPENBLAS_CORETYPE=core))
+                digests.add(_digest(d))
+            print(f"{name:<26} {best[False]:8.1f} {best[True]:11.1f} "
+                  f"{best[True] / best[False]:6.2f}  {'yes' if len(digests) == 1 else 'NO'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -482,7 +482,11 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "lm_iterations": "Levenberg–Marquardt iterations (mean squared error) after Adam",
         "minimax_rounds": "Lawson-reweighted LM rounds lowering the maximum error",
         "minimax_iterations": "LM iterations per minimax round",
-        "lm_ridge": "ridge weight on the hidden-layer weights in LM",
+        "lm_ridge": "ridge weight on the hidden-layer weights in LM (per sample, in "
+                    "normalised units: keeps hidden slopes moderate)",
+        "probe_points": "evaluations of a black-box callable between grid nodes before "
+                        "training, refuting declared K_f, H or depends_on that they "
+                        "contradict (0: off)",
         "prune": "neurons whose output weight is at most this in absolute value are "
                  "removed before α is measured",
         "seed": "seed of the training-node draw and of φ's initialisation",

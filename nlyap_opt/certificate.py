@@ -47,7 +47,8 @@ from .walker import evaluate
 
 __all__ = [
     "CertStatus", "Decrease", "RoaProblem", "RoaCertificate", "InnerEllipse", "certify_roa",
-    "recheck_certificate", "certify_with_inner_search", "load_artifact", "sha256_file", "FORMAT",
+    "recheck_certificate", "recheck_run", "certify_with_inner_search", "load_artifact",
+    "sha256_file", "FORMAT",
     "VERSION",
 ]
 
@@ -746,6 +747,18 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
     does not re-verify, or an artifact that changed, gives a certificate that is not
     ``CERTIFIED`` with the reason.
     """
+    return recheck_run(path, log=log)[0]
+
+
+def recheck_run(path: str | Path, *, log=print) -> tuple[RoaCertificate, RoaProblem | None]:
+    """:func:`recheck_certificate`, and the problem rebuilt from the hashed artifacts.
+
+    The one loader of a finished run for its users (simulation, code export, the safety
+    filter): the problem (``V``, ``κ``, ``φ``, the system, the domain) is ``None`` when an
+    artifact is missing, changed or unreadable (the certificate then says why it is not
+    ``CERTIFIED``); a returned certificate is ``CERTIFIED`` only when every condition was
+    proved again at the saved level.
+    """
     import systems
     from verification.verify import check_file_options
 
@@ -770,10 +783,10 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
     for role, art in saved.artifacts.items():
         f = base / art["file"]
         if not f.exists():
-            return _refused(saved, f"artifact {art['file']} ({role}) is missing")
+            return _refused_run(saved, f"artifact {art['file']} ({role}) is missing")
         digest = sha256_file(f)
         if digest != art["sha256"]:
-            return _refused(saved, f"artifact {art['file']} ({role}) changed since the "
+            return _refused_run(saved, f"artifact {art['file']} ({role}) changed since the "
                             f"certificate was written (sha256 {digest[:12]}… ≠ "
                             f"{art['sha256'][:12]}…)")
         if art.get("kind") == "bounds":
@@ -781,21 +794,21 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
                 b = json.loads(f.read_text())
                 eta = float(b["eta"])
             except (ValueError, KeyError, TypeError) as err:
-                return _refused(saved, f"artifact {art['file']} cannot be read: {err}")
+                return _refused_run(saved, f"artifact {art['file']} cannot be read: {err}")
             if eta != saved.eta:
-                return _refused(saved, f"the certificate's η = {saved.eta!r} is not the η = "
+                return _refused_run(saved, f"the certificate's η = {saved.eta!r} is not the η = "
                                 f"{eta!r} of {art['file']}")
             box = np.asarray(b.get("grid", {}).get("box", []), dtype=float)
             dbox = np.asarray(problem_d.get("dynamics_box") or [], dtype=float)
             if dbox.size == 0 or box.shape[0] < dbox.shape[0] or \
                     not np.array_equal(box[:dbox.shape[0]], dbox):
-                return _refused(saved, f"the certificate's dynamics box {dbox.tolist()} is "
+                return _refused_run(saved, f"the certificate's dynamics box {dbox.tolist()} is "
                                 f"not the box of {art['file']}")
             continue
         try:
             nets[role] = load_artifact(f, art.get("kind", "network"))
         except (NetworkFileError, RuntimeError, ValueError) as err:
-            return _refused(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
+            return _refused_run(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
     if "V" not in nets:
         raise ConfigError(f"certificate {path} lists no V artifact; rerun the command")
     if saved.system not in systems.names() and d.get("system_source"):
@@ -817,14 +830,14 @@ def recheck_certificate(path: str | Path, *, log=print) -> RoaCertificate:
                                           f"certificate {path}",
                                           "rerun the command that wrote it"))
     if saved.status is not CertStatus.CERTIFIED or saved.level <= 0:
-        return _refused(saved, f"the certificate does not claim a level ({saved.status.value}: "
+        return _refused_run(saved, f"the certificate does not claim a level ({saved.status.value}: "
                         f"{saved.reason})")
     # (c) is always proved again: the saved ellipse when there is one, else a new one (a
     # certificate.json without its ellipse is never re-checked as (a) and (b) alone)
     new = certify_roa(problem, saved.level, search=False, check_inner_ellipse=True,
                       inner_ellipse=saved.inner_ellipse, log=log)
     new.artifacts = saved.artifacts
-    return new
+    return new, problem
 
 
 class _CasadiV:
@@ -852,9 +865,9 @@ def load_artifact(path, kind: str = "network"):
     raise ValueError(f"unknown artifact kind {kind!r} (network or casadi)")
 
 
-def _refused(saved: RoaCertificate, reason: str) -> RoaCertificate:
+def _refused_run(saved: RoaCertificate, reason: str) -> tuple[RoaCertificate, None]:
     saved.status, saved.reason = CertStatus.NOT_CERTIFIED, reason
-    return saved
+    return saved, None
 
 
 def problem_to_dict(problem: RoaProblem) -> dict:

@@ -200,10 +200,11 @@ class SimulationResult:
                 f"non-increasing on Ω_c∖B_ε, {int(self.converged.sum())} converged; "
                 f"{self.outside.shape[1]} from outside (no claim)")
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, **extra) -> None:
+        """``trajectories.npz``: the arrays above (and ``extra`` ones)."""
         np.savez_compressed(path, t=self.t, inside=self.inside, outside=self.outside,
                             V_inside=self.V_inside, stayed=self.stayed,
-                            monotone=self.monotone, converged=self.converged)
+                            monotone=self.monotone, converged=self.converged, **extra)
 
 
 def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = None,
@@ -282,10 +283,11 @@ def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = 
 
 
 def plot_simulation(run: CertifiedRun, res: SimulationResult, out: str | Path,
-                    title: str = "") -> Path:
+                    title: str = "", nominal: SimulationResult | None = None) -> Path:
     """``simulate.png``: the trajectories over the certified set (n = 2: the phase plane;
-    n > 2: the states over time and the slice through the origin of the two states that
-    move most), and ``V(x(t))/c`` below."""
+    n > 2: the projection on the two states that move most, over the slice of the set
+    through the origin), and ``V(x(t))/c`` below; ``nominal``: an unfiltered run drawn in
+    orange for contrast."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -318,6 +320,11 @@ def plot_simulation(run: CertifiedRun, res: SimulationResult, out: str | Path,
         tr = res.outside[:, k]
         ax.plot(tr[:, i], tr[:, j], color="0.6", lw=0.6, alpha=0.7,
                 label="from outside (no claim)" if k == 0 else None)
+    if nominal is not None:
+        for k in range(nominal.inside.shape[1]):
+            tr = nominal.inside[:, k]
+            ax.plot(tr[:, i], tr[:, j], color="tab:orange", lw=0.6, alpha=0.8,
+                    label="nominal, unfiltered (no claim)" if k == 0 else None)
     for k in range(res.inside.shape[1]):
         tr = res.inside[:, k]
         ax.plot(tr[:, i], tr[:, j], color="tab:red" if not (res.stayed[k] and

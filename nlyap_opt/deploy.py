@@ -117,10 +117,12 @@ class CertifiedRun:
         return box
 
     def sample(self, n: int, rng: np.random.Generator, *, inside: bool = True,
-               max_draws: int = 10**7) -> np.ndarray:
+               max_draws: int | None = None) -> np.ndarray:
         """``n`` uniform samples of the certified set (``inside``) or of ``D`` outside it,
-        by rejection in :meth:`sample_box`."""
+        by rejection in :meth:`sample_box` (at most ``max_draws``, default
+        ``max(10⁷, 10⁴·n)``, draws)."""
         box = self.sample_box() if inside else self.problem.domain.bounding_box()
+        max_draws = max(10**7, 10**4 * n) if max_draws is None else max_draws
         keep, drawn = [], 0
         while sum(len(k) for k in keep) < n:
             if drawn >= max_draws:

@@ -224,10 +224,12 @@ class ClfQpFilter:
         """One QP (the structure set up once: ``q``, ``A``'s first row, ``l``, ``u``
         updated). Returns ``(u*, OSQP status)``; ``u*`` is ``κ`` when not accepted."""
         gamma = self.decay * d if d > 0 else d
-        self._A_data[self._order] = a
-        self._u[0] = -gamma - e
+        scale = float(np.max(np.abs(a)))           # the row scaled to max |a_i| = 1
+        scale = scale if scale > 0 else 1.0
+        self._A_data[self._order] = a / scale
+        self._u[0] = (-gamma - e) / scale
         self._qp.update(q=-2.0 * np.asarray(u_nom, dtype=float), Ax=self._A_data, u=self._u)
-        res = self._qp.solve()
+        res = self._qp.solve(raise_error=False)
         status = res.info.status
         self.stats.qp += 1
         if status == "solved" and np.all(np.isfinite(res.x)):

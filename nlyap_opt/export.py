@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import warnings
 from pathlib import Path
 
 import casadi as ca
@@ -164,7 +165,9 @@ def export_onnx(run, out: str | Path) -> list[Path]:
                               "function); export it with --format c")
         mod = net.torch_module().eval()
         path = out / f"{name}.onnx"
-        with torch.no_grad():
+        with torch.no_grad(), warnings.catch_warnings():
+            # the TorchScript exporter: the torch.export one needs onnxscript as well
+            warnings.simplefilter("ignore", DeprecationWarning)
             torch.onnx.export(mod, (torch.zeros(1, net.n_in, dtype=torch.float64),),
                               str(path), input_names=["x"], output_names=[name],
                               dynamic_axes={"x": {0: "batch"}, name: {0: "batch"}},

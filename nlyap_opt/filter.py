@@ -216,7 +216,11 @@ class ClfQpFilter:
         constraint is ``e + a·u ≤ −γ``; ``d`` the decrease proven for ``κ``."""
         from .walker import evaluate
 
-        a, e, d, k = evaluate(self._pieces, [np.atleast_2d(np.asarray(pts, dtype=float))])
+        pts = np.atleast_2d(np.asarray(pts, dtype=float))
+        if len(pts) == 1:        # one state (a control loop): CasADi's own call is faster
+            a, e, d, k = (np.array(v, dtype=float).reshape(1, -1) for v in self._pieces(pts[0]))
+        else:
+            a, e, d, k = evaluate(self._pieces, [pts])
         return a, e[:, 0], d[:, 0], k
 
     def solve(self, a: np.ndarray, e: float, d: float, kappa: np.ndarray,

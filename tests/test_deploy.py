@@ -219,23 +219,36 @@ def test_export_c_compiles_and_matches_python(which, request, tmp_path):
     assert 0.05 < py_m.mean() < 0.95      # both answers occur on the sample
 
 
-def test_export_onnx(vdp_run, tmp_path, capsys, monkeypatch):
+def test_export_onnx_refused_without_the_package(vdp_run, tmp_path, capsys, monkeypatch):
     import importlib.util
 
-    if importlib.util.find_spec("onnx") is None:
-        assert main(["export", str(vdp_run), "--format", "onnx", "--out",
-                     str(tmp_path / "o")]) == 3
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and "pip install 'nlyap_opt[onnx]'" in err[0]
-        pytest.skip("onnx is not installed (pip install 'nlyap_opt[onnx]'); the refusal "
-                    "was checked")
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "onnx" else real(name, *a))
+    assert main(["export", str(vdp_run), "--format", "onnx", "--out", str(tmp_path / "o")]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pip install 'nlyap_opt[onnx]'" in err[0]
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("which", ["vdp_run", "cartpole_run"])
+def test_export_onnx_matches_python(which, request, tmp_path):
+    pytest.importorskip("onnx", reason="the onnx extra is not installed "
+                                       "(pip install 'nlyap_opt[onnx]')")
     from onnx.reference import ReferenceEvaluator
 
-    assert main(["export", str(vdp_run), "--format", "onnx", "--out", str(tmp_path / "o")]) == 0
-    run = load_run(vdp_run, **QUIET)
+    d = request.getfixturevalue(which)
+    out = tmp_path / "o"
+    assert main(["export", str(d), "--format", "onnx", "--out", str(out)]) == 0
+    run = load_run(d, **QUIET)
     pts = _points(run, 1000)
-    got = ReferenceEvaluator(str(tmp_path / "o" / "V.onnx")).run(None, {"x": pts})[0]
-    np.testing.assert_allclose(got[:, 0], run.V(pts), rtol=1e-12, atol=1e-15)
+    got = ReferenceEvaluator(str(out / "V.onnx")).run(None, {"x": pts})[0]
+    _close(got, run.V(pts), "V (onnx)")
+    if run.system.nu:
+        got = ReferenceEvaluator(str(out / "kappa.onnx")).run(None, {"x": pts})[0]
+        _close(got, run.kappa(pts), "kappa (onnx)")
+    else:
+        assert not (out / "kappa.onnx").exists()
 
 
 # ------------------------------------------------------------------ the CLF-QP filter
@@ -276,6 +289,9 @@ def _filter_feasible(cartpole_run, n):
     assert len(pts) > n // 2
     a, e, d, k = filt.pieces(pts)
     assert d.min() > 0                       # the certificate's decrease of κ
+    one = filt.pieces(pts[7:8])               # the one-state path agrees with the batch
+    for b, o in zip((a, e, d, k), one):
+        np.testing.assert_allclose(o, b[7:8], rtol=1e-13, atol=1e-300)
     un = nominal(pts)
     statuses, worst = set(), -np.inf
     for i in range(len(pts)):

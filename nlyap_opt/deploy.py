@@ -228,7 +228,7 @@ def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = 
         The input law (``(N, nx) -> (N, nu)``), default ``κ`` (the safety filter passes
         its own).
     tol : float, optional
-        Convergence radius (default ``10⁻³·`` the inner radius ε).
+        Convergence radius (default ``10⁻²·`` the inner radius ε).
     """
     from .simulate import trajectories
 
@@ -264,7 +264,7 @@ def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = 
     rise = np.where(step_from, Vt[1:] - Vt[:-1], -np.inf)
     monotone = ~(rise > 1e-6 * c).any(axis=0)
     stayed = inside.all(axis=0)
-    tol = 1e-3 * eps if tol is None else tol
+    tol = 1e-2 * eps if tol is None else tol
     if which == "learned":
         converged = (norms <= eps).any(axis=0)
     else:

@@ -345,3 +345,30 @@ def test_filtered_nominal_stays_inside_where_unfiltered_leaves(cartpole_run, tmp
     assert summary["filter"]["fallback_to_kappa"] == 0 and summary["filter"]["qp_solves"] > 0
     z = np.load(out / "trajectories.npz")
     assert not z["nominal_stayed"].all()
+
+
+@pytest.mark.slow
+def test_learned_pendulum_simulate_and_filter_with_the_margin(tmp_path):
+    """The learned-f path: the fast pendulum run (φ control-affine, η from its samples, ~2 min):
+    φ's closed loop and the filter with the margin η‖∇_L V‖ in its constraint."""
+    d = tmp_path / "ip"
+    cert = run_pipeline("inverted_pendulum", get_config("inverted_pendulum", "fast"), d,
+                        **QUIET).summary
+    assert cert["status"] == "certified"
+    nom = write_linear_nominal(tmp_path / "zero.json", np.zeros((1, 2)))
+    out = tmp_path / "sim"
+    assert main(["simulate", str(d), "--learned", "--points", "40", "--filter", "clf-qp",
+                 "--nominal", str(nom), "--out", str(out)]) == 0
+    _check_simulation(out, 40)
+    s = json.loads((out / "simulate.json").read_text())
+    assert s["dynamics"] == "learned" and s["filter"]["unfiltered_stayed"] < 40
+    run = load_run(d, **QUIET)
+    filt = ClfQpFilter(run, lambda x: np.zeros((len(x), 1)), dynamics="learned")
+    pts = _points(run, 5000)
+    pts = pts[~run.certificate.inner_ellipse.contains(pts)]
+    a, e, dd, k = filt.pieces(pts)
+    assert dd.min() > 0
+    assert run.problem.eta > 0      # the constraint carries the margin η‖∇_L V‖
+    for i in range(0, len(pts), 50):
+        us, st = filt.solve(a[i], e[i], dd[i], k[i], np.zeros(1))
+        assert st == "solved" and e[i] + a[i] @ us <= -filt.decay * dd[i] * (1 - 1e-6)

@@ -48,8 +48,9 @@ from .walker import evaluate
 
 __all__ = [
     "CertStatus", "Decrease", "RoaProblem", "RoaCertificate", "InnerEllipse", "certify_roa",
-    "recheck_certificate", "certify_with_inner_search", "load_artifact", "sha256_file", "FORMAT",
-    "VERSION", "system_fingerprint", "system_binding", "spec_factory", "status_text",
+    "recheck_certificate", "recheck_run", "certify_with_inner_search", "load_artifact",
+    "sha256_file", "FORMAT", "VERSION", "system_fingerprint", "system_binding", "spec_factory",
+    "status_text",
 ]
 
 FORMAT = "nlyap-roa-certificate"
@@ -881,6 +882,20 @@ def recheck_certificate(path: str | Path, *, system=None, allow_factory: bool = 
         A file that is not a certificate, a system that cannot be found, a factory not
         allowed.
     """
+    return recheck_run(path, system=system, allow_factory=allow_factory, log=log)[0]
+
+
+def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
+                log=print) -> tuple[RoaCertificate, RoaProblem | None]:
+    """:func:`recheck_certificate`, and the problem rebuilt from the hashed artifacts.
+
+    The one loader of a finished run for its users (simulation, code export, the safety
+    filter): the problem (``V``, ``κ``, ``φ``, the system, the domain) is ``None`` when an
+    artifact is missing, changed or unreadable (the certificate then says why it is not
+    ``CERTIFIED``); a returned certificate is ``CERTIFIED`` only when every condition was
+    proved again at the saved level. ``system`` and ``allow_factory`` as in
+    :func:`recheck_certificate`.
+    """
     from verification.verify import check_file_options
 
     path = Path(path)
@@ -905,10 +920,10 @@ def recheck_certificate(path: str | Path, *, system=None, allow_factory: bool = 
     for role, art in saved.artifacts.items():
         f = base / art["file"]
         if not f.exists():
-            return _refused(saved, f"artifact {art['file']} ({role}) is missing")
+            return _refused_run(saved, f"artifact {art['file']} ({role}) is missing")
         digest = sha256_file(f)
         if digest != art["sha256"]:
-            return _refused(saved, f"artifact {art['file']} ({role}) changed since the "
+            return _refused_run(saved, f"artifact {art['file']} ({role}) changed since the "
                             f"certificate was written (sha256 {digest[:12]}… ≠ "
                             f"{art['sha256'][:12]}…)")
         if art.get("kind") == "bounds":
@@ -916,26 +931,26 @@ def recheck_certificate(path: str | Path, *, system=None, allow_factory: bool = 
                 b = json.loads(f.read_text())
                 eta = float(b["eta"])
             except (ValueError, KeyError, TypeError) as err:
-                return _refused(saved, f"artifact {art['file']} cannot be read: {err}")
+                return _refused_run(saved, f"artifact {art['file']} cannot be read: {err}")
             if eta != saved.eta:
-                return _refused(saved, f"the certificate's η = {saved.eta!r} is not the η = "
+                return _refused_run(saved, f"the certificate's η = {saved.eta!r} is not the η = "
                                 f"{eta!r} of {art['file']}")
             box = np.asarray(b.get("grid", {}).get("box", []), dtype=float)
             dbox = np.asarray(problem_d.get("dynamics_box") or [], dtype=float)
             if dbox.size == 0 or box.shape[0] < dbox.shape[0] or \
                     not np.array_equal(box[:dbox.shape[0]], dbox):
-                return _refused(saved, f"the certificate's dynamics box {dbox.tolist()} is "
+                return _refused_run(saved, f"the certificate's dynamics box {dbox.tolist()} is "
                                 f"not the box of {art['file']}")
             continue
         try:
             nets[role] = load_artifact(f, art.get("kind", "network"))
         except (NetworkFileError, RuntimeError, ValueError) as err:
-            return _refused(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
+            return _refused_run(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
     if "V" not in nets:
         raise ConfigError(f"certificate {path} lists no V artifact; rerun the command")
     refusal = _binding_refusal(d, sysm)
     if refusal:
-        return _refused(saved, refusal)
+        return _refused_run(saved, refusal)
     problem = RoaProblem(
         sysm, nets["V"], nets.get("controller"), nets.get("dynamics"),
         inner=saved.inner, outer=saved.outer, eta=saved.eta, domain=saved.domain,
@@ -947,7 +962,7 @@ def recheck_certificate(path: str | Path, *, system=None, allow_factory: bool = 
                                           f"certificate {path}",
                                           "rerun the command that wrote it"))
     if saved.status is not CertStatus.CERTIFIED or saved.level <= 0:
-        return _refused(saved, f"the certificate does not claim a level ({saved.status.value}: "
+        return _refused_run(saved, f"the certificate does not claim a level ({saved.status.value}: "
                         f"{saved.reason})")
     # (c) is always proved again: the saved ellipse when there is one, else a new one (a
     # certificate.json without its ellipse is never re-checked as (a) and (b) alone)
@@ -957,10 +972,10 @@ def recheck_certificate(path: str | Path, *, system=None, allow_factory: bool = 
     if new.certified:
         wrong = _not_as_proved(saved, new)
         if wrong:
-            return _refused(new, "the certificate states " + "; ".join(wrong)
+            return _refused_run(new, "the certificate states " + "; ".join(wrong)
                             + ": not what the re-check proves (an edited certificate.json?); "
                             "rerun the command that wrote it")
-    return new
+    return new, problem
 
 
 def _recheck_system(saved: RoaCertificate, d: dict, path: Path, system, allow_factory: bool):
@@ -1111,9 +1126,9 @@ def load_artifact(path, kind: str = "network"):
     raise ValueError(f"unknown artifact kind {kind!r} (network or casadi)")
 
 
-def _refused(saved: RoaCertificate, reason: str) -> RoaCertificate:
+def _refused_run(saved: RoaCertificate, reason: str) -> tuple[RoaCertificate, None]:
     saved.status, saved.reason = CertStatus.NOT_CERTIFIED, reason
-    return saved
+    return saved, None
 
 
 def problem_to_dict(problem: RoaProblem) -> dict:

@@ -32,7 +32,8 @@ __all__ = ["EXIT_CODES", "build_parser", "main"]
 #: the exit-code contract of every ``nlyap`` command
 EXIT_CODES: dict[int, str] = {
     0: "success (verify: verified; run, compare: certified)",
-    1: "counterexample: a confirmed point violates a condition (verify only)",
+    1: "counterexample: a confirmed point violates a condition (verify; simulate: a "
+       "trajectory from the certified set left it)",
     2: "unknown / not certified (learn-dynamics: η above the config's eta_target)",
     3: "input or usage error (one line: the problem and its fix)",
     4: "internal error (one line; rerun with --debug for the traceback)",
@@ -50,6 +51,7 @@ _EPILOGS = {
     "run": _epilog([0, 2, 3, 4, 5, 130]),
     "compare": _epilog([0, 2, 3, 4, 5, 130]),
     "learn-dynamics": _epilog([0, 2, 3, 4, 5, 130]),
+    "simulate": _epilog([0, 1, 2, 3, 4, 130]),
 }
 _DEFAULT_EPILOG = _epilog([0, 3, 4, 130])
 
@@ -679,9 +681,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--keys", action="store_true", help="list every key, type and default")
     sp.set_defaults(func=cmd_config)
 
+    from .cli_deploy import register_cli as register_deploy
     from .cli_dynamics import register_cli as register_learn_dynamics
 
-    for register in [register_learn_dynamics, *_EXTRA]:
+    for register in [register_learn_dynamics, register_deploy, *_EXTRA]:
         register(sub)
     for name, parser in sub.choices.items():
         if not parser.epilog or name in _EPILOGS:

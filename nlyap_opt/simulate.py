@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["rk4_step", "simulate", "simulate_converges"]
+__all__ = ["rk4_step", "simulate", "simulate_converges", "trajectories"]
 
 
 def rk4_step(rhs: Callable[[np.ndarray], np.ndarray], x: np.ndarray, dt: float) -> np.ndarray:
@@ -71,3 +71,24 @@ def simulate_converges(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: flo
     (The ``converged`` output of :func:`simulate`.)
     """
     return simulate(rhs, x0, t_final, dt, tol, blow_up, target)[0]
+
+
+def trajectories(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float,
+                 n_steps: int) -> np.ndarray:
+    """The whole trajectories of ``x' = rhs(x)`` from every row of ``x0`` (fixed-step RK4).
+
+    Returns
+    -------
+    (n_steps + 1, N, nx) ndarray
+        ``x(k·t_final/n_steps)``; a trajectory that becomes non-finite is NaN from then on.
+    """
+    x = np.array(x0, dtype=float, ndmin=2)
+    dt = t_final / n_steps
+    out = np.empty((n_steps + 1,) + x.shape)
+    out[0] = x
+    with np.errstate(all="ignore"):
+        for k in range(n_steps):
+            x = rk4_step(rhs, x, dt)
+            x[~np.isfinite(x).all(axis=1)] = np.nan
+            out[k + 1] = x
+    return out

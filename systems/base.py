@@ -673,24 +673,14 @@ class System:
             raise ValueError(f"method must be 'rk4', got {method!r}")
         if self.kind == "samples":
             raise self._no_model("f between the grid nodes (needed to simulate)")
-        x = np.array(x0, dtype=float, ndmin=2)
-        dt = t_final / n_steps
-
         def rhs(z):
             u = None if feedback is None else np.asarray(feedback(z), dtype=float)
             with np.errstate(all="ignore"):
                 return self.evaluate(z, u)
 
-        from nlyap_opt.simulate import rk4_step
+        from nlyap_opt.simulate import trajectories
 
-        out = np.empty((n_steps + 1,) + x.shape)
-        out[0] = x
-        with np.errstate(all="ignore"):
-            for k in range(n_steps):
-                x = rk4_step(rhs, x, dt)
-                x[~np.isfinite(x).all(axis=1)] = np.nan
-                out[k + 1] = x
-        return out
+        return trajectories(rhs, x0, t_final, n_steps)
 
     def describe_assumptions(self) -> list[str]:
         """The assumptions about ``f``, one sentence each (for certificate and report).

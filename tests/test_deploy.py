@@ -1,0 +1,374 @@
+"""From certificate to robot: ``nlyap simulate``, ``nlyap export`` and the CLF-QP filter.
+
+Run directories: the fast Van der Pol run (known f, 2-D, no input) and a cartpole (4-D,
+one input) certificate of the LQR quadratic under the linear LQR feedback on a small ball,
+proved with the verifier's second-order form and saved like a run's.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import json
+import shutil
+import subprocess
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import systems
+from nlyap_opt.certificate import RoaProblem, certify_roa, save_certificate, sha256_file
+from nlyap_opt.cli import main
+from nlyap_opt.configs import get_config
+from nlyap_opt.control import linear_controller, lqr, quadratic_lyapunov
+from nlyap_opt.deploy import load_run, simulate_run
+from nlyap_opt.errors import ConfigError
+from nlyap_opt.filter import ClfQpFilter, check_control_affine, load_nominal, write_linear_nominal
+from nlyap_opt.pipeline import run as run_pipeline
+from nlyap_opt.walker import evaluate
+
+QUIET = dict(log=lambda m: None)
+
+
+@pytest.fixture(scope="module")
+def vdp_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("vdp")
+    cert = run_pipeline("van_der_pol", get_config("van_der_pol", "fast"), d,
+                        known_dynamics=True, **QUIET).summary
+    assert cert["status"] == "certified"
+    return d
+
+
+@pytest.fixture(scope="module")
+def cartpole_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cartpole")
+    s = systems.get("cartpole")
+    res = lqr(s)
+    ev = np.linalg.eigvalsh(res.P)
+    r = 0.05
+    level = 0.9 * ev[0] * r**2
+    eps = 0.5 * np.sqrt(level / ev[-1])
+    problem = RoaProblem(s, quadratic_lyapunov(res.P), linear_controller(s, res.K), inner=eps,
+                         outer=r, verify_options={"max_boxes": 100_000, "second_order": True})
+    cert = certify_roa(problem, level, **QUIET)
+    assert cert.certified, cert.reason
+    save_certificate(cert, problem, d)
+    return d
+
+
+def _points(run, n, seed=1):
+    return run.sample(n, np.random.default_rng(seed))
+
+
+# ------------------------------------------------------------------ loading and sampling
+def test_load_run_rechecks_and_refuses_a_changed_artifact(vdp_run, tmp_path):
+    run = load_run(vdp_run, **QUIET)
+    assert run.certificate.certified and run.sha256 == sha256_file(vdp_run / "certificate.json")
+    bad = tmp_path / "bad"
+    shutil.copytree(vdp_run, bad)
+    v = json.loads((bad / "V.json").read_text())
+    v["layers"][0]["bias"][0] += 1e-3
+    (bad / "V.json").write_text(json.dumps(v))
+    with pytest.raises(ConfigError, match="changed since the certificate"):
+        load_run(bad, **QUIET)
+
+
+def test_an_edited_level_is_not_used(vdp_run, tmp_path, capsys):
+    """certificate.json itself carries no hash: its level is proved again, not trusted."""
+    bad = tmp_path / "bad"
+    shutil.copytree(vdp_run, bad)
+    d = json.loads((bad / "certificate.json").read_text())
+    d["level"] *= 20
+    (bad / "certificate.json").write_text(json.dumps(d))
+    assert main(["simulate", str(bad), "--points", "5", "--out", str(tmp_path / "s")]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "re-verif" in err[0] and "rerun `nlyap run`" in err[0]
+
+
+def test_samples_are_seeded_and_inside(vdp_run):
+    run = load_run(vdp_run, **QUIET)
+    a, b = _points(run, 500, 3), _points(run, 500, 3)
+    np.testing.assert_array_equal(a, b)
+    assert run.contains(a).all()
+    assert not np.array_equal(a, _points(run, 500, 4))
+    out = run.sample(200, np.random.default_rng(0), inside=False)
+    assert not run.contains(out).any() and run.problem.domain.contains(out).all()
+
+
+# ------------------------------------------------------------------ simulate
+def _check_simulation(out, points):
+    z = np.load(out / "trajectories.npz")
+    X, V = z["inside"], z["V_inside"]
+    assert X.shape[1] == points and z["stayed"].all() and z["converged"].all()
+    summary = json.loads((out / "simulate.json").read_text())
+    assert summary["stayed"] == summary["converged"] == points and not summary["failures"]
+    png = (out / "simulate.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+    return X, V, summary
+
+
+def test_simulate_van_der_pol(vdp_run, tmp_path):
+    out = tmp_path / "sim"
+    assert main(["simulate", str(vdp_run), "--points", "40", "--horizon", "25",
+                 "--out", str(out)]) == 0
+    X, V, summary = _check_simulation(out, 40)
+    run = load_run(vdp_run, **QUIET)
+    assert summary["certificate_sha256"] == run.sha256
+    assert np.all(V[0] <= run.level) and np.all(V[-1] < 1e-6 * run.level)
+    # V decreases along every trajectory (up to the last steps, at machine precision)
+    early = V[: len(V) // 2]
+    assert np.all(np.diff(early, axis=0) <= 1e-12 * run.level)
+    # the same command gives the same trajectories (seeded)
+    out2 = tmp_path / "sim2"
+    assert main(["simulate", str(vdp_run), "--points", "40", "--horizon", "25",
+                 "--out", str(out2)]) == 0
+    np.testing.assert_array_equal(np.load(out2 / "trajectories.npz")["inside"], X)
+
+
+def test_simulate_cartpole_4d(cartpole_run, tmp_path):
+    out = tmp_path / "sim"
+    assert main(["simulate", str(cartpole_run), "--points", "30", "--horizon", "20",
+                 "--out", str(out)]) == 0
+    X, _, _ = _check_simulation(out, 30)
+    assert X.shape[2] == 4
+
+
+def test_a_trajectory_that_leaves_is_reported(cartpole_run):
+    """The checks can fail: with the input held at zero the pole falls out of the set."""
+    run = load_run(cartpole_run, **QUIET)
+    res = simulate_run(run, points=20, horizon=5.0, feedback=lambda x: np.zeros((len(x), 1)))
+    assert res.violated and not res.stayed.all()
+    assert any("left the certified set" in f for f in res.failures)
+
+
+def test_simulate_refuses_bad_input(vdp_run, tmp_path, capsys):
+    cases = [
+        ["simulate", str(tmp_path / "nope"), "--out", str(tmp_path / "o")],
+        ["simulate", str(vdp_run), "--points", "0", "--out", str(tmp_path / "o")],
+        ["simulate", str(vdp_run), "--filter", "clf-qp", "--out", str(tmp_path / "o")],
+        ["simulate", str(vdp_run), "--learned", "--out", str(tmp_path / "o")],
+    ]
+    for argv in cases:
+        assert main(argv) == 3, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("nlyap: error:"), err
+
+
+# ------------------------------------------------------------------ export
+def _compile(out):
+    cc = shutil.which("cc")
+    if cc is None:
+        pytest.skip("no C compiler (cc) on this machine")
+    lib = out / "libnlyap.so"
+    subprocess.run([cc, "-std=c99", "-Wall", "-Werror", "-O2", "-shared", "-fPIC",
+                    str(out / "nlyap.c"), "-o", str(lib), "-lm"], check=True,
+                   capture_output=True)
+    return ctypes.CDLL(str(lib))
+
+
+def _close(c, p, what):
+    """Per point, relative in the Euclidean norm (a gradient's component may cancel), with a
+    floor of 10⁻³ of the largest norm on the sample: where a sum cancels to almost 0 (κ = −Kx
+    next to the plane Kx = 0) its relative error is not fixed by float64 inputs."""
+    c, p = c.reshape(len(c), -1), p.reshape(len(p), -1)
+    norms = np.linalg.norm(p, axis=1)
+    scale = np.maximum(norms, 1e-3 * norms.max())
+    rel = np.linalg.norm(c - p, axis=1) / scale
+    assert rel.max() <= 1e-12, (what, rel.max())
+
+
+@pytest.mark.parametrize("which", ["vdp_run", "cartpole_run"])
+def test_export_c_compiles_and_matches_python(which, request, tmp_path):
+    d = request.getfixturevalue(which)
+    out = tmp_path / "c"
+    assert main(["export", str(d), "--format", "c", "--out", str(out)]) == 0
+    run = load_run(d, **QUIET)
+    header = (out / "nlyap.h").read_text()
+    assert hashlib.sha256((d / "certificate.json").read_bytes()).hexdigest() in header
+    assert float.fromhex(header.split("#define NLYAP_LEVEL ")[1].split()[0]) == run.level
+    lib = _compile(out)
+    nx, nu = run.system.nx, run.system.nu
+    box = run.sample_box()
+    rng = np.random.default_rng(7)
+    # half in the certified set, half uniform in a box 1.2 times the sampler's
+    wide = 0.5 * (box[:, 0] + box[:, 1]) + 1.2 * (box[:, 1] - box[:, 0]) * (
+        rng.random((5_000, nx)) - 0.5)
+    pts = np.vstack([run.sample(5_000, rng), wide])
+    x = ca.MX.sym("x", nx)
+    gradV = ca.Function("g", [x], [ca.gradient(run.problem.V_expr(x), x)])
+    py_V, py_g = run.V(pts), evaluate(gradV, [pts])[0]
+    py_k, py_m = run.kappa(pts), run.contains(pts)
+    dbl = ctypes.POINTER(ctypes.c_double)
+    c_V, c_g = np.empty(len(pts)), np.empty((len(pts), nx))
+    c_k, c_m = np.empty((len(pts), nu)), np.empty(len(pts), bool)
+    v, g, k = np.empty(1), np.empty(nx), np.empty(max(nu, 1))
+    for i, p in enumerate(pts):
+        xp = np.ascontiguousarray(p).ctypes.data_as(dbl)
+        assert lib.nlyap_V(xp, v.ctypes.data_as(dbl)) == 0
+        assert lib.nlyap_grad_V(xp, g.ctypes.data_as(dbl)) == 0
+        assert lib.nlyap_kappa(xp, k.ctypes.data_as(dbl)) == 0
+        c_V[i], c_g[i], c_k[i], c_m[i] = v[0], g, k[:nu], lib.nlyap_in_certified_set(xp)
+    _close(c_V, py_V, "V")
+    _close(c_g, py_g, "grad V")
+    if nu:
+        _close(c_k, py_k, "kappa")
+    # membership: equal except within rounding of the level
+    differ = c_m != py_m
+    assert not differ[np.abs(py_V - run.level) > 1e-12 * run.level].any()
+    assert 0.05 < py_m.mean() < 0.95      # both answers occur on the sample
+
+
+def test_export_onnx_refused_without_the_package(vdp_run, tmp_path, capsys, monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "onnx" else real(name, *a))
+    assert main(["export", str(vdp_run), "--format", "onnx", "--out", str(tmp_path / "o")]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pip install 'nlyap_opt[onnx]'" in err[0]
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("which", ["vdp_run", "cartpole_run"])
+def test_export_onnx_matches_python(which, request, tmp_path):
+    pytest.importorskip("onnx", reason="the onnx extra is not installed "
+                                       "(pip install 'nlyap_opt[onnx]')")
+    from onnx.reference import ReferenceEvaluator
+
+    d = request.getfixturevalue(which)
+    out = tmp_path / "o"
+    assert main(["export", str(d), "--format", "onnx", "--out", str(out)]) == 0
+    run = load_run(d, **QUIET)
+    pts = _points(run, 1000)
+    got = ReferenceEvaluator(str(out / "V.onnx")).run(None, {"x": pts})[0]
+    _close(got, run.V(pts), "V (onnx)")
+    if run.system.nu:
+        got = ReferenceEvaluator(str(out / "kappa.onnx")).run(None, {"x": pts})[0]
+        _close(got, run.kappa(pts), "kappa (onnx)")
+    else:
+        assert not (out / "kappa.onnx").exists()
+
+
+# ------------------------------------------------------------------ the CLF-QP filter
+def test_control_affinity_is_checked():
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    check_control_affine(ca.vertcat(x[1], ca.sin(x[0]) * u), u, "affine")
+    with pytest.raises(ConfigError, match="not control-affine"):
+        check_control_affine(ca.vertcat(x[1], u**2), u, "quadratic in u")
+    with pytest.raises(ConfigError, match="not control-affine"):
+        check_control_affine(ca.vertcat(x[1], ca.tanh(u + x[0])), u, "tanh")
+    s = systems.get("cartpole")
+    check_control_affine(s.f, s.u, "cartpole")
+
+
+def test_filter_refuses_a_system_without_inputs(vdp_run):
+    with pytest.raises(ConfigError, match="no inputs"):
+        ClfQpFilter(load_run(vdp_run, **QUIET), lambda x: np.zeros((len(x), 0)))
+
+
+@pytest.mark.slow
+def test_filter_qp_is_feasible_on_1e5_points_of_the_certified_set(cartpole_run):
+    _filter_feasible(cartpole_run, 100_000)
+
+
+def test_filter_qp_is_feasible_on_5000_points_of_the_certified_set(cartpole_run):
+    _filter_feasible(cartpole_run, 5_000)
+
+
+def _filter_feasible(cartpole_run, n):
+    """The theorem: κ is feasible on Ω_c∖B_ε, so OSQP solves every QP there, and the answer
+    keeps the demanded decrease (no fallback to κ)."""
+    run = load_run(cartpole_run, **QUIET)
+    rng = np.random.default_rng(11)
+    nominal = lambda x: 30.0 * rng.standard_normal((len(x), 1))   # noqa: E731
+    filt = ClfQpFilter(run, nominal, decay=0.5)
+    pts = _points(run, n)
+    pts = pts[~run.certificate.inner_ellipse.contains(pts)]
+    assert len(pts) > n // 2
+    a, e, d, k = filt.pieces(pts)
+    assert d.min() > 0                       # the certificate's decrease of κ
+    one = filt.pieces(pts[7:8])               # the one-state path agrees with the batch
+    for b, o in zip((a, e, d, k), one):
+        np.testing.assert_allclose(o, b[7:8], rtol=1e-13, atol=1e-300)
+    un = nominal(pts)
+    statuses, worst = set(), -np.inf
+    for i in range(len(pts)):
+        us, st = filt.solve(a[i], e[i], d[i], k[i], un[i])
+        statuses.add(st)
+        worst = max(worst, (e[i] + a[i] @ us) / (0.5 * d[i]))
+        assert filt.box[0, 0] <= us[0] <= filt.box[0, 1]
+    assert statuses == {"solved"} and filt.stats.fallback == 0
+    assert worst <= -1 + 1e-6                  # ∇V·f(x, u*) ≤ −λ d(x)
+    # the filter changes the nominal input only where it must (an inactive constraint)
+    inactive = e + (a * un).sum(axis=1) <= -0.5 * d - 1e-6
+    inb = (un[:, 0] > filt.box[0, 0]) & (un[:, 0] < filt.box[0, 1])
+    sel = np.flatnonzero(inactive & inb)[:200]
+    for i in sel:
+        np.testing.assert_allclose(filt.solve(a[i], e[i], d[i], k[i], un[i])[0], un[i],
+                                   rtol=1e-6, atol=1e-6)
+
+
+def test_nominal_files_are_data_not_code(tmp_path, capsys, cartpole_run):
+    py = tmp_path / "nominal.py"
+    py.write_text("import os\nos.system('touch HACKED')\n")
+    out = tmp_path / "o"
+    assert main(["simulate", str(cartpole_run), "--filter", "clf-qp", "--nominal", str(py),
+                 "--out", str(out)]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not valid JSON" in err[0]
+    assert not (tmp_path / "HACKED").exists()
+    bad = tmp_path / "bad.json"
+    for d, msg in [({"format": "nlyap-nominal-controller", "K": [[1, 2]]}, "K must be 1 x 4"),
+                   ({"format": "python", "code": "1"}, "'format' must be"),
+                   ({"format": "nlyap-nominal-controller", "K": [["a", 0, 0, 0]]}, "numbers"),
+                   ({"format": "nlyap-nominal-controller"}, "needs 'K'"),
+                   ({"format": "nlyap-nominal-controller", "K": [[0, 0, 0, 0]], "x": 1},
+                    "unknown keys")]:
+        bad.write_text(json.dumps(d))
+        with pytest.raises(ConfigError, match=msg):
+            load_nominal(bad, 4, 1)
+    f = load_nominal(write_linear_nominal(bad, [[1.0, 2.0, 3.0, 4.0]], [0.5]), 4, 1)
+    np.testing.assert_allclose(f(np.ones((2, 4))), [[-9.5], [-9.5]])
+
+
+def test_filtered_nominal_stays_inside_where_unfiltered_leaves(cartpole_run, tmp_path):
+    nom = write_linear_nominal(tmp_path / "zero.json", np.zeros((1, 4)),
+                               description="no force: the pole falls")
+    out = tmp_path / "sim"
+    assert main(["simulate", str(cartpole_run), "--points", "30", "--horizon", "20",
+                 "--filter", "clf-qp", "--nominal", str(nom), "--out", str(out)]) == 0
+    _check_simulation(out, 30)
+    summary = json.loads((out / "simulate.json").read_text())
+    assert summary["filter"]["unfiltered_stayed"] < 30
+    assert summary["filter"]["fallback_to_kappa"] == 0 and summary["filter"]["qp_solves"] > 0
+    z = np.load(out / "trajectories.npz")
+    assert not z["nominal_stayed"].all()
+
+
+@pytest.mark.slow
+def test_learned_pendulum_simulate_and_filter_with_the_margin(tmp_path):
+    """The learned-f path: the fast pendulum run (φ control-affine, η from its samples, ~2 min):
+    φ's closed loop and the filter with the margin η‖∇_L V‖ in its constraint."""
+    d = tmp_path / "ip"
+    cert = run_pipeline("inverted_pendulum", get_config("inverted_pendulum", "fast"), d,
+                        **QUIET).summary
+    assert cert["status"] == "certified"
+    nom = write_linear_nominal(tmp_path / "zero.json", np.zeros((1, 2)))
+    out = tmp_path / "sim"
+    assert main(["simulate", str(d), "--learned", "--points", "40", "--filter", "clf-qp",
+                 "--nominal", str(nom), "--out", str(out)]) == 0
+    _check_simulation(out, 40)
+    s = json.loads((out / "simulate.json").read_text())
+    assert s["dynamics"] == "learned" and s["filter"]["unfiltered_stayed"] < 40
+    run = load_run(d, **QUIET)
+    filt = ClfQpFilter(run, lambda x: np.zeros((len(x), 1)), dynamics="learned")
+    pts = _points(run, 5000)
+    pts = pts[~run.certificate.inner_ellipse.contains(pts)]
+    a, e, dd, k = filt.pieces(pts)
+    assert dd.min() > 0
+    assert run.problem.eta > 0      # the constraint carries the margin η‖∇_L V‖
+    for i in range(0, len(pts), 50):
+        us, st = filt.solve(a[i], e[i], dd[i], k[i], np.zeros(1))
+        assert st == "solved" and e[i] + a[i] @ us <= -filt.decay * dd[i] * (1 - 1e-6)

@@ -158,7 +158,10 @@ def register_cli(sub) -> None:
     sp = sub.add_parser("export", help="C99 or ONNX code of a run's V, κ and certified set",
                         description="Generate deployment code from a run (re-verified first).")
     sp.add_argument("run_dir", metavar="RUN_DIR", help="directory of a finished `nlyap run`")
-    sp.add_argument("--format", required=True, choices=["c", "onnx"])
+    sp.add_argument("--format", required=True, choices=["c", "onnx"],
+                    help="c: dependency-free C99 source and header of κ, V, ∇V and the "
+                         "certified-set test; onnx: V.onnx and kappa.onnx (needs the onnx "
+                         "package)")
     sp.add_argument("--out", required=True, help="directory for the files (created)")
     sp.set_defaults(func=cmd_export)
 

@@ -42,6 +42,7 @@ import casadi as ca
 import numpy as np
 
 from .domain import as_domain
+from .rounding import EPS
 from .walker import evaluate
 
 __all__ = [
@@ -474,7 +475,7 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: str | None = None, *,
         # TᵀS(0)T is −I only up to rounding: λ_max(TᵀS(y)T) ≤ −1 + d + ‖E‖₂ with d ≥
         # ‖TᵀS(0)T + I‖_F (float residual plus the bound γ_2n |T|ᵀ|S(0)||T| of the products)
         d = (np.linalg.norm(Tn.T @ S0 @ Tn + np.eye(n))
-             + 4 * n * np.finfo(float).eps * np.linalg.norm(np.abs(Tn).T @ np.abs(S0)
+             + 4 * n * EPS * np.linalg.norm(np.abs(Tn).T @ np.abs(S0)
                                                             @ np.abs(Tn))) * (1 + 1e-6)
         if d < 0.5:     # (1 − d)² is the bound only while d < 1
             forms["frobenius"] = [ca.sumsqr(E) - (1.0 - d) ** 2]

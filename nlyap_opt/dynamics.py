@@ -63,13 +63,7 @@ from .dynamics_config import MODELS, DynamicsConfig, dynamics_config, load_dynam
 from .errors import ConfigError, DimensionError, NetworkFileError
 from .grid import GridNodes, norm2_up
 from .network import Network
-from .phi_training import (  # noqa: F401  (_LevenbergMarquardt, _assemble: older imports)
-    _assemble,
-    _bar,
-    _LevenbergMarquardt,
-    _polish,
-    _train_component,
-)
+from .phi_training import assemble, polish, progress_bar, train_component
 from .rounding import U, gamma_rn
 from .symbolic import learned_components_of
 
@@ -832,7 +826,7 @@ def learn_dynamics(system, config: DynamicsConfig | dict | None = None, *,
     with deterministic_torch(cfg.threads):
         for k in range(len(comp)):
             zk = zn if len(cols[k]) == zn.shape[1] else zn[:, cols[k]]
-            blocks.append(_train_component(
+            blocks.append(train_component(
                 zk, yn[:, k], hidden[k], cfg, cfg.seed + 7919 * k, progress, history,
                 f"φ[{comp[k]}] {system.name}", t0))
     seconds["training"] = time.perf_counter() - t0
@@ -847,7 +841,7 @@ def _finish(system, cfg: DynamicsConfig, grid: Grid, model: str, comp: list[int]
     """Assemble the network from the trained blocks and measure α on every grid node."""
     d = grid.dim
     cols = state.get("inputs") or [list(range(d)) for _ in comp]
-    network = _assemble(_widen(state["blocks"], cols, d), state["centre"], state["radius"],
+    network = assemble(_widen(state["blocks"], cols, d), state["centre"], state["radius"],
                         state["mu"], state["sigma"], cfg.prune)
     network.meta.update({
         "kind": "dynamics", "system": system.name, "model": model,
@@ -913,9 +907,9 @@ def refine_dynamics(result: DynamicsResult, *, points: int | None = None,
     for k, block in enumerate(st["blocks"]):
         theta = np.concatenate([np.ravel(a) for a in block])
         total = cfg.lm_iterations + cfg.minimax_rounds * cfg.minimax_iterations
-        bar = _bar(total, progress, f"φ[{comp[k]}] refine {rnd}")
+        bar = progress_bar(total, progress, f"φ[{comp[k]}] refine {rnd}")
         zk = zn if len(cols[k]) == zn.shape[1] else zn[:, cols[k]]
-        blocks.append(_polish(zk, yn[:, k], len(block[1]), cfg, theta, bar, history,
+        blocks.append(polish(zk, yn[:, k], len(block[1]), cfg, theta, bar, history,
                               f"φ[{comp[k]}] {system.name} round {rnd}", t0))
         if bar is not None:
             bar.close()

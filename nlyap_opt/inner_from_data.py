@@ -111,11 +111,11 @@ def _matmul_err(A, B) -> np.ndarray:
     return up_rel(g * (np.abs(A) @ np.abs(B)), 8) + 1e-300
 
 
-def _pt_times_iv(A, L, U):
-    """Enclosure ``[lo, hi]`` of ``A @ X`` for every ``L ≤ X ≤ U`` (``A`` a point matrix)."""
+def _pt_times_iv(A, L, Ub):
+    """Enclosure ``[lo, hi]`` of ``A @ X`` for every ``L ≤ X ≤ Ub`` (``A`` a point matrix)."""
     A = np.asarray(A, dtype=float)
     p1 = A[:, :, None] * L[None, :, :]
-    p2 = A[:, :, None] * U[None, :, :]
+    p2 = A[:, :, None] * Ub[None, :, :]
     lo_t, hi_t = np.minimum(p1, p2), np.maximum(p1, p2)
     k = A.shape[1]
     g = 2.0 * (k + 2) * U
@@ -168,7 +168,7 @@ def _smooth_expression(fun: ca.Function) -> bool:
 
 
 def _enclose(fun: ca.Function, lo, hi) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Dense outward enclosures ``(L, U)`` of every output of ``fun`` over the box [lo, hi]."""
+    """Dense outward enclosures ``(L, Ub)`` of every output of ``fun`` over the box [lo, hi]."""
     from verification.interval import Interval, IntervalArithmetic
 
     from .walker import evaluate
@@ -179,20 +179,20 @@ def _enclose(fun: ca.Function, lo, hi) -> list[tuple[np.ndarray, np.ndarray]]:
     for j, o in enumerate(outs):
         sp = fun.sparsity_out(j)
         r, c = (np.asarray(v, dtype=np.intp) for v in sp.get_triplet())
-        L, U = np.zeros(sp.shape), np.zeros(sp.shape)
+        L, Ub = np.zeros(sp.shape), np.zeros(sp.shape)
         nnz = sp.nnz()  # a constant output may come without the batch axis: broadcast
         ol = np.broadcast_to(np.asarray(o.lo, dtype=float), (1, nnz))[0]
         oh = np.broadcast_to(np.asarray(o.hi, dtype=float), (1, nnz))[0]
         ol = np.where(np.isnan(ol), -np.inf, ol)
         oh = np.where(np.isnan(oh), np.inf, oh)
         L[r, c] = np.nextafter(ol - np.abs(ol) * _FOLD, -np.inf)
-        U[r, c] = np.nextafter(oh + np.abs(oh) * _FOLD, np.inf)
-        res.append((L, U))
+        Ub[r, c] = np.nextafter(oh + np.abs(oh) * _FOLD, np.inf)
+        res.append((L, Ub))
     return res
 
 
-def _mag(L, U):
-    return np.maximum(np.abs(L), np.abs(U))
+def _mag(L, Ub):
+    return np.maximum(np.abs(L), np.abs(Ub))
 
 
 # ============================================================================ the proof

@@ -147,6 +147,24 @@ def status_string_comparisons(tree: ast.Module) -> int:
     return n
 
 
+def rounding_shadows(sources: dict[str, ast.Module]) -> list[str]:
+    """Functions that bind a name the module imports from the rounding model (a parameter
+    ``U`` would silently replace the unit roundoff ``U`` in that function)."""
+    hits = []
+    for rel, tree in sources.items():
+        imported = {a.asname or a.name for n in tree.body if isinstance(n, ast.ImportFrom)
+                    and (n.module or "").endswith("rounding") for a in n.names}
+        for f in ast.walk(tree):
+            if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                args = f.args
+                bound = {a.arg for a in args.posonlyargs + args.args + args.kwonlyargs}
+                bound |= {n.id for n in ast.walk(f)
+                          if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)}
+                for name in sorted(bound & imported):
+                    hits.append(f"{rel}:{f.lineno} {getattr(f, 'name', 'lambda')} binds {name}")
+    return hits
+
+
 def report() -> dict:
     import nlyap_opt.rounding as rounding
 
@@ -158,6 +176,7 @@ def report() -> dict:
             "helpers": helper_definitions(sources, helpers),
             "legacy": helper_definitions(sources, LEGACY_HELPERS),
             "private_imports": private_imports(sources),
+            "shadows": rounding_shadows(sources),
             "status_comparisons": status}
 
 
@@ -179,6 +198,10 @@ def test_each_rounding_helper_is_defined_once(counts):
     assert not stale, f"local rounding helpers: {stale} (import nlyap_opt.rounding instead)"
 
 
+def test_no_function_shadows_the_rounding_names(counts):
+    assert not counts["shadows"], counts["shadows"]
+
+
 def test_private_imports_do_not_grow(counts):
     hits = counts["private_imports"]
     print(f"private names imported across modules: {len(hits)}")
@@ -197,6 +220,8 @@ def test_the_counters_see_what_they_count():
     assert status_string_comparisons(tree) == 4
     assert helper_definitions({"a.py": ast.parse("def up(y):\n    pass\n")}, ["up"]) == \
         {"up": ["a.py:1"]}
+    shadow = ast.parse("from nlyap_opt.rounding import U\ndef f(L, U):\n    return U\n")
+    assert rounding_shadows({"b.py": shadow}) == ["b.py:2 f binds U"]
 
 
 def test_status_comparisons_are_reported(counts):

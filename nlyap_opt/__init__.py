@@ -1,10 +1,19 @@
 """nlyap_opt: neural Lyapunov control of unknown nonlinear systems, with certified ROAs.
 
 Public API (what users type); the machinery lives in the submodules.
+
+- a whole run: :func:`run` (the pipeline; ``nlyap run``) with :func:`make_config`;
+- a certificate: :class:`RoaProblem`, :func:`certify_roa`, :func:`recheck_certificate`,
+  :class:`CertStatus`;
+- errors: :class:`NlyapError` and its subclasses, :class:`ConfigError` for bad user input.
+
+The pipeline and certificate names load their modules on first use (module
+``__getattr__``), so that ``import nlyap_opt`` stays light.
 """
 
 from .errors import (
     BackendUnavailableError,
+    ConfigError,
     DimensionError,
     EquilibriumError,
     InputRangeError,
@@ -25,5 +34,32 @@ __all__ = [
     "Layer", "Network", "from_torch", "load_network", "closed_loop", "lie_derivative",
     "evaluate", "NlyapError", "DimensionError", "EquilibriumError", "InputRangeError",
     "NetworkFileError", "NotStabilizableError", "UnknownNameError", "UnsupportedLayerError",
-    "UnsupportedOperationError", "BackendUnavailableError", "__version__",
+    "UnsupportedOperationError", "BackendUnavailableError", "ConfigError", "__version__",
+    "run", "make_config", "RoaProblem", "certify_roa", "recheck_certificate", "CertStatus",
 ]
+
+#: the public names loaded on first use: name -> the module that defines it
+_LAZY = {
+    "run": "nlyap_opt.pipeline",
+    "make_config": "nlyap_opt.configs",
+    "RoaProblem": "nlyap_opt.certificate",
+    "certify_roa": "nlyap_opt.certificate",
+    "recheck_certificate": "nlyap_opt.certificate",
+    "CertStatus": "nlyap_opt.certificate",
+}
+
+
+def __getattr__(name: str):
+    """Import the module of a lazy public name on first access (PEP 562)."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'nlyap_opt' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .dynamics import _norm2_up
 from .error_models import (
     BOUND_OPTIONS,
     BoundOption,
@@ -40,8 +39,10 @@ from .error_models import (
     write_bounds,
 )
 from .errors import ConfigError, DimensionError, InputRangeError
-from .interval_sup import _counts_for, _ia, _interval_sup, _mul_up, subboxes
+from .grid import norm2_up
+from .interval_sup import counts_for, interval_arithmetic, interval_sup, subboxes
 from .network import Network
+from .rounding import mul_up
 
 __all__ = [
     "BOUND_OPTIONS", "BoundOption", "BoundsResult", "GradientBound", "LipschitzBound",
@@ -132,9 +133,9 @@ def gradient_bound(V, region_box, *, boxes: int = 4096, counts=None, controller=
             raise ConfigError("give input_box (U) to check the controller's range")
         rng_box = check_input_range(controller, region, input_box, boxes=boxes)
     g = _grad_function(V, n)
-    counts = _counts_for(region, boxes, counts)
-    norms, nb = _interval_sup(g, region, counts,
-                              lambda mag, lo, hi: _norm2_up(mag.reshape(mag.shape[0], -1), axis=1))
+    counts = counts_for(region, boxes, counts)
+    norms, nb = interval_sup(g, region, counts,
+                              lambda mag, lo, hi: norm2_up(mag.reshape(mag.shape[0], -1), axis=1))
     M = float(np.max(norms))
     sampled = float("nan")
     if sample_points:
@@ -155,7 +156,7 @@ def _controller_enclosure(controller, lo: np.ndarray, hi: np.ndarray):
     """
     from .walker import evaluate
 
-    Interval, ia = _ia()
+    Interval, ia = interval_arithmetic()
     if isinstance(controller, Network) and controller.layers[-1].activation in ("tanh",
                                                                                  "sigmoid"):
         act = controller.layers[-1].activation
@@ -196,7 +197,7 @@ def check_input_range(controller, region_box, input_box, *, boxes: int = 4096,
     """
     region = np.asarray(region_box, dtype=float)
     U = np.asarray(input_box, dtype=float).reshape(-1, 2)
-    lo, hi = subboxes(region, _counts_for(region, boxes))
+    lo, hi = subboxes(region, counts_for(region, boxes))
     rlo = np.full(U.shape[0], np.inf)
     rhi = np.full(U.shape[0], -np.inf)
     for depth in range(max_depth + 1):
@@ -249,4 +250,4 @@ def margin(M: float, eta: float) -> float:
     M, eta = float(M), float(eta)
     if not (M >= 0 and eta >= 0 and math.isfinite(M) and math.isfinite(eta)):
         raise ConfigError(f"margin needs finite non-negative M and η, got M={M}, η={eta}")
-    return _mul_up(M, eta)
+    return mul_up(M, eta)

@@ -61,16 +61,10 @@ import numpy as np
 from .determinism import deterministic_torch
 from .dynamics_config import MODELS, DynamicsConfig, dynamics_config, load_dynamics_config
 from .errors import ConfigError, DimensionError, NetworkFileError
-from .grid import GridNodes
-from .grid import norm2_up as _norm2_up
+from .grid import GridNodes, norm2_up
 from .network import Network
-from .phi_training import (  # noqa: F401  (_LevenbergMarquardt, _assemble: older imports)
-    _assemble,
-    _bar,
-    _LevenbergMarquardt,
-    _polish,
-    _train_component,
-)
+from .phi_training import assemble, polish, progress_bar, train_component
+from .rounding import U, gamma_rn
 from .symbolic import learned_components_of
 
 __all__ = [
@@ -81,7 +75,6 @@ __all__ = [
     "affine_base_input", "check_declared", "input_columns", "declared_dependencies",
 ]
 
-_U = 2.0 ** -53  # unit roundoff of float64
 
 
 # ============================================================================ grid
@@ -140,7 +133,7 @@ class Grid(GridNodes):
             ax[0], ax[-1] = lo, hi
         self.spacing = (box[:, 1] - box[:, 0]) / (self.counts - 1)
         self.gaps = np.array([np.nextafter(np.max(np.diff(ax)), np.inf) for ax in self.axes])
-        self.delta = _norm2_up(0.5 * self.gaps)
+        self.delta = norm2_up(0.5 * self.gaps)
 
     @classmethod
     def from_spacing(cls, box, spacing) -> Grid:
@@ -417,15 +410,12 @@ def network_error_bound(network: Network, zmax: np.ndarray) -> np.ndarray:
     (l0, l1) = network.layers
     n, H = l0.weight.shape[1], l0.weight.shape[0]
 
-    def gamma(k):
-        return k * _U / (1.0 - k * _U)
-
     pre = np.abs(l0.weight) @ np.asarray(zmax, dtype=float) + np.abs(l0.bias)
-    err_t = gamma(n + 1) * pre + 8 * _U  # |t̂ − t| (|t| ≤ 1)
+    err_t = gamma_rn(n + 1) * pre + 8 * U  # |t̂ − t| (|t| ≤ 1)
     out = np.abs(l1.weight) @ np.ones(H) + np.abs(l1.bias)
-    err = gamma(H + 1) * out + np.abs(l1.weight) @ err_t
+    err = gamma_rn(H + 1) * out + np.abs(l1.weight) @ err_t
     scale = np.abs(np.broadcast_to(network.output_scale, err.shape))
-    err = scale * err + 2 * _U * scale * out
+    err = scale * err + 2 * U * scale * out
     return err * (1 + 1e-6) + 1e-300
 
 
@@ -475,8 +465,8 @@ def measure_alpha(system, network: Network, grid: Grid, *, batch_size: int = 1 <
             best, arg = float(nrm[k]), z[k].copy()
         per = np.maximum(per, np.max(np.abs(e), axis=0))
         if err_f is not None:  # |e_true| ≤ |fl(f̂ − φ̂)|(1 + u) + |f − f̂| + |φ − φ̂|, rounded up
-            ae = (np.abs(e) * (1 + 2 * _U) + err_phi + err_f(z)) * (1 + 8 * _U)
-            best_up = max(best_up, float(np.max(_norm2_up(ae, axis=1))))
+            ae = (np.abs(e) * (1 + 2 * U) + err_phi + err_f(z)) * (1 + 8 * U)
+            best_up = max(best_up, float(np.max(norm2_up(ae, axis=1))))
     if err_f is None:
         best_up = float("nan")
     return AlphaResult(best, best_up, arg, grid.size, time.perf_counter() - t0, per)
@@ -501,7 +491,7 @@ def _target_rounding(system, model: str, comp: list[int]):
             out = np.full((z.shape[0], len(comp)), eps)
             if shifted:
                 t = np.abs(_target(system, model, comp, z))
-                out = out + 4 * _U * (2 * t + Bu0)
+                out = out + 4 * U * (2 * t + Bu0)
             return out
 
         return data_bound
@@ -519,7 +509,7 @@ def _target_rounding(system, model: str, comp: list[int]):
         fx = system.evaluate(x, u)[:, comp]
         out = evaluate(prog, [Interval(x, x.copy()), Interval(u, u.copy())], ia)[0]
         lo, hi = np.asarray(out.lo)[:, comp], np.asarray(out.hi)[:, comp]
-        return np.maximum(hi - fx, fx - lo) * (1 + 4 * _U)
+        return np.maximum(hi - fx, fx - lo) * (1 + 4 * U)
 
     return bound
 
@@ -836,7 +826,7 @@ def learn_dynamics(system, config: DynamicsConfig | dict | None = None, *,
     with deterministic_torch(cfg.threads):
         for k in range(len(comp)):
             zk = zn if len(cols[k]) == zn.shape[1] else zn[:, cols[k]]
-            blocks.append(_train_component(
+            blocks.append(train_component(
                 zk, yn[:, k], hidden[k], cfg, cfg.seed + 7919 * k, progress, history,
                 f"φ[{comp[k]}] {system.name}", t0))
     seconds["training"] = time.perf_counter() - t0
@@ -851,7 +841,7 @@ def _finish(system, cfg: DynamicsConfig, grid: Grid, model: str, comp: list[int]
     """Assemble the network from the trained blocks and measure α on every grid node."""
     d = grid.dim
     cols = state.get("inputs") or [list(range(d)) for _ in comp]
-    network = _assemble(_widen(state["blocks"], cols, d), state["centre"], state["radius"],
+    network = assemble(_widen(state["blocks"], cols, d), state["centre"], state["radius"],
                         state["mu"], state["sigma"], cfg.prune)
     network.meta.update({
         "kind": "dynamics", "system": system.name, "model": model,
@@ -917,9 +907,9 @@ def refine_dynamics(result: DynamicsResult, *, points: int | None = None,
     for k, block in enumerate(st["blocks"]):
         theta = np.concatenate([np.ravel(a) for a in block])
         total = cfg.lm_iterations + cfg.minimax_rounds * cfg.minimax_iterations
-        bar = _bar(total, progress, f"φ[{comp[k]}] refine {rnd}")
+        bar = progress_bar(total, progress, f"φ[{comp[k]}] refine {rnd}")
         zk = zn if len(cols[k]) == zn.shape[1] else zn[:, cols[k]]
-        blocks.append(_polish(zk, yn[:, k], len(block[1]), cfg, theta, bar, history,
+        blocks.append(polish(zk, yn[:, k], len(block[1]), cfg, theta, bar, history,
                               f"φ[{comp[k]}] {system.name} round {rnd}", t0))
         if bar is not None:
             bar.close()

@@ -64,16 +64,16 @@ import numpy as np
 from .dynamics import (
     AlphaResult,
     Grid,
-    _norm2_up,
     check_dynamics_network,
     declared_dependencies,
     measure_alpha,
 )
 from .errors import ConfigError, DimensionError, UnknownNameError
-from .interval_sup import _add_up, _counts_for, _interval_sup, _matrix_norm_up, _mul_up
+from .grid import norm2_up
+from .interval_sup import counts_for, interval_sup, matrix_norm_up
 from .jsonio import save_timings, split_timings
-from .lipschitz import _up
 from .network import Network
+from .rounding import add_up, mul_up, next_up
 
 __all__ = [
     "BOUND_OPTIONS", "BoundOption", "BoundsResult", "LipschitzBound", "ErrorModel",
@@ -200,13 +200,13 @@ def lipschitz_f(em: ErrorModel, *, boxes: int = 16384, counts=None,
     if not em.has_f:
         return _declared_lipschitz(em)
     t0 = time.perf_counter()
-    counts = _counts_for(em.box, boxes, counts)
+    counts = counts_for(em.box, boxes, counts)
     m, d = len(em.comp), em.d
 
     def red(mag, lo, hi):
-        return _matrix_norm_up(mag)
+        return matrix_norm_up(mag)
 
-    norms, n = _interval_sup(em.J_f, em.box, counts, red)
+    norms, n = interval_sup(em.J_f, em.box, counts, red)
     value = float(np.max(norms))
     sampled = float("nan")
     if sample_points is not None and len(sample_points):
@@ -260,10 +260,10 @@ def lipschitz_phi(em: ErrorModel, *, boxes: int = 16384, counts=None,
     t0 = time.perf_counter()
     W0, b0, W1, factor = em.phi_weights()
     res = lipschitz_lipsdp(W0, b0, W1)
-    lipsdp = _mul_up(res.value, factor)
+    lipsdp = mul_up(res.value, factor)
     t1 = time.perf_counter()
-    norms, n = _interval_sup(em.J_phi, em.box, _counts_for(em.box, boxes, counts),
-                             lambda mag, lo, hi: _matrix_norm_up(mag))
+    norms, n = interval_sup(em.J_phi, em.box, counts_for(em.box, boxes, counts),
+                             lambda mag, lo, hi: matrix_norm_up(mag))
     box_value = float(np.max(norms))
     sampled = float("nan")
     if sample_points is not None and len(sample_points):
@@ -327,7 +327,7 @@ def _option_global(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: dict) ->
     Kf, Kphi = ctx["K_f"], ctx["K_phi"]
     if not math.isfinite(Kf.value):
         raise _Skip(f"needs a Lipschitz constant K_f of f: {Kf.method}")
-    eta = _add_up(alpha.alpha_upper, _mul_up(_add_up(Kf.value, Kphi.value), grid.delta))
+    eta = add_up(alpha.alpha_upper, mul_up(add_up(Kf.value, Kphi.value), grid.delta))
     kf_text = (f"K_f = {Kf.value:.6g} ≥ sup ‖J_f‖₂ over the box (known Lipschitz constant of "
                "f; here rigorous from the CasADi model by interval evaluation)") if em.has_f \
         else (f"K_f = {Kf.value:.6g}: the Lipschitz constant of f on the sampling box "
@@ -352,14 +352,14 @@ def _option_anisotropic(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: dic
     counts = ctx["counts"]
 
     def red(mag, lo, hi):  # ‖column i of J_e‖₂
-        return _norm2_up(mag, axis=1)
+        return norm2_up(mag, axis=1)
 
-    cols, n = _interval_sup(em.J_e, em.box, counts, red)
+    cols, n = interval_sup(em.J_e, em.box, counts, red)
     L = np.max(cols, axis=0)
     term = 0.0
     for Li, gi in zip(L, grid.gaps):
-        term = _add_up(term, _mul_up(Li, _up(0.5 * gi)))
-    eta = _add_up(alpha.alpha_upper, term)
+        term = add_up(term, mul_up(Li, next_up(0.5 * gi)))
+    eta = add_up(alpha.alpha_upper, term)
     return BoundOption(
         "anisotropic", eta,
         _common_assumptions(em, grid) + [
@@ -394,20 +394,20 @@ def _option_second_order(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: di
                         "nodes (write the file with 17 significant digits)")
         # |∂²_i e_k| ≤ |∂²_i f_k| + |∂²_i φ_k| ≤ H + sup |∂²_i φ_k|; ∂²_i f_k ≡ 0 along a
         # variable z_i that f_k is declared not to depend on (Declarations.depends_on)
-        D2p, n = _interval_sup(em.D2_phi, em.box, counts, red)
+        D2p, n = interval_sup(em.D2_phi, em.box, counts, red)
         deps = declared_dependencies(em.system, d)
         Hk = np.array([[H if k not in deps or i in deps[k] else 0.0 for i in range(d)]
                        for k in em.comp])
-        D = np.vectorize(_add_up)(Hk, np.max(D2p, axis=0))
+        D = np.vectorize(add_up)(Hk, np.max(D2p, axis=0))
     else:
-        D2, n = _interval_sup(em.D2_e, em.box, counts, red)
+        D2, n = interval_sup(em.D2_e, em.box, counts, red)
         D = np.max(D2, axis=0)  # (m, d)
-    g2 = np.array([_up(_up(g * g) / 8.0) for g in grid.gaps])  # exact /8, rounded anyway
+    g2 = np.array([next_up(next_up(g * g) / 8.0) for g in grid.gaps])  # exact /8, rounded anyway
     per = np.array([
-        _add_up(*[_mul_up(D[k, i], g2[i]) for i in range(d)]) for k in range(m)
+        add_up(*[mul_up(D[k, i], g2[i]) for i in range(d)]) for k in range(m)
     ])
-    term = _norm2_up(per)
-    eta = _add_up(alpha.alpha_upper, term)
+    term = norm2_up(per)
+    eta = add_up(alpha.alpha_upper, term)
     how = ("here rigorous from the CasADi model by interval evaluation of the diagonal "
            f"Hessian of f − φ on {n} sub-boxes") if H is None else \
         (f"declared by the user: |∂²f_k/∂z_i∂z_j| ≤ H = {H:.6g}; D = H + the interval sup of "
@@ -560,7 +560,7 @@ def compute_bounds(system, network: Network, grid: Grid, alpha: AlphaResult | No
     rng = np.random.default_rng(seed)
     corners = np.array(np.meshgrid(*grid.box, indexing="ij")).reshape(grid.dim, -1).T
     nodes = np.vstack([grid.sample(min(20000, grid.size), rng), corners])  # corners are nodes
-    ctx = {"counts": _counts_for(em.box, boxes, counts)}
+    ctx = {"counts": counts_for(em.box, boxes, counts)}
     t0 = time.perf_counter()
     ctx["K_f"] = lipschitz_f(em, counts=ctx["counts"], sample_points=nodes)
     seconds["K_f"] = time.perf_counter() - t0

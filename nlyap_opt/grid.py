@@ -8,18 +8,17 @@ from collections.abc import Iterator
 
 import numpy as np
 
-__all__ = ["GridNodes", "norm2_up"]
+from .rounding import U, next_up
 
-_U = 2.0**-53  # unit roundoff of float64
+__all__ = ["GridNodes", "norm2_up"]
 
 
 def norm2_up(v, axis=None):
     """Upper bound of ``‖v‖₂`` in float64 (covers the rounding of squares, sum and sqrt)."""
     v = np.abs(np.asarray(v, dtype=float))
     n = v.size if axis is None else v.shape[axis]
-    s = np.sum(v * v, axis=axis) * (1.0 + 2.0 * (n + 2) * _U)
-    r = np.nextafter(np.nextafter(np.sqrt(s), np.inf), np.inf)
-    return float(r) if np.ndim(r) == 0 else r
+    s = np.sum(v * v, axis=axis) * (1.0 + 2.0 * (n + 2) * U)
+    return next_up(np.sqrt(s), 2)
 
 
 class GridNodes:

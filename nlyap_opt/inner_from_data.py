@@ -85,63 +85,44 @@ import numpy as np
 
 from .errors import DimensionError
 from .network import Network
+from .rounding import U, dn_rel, gamma_rn, up_rel
 
 __all__ = ["prove_inner_ellipse_from_data", "SAFETY"]
 
 #: relative safety factor of the final strict inequality λ > ‖P‖·H_g·ρ
 SAFETY = 1e-9
-_U = 2.0**-53
 _FOLD = 2.0**-30     # relative widening of interval enclosures of derivative graphs
 _EIG = 1e-12         # relative (to ‖S‖_F) allowance on eigvalsh
 _SMOOTH = ("tanh", "linear", "sigmoid")
 
 
 # ============================================================================ rounding helpers
-def _up(v):
-    """Round a non-negative array (or float) up past one to three roundings."""
-    v = np.asarray(v, dtype=float) * (1.0 + 8 * _U)
-    r = np.nextafter(np.nextafter(v, np.inf), np.inf)
-    return float(r) if np.ndim(r) == 0 else r
-
-
-def _down(v: float) -> float:
-    """Round a float down past one to three roundings (for a lower bound)."""
-    v = float(v)
-    v = v - abs(v) * 8 * _U
-    return float(np.nextafter(np.nextafter(v, -np.inf), -np.inf))
-
-
 def _fro_up(M) -> float:
     """Upper bound of the Frobenius norm (hence of the spectral norm) of ``M``."""
     M = np.abs(np.asarray(M, dtype=float))
-    s = float(np.sum(M * M)) * (1.0 + 2.0 * (M.size + 2) * _U)
-    return _up(np.sqrt(s))
+    s = float(np.sum(M * M)) * (1.0 + 2.0 * (M.size + 2) * U)
+    return up_rel(np.sqrt(s), 8)
 
 
 def _matmul_err(A, B) -> np.ndarray:
     """Entrywise bound of ``|fl(A @ B) − A @ B|`` (recursive summation, any order)."""
     k = np.asarray(A).shape[-1]
-    g = (k + 2) * _U / (1.0 - (k + 2) * _U)
-    return _up(g * (np.abs(A) @ np.abs(B))) + 1e-300
+    g = gamma_rn(k + 2)
+    return up_rel(g * (np.abs(A) @ np.abs(B)), 8) + 1e-300
 
 
-def _pt_times_iv(A, L, U):
-    """Enclosure ``[lo, hi]`` of ``A @ X`` for every ``L ≤ X ≤ U`` (``A`` a point matrix)."""
+def _pt_times_iv(A, L, Ub):
+    """Enclosure ``[lo, hi]`` of ``A @ X`` for every ``L ≤ X ≤ Ub`` (``A`` a point matrix)."""
     A = np.asarray(A, dtype=float)
     p1 = A[:, :, None] * L[None, :, :]
-    p2 = A[:, :, None] * U[None, :, :]
+    p2 = A[:, :, None] * Ub[None, :, :]
     lo_t, hi_t = np.minimum(p1, p2), np.maximum(p1, p2)
     k = A.shape[1]
-    g = 2.0 * (k + 2) * _U
+    g = 2.0 * (k + 2) * U
     mag = np.sum(np.maximum(np.abs(lo_t), np.abs(hi_t)), axis=1)
     lo = np.sum(lo_t, axis=1) - g * mag - 1e-300
     hi = np.sum(hi_t, axis=1) + g * mag + 1e-300
     return np.nextafter(lo, -np.inf), np.nextafter(hi, np.inf)
-
-
-def _upper(v: float) -> float:
-    """Round a float of any sign up past one to three roundings (for an upper bound)."""
-    return -_down(-float(v))
 
 
 def _eig_bounds(S) -> tuple[float, float]:
@@ -153,8 +134,8 @@ def _eig_bounds(S) -> tuple[float, float]:
     """
     S = np.asarray(S, dtype=float)
     lam = np.linalg.eigvalsh(S)
-    m = _up(_EIG * _fro_up(S)) + 1e-300
-    return _down(float(lam[0]) - m), _upper(float(lam[-1]) + m)
+    m = up_rel(_EIG * _fro_up(S), 8) + 1e-300
+    return dn_rel(float(lam[0]) - m, 8), -dn_rel(-(float(lam[-1]) + m), 8)
 
 
 def _ellipse_box(P, c) -> np.ndarray:
@@ -169,14 +150,14 @@ def _ellipse_box(P, c) -> np.ndarray:
         Y = np.linalg.inv(P)
     except np.linalg.LinAlgError:
         return np.full(n, np.inf)
-    r = _up(_fro_up(np.eye(n) - P @ Y) + _fro_up(_matmul_err(P, Y)))
+    r = up_rel(_fro_up(np.eye(n) - P @ Y) + _fro_up(_matmul_err(P, Y)), 8)
     if not r < 0.5:
         return np.full(n, np.inf)
-    err = _up(_fro_up(Y) * _up(r / (1.0 - r) * (1 + 4 * _U)))
+    err = up_rel(_fro_up(Y) * up_rel(r / (1.0 - r) * (1 + 4 * U), 8), 8)
     d = np.diag(Y) + err
     if np.any(d <= 0):
         return np.full(n, np.inf)
-    return _up(np.sqrt(_up(float(c) * _up(d))))
+    return up_rel(np.sqrt(up_rel(float(c) * up_rel(d, 8), 8)), 8)
 
 
 def _smooth_expression(fun: ca.Function) -> bool:
@@ -187,7 +168,7 @@ def _smooth_expression(fun: ca.Function) -> bool:
 
 
 def _enclose(fun: ca.Function, lo, hi) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Dense outward enclosures ``(L, U)`` of every output of ``fun`` over the box [lo, hi]."""
+    """Dense outward enclosures ``(L, Ub)`` of every output of ``fun`` over the box [lo, hi]."""
     from verification.interval import Interval, IntervalArithmetic
 
     from .walker import evaluate
@@ -198,20 +179,20 @@ def _enclose(fun: ca.Function, lo, hi) -> list[tuple[np.ndarray, np.ndarray]]:
     for j, o in enumerate(outs):
         sp = fun.sparsity_out(j)
         r, c = (np.asarray(v, dtype=np.intp) for v in sp.get_triplet())
-        L, U = np.zeros(sp.shape), np.zeros(sp.shape)
+        L, Ub = np.zeros(sp.shape), np.zeros(sp.shape)
         nnz = sp.nnz()  # a constant output may come without the batch axis: broadcast
         ol = np.broadcast_to(np.asarray(o.lo, dtype=float), (1, nnz))[0]
         oh = np.broadcast_to(np.asarray(o.hi, dtype=float), (1, nnz))[0]
         ol = np.where(np.isnan(ol), -np.inf, ol)
         oh = np.where(np.isnan(oh), np.inf, oh)
         L[r, c] = np.nextafter(ol - np.abs(ol) * _FOLD, -np.inf)
-        U[r, c] = np.nextafter(oh + np.abs(oh) * _FOLD, np.inf)
-        res.append((L, U))
+        Ub[r, c] = np.nextafter(oh + np.abs(oh) * _FOLD, np.inf)
+        res.append((L, Ub))
     return res
 
 
-def _mag(L, U):
-    return np.maximum(np.abs(L), np.abs(U))
+def _mag(L, Ub):
+    return np.maximum(np.abs(L), np.abs(Ub))
 
 
 # ============================================================================ the proof
@@ -333,10 +314,10 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
                          "regular nodes; declare lipschitz (K_f) to bound what that does to "
                          "the finite differences, or write the file with 17 digits", n)
         steps = np.asarray(jac.steps, dtype=float)
-        width = np.sum(steps, axis=1) * (1 - 4 * _U)
+        width = np.sum(steps, axis=1) * (1 - 4 * U)
         for i in range(n + m):
             if width[i] > 0:
-                E[:, i] = _up(E[:, i] + _up(2.0 * K * offset / width[i]))
+                E[:, i] = up_rel(E[:, i] + up_rel(2.0 * K * offset / width[i], 8), 8)
 
     # ---- the controller: κ(0) = u_eq exactly, J_κ(0) enclosed
     x, ksym, Jk, Hk = _controller_parts(system, controller)
@@ -362,11 +343,11 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
     Ex, Eu = E[:, :n], E[:, n:]
     if m:
         pl, ph = _pt_times_iv(Ju, JK0L, JK0U)
-        GL = np.nextafter(Jx + pl - np.abs(Jx + pl) * 2 * _U, -np.inf)
-        GU = np.nextafter(Jx + ph + np.abs(Jx + ph) * 2 * _U, np.inf)
-        D = _up(Ex + _up(Eu @ _mag(JK0L, JK0U)) + _matmul_err(Eu, _mag(JK0L, JK0U)))
+        GL = np.nextafter(Jx + pl - np.abs(Jx + pl) * 2 * U, -np.inf)
+        GU = np.nextafter(Jx + ph + np.abs(Jx + ph) * 2 * U, np.inf)
+        D = up_rel(Ex + up_rel(Eu @ _mag(JK0L, JK0U), 8) + _matmul_err(Eu, _mag(JK0L, JK0U)), 8)
     else:
-        GL, GU, D = Jx.copy(), Jx.copy(), _up(Ex)
+        GL, GU, D = Jx.copy(), Jx.copy(), up_rel(Ex, 8)
     # known components: exact symbolic derivatives of g_k(x) = known_k(x, κ(x))
     known_parts = {}
     if known:  # only smooth, total expressions (a jump has CasADi derivative 0: PITFALLS P9)
@@ -388,7 +369,7 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
             GL[i], GU[i] = KL[r], KU[r]
             D[i] = 0.0
     G = 0.5 * (GL + GU)
-    D = _up(D + np.maximum(G - GL, GU - G))
+    D = up_rel(D + np.maximum(G - GL, GU - G), 8)
     D_norm = _fro_up(D)
     if not np.all(np.isfinite(G)) or not np.all(np.isfinite(D)):
         return _fail("not proved: the closed-loop Jacobian enclosure is not finite", n)
@@ -482,19 +463,19 @@ def _check(P, ctx) -> dict:
                 "box": np.zeros(n), "result": None, "terms": terms}
     P_norm = pmax
     eps = ctx["inner"]
-    c_q = _up(pmax * _up(eps * eps))
-    rho = _up(np.sqrt(_up(c_q / pmin)))
+    c_q = up_rel(pmax * up_rel(eps * eps, 8), 8)
+    rho = up_rel(np.sqrt(up_rel(c_q / pmin, 8)), 8)
     terms.update({"P_norm": P_norm, "lambda_min_P": pmin, "rho": rho, "level": c_q})
     box = np.minimum(_ellipse_box(P, c_q), rho)     # E ⊆ [−box, box]
     # λ = λ_min(−(PG + GᵀP)) − ‖S − fl(S)‖ − 2‖PΔ‖, ‖PΔ‖₂ ≤ min(‖P‖‖D‖, ‖|P|D‖_F)
     PG = P @ G
     S = -(PG + PG.T)
-    s_err = _fro_up(2.0 * _matmul_err(P, G) + _up(np.abs(S) * _U))
+    s_err = _fro_up(2.0 * _matmul_err(P, G) + up_rel(np.abs(S) * U, 8))
     s_min, _ = _eig_bounds(S)
     D = np.asarray(ctx["D"], dtype=float)
-    PD = _fro_up(_up(np.abs(P) @ D) + _matmul_err(np.abs(P), D))
-    lin = _up(2.0 * min(_up(P_norm * D_norm), PD))
-    lam = _down(s_min - _up(s_err + lin))
+    PD = _fro_up(up_rel(np.abs(P) @ D, 8) + _matmul_err(np.abs(P), D))
+    lin = up_rel(2.0 * min(up_rel(P_norm * D_norm, 8), PD), 8)
+    lam = dn_rel(s_min - up_rel(s_err + lin, 8), 8)
     terms.update({"lambda_S": s_min, "lambda": lam, "linear_error": lin})
     out = {"P": P, "level": c_q, "box": box, "result": None, "terms": terms}
     if not lam > 0:
@@ -534,19 +515,19 @@ def _check(P, ctx) -> dict:
             a2 = float(n)
             Fu = np.abs(decl.B)
         else:
-            a = _up(np.sqrt(n) * (1 + 4 * _U) + _up(np.sum([_fro_up(r) for r in Jmag])))
-            a2 = _up(a * a)
-            r1 = _up(_up(np.sqrt(n) * rho) + _up(np.sum(dk)))
-            Fu = _up(np.abs(ctx["J_hat"][:, n:]) + ctx["E"][:, n:] + _up(H * r1))
+            a = up_rel(np.sqrt(n) * (1 + 4 * U) + up_rel(np.sum([_fro_up(r) for r in Jmag]), 8), 8)
+            a2 = up_rel(a * a, 8)
+            r1 = up_rel(up_rel(np.sqrt(n) * rho, 8) + up_rel(np.sum(dk), 8), 8)
+            Fu = up_rel(np.abs(ctx["J_hat"][:, n:]) + ctx["E"][:, n:] + up_rel(H * r1, 8), 8)
             if decl.lipschitz is not None:                # |∂f_k/∂u_j| ≤ ‖row k of J‖ ≤ K_k
                 K = np.asarray(decl.lipschitz, dtype=float) if isinstance(
                     decl.lipschitz, tuple) else np.full(n, float(decl.lipschitz))
                 Fu = np.minimum(Fu, K[:, None])
-        h = _up(_up(H * a2) + _up(Fu @ c2) + _matmul_err(Fu, c2[:, None])[:, 0])
+        h = up_rel(up_rel(H * a2, 8) + up_rel(Fu @ c2, 8) + _matmul_err(Fu, c2[:, None])[:, 0], 8)
         terms.update({"kappa_range": np.stack([kL[:, 0], kU[:, 0]], 1).tolist(),
                       "kappa_hessian_bound": c2.tolist(), "a_squared": a2})
     else:
-        h = np.full(n, _up(H * float(n)))
+        h = np.full(n, up_rel(H * float(n), 8))
     known = ctx["known"]
     if known:
         (KHL, KHU), = _enclose(known["Hfun"], lo, hi)
@@ -556,11 +537,11 @@ def _check(P, ctx) -> dict:
     H_g = _fro_up(h)
     # 2xᵀPR ≤ 2 sqrt(xᵀPx)·sqrt(RᵀPR) on E, |R_k| ≤ ½h_k‖x‖²: RᵀPR ≤ ¼‖x‖⁴·min(λ_max(P)‖h‖²,
     # hᵀ|P|h); so 2xᵀPR ≤ sqrt(c_q)·w·‖x‖² with w = min(sqrt(λ_max(P))·H_g, sqrt(hᵀ|P|h))
-    Ph = _up(np.abs(P) @ h) + _matmul_err(np.abs(P), h[:, None])[:, 0]
-    hPh = _up(float(h @ Ph) + float(_matmul_err(h[None, :], Ph[:, None])[0, 0]))
-    w = min(_up(_up(np.sqrt(pmax)) * H_g), _up(np.sqrt(hPh)))
-    need = _up(_up(np.sqrt(c_q)) * w)
-    inner_max = lam / _up(_up(np.sqrt(pmax)) * w) if w > 0 else np.inf
+    Ph = up_rel(np.abs(P) @ h, 8) + _matmul_err(np.abs(P), h[:, None])[:, 0]
+    hPh = up_rel(float(h @ Ph) + float(_matmul_err(h[None, :], Ph[:, None])[0, 0]), 8)
+    w = min(up_rel(up_rel(np.sqrt(pmax), 8) * H_g, 8), up_rel(np.sqrt(hPh), 8))
+    need = up_rel(up_rel(np.sqrt(c_q), 8) * w, 8)
+    inner_max = lam / up_rel(up_rel(np.sqrt(pmax), 8) * w, 8) if w > 0 else np.inf
     rho_max = inner_max * np.sqrt(pmax / pmin)  # the radius of E at ε = inner_max
     terms.update({"H": H, "h": h.tolist(), "H_g": H_g, "remainder_weight": w,
                   "remainder_coefficient": need, "inner_max": float(inner_max),
@@ -630,7 +611,7 @@ def _extend_with_phi(P, ctx, dynamics, eta, eta_state_box, eta_input_box, verify
     x = cl.x
     Px = ca.mtimes(ca.DM(P), x)
     V = ca.dot(x, Px)
-    lie = robust_lie(2.0 * ca.dot(Px, cl.rhs), V, x, _up(eta),
+    lie = robust_lie(2.0 * ca.dot(Px, cl.rhs), V, x, up_rel(eta, 8),
                      components=learned_components_of(system, dynamics))
     prob = VerificationProblem(x, box, [c_s - V, V - c_q], [lie],
                                ["outside the data-proved ellipse", "inside E"],

@@ -18,30 +18,18 @@ from collections.abc import Callable
 import casadi as ca
 import numpy as np
 
-from .dynamics import _norm2_up
 from .errors import ConfigError
-from .lipschitz import _up
+from .grid import norm2_up
+from .rounding import U, next_up
 
-__all__ = ["subboxes", "interval_sup", "matrix_norm_up", "counts_for", "add_up", "mul_up"]
+__all__ = ["subboxes", "interval_sup", "matrix_norm_up", "counts_for", "interval_arithmetic"]
 
-_U = 2.0 ** -53
 #: relative allowance on interval sups: CasADi folds products of constants in derivative graphs
 #: in float64 (a relative error of a few units in 2**-53 per fold)
 _FOLD = 1.0 + 2.0 ** -30
 
 
-def _add_up(*vals) -> float:
-    s = 0.0
-    for v in vals:
-        s = _up(s + float(v))
-    return s
-
-
-def _mul_up(a, b) -> float:
-    return _up(float(a) * float(b))
-
-
-def _counts_for(box: np.ndarray, total: int, counts=None) -> list[int]:
+def counts_for(box: np.ndarray, total: int, counts=None) -> list[int]:
     d = box.shape[0]
     if counts is not None:
         counts = [int(c) for c in np.atleast_1d(counts)]
@@ -71,13 +59,13 @@ def subboxes(box, counts) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def _ia():
+def interval_arithmetic():
     from verification.interval import Interval, IntervalArithmetic
 
     return Interval, IntervalArithmetic()
 
 
-def _interval_sup(fun: ca.Function, box, counts, reduce: Callable, chunk: int = 2048):
+def interval_sup(fun: ca.Function, box, counts, reduce: Callable, chunk: int = 2048):
     """Evaluate ``fun`` with interval arithmetic on every sub-box; reduce each chunk.
 
     ``reduce(mag, lo_box, hi_box)`` receives ``mag ≥ |value|`` of the (first) output as a dense
@@ -86,7 +74,7 @@ def _interval_sup(fun: ca.Function, box, counts, reduce: Callable, chunk: int = 
     """
     from .walker import evaluate
 
-    Interval, ia = _ia()
+    Interval, ia = interval_arithmetic()
     sp = fun.sparsity_out(0)
     rows, cols = (np.asarray(v, dtype=np.intp) for v in sp.get_triplet())
     shape = (sp.size1(), sp.size2())
@@ -102,7 +90,7 @@ def _interval_sup(fun: ca.Function, box, counts, reduce: Callable, chunk: int = 
     return np.concatenate(out, axis=0), lo.shape[0]
 
 
-def _matrix_norm_up(mag: np.ndarray) -> np.ndarray:
+def matrix_norm_up(mag: np.ndarray) -> np.ndarray:
     """Upper bound of ``‖J‖₂`` for every ``|J| ≤ mag`` (``mag``: ``(N, m, d)``, non-negative).
 
     ``‖J‖₂ ≤ ‖ |J| ‖₂ ≤ ‖mag‖₂`` (monotone for non-negative matrices), bounded by the smaller
@@ -110,7 +98,7 @@ def _matrix_norm_up(mag: np.ndarray) -> np.ndarray:
     / v_i`` for a positive vector ``v`` (power iterates), all rounded upward.
     """
     N, m, d = mag.shape
-    fro = _norm2_up(mag.reshape(N, m * d), axis=1)
+    fro = norm2_up(mag.reshape(N, m * d), axis=1)
     if m == 1 or d == 1 or not np.all(np.isfinite(mag)):
         return fro
     G = np.einsum("nki,nkj->nij", mag, mag)
@@ -120,12 +108,7 @@ def _matrix_norm_up(mag: np.ndarray) -> np.ndarray:
         v /= np.maximum(np.max(v, axis=1, keepdims=True), 1e-300)
     v = v + 1e-9  # strictly positive
     w = np.einsum("nki,nk->ni", mag, np.einsum("nkj,nj->nk", mag, v))
-    lam = np.max(w / v, axis=1) * (1 + 4 * (m + d + 4) * _U)
-    cw = np.nextafter(np.nextafter(np.sqrt(np.nextafter(lam, np.inf)), np.inf), np.inf)
+    lam = np.max(w / v, axis=1) * (1 + 4 * (m + d + 4) * U)
+    cw = next_up(np.sqrt(next_up(lam)), 2)
     return np.minimum(fro, cw)
 
-
-
-# public names (the underscored ones stay for older imports)
-add_up, mul_up, counts_for = _add_up, _mul_up, _counts_for
-interval_sup, matrix_norm_up = _interval_sup, _matrix_norm_up

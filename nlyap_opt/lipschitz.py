@@ -97,10 +97,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import DimensionError
+from .rounding import U, gamma_rn, next_up
 
 __all__ = ["LipschitzResult", "lipschitz_lipsdp", "lipschitz_naive", "lipschitz_sampled"]
 
-_U = 2.0**-53  # unit round-off of IEEE double, round to nearest
 _TINY = 1e-290  # absolute slack covering underflow in products (subnormals are 2**-1074)
 
 # relative increments of rho tried by the re-certification, in order
@@ -148,29 +148,16 @@ class LipschitzResult:
 # --------------------------------------------------------------------------- helpers
 
 
-def _gamma(k: int) -> float:
-    """Return :math:`\\gamma_k = k u / (1 - k u)` (raises if :math:`k u \\ge 1/2`)."""
-    ku = k * _U
-    if ku >= 0.5:
-        raise ValueError(f"problem too large for the rounding-error analysis (k={k})")
-    return ku / (1.0 - ku)
-
-
-def _up(x: float) -> float:
-    """Next float above ``x`` (an upper bound of any real rounded to nearest as ``x``)."""
-    return float(np.nextafter(float(x), np.inf))
-
-
 def _safety(n: int) -> float:
     """Inflation factor for bounds computed in floating point on ``n``-by-``n`` data."""
-    return 1.0 + 4.0 * _gamma(n * n + 4 * n + 16)
+    return 1.0 + 4.0 * gamma_rn(n * n + 4 * n + 16)
 
 
 def _fro_upper(B: np.ndarray) -> float:
     """Upper bound of the Frobenius norm of a non-negative matrix ``B``."""
     if B.size == 0:
         return 0.0
-    return _up(float(np.linalg.norm(B)) * _safety(max(B.shape)) + _TINY)
+    return next_up(float(np.linalg.norm(B)) * _safety(max(B.shape)) + _TINY)
 
 
 def _lambda_max_upper(Mt: np.ndarray, E: np.ndarray) -> float:
@@ -202,15 +189,15 @@ def _lambda_max_upper(Mt: np.ndarray, E: np.ndarray) -> float:
         return math.inf
     absV = np.abs(V)
     absL = np.abs(lam)
-    g1 = _gamma(1)
+    g1 = gamma_rn(1)
     # residual G = M - V diag(lam) V^T
     P = (V * lam) @ V.T
     R = Mt - P
-    Gb = (1.0 + g1) * np.abs(R) + _gamma(n + 1) * ((absV * absL) @ absV.T) + E
+    Gb = (1.0 + g1) * np.abs(R) + gamma_rn(n + 1) * ((absV * absL) @ absV.T) + E
     g = _fro_upper(Gb)
     # orthogonality defect F = V^T V - I
     F = V.T @ V - np.eye(n)
-    Fb = (1.0 + g1) * np.abs(F) + _gamma(n) * (absV.T @ absV)
+    Fb = (1.0 + g1) * np.abs(F) + gamma_rn(n) * (absV.T @ absV)
     f = _fro_upper(Fb)
     lmax = float(lam[-1])
     if not (math.isfinite(g) and math.isfinite(f) and math.isfinite(lmax)):
@@ -221,8 +208,8 @@ def _lambda_max_upper(Mt: np.ndarray, E: np.ndarray) -> float:
         core = lmax * max(0.0, 1.0 - f)
     ub = core + g
     # scalar rounding of the three operations above: relative u each, covered by 8u
-    ub = ub + 8.0 * _U * (abs(lmax) * (1.0 + f) + g) + _TINY
-    return _up(ub)
+    ub = ub + 8.0 * U * (abs(lmax) * (1.0 + f) + g) + _TINY
+    return next_up(ub)
 
 
 def _spectral_norm_upper(W: np.ndarray) -> float:
@@ -231,18 +218,18 @@ def _spectral_norm_upper(W: np.ndarray) -> float:
     if W.size == 0 or not np.any(W):
         return 0.0
     # Frobenius bound: sum of W.size squares, each rounded, then a sqrt
-    fro = _up(float(np.linalg.norm(W)) * (1.0 + 2.0 * _gamma(W.size + 2)) + _TINY)
+    fro = next_up(float(np.linalg.norm(W)) * (1.0 + 2.0 * gamma_rn(W.size + 2)) + _TINY)
     # Gram bound: ||W||_2^2 = lambda_max(G) with G the smaller Gram matrix
     A = W if W.shape[0] <= W.shape[1] else W.T  # k x p with k <= p
     k, p = A.shape
     G = A @ A.T
     G = np.triu(G) + np.triu(G, 1).T  # exactly symmetric (mirror the upper triangle)
     absA = np.abs(A)
-    E = 2.0 * _gamma(p) * (absA @ absA.T) + _TINY
+    E = 2.0 * gamma_rn(p) * (absA @ absA.T) + _TINY
     lam = _lambda_max_upper(G, E)
     if not math.isfinite(lam):
         return fro
-    gram = _up(math.sqrt(max(lam, 0.0)))
+    gram = next_up(math.sqrt(max(lam, 0.0)))
     return min(gram, fro)
 
 
@@ -290,7 +277,7 @@ def _build_lmi(
     A22 = absW1.T @ absW1
     A22[np.diag_indices(h)] += 2.0 * t
     A[n:, n:] = A22
-    E = (2.0 * _gamma(K)) * A + _TINY
+    E = (2.0 * gamma_rn(K)) * A + _TINY
     E = np.maximum(E, E.T)
     return Mt, E
 
@@ -333,7 +320,7 @@ class _Recert:
 
     @property
     def value(self) -> float | None:
-        return None if self.rho is None else _up(math.sqrt(self.rho))
+        return None if self.rho is None else next_up(math.sqrt(self.rho))
 
 
 def _recertify(
@@ -478,7 +465,7 @@ def lipschitz_naive(W0, W1, *, slope: tuple[float, float] = (0.0, 1.0)) -> float
     W0, _, W1 = _validate(W0, None, W1)
     a, b = _check_slope(slope)
     k = max(abs(a), abs(b))
-    return _up(_up(_spectral_norm_upper(W1) * _spectral_norm_upper(W0)) * k)
+    return next_up(next_up(_spectral_norm_upper(W1) * _spectral_norm_upper(W0)) * k)
 
 
 def lipschitz_sampled(

@@ -19,15 +19,15 @@ import numpy as np
 from .dynamics_config import DynamicsConfig
 from .network import Layer, Network
 
-__all__ = ["train_component", "polish", "assemble", "LevenbergMarquardt"]
+__all__ = ["train_component", "polish", "assemble", "LevenbergMarquardt", "progress_bar"]
 
 
-def _train_component(zn, y, H, cfg: DynamicsConfig, seed, progress, history, desc, t_start):
+def train_component(zn, y, H, cfg: DynamicsConfig, seed, progress, history, desc, t_start):
     """Adam, then Levenberg–Marquardt, then minimax (Lawson) rounds, for one output."""
     import torch
 
     total = cfg.steps + cfg.lm_iterations + cfg.minimax_rounds * cfg.minimax_iterations
-    bar = _bar(total, progress, desc)
+    bar = progress_bar(total, progress, desc)
     dtype = torch.float32 if cfg.train_dtype == "float32" else torch.float64
     with torch.random.fork_rng(devices=[]):  # seeded init without touching the caller's RNG
         torch.manual_seed(seed)
@@ -62,15 +62,15 @@ def _train_component(zn, y, H, cfg: DynamicsConfig, seed, progress, history, des
                             net[0].bias.detach().double().numpy(),
                             net[2].weight.detach().double().numpy().ravel(),
                             net[2].bias.detach().double().numpy()])
-    out = _polish(zn, y, H, cfg, theta, bar, history, desc, t_start)
+    out = polish(zn, y, H, cfg, theta, bar, history, desc, t_start)
     if bar is not None:
         bar.close()
     return out
 
 
-def _polish(zn, y, H, cfg: DynamicsConfig, theta, bar, history, desc, t_start):
+def polish(zn, y, H, cfg: DynamicsConfig, theta, bar, history, desc, t_start):
     """Levenberg–Marquardt, then Lawson minimax rounds; the weights with the least max error."""
-    lm = _LevenbergMarquardt(zn, y, H, cfg.lm_ridge)
+    lm = LevenbergMarquardt(zn, y, H, cfg.lm_ridge)
     theta = lm.run(theta, cfg.lm_iterations, None, bar, history, desc, "lm", t_start)
     weights = np.ones(zn.shape[0])
     best, best_err = theta, float(np.max(np.abs(lm.residual(theta))))
@@ -86,7 +86,7 @@ def _polish(zn, y, H, cfg: DynamicsConfig, theta, bar, history, desc, t_start):
     return lm.unpack(best)
 
 
-class _LevenbergMarquardt:
+class LevenbergMarquardt:
     """Levenberg–Marquardt (Marquardt scaling) for ``w1·tanh(W0 z + b0) + b1 ≈ y``, float64."""
 
     def __init__(self, Z: np.ndarray, y: np.ndarray, H: int, ridge: float = 0.0):
@@ -163,7 +163,7 @@ class _LevenbergMarquardt:
         return th
 
 
-def _assemble(blocks, centre, radius, mu, sigma, prune: float = 0.0) -> Network:
+def assemble(blocks, centre, radius, mu, sigma, prune: float = 0.0) -> Network:
     """One network from per-component blocks, in original units (normalisation folded in).
 
     Block ``k`` computes ``y_k = σ_k (w1_k · tanh(W0_k (z − c)/r + b0_k) + b1_k) + μ_k``; the
@@ -191,7 +191,7 @@ def _assemble(blocks, centre, radius, mu, sigma, prune: float = 0.0) -> Network:
     return Network([Layer(W0, b0, "tanh"), Layer(W1, b1, "linear")])
 
 
-def _bar(total: int, enabled: bool, desc: str):
+def progress_bar(total: int, enabled: bool, desc: str):
     if not enabled or total <= 0:
         return None
     try:
@@ -199,8 +199,3 @@ def _bar(total: int, enabled: bool, desc: str):
     except ImportError:  # pragma: no cover
         return None
     return tqdm(total=total, desc=desc, leave=False, mininterval=0.5)
-
-
-# public names of the private helpers (the underscored ones stay for older imports)
-train_component, polish, assemble = _train_component, _polish, _assemble
-LevenbergMarquardt = _LevenbergMarquardt

@@ -8,6 +8,7 @@ import numpy as np
 
 from .domain import Ball, parse_set
 from .provenance import describe
+from .roa import InnerForm, InnerFormKind
 
 __all__ = ["write_report", "plot_roa", "status_line"]
 
@@ -27,6 +28,14 @@ def _sets(cert: dict, nx: int):
     XI = None if cert.get("initial_set") is None else \
         parse_set(cert["initial_set"], nx, "initial_set", domain=False)
     return D, XI, D.plain_ball
+
+
+def _is_blowup(text) -> bool:
+    """Whether a stored inner-ellipse form is the weighted blow-up."""
+    try:
+        return InnerForm.parse(str(text)).kind is InnerFormKind.BLOWUP
+    except ValueError:
+        return False
 
 
 def status_line(cert: dict) -> str:
@@ -68,7 +77,7 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
     ]
     ie = cert.get("inner_ellipse")
     if ie:
-        blowup = str(ie.get("form", "")).startswith("blow-up")
+        blowup = _is_blowup(ie.get("form", ""))
         lines.append(
             f"- (c) inner ball: E = {{xᵀPx ≤ {ie['level']:.4g}}} ⊇ B_ε; "
             + (f"V̇_q < 0 on E∖{{0}} by a weighted blow-up of the origin ({ie['form']}: "

@@ -37,17 +37,116 @@ import math
 import re
 import time
 from dataclasses import dataclass, field
+from enum import Enum
 
 import casadi as ca
 import numpy as np
 
 from .domain import as_domain
+from .rounding import EPS
 from .walker import evaluate
 
 __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
-    "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask",
+    "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "InnerForm",
+    "InnerFormKind",
 ]
+
+
+class InnerFormKind(Enum):
+    """The kinds of proof of condition (c) (see :func:`certify_inner_ellipse`)."""
+
+    MINORS = "minors"
+    FROBENIUS = "frobenius"
+    SHELL = "shell"
+    BLOWUP = "blow-up"
+
+
+_JACOBIAN_KINDS = (InnerFormKind.MINORS, InnerFormKind.FROBENIUS)
+_FORMS_EXPECTED = ("expected 'minors', 'frobenius', 'shell r=R + minors|frobenius' (R > 0) or "
+                   "'blow-up w=[W1, ...], m=M' (positive integers)")
+_SHELL = re.compile(r"shell r=(\S+) \+ (minors|frobenius)")
+_BLOWUP = re.compile(r"blow-up w=\[([0-9, ]+)\], m=([0-9]+)")
+
+
+@dataclass(frozen=True)
+class InnerForm:
+    """How condition (c) was proved: a kind and its parameters.
+
+    Stored in ``certificate.json`` as the text of :meth:`to_str` (``"minors"``,
+    ``"frobenius"``, ``"shell r=0.025 + minors"``, ``"blow-up w=[1, 2, 2], m=4"``), read back
+    by :meth:`parse`; ``parse(f.to_str()) == f``.
+
+    Parameters
+    ----------
+    kind : InnerFormKind
+        The proof.
+    radius : float or None
+        ``shell``: the inner radius ``ε_s`` (``0 < ε_s``; the re-check also needs ``≤ ε``).
+    core : InnerFormKind or None
+        ``shell``: the Jacobian form on the small ellipse (``MINORS`` or ``FROBENIUS``).
+    weights : tuple of int
+        ``blow-up``: the weights ``w`` of the coordinates.
+    order : int or None
+        ``blow-up``: the order ``m`` of the leading term.
+    """
+
+    kind: InnerFormKind
+    radius: float | None = None
+    core: InnerFormKind | None = None
+    weights: tuple[int, ...] = ()
+    order: int | None = None
+
+    def __post_init__(self):
+        k = self.kind
+        if k is InnerFormKind.SHELL:
+            r = self.radius
+            if r is None or not (math.isfinite(r) and r > 0) or self.core not in _JACOBIAN_KINDS:
+                raise ValueError("a shell form needs a radius r > 0 and the minors or frobenius "
+                                 "form inside")
+            object.__setattr__(self, "radius", float(r))
+        elif k is InnerFormKind.BLOWUP:
+            w = tuple(int(v) for v in self.weights)
+            if not w or min(w) < 1 or self.order is None or int(self.order) < 0:
+                raise ValueError("a blow-up form needs positive integer weights and an order "
+                                 "m >= 0")
+            object.__setattr__(self, "weights", w)
+            object.__setattr__(self, "order", int(self.order))
+        elif (self.radius, self.core, self.weights, self.order) != (None, None, (), None):
+            raise ValueError(f"the {k.value} form has no parameters")
+
+    def to_str(self) -> str:
+        """The stored text (the format of ``certificate.json``'s ``inner_ellipse.form``)."""
+        if self.kind is InnerFormKind.SHELL:
+            return f"shell r={self.radius!r} + {self.core.value}"
+        if self.kind is InnerFormKind.BLOWUP:
+            return f"blow-up w={list(self.weights)}, m={self.order}"
+        return self.kind.value
+
+    @classmethod
+    def parse(cls, text: str) -> InnerForm:
+        """The form that :meth:`to_str` wrote as ``text``.
+
+        Raises
+        ------
+        ValueError
+            If ``text`` is none of the forms (the message lists them).
+        """
+        text = str(text)
+        for kind in _JACOBIAN_KINDS:
+            if text == kind.value:
+                return cls(kind)
+        try:
+            if m := _SHELL.fullmatch(text):
+                return cls(InnerFormKind.SHELL, radius=float(m.group(1)),
+                           core=InnerFormKind(m.group(2)))
+            if m := _BLOWUP.fullmatch(text):
+                return cls(InnerFormKind.BLOWUP, order=int(m.group(2)),
+                           weights=tuple(int(v) for v in m.group(1).split(",")))
+        except ValueError as exc:      # "r=1..2", "w=[1,,2]", "r=0": the pattern, no form
+            raise ValueError(f"{text!r} is not an inner-ellipse form ({exc}); "
+                             f"{_FORMS_EXPECTED}") from None
+        raise ValueError(f"{text!r} is not an inner-ellipse form; {_FORMS_EXPECTED}")
 
 
 @dataclass
@@ -344,7 +443,8 @@ def _leading_minors(S):
     return [det(S[:k, :k]) for k in range(1, S.shape[0] + 1)]
 
 
-def certify_inner_ellipse(system, controller, inner: float, *, P=None, form: str | None = None,
+def certify_inner_ellipse(system, controller, inner: float, *, P=None,
+                          form: str | InnerForm | None = None,
                           verify_options: dict | None = None) -> dict:
     r"""Condition (c) for the true closed loop: ``E = {xᵀPx ≤ c_q} ⊇ B_ε`` is a certified
     quadratic Lyapunov sublevel set (``P J(y) + J(y)ᵀ P ≺ 0`` on ``E``, or ``V̇_q < 0`` on a
@@ -354,8 +454,8 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None, form: str
     Without ``P``, the candidates of :func:`nlyap_opt.control.ellipse_candidates` for the
     closed-loop linearisation ``A_cl`` are tried in turn; the first one that certifies is
     returned. With ``P`` and ``form`` (``InnerEllipse.form`` of a saved certificate:
-    ``"minors"``, ``"frobenius"``, ``"shell r=… + …"`` or ``"blow-up w=[…], m=…"``),
-    exactly that claim is
+    ``"minors"``, ``"frobenius"``, ``"shell r=… + …"`` or ``"blow-up w=[…], m=…"``, or the
+    :class:`InnerForm` itself), exactly that claim is
     checked again, without any search (:func:`nlyap_opt.certificate.recheck_certificate`).
     Returns a dict with ``status`` (``"certified"`` or why not), ``P``, ``level``
     (``c_q``), ``box``, ``form``.
@@ -376,9 +476,18 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None, form: str
             return {"status": f"inner ellipse not proved (P must be a symmetric positive "
                               f"definite {n}x{n} matrix)", "P": np.eye(n), "level": 0.0,
                     "box": np.zeros(n), "result": None, "form": form or ""}
-    if form and form.startswith("blow-up"):
-        m = re.fullmatch(r"blow-up w=\[([0-9, ]+)\], m=\d+", form)
-        w = tuple(int(v) for v in m.group(1).split(",")) if m else ()
+    spec = None
+    if form:
+        text = form.to_str() if isinstance(form, InnerForm) else str(form)
+        try:
+            spec = form if isinstance(form, InnerForm) else InnerForm.parse(text)
+        except ValueError as exc:
+            c_q, a = ellipse_around_ball(P, inner)
+            return {"status": f"inner ellipse not proved (the form does not apply: {exc})",
+                    "P": P, "level": c_q, "box": a, "result": None, "form": text}
+        form = text
+    if spec is not None and spec.kind is InnerFormKind.BLOWUP:
+        w = spec.weights
         out = None
         if len(w) == system.nx:
             out = certify_inner_blowup(cl, A_cl, inner, verify_options=verify_options,
@@ -401,14 +510,14 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None, form: str
         candidates = ellipse_candidates(A_cl)
     first = None
     for Pc in candidates:
-        out = _inner_ellipse(cl, J, Pc, inner, verify_options, only=form or None)
+        out = _inner_ellipse(cl, J, Pc, inner, verify_options, only=spec)
         if out["status"] == "certified":
             return out
         first = first or out
     return first
 
 
-def _inner_ellipse(cl, J, P, inner, verify_options, only: str | None = None, *,
+def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = None, *,
                    shell: bool = True):
     """Verify condition (c) for ``P`` on ``E = {xᵀPx ≤ c_q}`` (``c_q = λ_max(P) ε²``).
 
@@ -447,17 +556,14 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: str | None = None, *,
 
     n = P.shape[0]
     c_q, a = ellipse_around_ball(P, inner)
-    if only is not None and only.startswith("shell"):
-        m = re.fullmatch(r"shell r=([0-9.eE+-]+) \+ (minors|frobenius)", only) if shell else None
-        try:
-            eps_s = float(m.group(1)) if m else float("nan")
-        except ValueError:          # e.g. "1..2": matched by the pattern, not a number
-            eps_s = float("nan")
-        if not (np.isfinite(eps_s) and 0 < eps_s <= inner):
-            return {"status": f"inner ellipse not proved (the form {only!r} does not apply: "
-                              "a shell needs 0 < r ≤ ε and the minors or frobenius form)",
-                    "P": P, "level": c_q, "box": a, "result": None, "form": only}
-        return _inner_shell(cl, J, P, inner, verify_options, eps_s=eps_s, only=m.group(2))
+    if only is not None and only.kind is InnerFormKind.SHELL:
+        if not (shell and only.radius <= inner):
+            return {"status": f"inner ellipse not proved (the form {only.to_str()!r} does not "
+                              "apply: a shell needs 0 < r ≤ ε and the minors or frobenius "
+                              "form)", "P": P, "level": c_q, "box": a, "result": None,
+                    "form": only.to_str()}
+        return _inner_shell(cl, J, P, inner, verify_options, eps_s=only.radius,
+                            only=only.core)
     S = ca.mtimes(ca.DM(P), J)
     S = S + S.T
     # J only matters on E (convex: it holds every segment [0, x]); the box's corners reach
@@ -474,18 +580,18 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: str | None = None, *,
         # TᵀS(0)T is −I only up to rounding: λ_max(TᵀS(y)T) ≤ −1 + d + ‖E‖₂ with d ≥
         # ‖TᵀS(0)T + I‖_F (float residual plus the bound γ_2n |T|ᵀ|S(0)||T| of the products)
         d = (np.linalg.norm(Tn.T @ S0 @ Tn + np.eye(n))
-             + 4 * n * np.finfo(float).eps * np.linalg.norm(np.abs(Tn).T @ np.abs(S0)
+             + 4 * n * EPS * np.linalg.norm(np.abs(Tn).T @ np.abs(S0)
                                                             @ np.abs(Tn))) * (1 + 1e-6)
         if d < 0.5:     # (1 − d)² is the bound only while d < 1
             forms["frobenius"] = [ca.sumsqr(E) - (1.0 - d) ** 2]
         if shell:       # S(0) ≺ 0: the small ellipse E_s is certifiable for a small ε_s
             forms["shell"] = None
-    order = [only] if only is not None else \
+    order = [only.kind.value] if only is not None else \
         ["minors", "frobenius", "shell"] if n <= 3 else ["frobenius", "shell", "minors"]
     if not any(f in forms for f in order):
-        return {"status": f"inner ellipse not proved (the {only} form does not apply to "
-                          "this P)", "P": P, "level": c_q, "box": a, "result": None,
-                "form": only}
+        return {"status": f"inner ellipse not proved (the {only.to_str()} form does not apply "
+                          "to this P)", "P": P, "level": c_q, "box": a, "result": None,
+                "form": only.to_str()}
     for form in [f for f in order if f in forms]:
         if forms[form] is None:
             out = _inner_shell(cl, J, P, inner, verify_options)
@@ -508,7 +614,7 @@ SHELL_FRACTION = 0.25
 
 
 def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
-                 only: str | None = None) -> dict:
+                 only: InnerFormKind | None = None) -> dict:
     r"""The shell form of condition (c): ``V̇_q = 2xᵀP g(x) < 0`` on ``E ∖ B_{ε_s}``, and
     ``S ≺ 0`` (minors or Frobenius form, ``only``: that one) on ``E_s = {xᵀPx ≤ c_s} ⊇
     B_{ε_s}``, ``c_s = λ_max(P) ε_s²``, ``0 < ε_s ≤ ε``.
@@ -523,22 +629,23 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
 
     from .parallel import check as verify
 
-    eps_s = inner * SHELL_FRACTION if eps_s is None else float(eps_s)
+    eps_s = float(inner * SHELL_FRACTION if eps_s is None else eps_s)
     c_q, a = ellipse_around_ball(P, inner)
     x = cl.x
     Vq = ca.bilin(ca.DM(P), x, x)
     dV = 2 * ca.dot(x, ca.mtimes(ca.DM(P), cl.rhs))
-    form = f"shell r={eps_s!r}"
     prob = VerificationProblem(x, np.stack([-a, a], axis=1), [Vq - c_q, eps_s**2 - ca.sumsqr(x)],
                                [dV], ["ellipse", "shell"], ["dVq/dt<0 on the shell"])
     res = verify(prob, **(verify_options or {}))
     if res.status != "verified":
         return {"status": f"inner ellipse {res.status}", "P": P, "level": c_q, "box": a,
-                "result": res, "form": form}
-    core = _inner_ellipse(cl, J, P, eps_s, verify_options, only=only, shell=False)
+                "result": res, "form": f"shell r={eps_s!r}"}
+    core = _inner_ellipse(cl, J, P, eps_s, verify_options,
+                          only=None if only is None else InnerForm(only), shell=False)
+    form = InnerForm(InnerFormKind.SHELL, radius=eps_s, core=InnerFormKind(core["form"]))
     return {"status": core["status"], "P": P, "level": c_q, "box": a,
             "result": res if core["status"] == "certified" else core["result"],
-            "form": f"{form} + {core['form']}"}
+            "form": form.to_str()}
 
 
 def ellipse_around_ball(P, inner: float) -> tuple[float, np.ndarray]:
@@ -656,7 +763,7 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
         m, D = _leading_term(h_sub, r, BLOWUP_MAX_ORDER)
         if m is None:
             continue
-        form = f"blow-up w={list(w)}, m={m}"
+        form = InnerForm(InnerFormKind.BLOWUP, weights=tuple(w), order=m).to_str()
         c_q, a = ellipse_around_ball(P, inner)
         R = float(np.max(a ** (1.0 / np.asarray(w, dtype=float)))) * (1 + 1e-9)
         # the leading term at r = 0 must be negative on the faces: a cheap sampled screen

@@ -38,12 +38,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from nlyap_opt.errors import ConfigError, DimensionError
+from nlyap_opt.rounding import EPS, next_up
 
 __all__ = ["Declarations", "check_declarations", "probe_declarations", "RTOL"]
 
 #: relative slack before a declaration counts as contradicted by an estimate from the data
 RTOL = 1e-6
-_EPS = 2.0**-52
 
 
 def _fmt(v) -> str:
@@ -232,8 +232,8 @@ class Declarations:
         k = np.array(self.lipschitz, dtype=float)
         if components is not None:
             k = k[list(components)]
-        s = float(np.sum(k * k)) * (1.0 + 4.0 * (k.size + 2) * _EPS)
-        return float(np.nextafter(np.nextafter(np.sqrt(s), np.inf), np.inf))
+        s = float(np.sum(k * k)) * (1.0 + 4.0 * (k.size + 2) * EPS)
+        return next_up(np.sqrt(s), 2)
 
     def describe(self, state_names: Sequence[str] | None = None,
                  input_names: Sequence[str] | None = None) -> list[str]:
@@ -393,7 +393,7 @@ def check_declarations(
     pre = f"{source}: " if source else ""
     scale = float(np.max(np.abs(v), initial=0.0))
     if value_tolerance is None:  # float64 rounding of the data, plus declared noise
-        value_tolerance = 8.0 * _EPS * scale + (declarations.sample_error or 0.0)
+        value_tolerance = 8.0 * EPS * scale + (declarations.sample_error or 0.0)
     tau = float(value_tolerance)
     V = v.reshape(counts + (nx,))
     out: dict = {"slope": 0.0, "slope_per_component": [0.0] * nx, "second_difference": None,
@@ -647,7 +647,7 @@ def probe_declarations(
                           "(an off-grid probe inside the box); f must be finite on the whole box")
     Vm, V0, Vp = V[:m], V[m:2 * m], V[2 * m:]
     scale = float(np.max(np.abs(V), initial=0.0))
-    tau = 8.0 * _EPS * scale + (declarations.sample_error or 0.0)
+    tau = 8.0 * EPS * scale + (declarations.sample_error or 0.0)
 
     def refute(what: str, value: float, r: int, a, b, fix: str) -> ConfigError:
         return ConfigError(

@@ -27,17 +27,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from nlyap_opt.errors import ConfigError
+from nlyap_opt.rounding import U, up_rel
 
 from .base import System
 
 __all__ = ["JacobianBound", "jacobian_from_data"]
-
-_U = 2.0**-53
-
-
-def _up(v):
-    """Round a non-negative float64 array up by a few ulps (covers one to three roundings)."""
-    return np.nextafter(np.nextafter(np.asarray(v, dtype=float) * (1 + 4 * _U), np.inf), np.inf)
 
 
 @dataclass
@@ -182,7 +176,7 @@ def jacobian_from_data(system: System, *, step=None) -> JacobianBound:
     # the node is not (0, u_eq): |∂_i f_k(z0) − ∂_i f_k(zeq)| ≤ H ‖z0 − zeq‖₁
     shift = float(np.sum(np.abs(z0 - zeq)))
     if shift > 0:
-        err = _up(err + H * shift)
+        err = up_rel(err + H * shift, 4)
     return JacobianBound(J, err, steps, z0, H, source)
 
 
@@ -197,5 +191,5 @@ def _central(fp, fm, zp: float, zm: float, z0: float, H: float, eps: float):
     q = (np.asarray(fp, dtype=float) - np.asarray(fm, dtype=float)) / (zp - zm)
     taylor = H * (a * a + b * b) / (2.0 * (a_lo + b_lo))
     noise = 2.0 * eps / (a_lo + b_lo)
-    rounding = 4.0 * _U * np.abs(q) * 2
-    return q, _up(taylor + noise + rounding), np.array([b, a])
+    rounding = 4.0 * U * np.abs(q) * 2
+    return q, up_rel(taylor + noise + rounding, 4), np.array([b, a])

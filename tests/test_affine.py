@@ -265,10 +265,12 @@ def test_closed_loop_problem_unchanged_verdict():
 def test_the_checker_sees_missing_rounding_slack(monkeypatch):
     """Without the rounding terms (u = 0), sums and products of forms at small widths
     violate the exact check: the tests resolve rounding errors, not only relaxations."""
+    import nlyap_opt.rounding as rounding
     import verification.affine as affine
 
-    monkeypatch.setattr(affine, "_U", 0.0)
-    monkeypatch.setattr(affine, "_TINY", 0.0)
+    monkeypatch.setattr(affine, "U", 0.0)
+    monkeypatch.setattr(rounding, "U", 0.0)      # up_roundings' relative factor
+    monkeypatch.setattr(rounding, "_TINY_ROUNDINGS", 0.0)
     rng = np.random.default_rng(100 + ca.OP_ADD)
     a = _forms(rng, ca.OP_TANH, 200)
     b = _forms(rng, ca.OP_TANH, 200)

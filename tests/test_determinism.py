@@ -18,7 +18,7 @@ import torch
 
 import systems
 from baselines.lqr import lqr, saturated_controller
-from nlyap_opt import dynamics as dyn
+from nlyap_opt import phi_training
 from nlyap_opt.determinism import deterministic_torch
 from nlyap_opt.dynamics import learn_dynamics
 from nlyap_opt.errors import ConfigError
@@ -44,13 +44,13 @@ def _slow_machine(monkeypatch):
         return step(self, *a, **k)
 
     monkeypatch.setattr(torch.optim.Adam, "step", slow_step)
-    lm_run = dyn._LevenbergMarquardt.run
+    lm_run = phi_training.LevenbergMarquardt.run
 
     def slow_run(self, *a, **k):
         time.sleep(0.05)
         return lm_run(self, *a, **k)
 
-    monkeypatch.setattr(dyn._LevenbergMarquardt, "run", slow_run)
+    monkeypatch.setattr(phi_training.LevenbergMarquardt, "run", slow_run)
     torch.set_num_threads(2)  # a caller with another thread setting
 
 

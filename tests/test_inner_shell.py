@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.roa import SHELL_FRACTION, certify_inner_ellipse
+from nlyap_opt.roa import SHELL_FRACTION, InnerForm, InnerFormKind, certify_inner_ellipse
 
 EPS = 0.2
 
@@ -90,3 +90,54 @@ def test_saved_shell_claim_is_checked_again_and_tampering_is_refused():
     # minors must hold on all of E, which they do not
     whole = certify_inner_ellipse(s, None, EPS, P=out["P"], form=f"shell r={EPS!r} + minors")
     assert whole["status"] == "inner ellipse counterexample"
+
+
+# --------------------------------------------------------------------------- the typed form
+_STORED = ["minors", "frobenius", "shell r=0.05 + minors", "shell r=0.1 + frobenius",
+           f"shell r={EPS * SHELL_FRACTION!r} + minors", "blow-up w=[1, 2, 2], m=4",
+           "blow-up w=[1, 1], m=0"]
+
+
+@pytest.mark.parametrize("text", _STORED)
+def test_inner_form_reads_and_writes_the_stored_text(text):
+    """``to_str`` gives back exactly the text of today's ``certificate.json`` files."""
+    form = InnerForm.parse(text)
+    assert form.to_str() == text and InnerForm.parse(form.to_str()) == form
+
+
+def test_inner_form_parameters():
+    shell = InnerForm.parse("shell r=0.025 + frobenius")
+    assert (shell.kind, shell.radius, shell.core) == (InnerFormKind.SHELL, 0.025,
+                                                      InnerFormKind.FROBENIUS)
+    blow = InnerForm.parse("blow-up w=[1, 2, 2], m=4")
+    assert (blow.kind, blow.weights, blow.order) == (InnerFormKind.BLOWUP, (1, 2, 2), 4)
+    # random shells and blow-ups survive the round trip bit for bit
+    rng = np.random.default_rng(0)
+    for r in np.exp(rng.uniform(-30, 3, 50)):
+        f = InnerForm(InnerFormKind.SHELL, radius=float(r), core=InnerFormKind.MINORS)
+        assert InnerForm.parse(f.to_str()) == f and InnerForm.parse(f.to_str()).radius == r
+    for _ in range(20):
+        w = tuple(int(v) for v in rng.integers(1, 5, rng.integers(1, 6)))
+        f = InnerForm(InnerFormKind.BLOWUP, weights=w, order=int(rng.integers(0, 9)))
+        assert InnerForm.parse(f.to_str()) == f
+
+
+@pytest.mark.parametrize("bad", ["", "shell", "Minors", "shell r=nan + minors",
+                                 "shell r=inf + minors", "shell r=-1 + minors",
+                                 "shell r=1..2 + minors", "shell r=0.05 + shell r=0.01 + minors",
+                                 "shell r=0.05 + blow-up", "blow-up w=[], m=4",
+                                 "blow-up w=[0, 1], m=4", "blow-up w=[1,,2], m=4",
+                                 "blow-up w=[1, 2]", "minors + frobenius"])
+def test_inner_form_refuses_what_it_cannot_read(bad):
+    with pytest.raises(ValueError, match="not an inner-ellipse form.*expected 'minors'"):
+        InnerForm.parse(bad)
+
+
+def test_inner_form_is_frozen_and_checks_parameters():
+    f = InnerForm(InnerFormKind.MINORS)
+    with pytest.raises(AttributeError):
+        f.kind = InnerFormKind.FROBENIUS
+    with pytest.raises(ValueError, match="no parameters"):
+        InnerForm(InnerFormKind.MINORS, radius=0.1)
+    with pytest.raises(ValueError, match="minors or frobenius"):
+        InnerForm(InnerFormKind.SHELL, radius=0.1, core=InnerFormKind.SHELL)

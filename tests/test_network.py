@@ -241,11 +241,11 @@ def test_learning_controller_and_V_equal_their_networks():
 
 
 def test_dynamics_levenberg_marquardt_forward_equals_casadi():
-    """``dynamics._LevenbergMarquardt._forward`` (w1·tanh(W0 z + b0) + b1 in numpy) ≡
-    ``Network.casadi`` of the same weights, and ``dynamics._assemble`` (normalisation folded
+    """``phi_training.LevenbergMarquardt._forward`` (w1·tanh(W0 z + b0) + b1 in numpy) ≡
+    ``Network.casadi`` of the same weights, and ``phi_training.assemble`` (normalisation folded
     into one network) ≡ σ·(block forward on normalised inputs) + μ."""
-    lm_cls = _private("_LevenbergMarquardt", "nlyap_opt.phi_training", "nlyap_opt.dynamics")
-    assemble = _private("_assemble", "nlyap_opt.phi_training", "nlyap_opt.dynamics")
+    lm_cls = _private("LevenbergMarquardt", "nlyap_opt.phi_training")
+    assemble = _private("assemble", "nlyap_opt.phi_training")
     rng = np.random.default_rng(5)
     d, H, m = 3, 6, 2
     centre, radius = rng.uniform(-1, 1, d), rng.uniform(0.5, 3, d)

@@ -49,39 +49,24 @@ from collections.abc import Callable
 import casadi as ca
 import numpy as np
 
+from nlyap_opt.rounding import ETA, U, dn, dn_sum, gamma, up, up_roundings, up_sum
+
 from .interval import (
     _PI,
     Interval,
     IntervalArithmetic,
-    _dn,
-    _dn_s,
-    _gamma,
     _guard,
     _mm,
     _mul,
     _period_index,
     _sq,
     _sub,
-    _up,
-    _up_s,
 )
 
 __all__ = ["Affine", "AffineArithmetic"]
 
-_U = 2.0**-53
-_TINY = 2.0**-1000  # absolute slack per operation: underflow (subnormal) rounding errors
 _INF = np.inf
 _IA = IntervalArithmetic()
-
-
-def _fac(m: int) -> float:
-    """``1 + 2(m + 4)u``: bounds ``(1 + u)**m / (1 - u)`` (exactly representable)."""
-    return 1.0 + 2.0 * (m + 4) * _U
-
-
-def _upnn(x, m: int):
-    """Upper bound of a nonnegative real computed in round-to-nearest with ``<= m`` roundings."""
-    return x * _fac(m) + _TINY
 
 
 def _nan_inf(e):
@@ -156,7 +141,7 @@ class Affine:
         B, n = lo.shape
         m = np.minimum(np.maximum(0.5 * lo + 0.5 * hi, lo), hi)
         r = np.maximum(hi - m, m - lo)  # float subtraction: within a relative u of exact
-        r = r * (1.0 + 4.0 * _U) + 2.0**-1074  # >= the exact radius about m
+        r = r * (1.0 + 4.0 * U) + ETA  # >= the exact radius about m
         g = np.zeros((n, B, n))
         idx = np.arange(n)
         g[idx, :, idx] = r.T
@@ -172,7 +157,7 @@ class Affine:
             c = 0.5 * lo + 0.5 * hi
             c = np.where(np.isfinite(c), c, 0.0)
             r = np.maximum(hi - c, c - lo)  # error <= u r (subtraction)
-            r = _nan_inf(r * (1.0 + 4.0 * _U) + 2.0**-1074)
+            r = _nan_inf(r * (1.0 + 4.0 * U) + ETA)
         return cls(c, None, r)
 
     def radius(self):
@@ -181,14 +166,14 @@ class Affine:
             return self.e
         n = len(self.g)
         s = np.abs(self.g).sum(axis=0) + self.e
-        return _nan_inf(_upnn(s, n + 1))
+        return _nan_inf(up_roundings(s, n + 1))
 
     def to_interval(self) -> Interval:
         """Rigorous range ``[c - radius, c + radius]`` (outward rounded; NaN: everything)."""
         rad = self.radius()
         with np.errstate(all="ignore"):
-            lo = _dn_s(self.c - rad)
-            hi = _up_s(self.c + rad)
+            lo = dn_sum(self.c - rad)
+            hi = up_sum(self.c + rad)
             lo, hi = _guard(np.broadcast_to(lo, np.shape(self.c)),
                             np.broadcast_to(hi, np.shape(self.c)))
         return Interval(lo, hi)
@@ -227,17 +212,17 @@ def _add_aff(x: Affine, y: Affine, sign: float) -> Affine:
     err = np.abs(c)
     if not exact:
         err = err + _abssum(g)
-    e = x.e + y.e + err * _U
-    return Affine(c, g, _nan_inf(_upnn(e, n + 4)))
+    e = x.e + y.e + err * U
+    return Affine(c, g, _nan_inf(up_roundings(e, n + 4)))
 
 
 def _scale(x: Affine, k: float) -> Affine:
     """``k x`` for an exact float ``k`` (powers of two: exact; else rounded)."""
     c = x.c * k
     g = None if x.g is None else x.g * k
-    e = x.e * abs(k) + (np.abs(c) + _abssum(g)) * _U  # (overflow: c = inf gives e = inf)
+    e = x.e * abs(k) + (np.abs(c) + _abssum(g)) * U  # (overflow: c = inf gives e = inf)
     n = 0 if g is None else len(g)
-    return Affine(c, g, _nan_inf(_upnn(e, n + 4)))
+    return Affine(c, g, _nan_inf(up_roundings(e, n + 4)))
 
 
 def _mul_aff(x: Affine, y: Affine) -> Affine:
@@ -256,8 +241,8 @@ def _mul_aff(x: Affine, y: Affine) -> Affine:
             n = len(g)
             sx = _abssum(x.g)
         # |x y - (xc yc + yc gx ε)| <= |yc| ex + ey (|xc| + sx + ex); rounding u |terms|
-        e = ay * x.e + y.e * (ax + sx + x.e) + (np.abs(c) + np.abs(y.c) * sx) * _U
-        return Affine(c, g, _nan_inf(_upnn(e, n + 8)))
+        e = ay * x.e + y.e * (ax + sx + x.e) + (np.abs(c) + np.abs(y.c) * sx) * U
+        return Affine(c, g, _nan_inf(up_roundings(e, n + 8)))
     n = len(x.g)
     g = x.c * y.g + y.c * x.g
     sx = _abssum(x.g)
@@ -268,11 +253,11 @@ def _mul_aff(x: Affine, y: Affine) -> Affine:
     c = c + 0.5 * dsum
     # cross terms: Σ_{i≠j} |g_i||h_j| = sx sy - Σ|g_i h_i| (>= 0), computed with error
     # <= 2(n+2)u sx sy: add that; remainder terms with e: ex (sy + ey) + ey sx
-    cross = np.maximum(sx * sy - dabs, 0.0) + (4 * n + 8) * _U * (sx * sy)
+    cross = np.maximum(sx * sy - dabs, 0.0) + (4 * n + 8) * U * (sx * sy)
     e = (ay * x.e + ax * y.e + cross + 0.5 * dabs + x.e * (sy + y.e) + y.e * sx
-         + (ax * ay + np.abs(c)) * (2.0 * _U) + (ax * sy + ay * sx) * (3.0 * _U)
-         + dabs * ((n + 3) * _U))
-    return Affine(c, g, _nan_inf(_upnn(e, 2 * n + 16)))
+         + (ax * ay + np.abs(c)) * (2.0 * U) + (ax * sy + ay * sx) * (3.0 * U)
+         + dabs * ((n + 3) * U))
+    return Affine(c, g, _nan_inf(up_roundings(e, 2 * n + 16)))
 
 
 def _sq_aff(x: Affine) -> Affine:
@@ -287,11 +272,11 @@ def _sq_aff(x: Affine) -> Affine:
     dsum = d.sum(axis=0)
     sx = _abssum(x.g)
     c = c + 0.5 * dsum
-    cross = np.maximum(sx * sx - dsum, 0.0) + (4 * n + 8) * _U * (sx * sx)
+    cross = np.maximum(sx * sx - dsum, 0.0) + (4 * n + 8) * U * (sx * sx)
     e = (2.0 * ax * x.e + cross + 0.5 * dsum + x.e * (2.0 * sx + x.e)
-         + (ax * ax + np.abs(c)) * (2.0 * _U) + (2.0 * ax * sx) * (3.0 * _U)
-         + dsum * ((n + 3) * _U))
-    return Affine(c, g, _nan_inf(_upnn(e, 2 * n + 16)))
+         + (ax * ax + np.abs(c)) * (2.0 * U) + (2.0 * ax * sx) * (3.0 * U)
+         + dsum * ((n + 3) * U))
+    return Affine(c, g, _nan_inf(up_roundings(e, 2 * n + 16)))
 
 
 # --------------------------------------------------------------------------- relaxations
@@ -317,8 +302,8 @@ def _d_side(f_side, t, alpha, upper: bool):
     """Upper (lower) bound of ``d(t) = f(t) - α t`` from an upper (lower) bound of ``f(t)``."""
     prod = t * alpha
     if upper:
-        return _up_s(f_side - _dn(prod))
-    return _dn_s(f_side - _up(prod))
+        return up_sum(f_side - dn(prod))
+    return dn_sum(f_side - up(prod))
 
 
 def _piece_bounds(rel, a, b, alpha, convex: bool, fa, fb):
@@ -343,15 +328,15 @@ def _piece_bounds(rel, a, b, alpha, convex: bool, fa, fb):
     wal, wah = _sub(a, a, p, p)  # <= 0
     wbl, wbh = _sub(b, b, p, p)  # >= 0
     if convex:
-        ma = _dn(np.minimum(sh * wal, sh * wah))
-        mb = _dn(np.minimum(sl * wbl, sl * wbh))
-        tan = np.minimum(_dn_s(dp + ma), _dn_s(dp + mb))
+        ma = dn(np.minimum(sh * wal, sh * wah))
+        mb = dn(np.minimum(sl * wbl, sl * wbh))
+        tan = np.minimum(dn_sum(dp + ma), dn_sum(dp + mb))
         da = _d_side(fa[1], a, alpha, upper=True)
         db = _d_side(fb[1], b, alpha, upper=True)
         return _guard(tan, np.maximum(da, db))
-    ma = _up(np.maximum(sl * wal, sl * wah))
-    mb = _up(np.maximum(sh * wbl, sh * wbh))
-    tan = np.maximum(_up_s(dp + ma), _up_s(dp + mb))
+    ma = up(np.maximum(sl * wal, sl * wah))
+    mb = up(np.maximum(sh * wbl, sh * wbh))
+    tan = np.maximum(up_sum(dp + ma), up_sum(dp + mb))
     da = _d_side(fa[0], a, alpha, upper=False)
     db = _d_side(fb[0], b, alpha, upper=False)
     return _guard(np.minimum(da, db), tan)
@@ -450,13 +435,13 @@ def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
     # β, δ: centre and radius of [dl, dh] (outward)
     beta = 0.5 * dl + 0.5 * dh
     beta = np.where(ok, beta, 0.0)
-    delta = np.maximum(dh - beta, beta - dl) * (1.0 + 4.0 * _U) + 2.0**-1074
+    delta = np.maximum(dh - beta, beta - dl) * (1.0 + 4.0 * U) + ETA
     c = alpha * x.c + beta
     g = alpha * x.g
     sg = _abssum(x.g)
     aa = np.abs(alpha)
-    e = aa * x.e + delta + (aa * (np.abs(x.c) + sg) + np.abs(c)) * (2.0 * _U)
-    e = _upnn(e, len(x.g) + 8)
+    e = aa * x.e + delta + (aa * (np.abs(x.c) + sg) + np.abs(c)) * (2.0 * U)
+    e = up_roundings(e, len(x.g) + 8)
     if not ok.all():
         fb = Affine.from_interval(_IA.unary(op, rng))
         e = np.where(ok, e, fb.e)
@@ -524,7 +509,7 @@ _EXP = _Relax(_iv_fun(ca.OP_EXP), _exp_df, _secant(np.exp),
 # sqrt on [l, h], l > 0: concave; f' = 1/(2 sqrt t); f' = α at 1/(4 α²)
 def _sqrt_df(t, ft):
     sl, sh = ft
-    return _dn_s(0.5 / sh) * (1 - 2.0**-50), _up_s(0.5 / sl) * (1 + 2.0**-50)
+    return dn_sum(0.5 / sh) * (1 - 2.0**-50), up_sum(0.5 / sl) * (1 + 2.0**-50)
 
 
 def _sqrt_pieces(lo, hi):
@@ -646,8 +631,8 @@ class AffineArithmetic:
         if iv.lo is iv.hi:
             return Affine(iv.lo, None, np.zeros(iv.lo.shape))
         if np.isfinite(v).all():
-            e = (iv.hi - v) * (1.0 + 4.0 * _U) + 2.0**-1074
-            e = np.maximum(e, (v - iv.lo) * (1.0 + 4.0 * _U) + 2.0**-1074)
+            e = (iv.hi - v) * (1.0 + 4.0 * U) + ETA
+            e = np.maximum(e, (v - iv.lo) * (1.0 + 4.0 * U) + ETA)
             return Affine(v, None, e)
         return Affine.from_interval(iv)
 
@@ -721,8 +706,8 @@ class AffineArithmetic:
                 gax = tuple(ax + 1 for ax in axes)
                 g = np.sum(a.g, axis=gax)
                 mag = mag + np.abs(a.g).sum(axis=0)
-            t = np.sum(e + 2.0 * _gamma(k + n + 2) * mag, axis=axes)
-            return Affine(c, g, _nan_inf(_upnn(t, k + n + 4)))
+            t = np.sum(e + 2.0 * gamma(k + n + 2) * mag, axis=axes)
+            return Affine(c, g, _nan_inf(up_roundings(t, k + n + 4)))
 
     def structural(self, fn: Callable, *args) -> Affine:
         """Apply an exact rearrangement to ``c``, ``g`` and ``e`` alike."""
@@ -779,13 +764,13 @@ def _matmul_aff(a: Affine, b: Affine) -> Affine:
     k = a.c.shape[-1]
     ea = np.broadcast_to(a.e, a.c.shape)
     eb = np.broadcast_to(b.e, b.c.shape)
-    gk = 2.0 * _gamma(k + 4)
+    gk = 2.0 * gamma(k + 4)
     ama = np.abs(a.c)
     amb = np.abs(b.c)
     c = _mm(a.c, b.c)
     if b.g is None:  # both without coefficients
         t = _mm(ama, eb + gk * amb) + _mm(ea, amb + eb)
-        return Affine(c, None, _nan_inf(_upnn(t, 2 * k + 8)))
+        return Affine(c, None, _nan_inf(up_roundings(t, 2 * k + 8)))
     n = len(b.g)
     sb = np.abs(b.g).sum(axis=0)
     if a.g is None:  # constant (interval) matrix times a form: the network layers
@@ -794,14 +779,14 @@ def _matmul_aff(a: Affine, b: Affine) -> Affine:
         t = _mm(ama, eb + gk * mb)
         if np.any(ea):
             t = t + _mm(ea, mb + eb)
-        return Affine(c, g, _nan_inf(_upnn(t, 2 * k + n + 8)))
+        return Affine(c, g, _nan_inf(up_roundings(t, 2 * k + n + 8)))
     g = a.c @ b.g + a.g @ b.c
     sa = np.abs(a.g).sum(axis=0)
     ra = sa + ea
     rb = sb + eb
     t = (_mm(ama, eb) + _mm(ea, amb) + _mm(ra, rb)
          + gk * (_mm(ama, amb + sb) + _mm(sa, amb)))
-    return Affine(c, g, _nan_inf(_upnn(t, 2 * k + 2 * n + 8)))
+    return Affine(c, g, _nan_inf(up_roundings(t, 2 * k + 2 * n + 8)))
 
 
 def _transpose(x: Affine) -> Affine:

@@ -40,15 +40,15 @@ Rounding model
 --------------
 numpy computes in IEEE double precision with round-to-nearest. For a correctly rounded
 operation (``+ - * /`` and ``sqrt``) the computed ``y`` is within half an ulp of the real
-result, so ``_dn(y) = min(y*(1-2**-52), y*(1+2**-52)) - 2**-1074`` (at least one float
-below ``y``) is a lower bound, and ``_up`` symmetrically an upper bound. Sums and
+result, so ``dn(y) = min(y*(1-2**-52), y*(1+2**-52)) - 2**-1074`` (at least one float
+below ``y``) is a lower bound, and ``up`` symmetrically an upper bound. Sums and
 differences drop the ``2**-1074`` (a zero or subnormal sum of two floats is exact), so
 ``0 + 0`` stays ``[0, 0]``. numpy's float64
 elementary functions (``exp``, ``log``, ``sin``, ``tanh``, ``arctan``, ... and
 ``scipy.special.erf``) are not correctly rounded; numpy documents and tests them to a few
 ulps (< 4, ``numpy/_core/tests/data/umath-validation-set-*.csv``) and we measured at most
 2.5 ulps against mpmath. Their results are widened by a relative ``2**-48`` (at least 16
-ulps) plus an absolute ``2**-1060`` for the subnormal range (``_dn_w``/``_up_w``) and then
+ulps) plus an absolute ``2**-1060`` for the subnormal range (``dn_fn``/``up_fn``) and then
 clipped to the function's known range. Exact operations (negation, ``fabs``, ``fmin``,
 ``fmax``, ``floor``, ``sign``, comparisons, structural rearrangements) are not widened;
 non-integer graph constants are, by a relative ``2**-50`` (CasADi's constant folding, see
@@ -64,16 +64,21 @@ import casadi as ca
 import numpy as np
 
 from nlyap_opt.errors import UnsupportedOperationError
+from nlyap_opt.rounding import (
+    ETA,
+    FLOAT_MAX,
+    dn,
+    dn_fn,
+    dn_sum,
+    gamma,
+    up,
+    up_fn,
+    up_sum,
+)
 
 __all__ = ["Interval", "IntervalArithmetic", "CheckedIntervalArithmetic"]
 
 _INF = np.inf
-_MAX = float(np.finfo(np.float64).max)
-_ETA = 2.0**-1074  # smallest positive (subnormal) float
-_U = 2.0**-53  # unit roundoff of round-to-nearest
-_R1_LO, _R1_HI = 1.0 - 2.0**-52, 1.0 + 2.0**-52  # one ulp, correctly rounded operations
-_RW_LO, _RW_HI = 1.0 - 2.0**-48, 1.0 + 2.0**-48  # >= 16 ulps, elementary functions
-_ETA_W = 2.0**-1060  # absolute slack of elementary functions (subnormal results)
 _TRIG_SLACK = 2.0**-48  # relative slack of the period index (x - phase) / pi
 _PI = float(np.pi)  # < pi
 _PIO2 = _PI / 2.0  # < pi/2
@@ -87,76 +92,7 @@ _UMAX = np.maximum.reduce
 _F64 = np.dtype(np.float64)
 
 
-# --------------------------------------------------------------------------- rounding
-def _dn(y):
-    """Lower bound of the real result of one correctly rounded operation that gave ``y``."""
-    t = y * _R1_LO
-    r = y * _R1_HI
-    if type(t) is np.ndarray:
-        np.minimum(t, r, out=t)
-        t -= _ETA
-        return np.minimum(t, _MAX, out=t)
-    return np.minimum(np.minimum(t, r) - _ETA, _MAX)
-
-
-def _up(y):
-    """Upper bound of the real result of one correctly rounded operation that gave ``y``."""
-    t = y * _R1_LO
-    r = y * _R1_HI
-    if type(t) is np.ndarray:
-        np.maximum(t, r, out=t)
-        t += _ETA
-        return np.maximum(t, -_MAX, out=t)
-    return np.maximum(np.maximum(t, r) + _ETA, -_MAX)
-
-
-def _dn_w(y):
-    """Lower bound of a real function value that numpy computed as ``y`` (<= 16 ulps)."""
-    t = y * _RW_LO
-    r = y * _RW_HI
-    if type(t) is np.ndarray:
-        np.minimum(t, r, out=t)
-        t -= _ETA_W
-        return np.minimum(t, _MAX, out=t)
-    return np.minimum(np.minimum(t, r) - _ETA_W, _MAX)
-
-
-def _up_w(y):
-    """Upper bound of a real function value that numpy computed as ``y`` (<= 16 ulps)."""
-    t = y * _RW_LO
-    r = y * _RW_HI
-    if type(t) is np.ndarray:
-        np.maximum(t, r, out=t)
-        t += _ETA_W
-        return np.maximum(t, -_MAX, out=t)
-    return np.maximum(np.maximum(t, r) + _ETA_W, -_MAX)
-
-
-def _dn_s(y):
-    """Lower bound of the real sum or difference of two floats that gave ``y``.
-
-    As :func:`_dn` without the absolute ``2**-1074``: a sum that is zero or subnormal is
-    exact (both operands are multiples of ``2**-1074``), so ``0 + 0`` stays ``[0, 0]``
-    (``x² + y²`` keeps a lower bound of 0, as a square root's domain check needs).
-    """
-    t = y * _R1_LO
-    r = y * _R1_HI
-    if type(t) is np.ndarray:
-        np.minimum(t, r, out=t)
-        return np.minimum(t, _MAX, out=t)
-    return np.minimum(np.minimum(t, r), _MAX)
-
-
-def _up_s(y):
-    """Upper bound of the real sum or difference of two floats that gave ``y``."""
-    t = y * _R1_LO
-    r = y * _R1_HI
-    if type(t) is np.ndarray:
-        np.maximum(t, r, out=t)
-        return np.maximum(t, -_MAX, out=t)
-    return np.maximum(np.maximum(t, r), -_MAX)
-
-
+# --------------------------------------------------------------------------- helpers
 def _guard(lo, hi):
     """Replace NaN bounds (undefined or unboundable results) by the whole real line."""
     m = _UMIN(lo, axis=None, initial=0.0)  # min and max propagate NaN (read-only)
@@ -165,14 +101,6 @@ def _guard(lo, hi):
         return lo, hi
     bad = np.isnan(lo) | np.isnan(hi)
     return np.where(bad, -_INF, lo), np.where(bad, _INF, hi)
-
-
-def _gamma(n: int) -> float:
-    """A float ``>= gamma_n = n u / (1 - n u)`` (Higham's rounding-error constant)."""
-    nu = n * _U
-    if nu >= 0.01:
-        raise ValueError(f"rigorous summation supports fewer than 4.5e13 terms, got {n}")
-    return nu / (1.0 - nu) * (1.0 + 1e-10)  # float error of this line is ~4u << 1e-10
 
 
 def _set(arr, mask, value):
@@ -295,15 +223,15 @@ def _bshape(*arrays):
 def _add(al, ah, bl, bh):
     if al is ah and bl is bh:  # (a user-built degenerate interval may hold inf - inf)
         s = al + bl
-        return _guard(_dn_s(s), _up_s(s))
-    return _dn_s(al + bl), _up_s(ah + bh)  # no NaN: lo < +inf and hi > -inf
+        return _guard(dn_sum(s), up_sum(s))
+    return dn_sum(al + bl), up_sum(ah + bh)  # no NaN: lo < +inf and hi > -inf
 
 
 def _sub(al, ah, bl, bh):
     if al is ah and bl is bh:
         s = al - bl
-        return _guard(_dn_s(s), _up_s(s))
-    return _dn_s(al - bh), _up_s(ah - bl)
+        return _guard(dn_sum(s), up_sum(s))
+    return dn_sum(al - bh), up_sum(ah - bl)
 
 
 def _mul(al, ah, bl, bh):
@@ -312,13 +240,13 @@ def _mul(al, ah, bl, bh):
     if bl is bh:
         if al is ah:
             p = al * bl
-            return _guard(_dn(p), _up(p))
+            return _guard(dn(p), up(p))
         if bl.ndim == 0 and np.isfinite(bl):
             c = float(bl)
             if c > 0.0:
-                return _dn(al * c), _up(ah * c)
+                return dn(al * c), up(ah * c)
             if c < 0.0:
-                return _dn(ah * c), _up(al * c)
+                return dn(ah * c), up(al * c)
             z = _full(_bshape(al, bl), 0.0)
             return z, z.copy()
         p1 = al * bl
@@ -332,7 +260,7 @@ def _mul(al, ah, bl, bh):
         p4 = ah * bh
         lo = np.fmin(np.fmin(p1, p2), np.fmin(p3, p4))
         hi = np.fmax(np.fmax(p1, p2), np.fmax(p3, p4))
-    return _guard(_dn(lo), _up(hi))
+    return _guard(dn(lo), up(hi))
 
 
 def _div(al, ah, bl, bh):
@@ -340,8 +268,8 @@ def _div(al, ah, bl, bh):
     if bl is bh and bl.ndim == 0 and np.isfinite(bl) and not zero:
         c = float(bl)
         if c > 0.0:
-            return _dn(al / c), _up(ah / c)
-        return _dn(ah / c), _up(al / c)
+            return dn(al / c), up(ah / c)
+        return dn(ah / c), up(al / c)
     if al is ah and bl is bh:
         q = al / bl
         lo, hi = q, q
@@ -360,8 +288,8 @@ def _div(al, ah, bl, bh):
         q4 = ah / bh
         lo = np.fmin(np.fmin(q1, q2), np.fmin(q3, q4))
         hi = np.fmax(np.fmax(q1, q2), np.fmax(q3, q4))
-    lo = _set(_dn(lo), zero, -_INF)
-    hi = _set(_up(hi), zero, _INF)
+    lo = _set(dn(lo), zero, -_INF)
+    hi = _set(up(hi), zero, _INF)
     return _guard(lo, hi)
 
 
@@ -369,23 +297,23 @@ def _inv(lo, hi):
     zero = (lo <= 0.0) & (hi >= 0.0)
     if lo is hi:
         q = 1.0 / lo
-        rl, rh = _dn(q), _up(q)
+        rl, rh = dn(q), up(q)
     else:
-        rl, rh = _dn(1.0 / hi), _up(1.0 / lo)
+        rl, rh = dn(1.0 / hi), up(1.0 / lo)
     return _guard(_set(rl, zero, -_INF), _set(rh, zero, _INF))
 
 
 def _sq(lo, hi):
     if lo is hi:
         p = lo * lo
-        return np.maximum(_dn(p), 0.0), _up(p)
+        return np.maximum(dn(p), 0.0), up(p)
     ml, mh = _abs_bounds(lo, hi)
-    return np.maximum(_dn(ml * ml), 0.0), _up(mh * mh)
+    return np.maximum(dn(ml * ml), 0.0), up(mh * mh)
 
 
 def _sqrt(lo, hi):
-    rl = np.maximum(_dn(np.sqrt(np.maximum(lo, 0.0))), 0.0)
-    rh = _up(np.sqrt(hi))
+    rl = np.maximum(dn(np.sqrt(np.maximum(lo, 0.0))), 0.0)
+    rh = up(np.sqrt(hi))
     out = hi < 0.0  # entirely outside the domain
     return _guard(_set(rl, out, -_INF), _set(rh, out, _INF))
 
@@ -394,11 +322,11 @@ def _monotone(f, lo, hi, clip_lo=None, clip_hi=None, increasing=True):
     """Enclosure of a monotone elementary function (libm accuracy, widened)."""
     if lo is hi:
         v = f(lo)
-        rl, rh = _dn_w(v), _up_w(v)
+        rl, rh = dn_fn(v), up_fn(v)
     elif increasing:
-        rl, rh = _dn_w(f(lo)), _up_w(f(hi))
+        rl, rh = dn_fn(f(lo)), up_fn(f(hi))
     else:
-        rl, rh = _dn_w(f(hi)), _up_w(f(lo))
+        rl, rh = dn_fn(f(hi)), up_fn(f(lo))
     if clip_lo is not None:
         rl = np.maximum(rl, clip_lo)
     if clip_hi is not None:
@@ -416,8 +344,8 @@ def _expm1(lo, hi):
 
 def _log_like(f, boundary, lo, hi):
     """``log``/``log1p``: domain ``x > boundary``; ``f(boundary) = -inf``."""
-    rl = _dn_w(f(np.maximum(lo, boundary)))
-    rh = _up_w(f(hi))
+    rl = dn_fn(f(np.maximum(lo, boundary)))
+    rh = up_fn(f(hi))
     out = hi <= boundary
     return _guard(_set(rl, out, -_INF), _set(rh, out, _INF))
 
@@ -447,8 +375,8 @@ def _sincos(f, phase, lo, hi):
         return _guard(*_monotone(f, lo, hi, clip_lo=-1.0, clip_hi=1.0))
     fa = f(lo)
     fb = f(hi)
-    rl = np.maximum(_dn_w(np.minimum(fa, fb)), -1.0)
-    rh = np.minimum(_up_w(np.maximum(fa, fb)), 1.0)
+    rl = np.maximum(dn_fn(np.minimum(fa, fb)), -1.0)
+    rh = np.minimum(up_fn(np.maximum(fa, fb)), 1.0)
     n_lo = _period_index(lo, phase, True)
     n_hi = _period_index(hi, phase, False)
     many = (n_hi - n_lo) >= 1.0  # two consecutive k: both extrema (also infinite bounds)
@@ -481,9 +409,9 @@ def _tan(lo, hi):
 def _cosh(lo, hi):
     if lo is hi:
         v = np.cosh(lo)
-        return _guard(np.maximum(_dn_w(v), 1.0), _up_w(v))
+        return _guard(np.maximum(dn_fn(v), 1.0), up_fn(v))
     ml, mh = _abs_bounds(lo, hi)
-    return _guard(np.maximum(_dn_w(np.cosh(ml)), 1.0), _up_w(np.cosh(mh)))
+    return _guard(np.maximum(dn_fn(np.cosh(ml)), 1.0), up_fn(np.cosh(mh)))
 
 
 def _clipped_domain(f, dlo, dhi, lo, hi, clip_lo, clip_hi, increasing=True, open_=False):
@@ -530,7 +458,7 @@ def _neg(lo, hi):
 
 
 def _twice(lo, hi):
-    return np.minimum(lo * 2.0, _MAX), np.maximum(hi * 2.0, -_MAX)  # exact but overflow
+    return np.minimum(lo * 2.0, FLOAT_MAX), np.maximum(hi * 2.0, -FLOAT_MAX)  # exact but overflow
 
 
 def _exact_monotone(f):
@@ -547,7 +475,7 @@ def _exact_monotone(f):
 @functools.lru_cache(maxsize=1024)
 def _g3(n: int) -> float:
     """``(g + 2**-52)(1 + 2 g)(1 + 2**-48)`` with ``g >= gamma_n``: see ``sum``/``_pow_end``."""
-    g = _gamma(n)
+    g = gamma(n)
     return (g + 2.0**-52) * (1.0 + 2.0 * g) * (1.0 + 2.0**-48)
 
 
@@ -565,7 +493,7 @@ def _pow_end(x, k: int, lower: bool):
     """
     if k > 64:
         v = np.power(x, float(k))
-        return _dn_w(v) if lower else _up_w(v)
+        return dn_fn(v) if lower else up_fn(v)
     k0 = k
     r = None
     b = x
@@ -579,8 +507,8 @@ def _pow_end(x, k: int, lower: bool):
     e = np.abs(r) * _g3(k0 - 1)
     e += 2.0**-1020
     if lower:
-        return np.fmin(r - e, _MAX)
-    return np.fmax(r + e, -_MAX)
+        return np.fmin(r - e, FLOAT_MAX)
+    return np.fmax(r + e, -FLOAT_MAX)
 
 
 def _ipow(lo, hi, n: int):
@@ -601,8 +529,8 @@ def _ipow(lo, hi, n: int):
         ph = _pow_end(mh, k, False)
         if n > 0:
             return pl, ph
-        rl = np.maximum(_dn(1.0 / ph), 0.0)
-        rh = _up(1.0 / np.abs(pl))  # 1/0 = +inf when 0 is in x
+        rl = np.maximum(dn(1.0 / ph), 0.0)
+        rh = up(1.0 / np.abs(pl))  # 1/0 = +inf when 0 is in x
         out = (lo == 0.0) & (hi == 0.0)  # x = 0 exactly: undefined
         return _guard(_set(rl, out, -_INF), _set(rh, out, _INF))
     pl = _pow_end(lo, k, True)  # odd powers are increasing
@@ -671,8 +599,8 @@ def _atan2(yl, yh, xl, xh):
     c2 = np.arctan2(yl, xh)
     c3 = np.arctan2(yh, xl)
     c4 = np.arctan2(yh, xh)
-    rl = np.maximum(_dn_w(np.minimum(np.minimum(c1, c2), np.minimum(c3, c4))), -_PI_UP)
-    rh = np.minimum(_up_w(np.maximum(np.maximum(c1, c2), np.maximum(c3, c4))), _PI_UP)
+    rl = np.maximum(dn_fn(np.minimum(np.minimum(c1, c2), np.minimum(c3, c4))), -_PI_UP)
+    rh = np.minimum(up_fn(np.maximum(np.maximum(c1, c2), np.maximum(c3, c4))), _PI_UP)
     # box meets the branch cut or contains the origin: the whole range [-pi, pi]
     cut = (yl <= 0.0) & (yh >= 0.0) & (xl <= 0.0)
     return _guard(_set(rl, cut, -_PI_UP), _set(rh, cut, _PI_UP))
@@ -681,8 +609,8 @@ def _atan2(yl, yh, xl, xh):
 def _hypot(al, ah, bl, bh):
     xl, xh = _abs_bounds(al, ah)
     yl, yh = _abs_bounds(bl, bh)
-    rl = np.maximum(_dn_w(np.hypot(xl, yl)), 0.0)
-    rh = _up_w(np.hypot(xh, yh))
+    rl = np.maximum(dn_fn(np.hypot(xl, yl)), 0.0)
+    rh = up_fn(np.hypot(xh, yh))
     return _guard(rl, rh)
 
 
@@ -704,8 +632,8 @@ def _fmod(al, ah, bl, bh):
         # constant divisor: where trunc(x / |c|) = q on the whole box, fmod = x - q |c|
         c = abs(float(bl))
         q = np.trunc(al / c)
-        ql, qh = _dn(q * c), _up(q * c)
-        xl, xh = _dn(al - qh), _up(ah - ql)
+        ql, qh = dn(q * c), up(q * c)
+        xl, xh = dn(al - qh), up(ah - ql)
         pos = (al >= 0.0) & (xl >= 0.0) & (xh < c)
         neg = (ah <= 0.0) & (xl > -c) & (xh <= 0.0)
         ok = (pos | neg) & (q == np.trunc(ah / c)) & np.isfinite(xl) & np.isfinite(xh)
@@ -883,8 +811,8 @@ class IntervalArithmetic:
                 return Interval(v, v)
             w = np.where(inexact, np.abs(v) * 2.0**-50 + 2.0**-1070, 0.0)
             return Interval(v - w, v + w)
-        lo = np.where(np.isnan(v), -_INF, np.where(v == _INF, _MAX, v))
-        hi = np.where(np.isnan(v), _INF, np.where(v == -_INF, -_MAX, v))
+        lo = np.where(np.isnan(v), -_INF, np.where(v == _INF, FLOAT_MAX, v))
+        hi = np.where(np.isnan(v), _INF, np.where(v == -_INF, -FLOAT_MAX, v))
         return Interval(lo, hi)
 
     def unary(self, op: int, a: Interval) -> Interval:
@@ -1030,7 +958,7 @@ class IntervalArithmetic:
         with np.errstate(all="ignore"):
             if k == 0 or not (_finite(a) and _finite(b)):
                 return self._matmul_elementwise(a, b)
-            g = _gamma(k)
+            g = gamma(k)
             ma, ra, ama = _midrad(a)
             mb, rb, amb = _midrad(b)
             c = _mm(ma, mb)
@@ -1045,7 +973,7 @@ class IntervalArithmetic:
                 t += _mm(ra, w2)
             t *= 1.0 + 4.0 * g + 2.0**-48
             amax = float(_UMAX(ama, axis=None)) if ama.size else 0.0
-            t += 4.0 * _ETA * (k * amax * (1.0 + 2.0**-40) + 5.0 * k + 2.0)
+            t += 4.0 * ETA * (k * amax * (1.0 + 2.0**-40) + 5.0 * k + 2.0)
             lo = c - t
             t += c
             return _iv(*_guard(lo, t))

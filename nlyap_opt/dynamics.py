@@ -64,7 +64,7 @@ from .errors import ConfigError, DimensionError, NetworkFileError
 from .grid import GridNodes, norm2_up
 from .network import Network
 from .phi_training import assemble, polish, progress_bar, train_component
-from .rounding import U, gamma_rn
+from .rounding import U, gamma
 from .symbolic import learned_components_of
 
 __all__ = [
@@ -411,9 +411,9 @@ def network_error_bound(network: Network, zmax: np.ndarray) -> np.ndarray:
     n, H = l0.weight.shape[1], l0.weight.shape[0]
 
     pre = np.abs(l0.weight) @ np.asarray(zmax, dtype=float) + np.abs(l0.bias)
-    err_t = gamma_rn(n + 1) * pre + 8 * U  # |t̂ − t| (|t| ≤ 1)
+    err_t = gamma(n + 1) * pre + 8 * U  # |t̂ − t| (|t| ≤ 1)
     out = np.abs(l1.weight) @ np.ones(H) + np.abs(l1.bias)
-    err = gamma_rn(H + 1) * out + np.abs(l1.weight) @ err_t
+    err = gamma(H + 1) * out + np.abs(l1.weight) @ err_t
     scale = np.abs(np.broadcast_to(network.output_scale, err.shape))
     err = scale * err + 2 * U * scale * out
     return err * (1 + 1e-6) + 1e-300

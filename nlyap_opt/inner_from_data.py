@@ -85,7 +85,7 @@ import numpy as np
 
 from .errors import DimensionError
 from .network import Network
-from .rounding import U, dn_rel, gamma_rn, up_rel
+from .rounding import U, dn_rel, gamma, up_rel
 
 __all__ = ["prove_inner_ellipse_from_data", "SAFETY"]
 
@@ -107,7 +107,7 @@ def _fro_up(M) -> float:
 def _matmul_err(A, B) -> np.ndarray:
     """Entrywise bound of ``|fl(A @ B) − A @ B|`` (recursive summation, any order)."""
     k = np.asarray(A).shape[-1]
-    g = gamma_rn(k + 2)
+    g = gamma(k + 2)
     return up_rel(g * (np.abs(A) @ np.abs(B)), 8) + 1e-300
 
 

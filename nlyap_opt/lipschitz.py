@@ -97,7 +97,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import DimensionError
-from .rounding import U, gamma_rn, next_up
+from .rounding import U, gamma, next_up
 
 __all__ = ["LipschitzResult", "lipschitz_lipsdp", "lipschitz_naive", "lipschitz_sampled"]
 
@@ -150,7 +150,7 @@ class LipschitzResult:
 
 def _safety(n: int) -> float:
     """Inflation factor for bounds computed in floating point on ``n``-by-``n`` data."""
-    return 1.0 + 4.0 * gamma_rn(n * n + 4 * n + 16)
+    return 1.0 + 4.0 * gamma(n * n + 4 * n + 16)
 
 
 def _fro_upper(B: np.ndarray) -> float:
@@ -189,15 +189,15 @@ def _lambda_max_upper(Mt: np.ndarray, E: np.ndarray) -> float:
         return math.inf
     absV = np.abs(V)
     absL = np.abs(lam)
-    g1 = gamma_rn(1)
+    g1 = gamma(1)
     # residual G = M - V diag(lam) V^T
     P = (V * lam) @ V.T
     R = Mt - P
-    Gb = (1.0 + g1) * np.abs(R) + gamma_rn(n + 1) * ((absV * absL) @ absV.T) + E
+    Gb = (1.0 + g1) * np.abs(R) + gamma(n + 1) * ((absV * absL) @ absV.T) + E
     g = _fro_upper(Gb)
     # orthogonality defect F = V^T V - I
     F = V.T @ V - np.eye(n)
-    Fb = (1.0 + g1) * np.abs(F) + gamma_rn(n) * (absV.T @ absV)
+    Fb = (1.0 + g1) * np.abs(F) + gamma(n) * (absV.T @ absV)
     f = _fro_upper(Fb)
     lmax = float(lam[-1])
     if not (math.isfinite(g) and math.isfinite(f) and math.isfinite(lmax)):
@@ -218,14 +218,14 @@ def _spectral_norm_upper(W: np.ndarray) -> float:
     if W.size == 0 or not np.any(W):
         return 0.0
     # Frobenius bound: sum of W.size squares, each rounded, then a sqrt
-    fro = next_up(float(np.linalg.norm(W)) * (1.0 + 2.0 * gamma_rn(W.size + 2)) + _TINY)
+    fro = next_up(float(np.linalg.norm(W)) * (1.0 + 2.0 * gamma(W.size + 2)) + _TINY)
     # Gram bound: ||W||_2^2 = lambda_max(G) with G the smaller Gram matrix
     A = W if W.shape[0] <= W.shape[1] else W.T  # k x p with k <= p
     k, p = A.shape
     G = A @ A.T
     G = np.triu(G) + np.triu(G, 1).T  # exactly symmetric (mirror the upper triangle)
     absA = np.abs(A)
-    E = 2.0 * gamma_rn(p) * (absA @ absA.T) + _TINY
+    E = 2.0 * gamma(p) * (absA @ absA.T) + _TINY
     lam = _lambda_max_upper(G, E)
     if not math.isfinite(lam):
         return fro
@@ -277,7 +277,7 @@ def _build_lmi(
     A22 = absW1.T @ absW1
     A22[np.diag_indices(h)] += 2.0 * t
     A[n:, n:] = A22
-    E = (2.0 * gamma_rn(K)) * A + _TINY
+    E = (2.0 * gamma(K)) * A + _TINY
     E = np.maximum(E, E.T)
     return Mt, E
 

@@ -1,4 +1,4 @@
-"""The cartpole with learned f (issue 15): the round quadratic certified on a run's φ.
+"""The cartpole with learned f: the round quadratic certified on a run's φ.
 
 Reads the dynamics and controller stages of a run of ``nlyap run cartpole --preset large``
 (learned f: ``dynamics.json``, ``bounds.json`` with ``η``, ``controller_init.json``; the

@@ -1,4 +1,4 @@
-"""Comparison benchmark (issue 6): every method on every seed system, one markdown table.
+"""Comparison benchmark: every method on every seed system, one markdown table.
 
     python bench/compare.py [--preset large] [--out runs/bench_compare] [SYSTEM ...]
 

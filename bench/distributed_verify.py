@@ -1,4 +1,4 @@
-"""Distributed verification benchmark (issue 15, item 3): 1 vs 2 Dask workers.
+"""Distributed verification benchmark: 1 vs 2 Dask workers.
 
 Two certificate queries, each decided serially (``verification.verify``), then by
 :func:`nlyap_opt.parallel.verify_distributed` on a ``LocalCluster`` of 1 and of 2 workers,

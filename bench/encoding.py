@@ -1,4 +1,4 @@
-"""Size of the dReal encoding (issue 11, item 6): former backend vs formula builder vs direct.
+"""Size of the dReal encoding: former backend vs formula builder vs direct.
 
 dReal works on terms without ``let`` sharing, so what it pays for is the *expanded* tree:
 every use of a shared subterm counted again. For the queries of ``bench/verify.py`` built on

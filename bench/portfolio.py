@@ -1,4 +1,4 @@
-"""Seed-portfolio benchmark (issue 13, item 5): K seeds on 1 vs 2 Dask workers.
+"""Seed-portfolio benchmark: K seeds on 1 vs 2 Dask workers.
 
 Runs :func:`nlyap_opt.portfolio.run_portfolio` twice with the same seeds (``fast`` preset by
 default), each time into a fresh directory on a ``LocalCluster`` started by the call, and

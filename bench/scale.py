@@ -1,6 +1,6 @@
 """How the interval verifier scales with the state dimension and the network width.
 
-Two tables (issue 15, item 6):
+Two tables:
 
 - **dimension** (2, 3, 4, 6): the decrease condition (a) of a quadratic certificate
   ``V = xᵀPx`` of the linear LQR feedback ``u = u_eq − Kx`` on the true ``f``, on the ball

@@ -1,4 +1,4 @@
-"""Verifier benchmark (issue 3): seconds, boxes and verdict for three queries.
+"""Verifier benchmark: seconds, boxes and verdict for three queries.
 
 (i)   2-D, 6-neuron tanh V with the true Van der Pol f on the annulus 0.2 ≤ ‖x‖ ≤ 1.2;
 (ii)  the same V with a 200-neuron learned dynamics network inside the Lie derivative;
@@ -7,7 +7,7 @@
       learned-dynamics runs, η = 0.005, for s = 0 and s = 10⁻³·max‖∇V‖ (sampled).
 
 Networks are made once (seeded) and cached in bench/data/; delete them to rebuild.
-Targets on 2 cores: (i) ≤ 0.03 s, (ii) ≤ 0.04 s (issue 15: ≤ 0.1 s and ≥ 5× fewer boxes
+Targets on 2 cores: (i) ≤ 0.03 s, (ii) ≤ 0.04 s (≤ 0.1 s and ≥ 5× fewer boxes
 than intervals with the mean-value form), (iii) ≤ 30 s.
 
 Every query runs with the default verifier (affine arithmetic intersected with the interval

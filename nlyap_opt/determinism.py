@@ -1,7 +1,8 @@
 """Deterministic torch training: a fixed thread count and deterministic algorithms, scoped.
 
-Wall-clock budgets are gone from every training loop (PITFALLS P12); what remains to make
-a seeded run bit-identical on any machine load is the thread count of torch's CPU kernels
+Wall-clock budgets are gone from every training loop (a timed loop gives another
+network on a loaded machine); what remains to make a seeded run bit-identical on any
+machine load is the thread count of torch's CPU kernels
 (a reduction split over a different number of threads sums in a different order) and
 torch's choice among non-deterministic algorithms. :func:`deterministic_torch` fixes both
 for the duration of a ``with`` block and restores the caller's settings afterwards.

@@ -9,7 +9,7 @@ the whole stage with its η gate: :func:`nlyap_opt.dynamics_stage.dynamics_stage
 configuration: :class:`nlyap_opt.dynamics_config.DynamicsConfig`):
 
 - a regular :class:`Grid` over the sampling box with per-axis spacing :math:`h`, whose
-  covering radius is exact, :math:`\delta = \tfrac12 \|h\|_2` (PITFALLS P1: δ belongs to
+  covering radius is exact, :math:`\delta = \tfrac12 \|h\|_2` (δ belongs to
   the very sample set on which α is measured, in :math:`(x, u)`-space);
 - :math:`\alpha = \max_s \|f(s) - \varphi(s)\|_2` over **all** nodes ``s`` of that grid,
   float64, batched (bounded memory), plus a rigorous rounding allowance ``alpha_upper``;
@@ -17,7 +17,7 @@ configuration: :class:`nlyap_opt.dynamics_config.DynamicsConfig`):
   subset of the grid nodes (plus nodes on the box faces): Adam (minibatches, cosine
   learning-rate schedule), then Levenberg–Marquardt in float64, then Lawson-reweighted
   Levenberg–Marquardt rounds that lower the *maximum* error (α is a maximum); seeded, with a
-  tqdm progress bar; budgets are counts of steps, never a wall-clock time (PITFALLS P12);
+  tqdm progress bar; budgets are counts of steps, never a wall-clock time;
   the training loops are in :mod:`nlyap_opt.phi_training`. Saved as a
   :class:`~nlyap_opt.network.Network` with float64 weights (input/output normalisation
   folded into the weights: the saved network is the verified object, and α is measured on
@@ -764,7 +764,7 @@ def learn_dynamics(system, config: DynamicsConfig | dict | None = None, *,
     maximum). Every budget is a count (``steps``, ``lm_iterations``, ``minimax_rounds``,
     ``minimax_iterations``) and training runs with ``threads`` torch threads and
     deterministic algorithms: the same configuration and seed give a bit-identical φ
-    whatever the machine's load (PITFALLS P12).
+    whatever the machine's load.
 
     Parameters
     ----------

@@ -8,7 +8,7 @@ through :func:`dynamics_config`, which refuses unknown keys (with a "did you mea
 types and out-of-range values with a :class:`~nlyap_opt.errors.ConfigError` naming the key.
 
 Every training budget is a count (steps, iterations, rounds), never a wall-clock time
-(PITFALLS P12): the same configuration and seed give the same φ on any machine load.
+: the same configuration and seed give the same φ on any machine load.
 
 Examples
 --------
@@ -342,7 +342,7 @@ def _check_keys(over: dict) -> None:
             hint = f" (did you mean {close[0]!r}?)" if close else \
                 f"; known keys: {', '.join(_FIELDS)}"
             if key == "time_budget":
-                hint = ("; budgets are counted in steps (PITFALLS P12): set 'steps', "
+                hint = ("; budgets are counted in steps, never wall time: set 'steps', "
                         "'lm_iterations' or 'minimax_rounds' instead")
             raise ConfigError(f"unknown dynamics config key {key!r}{hint}")
 

@@ -1,7 +1,8 @@
 r"""Condition (c) for an **unknown** f, proved from data and a declared second-derivative bound.
 
-METHOD.md §3 (c) needs an ellipse :math:`E = \{x^\top P x \le c_q\} \supseteq B_\varepsilon`
-on which :math:`V_q = x^\top P x` decreases along the *true* closed loop
+Condition (c) of the certificate needs an ellipse
+:math:`E = \{x^\top P x \le c_q\} \supseteq B_\varepsilon` on which
+:math:`V_q = x^\top P x` decreases along the *true* closed loop
 :math:`g(x) = f(x, \kappa(x))`. With a model this is an interval check of the Jacobian
 (:func:`nlyap_opt.roa.certify_inner_ellipse`). Without one, :func:`prove_inner_ellipse_from_data`
 proves it for **every** ``f`` that agrees with the data and the user's declaration
@@ -53,7 +54,7 @@ The proof
    with :math:`c_q = \lambda_{\max}(P)\varepsilon^2` (so :math:`B_\varepsilon \subseteq E`)
    the proof holds for :math:`\varepsilon < \lambda / (\sqrt{\lambda_{\max}(P)}\,w)`
    (``terms["inner_max"]``) — sharper than the ball form
-   :math:`\lambda > 2\|P\|(\|\Delta J\| + \tfrac12 H_g\rho)` of METHOD.md. The derivative
+   :math:`\lambda > 2\|P\|(\|\Delta J\| + \tfrac12 H_g\rho)` (docs/method.md). The derivative
    bounds of step 3 are taken over a box containing ``E`` (half-widths
    :math:`\sqrt{c_q (P^{-1})_{ii}}`, with a verified bound of the inverse's diagonal), which
    must lie in ``X``, and :math:`\kappa` must map it into ``U`` (the declaration holds on
@@ -350,7 +351,8 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
         GL, GU, D = Jx.copy(), Jx.copy(), up_rel(Ex, 8)
     # known components: exact symbolic derivatives of g_k(x) = known_k(x, κ(x))
     known_parts = {}
-    if known:  # only smooth, total expressions (a jump has CasADi derivative 0: PITFALLS P9)
+    # only smooth, total expressions (a jump has CasADi derivative 0, which would hide it)
+    if known:
         smooth = {}
         for i, e in known.items():
             e = ca.SX(e)

@@ -4,8 +4,9 @@ One learned component at a time, in normalised units: Adam on minibatches (cosin
 rate, float32 by default, seeded), then Levenberg–Marquardt in float64 on all training nodes
 (mean squared error, a small ridge on the hidden weights), then Lawson-reweighted LM rounds
 that push down the *maximum* error (α is a maximum). Every budget is a count of steps or
-iterations (PITFALLS P12). :func:`assemble` stacks the per-component blocks into one
-:class:`~nlyap_opt.network.Network` in original units, exactly. The orchestration (data,
+iterations (never wall time: the same input must give the same φ on a loaded machine).
+:func:`assemble` stacks the per-component blocks into one :class:`~nlyap_opt.network.Network`
+in original units, exactly. The orchestration (data,
 grid, α) is :func:`nlyap_opt.dynamics.learn_dynamics`.
 """
 

@@ -1,7 +1,7 @@
 r"""The cheap certificates: quadratic ``V(x) = xᵀPx`` under the initial controller.
 
-Run before the neural stage when the configuration lists ``quadratic`` candidates (issue 15,
-item 5): each candidate matrix ``P`` of the closed loop's linearisation ``A_cl`` (of the true
+Run before the neural stage when the configuration lists ``quadratic`` candidates:
+each candidate matrix ``P`` of the closed loop's linearisation ``A_cl`` (of the true
 ``f``, or of the learned ``φ``) gives ``V = xᵀPx``, certified by exactly the machinery of the
 neural certificates (:func:`nlyap_opt.certificate.certify_with_inner_search`: conditions
 (a), (b), (c), the robust margin ``η‖∇_L V‖`` for learned dynamics, the same domain and initial

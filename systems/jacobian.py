@@ -1,6 +1,6 @@
 r"""The Jacobian of an unknown ``f`` at the equilibrium, from data, with a rigorous error bound.
 
-For condition (c) of a learned-``f`` certificate (METHOD.md, "Condition (c) for unknown f,
+For condition (c) of a learned-``f`` certificate (docs/method.md, "Condition (c) for unknown f,
 from samples"): with the declared second-derivative bound
 :math:`|\partial^2 f_k / \partial z_i \partial z_j| \le H` on :math:`X \times U`, a central
 difference around the equilibrium :math:`z_0 = (0, u_{eq})` over the nodes

@@ -104,8 +104,9 @@ class DrealBackend(Backend):
 
     The formula is :func:`~verification.formula.build_formula`'s, the one the SMT-LIB export
     writes (domain conditions of partial operations included). ``unsat`` proves the property
-    (verified). A δ-SAT box is *not* a counterexample (PITFALLS P7): points of the box
-    (clipped to the root box) are re-checked rigorously with the interval arithmetic, and
+    (verified). A δ-SAT box is *not* a counterexample (dReal's δ-SAT only says that a
+    δ-weakening holds): points of the box (clipped to the root box) are re-checked
+    rigorously with the interval arithmetic, and
     the result is ``counterexample`` only if one is confirmed, else ``unknown``.
 
     Constants reach dReal as the graph's float64 values; dReal's ``Expression`` folds

@@ -1321,17 +1321,18 @@ def _domain_taint(op, args):
 
 
 class CheckedIntervalArithmetic(IntervalArithmetic):
-    """Interval arithmetic that also records, per box and per output, the checks of P9/P10.
+    """Interval arithmetic that also records, per box and per output, the checks for jumps
+    and partial domains.
 
     Same values and enclosures as :class:`IntervalArithmetic`, plus:
 
-    - kinks and jumps (P9): evaluating a walker ``Program`` whose ``checked`` flag is set
+    - kinks and jumps: evaluating a walker ``Program`` whose ``checked`` flag is set
       calls :meth:`check` after every non-smooth operation of
       ``nlyap_opt.walker.CHECKED_OPS``, with the outputs of the Function that operation
       feeds (static liveness); ``jump[b, j]``: some non-smooth operation feeding output
       ``j`` may meet its kink or jump set on box ``b`` (the mean-value form must not be
       used for that output);
-    - domains (P10): every value carries, per element, whether some partial operation it
+    - domains: every value carries, per element, whether some partial operation it
       depends on may be (or certainly is) applied outside its domain; the taint flows
       through every operation, matrix product, sum and rearrangement, except that
       ``if_else_zero(c, x)`` (CasADi's ``if_else``) drops the taint of ``x`` where ``c`` is

@@ -28,13 +28,13 @@ Non-smooth and partial operations (``nlyap_opt.walker.OP_TABLE``; problems whose
 :class:`~verification.interval.CheckedIntervalArithmetic`, which reports per box and per
 constraint/property column:
 
-- P9, kinks and jumps: where an operation feeding a column may meet its kink or jump set
+- kinks and jumps: where an operation feeding a column may meet its kink or jump set
   on the box (``sign``'s argument contains 0, ``floor``'s an integer, the two sides of a
   comparison overlap, the arguments of ``fmin`` cross, ...), that column keeps the
   natural extension only (CasADi's derivative is 0 across a jump, so ``F(c) + J(X)(X − c)``
   would miss it; the affine ranges are not used either, although every non-smooth
   operation runs on intervals there) and the box is bisected along its widest side;
-- P10, domains: a constraint prunes a box only if every operation feeding it is proved
+- partial domains: a constraint prunes a box only if every operation feeding it is proved
   inside its domain on the box; a property holds on a box only if it is so proved. A point
   of the region (every constraint proved defined and ``≤ 0`` there) at which a property is
   certainly undefined is a counterexample ``"domain of OP_..."``; a box that can be
@@ -778,8 +778,8 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
             outside = np.any(g_lo > 0, axis=1) if m else np.zeros(len(lo), bool)
             holds = np.all((p_hi < 0) if lag is None else (p_hi < 0) | lag, axis=1)
         else:
-            # P10: a constraint prunes the box only if it is defined on all of it (outside
-            # the region the properties need not be defined); the properties hold on the
+            # partial domains: a constraint prunes the box only if it is defined on all of it
+            # (outside the region the properties need not be defined); the properties hold on the
             # box only if each is defined on all of it (then p < 0 at every point of the
             # box, whatever a constraint that is undefined somewhere would have said)
             defined = ~chk.maybe

@@ -662,7 +662,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     from verification import closed_loop_problem
 
     from .parallel import check as verify
-    from .roa import grid_area, grid_points, true_roa_mask
+    from .roa import TRUE_ROA_TIME, grid_area, grid_points, true_roa_mask
 
     box, n = _eval_grid(system, cfg)   # n: nodes per axis
     pts, shape = grid_points(box, n)
@@ -671,9 +671,9 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     cache = out / "true_roa.npz"
     feedback = None if controller is None else (lambda z: controller.numpy(z))
     ckey = _hash([system.name, cfg["eval_box"], n, None if controller is None
-                  else controller.to_dict()])
+                  else controller.to_dict(), "undecided"])
     not_available = []
-    true_mask = None
+    true_mask = undecided = None
     if not getattr(system, "can_simulate", True):
         not_available.append("true ROA by simulation (no model and no simulator of f)")
         true_mask = np.zeros(shape, dtype=bool)
@@ -681,7 +681,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         try:
             with np.load(cache) as z:
                 if str(z["key"]) == ckey:
-                    true_mask = z["mask"]
+                    true_mask, undecided = z["mask"], z["undecided"]
         except (OSError, ValueError, KeyError):
             log("warning: true_roa.npz is unreadable; simulating again")
     if true_mask is None:
@@ -689,16 +689,32 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
             + ("" if getattr(system, "has_model", True) else " (simulating the black box)"))
         ie = cert.inner_ellipse
         ell = (ie.P, ie.level) if ie is not None and ie.status == "certified" else None
-        true_mask = true_roa_mask(system, feedback, box, n, ellipse=ell)
+        true_mask, undecided = true_roa_mask(system, feedback, box, n, ellipse=ell,
+                                             undecided=True)
         tmp = out / ".true_roa.tmp.npz"
-        np.savez_compressed(tmp, mask=true_mask, key=ckey)
+        np.savez_compressed(tmp, mask=true_mask, undecided=undecided, key=ckey)
         tmp.replace(cache)
+    in_d = np.ones(shape, dtype=bool)
     if system.nu or cfg.get("domain") is not None:
         # the paper's comparison for controlled systems: within the disc; with a declared
         # domain D, always within D (areas and shares on the same set)
-        true_mask = true_mask & problem.domain.contains(pts).reshape(shape)
+        in_d = problem.domain.contains(pts).reshape(shape)
+        true_mask = true_mask & in_d
     cert_area = grid_area(omega, box)
     true_area = grid_area(true_mask, box)
+    open_share = 0.0 if undecided is None else \
+        float(np.count_nonzero(undecided & in_d)) / max(int(np.count_nonzero(in_d)), 1)
+    if undecided is not None and not true_mask.any():
+        # nothing reached the origin: an estimate of area 0 would be a wrong figure
+        not_available.append(
+            f"true ROA by simulation (no state of the evaluation grid reached the origin "
+            f"within {TRUE_ROA_TIME:g} s of simulated time; {100 * open_share:.1f}% neither "
+            "converged nor diverged: the closed loop converges too slowly, or not at all, "
+            "for this estimate)")
+    elif open_share > 0:
+        log(f"[certificate] {100 * open_share:.1f}% of the evaluation grid neither converged "
+            f"nor diverged within {TRUE_ROA_TIME:g} s of simulated time: counted outside the "
+            "true ROA (the share may be an overestimate)")
     true_check = None
     if not getattr(system, "has_model", True):
         not_available.append("check of the same V and κ against the true f (no model of f)")
@@ -715,6 +731,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     return {
         "certified_area": cert_area,
         "true_roa_area": true_area if simulated else None,
+        "true_roa_undecided": open_share if simulated else None,
         "fraction_of_true_roa": (cert_area / true_area if true_area else 0.0) if simulated
         else None,
         "certified_points_converge_in_simulation":

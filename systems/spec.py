@@ -656,8 +656,9 @@ def load_spec(path) -> System:
 def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
     """Proposed run settings for a system without a preset, from its boxes.
 
-    - ``outer``: radius of the largest origin-centred ball inside the state box;
-      ``inner = outer / 10``;
+    - ``domain``: the state box (a box domain D; ``outer`` is ``None``), so that the
+      certificate and the true-ROA share are about the region the user declared;
+      ``inner`` = a tenth of the radius of the largest origin-centred ball inside it;
     - ``controller_scale`` (``u = C·tanh(Kx + b)`` stays in ``U``): the largest ``C`` with
       ``[-C, C]`` inside every input's range (``None`` without inputs);
     - ``eval_box``: the state box;
@@ -671,8 +672,8 @@ def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
     --------
     >>> import systems
     >>> d = default_run_settings(systems.get("inverted_pendulum"))
-    >>> d["outer"], d["inner"], d["controller_scale"], d["dynamics"]["grid_counts"]
-    (4.0, 0.4, 20.0, [57, 57, 57])
+    >>> d["domain"], d["inner"], d["controller_scale"], d["dynamics"]["grid_counts"]
+    ({'type': 'box', 'box': [[-4.0, 4.0], [-4.0, 4.0]]}, 0.4, 20.0, [57, 57, 57])
     """
     box = system.state_box
     if np.any(box[:, 0] >= 0) or np.any(box[:, 1] <= 0):
@@ -680,9 +681,9 @@ def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
             f"the state box {box.tolist()} of {system.name!r} does not contain the origin in "
             "its interior; the equilibrium x = 0 must be inside X"
         )
-    outer = float(np.min(np.minimum(-box[:, 0], box[:, 1])))
-    out: dict = {"outer": outer, "inner": outer / 10.0, "controller_scale": None,
-                 "eval_box": box.tolist()}
+    inradius = float(np.min(np.minimum(-box[:, 0], box[:, 1])))
+    out: dict = {"outer": None, "domain": {"type": "box", "box": box.tolist()},
+                 "inner": inradius / 10.0, "controller_scale": None, "eval_box": box.tolist()}
     if system.nu:
         ub = system.input_box
         c = float(np.min(np.minimum(-ub[:, 0], ub[:, 1])))

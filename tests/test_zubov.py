@@ -1,0 +1,123 @@
+"""The default training's target: a Zubov-type function of the whole region of attraction.
+
+On x' = −x + x³ (ROA |x| < 1; in 2-D, componentwise, the open square) the trajectory cost
+W(x₀) = ∫₀^∞ x(t)² dt is known in closed form, W = −½ log(1 − x₀²), and the Zubov function
+Z = 1 − exp(−2W) = x₀² solves ∇Z·f = −ψ(1 − Z) with ψ = 2x². These tests check the
+simulated costs, the Zubov equation and the targets and decrease rates the learner fits
+(:func:`nlyap_opt.cegis.cost_targets`) against that, and that the default method is
+deterministic.
+"""
+
+import numpy as np
+import pytest
+
+from nlyap_opt.cegis import cost_targets
+from nlyap_opt.simulate import simulate
+
+
+def cubic(x):
+    return -x + x ** 3
+
+
+def exact_cost(x0):
+    """∫₀^∞ ‖x(t)‖² dt of x' = −x + x³ (per component, summed)."""
+    return np.sum(-0.5 * np.log1p(-np.asarray(x0) ** 2), axis=-1)
+
+
+def test_trajectory_cost_is_the_closed_form_and_the_roa_is_where_it_is_finite():
+    x0 = np.linspace(-0.95, 0.95, 39)[:, None]
+    conv, cost = simulate(cubic, x0, t_final=40.0, dt=0.005, tol=1e-7)
+    assert conv.all()
+    np.testing.assert_allclose(cost, exact_cost(x0), rtol=2e-4, atol=1e-10)
+    out = np.array([[-1.05], [1.02], [1.5]])
+    conv_out, cost_out = simulate(cubic, out, t_final=40.0, dt=0.005, tol=1e-7)
+    assert not conv_out.any()
+    # the cost grows without bound towards the boundary |x| = 1
+    near = simulate(cubic, np.array([[0.999], [0.99999]]), t_final=40.0, dt=0.005,
+                    tol=1e-7)[1]
+    assert near[1] > near[0] > cost.max()
+
+
+def test_zubov_function_of_the_simulated_cost_solves_the_zubov_equation():
+    """Z = 1 − exp(−αW) with ψ = α‖x‖²: ∇Z·f = −ψ(1 − Z), Z(0) = 0, Z → 1 at the boundary."""
+    alpha = 2.0
+    x = np.linspace(-0.9, 0.9, 181)[:, None]
+    conv, cost = simulate(cubic, x, t_final=40.0, dt=0.005, tol=1e-7)
+    assert conv.all()
+    Z = 1.0 - np.exp(-alpha * cost)
+    np.testing.assert_allclose(Z, x[:, 0] ** 2, atol=2e-4)   # Z = x² exactly for α = 2
+    dZ = np.gradient(Z, x[:, 0])                               # ∇Z from the data
+    residual = dZ * cubic(x)[:, 0] + alpha * x[:, 0] ** 2 * (1.0 - Z)
+    assert np.max(np.abs(residual[2:-2])) < 2e-3
+    assert abs(Z[90]) < 1e-12 and Z.max() < 1.0
+
+
+@pytest.mark.parametrize("transform", ["log", "linear"])
+def test_targets_decrease_along_trajectories_at_their_rates(transform):
+    """cost_targets' rate R: T(x(t)) decreases at R(x)·‖x‖², the law fitted by w_pde."""
+    rng = np.random.default_rng(0)
+    x0 = rng.uniform(-0.9, 0.9, (200, 2))
+    W0 = exact_cost(x0)
+    w_c = float(np.quantile(W0, 0.9))
+    T, R = cost_targets(np.ones(len(x0), bool), W0, w_c, cap=2.0, transform=transform)
+    # one small step of the 2-D flow (exact cost along it: W(x(h)) = W0 − ∫₀ʰ‖x‖²)
+    h = 1e-4
+    x1 = x0 + h * cubic(x0)
+    T1 = cost_targets(np.ones(len(x0), bool), exact_cost(x1), w_c, 2.0, transform)[0]
+    live = T < 2.0
+    assert live.sum() > 150
+    rate = (T1 - T) / h
+    want = -R * np.sum(x0 ** 2, axis=1)
+    np.testing.assert_allclose(rate[live], want[live], rtol=1e-3, atol=1e-7)
+    # level 1 at the cost w_c; monotone in the cost; 0 at the origin
+    assert cost_targets(np.array([True]), np.array([w_c]), w_c, 2.0, transform)[0][0] == \
+        pytest.approx(1.0)
+    order = np.argsort(W0)
+    assert np.all(np.diff(T[order]) >= 0)
+    assert cost_targets(np.array([True]), np.array([0.0]), w_c, 2.0, transform)[0][0] == 0.0
+
+
+def test_states_outside_the_roa_get_the_cap_and_no_rate():
+    """In 2-D the ROA of the componentwise cubic is the open square (−1, 1)²: simulated
+    states outside it do not converge and get the cap (rate 0), inside they converge."""
+    g = np.linspace(-1.4, 1.4, 15)
+    X = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    inside = np.max(np.abs(X), axis=1) < 1.0
+    conv, cost = simulate(cubic, X, t_final=40.0, dt=0.01, tol=1e-6)
+    np.testing.assert_array_equal(conv, inside)
+    np.testing.assert_allclose(cost[inside], exact_cost(X[inside]), rtol=1e-3)
+    w_c = float(np.quantile(cost[conv], 0.99))
+    T, R = cost_targets(conv, cost, w_c, cap=2.0)
+    assert np.all(T[~inside] == 2.0) and np.all(R[~inside] == 0.0)
+    assert np.all(T[inside] <= 2.0) and np.all(R[inside & (T < 2.0)] > 0)
+
+
+def test_default_method_fits_the_zubov_target_and_is_deterministic():
+    """make_config(name, preset=None): the Zubov-type fit on the state box; two CEGIS runs
+    of it (small budgets) give bit-identical networks and levels."""
+    import systems
+    from nlyap_opt.cegis import CegisConfig, cegis
+    from nlyap_opt.configs import domain_of, make_config
+    from nlyap_opt.learning import TrainConfig
+
+    cfg = make_config("van_der_pol", preset=None)
+    assert cfg["train"]["w_fit"] > 0 and cfg["train"]["w_pde"] > 0
+    s = systems.get("van_der_pol")
+    assert cfg["outer"] is None and cfg["domain"] == {"type": "box",
+                                                      "box": s.state_box.tolist()}
+    cfg = make_config("van_der_pol", preset=None, overrides={
+        "train": {"hidden": [8], "steps": 150},
+        "cegis": {"iterations": 1, "samples": 2000, "boundary_samples": 1000,
+                  "inner_samples": 200, "sim_time": 10.0}})
+    D, _ = domain_of(cfg, s.nx)
+
+    def once():
+        ccfg = CegisConfig(inner=cfg["inner"], outer=D.max_norm(), domain=D,
+                           train=TrainConfig(**cfg["train"]), **cfg["cegis"])
+        return cegis(s, None, None, ccfg, log=lambda m: None)
+
+    a, b = once(), once()
+    assert a.status == b.status and a.level == b.level
+    for la, lb in zip(a.V.layers, b.V.layers):
+        np.testing.assert_array_equal(la.weight, lb.weight)
+        np.testing.assert_array_equal(la.bias, lb.bias)

@@ -396,6 +396,10 @@ _TOP_DOCS = {
     "system": "informational; must name the system being run",
     "preset": "informational; must name the preset the file is merged over",
     "comment": "free text",
+    "auto_inner": "learned f: raise inner to the smallest ε whose robust margin η‖∇V‖ the "
+                  "linearisation affords, 4ηλ_max(P) with A_clᵀP + PA_cl = −I, when the "
+                  "configured one is smaller (the default method sets it; false: keep inner "
+                  "and say which ε would work)",
 }
 
 
@@ -646,6 +650,7 @@ def schema() -> dict[str, dict[str, Key]]:
         "system": Key("system", "str", doc=d["system"]),
         "preset": Key("preset", "str", optional=True, doc=d["preset"]),
         "comment": Key("comment", "str", doc=d["comment"]),
+        "auto_inner": Key("auto_inner", "bool", False, doc=d["auto_inner"]),
     }
     return {
         "": top,

@@ -357,6 +357,10 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
             stages.mark("controller", *cdeps)
         controller = Network.load(out / "controller_init.json")
 
+    if eta > 0:
+        eps = _inner_for_margin(system, controller, dynamics, eta, eps, D,
+                                bool(cfg.get("auto_inner")), log)
+
     mode = cfg.get("cegis", {}).get("margin_mode", "pointwise")
     assumed = [] if bounds_info is None else \
         [f"{bounds_info['bound_model']['name']} bound"] + list(
@@ -478,6 +482,53 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
     else:
         log(f"[done] status: {cert.status.value}: {cert.reason}; see {out / 'report.md'}")
     return RunResult(cert, cert.status, summary, out, cert.reason)
+
+
+#: the inner radius that learned dynamics afford is this multiple of the radius at which the
+#: linearised quadratic certificate loses its robust decrease (the presets' margin)
+INNER_MARGIN_FACTOR = 2.0
+
+
+def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, auto: bool,
+                      log) -> float:
+    r"""The inner radius for learned dynamics: ``eps``, or with ``auto`` the smallest ε whose
+    robust margin the linearisation affords when that is larger.
+
+    With :math:`A_{cl}^\top P + PA_{cl} = -I` (φ's closed loop at 0) the linear decrease
+    :math:`\|x\|^2` beats the robust term :math:`\eta\|\nabla V\| \le
+    2\eta\lambda_{\max}(P)\|x\|` only for :math:`\|x\| > 2\eta\lambda_{\max}(P)`
+    (:func:`nlyap_opt.dynamics_stage.eta_limit_linear`); ε needs
+    :data:`INNER_MARGIN_FACTOR` times that. Only the radius changes: every condition is
+    verified as configured, at the radius used (and recorded in the certificate).
+    """
+    from types import SimpleNamespace
+
+    from .dynamics_stage import eta_limit_linear
+    from .quadratic import closed_loop_matrix
+
+    try:
+        A = closed_loop_matrix(SimpleNamespace(system=system, controller=controller,
+                                               dynamics=dynamics))
+        need = INNER_MARGIN_FACTOR * eps * eta / eta_limit_linear(A, eps)
+    except ConfigError:   # not Hurwitz: no linear estimate; the certificate stage says why
+        return eps
+    if need <= eps:
+        return eps
+    room = 0.5 * D.inradius()
+    if need >= room:
+        log(f"[inner] with η = {eta:.3g} the robust margin needs ε ≥ {need:.3g} (from the "
+            f"linearisation), more than half the domain's inradius {D.inradius():.3g}: lower "
+            "η (dynamics.grid_counts, dynamics.steps) or enlarge the domain")
+        return eps
+    if auto:
+        log(f"[inner] ε = {need:.4g} chosen by the tool (configured {eps:g}): with η = "
+            f"{eta:.3g} the robust margin η‖∇V‖ beats the linear decrease inside "
+            f"‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}")
+        return need
+    log(f"[inner] warning: with η = {eta:.3g} the robust margin η‖∇V‖ beats the linear "
+        f"decrease inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; inner = {eps:g} is unlikely "
+        f"to certify: set inner to {need:.3g} or more (or auto_inner = true)")
+    return eps
 
 
 def _eval_grid(system, cfg) -> tuple[np.ndarray, int]:

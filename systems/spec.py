@@ -658,7 +658,8 @@ def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
 
     - ``domain``: the state box (a box domain D; ``outer`` is ``None``), so that the
       certificate and the true-ROA share are about the region the user declared;
-      ``inner`` = a tenth of the radius of the largest origin-centred ball inside it;
+      ``inner`` = a tenth of the radius of the largest origin-centred ball inside it, raised
+      for learned dynamics to what the error bound η affords (``auto_inner``);
     - ``controller_scale`` (``u = C·tanh(Kx + b)`` stays in ``U``): the largest ``C`` with
       ``[-C, C]`` inside every input's range (``None`` without inputs);
     - ``eval_box``: the state box;
@@ -683,7 +684,8 @@ def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
         )
     inradius = float(np.min(np.minimum(-box[:, 0], box[:, 1])))
     out: dict = {"outer": None, "domain": {"type": "box", "box": box.tolist()},
-                 "inner": inradius / 10.0, "controller_scale": None, "eval_box": box.tolist()}
+                 "inner": inradius / 10.0, "auto_inner": True, "controller_scale": None,
+                 "eval_box": box.tolist()}
     if system.nu:
         ub = system.input_box
         c = float(np.min(np.minimum(-ub[:, 0], ub[:, 1])))

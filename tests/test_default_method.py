@@ -1,4 +1,4 @@
-"""The default training's target: a Zubov-type function of the whole region of attraction.
+"""The default method: a Zubov-type target of the whole region of attraction, its inner radius.
 
 On x' = −x + x³ (ROA |x| < 1; in 2-D, componentwise, the open square) the trajectory cost
 W(x₀) = ∫₀^∞ x(t)² dt is known in closed form, W = −½ log(1 − x₀²), and the Zubov function
@@ -121,3 +121,27 @@ def test_default_method_fits_the_zubov_target_and_is_deterministic():
     for la, lb in zip(a.V.layers, b.V.layers):
         np.testing.assert_array_equal(la.weight, lb.weight)
         np.testing.assert_array_equal(la.bias, lb.bias)
+
+
+def test_inner_radius_follows_from_eta_and_the_linearisation():
+    """x' = −x (2-D): A_cl = −I, P = I/2, the robust term beats the linear decrease inside
+    ‖x‖ < 2ηλ_max(P) = η; the tool's ε is INNER_MARGIN_FACTOR times that, only when larger
+    than the configured one, and a fixed ε gets a message naming the one that would work."""
+    import casadi as ca
+
+    import systems
+    from nlyap_opt.domain import Ball
+    from nlyap_opt.pipeline import INNER_MARGIN_FACTOR, _inner_for_margin
+
+    x = ca.SX.sym("x", 2)
+    s = systems.System("test_linear_decay", x, None, -x, state_box=[[-2, 2], [-2, 2]])
+    D, said = Ball(2.0, 2), []
+    eps = _inner_for_margin(s, None, None, 0.1, 0.05, D, True, said.append)
+    assert eps == pytest.approx(INNER_MARGIN_FACTOR * 0.1, rel=1e-9)
+    assert "chosen by the tool" in said[-1]
+    assert _inner_for_margin(s, None, None, 0.01, 0.05, D, True, said.append) == 0.05
+    assert _inner_for_margin(s, None, None, 0.1, 0.05, D, False, said.append) == 0.05
+    assert f"set inner to {INNER_MARGIN_FACTOR * 0.1:.3g} or more" in said[-1]
+    # an η that no ε inside the domain affords: the configured ε stays, the message says why
+    assert _inner_for_margin(s, None, None, 1.0, 0.05, D, True, said.append) == 0.05
+    assert "lower η" in said[-1]

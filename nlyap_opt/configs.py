@@ -249,7 +249,7 @@ PRESETS["inverted_pendulum"]["large"]["cegis"]["iterations"] = 8
 DEFAULT_TRAIN: dict = {
     "hidden": [20, 20], "features": 6, "steps": 3000, "lr": 0.01, "lr_schedule": "cosine",
     "decay": 0.0, "level_slack": 0.5, "relative_decrease": True, "w_fit": 10.0,
-    "w_pde": 1.0, "w_local": 10.0,
+    "w_pde": 1.0, "w_local": 10.0, "fit_domain": True,
 }
 #: CEGIS of the default method: the verifier every third iteration and the last; training
 #: states near the model's ROA boundary; simulations on a table of φ (learned f, <= 3-D)
@@ -434,6 +434,9 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "fit_transform": "g of the target g(W)/g(W_c): log (tames the rise near the ROA "
                          "boundary) or linear",
         "w_pde": "weight of the relative residual of the target's decrease law (0: off)",
+        "fit_domain": "raise the fit target to (1 + level_slack)·g(x)^8 where larger (g the "
+                      "domain's gauge, 1 on its boundary): the target's level sets stay "
+                      "inside D where the ROA leaves it",
         "w_local": "weight of the first-order decrease at the origin, "
                    "relu(λ_max(AᵀH + HA + 2τH))/tr H (0: off)",
         "relative_decrease": "divide the decrease hinge by ‖x‖² (states next to the inner "

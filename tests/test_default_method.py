@@ -145,3 +145,19 @@ def test_inner_radius_follows_from_eta_and_the_linearisation():
     # an η that no ε inside the domain affords: the configured ε stays, the message says why
     assert _inner_for_margin(s, None, None, 1.0, 0.05, D, True, said.append) == 0.05
     assert "lower η" in said[-1]
+
+
+def test_domain_gauge_is_one_on_the_boundary_and_homogeneous():
+    """The gauge that lifts the fit target near ∂D (train.fit_domain): g(x) = max_i x_i/hi_i
+    or x_i/lo_i for a box, ‖x‖/r for a ball; g(t·x) = t·g(x)."""
+    from nlyap_opt.domain import Ball, Box
+
+    B = Box([[-1.0, 2.0], [-0.5, 0.5]])
+    pts = np.array([[1.0, 0.0], [-1.0, 0.25], [0.0, -0.1], [4.0, 0.0], [0.0, 0.0]])
+    np.testing.assert_allclose(B.gauge(pts), [0.5, 1.0, 0.2, 2.0, 0.0], atol=1e-9)
+    rng = np.random.default_rng(1)
+    x = rng.uniform(-3, 3, (50, 3))
+    np.testing.assert_allclose(Ball(2.0, 3).gauge(x), np.linalg.norm(x, axis=1) / 2.0,
+                               rtol=1e-9)
+    np.testing.assert_allclose(Ball(2.0, 3).gauge(0.3 * x), 0.3 * Ball(2.0, 3).gauge(x),
+                               rtol=1e-9)

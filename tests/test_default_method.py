@@ -161,3 +161,43 @@ def test_domain_gauge_is_one_on_the_boundary_and_homogeneous():
                                rtol=1e-9)
     np.testing.assert_allclose(Ball(2.0, 3).gauge(0.3 * x), 0.3 * Ball(2.0, 3).gauge(x),
                                rtol=1e-9)
+
+
+@pytest.mark.slow
+def test_reversed_van_der_pol_mu3_with_default_settings(tmp_path):
+    """A peer's system with nothing but its spec file (LyZNet's box): the default method
+    certifies most of the true ROA (85.0 % measured; the re-check of the saved files holds)."""
+    import json
+    from pathlib import Path
+
+    from nlyap_opt.certificate import recheck_certificate
+    from nlyap_opt.cli import main
+
+    spec = Path(__file__).resolve().parents[1] / "examples" / "van_der_pol_mu3.toml"
+    out = tmp_path / "vdp3"
+    assert main(["run", str(spec), "--known-dynamics", "--out", str(out)]) == 0
+    cert = json.loads((out / "certificate.json").read_text())
+    assert cert["status"] == "certified" and cert["domain"]["type"] == "box"
+    assert cert["certified_points_converge_in_simulation"]
+    assert cert["fraction_of_true_roa"] >= 0.80
+    assert recheck_certificate(out, log=lambda m: None).certified
+
+
+def test_true_roa_estimate_says_which_states_it_could_not_decide():
+    """x' = −x³ reaches ‖x‖ < 10⁻³ only after ~5·10⁵ s: within the report's horizon its
+    states neither converge nor diverge (undecided, not 'outside'); x' = +x diverges."""
+    import casadi as ca
+
+    import systems
+    from nlyap_opt.roa import TRUE_ROA_TIME, true_roa_mask
+
+    x = ca.SX.sym("x", 2)
+    box = np.array([[-1.0, 1.0], [-1.0, 1.0]])
+    slow = systems.System("test_slow", x, None, -x ** 3, state_box=box)
+    mask, open_ = true_roa_mask(slow, None, box, 11, undecided=True)
+    assert TRUE_ROA_TIME == 60.0
+    assert not mask[np.abs(np.linspace(-1, 1, 11)) > 0.2].any()
+    assert open_.sum() == 11 * 11 - 1 and not open_[5, 5] and mask[5, 5]   # 0 itself
+    fast_out = systems.System("test_diverge", x, None, x, state_box=box)
+    mask, open_ = true_roa_mask(fast_out, None, box, 11, undecided=True)
+    assert not open_.any() and mask.sum() == 1

@@ -73,11 +73,13 @@ class Region:
         never in a proof)."""
         x = np.asarray(pts, dtype=float)
         lo, hi = np.zeros(len(x)), np.full(len(x), 1.0)
-        while True:   # grow hi until x/hi lies in D
+        for _ in range(64):   # grow hi until x/hi lies in D (2⁶⁴: a point out of reach)
             out = ~self.contains(x / hi[:, None])
             if not out.any():
                 break
             hi[out] *= 2.0
+        else:
+            hi[~self.contains(x / hi[:, None])] = np.inf
         for _ in range(iterations):
             mid = 0.5 * (lo + hi)
             inside = self.contains(x / np.maximum(mid, 1e-300)[:, None])

@@ -150,6 +150,11 @@ def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float
     return np.where(capped, cap, T), np.where(capped, 0.0, dg / gc)
 
 
+#: exponent of the domain gauge in the lifted fit target (train.fit_domain): the lift only
+#: matters near the domain's boundary
+DOMAIN_TARGET_POWER = 8
+
+
 def _level_settled(source: str, area: float, prev_area: float, plateau: float) -> bool:
     """Whether CEGIS may stop at a certified level that reaches its candidate.
 
@@ -219,6 +224,10 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                                   tol=cfg.sim_tol)
                 X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
         targets, rates = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)
+        if tc.fit_domain:   # containment (b): the target rises to 1 + s on ∂D
+            rim = (1.0 + tc.level_slack) * D.gauge(X) ** DOMAIN_TARGET_POWER
+            lift = rim > targets
+            targets, rates = np.where(lift, rim, targets), np.where(lift, 0.0, rates)
         weights = (conv & (cost <= w_c)).astype(float)
         log(f"  cegis: fitting V to the trajectory cost ({tc.fit_transform}; level 1 at cost "
             f"{w_c:.4g}, {len(X)} states)")

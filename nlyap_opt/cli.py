@@ -516,6 +516,8 @@ def _run_config(args, learned: bool) -> dict:
     preset = args.preset
     if preset is None:  # a catalogue system's default preset; none for a system file
         preset = "large" if args.system in PRESETS else None
+    elif preset == "default":  # the default method of every system without a preset
+        preset = None
     cfg = make_config(args.system, preset, file=args.config)
     if learned:
         check_dynamics_box(cfg)
@@ -570,9 +572,10 @@ def cmd_config(args) -> int:
 
 # ============================================================================ parser
 def _preset_arg(sp) -> None:
-    sp.add_argument("--preset", default=None, choices=["paper", "large", "fast"],
-                    help="paper | large | fast (default large for catalogue systems; a "
-                         "system file's settings come from its boxes and its [run] table)")
+    sp.add_argument("--preset", default=None, choices=["paper", "large", "fast", "default"],
+                    help="paper | large | fast | default (default large for catalogue "
+                         "systems; a system file's settings, and 'default' for any system, "
+                         "come from the default method: its boxes and its [run] table)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -59,7 +59,7 @@ from .errors import ConfigError, UnknownNameError
 from .jsonio import read_json_object
 
 __all__ = [
-    "PRESETS", "Key", "check_dynamics_box", "check_lqr_weights", "config_reference",
+    "DEFAULT_CEGIS", "DEFAULT_TRAIN", "PRESETS", "Key", "check_dynamics_box", "check_lqr_weights", "config_reference",
     "get_config", "make_config", "read_json_object", "schema", "validate_config",
 ]
 
@@ -239,10 +239,30 @@ PRESETS["unicycle_path_following"]["large"] = PRESETS["unicycle_path_following"]
 PRESETS["inverted_pendulum"]["large"] = copy.deepcopy(PRESETS["inverted_pendulum"]["paper"])
 PRESETS["inverted_pendulum"]["large"]["cegis"]["iterations"] = 8
 
-#: the base of ``make_config(name, preset=None, ...)`` for a system without a preset: the
-#: caller supplies ``outer``, ``inner`` (and ``controller_scale`` for a system with inputs)
-_GENERIC: dict = {"controller_scale": None, "train": {}, "cegis": {}, "eval_points": 40000,
-                  "dynamics": {"preset": "default"}}
+#: The default method (``make_config(name, preset=None)``, every system without a preset):
+#: V is fitted to a Zubov-type function of the whole region of attraction inside the domain
+#: (:func:`nlyap_opt.cegis.cost_targets` of the simulated trajectory costs of the model, the
+#: true f or φ, and the residual of its decrease law), with the decrease, containment and
+#: first-order terms; CEGIS and the verified level as for every preset. Budgets are step
+#: counts. The domain, inner radius and controller scale come from the system's boxes
+#: (:func:`systems.default_run_settings`: the domain is the state box).
+DEFAULT_TRAIN: dict = {
+    "hidden": [20, 20], "features": 6, "steps": 3000, "lr": 0.01, "lr_schedule": "cosine",
+    "decay": 0.0, "level_slack": 0.5, "relative_decrease": True, "w_fit": 10.0,
+    "w_pde": 2.5, "w_local": 10.0, "fit_domain": True,
+}
+#: CEGIS of the default method: the verifier every third iteration and the last; training
+#: states near the model's ROA boundary; simulations on a table of φ (learned f, <= 3-D)
+DEFAULT_CEGIS: dict = {
+    "iterations": 6, "steps": 1000, "verify_every": 3, "sim_time": 30.0, "sim_dt": 0.04,
+    "sim_points": 90601, "inner_samples": 2000, "boundary_samples": 20000,
+}
+
+#: the base of ``make_config(name, preset=None, ...)`` for a system without a preset; the
+#: system's boxes then give the domain, ``inner`` (and ``controller_scale`` for a system
+#: with inputs), a spec file's ``[run]`` table and the caller's overrides come last
+_GENERIC: dict = {"controller_scale": None, "train": DEFAULT_TRAIN, "cegis": DEFAULT_CEGIS,
+                  "eval_points": 40000, "dynamics": {"preset": "default"}}
 
 
 # ============================================================================ schema
@@ -376,6 +396,10 @@ _TOP_DOCS = {
     "system": "informational; must name the system being run",
     "preset": "informational; must name the preset the file is merged over",
     "comment": "free text",
+    "auto_inner": "learned f: raise inner to the smallest ε whose robust margin η‖∇V‖ the "
+                  "linearisation affords, 4ηλ_max(P) with A_clᵀP + PA_cl = −I, when the "
+                  "configured one is smaller (the default method sets it; false: keep inner "
+                  "and say which ε would work)",
 }
 
 
@@ -410,6 +434,9 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "fit_transform": "g of the target g(W)/g(W_c): log (tames the rise near the ROA "
                          "boundary) or linear",
         "w_pde": "weight of the relative residual of the target's decrease law (0: off)",
+        "fit_domain": "raise the fit target to (1 + level_slack)·g(x)^8 where larger (g the "
+                      "domain's gauge, 1 on its boundary): the target's level sets stay "
+                      "inside D where the ROA leaves it",
         "w_local": "weight of the first-order decrease at the origin, "
                    "relu(λ_max(AᵀH + HA + 2τH))/tr H (0: off)",
         "relative_decrease": "divide the decrease hinge by ‖x‖² (states next to the inner "
@@ -630,6 +657,7 @@ def schema() -> dict[str, dict[str, Key]]:
         "system": Key("system", "str", doc=d["system"]),
         "preset": Key("preset", "str", optional=True, doc=d["preset"]),
         "comment": Key("comment", "str", doc=d["comment"]),
+        "auto_inner": Key("auto_inner", "bool", False, doc=d["auto_inner"]),
     }
     return {
         "": top,

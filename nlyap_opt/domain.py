@@ -66,6 +66,26 @@ class Region:
         box = self.bounding_box()
         return float(np.linalg.norm(np.max(np.abs(box), axis=1)))
 
+    def gauge(self, pts, iterations: int = 40) -> np.ndarray:
+        """Minkowski gauge ``inf {t > 0 : x/t ∈ D}`` of each ``(N, n)`` point about the
+        origin (``< 1`` inside, ``1`` on the boundary of a convex ``D`` holding 0), by
+        bisection on :meth:`contains` (to ``2⁻⁴⁰`` relative; used to shape training targets,
+        never in a proof)."""
+        x = np.asarray(pts, dtype=float)
+        lo, hi = np.zeros(len(x)), np.full(len(x), 1.0)
+        for _ in range(64):   # grow hi until x/hi lies in D (2⁶⁴: a point out of reach)
+            out = ~self.contains(x / hi[:, None])
+            if not out.any():
+                break
+            hi[out] *= 2.0
+        else:
+            hi[~self.contains(x / hi[:, None])] = np.inf
+        for _ in range(iterations):
+            mid = 0.5 * (lo + hi)
+            inside = self.contains(x / np.maximum(mid, 1e-300)[:, None])
+            hi, lo = np.where(inside, mid, hi), np.where(inside, lo, mid)
+        return hi
+
     # ------------------------------------------------------------------ symbolic
     def constraints(self, x) -> list:
         """``[(g, name)]`` with the set ``= {x in bounding_box : g(x) ≤ 0 for all g}``."""

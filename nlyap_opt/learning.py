@@ -80,6 +80,9 @@ class TrainConfig:
     fit_cap: float = 2.0       # target of states that do not converge (and cap of the rest)
     fit_transform: str = "log"  # "log" or "linear" (see nlyap_opt.cegis.cost_targets)
     w_pde: float = 0.0         # relative residual of the target's decrease law (0: off)
+    # raise the fit target to (1 + level_slack)·g(x)^8 (g the domain's gauge, 1 on ∂D) where
+    # that is larger: level sets inside D, as containment (b) needs, where the ROA leaves D
+    fit_domain: bool = False
     w_local: float = 0.0       # first-order decrease at the origin (see local_violation)
     relative_decrease: bool = False  # divide the decrease hinge by ‖x‖²
     lr_schedule: str = "constant"  # or "cosine": lr → lr/100 over each train() call

@@ -371,6 +371,10 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
             stages.mark("controller", *cdeps)
         controller = Network.load(out / "controller_init.json")
 
+    if eta > 0:
+        eps = _inner_for_margin(system, controller, dynamics, eta, eps, D,
+                                bool(cfg.get("auto_inner")), log)
+
     mode = cfg.get("cegis", {}).get("margin_mode", "pointwise")
     assumed = [] if bounds_info is None else \
         [f"{bounds_info['bound_model']['name']} bound"] + list(
@@ -493,6 +497,53 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
     else:
         log(f"[done] status: {cert.status.value}: {cert.reason}; see {out / 'report.md'}")
     return RunResult(cert, cert.status, summary, out, cert.reason)
+
+
+#: the inner radius that learned dynamics afford is this multiple of the radius at which the
+#: linearised quadratic certificate loses its robust decrease (the presets' margin)
+INNER_MARGIN_FACTOR = 2.0
+
+
+def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, auto: bool,
+                      log) -> float:
+    r"""The inner radius for learned dynamics: ``eps``, or with ``auto`` the smallest ε whose
+    robust margin the linearisation affords when that is larger.
+
+    With :math:`A_{cl}^\top P + PA_{cl} = -I` (φ's closed loop at 0) the linear decrease
+    :math:`\|x\|^2` beats the robust term :math:`\eta\|\nabla V\| \le
+    2\eta\lambda_{\max}(P)\|x\|` only for :math:`\|x\| > 2\eta\lambda_{\max}(P)`
+    (:func:`nlyap_opt.dynamics_stage.eta_limit_linear`); ε needs
+    :data:`INNER_MARGIN_FACTOR` times that. Only the radius changes: every condition is
+    verified as configured, at the radius used (and recorded in the certificate).
+    """
+    from types import SimpleNamespace
+
+    from .dynamics_stage import eta_limit_linear
+    from .quadratic import closed_loop_matrix
+
+    try:
+        A = closed_loop_matrix(SimpleNamespace(system=system, controller=controller,
+                                               dynamics=dynamics))
+        need = INNER_MARGIN_FACTOR * eps * eta / eta_limit_linear(A, eps)
+    except ConfigError:   # not Hurwitz: no linear estimate; the certificate stage says why
+        return eps
+    if need <= eps:
+        return eps
+    room = 0.5 * D.inradius()
+    if need >= room:
+        log(f"[inner] with η = {eta:.3g} the robust margin needs ε ≥ {need:.3g} (from the "
+            f"linearisation), more than half the domain's inradius {D.inradius():.3g}: lower "
+            "η (dynamics.grid_counts, dynamics.steps) or enlarge the domain")
+        return eps
+    if auto:
+        log(f"[inner] ε = {need:.4g} chosen by the tool (configured {eps:g}): with η = "
+            f"{eta:.3g} the robust margin η‖∇V‖ beats the linear decrease inside "
+            f"‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}")
+        return need
+    log(f"[inner] warning: with η = {eta:.3g} the robust margin η‖∇V‖ beats the linear "
+        f"decrease inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; inner = {eps:g} is unlikely "
+        f"to certify: set inner to {need:.3g} or more (or auto_inner = true)")
+    return eps
 
 
 def _eval_grid(system, cfg) -> tuple[np.ndarray, int]:
@@ -677,7 +728,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     from verification import closed_loop_problem
 
     from .parallel import check as verify
-    from .roa import grid_area, grid_points, true_roa_mask
+    from .roa import TRUE_ROA_TIME, grid_area, grid_points, true_roa_mask
 
     box, n = _eval_grid(system, cfg)   # n: nodes per axis
     pts, shape = grid_points(box, n)
@@ -686,9 +737,9 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     cache = out / "true_roa.npz"
     feedback = None if controller is None else (lambda z: controller.numpy(z))
     ckey = _hash([system.name, cfg["eval_box"], n, None if controller is None
-                  else controller.to_dict()])
+                  else controller.to_dict(), "undecided"])
     not_available = []
-    true_mask = None
+    true_mask = undecided = None
     if not getattr(system, "can_simulate", True):
         not_available.append("true ROA by simulation (no model and no simulator of f)")
         true_mask = np.zeros(shape, dtype=bool)
@@ -696,7 +747,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         try:
             with np.load(cache) as z:
                 if str(z["key"]) == ckey:
-                    true_mask = z["mask"]
+                    true_mask, undecided = z["mask"], z["undecided"]
         except (OSError, ValueError, KeyError):
             log("warning: true_roa.npz is unreadable; simulating again")
     if true_mask is None:
@@ -704,16 +755,32 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
             + ("" if getattr(system, "has_model", True) else " (simulating the black box)"))
         ie = cert.inner_ellipse
         ell = (ie.P, ie.level) if ie is not None and ie.status == "certified" else None
-        true_mask = true_roa_mask(system, feedback, box, n, ellipse=ell)
+        true_mask, undecided = true_roa_mask(system, feedback, box, n, ellipse=ell,
+                                             undecided=True)
         tmp = out / ".true_roa.tmp.npz"
-        np.savez_compressed(tmp, mask=true_mask, key=ckey)
+        np.savez_compressed(tmp, mask=true_mask, undecided=undecided, key=ckey)
         tmp.replace(cache)
+    in_d = np.ones(shape, dtype=bool)
     if system.nu or cfg.get("domain") is not None:
         # the paper's comparison for controlled systems: within the disc; with a declared
         # domain D, always within D (areas and shares on the same set)
-        true_mask = true_mask & problem.domain.contains(pts).reshape(shape)
+        in_d = problem.domain.contains(pts).reshape(shape)
+        true_mask = true_mask & in_d
     cert_area = grid_area(omega, box)
     true_area = grid_area(true_mask, box)
+    open_share = 0.0 if undecided is None else \
+        float(np.count_nonzero(undecided & in_d)) / max(int(np.count_nonzero(in_d)), 1)
+    if undecided is not None and not true_mask.any():
+        # nothing reached the origin: an estimate of area 0 would be a wrong figure
+        not_available.append(
+            f"true ROA by simulation (no state of the evaluation grid reached the origin "
+            f"within {TRUE_ROA_TIME:g} s of simulated time; {100 * open_share:.1f}% neither "
+            "converged nor diverged: the closed loop converges too slowly, or not at all, "
+            "for this estimate)")
+    elif open_share > 0:
+        log(f"[certificate] {100 * open_share:.1f}% of the evaluation grid neither converged "
+            f"nor diverged within {TRUE_ROA_TIME:g} s of simulated time: counted outside the "
+            "true ROA (the share may be an overestimate)")
     true_check = None
     if not getattr(system, "has_model", True):
         not_available.append("check of the same V and κ against the true f (no model of f)")
@@ -730,6 +797,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     return {
         "certified_area": cert_area,
         "true_roa_area": true_area if simulated else None,
+        "true_roa_undecided": open_share if simulated else None,
         "fraction_of_true_roa": (cert_area / true_area if true_area else 0.0) if simulated
         else None,
         "certified_points_converge_in_simulation":

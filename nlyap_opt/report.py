@@ -100,13 +100,13 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
         lines += ["", "### Assumptions (declared by the user)", ""] + [
             f"- {a}" for a in cert["assumptions_declared_by_user"]]
     if cert.get("not_available"):
-        lines += ["", "### Not available (no model of f)", ""] + [
+        lines += ["", "### Not available", ""] + [
             f"- {a}" for a in cert["not_available"]]
     n_x = len(cert["eval_box"])
     if cert.get("true_roa_area") is None:
         lines += ["", "## Areas", "", f"Certified area: {cert['certified_area']:.4g} (grid count, "
                   f"{cert['eval_grid']}^{n_x} over {np.asarray(cert['eval_box']).tolist()}); "
-                  "the true ROA is not available (no model or simulator of f).", ""]
+                  "the true ROA is not available (see 'Not available').", ""]
     else:
         lines += ["", "## Areas", "",
                   "| certified area | true ROA area | certified ÷ true |", "|---|---|---|",
@@ -117,7 +117,11 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   + (", intersected with D" if cert.get("domain") is not None else
                      ", intersected with the ball ‖x‖ ≤ r" if system.nu else "")
                   + f". Every certified grid point converges in simulation: "
-                  f"{cert['certified_points_converge_in_simulation']}.", ""]
+                  f"{cert['certified_points_converge_in_simulation']}."
+                  + (f" {100 * cert['true_roa_undecided']:.1f}% of the grid neither converged "
+                     "nor diverged within the simulated horizon and counts outside the true "
+                     "ROA: the share above may be an overestimate."
+                     if cert.get("true_roa_undecided") else ""), ""]
     tc = cert.get("true_dynamics_check")
     if tc:
         lines += ["## Check against the true dynamics (benchmark, not part of the certificate)",

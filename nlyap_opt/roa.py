@@ -831,16 +831,24 @@ def grid_points(box: np.ndarray, n: int) -> tuple[np.ndarray, tuple]:
     return np.stack([m.ravel() for m in mesh], axis=1), tuple([n] * len(box))
 
 
-def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200, t_final: float = 60.0,
-                  dt: float = 0.02, tol: float = 1e-3, ellipse=None) -> np.ndarray:
+#: simulated horizon of :func:`true_roa_mask` (seconds of model time)
+TRUE_ROA_TIME = 60.0
+
+
+def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200,
+                  t_final: float = TRUE_ROA_TIME,
+                  dt: float = 0.02, tol: float = 1e-3, ellipse=None,
+                  undecided: bool = False):
     """Grid mask of initial states whose simulated closed loop converges to the origin.
 
     Fixed-step RK4 on all grid points at once; a state counts as converged once
     ``‖x‖ < tol`` or, given ``ellipse = (P, c)`` (a certified quadratic ROA of this closed
     loop, :func:`certify_inner_ellipse`), once ``xᵀPx ≤ c`` (it is then dropped from the
-    integration); as diverged once it leaves ``1e6`` or becomes non-finite.
+    integration); as diverged once it leaves ``1e6`` or becomes non-finite. With
+    ``undecided``, returns ``(mask, undecided_mask)``: the second marks the states that did
+    neither within ``t_final`` (the estimate counts them outside the ROA).
     """
-    from .simulate import simulate_converges
+    from .simulate import simulate
 
     def rhs(z):
         return system.evaluate(z, None if feedback is None else feedback(z))
@@ -853,4 +861,8 @@ def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200, t_final: floa
             return np.einsum("ij,jk,ik->i", z, P, z) <= c
 
     pts, shape = grid_points(box, n)
-    return simulate_converges(rhs, pts, t_final, dt, tol, target=target).reshape(shape)
+    done, _, open_ = simulate(rhs, pts, t_final, dt, tol, target=target,
+                              return_undecided=True)
+    if undecided:
+        return done.reshape(shape), open_.reshape(shape)
+    return done.reshape(shape)

@@ -20,8 +20,8 @@ def rk4_step(rhs: Callable[[np.ndarray], np.ndarray], x: np.ndarray, dt: float) 
 
 def simulate(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
              dt: float = 0.02, tol: float = 1e-3, blow_up: float = 1e6,
-             target: Callable[[np.ndarray], np.ndarray] | None = None
-             ) -> tuple[np.ndarray, np.ndarray]:
+             target: Callable[[np.ndarray], np.ndarray] | None = None,
+             return_undecided: bool = False) -> tuple[np.ndarray, ...]:
     r"""Integrate ``x' = rhs(x)`` from every row of ``x0`` at once.
 
     ``target`` (optional, batch of states → bool) marks a set known to lie in the region of
@@ -38,6 +38,9 @@ def simulate(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
         converged state it is the trajectory cost to the origin up to a tail of order
         ``tol²``: the data-driven Lyapunov (Zubov-type) function whose sublevel sets grow to
         the region of attraction (it decreases along trajectories at rate ``‖x‖²``).
+    undecided : (N,) bool, only with ``return_undecided``
+        Neither converged nor left ``blow_up`` within ``t_final``: the horizon was too short
+        to tell (a slow approach to the origin, or a bounded non-converging orbit).
     """
     x = np.array(x0, dtype=float)
     done = np.zeros(len(x), bool)
@@ -59,6 +62,8 @@ def simulate(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
             done[idx[conv]] = True
             alive[idx[conv | blow]] = False
     cost[~np.isfinite(cost)] = np.inf
+    if return_undecided:
+        return done, cost, alive & ~done
     return done, cost
 
 

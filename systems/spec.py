@@ -835,8 +835,10 @@ def _load_spec(path: Path, spec: dict) -> System:
 def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
     """Proposed run settings for a system without a preset, from its boxes.
 
-    - ``outer``: radius of the largest origin-centred ball inside the state box;
-      ``inner = outer / 10``;
+    - ``domain``: the state box (a box domain D; ``outer`` is ``None``), so that the
+      certificate and the true-ROA share are about the region the user declared;
+      ``inner`` = a tenth of the radius of the largest origin-centred ball inside it, raised
+      for learned dynamics to what the error bound η affords (``auto_inner``);
     - ``controller_scale`` (``u = C·tanh(Kx + b)`` stays in ``U``): the largest ``C`` with
       ``[-C, C]`` inside every input's range (``None`` without inputs);
     - ``eval_box``: the state box;
@@ -850,8 +852,8 @@ def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
     --------
     >>> import systems
     >>> d = default_run_settings(systems.get("inverted_pendulum"))
-    >>> d["outer"], d["inner"], d["controller_scale"], d["dynamics"]["grid_counts"]
-    (4.0, 0.4, 20.0, [57, 57, 57])
+    >>> d["domain"], d["inner"], d["controller_scale"], d["dynamics"]["grid_counts"]
+    ({'type': 'box', 'box': [[-4.0, 4.0], [-4.0, 4.0]]}, 0.4, 20.0, [57, 57, 57])
     """
     box = system.state_box
     if np.any(box[:, 0] >= 0) or np.any(box[:, 1] <= 0):
@@ -859,8 +861,9 @@ def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
             f"the state box {box.tolist()} of {system.name!r} does not contain the origin in "
             "its interior; the equilibrium x = 0 must be inside X"
         )
-    outer = float(np.min(np.minimum(-box[:, 0], box[:, 1])))
-    out: dict = {"outer": outer, "inner": outer / 10.0, "controller_scale": None,
+    inradius = float(np.min(np.minimum(-box[:, 0], box[:, 1])))
+    out: dict = {"outer": None, "domain": {"type": "box", "box": box.tolist()},
+                 "inner": inradius / 10.0, "auto_inner": True, "controller_scale": None,
                  "eval_box": box.tolist()}
     if system.nu:
         ub = system.input_box

@@ -87,13 +87,17 @@ def test_dynamics_grid_given_one_way_replaces_the_other():
 def test_make_config_without_a_preset():
     cfg = make_config("van_der_pol", preset=None, overrides={"outer": 1.0, "inner": 0.2})
     assert cfg["eval_box"] == [[-1.5, 1.5], [-1.5, 1.5]] and cfg["preset"] is None
-    # without a preset the settings come from the system's boxes: the largest ball inside
-    # the state box, ε = r/10, C = the largest symmetric range inside U
+    # without a preset the settings come from the system's boxes: the state box is the
+    # domain, ε = a tenth of the largest ball inside it, C = the largest symmetric range
+    # inside U
     auto = make_config("van_der_pol", preset=None)
-    assert (auto["outer"], auto["inner"]) == (1.5, 0.15)
+    assert auto["outer"] is None and auto["inner"] == 0.15
+    assert auto["domain"] == {"type": "box", "box": [[-1.5, 1.5], [-1.5, 1.5]]}
     pend = make_config("inverted_pendulum", preset=None)
     s = __import__("systems").get("inverted_pendulum")
-    assert pend["outer"] == float(min(-s.state_box[:, 0].max(), s.state_box[:, 1].min()))
+    assert pend["domain"]["box"] == s.state_box.tolist()
+    assert pend["inner"] == 0.1 * float(min(-s.state_box[:, 0].max(),
+                                            s.state_box[:, 1].min()))
     assert pend["controller_scale"] == float(min(-s.input_box[:, 0].max(),
                                                  s.input_box[:, 1].min()))
     with pytest.raises(ConfigError, match="controller_scale"):

@@ -44,7 +44,8 @@ def test_lorenz_spec_equals_hand_written_model(rng):
     np.testing.assert_array_equal(s.B.ravel(), [0, 1, 0])
     assert s.declarations.B.ravel().tolist() == [0, 1, 0]
     d = systems.default_run_settings(s)
-    assert (d["outer"], d["inner"], d["controller_scale"]) == (1.0, 0.1, 40.0)
+    assert (d["outer"], d["inner"], d["controller_scale"]) == (None, 0.1, 40.0)
+    assert d["domain"] == {"type": "box", "box": s.state_box.tolist()}
     # a declared B: φ₀(x) is learned on an x-grid (control-affine model)
     assert d["dynamics"]["model"] == "control_affine"
     counts = d["dynamics"]["grid_counts"]

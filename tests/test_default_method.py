@@ -1,0 +1,203 @@
+"""The default method: a Zubov-type target of the whole region of attraction, its inner radius.
+
+On x' = −x + x³ (ROA |x| < 1; in 2-D, componentwise, the open square) the trajectory cost
+W(x₀) = ∫₀^∞ x(t)² dt is known in closed form, W = −½ log(1 − x₀²), and the Zubov function
+Z = 1 − exp(−2W) = x₀² solves ∇Z·f = −ψ(1 − Z) with ψ = 2x². These tests check the
+simulated costs, the Zubov equation and the targets and decrease rates the learner fits
+(:func:`nlyap_opt.cegis.cost_targets`) against that, and that the default method is
+deterministic.
+"""
+
+import numpy as np
+import pytest
+
+from nlyap_opt.cegis import cost_targets
+from nlyap_opt.simulate import simulate
+
+
+def cubic(x):
+    return -x + x ** 3
+
+
+def exact_cost(x0):
+    """∫₀^∞ ‖x(t)‖² dt of x' = −x + x³ (per component, summed)."""
+    return np.sum(-0.5 * np.log1p(-np.asarray(x0) ** 2), axis=-1)
+
+
+def test_trajectory_cost_is_the_closed_form_and_the_roa_is_where_it_is_finite():
+    x0 = np.linspace(-0.95, 0.95, 39)[:, None]
+    conv, cost = simulate(cubic, x0, t_final=40.0, dt=0.005, tol=1e-7)
+    assert conv.all()
+    np.testing.assert_allclose(cost, exact_cost(x0), rtol=2e-4, atol=1e-10)
+    out = np.array([[-1.05], [1.02], [1.5]])
+    conv_out, cost_out = simulate(cubic, out, t_final=40.0, dt=0.005, tol=1e-7)
+    assert not conv_out.any()
+    # the cost grows without bound towards the boundary |x| = 1
+    near = simulate(cubic, np.array([[0.999], [0.99999]]), t_final=40.0, dt=0.005,
+                    tol=1e-7)[1]
+    assert near[1] > near[0] > cost.max()
+
+
+def test_zubov_function_of_the_simulated_cost_solves_the_zubov_equation():
+    """Z = 1 − exp(−αW) with ψ = α‖x‖²: ∇Z·f = −ψ(1 − Z), Z(0) = 0, Z → 1 at the boundary."""
+    alpha = 2.0
+    x = np.linspace(-0.9, 0.9, 181)[:, None]
+    conv, cost = simulate(cubic, x, t_final=40.0, dt=0.005, tol=1e-7)
+    assert conv.all()
+    Z = 1.0 - np.exp(-alpha * cost)
+    np.testing.assert_allclose(Z, x[:, 0] ** 2, atol=2e-4)   # Z = x² exactly for α = 2
+    dZ = np.gradient(Z, x[:, 0])                               # ∇Z from the data
+    residual = dZ * cubic(x)[:, 0] + alpha * x[:, 0] ** 2 * (1.0 - Z)
+    assert np.max(np.abs(residual[2:-2])) < 2e-3
+    assert abs(Z[90]) < 1e-12 and Z.max() < 1.0
+
+
+@pytest.mark.parametrize("transform", ["log", "linear"])
+def test_targets_decrease_along_trajectories_at_their_rates(transform):
+    """cost_targets' rate R: T(x(t)) decreases at R(x)·‖x‖², the law fitted by w_pde."""
+    rng = np.random.default_rng(0)
+    x0 = rng.uniform(-0.9, 0.9, (200, 2))
+    W0 = exact_cost(x0)
+    w_c = float(np.quantile(W0, 0.9))
+    T, R = cost_targets(np.ones(len(x0), bool), W0, w_c, cap=2.0, transform=transform)
+    # one small step of the 2-D flow (exact cost along it: W(x(h)) = W0 − ∫₀ʰ‖x‖²)
+    h = 1e-4
+    x1 = x0 + h * cubic(x0)
+    T1 = cost_targets(np.ones(len(x0), bool), exact_cost(x1), w_c, 2.0, transform)[0]
+    live = T < 2.0
+    assert live.sum() > 150
+    rate = (T1 - T) / h
+    want = -R * np.sum(x0 ** 2, axis=1)
+    np.testing.assert_allclose(rate[live], want[live], rtol=1e-3, atol=1e-7)
+    # level 1 at the cost w_c; monotone in the cost; 0 at the origin
+    assert cost_targets(np.array([True]), np.array([w_c]), w_c, 2.0, transform)[0][0] == \
+        pytest.approx(1.0)
+    order = np.argsort(W0)
+    assert np.all(np.diff(T[order]) >= 0)
+    assert cost_targets(np.array([True]), np.array([0.0]), w_c, 2.0, transform)[0][0] == 0.0
+
+
+def test_states_outside_the_roa_get_the_cap_and_no_rate():
+    """In 2-D the ROA of the componentwise cubic is the open square (−1, 1)²: simulated
+    states outside it do not converge and get the cap (rate 0), inside they converge."""
+    g = np.linspace(-1.4, 1.4, 15)
+    X = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    inside = np.max(np.abs(X), axis=1) < 1.0
+    conv, cost = simulate(cubic, X, t_final=40.0, dt=0.01, tol=1e-6)
+    np.testing.assert_array_equal(conv, inside)
+    np.testing.assert_allclose(cost[inside], exact_cost(X[inside]), rtol=1e-3)
+    w_c = float(np.quantile(cost[conv], 0.99))
+    T, R = cost_targets(conv, cost, w_c, cap=2.0)
+    assert np.all(T[~inside] == 2.0) and np.all(R[~inside] == 0.0)
+    assert np.all(T[inside] <= 2.0) and np.all(R[inside & (T < 2.0)] > 0)
+
+
+def test_default_method_fits_the_zubov_target_and_is_deterministic():
+    """make_config(name, preset=None): the Zubov-type fit on the state box; two CEGIS runs
+    of it (small budgets) give bit-identical networks and levels."""
+    import systems
+    from nlyap_opt.cegis import CegisConfig, cegis
+    from nlyap_opt.configs import domain_of, make_config
+    from nlyap_opt.learning import TrainConfig
+
+    cfg = make_config("van_der_pol", preset=None)
+    assert cfg["train"]["w_fit"] > 0 and cfg["train"]["w_pde"] > 0
+    s = systems.get("van_der_pol")
+    assert cfg["outer"] is None and cfg["domain"] == {"type": "box",
+                                                      "box": s.state_box.tolist()}
+    cfg = make_config("van_der_pol", preset=None, overrides={
+        "train": {"hidden": [8], "steps": 150},
+        "cegis": {"iterations": 1, "samples": 2000, "boundary_samples": 1000,
+                  "inner_samples": 200, "sim_time": 10.0}})
+    D, _ = domain_of(cfg, s.nx)
+
+    def once():
+        ccfg = CegisConfig(inner=cfg["inner"], outer=D.max_norm(), domain=D,
+                           train=TrainConfig(**cfg["train"]), **cfg["cegis"])
+        return cegis(s, None, None, ccfg, log=lambda m: None)
+
+    a, b = once(), once()
+    assert a.status == b.status and a.level == b.level
+    for la, lb in zip(a.V.layers, b.V.layers):
+        np.testing.assert_array_equal(la.weight, lb.weight)
+        np.testing.assert_array_equal(la.bias, lb.bias)
+
+
+def test_inner_radius_follows_from_eta_and_the_linearisation():
+    """x' = −x (2-D): A_cl = −I, P = I/2, the robust term beats the linear decrease inside
+    ‖x‖ < 2ηλ_max(P) = η; the tool's ε is INNER_MARGIN_FACTOR times that, only when larger
+    than the configured one, and a fixed ε gets a message naming the one that would work."""
+    import casadi as ca
+
+    import systems
+    from nlyap_opt.domain import Ball
+    from nlyap_opt.pipeline import INNER_MARGIN_FACTOR, _inner_for_margin
+
+    x = ca.SX.sym("x", 2)
+    s = systems.System("test_linear_decay", x, None, -x, state_box=[[-2, 2], [-2, 2]])
+    D, said = Ball(2.0, 2), []
+    eps = _inner_for_margin(s, None, None, 0.1, 0.05, D, True, said.append)
+    assert eps == pytest.approx(INNER_MARGIN_FACTOR * 0.1, rel=1e-9)
+    assert "chosen by the tool" in said[-1]
+    assert _inner_for_margin(s, None, None, 0.01, 0.05, D, True, said.append) == 0.05
+    assert _inner_for_margin(s, None, None, 0.1, 0.05, D, False, said.append) == 0.05
+    assert f"set inner to {INNER_MARGIN_FACTOR * 0.1:.3g} or more" in said[-1]
+    # an η that no ε inside the domain affords: the configured ε stays, the message says why
+    assert _inner_for_margin(s, None, None, 1.0, 0.05, D, True, said.append) == 0.05
+    assert "lower η" in said[-1]
+
+
+def test_domain_gauge_is_one_on_the_boundary_and_homogeneous():
+    """The gauge that lifts the fit target near ∂D (train.fit_domain): g(x) = max_i x_i/hi_i
+    or x_i/lo_i for a box, ‖x‖/r for a ball; g(t·x) = t·g(x)."""
+    from nlyap_opt.domain import Ball, Box
+
+    B = Box([[-1.0, 2.0], [-0.5, 0.5]])
+    pts = np.array([[1.0, 0.0], [-1.0, 0.25], [0.0, -0.1], [4.0, 0.0], [0.0, 0.0]])
+    np.testing.assert_allclose(B.gauge(pts), [0.5, 1.0, 0.2, 2.0, 0.0], atol=1e-9)
+    rng = np.random.default_rng(1)
+    x = rng.uniform(-3, 3, (50, 3))
+    np.testing.assert_allclose(Ball(2.0, 3).gauge(x), np.linalg.norm(x, axis=1) / 2.0,
+                               rtol=1e-9)
+    np.testing.assert_allclose(Ball(2.0, 3).gauge(0.3 * x), 0.3 * Ball(2.0, 3).gauge(x),
+                               rtol=1e-9)
+
+
+@pytest.mark.slow
+def test_reversed_van_der_pol_mu3_with_default_settings(tmp_path):
+    """A peer's system with nothing but its spec file (LyZNet's box): the default method
+    certifies most of the true ROA (82.2 % measured; the re-check of the saved files holds)."""
+    import json
+    from pathlib import Path
+
+    from nlyap_opt.certificate import recheck_certificate
+    from nlyap_opt.cli import main
+
+    spec = Path(__file__).resolve().parents[1] / "examples" / "van_der_pol_mu3.toml"
+    out = tmp_path / "vdp3"
+    assert main(["run", str(spec), "--known-dynamics", "--out", str(out)]) == 0
+    cert = json.loads((out / "certificate.json").read_text())
+    assert cert["status"] == "certified" and cert["domain"]["type"] == "box"
+    assert cert["certified_points_converge_in_simulation"]
+    assert cert["fraction_of_true_roa"] >= 0.80
+    assert recheck_certificate(out, log=lambda m: None).certified
+
+
+def test_true_roa_estimate_says_which_states_it_could_not_decide():
+    """x' = −x³ reaches ‖x‖ < 10⁻³ only after ~5·10⁵ s: within the report's horizon its
+    states neither converge nor diverge (undecided, not 'outside'); x' = +x diverges."""
+    import casadi as ca
+
+    import systems
+    from nlyap_opt.roa import TRUE_ROA_TIME, true_roa_mask
+
+    x = ca.SX.sym("x", 2)
+    box = np.array([[-1.0, 1.0], [-1.0, 1.0]])
+    slow = systems.System("test_slow", x, None, -x ** 3, state_box=box)
+    mask, open_ = true_roa_mask(slow, None, box, 11, undecided=True)
+    assert TRUE_ROA_TIME == 60.0
+    assert not mask[np.abs(np.linspace(-1, 1, 11)) > 0.2].any()
+    assert open_.sum() == 11 * 11 - 1 and not open_[5, 5] and mask[5, 5]   # 0 itself
+    fast_out = systems.System("test_diverge", x, None, x, state_box=box)
+    mask, open_ = true_roa_mask(fast_out, None, box, 11, undecided=True)
+    assert not open_.any() and mask.sum() == 1

@@ -59,8 +59,8 @@ from .errors import ConfigError, UnknownNameError
 from .jsonio import read_json_object
 
 __all__ = [
-    "DEFAULT_CEGIS", "DEFAULT_TRAIN", "PRESETS", "Key", "check_dynamics_box", "check_lqr_weights", "config_reference",
-    "get_config", "make_config", "read_json_object", "schema", "validate_config",
+    "DEFAULT_CEGIS", "DEFAULT_TRAIN", "PRESETS", "Key", "check_dynamics_box", "check_lqr_weights",
+    "config_reference", "get_config", "make_config", "read_json_object", "schema", "validate_config",
 ]
 
 
@@ -261,8 +261,12 @@ DEFAULT_CEGIS: dict = {
 #: the base of ``make_config(name, preset=None, ...)`` for a system without a preset; the
 #: system's boxes then give the domain, ``inner`` (and ``controller_scale`` for a system
 #: with inputs), a spec file's ``[run]`` table and the caller's overrides come last
+#: The cheap quadratic certificates run first by default: where the neural V does not beat
+#: them (e.g. a domain lying wholly in the ROA, where the Zubov-type target has no shape),
+#: the run still certifies their sets, and says which certificate won.
 _GENERIC: dict = {"controller_scale": None, "train": DEFAULT_TRAIN, "cegis": DEFAULT_CEGIS,
-                  "eval_points": 40000, "dynamics": {"preset": "default"}}
+                  "eval_points": 40000, "dynamics": {"preset": "default"},
+                  "quadratic": ["lyapunov", "round"]}
 
 
 # ============================================================================ schema

@@ -60,7 +60,8 @@ from .jsonio import read_json_object
 
 __all__ = [
     "DEFAULT_CEGIS", "DEFAULT_TRAIN", "PRESETS", "Key", "check_dynamics_box", "check_lqr_weights",
-    "config_reference", "get_config", "make_config", "read_json_object", "schema", "validate_config",
+    "config_reference", "get_config", "make_config", "read_json_object", "schema",
+    "validate_config",
 ]
 
 
@@ -152,14 +153,14 @@ PRESETS: dict[str, dict[str, dict]] = {
         },
     },
 }
-# 4-D / 6-D catalogue systems (issue 15). Areas are volumes on coarse grids (n^4, n^6 points);
+# 4-D / 6-D catalogue systems. Areas are volumes on coarse grids (n^4, n^6 points);
 # CEGIS's area grid is coarse for the same reason. Their input matrices depend on θ, so the
 # learned-dynamics model is "full" (φ of the unknown components on X × U), known state
 # derivatives (p' = v, θ' = ω; x' = ẋ, ...) taken from the model. The verifier runs with its
 # second-order centred form: without it, condition (a) next to the inner ball needs > 10^7
 # interval boxes in 4-D (bench/scale.py); with it the LQR quadratic certifies in 4-D and 6-D
 # (tests/test_highdim.py). The trained V of these presets is not certified yet (CEGIS finds
-# true decrease counterexamples: a training matter, issue 15).
+# true decrease counterexamples: a training matter).
 _CARTPOLE_BOX = [[-1.0, 1.0]] * 4
 _QUAD_BOX = [[-1.0, 1.0]] * 6
 PRESETS["cartpole"] = {
@@ -361,7 +362,8 @@ _RULES: dict[str, dict[str, dict]] = {
 }
 
 #: dataclass fields that are not configuration keys: given elsewhere in the run config
-#: (inner, outer, train), or removed (wall-clock budgets, PITFALLS P12)
+#: (inner, outer, train), or removed (wall-clock budgets: the same config must give the same
+#: result on any load)
 _EXCLUDED = {"train": {"time_budget"},
              "cegis": {"inner", "outer", "train", "time_budget", "domain", "initial_set"}}
 
@@ -371,7 +373,7 @@ _REMOVED = {
                  "n^nx points, e.g. 200 per axis in 2-D is eval_points 40000)",
     "area_grid": "grids are total point budgets now: use 'cegis.area_points' (n^nx points)",
     "sim_grid": "grids are total point budgets now: use 'cegis.sim_points' (n^nx points)",
-    "time_budget": "wall-clock budgets were removed (PITFALLS P12: the same config must give "
+    "time_budget": "wall-clock budgets were removed (the same config must give "
                    "the same result on any machine load); budgets are counted in steps: "
                    "set 'steps' / 'iterations' instead",
 }

@@ -1,6 +1,6 @@
 r"""Verification domains ``D`` and initial sets ``X_I``: a ball, a box or an ellipsoid.
 
-METHOD §"General domains": with a domain ``D`` in place of the ball :math:`B_r`,
+General domains: with a domain ``D`` in place of the ball :math:`B_r`,
 :math:`\Omega_c = \{x \in D : V(x) \le c\}`; (a) the decrease holds on
 :math:`\Omega_c \setminus B_\varepsilon`; (b) :math:`V > c` on :math:`\partial D` (every face
 of a box); an initial set :math:`X_I \subseteq D` is certified when :math:`V < c` on it.

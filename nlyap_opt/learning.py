@@ -5,7 +5,7 @@ The candidate is :math:`V(x) = \|N(x) - N(0)\|^2 + \epsilon\|x\|^2` (the network
 *by construction*. The controller is :math:`\kappa(x) = C \tanh(Kx + b)` with ``b``
 frozen at the solved equilibrium bias, so that :math:`f(0, \kappa(0)) = 0` for every ``K``.
 
-The loss on a batch of states (METHOD §2.5, with the ROA-shaping terms written for a
+The loss on a batch of states (the empirical Lyapunov risk, with the ROA-shaping terms written for a
 target level ``1``)::
 
     C_dec · mean[ relu(∇V·g(x) + β + τ·V(x)) · 1{V(x) ≤ 1 + s} ] decrease (rate τ) where
@@ -52,7 +52,7 @@ __all__ = ["TrainConfig", "LyapunovLearner", "sample_ball", "sample_sphere"]
 class TrainConfig:
     """Settings of :class:`LyapunovLearner` (all have defaults).
 
-    Every budget is a count (``steps``); there is no wall-clock budget (PITFALLS P12). With
+    Every budget is a count (``steps``); there is no wall-clock budget. With
     the same settings, seed and package versions, :meth:`LyapunovLearner.train` gives
     bit-identical weights on any machine load: it runs with ``threads`` torch threads and
     deterministic algorithms (:func:`nlyap_opt.determinism.deterministic_torch`).

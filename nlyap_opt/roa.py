@@ -1,4 +1,4 @@
-r"""Certified regions of attraction (METHOD §3).
+r"""Certified regions of attraction.
 
 For a level :math:`c`, the set :math:`\Omega_c = \{x \in B_r : V(x) \le c\}` lies in the
 region of attraction of the **true** closed loop when

@@ -178,7 +178,7 @@ def _too_deep(text) -> _ExprError:
 
 def _parse(text: str, symbols: dict) -> sympy.Expr:
     # evaluate(False): the tree stays as written (no rewriting such as exp(log(x)) -> x,
-    # which would change the domain the verifier checks, PITFALLS P10)
+    # which would change the domain the verifier checks)
     try:
         with sympy.evaluate(False):
             return _parse_unevaluated(text, symbols)

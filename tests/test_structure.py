@@ -286,3 +286,18 @@ if __name__ == "__main__":
     print(f"string status comparisons (orchestration): {sum(r['status_comparisons'].values())}")
     for rel, n in r["status_comparisons"].items():
         print(f"  {rel}: {n}")
+
+
+def test_project_text_cites_nothing_outside_the_repository():
+    """Docstrings, comments and messages of the packages, benchmarks and examples stand
+    alone: no internal pitfall numbers, method-document sections or issue numbers."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    outside = re.compile(r"PITFALLS|METHOD(\.md| §)|\bissue \d+|\(issue|\bP(9|1[0-9])\b")
+    found = [f"{p.relative_to(root)}:{i}" for d in ("nlyap_opt", "systems", "verification",
+                                                     "baselines", "bench", "examples")
+             for p in sorted((root / d).rglob("*.py"))
+             for i, line in enumerate(p.read_text().splitlines(), 1) if outside.search(line)]
+    assert not found, found

@@ -845,7 +845,10 @@ def _finish(system, cfg: DynamicsConfig, grid: Grid, model: str, comp: list[int]
                         state["mu"], state["sigma"], cfg.prune)
     network.meta.update({
         "kind": "dynamics", "system": system.name, "model": model,
-        "learned_components": comp, "grid": grid.to_dict(), "config": _jsonable(cfg.to_dict()),
+        # the configuration that determined φ: the progress bar is a display choice, not
+        # an input, and must not change the file's bytes (terminal vs Python API)
+        "learned_components": comp, "grid": grid.to_dict(),
+        "config": _jsonable({k: v for k, v in cfg.to_dict().items() if k != "progress"}),
     })
     if any(len(c) < d for c in cols):
         network.meta["inputs"] = cols  # per component: the grid columns its block reads

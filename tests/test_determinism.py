@@ -159,9 +159,16 @@ def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_by
     finally:
         busy.kill()
         busy.wait()
+    # the same run from Python (no progress bars: a display choice must not reach a file)
+    from nlyap_opt.configs import get_config
+    from nlyap_opt.pipeline import run
+
+    run("van_der_pol", get_config("van_der_pol", "fast"), tmp_path / "c",
+        known_dynamics=False, log=lambda m: None)
     files_a, cert_a = _run_files(tmp_path / "a")
     files_b, cert_b = _run_files(tmp_path / "b")
+    files_c, _ = _run_files(tmp_path / "c")
     assert {"dynamics.json", "bounds.json", "V.json", "cegis.json"} <= set(files_a)
-    assert files_a == files_b
+    assert files_a == files_b == files_c
     assert cert_a == cert_b
     assert json.loads((tmp_path / "a" / "timings.json").read_text())["cegis.json"]

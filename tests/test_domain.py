@@ -240,6 +240,7 @@ def test_box_domain_example_certifies_its_initial_set_and_rechecks(tmp_path, cap
     assert again.checks["(b) V > level on ∂D"] == "counterexample"
 
 
+@pytest.mark.slow  # 20-40 s: the default tier stays near 5 min on 2 cores
 def test_compare_rows_are_certified_on_the_declared_domain(tmp_path):
     from baselines.compare import compare
 

@@ -83,6 +83,7 @@ def test_blackbox_pendulum_runs_end_to_end(tmp_path, capsys):
     _check_unknown_f_run(out, code, simulated=True)      # the callable is simulated
 
 
+@pytest.mark.slow  # 20-40 s: the default tier stays near 5 min on 2 cores
 def test_pendulum_csv_runs_end_to_end_from_the_written_samples(tmp_path, capsys):
     # the README's two commands: write the samples, then run the spec that reads them
     data = tmp_path / "data"

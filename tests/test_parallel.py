@@ -580,6 +580,7 @@ def test_seed_config_sets_both_training_seeds():
         {k: v for k, v in cfg.items() if k not in ("train", "cegis")}
 
 
+@pytest.mark.slow  # 20-40 s: the default tier stays near 5 min on 2 cores
 def test_two_seed_portfolio_keeps_the_largest_certified_area(client, tmp_path):
     """2 seeds of the fast Van der Pol preset (true f) on the 2-worker cluster, then the
     same seeds on 1 worker: the same candidates, bit for bit, and the same choice."""

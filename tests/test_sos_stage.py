@@ -293,6 +293,7 @@ def test_a_linearisation_without_a_quadratic_lyapunov_function_gives_no_sos_leve
     assert not res.certified and res.certificate is None and res.applicable
 
 
+@pytest.mark.slow  # 20-40 s: the default tier stays near 5 min on 2 cores
 def test_a_badly_scaled_v_s_iteration_is_repeated_in_scaled_units():
     """Fossil's NonPoly2: the quadratic's SOS set reaches |x| ≈ 8, where the degree-4 V step
     fails in x; repeated with x = R·y it succeeds, and the V mapped back is the scaled

@@ -53,7 +53,7 @@ from .errors import ConfigError, NlyapError
 from .jsonio import load_with_timings, save_timings, split_timings
 from .learning import TrainConfig, quadratic_start, sos_start
 from .network import Network
-from .provenance import fingerprint, fingerprint_id
+from .provenance import fingerprint
 
 __all__ = ["run", "RunResult", "RunLockedError"]
 
@@ -126,10 +126,10 @@ def _write_stage_json(path: Path, data: dict) -> None:
 class _Stages:
     """Stage bookkeeping in ``DIR/stages.json``: stage -> {key, files: {name: sha256}}.
 
-    A stage's key covers the system, the setting, the numeric environment
-    (:func:`~nlyap_opt.provenance.fingerprint_id`: a run resumed on another machine, another
-    package version or in portable mode computes its stages again), every configuration key
-    the stage reads and the recorded file hashes of the stages it builds on.
+    A stage's key covers the system, the setting, every configuration key the stage reads
+    and the recorded file hashes of the stages it builds on. The numeric environment is not
+    part of it: Dask workers start in another one (one BLAS thread) and must find the
+    stages their parent computed; every certificate records the environment it was made in.
     """
 
     def __init__(self, out: Path, system: str, cfg: dict, log):
@@ -147,7 +147,7 @@ class _Stages:
                 log(f"warning: {self.file} is unreadable ({err}); recomputing every stage")
 
     def key(self, stage: str, *deps) -> str:
-        return _hash([stage, self.system, self.cfg.get("known_dynamics"), fingerprint_id(),
+        return _hash([stage, self.system, self.cfg.get("known_dynamics"),
                       {k: self._get(k) for k in _STAGE_KEYS[stage]},
                       [self.done.get(d, {}).get("files") for d in deps]])
 

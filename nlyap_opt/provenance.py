@@ -187,8 +187,17 @@ def fingerprint() -> dict:
 
 
 def fingerprint_id(fp: dict | None = None) -> str:
-    """A 16-hex-digit hash of :func:`fingerprint` (or of ``fp``): equal ids, same numbers."""
-    fp = fingerprint() if fp is None else fp
+    """A 16-hex-digit hash of :func:`fingerprint` (or of ``fp``): equal ids, same numbers.
+
+    Thread counts (BLAS threads, ``*_NUM_THREADS``) are recorded but not hashed: a run
+    gives the same bytes with one or two BLAS threads (tested), and Dask workers, which
+    start with one thread, must find the stages their parent computed.
+    """
+    fp = json.loads(json.dumps(fingerprint() if fp is None else fp))
+    for lib in fp.get("blas", []):
+        lib.pop("threads", None)
+    fp["environment"] = {k: v for k, v in fp.get("environment", {}).items()
+                         if not k.endswith("_NUM_THREADS")}
     return hashlib.sha256(json.dumps(fp, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -37,8 +37,13 @@ def _config(tmp_path, cfg: dict) -> Path:
     return p
 
 
-@pytest.mark.parametrize("name", ["two_machine_power", "lorenz_controlled", "fossil_nonpoly2",
-                                  "fossil_nonpoly3", "fossil_poly1"])
+_SLOW = pytest.mark.slow  # 6-10 s idle each; two examples stay in the default tier
+
+
+@pytest.mark.parametrize("name", [pytest.param("two_machine_power", marks=_SLOW),
+                                  "lorenz_controlled", "fossil_nonpoly2",
+                                  pytest.param("fossil_nonpoly3", marks=_SLOW),
+                                  pytest.param("fossil_poly1", marks=_SLOW)])
 def test_model_examples_certify_and_recheck(name, tmp_path, capsys):
     out = tmp_path / name
     code = main(["run", str(EXAMPLES / f"{name}.toml"), "--known-dynamics", "--config",
@@ -76,6 +81,7 @@ def _check_unknown_f_run(out: Path, code: int, *, simulated: bool):
     return cert, b
 
 
+@pytest.mark.slow  # ~35 s idle (a learned run of a black-box callable)
 def test_blackbox_pendulum_runs_end_to_end(tmp_path, capsys):
     out = tmp_path / "bb"
     code = main(["run", str(EXAMPLES / "blackbox_pendulum.toml"), "--config",

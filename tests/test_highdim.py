@@ -249,6 +249,7 @@ def test_round_lyapunov_matrix_solves_the_lmi_with_a_small_condition_number(name
     assert round_lyapunov_matrix(-A) is None            # not Hurwitz: no candidate
 
 
+@pytest.mark.slow  # ~7 s idle but 25 s under load
 def test_inner_ellipse_of_the_saturated_cartpole_loop():
     """Condition (c) at ε = 0.025 for the cartpole's saturated LQR loop. The Lyapunov matrix
     of Q_V = I (condition number 328) fails the Jacobian forms: its ellipse reaches 0.4 from

@@ -622,6 +622,7 @@ def test_two_seed_portfolio_keeps_the_largest_certified_area(client, tmp_path):
     assert strip(one.runs) == strip(res.runs)
 
 
+@pytest.mark.slow  # ~17 s idle on a 2-worker cluster
 def test_learned_dynamics_are_learned_once_and_shared(client, tmp_path):
     from nlyap_opt.portfolio import run_portfolio
 

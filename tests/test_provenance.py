@@ -89,6 +89,7 @@ def test_portable_from_python_is_refused_with_one_line(capsys):
     assert len(err) == 1 and "--portable" in err[0] and "portable_env()" in err[0]
 
 
+@pytest.mark.slow  # ~17 s idle: four learned runs in fresh processes
 def test_portable_runs_pin_the_kernels_and_train_the_same_networks_whatever_the_shell_set(
         tmp_path):
     """Two portable runs started from different OpenBLAS kernels and thread counts: the

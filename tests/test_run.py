@@ -179,6 +179,7 @@ def test_tampered_V_is_never_certified_on_resume(known_runs, tmp_path):
     assert res.certified and recheck_certificate(d, log=lambda m: None).certified
 
 
+@pytest.mark.slow  # ~50 s idle: a second learned run; the default tier stays under 5 min on 2 cores
 def test_tampered_V_with_forged_stage_record_is_not_certified(known_runs, tmp_path):
     """Even with stages.json forged to match a false V, the certificate stage re-verifies."""
     from nlyap_opt.certificate import sha256_file

@@ -497,6 +497,10 @@ class RoaCertificate:
 
     @classmethod
     def from_dict(cls, d: dict) -> RoaCertificate:
+        if isinstance(d, dict) and d.get("format") == "nlyap-compositional-certificate":
+            raise ConfigError("a compositional certificate (a sum of quadratic subsystem "
+                              "functions, no networks): re-check it with `nlyap verify "
+                              "--certificate DIR`; simulate and export need a neural run")
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise ConfigError(f"not an nlyap certificate (expected format {FORMAT!r}); "
                               "pass the certificate.json written by `nlyap run`/`compare`")

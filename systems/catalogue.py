@@ -205,7 +205,7 @@ def _lyznet_block(x, link=None) -> list:
     return f
 
 
-def lyznet_10d() -> System:
+def lyznet_10d(radius: float = 1.0) -> System:
     r"""LyZNet's 10-D interconnected system (no input), on the domain :math:`[-1, 1]^{10}`.
 
     .. math::
@@ -220,12 +220,15 @@ def lyznet_10d() -> System:
     ``examples/hscc24/ex4a_10d_system_monolith_domain_1.py`` of its repository; Liu, Meng,
     Fitzsimmons & Zhou, "LyZNet: a lightweight Python tool for learning and verifying
     neural Lyapunov functions and regions of attraction", HSCC 2024), whose compositional
-    variant (``ex4b_10d_system_vector``) uses the same five subsystems.
+    variant (``ex4b_10d_system_vector``) uses the same five subsystems; LyZNet's other
+    examples use the domains :math:`[-4, 4]^{10}` and :math:`[-10, 10]^{10}`
+    (``radius``).
     """
     x = ca.SX.sym("x", 10)
     return System(
         "lyznet_10d", x, None, ca.vertcat(*_lyznet_block(x)),
-        state_box=[[-1.0, 1.0]] * 10,
+        state_box=[[-radius, radius]] * 10,
+        params={"radius": radius},
         state_names=[f"x{i + 1}" for i in range(10)],
         description="LyZNet 10-D interconnected system (5 coupled oscillators)",
         subsystems=[(2 * k, 2 * k + 1) for k in range(5)],

@@ -237,8 +237,14 @@ def _refusal(system, parts) -> str:
     return ""
 
 
-def _local(system, parts, nbrs, i: int, P: np.ndarray):
-    """``(y, Hessian Function of ∇V_i·f_i in y, box Y_i, blocks)`` of subsystem ``i``."""
+def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
+    """``(N, "")`` with ``N`` of :func:`_hessian_bound` for subsystem ``i`` on its box
+    ``Y_i`` (its states, then its neighbours' in order), or ``(None, why)``.
+
+    Refused when the graph of ``f_i``, ``∇V_i·f_i`` or its Hessian holds an operation that
+    is non-smooth or partial (the walker's checked operations, constant arguments
+    excepted): Taylor's formula needs ``f`` twice continuously differentiable on ``D``.
+    """
     idx = list(parts[i]) + [k for j in nbrs[i] for k in parts[j]]
     y = ca.SX.sym("y", len(idx))
     xs = ca.SX.zeros(system.nx)
@@ -247,8 +253,20 @@ def _local(system, parts, nbrs, i: int, P: np.ndarray):
     fi = ca.substitute(ca.vertcat(*[system.f[r] for r in parts[i]]), system.x, xs)
     xi = y[:len(parts[i])]
     vdot = 2 * ca.dot(ca.mtimes(ca.DM(np.asarray(P, dtype=float)), xi), fi)
-    H = ca.Function(f"hess_{i}", [y], [ca.densify(ca.hessian(vdot, y)[0])])
-    return H, system.state_box[idx]
+    hess = ca.densify(ca.hessian(vdot, y)[0])
+    H = ca.Function(f"hess_{i}", [y], [hess])
+    name = f"subsystem {i + 1} ({', '.join(system.state_names[k] for k in parts[i])})"
+    try:
+        if compile_function(ca.Function(f"local_{i}", [y], [fi, vdot, hess])).checked:
+            return None, (f"{name}: f uses non-smooth or partial operations; the "
+                          "compositional method needs f twice continuously differentiable "
+                          "on all of D")
+        N = _hessian_bound(H, system.state_box[idx])
+    except UnsupportedOperationError as err:
+        return None, f"{name}: {err}"
+    if N is None:
+        return None, f"{name}: the Hessian of dV_i/dt is not bounded on its box"
+    return N, ""
 
 
 def _float_up(q: Fraction) -> float:
@@ -384,19 +402,12 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
         if alphas[i] < 0 or any(b < 0 for b in betas[i]):
             why = f"subsystem {i + 1}: α and β must be ≥ 0"
             return False, {**checks, "local": why}, why
-        H, box = _local(system, parts, nbrs, i, p.P)
-        try:
-            if compile_function(H).checked:
-                why = (f"subsystem {i + 1}: f uses non-smooth or partial operations; the "
-                       "compositional method needs smooth f defined on all of D")
-                return False, {**checks, "local": why}, why
-        except UnsupportedOperationError as err:
-            why = f"subsystem {i + 1}: {err}"
+        N, why = _local_bound(system, parts, nbrs, i, p.P)
+        if N is None:
             return False, {**checks, "local": why}, why
-        N = _hessian_bound(H, box)
         sizes = [len(p.states)] + [len(parts[j]) for j in p.neighbours]
         Ploc = [Ps[i]] + [Ps[j] for j in p.neighbours]
-        if N is None or not _positive_definite(_local_matrix(N, sizes, Ploc, p.alpha, p.beta)):
+        if not _positive_definite(_local_matrix(N, sizes, Ploc, p.alpha, p.beta)):
             why = (f"subsystem {i + 1} (states {', '.join(system.state_names[k] for k in p.states)}"
                    f"): dV_i/dt ≤ -{p.alpha:.4g} V_i + Σ β_ij V_j is not proved on its box "
                    "(coupling too strong for this domain, or the domain too large)")
@@ -519,10 +530,9 @@ def certify_compositional(system, *, log=print) -> CompositionalCertificate:
         Ps.append(P)
     bounds = []
     for i in range(len(parts)):
-        H, Y = _local(system, parts, nbrs, i, Ps[i])
-        N = _hessian_bound(H, Y)
+        N, why = _local_bound(system, parts, nbrs, i, Ps[i])
         if N is None:
-            return fail(f"subsystem {i + 1}: the Hessian of dV_i/dt is unbounded on its box")
+            return fail(why)
         bounds.append(N)
     best = None
     for theta in _THETAS:

@@ -49,7 +49,6 @@ import time
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from types import SimpleNamespace
 
 import casadi as ca
 import numpy as np
@@ -644,7 +643,7 @@ def recheck_compositional(path: str | Path, *, system=None,
     ConfigError
         Not a compositional certificate of a version this nlyap reads, or malformed.
     """
-    from .certificate import _binding_refusal, _recheck_system
+    from .certificate import bound_system
 
     path = Path(path)
     if path.is_dir():
@@ -685,7 +684,7 @@ def recheck_compositional(path: str | Path, *, system=None,
     except (KeyError, TypeError, ValueError) as err:
         raise ConfigError(f"malformed compositional certificate {path}: {type(err).__name__}: "
                           f"{err}; rerun the command that wrote it") from None
-    sysm = _recheck_system(SimpleNamespace(system=name), d, path, system, allow_factory)
+    sysm, refusal = bound_system(d, path, system, allow_factory)
 
     def result(ok, reason, checks=None):
         return CompositionalCertificate(
@@ -694,7 +693,6 @@ def recheck_compositional(path: str | Path, *, system=None,
 
     if d.get("status") != CertStatus.CERTIFIED.value:
         return result(False, f"the certificate does not claim a region ({d.get('status')!r})")
-    refusal = _binding_refusal(d, sysm)
     if refusal:
         return result(False, refusal)
     if dbox.shape != sysm.state_box.shape or not np.array_equal(dbox, sysm.state_box):

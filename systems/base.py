@@ -743,6 +743,8 @@ class System:
         }
         if self.samples is not None:
             out["samples"] = self.samples.to_dict()
+        if self.subsystems is not None:
+            out["subsystems"] = [[self.state_names[i] for i in p] for p in self.subsystems]
         return out
 
     def __repr__(self) -> str:

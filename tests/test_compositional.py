@@ -272,6 +272,52 @@ def test_neural_tools_refuse_a_compositional_certificate(saved, capsys):
         recheck_run(saved[0])
 
 
+SPEC = """
+name = "two_oscillators"
+states = ["a1", "a2", "b1", "b2"]
+state_box = [[-1, 1], [-1, 1], [-1, 1], [-1, 1]]
+subsystems = [["a1", "a2"], ["b1", "b2"]]
+
+[rhs]
+a1 = "-a1 + 0.5*a2 + 0.2*b1^2"
+a2 = "-0.5*a1 - a2"
+b1 = "-b1 + b2"
+b2 = "-b1 - b2 + 0.3*sin(a2)"
+"""
+
+
+def test_spec_file_with_subsystems_runs_and_rechecks(tmp_path, capsys):
+    spec = tmp_path / "osc.toml"
+    spec.write_text(SPEC)
+    s = systems.load_spec(spec)
+    assert s.subsystems == ((0, 1), (2, 3))
+    assert s.summary()["subsystems"] == [["a1", "a2"], ["b1", "b2"]]
+    out = tmp_path / "out"
+    assert main(["run", str(spec), "--known-dynamics", "--out", str(out)]) == 0
+    assert main(["verify", "--certificate", str(out)]) == 0     # the spec named inside
+    spec.write_text(SPEC.replace("0.3*sin", "0.31*sin"))
+    assert main(["verify", "--certificate", str(out)]) == 2     # f changed: refused
+    assert "not the certified system" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("edit,words", [
+    (lambda t: t.replace('["b1", "b2"]]', '["b1"]]'), "missing: ['b2']"),
+    (lambda t: t.replace('["b1", "b2"]]', '["b1", "b2", "a1"]]'), "twice: ['a1']"),
+    (lambda t: t.replace('["b1", "b2"]]', '["b1", "c2"]]'), "'c2' is not a state"),
+    (lambda t: t.replace('subsystems = [["a1", "a2"], ["b1", "b2"]]', 'subsystems = "a1"'),
+     "list of lists"),
+    (lambda t: t.replace('states = ["a1", "a2", "b1", "b2"]',
+                         'states = ["a1", "a2", "b1", "b2"]\ninputs = ["u"]\n'
+                         'input_box = [[-1, 1]]'), "without inputs"),
+])
+def test_spec_file_subsystem_errors_are_one_line(tmp_path, capsys, edit, words):
+    spec = tmp_path / "osc.toml"
+    spec.write_text(edit(SPEC))
+    assert main(["run", str(spec), "--known-dynamics", "--out", str(tmp_path / "o")]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+
+
 @pytest.mark.slow
 def test_end_to_end_20d_chain_from_a_fresh_process(tmp_path):
     """`nlyap run lyznet_chain --known-dynamics` then `nlyap verify --certificate`, each in a

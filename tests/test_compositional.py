@@ -247,6 +247,13 @@ def test_cli_run_and_verify(tmp_path, capsys):
     assert "certified: level" in capsys.readouterr().out
     assert main(["verify", "--certificate", str(out)]) == 0
     assert capsys.readouterr().out.startswith("certified")
+    assert main(["verify", "--certificate", str(out), "--system", "lyznet_10d"]) == 0
+    assert main(["verify", "--certificate", str(out), "--system", "lyznet_chain"]) == 2
+    # the same input gives the same certificate bit for bit (timings live beside it)
+    again = tmp_path / "again"
+    assert main(["run", "lyznet_10d", "--known-dynamics", "--out", str(again)]) == 0
+    assert (again / "certificate.json").read_bytes() == (out / "certificate.json").read_bytes()
+    assert (again / "timings.json").exists()
     d = json.loads((out / "certificate.json").read_text())
     d["level"] *= 2
     (tmp_path / "bad").mkdir()

@@ -533,7 +533,7 @@ def certify_compositional(system, *, log=print) -> CompositionalCertificate:
         if N is None:
             return fail(why)
         bounds.append(N)
-    best = None
+    candidates = []
     for theta in _THETAS:
         pieces = []
         for i in range(len(parts)):
@@ -555,8 +555,7 @@ def certify_compositional(system, *, log=print) -> CompositionalCertificate:
         if not np.all(w > 0):
             continue
         w = w / w.max()
-        s = w @ Ac
-        gamma = float(np.min(-s / w)) * (1 - 1e-9)
+        gamma = _decay(pieces, w)
         if not gamma > 0:
             continue
         cq = min(Fraction(float(w[i])) * min(-_F(box[k, 0]), _F(box[k, 1])) ** 2 / d
@@ -564,22 +563,33 @@ def certify_compositional(system, *, log=print) -> CompositionalCertificate:
                  for k, d in zip(p.states, _inverse_diagonal(
                      [[_F(v) for v in row] for row in p.P])))
         level = _float_down(cq)
+        if not level > 0:
+            continue
         logvol = sum(0.5 * len(p.states) * math.log(level / w[i])
                      - 0.5 * math.log(np.linalg.det(p.P)) for i, p in enumerate(pieces))
-        if best is None or logvol > best[0]:
-            best = (logvol, pieces, w, level, gamma, theta)
-    if best is None:
-        return fail("no decay rates and coupling gains make the comparison system stable: "
-                    "the interconnection is too strong on this domain (a smaller box may "
-                    "certify)")
-    _, pieces, w, level, gamma, theta = best
-    ok, checks, why = check_compositional(system, pieces, w, level, gamma)
-    seconds = time.perf_counter() - t0
-    log(f"compositional: {len(pieces)} subsystems, θ = {theta}, level {level:.6g}, "
-        f"decay {gamma:.4g}: {'certified' if ok else why} ({seconds:.2f} s)")
-    return CompositionalCertificate(CertStatus.CERTIFIED if ok else CertStatus.NOT_CERTIFIED,
-                                    "" if ok else why, system.name, pieces, w, level, gamma,
-                                    box, checks, seconds=seconds)
+        candidates.append((-logvol, theta, pieces, w, level, gamma))
+    why = ("no decay rates and coupling gains make the comparison system stable: the "
+           "interconnection is too strong on this domain (a smaller box may certify)")
+    for _, theta, pieces, w, level, gamma in sorted(candidates, key=lambda c: c[:2]):
+        ok, checks, why = check_compositional(system, pieces, w, level, gamma)
+        seconds = time.perf_counter() - t0
+        log(f"compositional: {len(pieces)} subsystems, θ = {theta}, level {level:.6g}, "
+            f"decay {gamma:.4g}: {'certified' if ok else why} ({seconds:.2f} s)")
+        if ok:
+            return CompositionalCertificate(CertStatus.CERTIFIED, "", system.name, pieces, w,
+                                            level, gamma, box, checks, seconds=seconds)
+    return fail(why)
+
+
+def _decay(pieces: list[Piece], w: np.ndarray) -> float:
+    """The largest float ``γ ≤ min_j -(wᵀA_c)_j / w_j`` (exact), or 0 when that is ≤ 0."""
+    wq = [Fraction(float(v)) for v in w]
+    col = [-Fraction(p.alpha) * wq[j] for j, p in enumerate(pieces)]
+    for i, p in enumerate(pieces):
+        for j, b in zip(p.neighbours, p.beta):
+            col[j] += wq[i] * Fraction(b)
+    g = min(-c / v for c, v in zip(col, wq))
+    return _float_down(g) if g > 0 else 0.0
 
 
 # ============================================================================ files

@@ -206,7 +206,8 @@ def _lyznet_block(x, link=None) -> list:
 
 
 def lyznet_10d(radius: float = 1.0) -> System:
-    r"""LyZNet's 10-D interconnected system (no input), on the domain :math:`[-1, 1]^{10}`.
+    r"""LyZNet's 10-D interconnected system (no input) on :math:`[-r, r]^{10}` (``radius``
+    ``r = 1`` by default).
 
     .. math::
         \dot x_1 &= -x_1 + 0.5 x_2 - 0.1 x_9^2, & \dot x_2 &= -0.5 x_1 - x_2, \\

@@ -384,7 +384,7 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
         alphas = [_F(p.alpha) for p in pieces]
         betas = [[_F(b) for b in p.beta] for p in pieces]
     except (ValueError, TypeError):
-        why = "a number of the certificate is not finite"
+        why = "a number of the certificate is not finite, or a matrix has the wrong shape"
         return False, {**checks, "numbers": why}, why
     if len(w) != len(pieces) or any(len(b) != len(p.neighbours) for b, p in zip(betas, pieces)):
         why = "the certificate's weights or gains do not match its subsystems"
@@ -688,6 +688,8 @@ def recheck_compositional(path: str | Path, *, system=None,
                         np.asarray(s["P"], dtype=float), float(s["alpha"]),
                         tuple(float(b) for b in s["beta"])) for s in d["subsystems"]]
         weights = np.asarray(d["weights"], dtype=float)
+        if weights.ndim != 1:
+            raise ValueError(f"weights must be a list of numbers, got shape {weights.shape}")
         level, decay = float(d["level"]), float(d["decay"])
         dbox = np.asarray(d["domain_box"], dtype=float)
         assumptions = [str(a) for a in d["assumptions"]]

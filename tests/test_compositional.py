@@ -211,6 +211,8 @@ def test_recheck_of_a_saved_certificate(saved):
     (lambda d: d["weights"].__setitem__(0, -1.0), "positive"),
     (lambda d: d.update(assumptions=d["assumptions"][:1]), "assumptions"),
     (lambda d: d.update(status="not certified"), "does not claim"),
+    (lambda d: d["subsystems"][0].update(P=[1.0, 0.0]), "wrong shape"),
+    (lambda d: d.update(level=float("inf")), "not finite"),
 ])
 def test_recheck_refuses_an_edited_certificate(tmp_path, saved, edit, words):
     cert = recheck_compositional(_edited(tmp_path, saved, edit))
@@ -223,6 +225,8 @@ def test_recheck_refuses_an_edited_certificate(tmp_path, saved, edit, words):
     (lambda d: d.update(extra=1), "does not know"),
     (lambda d: d.pop("weights"), "malformed"),
     (lambda d: d["subsystems"][0].update(P="I"), "malformed"),
+    (lambda d: d.update(weights=[d["weights"]]), "malformed"),
+    (lambda d: d.update(system=7), "'system' is missing"),
 ])
 def test_recheck_fails_closed_on_unknown_or_malformed_files(tmp_path, saved, edit, words):
     with pytest.raises(ConfigError, match=words):

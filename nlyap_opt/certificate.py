@@ -50,7 +50,7 @@ __all__ = [
     "CertStatus", "Decrease", "RoaProblem", "RoaCertificate", "InnerEllipse", "certify_roa",
     "recheck_certificate", "recheck_run", "certify_with_inner_search", "load_artifact",
     "sha256_file", "FORMAT", "VERSION", "system_fingerprint", "system_binding", "spec_factory",
-    "status_text",
+    "status_text", "bound_system",
 ]
 
 FORMAT = "nlyap-roa-certificate"
@@ -497,6 +497,10 @@ class RoaCertificate:
 
     @classmethod
     def from_dict(cls, d: dict) -> RoaCertificate:
+        if isinstance(d, dict) and d.get("format") == "nlyap-compositional-certificate":
+            raise ConfigError("a compositional certificate (a sum of quadratic subsystem "
+                              "functions, no networks): re-check it with `nlyap verify "
+                              "--certificate DIR`; simulate and export need a neural run")
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise ConfigError(f"not an nlyap certificate (expected format {FORMAT!r}); "
                               "pass the certificate.json written by `nlyap run`/`compare`")
@@ -1027,6 +1031,22 @@ def _recheck_system(saved: RoaCertificate, d: dict, path: Path, system, allow_fa
     raise ConfigError(f"certificate {path} is about system {saved.system!r}, which is not in "
                       "the catalogue and names no spec file; pass --system NAME or "
                       "--system FILE.toml")
+
+
+def bound_system(d: dict, path: str | Path, system=None,
+                 allow_factory: bool = False) -> tuple[object, str]:
+    """``(system, refusal)`` for re-checking the certificate dict ``d`` read from ``path``.
+
+    The system is found as in :func:`recheck_certificate` (nothing named inside the
+    certificate is executed); ``refusal`` is ``""`` when it is the system the certificate
+    binds (:func:`system_binding`), else why not. Used by other certificate kinds
+    (:mod:`nlyap_opt.compositional`).
+    """
+    from types import SimpleNamespace
+
+    sysm = _recheck_system(SimpleNamespace(system=str(d.get("system"))), d, Path(path),
+                           system, allow_factory)
+    return sysm, _binding_refusal(d, sysm)
 
 
 def _binding_refusal(d: dict, system) -> str:

@@ -420,6 +420,17 @@ def _verify_certificate(args) -> int:
     if verifier:
         raise UsageError("--certificate re-checks with the interval verifier and the options "
                          f"saved in the certificate; drop {', '.join(verifier)}")
+    from .compositional import is_compositional_file, recheck_compositional
+
+    if is_compositional_file(path):
+        if args.workers is not None or args.scheduler is not None:
+            raise UsageError("a compositional certificate is re-checked without Dask; drop "
+                             "--workers/--scheduler")
+        cert = recheck_compositional(path, system=system, allow_factory=args.allow_factory)
+        print(cert.summary())
+        if args.json:
+            _write_json(args.json, cert.to_dict())
+        return 0 if cert.certified else 2
     _note_other_fingerprint(path)
     if args.workers is not None or args.scheduler is not None:
         # the conditions' checks run on the cluster (nlyap_opt.parallel.check): a
@@ -524,9 +535,37 @@ def _run_config(args, learned: bool) -> dict:
     return cfg
 
 
+def _run_compositional(args, system) -> int:
+    """``nlyap run`` of a system that declares its subsystems: the compositional
+    certificate (:mod:`nlyap_opt.compositional`), about the model f."""
+    from .compositional import certify_compositional, save_compositional
+
+    if not args.known_dynamics:
+        raise UsageError(f"{system.name} declares subsystems: its compositional certificate "
+                         "is about the model f; add --known-dynamics")
+    given = [o for o, v in (("--config", args.config), ("--preset", args.preset),
+                            ("--seeds", args.seeds), ("--workers", args.workers),
+                            ("--scheduler", args.scheduler)) if v is not None]
+    if given:
+        raise UsageError(f"the compositional certificate of {system.name} has no training "
+                         f"or Dask stage; drop {', '.join(given)}")
+    out = args.out or f"runs/{system.name}_known"
+    _check_writable(Path(out), "--out", directory=True)
+    cert = certify_compositional(system)
+    path = save_compositional(cert, system, out)
+    print(cert.summary())
+    print(f"wrote {path}")
+    return 0 if cert.certified else 2
+
+
 def cmd_run(args) -> int:
+    import systems
+
     from .pipeline import run
 
+    system = systems.get(args.system)
+    if getattr(system, "subsystems", None) is not None:
+        return _run_compositional(args, system)
     cfg = _run_config(args, learned=not args.known_dynamics)
     out = args.out or f"runs/{args.system}{'_known' if args.known_dynamics else ''}"
     _check_writable(Path(out), "--out", directory=True)

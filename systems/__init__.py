@@ -8,8 +8,9 @@ unknown ``f`` are :class:`Declarations`, checked against data by :func:`check_de
 Examples
 --------
 >>> import systems
->>> sorted(systems.names())
-['cartpole', 'inverted_pendulum', 'planar_quadrotor', 'unicycle_path_following', 'van_der_pol']
+>>> sorted(systems.names())  # doctest: +NORMALIZE_WHITESPACE
+['cartpole', 'inverted_pendulum', 'lyznet_10d', 'lyznet_chain', 'planar_quadrotor',
+ 'unicycle_path_following', 'van_der_pol']
 >>> systems.get("van_der_pol").nx
 2
 """
@@ -24,6 +25,8 @@ from .base import ModelUnavailableError, System
 from .catalogue import (
     cartpole,
     inverted_pendulum,
+    lyznet_10d,
+    lyznet_chain,
     planar_quadrotor,
     unicycle_path_following,
     van_der_pol,
@@ -44,6 +47,8 @@ REGISTRY: dict[str, Callable[..., System]] = {
     "inverted_pendulum": inverted_pendulum,
     "cartpole": cartpole,
     "planar_quadrotor": planar_quadrotor,
+    "lyznet_10d": lyznet_10d,
+    "lyznet_chain": lyznet_chain,
 }
 #: the built-in catalogue's names (a spec file may not reuse them)
 CATALOGUE = tuple(REGISTRY)

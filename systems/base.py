@@ -89,6 +89,10 @@ class System:
         Run-configuration overrides that travel with the system (a spec file's ``[run]``).
     source : str, optional
         Where the system was defined (a spec file), for messages and reports.
+    subsystems : sequence of sequence of int, optional
+        A partition of the state indices into the subsystems of an interconnected system
+        (each subsystem's states, e.g. ``[(0, 1), (2, 3)]``): declares that a
+        compositional certificate (:mod:`nlyap_opt.compositional`) may be tried.
 
     Attributes
     ----------
@@ -134,6 +138,7 @@ class System:
         declarations: Declarations | None = None,
         run_overrides: dict | None = None,
         source: str = "",
+        subsystems: Sequence[Sequence[int]] | None = None,
     ):
         if not isinstance(x, ca.SX) or not x.is_column() or not x.is_valid_input():
             raise TypeError("x must be a column of casadi.SX symbols, e.g. ca.SX.sym('x', 2)")
@@ -158,6 +163,7 @@ class System:
                     run_overrides=run_overrides, source=source)
         self._f, self._f_fun = f, fun
         self.known_state_derivatives = self._known_indices(known_state_derivatives)
+        self.subsystems = self._partition(subsystems)
         self.u_eq = self._equilibrium_input(u_eq)
         jac = ca.Function("jac_" + name, [x, u], [ca.jacobian(f, x), ca.jacobian(f, u)])
         A, B = jac(np.zeros(self.nx), self.u_eq)
@@ -399,6 +405,16 @@ class System:
         self.samples = None
         self._known: dict[int, ca.SX] = {}
         self._torch = None
+        self.subsystems = None
+
+    def _partition(self, parts) -> tuple[tuple[int, ...], ...] | None:
+        if parts is None:
+            return None
+        out = tuple(tuple(int(i) for i in p) for p in parts)
+        if any(not p for p in out) or sorted(i for p in out for i in p) != list(range(self.nx)):
+            raise ConfigError(f"subsystems must split the {self.nx} state indices 0..{self.nx - 1}"
+                              f" into non-empty groups, each index once; got {parts!r}")
+        return out
 
     def _known_indices(self, idx) -> tuple[int, ...]:
         out = tuple(int(i) for i in idx)
@@ -727,6 +743,8 @@ class System:
         }
         if self.samples is not None:
             out["samples"] = self.samples.to_dict()
+        if self.subsystems is not None:
+            out["subsystems"] = [[self.state_names[i] for i in p] for p in self.subsystems]
         return out
 
     def __repr__(self) -> str:

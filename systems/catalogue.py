@@ -3,6 +3,9 @@
 The seed systems (Van der Pol, path following, pendulum) come with the paper's default
 domains; :func:`cartpole` (4 states) and :func:`planar_quadrotor` (6 states) are the usual
 benchmarks of the neural-Lyapunov-control literature, with their published parameters.
+:func:`lyznet_10d` and :func:`lyznet_chain` are interconnected systems of 2-D subsystems
+that declare their structure (``subsystems``): they are certified compositionally
+(:mod:`nlyap_opt.compositional`).
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ import casadi as ca
 from .base import System
 
 __all__ = ["van_der_pol", "unicycle_path_following", "inverted_pendulum", "cartpole",
-           "planar_quadrotor"]
+           "planar_quadrotor", "lyznet_10d", "lyznet_chain"]
 
 
 def van_der_pol(mu: float = 1.0) -> System:
@@ -174,4 +177,89 @@ def planar_quadrotor(m: float = 0.486, l: float = 0.25, J: float = 0.00383,  # n
         input_names=["thrust_1", "thrust_2"],
         description="planar quadrotor (Dai et al. 2021 parameters), hover",
         known_state_derivatives=(0, 1, 2),
+    )
+
+
+def _lyznet_block(x, link=None) -> list:
+    """The ten right-hand sides of one LyZNet 10-D block in the states ``x[0:10]``.
+
+    Five damped oscillators ``(x_{2k-1}, x_{2k})``, ``ẋ_{2k-1} = -x_{2k-1} + 0.5 x_{2k}``,
+    ``ẋ_{2k} = -0.5 x_{2k-1} - x_{2k}``, coupled by the quadratic terms of the published
+    example; ``link`` (an expression, or None) is added to the equation of ``x7``, the one
+    oscillator without an input in the published block.
+    """
+    f = [
+        -x[0] + 0.5 * x[1] - 0.1 * x[8] ** 2,
+        -0.5 * x[0] - x[1],
+        -x[2] + 0.5 * x[3] - 0.1 * x[0] ** 2,
+        -0.5 * x[2] - x[3],
+        -x[4] + 0.5 * x[5] + 0.1 * x[6] ** 2,
+        -0.5 * x[4] - x[5],
+        -x[6] + 0.5 * x[7],
+        -0.5 * x[6] - x[7],
+        -x[8] + 0.5 * x[9],
+        -0.5 * x[8] - x[9] + 0.1 * x[1] ** 2,
+    ]
+    if link is not None:
+        f[6] = f[6] + link
+    return f
+
+
+def lyznet_10d(radius: float = 1.0) -> System:
+    r"""LyZNet's 10-D interconnected system (no input) on :math:`[-r, r]^{10}` (``radius``
+    ``r = 1`` by default).
+
+    .. math::
+        \dot x_1 &= -x_1 + 0.5 x_2 - 0.1 x_9^2, & \dot x_2 &= -0.5 x_1 - x_2, \\
+        \dot x_3 &= -x_3 + 0.5 x_4 - 0.1 x_1^2, & \dot x_4 &= -0.5 x_3 - x_4, \\
+        \dot x_5 &= -x_5 + 0.5 x_6 + 0.1 x_7^2, & \dot x_6 &= -0.5 x_5 - x_6, \\
+        \dot x_7 &= -x_7 + 0.5 x_8, & \dot x_8 &= -0.5 x_7 - x_8, \\
+        \dot x_9 &= -x_9 + 0.5 x_{10}, & \dot x_{10} &= -0.5 x_9 - x_{10} + 0.1 x_2^2.
+
+    Five 2-D subsystems ``(x1, x2), …, (x9, x10)`` coupled by the quadratic terms. The
+    equations and the domain are those of the 10-D example of the LyZNet toolbox (file
+    ``examples/hscc24/ex4a_10d_system_monolith_domain_1.py`` of its repository; Liu, Meng,
+    Fitzsimmons & Zhou, "LyZNet: a lightweight Python tool for learning and verifying
+    neural Lyapunov functions and regions of attraction", HSCC 2024), whose compositional
+    variant (``ex4b_10d_system_vector``) uses the same five subsystems; LyZNet's other
+    examples use the domains :math:`[-4, 4]^{10}` and :math:`[-10, 10]^{10}`
+    (``radius``).
+    """
+    x = ca.SX.sym("x", 10)
+    return System(
+        "lyznet_10d", x, None, ca.vertcat(*_lyznet_block(x)),
+        state_box=[[-radius, radius]] * 10,
+        params={"radius": radius},
+        state_names=[f"x{i + 1}" for i in range(10)],
+        description="LyZNet 10-D interconnected system (5 coupled oscillators)",
+        subsystems=[(2 * k, 2 * k + 1) for k in range(5)],
+    )
+
+
+def lyznet_chain(blocks: int = 2, link: float = 0.1, radius: float = 1.0) -> System:
+    r"""A chain of ``blocks`` copies of :func:`lyznet_10d` (``10·blocks`` states, no input).
+
+    Block ``b`` (states ``x_{10b+1} … x_{10b+10}``) has the equations of
+    :func:`lyznet_10d`; for ``b ≥ 1`` its ``x_{10b+7}`` equation also receives
+    ``link · x_{10(b-1)+1}²`` from the previous block (with ``link = 0`` the blocks are
+    decoupled, as in LyZNet's ``20d_system`` example). The domain is
+    :math:`[-\text{radius}, \text{radius}]^{10·\text{blocks}}`; the subsystems are the
+    ``5·blocks`` oscillators.
+    """
+    blocks = int(blocks)
+    if blocks < 1:
+        raise ValueError(f"lyznet_chain needs blocks >= 1, got {blocks}")
+    n = 10 * blocks
+    x = ca.SX.sym("x", n)
+    f = []
+    for b in range(blocks):
+        xb = x[10 * b:10 * b + 10]
+        f += _lyznet_block(xb, None if b == 0 else link * x[10 * (b - 1)] ** 2)
+    return System(
+        "lyznet_chain", x, None, ca.vertcat(*f),
+        state_box=[[-radius, radius]] * n,
+        params={"blocks": blocks, "link": link, "radius": radius},
+        state_names=[f"x{i + 1}" for i in range(n)],
+        description=f"chain of {blocks} LyZNet 10-D blocks ({n} states)",
+        subsystems=[(2 * k, 2 * k + 1) for k in range(5 * blocks)],
     )

@@ -11,6 +11,7 @@ A spec file gives a system in one of three ways: the right-hand side as expressi
     input_box = [[-20, 20]]
     u_eq = [0.0]                        # optional for expressions (solved), else required
     known = ["theta"]                   # states whose derivative is known exactly
+    # subsystems = [["x1", "x2"], ["x3", "x4"]]  # an interconnected system's parts (no inputs)
 
     [parameters]                        # numbers, or expressions of earlier parameters
     m = 0.15
@@ -87,7 +88,7 @@ CONSTANTS = {"pi": sympy.pi}
 #: keys of a spec file: top level and tables
 SPEC_KEYS = {
     "": {"name", "description", "states", "inputs", "state_box", "input_box", "u_eq", "known",
-         "parameters", "rhs", "samples", "factory", "declared", "run"},
+         "parameters", "rhs", "samples", "factory", "declared", "run", "subsystems"},
     "samples": {"file", "columns"},
     "declared": {"lipschitz", "hessian", "input_matrix", "sample_error", "depends_on"},
 }
@@ -487,6 +488,28 @@ def _names(path, spec: dict, key: str, required: bool) -> list[str]:
     return v
 
 
+def _subsystems(path, spec: dict, states: list[str]) -> list[tuple[int, ...]] | None:
+    """The state indices of each subsystem named in ``subsystems`` (None: not given)."""
+    v = spec.get("subsystems")
+    if v is None:
+        return None
+    if not isinstance(v, list) or not v or not all(
+            isinstance(g, list) and g and all(isinstance(n, str) for n in g) for g in v):
+        raise _err(path, "subsystems", f"must be a list of lists of state names, e.g. "
+                   f"[[\"{states[0]}\"], ...], got {v!r}")
+    for g in v:
+        for n in g:
+            if n not in states:
+                raise _err(path, "subsystems", f"{n!r} is not a state{_did_you_mean(n, states)}")
+    flat = [n for g in v for n in g]
+    if sorted(flat) != sorted(states) or len(set(flat)) != len(flat):
+        missing = [n for n in states if n not in flat]
+        twice = sorted({n for n in flat if flat.count(n) > 1})
+        raise _err(path, "subsystems", "every state must be in exactly one subsystem ("
+                   + (f"missing: {missing}" if missing else f"twice: {twice}") + ")")
+    return [tuple(states.index(n) for n in g) for g in v]
+
+
 def _box(path, spec: dict, key: str, n: int, required: bool):
     v = spec.get(key)
     if v is None:
@@ -789,10 +812,15 @@ def _load_spec(path: Path, spec: dict) -> System:
         if missing:
             raise _err(path, "rhs", f"no expression for {missing}; give one per state")
         f = ca.vertcat(*[rhs[i] for i in range(nx)])
+        parts = _subsystems(path, spec, states)
+        if parts is not None and nu:
+            raise _err(path, "subsystems", "a compositional certificate is for systems "
+                       "without inputs; close the loop in [rhs] or remove subsystems")
         try:
             return _quick_check(System(
                 name, xs, us, f, state_box=xbox, input_box=ubox, u_eq=u_eq,
-                known_state_derivatives=[states.index(k) for k in known], **common), path)
+                known_state_derivatives=[states.index(k) for k in known], subsystems=parts,
+                **common), path)
         except ConfigError as exc:
             msg = str(exc)
             raise (exc if msg.startswith(str(path)) else _err(path, "", msg)) from None
@@ -802,6 +830,9 @@ def _load_spec(path: Path, spec: dict) -> System:
         raise _err(path, "", "give the dynamics in exactly one way: [rhs] expressions, a "
                    "[samples] file, or factory = \"module:function\"")
     # ---- samples
+    if "subsystems" in spec:
+        raise _err(path, "subsystems", "a compositional certificate is about the model f: "
+                   "give f as [rhs] expressions, or remove subsystems")
     smp = spec["samples"]
     if not isinstance(smp, dict):
         raise _err(path, "samples", "must be a table with 'file' (and optional 'columns')")

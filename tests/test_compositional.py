@@ -1,0 +1,347 @@
+"""Compositional certificates (:mod:`nlyap_opt.compositional`): the mathematics on examples
+with known answers, soundness on samples, the re-check, refusals and the command line."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from fractions import Fraction
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import systems
+from nlyap_opt.certificate import CertStatus
+from nlyap_opt.cli import main
+from nlyap_opt.compositional import (
+    FORMAT,
+    _inverse_diagonal,
+    _positive_definite,
+    certify_compositional,
+    check_compositional,
+    recheck_compositional,
+    save_compositional,
+)
+from nlyap_opt.errors import ConfigError
+
+QUIET = {"log": lambda m: None}
+
+
+def _pair(k: float, box: float = 1.0) -> systems.System:
+    """ẋ₁ = -x₁ + k x₂, ẋ₂ = -x₂ + k x₁: two scalar subsystems, eigenvalues -1 ± k."""
+    x = ca.SX.sym("x", 2)
+    return systems.System("linear_pair", x, None, ca.vertcat(-x[0] + k * x[1], -x[1] + k * x[0]),
+                          state_box=[[-box, box]] * 2, subsystems=[(0,), (1,)])
+
+
+def _vdot(system, cert, X):
+    F = system.evaluate(X)
+    out = np.zeros(len(X))
+    for w, p in zip(cert.weights, cert.pieces):
+        xi, fi = X[:, list(p.states)], F[:, list(p.states)]
+        out += 2 * w * np.einsum("ni,ij,nj->n", xi, np.asarray(p.P), fi)
+    return out
+
+
+def _points_in(cert, n, rng):
+    """Points of {V ≤ c}: random directions scaled to random fractions of the level set."""
+    d = cert.domain_box.shape[0]
+    X = rng.normal(size=(n, d))
+    X *= np.sqrt(cert.level / cert.V(X))[:, None] * rng.uniform(0, 1, (n, 1)) ** (1 / d)
+    return X
+
+
+# ============================================================================ exact algebra
+def test_exact_positive_definiteness_and_inverse_diagonal_agree_with_numpy(rng):
+    for _ in range(200):
+        n = int(rng.integers(1, 6))
+        A = rng.normal(size=(n, n))
+        S = A + A.T + rng.uniform(-3, 3) * np.eye(n)
+        Q = [[Fraction(v) for v in row] for row in S]
+        lam = np.linalg.eigvalsh(S)
+        if abs(lam).min() > 1e-9:   # away from the boundary float64 decides the same
+            assert _positive_definite(Q) == (lam.min() > 0)
+        if lam.min() > 1e-6:
+            inv = _inverse_diagonal(Q)
+            np.testing.assert_allclose([float(v) for v in inv], np.diag(np.linalg.inv(S)),
+                                       rtol=1e-9)
+    # a singular PSD matrix is not positive definite (exact, no tolerance)
+    assert not _positive_definite([[Fraction(1), Fraction(1)], [Fraction(1), Fraction(1)]])
+
+
+# ============================================================================ known answers
+@pytest.mark.parametrize("k", [0.3, 0.6, 0.9])
+def test_linear_pair_certifies_below_the_small_gain_bound(k):
+    """Scalar V_i = x_i²/2: the local test gives α ≤ 2, β ≥ k²/(2-α) and the comparison
+    matrix [[-α, β], [β, -α]] is Hurwitz iff α(2-α) > k²: feasible exactly for |k| < 1."""
+    s = _pair(k)
+    cert = certify_compositional(s, **QUIET)
+    assert cert.certified, cert.reason
+    a, b = cert.pieces
+    for p in (a, b):
+        assert 0 < p.alpha < 2 and p.beta[0] >= k * k / (2 - p.alpha)  # the local test's limit
+    assert a.alpha * b.alpha > a.beta[0] * b.beta[0]     # the 2x2 Metzler matrix is Hurwitz
+    # no quadratic V decreases faster than twice the slowest eigenvalue's rate
+    assert 0 < cert.decay <= 2 * (1 - k) + 1e-12
+    # the region is a sublevel set inside the box, and the decrease holds on it
+    X = _points_in(cert, 2000, np.random.default_rng(1))
+    assert np.all(np.abs(X) <= 1.0)
+    assert np.all(_vdot(s, cert, X) <= -cert.decay * cert.V(X) + 1e-12)
+
+
+@pytest.mark.parametrize("k", [1.0, 1.2, 3.0])
+def test_linear_pair_with_too_strong_coupling_is_not_certified(k):
+    """k ≥ 1: the small-gain condition fails (k > 1: the origin is unstable)."""
+    cert = certify_compositional(_pair(k), **QUIET)
+    assert cert.status is CertStatus.NOT_CERTIFIED
+    assert "too strong" in cert.reason or "not proved" in cert.reason
+    assert not cert.contains(np.zeros((1, 2))).any()
+
+
+def test_lyznet_10d_on_its_domain_is_certified_and_decreases_on_samples():
+    s = systems.get("lyznet_10d")
+    assert s.nx == 10 and np.array_equal(s.state_box, [[-1.0, 1.0]] * 10)
+    t0 = time.perf_counter()
+    cert = certify_compositional(s, **QUIET)
+    assert cert.certified, cert.reason
+    assert time.perf_counter() - t0 < 60
+    assert set(cert.checks) == {"structure", "equilibrium", "positive definite", "local",
+                                "comparison", "level"}
+    # the neighbours are the published couplings: x9 → x1, x1 → x3, x7 → x5, x2 → x10
+    assert [p.neighbours for p in cert.pieces] == [(4,), (0,), (3,), (), (0,)]
+    X = _points_in(cert, 20000, np.random.default_rng(0))
+    assert np.all(np.abs(X) <= 1.0)
+    assert np.all(_vdot(s, cert, X) <= -cert.decay * cert.V(X))
+    # the level is the largest the inclusion in D allows (up to float rounding): touching
+    # the box along some state
+    ext = [np.sqrt(cert.level / w * np.diag(np.linalg.inv(p.P))).max()
+           for w, p in zip(cert.weights, cert.pieces)]
+    assert max(ext) == pytest.approx(1.0, rel=1e-9) and max(ext) <= 1.0
+
+
+def test_lyznet_system_on_a_large_box_is_not_certified():
+    """On [-10, 10]^10 the quadratic couplings dominate: nothing is claimed."""
+    cert = certify_compositional(systems.get("lyznet_10d", radius=10.0), **QUIET)
+    assert cert.status is CertStatus.NOT_CERTIFIED and cert.level == 0.0
+
+
+def test_lyznet_chain_blocks_are_coupled_and_certified():
+    s = systems.get("lyznet_chain")
+    assert s.nx == 20 and len(s.subsystems) == 10
+    f = ca.Function("f", [s.x], [s.f])
+    e = np.zeros(20)
+    e[0] = 1.0      # x1 of block 1 drives x7 of block 2 through link · x1²
+    assert float(f(e)[16]) == pytest.approx(0.1)
+    cert = certify_compositional(s, **QUIET)
+    assert cert.certified, cert.reason
+    assert cert.pieces[8].neighbours == (0,)
+    X = _points_in(cert, 5000, np.random.default_rng(2))
+    assert np.all(_vdot(s, cert, X) <= -cert.decay * cert.V(X))
+
+
+# ============================================================================ refusals
+def test_systems_that_do_not_admit_the_method_are_refused():
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    with_input = systems.System("with_u", x, u, ca.vertcat(-x[0] + u, -x[1]),
+                                state_box=[[-1, 1]] * 2, input_box=[[-1, 1]],
+                                subsystems=[(0,), (1,)])
+    with pytest.raises(ConfigError, match="without inputs"):
+        certify_compositional(with_input, **QUIET)
+    with pytest.raises(ConfigError, match="declares no subsystems"):
+        certify_compositional(systems.get("van_der_pol"), **QUIET)
+    off = systems.System("off", x, None, ca.vertcat(-x[0], -x[1]),
+                         state_box=[[0.5, 1], [-1, 1]], subsystems=[(0,), (1,)])
+    with pytest.raises(ConfigError, match="origin inside"):
+        certify_compositional(off, **QUIET)
+    with pytest.raises(ConfigError, match="each index once"):
+        systems.System("bad", x, None, ca.vertcat(-x[0], -x[1]), state_box=[[-1, 1]] * 2,
+                       subsystems=[(0,), (0, 1)])
+
+
+def test_non_smooth_or_shifted_systems_are_not_certified():
+    x = ca.SX.sym("x", 2)
+    kink = systems.System("kink", x, None, ca.vertcat(-x[0] + 0.1 * ca.fabs(x[1]), -x[1]),
+                          state_box=[[-1, 1]] * 2, subsystems=[(0,), (1,)])
+    cert = certify_compositional(kink, **QUIET)
+    assert not cert.certified and "non-smooth" in cert.reason
+    shifted = systems.System("shifted", x, None, ca.vertcat(-x[0] + 1e-12, -x[1]),
+                             state_box=[[-1, 1]] * 2, subsystems=[(0,), (1,)])
+    cert = certify_compositional(shifted, **QUIET)
+    assert not cert.certified and "not an equilibrium" in cert.reason
+
+
+# ============================================================================ re-check
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    s = systems.get("lyznet_10d")
+    cert = certify_compositional(s, **QUIET)
+    out = tmp_path_factory.mktemp("comp")
+    save_compositional(cert, s, out)
+    return out, cert
+
+
+def _edited(tmp_path, saved, edit):
+    d = json.loads((saved[0] / "certificate.json").read_text())
+    edit(d)
+    (tmp_path / "certificate.json").write_text(json.dumps(d))
+    return tmp_path
+
+
+def test_recheck_of_a_saved_certificate(saved):
+    out, cert = saved
+    d = json.loads((out / "certificate.json").read_text())
+    assert d["format"] == FORMAT and "seconds" not in d and d["assumptions"]
+    again = recheck_compositional(out)
+    assert again.certified and again.level == cert.level and again.decay == cert.decay
+
+
+@pytest.mark.parametrize("edit,words", [
+    (lambda d: d.update(level=d["level"] * 1.01), "leaves the box"),
+    (lambda d: d.update(decay=d["decay"] * 1.5), "comparison system"),
+    (lambda d: d["subsystems"][0]["beta"].__setitem__(0, d["subsystems"][0]["beta"][0] / 2),
+     "not proved on its box"),
+    (lambda d: d["subsystems"][1].update(alpha=d["subsystems"][1]["alpha"] * 1.2),
+     "not proved on its box"),
+    (lambda d: d["subsystems"][2].update(P=[[1.0, 2.0], [2.0, 1.0]]), "positive definite"),
+    (lambda d: d["subsystems"][3].update(neighbours=[]) or d["subsystems"][0].update(
+        neighbours=[], beta=[]), "neighbours"),
+    (lambda d: d["weights"].__setitem__(0, -1.0), "positive"),
+    (lambda d: d.update(assumptions=d["assumptions"][:1]), "assumptions"),
+    (lambda d: d.update(status="not certified"), "does not claim"),
+    (lambda d: d["subsystems"][0].update(P=[1.0, 0.0]), "wrong shape"),
+    (lambda d: d.update(level=float("inf")), "not finite"),
+])
+def test_recheck_refuses_an_edited_certificate(tmp_path, saved, edit, words):
+    cert = recheck_compositional(_edited(tmp_path, saved, edit))
+    assert cert.status is CertStatus.NOT_CERTIFIED
+    assert words in cert.reason, cert.reason
+
+
+@pytest.mark.parametrize("edit,words", [
+    (lambda d: d.update(version=99), "version"),
+    (lambda d: d.update(extra=1), "does not know"),
+    (lambda d: d.pop("weights"), "malformed"),
+    (lambda d: d["subsystems"][0].update(P="I"), "malformed"),
+    (lambda d: d.update(weights=[d["weights"]]), "malformed"),
+    (lambda d: d.update(system=7), "'system' is missing"),
+])
+def test_recheck_fails_closed_on_unknown_or_malformed_files(tmp_path, saved, edit, words):
+    with pytest.raises(ConfigError, match=words):
+        recheck_compositional(_edited(tmp_path, saved, edit))
+
+
+def test_recheck_against_another_system_is_refused(saved):
+    other = systems.get("lyznet_10d", radius=0.5)
+    cert = recheck_compositional(saved[0], system=other)
+    assert not cert.certified and "not the certified system" in cert.reason
+    # the numbers alone, for a system whose box is smaller: still exact (the level check
+    # is about the certificate's own box)
+    ok, checks, why = check_compositional(other, saved[1].pieces, saved[1].weights,
+                                          saved[1].level, saved[1].decay)
+    assert not ok and "level" in checks and "leaves the box" in why
+
+
+# ============================================================================ command line
+def test_cli_run_and_verify(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", "lyznet_10d", "--known-dynamics", "--out", str(out)]) == 0
+    assert "certified: level" in capsys.readouterr().out
+    assert main(["verify", "--certificate", str(out)]) == 0
+    assert capsys.readouterr().out.startswith("certified")
+    assert main(["verify", "--certificate", str(out), "--system", "lyznet_10d"]) == 0
+    assert main(["verify", "--certificate", str(out), "--system", "lyznet_chain"]) == 2
+    # the same input gives the same certificate bit for bit (timings live beside it)
+    again = tmp_path / "again"
+    assert main(["run", "lyznet_10d", "--known-dynamics", "--out", str(again)]) == 0
+    assert (again / "certificate.json").read_bytes() == (out / "certificate.json").read_bytes()
+    assert (again / "timings.json").exists()
+    d = json.loads((out / "certificate.json").read_text())
+    d["level"] *= 2
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "certificate.json").write_text(json.dumps(d))
+    assert main(["verify", "--certificate", str(tmp_path / "bad")]) == 2
+
+
+@pytest.mark.parametrize("argv,words", [
+    (["run", "lyznet_10d"], "add --known-dynamics"),
+    (["run", "lyznet_chain", "--known-dynamics", "--seeds", "2"], "drop --seeds"),
+    (["run", "lyznet_chain", "--known-dynamics", "--preset", "fast"], "drop --preset"),
+])
+def test_cli_refusals_are_one_line_exit_3(tmp_path, capsys, argv, words):
+    assert main(argv + ["--out", str(tmp_path / "o")]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0] and "Traceback" not in err[0]
+
+
+def test_neural_tools_refuse_a_compositional_certificate(saved, capsys):
+    from nlyap_opt.certificate import recheck_run
+
+    with pytest.raises(ConfigError, match="compositional certificate"):
+        recheck_run(saved[0])
+
+
+SPEC = """
+name = "two_oscillators"
+states = ["a1", "a2", "b1", "b2"]
+state_box = [[-1, 1], [-1, 1], [-1, 1], [-1, 1]]
+subsystems = [["a1", "a2"], ["b1", "b2"]]
+
+[rhs]
+a1 = "-a1 + 0.5*a2 + 0.2*b1^2"
+a2 = "-0.5*a1 - a2"
+b1 = "-b1 + b2"
+b2 = "-b1 - b2 + 0.3*sin(a2)"
+"""
+
+
+def test_spec_file_with_subsystems_runs_and_rechecks(tmp_path, capsys):
+    spec = tmp_path / "osc.toml"
+    spec.write_text(SPEC)
+    s = systems.load_spec(spec)
+    assert s.subsystems == ((0, 1), (2, 3))
+    assert s.summary()["subsystems"] == [["a1", "a2"], ["b1", "b2"]]
+    out = tmp_path / "out"
+    assert main(["run", str(spec), "--known-dynamics", "--out", str(out)]) == 0
+    assert main(["verify", "--certificate", str(out)]) == 0     # the spec named inside
+    spec.write_text(SPEC.replace("0.3*sin", "0.31*sin"))
+    assert main(["verify", "--certificate", str(out)]) == 2     # f changed: refused
+    assert "not the certified system" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("edit,words", [
+    (lambda t: t.replace('["b1", "b2"]]', '["b1"]]'), "missing: ['b2']"),
+    (lambda t: t.replace('["b1", "b2"]]', '["b1", "b2", "a1"]]'), "twice: ['a1']"),
+    (lambda t: t.replace('["b1", "b2"]]', '["b1", "c2"]]'), "'c2' is not a state"),
+    (lambda t: t.replace('subsystems = [["a1", "a2"], ["b1", "b2"]]', 'subsystems = "a1"'),
+     "list of lists"),
+    (lambda t: t.replace('states = ["a1", "a2", "b1", "b2"]',
+                         'states = ["a1", "a2", "b1", "b2"]\ninputs = ["u"]\n'
+                         'input_box = [[-1, 1]]'), "without inputs"),
+])
+def test_spec_file_subsystem_errors_are_one_line(tmp_path, capsys, edit, words):
+    spec = tmp_path / "osc.toml"
+    spec.write_text(edit(SPEC))
+    assert main(["run", str(spec), "--known-dynamics", "--out", str(tmp_path / "o")]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+
+
+@pytest.mark.slow
+def test_end_to_end_20d_chain_from_a_fresh_process(tmp_path):
+    """`nlyap run lyznet_chain --known-dynamics` then `nlyap verify --certificate`, each in a
+    fresh interpreter, within the 10-minute budget of the acceptance test."""
+    out = tmp_path / "chain"
+    t0 = time.perf_counter()
+    run = subprocess.run([sys.executable, "-m", "nlyap_opt.cli", "run", "lyznet_chain",
+                          "--known-dynamics", "--out", str(out)], capture_output=True,
+                         text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    chk = subprocess.run([sys.executable, "-m", "nlyap_opt.cli", "verify", "--certificate",
+                          str(out)], capture_output=True, text=True, timeout=600)
+    assert chk.returncode == 0 and chk.stdout.startswith("certified"), chk.stderr
+    assert time.perf_counter() - t0 < 600
+    d = json.loads((out / "certificate.json").read_text())
+    assert len(d["subsystems"]) == 10 and len(d["domain_box"]) == 20

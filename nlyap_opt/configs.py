@@ -882,7 +882,7 @@ def validate_config(cfg: Mapping, system: str, *, where: str = "run config") -> 
     _check_start(rc, s, where)
     _check_cegis(rc, where)
     _check_controller(rc, s, where)
-    _check_dynamics(data.get("dynamics", {}), system, where)
+    _check_dynamics(rc.dynamics.to_json(), system, where)
     return cfg
 
 

@@ -122,9 +122,12 @@ class PortfolioResult:
         }
 
 
-def seed_config(cfg: dict, seed: int) -> dict:
-    """A copy of the run configuration ``cfg`` with ``train.seed = cegis.seed = seed``."""
-    out = copy.deepcopy(cfg)
+def seed_config(cfg, seed: int) -> dict:
+    """A copy of the run configuration ``cfg`` (a ``RunConfig`` or its JSON) with
+    ``train.seed = cegis.seed = seed``, as JSON."""
+    from .configs import Section
+
+    out = cfg.to_json() if isinstance(cfg, Section) else copy.deepcopy(cfg)
     for section in ("train", "cegis"):
         sec = out.get(section)
         out[section] = dict(sec) if isinstance(sec, dict) else {}

@@ -59,7 +59,7 @@ from numbers import Integral, Real
 from pathlib import Path
 from typing import Any
 
-from .errors import ConfigError, NlyapError, UnknownNameError
+from .errors import ConfigError, UnknownNameError
 from .jsonio import read_json_object
 
 __all__ = [
@@ -1119,9 +1119,11 @@ def _check_dynamics(dyn, system: str, where: str) -> None:
 
 
 # ============================================================================ the config object
-class UndeclaredKeyError(NlyapError, RuntimeError):
-    """A stage read a configuration key it does not declare (a bug of the stage: its
-    stage key would not cover that key, and a changed value would leave it stale)."""
+class UndeclaredKeyError(RuntimeError):
+    """A stage read a configuration key it does not declare: a bug of the program, not of
+    the input (its stage key would not cover that key, and a changed value would leave the
+    stage stale), so it is no :class:`~nlyap_opt.errors.NlyapError` and ``nlyap`` exits
+    with code 4."""
 
 
 def _section_paths() -> frozenset[str]:

@@ -174,3 +174,15 @@ def test_orchestration_functions_stay_small():
     res = subprocess.run([ruff, "check", "--select", "C901,PLR0915", "nlyap_opt/pipeline.py",
                           "nlyap_opt/configs.py"], cwd=ROOT, capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_an_undeclared_read_is_an_internal_error_not_an_input_error(monkeypatch, tmp_path,
+                                                                     capsys):
+    """A stage that reads an undeclared key is a bug of the program: exit 4, not 3."""
+    from nlyap_opt.cli import main
+
+    monkeypatch.setitem(pipeline._STAGE_FIELDS, "controller", ("lqr",))
+    code = main(["run", "inverted_pendulum", "--preset", "fast", "--known-dynamics",
+                 "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert code == 4 and "UndeclaredKeyError" in err and "controller_scale" in err

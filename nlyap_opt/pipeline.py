@@ -20,8 +20,10 @@ configuration loads finished stages instead of recomputing them):
    areas, the check of the *same* V and κ against the true f (a benchmark, reported
    separately); ``report.md`` and ``roa.png``.
 
-Nothing on disk is trusted without a check: ``stages.json`` records, per stage, the hash of
-the configuration it read and the sha256 of every file it wrote; a stage whose files changed
+Each stage declares the configuration keys it reads (:data:`_STAGE_FIELDS`) and reads the
+:class:`~nlyap_opt.configs.RunConfig` only through the view of those keys, which refuses any
+other. Nothing on disk is trusted without a check: ``stages.json`` records, per stage, the
+hash of those keys' values and the sha256 of every file it wrote; a stage whose files changed
 (or whose record is unreadable) is recomputed, saying so, and so is every stage built on it.
 Files are written atomically, so an interrupted run resumes from its finished stages. A lock
 file keeps a second concurrent run out of the same directory.

@@ -521,7 +521,7 @@ def cmd_verify(args) -> int:
     return {"verified": 0, "counterexample": 1}.get(res.status, 2)
 
 
-def _run_config(args, learned: bool) -> dict:
+def _run_config(args, learned: bool):
     from .configs import PRESETS, check_dynamics_box, make_config
 
     preset = args.preset
@@ -605,7 +605,7 @@ def cmd_config(args) -> int:
     if args.system is None:
         raise UsageError("config needs a system name (or --keys); see 'nlyap config --help'")
     cfg = _run_config(args, learned=False)
-    print(json.dumps(cfg, indent=1, allow_nan=False))
+    print(json.dumps(cfg.to_json(), indent=1, allow_nan=False))
     return 0
 
 

@@ -1,6 +1,8 @@
 """Run configurations: presets of the seed systems and one validated schema for all of them.
 
-A run configuration is a nested dict (JSON object). Presets: ``paper`` (the paper's discs),
+A run configuration is a JSON object, held as a :class:`RunConfig` (a frozen tree of
+:class:`Section` objects with typed attribute access and the schema's defaults; it reads
+like the JSON mapping and writes back the same JSON). Presets: ``paper`` (the paper's discs),
 ``large`` (aim at the whole true ROA) and ``fast`` (coarse, for the test suite).
 :func:`make_config` (the one-shot public entry) and :func:`get_config` (the command line's)
 merge a JSON file and a dict of overrides over a preset and validate the result **before**
@@ -32,8 +34,8 @@ every error is a :class:`~nlyap_opt.errors.ConfigError` naming the key.
 Examples
 --------
 >>> cfg = make_config("van_der_pol", "fast", overrides={"train": {"steps": 50}})
->>> cfg["train"]["steps"], cfg["outer"]
-(50, 1.0)
+>>> cfg.train.steps, cfg.outer, cfg.cegis.margin_mode
+(50, 1.0, 'pointwise')
 >>> make_config("van_der_pol", "fast", overrides={"train": {"stpes": 50}})
 Traceback (most recent call last):
 ...
@@ -51,17 +53,19 @@ import math
 import types
 import typing
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 from numbers import Integral, Real
 from pathlib import Path
+from typing import Any
 
 from .errors import ConfigError, UnknownNameError
 from .jsonio import read_json_object
 
 __all__ = [
-    "DEFAULT_CEGIS", "DEFAULT_TRAIN", "PRESETS", "Key", "check_dynamics_box", "check_lqr_weights",
-    "config_reference", "get_config", "make_config", "read_json_object", "schema",
-    "validate_config",
+    "DEFAULT_CEGIS", "DEFAULT_TRAIN", "PRESETS", "Key", "RunConfig", "Section",
+    "UndeclaredKeyError", "check_dynamics_box", "check_lqr_weights", "config_reference",
+    "get_config", "make_config", "read_json_object", "schema", "validate_config",
 ]
 
 
@@ -703,66 +707,82 @@ def _in_range(key: Key, v) -> bool:
 
 
 def _check_value(key: Key, v, where: str) -> None:
-    def bad():
-        raise ConfigError(f"{where}: {key.name} must be {key.describe()}, got {_show(v)}; "
-                          "correct that value")
-
+    """Refuse a value ``v`` that ``key`` does not accept (one line naming the key, what it
+    accepts and what came)."""
     if v is None:
         if not key.optional:
-            bad()
+            _bad(key, v, where)
         return
-    k = key.kind
-    if k == "any":
-        return
-    if k == "bool":
-        if not isinstance(v, bool):
-            bad()
-    elif k == "str":
-        if not isinstance(v, str) or (key.choices and v not in key.choices):
-            if isinstance(v, str) and key.choices:
-                close = difflib.get_close_matches(v, key.choices, n=1)
-                hint = f"; did you mean {close[0]!r}?" if close else ""
-                raise ConfigError(f"{where}: {key.name} must be {key.describe()}, "
-                                  f"got {v!r}{hint}")
-            bad()
-    elif k == "int":
-        if not _is_int(v) or not _in_range(key, v) or (key.choices and v not in key.choices):
-            bad()
-    elif k == "float":
-        if not _is_real(v) or not math.isfinite(v) or not _in_range(key, v):
-            bad()
-    elif k == "scale":
-        vals = v if isinstance(v, (list, tuple)) else [v]
-        if not vals or not all(_is_real(a) and math.isfinite(a) and _in_range(key, a)
-                               for a in vals):
-            bad()
-    elif k == "str_list":
-        if not isinstance(v, (list, tuple)) or not all(isinstance(h, str) for h in v):
-            bad()
-        for h in v:
-            if h not in key.choices:
-                close = difflib.get_close_matches(h, key.choices, n=1)
-                hint = f"; did you mean {close[0]!r}?" if close else ""
-                raise ConfigError(f"{where}: {key.name} must be {key.describe()}, "
-                                  f"got {h!r} in it{hint}")
-        if len(set(v)) != len(v):
-            raise ConfigError(f"{where}: {key.name} lists a name twice ({_show(v)}); list "
-                              "each candidate once")
-    elif k == "int_list":
-        if not isinstance(v, (list, tuple)) or not v or \
-                not all(_is_int(h) and _in_range(key, h) for h in v):
-            bad()
-    elif k in ("dict", "section", "set"):
-        if not isinstance(v, dict):
-            bad()
-    elif k == "box":
-        ok = isinstance(v, (list, tuple)) and v and all(
-            isinstance(r, (list, tuple)) and len(r) == 2 and all(_is_real(a) for a in r)
-            and math.isfinite(r[0]) and math.isfinite(r[1]) and r[0] < r[1] for r in v)
-        if not ok:
-            bad()
-    elif k == "matrix":
-        _matrix(key, v, where)
+    check = _KIND_CHECKS.get(key.kind)
+    if check is not None and not check(key, v, where):
+        _bad(key, v, where)
+
+
+def _bad(key: Key, v, where: str):
+    raise ConfigError(f"{where}: {key.name} must be {key.describe()}, got {_show(v)}; "
+                      "correct that value")
+
+
+def _suggest(key: Key, v: str, where: str, what: str):
+    close = difflib.get_close_matches(v, key.choices, n=1)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    raise ConfigError(f"{where}: {key.name} must be {key.describe()}, got {v!r}{what}{hint}")
+
+
+def _ok_str(key: Key, v, where: str) -> bool:
+    if isinstance(v, str) and key.choices and v not in key.choices:
+        _suggest(key, v, where, "")
+    return isinstance(v, str)
+
+
+def _ok_int(key: Key, v, where: str) -> bool:
+    return _is_int(v) and _in_range(key, v) and (not key.choices or v in key.choices)
+
+
+def _ok_float(key: Key, v, where: str) -> bool:
+    return _is_real(v) and math.isfinite(v) and _in_range(key, v)
+
+
+def _ok_scale(key: Key, v, where: str) -> bool:
+    vals = v if isinstance(v, (list, tuple)) else [v]
+    return bool(vals) and all(_ok_float(key, a, where) for a in vals)
+
+
+def _ok_str_list(key: Key, v, where: str) -> bool:
+    if not isinstance(v, (list, tuple)) or not all(isinstance(h, str) for h in v):
+        return False
+    for h in v:
+        if h not in key.choices:
+            _suggest(key, h, where, " in it")
+    if len(set(v)) != len(v):
+        raise ConfigError(f"{where}: {key.name} lists a name twice ({_show(v)}); list "
+                          "each candidate once")
+    return True
+
+
+def _ok_int_list(key: Key, v, where: str) -> bool:
+    return isinstance(v, (list, tuple)) and bool(v) and \
+        all(_is_int(h) and _in_range(key, h) for h in v)
+
+
+def _ok_box(key: Key, v, where: str) -> bool:
+    return isinstance(v, (list, tuple)) and bool(v) and all(
+        isinstance(r, (list, tuple)) and len(r) == 2 and all(_is_real(a) for a in r)
+        and math.isfinite(r[0]) and math.isfinite(r[1]) and r[0] < r[1] for r in v)
+
+
+def _ok_matrix(key: Key, v, where: str) -> bool:
+    _matrix(key, v, where)
+    return True
+
+
+#: the check of each kind of :class:`Key` (``"any"``: every value)
+_KIND_CHECKS = {
+    "bool": lambda key, v, where: isinstance(v, bool), "str": _ok_str, "int": _ok_int,
+    "float": _ok_float, "scale": _ok_scale, "str_list": _ok_str_list,
+    "int_list": _ok_int_list, "box": _ok_box, "matrix": _ok_matrix,
+    **dict.fromkeys(("dict", "section", "set"), lambda key, v, where: isinstance(v, dict)),
+}
 
 
 def _matrix(key: Key, v, where: str):
@@ -827,12 +847,12 @@ def _check_keys(cfg: dict, where: str) -> None:
                                            sch["cegis.verify_options"], where, sch)
 
 
-def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dict:
+def validate_config(cfg: Mapping, system: str, *, where: str = "run config") -> Mapping:
     """Check a complete run configuration of ``system``; return it unchanged.
 
     Parameters
     ----------
-    cfg : dict
+    cfg : dict or RunConfig
         Every key of the top level (sections may be partial: the dataclass defaults fill
         them).
     system : str
@@ -843,7 +863,7 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
 
     Returns
     -------
-    dict
+    dict or RunConfig
         ``cfg``.
 
     Raises
@@ -851,39 +871,53 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
     ConfigError
         The first problem found, naming the key, what it accepts and what came.
     """
-
-    import numpy as np
-
     import systems
 
+    data = cfg.to_json() if isinstance(cfg, Section) else cfg
+    _check_keys(data, where)
+    rc = RunConfig._build("", data)
+    _check_values(rc, where)
+    s = systems.get(system)
+    _check_region(rc, s, where)
+    _check_start(rc, s, where)
+    _check_cegis(rc, where)
+    _check_controller(rc, s, where)
+    _check_dynamics(rc.dynamics.to_json(), system, where)
+    return cfg
+
+
+def _check_values(rc: RunConfig, where: str) -> None:
+    """The keys every run needs, and each given value against its :class:`Key`."""
     sch = schema()
-    _check_keys(cfg, where)
     for name in ("inner", "eval_box", "eval_points"):
-        if name not in cfg:
+        if name not in rc:
             raise ConfigError(f"{where}: missing key {name!r} ({_TOP_DOCS[name]}); add it")
-    if cfg.get("outer") is None and cfg.get("domain") is None:
+    if rc.outer is None and rc.domain is None:
         raise ConfigError(f"{where}: missing key 'outer' (the radius of the verification "
                           "ball) or 'domain' (a box, ellipsoid or ball); add one of them")
-    if cfg.get("outer") is not None and cfg.get("domain") is not None:
-        raise ConfigError(f"{where}: both 'outer' ({cfg['outer']}) and 'domain' are given; "
+    if rc.outer is not None and rc.domain is not None:
+        raise ConfigError(f"{where}: both 'outer' ({rc.outer}) and 'domain' are given; "
                           "the domain replaces the ball ‖x‖ ≤ outer: set outer to null or drop "
                           "the domain")
-    for name, v in cfg.items():
+    for name, v in rc.items():   # JSON values: a section as its object
         key = sch[""][name]
         _check_value(key, v, where)
         if key.kind == "section" and name in ("lqr", "train", "cegis", "sos"):
             for sub, sv in v.items():
                 _check_value(sch[name][sub], sv, where)
-    opts = cfg.get("cegis", {}).get("verify_options", {})
-    for opt, ov in opts.items():
+    for opt, ov in rc.cegis.verify_options.items():
         _check_value(sch["cegis.verify_options"][opt], ov, where)
 
-    s = systems.get(system)
-    inner, outer = cfg["inner"], cfg.get("outer")
+
+def _check_region(rc: RunConfig, s, where: str) -> None:
+    """``inner`` against ``outer`` or the domain; the initial set inside the domain."""
+    import numpy as np
+
+    inner, outer = rc.inner, rc.outer
     if outer is not None and not inner < outer:
         raise ConfigError(f"{where}: need 0 < inner < outer, got inner = {inner:g}, "
                           f"outer = {outer:g}; make inner smaller than outer")
-    D, XI = domain_of(cfg, s.nx, where)
+    D, XI = domain_of(rc, s.nx, where)
     if outer is None and not inner < D.inradius():
         raise ConfigError(f"{where}: the inner ball ‖x‖ < {inner:g} leaves the domain "
                           f"{D.describe()} (distance from 0 to its boundary "
@@ -893,50 +927,54 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
         raise ConfigError(f"{where}: the initial set {XI.describe()} leaves the bounding box "
                           f"of the domain {D.describe()}; shrink initial_set or enlarge the "
                           "domain")
-    tr = cfg.get("train", {})
-    init = tr.get("init", "random")
-    if init == "quadratic" and not cfg.get("quadratic"):
+
+
+def _check_start(rc: RunConfig, s, where: str) -> None:
+    """``train.init``: the certificate V starts at must be configured, and fit V's form."""
+    init = rc.train.init
+    if init == "quadratic" and not rc.quadratic:
         raise ConfigError(f"{where}: train.init 'quadratic' starts V at the best certified "
                           "quadratic, but no quadratic candidates are listed; set e.g. "
                           "quadratic: [\"lyapunov\", \"round\"] or init 'random'")
-    sos_degree = (cfg.get("sos") or {}).get("degree", 0)
-    if init == "sos" and not sos_degree:
+    if init == "sos" and not rc.sos.degree:
         raise ConfigError(f"{where}: train.init 'sos' starts V at the certified SOS V, but the "
                           "SOS stage is off; set sos: {\"degree\": 4} (or 2) or init 'random'")
     if init != "random":
         from .learning import check_start_architecture
 
         try:
-            check_start_architecture(init, s.nx, tr.get("activation", "tanh"),
-                                     tr.get("hidden", sch["train"]["hidden"].default),
-                                     tr.get("features", sch["train"]["features"].default),
-                                     sos_degree)
+            check_start_architecture(init, s.nx, rc.train.activation, rc.train.hidden,
+                                     rc.train.features, rc.sos.degree)
         except ConfigError as err:
             raise ConfigError(f"{where}: {err}") from None
-    cg = cfg.get("cegis", {})
-    it = cg.get("iterations", sch["cegis"]["iterations"].default)
-    if cg.get("min_iterations", 1) > it:
-        raise ConfigError(f"{where}: cegis.min_iterations ({cg['min_iterations']}) exceeds "
-                          f"cegis.iterations ({it}); lower it or raise iterations")
-    if 0 < cg.get("sim_points", 0) < 4:
-        raise ConfigError(f"{where}: cegis.sim_points must be 0 (no table) or >= 4, got "
-                          f"{cg['sim_points']}")
 
-    box = cfg["eval_box"]
-    if len(box) != s.nx:
-        raise ConfigError(f"{where}: eval_box has {len(box)} rows; {system} has {s.nx} states, "
-                          f"give one [lo, hi] row per state")
-    scale = cfg.get("controller_scale")
+
+def _check_cegis(rc: RunConfig, where: str) -> None:
+    cg = rc.cegis
+    if cg.min_iterations > cg.iterations:
+        raise ConfigError(f"{where}: cegis.min_iterations ({cg.min_iterations}) exceeds "
+                          f"cegis.iterations ({cg.iterations}); lower it or raise iterations")
+    if 0 < cg.sim_points < 4:
+        raise ConfigError(f"{where}: cegis.sim_points must be 0 (no table) or >= 4, got "
+                          f"{cg.sim_points}")
+
+
+def _check_controller(rc: RunConfig, s, where: str) -> None:
+    """``eval_box`` rows; ``controller_scale`` and ``lqr`` for the system's inputs; an LQR
+    start must exist."""
+    if len(rc.eval_box) != s.nx:
+        raise ConfigError(f"{where}: eval_box has {len(rc.eval_box)} rows; {s.name} has "
+                          f"{s.nx} states, give one [lo, hi] row per state")
+    scale = rc.controller_scale
     if s.nu and scale is None:
-        raise ConfigError(f"{where}: controller_scale is null but {system} has {s.nu} "
+        raise ConfigError(f"{where}: controller_scale is null but {s.name} has {s.nu} "
                           "input(s); give the actuator limit C > 0 of u = C·tanh(Kx + b)")
     if isinstance(scale, (list, tuple)) and len(scale) != s.nu:
-        raise ConfigError(f"{where}: controller_scale has {len(scale)} entries; {system} has "
+        raise ConfigError(f"{where}: controller_scale has {len(scale)} entries; {s.name} has "
                           f"{s.nu} input(s): give one number or one per input")
     if not s.nu and scale is not None:
-        raise ConfigError(f"{where}: {system} has no inputs; set controller_scale to null")
-    lq = cfg.get("lqr", {})
-    Q, R = check_lqr_weights(s, lq.get("Q"), lq.get("R"), where=where)
+        raise ConfigError(f"{where}: {s.name} has no inputs; set controller_scale to null")
+    Q, R = check_lqr_weights(s, rc.lqr.Q, rc.lqr.R, where=where)
     if s.nu and getattr(s, "has_model", True):
         # the controller stage comes after the dynamics stage: fail now, not then (without a
         # model the LQR start linearises the learned φ, known only after the dynamics stage)
@@ -947,10 +985,8 @@ def validate_config(cfg: dict, system: str, *, where: str = "run config") -> dic
                 warnings.simplefilter("ignore", RuntimeWarning)
                 lqr(s, Q, R)
         except ValueError as err:  # NotStabilizableError, LinAlgError of the Riccati solver
-            raise ConfigError(f"{where}: no LQR start for {system} with these lqr weights "
+            raise ConfigError(f"{where}: no LQR start for {s.name} with these lqr weights "
                               f"({' '.join(str(err).split())}); use moderate weights") from None
-    _check_dynamics(cfg.get("dynamics", {}), system, where)
-    return cfg
 
 
 def check_lqr_weights(system, Q=None, R=None, *, where: str = "lqr",
@@ -1005,9 +1041,14 @@ def check_lqr_weights(system, Q=None, R=None, *, where: str = "lqr",
     return tuple(out)
 
 
-def check_dynamics_box(cfg: dict) -> None:
+def check_dynamics_box(cfg: Mapping) -> None:
     """Refuse, before training, a verification ball ``‖x‖ ≤ outer`` that leaves the box on
     which the learned dynamics (and so ``‖f − φ‖ ≤ η``) will be established.
+
+    Parameters
+    ----------
+    cfg : RunConfig or dict
+        A run configuration (its ``system`` names a registered system).
 
     Raises
     ------
@@ -1018,24 +1059,35 @@ def check_dynamics_box(cfg: dict) -> None:
 
     import systems
 
-    s = systems.get(cfg["system"])
-    box = cfg.get("dynamics", {}).get("state_box")
+    rc = RunConfig.from_json(cfg)
+    s = systems.get(rc.system)
+    box = rc.dynamics.state_box
     box = np.asarray(s.state_box if box is None else box, dtype=float)
-    D = domain_of(cfg, s.nx)[0]
+    D = domain_of(rc, s.nx)[0]
     bb = D.bounding_box()
     if np.any(box[:, 0] > bb[:, 0]) or np.any(box[:, 1] < bb[:, 1]):
-        what = f"ball r = {cfg['outer']:g}" if cfg.get("outer") is not None else \
+        what = f"ball r = {rc.outer:g}" if rc.outer is not None else \
             f"domain {D.describe()}"
         raise ConfigError(
             f"the verification {what} leaves the box {box.tolist()} on which "
             "‖f − φ‖ ≤ η will be established; set dynamics.state_box to cover "
-            f"{bb.tolist()} or shrink the {'outer radius' if cfg.get('outer') else 'domain'}"
+            f"{bb.tolist()} or shrink the {'outer radius' if rc.outer else 'domain'}"
         )
 
 
-def domain_of(cfg: dict, nx: int, where: str = "run config"):
+def domain_of(cfg: Mapping, nx: int, where: str = "run config"):
     """``(D, X_I)`` of a run configuration: the :class:`~nlyap_opt.domain.Region` of its
     ``domain`` (else the ball of radius ``outer``) and of its ``initial_set`` (or ``None``).
+
+    Parameters
+    ----------
+    cfg : RunConfig or dict
+        A run configuration, or a view of it declaring ``outer``, ``domain`` and
+        ``initial_set``.
+    nx : int
+        The system's state dimension.
+    where : str
+        Prefix of the error messages.
 
     Raises
     ------
@@ -1044,11 +1096,12 @@ def domain_of(cfg: dict, nx: int, where: str = "run config"):
     """
     from .domain import Ball, parse_set
 
+    rc = cfg if isinstance(cfg, RunConfig) else RunConfig.from_json(cfg, where=where)
     try:
-        D = Ball(float(cfg["outer"]), nx) if cfg.get("domain") is None else \
-            parse_set(cfg["domain"], nx, "domain")
-        XI = None if cfg.get("initial_set") is None else \
-            parse_set(cfg["initial_set"], nx, "initial_set", domain=False)
+        D = Ball(float(rc.outer), nx) if rc.domain is None else \
+            parse_set(rc.domain, nx, "domain")
+        XI = None if rc.initial_set is None else \
+            parse_set(rc.initial_set, nx, "initial_set", domain=False)
     except ConfigError as err:
         raise ConfigError(f"{where}: {err}") from None
     return D, XI
@@ -1065,6 +1118,203 @@ def _check_dynamics(dyn, system: str, where: str) -> None:
         raise ConfigError(f"{where}: {err}") from None
 
 
+# ============================================================================ the config object
+class UndeclaredKeyError(RuntimeError):
+    """A stage read a configuration key it does not declare: a bug of the program, not of
+    the input (its stage key would not cover that key, and a changed value would leave the
+    stage stale), so it is no :class:`~nlyap_opt.errors.NlyapError` and ``nlyap`` exits
+    with code 4."""
+
+
+def _section_paths() -> frozenset[str]:
+    """The dotted paths of every section of the schema (``"train"``,
+    ``"cegis.verify_options"``; ``""`` the top level)."""
+    return frozenset(schema())
+
+
+@dataclass(frozen=True, eq=False)
+class Section(Mapping):
+    """One section of a :class:`RunConfig`: the keys given, their defaults from the schema.
+
+    Two faces of the same content:
+
+    - attributes (``cfg.train.steps``): the value given, else the default of
+      :func:`schema` (the one place defaults are defined); a sub-section is a
+      :class:`Section`; an unknown name raises ``AttributeError`` with a "did you mean";
+    - a read-only mapping over the keys *given* (``cfg["train"]["steps"]``,
+      ``TrainConfig(**cfg["train"])``), a sub-section read as its JSON object: what
+      :meth:`RunConfig.to_json` writes.
+
+    Values are copied on every read (nothing a caller holds can change the config). A
+    *view* (:meth:`RunConfig.view`) exposes only the keys a stage declares; reading another
+    raises :class:`UndeclaredKeyError`.
+
+    Attributes
+    ----------
+    _path : str
+        Dotted path of the section in the schema (``""``: the top level).
+    _given : tuple of (str, object)
+        The keys given, in order, with their values (sub-sections as :class:`Section`).
+    _only : frozenset of str or None
+        The dotted keys (relative to this section) a view may read; ``None``: every key.
+    """
+
+    _path: str
+    _given: tuple[tuple[str, Any], ...]
+    _only: frozenset[str] | None = None
+
+    @classmethod
+    def _build(cls, path: str, obj: Mapping) -> Section:
+        sections = _section_paths()
+        given = []
+        for k, v in obj.items():
+            sub = f"{path}.{k}" if path else k
+            if sub in sections and isinstance(v, Mapping):
+                v = Section._build(sub, v)
+            else:
+                v = copy.deepcopy(v)
+            given.append((k, v))
+        return cls(path, tuple(given))
+
+    def _dotted(self, name: str) -> str:
+        return f"{self._path}.{name}" if self._path else name
+
+    def _sub_only(self, name: str) -> frozenset[str] | None:
+        """The keys a view may read below ``name`` (``None``: all); raises when ``name`` is
+        not declared."""
+        if self._only is None or name in self._only:
+            return None
+        below = frozenset(o[len(name) + 1:] for o in self._only if o.startswith(name + "."))
+        if not below:
+            raise UndeclaredKeyError(
+                f"configuration key {self._dotted(name)!r} is read but not declared by this "
+                f"stage (it declares {', '.join(sorted(self._only))}); add it to the stage's "
+                "fields in nlyap_opt.pipeline")
+        return below
+
+    def _value(self, name: str, default):
+        only = self._sub_only(name)
+        for k, v in self._given:
+            if k == name:
+                break
+        else:
+            v = default
+        if isinstance(v, Section):
+            return v if only is None else Section(v._path, v._given, only)
+        return copy.deepcopy(v)
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_"):   # dunder probes (copy, pickle) and the private fields
+            raise AttributeError(name)
+        keys = schema()[self._path]
+        if name not in keys and name not in dict(self._given):
+            close = difflib.get_close_matches(name, list(keys), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise AttributeError(f"no configuration key {self._dotted(name)!r}{hint}")
+        key = keys.get(name)
+        sub = self._dotted(name)
+        default = Section(sub, ()) if sub in _section_paths() else \
+            None if key is None else key.default
+        return self._value(name, default)
+
+    def __getitem__(self, name: str):
+        if name not in dict(self._given):
+            self._sub_only(name)   # an undeclared key fails loudly, not as "absent"
+            raise KeyError(name)
+        v = self._value(name, None)
+        return v.to_json() if isinstance(v, Section) else v
+
+    def __iter__(self):
+        return iter([k for k, _ in self._given if self._readable(k)])
+
+    def __len__(self) -> int:
+        return sum(1 for k, _ in self._given if self._readable(k))
+
+    def __contains__(self, name) -> bool:
+        return name in dict(self._given) and self._readable(name)
+
+    def __eq__(self, other) -> bool:
+        if isinstance(other, Section):
+            other = other.to_json()
+        return isinstance(other, Mapping) and self.to_json() == dict(other)
+
+    __hash__ = None   # a mapping of mutable JSON values
+
+    def _readable(self, name: str) -> bool:
+        try:
+            self._sub_only(name)
+        except UndeclaredKeyError:
+            return False
+        return True
+
+    def __dir__(self):
+        return sorted(set(super().__dir__()) | set(schema()[self._path]))
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.to_json()!r})"
+
+    def to_json(self) -> dict:
+        """The keys given (those a view may read), in order, as a JSON-ready dict."""
+        return {k: v.to_json() if isinstance(v, Section) else copy.deepcopy(v)
+                for k, v in self._given if self._readable(k)}
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class RunConfig(Section):
+    """A validated run configuration: a frozen tree of :class:`Section` objects.
+
+    Built by :func:`make_config` (which validates it for its system) or
+    :meth:`from_json`; written back by :meth:`to_json` as the JSON it was built from (same
+    keys, order and values: ``nlyap config`` prints it). The sections mirror the JSON:
+    the problem (``outer``, ``inner``, ``domain``, ``initial_set``, ``auto_inner``), the
+    controller (``controller_scale``, ``lqr``), ``dynamics``, ``train``, ``cegis`` (with
+    ``cegis.verify_options``), ``sos``, ``quadratic`` and the evaluation grid
+    (``eval_box``, ``eval_points``); :func:`config_reference` documents every key.
+
+    Examples
+    --------
+    >>> cfg = make_config("van_der_pol", "fast")
+    >>> cfg.train.steps, cfg.cegis.margin_mode, cfg["train"]["steps"]
+    (300, 'pointwise', 300)
+    >>> cfg.view(("inner", "cegis.margin_mode")).declared()
+    {'cegis.margin_mode': None, 'inner': 0.3}
+    """
+
+    @classmethod
+    def from_json(cls, obj: Mapping, *, where: str = "run config") -> RunConfig:
+        """A :class:`RunConfig` of a JSON object (a dict or another config), its keys and
+        section types checked (:func:`validate_config` checks it for a system).
+
+        Raises
+        ------
+        ConfigError
+            Not a JSON object, an unknown key or a section that is not an object.
+        """
+        if isinstance(obj, RunConfig) and obj._only is None:
+            return obj
+        obj = obj.to_json() if isinstance(obj, Section) else obj
+        _check_keys(obj, where)
+        return cls._build("", obj)
+
+    def view(self, fields: tuple[str, ...]) -> RunConfig:
+        """The same configuration restricted to the dotted keys ``fields`` (a key names its
+        whole value or section): what a stage reads, and all it may read."""
+        return RunConfig(self._path, self._given, frozenset(fields))
+
+    def declared(self) -> dict:
+        """``{dotted key: value given or None}`` of a view's declared keys: the JSON its
+        stage key hashes (a default is not filled in: a stated default and an absent key
+        differ only in a recomputation)."""
+        if self._only is None:
+            raise UndeclaredKeyError("declared() needs a view: call view(fields) first")
+        data = RunConfig(self._path, self._given).to_json()
+        out = {}
+        for dotted in sorted(self._only):
+            node = data
+            for part in dotted.split("."):
+                node = node.get(part) if isinstance(node, dict) else None
+            out[dotted] = node
+        return out
 def _merge(base: dict, over: dict) -> dict:
     out = copy.deepcopy(base)
     # a region given one way replaces the other way of the layer below: a domain replaces
@@ -1088,7 +1338,7 @@ def _merge(base: dict, over: dict) -> dict:
 
 
 def make_config(system: str, preset: str | None = "large", overrides: dict | None = None,
-                file: str | Path | None = None) -> dict:
+                file: str | Path | None = None) -> RunConfig:
     """A validated run configuration: ``preset`` ← JSON ``file`` ← ``overrides``.
 
     Parameters
@@ -1107,8 +1357,9 @@ def make_config(system: str, preset: str | None = "large", overrides: dict | Non
 
     Returns
     -------
-    dict
-        The merged configuration with ``system`` and ``preset`` set; pass it to
+    RunConfig
+        The merged configuration with ``system`` and ``preset`` set (typed attributes,
+        read-only mapping reads; :meth:`RunConfig.to_json` gives the JSON); pass it to
         :func:`nlyap_opt.pipeline.run`.
 
     Raises
@@ -1122,8 +1373,8 @@ def make_config(system: str, preset: str | None = "large", overrides: dict | Non
     Examples
     --------
     >>> cfg = make_config("inverted_pendulum", "fast", overrides={"cegis": {"iterations": 1}})
-    >>> cfg["cegis"]["iterations"], cfg["preset"]
-    (1, 'fast')
+    >>> cfg.cegis.iterations, cfg.preset, cfg["cegis"]["iterations"]
+    (1, 'fast', 1)
     """
     import systems
 
@@ -1175,10 +1426,11 @@ def make_config(system: str, preset: str | None = "large", overrides: dict | Non
         where = f"config {file} with overrides"
     cfg["system"], cfg["preset"] = system, preset
     validate_config(cfg, system, where=where)
-    return cfg
+    return RunConfig._build("", cfg)
 
 
-def get_config(system: str, preset: str = "large", path: str | Path | None = None) -> dict:
+def get_config(system: str, preset: str = "large", path: str | Path | None = None
+               ) -> RunConfig:
     """The validated configuration ``preset`` of ``system`` with a JSON file merged over it.
 
     Same as ``make_config(system, preset, file=path)``; see :func:`make_config`.

@@ -20,8 +20,10 @@ configuration loads finished stages instead of recomputing them):
    areas, the check of the *same* V and κ against the true f (a benchmark, reported
    separately); ``report.md`` and ``roa.png``.
 
-Nothing on disk is trusted without a check: ``stages.json`` records, per stage, the hash of
-the configuration it read and the sha256 of every file it wrote; a stage whose files changed
+Each stage declares the configuration keys it reads (:data:`_STAGE_FIELDS`) and reads the
+:class:`~nlyap_opt.configs.RunConfig` only through the view of those keys, which refuses any
+other. Nothing on disk is trusted without a check: ``stages.json`` records, per stage, the
+hash of those keys' values and the sha256 of every file it wrote; a stage whose files changed
 (or whose record is unreadable) is recomputed, saying so, and so is every stage built on it.
 Files are written atomically, so an interrupted run resumes from its finished stages. A lock
 file keeps a second concurrent run out of the same directory.
@@ -36,6 +38,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -49,6 +52,7 @@ from .certificate import (
     sha256_file,
     write_json_atomic,
 )
+from .configs import RunConfig
 from .errors import ConfigError, NlyapError
 from .jsonio import load_with_timings, save_timings, split_timings
 from .learning import TrainConfig, quadratic_start, sos_start
@@ -93,17 +97,24 @@ class RunResult:
         return self.status is CertStatus.CERTIFIED
 
 
-#: the configuration keys each stage reads
-_STAGE_KEYS = {
+#: the verification region every stage after the dynamics stage works in (the inner radius
+#: with auto_inner too): a stage that uses it declares these keys (:meth:`_Run.region`)
+_REGION = ("inner", "outer", "domain", "initial_set", "auto_inner")
+#: the evaluation grid of areas and of the simulated true ROA
+_EVAL = ("eval_box", "eval_points")
+#: the verifier settings every check of the run uses (CEGIS certified with them)
+_VERIFY = ("cegis.verify_options", "cegis.margin_mode")
+
+#: the configuration keys each stage reads, declared once: the stage receives the view of
+#: these keys only (:meth:`nlyap_opt.configs.RunConfig.view`; reading another raises
+#: UndeclaredKeyError) and its stage key hashes their values. The cheap certificates read
+#: only the verifier settings of 'cegis' (a changed cegis.steps does not recompute them).
+_STAGE_FIELDS: dict[str, tuple[str, ...]] = {
     "dynamics": ("dynamics",),
     "controller": ("lqr", "controller_scale"),
-    # the cheap certificates read only the verifier options and the margin mode of 'cegis'
-    # (a changed cegis.steps does not recompute them)
-    "quadratic": ("inner", "outer", "domain", "initial_set", "quadratic",
-                  "cegis.verify_options", "cegis.margin_mode", "eval_box", "eval_points"),
-    "sos": ("inner", "outer", "domain", "initial_set", "sos", "cegis.verify_options",
-            "cegis.margin_mode", "eval_box", "eval_points"),
-    "cegis": ("inner", "outer", "domain", "initial_set", "train", "cegis"),
+    "quadratic": _REGION + ("quadratic",) + _VERIFY + _EVAL,
+    "sos": _REGION + ("sos",) + _VERIFY + _EVAL,
+    "cegis": _REGION + ("train", "cegis"),
 }
 #: the files each stage writes (the sha256 of each is recorded)
 _STAGE_FILES = {
@@ -115,25 +126,28 @@ _STAGE_FILES = {
 }
 
 
-def _write_stage_json(path: Path, data: dict) -> None:
+def _write_stage_json(path: Path, data: dict) -> dict:
     """A stage file: hashed, so its wall-clock timings go to ``timings.json`` beside it
-    (the same input then gives the same bytes)."""
+    (the same input then gives the same bytes). Returns ``data`` (the fresh record, with
+    its timings) for the caller to use in memory."""
     clean, timings = split_timings(data)
     write_json_atomic(path, clean)
     save_timings(path, timings)
+    return data
 
 
 class _Stages:
     """Stage bookkeeping in ``DIR/stages.json``: stage -> {key, files: {name: sha256}}.
 
-    A stage's key covers the system, the setting, every configuration key the stage reads
-    and the recorded file hashes of the stages it builds on. The numeric environment is not
-    part of it: Dask workers start in another one (one BLAS thread) and must find the
-    stages their parent computed; every certificate records the environment it was made in.
+    A stage's key covers the system, the setting, the values of the configuration keys the
+    stage declares (:data:`_STAGE_FIELDS`, the view it reads) and the recorded file hashes
+    of the stages it builds on. The numeric environment is not part of it: Dask workers
+    start in another one (one BLAS thread) and must find the stages their parent computed;
+    every certificate records the environment it was made in.
     """
 
-    def __init__(self, out: Path, system: str, cfg: dict, log):
-        self.out, self.log, self.system, self.cfg = out, log, system, cfg
+    def __init__(self, out: Path, system: str, known: bool, cfg: RunConfig, log):
+        self.out, self.log, self.system, self.known, self.cfg = out, log, system, known, cfg
         self.file = out / "stages.json"
         self.done: dict = {}
         if self.file.exists():
@@ -146,16 +160,13 @@ class _Stages:
             except (ValueError, OSError) as err:
                 log(f"warning: {self.file} is unreadable ({err}); recomputing every stage")
 
-    def key(self, stage: str, *deps) -> str:
-        return _hash([stage, self.system, self.cfg.get("known_dynamics"),
-                      {k: self._get(k) for k in _STAGE_KEYS[stage]},
-                      [self.done.get(d, {}).get("files") for d in deps]])
+    def view(self, stage: str) -> RunConfig:
+        """The configuration as ``stage`` may read it: its declared keys only."""
+        return self.cfg.view(_STAGE_FIELDS[stage])
 
-    def _get(self, dotted: str):
-        """The configuration value of ``"key"`` or ``"section.key"`` (``None`` if absent)."""
-        head, _, sub = dotted.partition(".")
-        v = self.cfg.get(head)
-        return (v or {}).get(sub) if sub else v
+    def key(self, stage: str, *deps) -> str:
+        return _hash([stage, self.system, self.known, self.view(stage).declared(),
+                      [self.done.get(d, {}).get("files") for d in deps]])
 
     def finished(self, stage: str, *deps) -> bool:
         rec = self.done.get(stage)
@@ -237,7 +248,7 @@ def _out_dir(out) -> Path:
     return out
 
 
-def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
+def run(system, cfg: RunConfig | dict, out: str | Path, *, known_dynamics: bool = False,
         log=print, workers: int | None = None, scheduler: str | None = None,
         connect_timeout: float | None = None) -> RunResult:
     """Run the pipeline for ``system`` with the run configuration ``cfg`` into ``out``.
@@ -246,8 +257,9 @@ def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
     ----------
     system : str or systems.System
         A catalogue name or a system object.
-    cfg : dict
-        A validated run configuration (:func:`nlyap_opt.configs.get_config`).
+    cfg : RunConfig or dict
+        A validated run configuration (:func:`nlyap_opt.configs.make_config`), or its JSON
+        (checked here for a registered system).
     out : path
         Output directory (created; an earlier run's directory is resumed).
     known_dynamics : bool
@@ -275,6 +287,7 @@ def run(system, cfg: dict, out: str | Path, *, known_dynamics: bool = False,
         validate_config(cfg, system.name)
         if not known_dynamics:
             check_dynamics_box(cfg)
+    cfg = RunConfig.from_json(cfg)
     out = _out_dir(out)
     with _OutLock(out, log), _client(workers, scheduler, log, connect_timeout) as client:
         return _run(system, cfg, out, known_dynamics, log, client)
@@ -295,170 +308,240 @@ def _client(workers, scheduler, log, connect_timeout=None):
         yield client
 
 
-def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunResult:
-    from .control import lqr, saturated_controller
+def _run(system, cfg: RunConfig, out: Path, known_dynamics: bool, log,
+         client=None) -> RunResult:
+    """The stages in order (each loads its finished files or computes them), then the
+    certificate stage."""
+    from .configs import domain_of
 
-    has_model = getattr(system, "has_model", True)
-    if known_dynamics and not has_model:
+    _check_setting(system, cfg, known_dynamics)
+    region = cfg.view(_REGION)
+    D, XI = domain_of(region, system.nx)
+    ctx = _Context(system, out, _Stages(out, system.name, known_dynamics, cfg, log), log,
+                   D, XI, D.max_norm(), float(region.inner))
+    seconds: dict[str, float] = {}
+    if not known_dynamics:
+        stopped = _dynamics_stage(ctx, seconds)
+        if stopped is not None:
+            return stopped
+    ctx.controller = _controller_stage(ctx)
+    if ctx.eta > 0:
+        ctx.eps = _inner_for_margin(system, ctx.controller, ctx.dynamics, ctx.eta, ctx.eps, D,
+                                    region.auto_inner, log)
+    quad = _quadratic_stage(ctx)
+    sos = _sos_stage(ctx)
+    cg = _cegis_stage(ctx, {"quadratic": quad, "sos": sos}, seconds)
+    return _certificate_stage(ctx, cfg, cg, [c for c in (quad, sos) if c is not None],
+                              seconds, client)
+
+
+def _check_setting(system, cfg: RunConfig, known_dynamics: bool) -> None:
+    """Settings the system's kind rules out (an exit-3 error naming the fix)."""
+    if known_dynamics and not getattr(system, "has_model", True):
         raise ConfigError(f"system {system.name!r} has no model of f ({system.kind}); it can "
                           "only be run with learned dynamics: drop --known-dynamics")
-    if (cfg.get("train") or {}).get("init") == "sos" and (not known_dynamics or system.nu):
+    if cfg.train.init == "sos" and (not known_dynamics or system.nu):
         raise ConfigError(
             "train.init 'sos' starts V at the run's SOS certificate, which exists only with the "
             "true f (--known-dynamics) and a closed loop without inputs (the controller "
             "C·tanh(Kx + b) is not polynomial); use init 'random' or 'quadratic'")
-    cfg = dict(cfg, known_dynamics=known_dynamics)
-    stages = _Stages(out, system.name, cfg, log)
-    seconds: dict[str, float] = {}
-    from .configs import domain_of
 
-    D, XI = domain_of(cfg, system.nx)
-    r, eps = D.max_norm(), float(cfg["inner"])
-    ball_box = D.bounding_box()
 
-    # ---------------------------------------------------------------- 1. dynamics
-    dynamics, eta, bounds_info, dyn_box, input_box = None, 0.0, None, None, None
-    if not known_dynamics:
-        from .dynamics_stage import dynamics_stage
+@dataclass
+class _Context:
+    """What the stages share: the system, the output directory, the verification region
+    (ε raised by ``auto_inner`` once η is known) and the learned dynamics (φ, η, the boxes
+    of the bound and its record) and the initial controller."""
 
-        if not stages.finished("dynamics"):
-            t = time.perf_counter()
-            dcfg = dict(cfg.get("dynamics", {}))
-            dcfg.setdefault("progress", log is print)   # progress bars on the terminal only
-            st = dynamics_stage(system, dcfg, log=log)
-            st.save(out)
-            seconds["dynamics"] = time.perf_counter() - t
-            stages.mark("dynamics")
-        dynamics = Network.load(out / "dynamics.json")
-        bounds_info = load_with_timings(out / "bounds.json")
-        eta = float(bounds_info["eta"])
-        gate = bounds_info.get("gate") or {}
-        if gate.get("status", "ok") != "ok":
-            reason = f"η = {eta:.4g} above eta_target {gate.get('eta_target')}: " \
-                f"{gate.get('advice', '')}"
-            log(f"[done] status: not certified (dynamics stage): {reason}")
-            cert = RoaCertificate(CertStatus.NOT_CERTIFIED, reason, system.name, "learned",
-                                  0.0, eps, r, eta=eta, domain=D, initial_set=XI)
-            summary = dict(cert.to_dict(), problem={}, stage="dynamics", gate=gate,
-                           provenance=fingerprint())
-            write_json_atomic(out / "certificate.json", summary)
-            return RunResult(cert, CertStatus.NOT_CERTIFIED, summary, out, reason)
-        grid_box = np.asarray(bounds_info["grid"]["box"], dtype=float)
-        dyn_box = grid_box[: system.nx]
-        # U of the bound: the grid's input rows (full model) or the system's (control-affine:
-        # the error does not depend on u)
-        input_box = grid_box[system.nx:] if len(grid_box) > system.nx else system.input_box
-        if np.any(ball_box[:, 0] < dyn_box[:, 0]) or np.any(ball_box[:, 1] > dyn_box[:, 1]):
-            raise ConfigError(
-                f"the verification domain {D.describe()} leaves the box {dyn_box.tolist()} on "
-                "which ‖f − φ‖ ≤ η was established; enlarge the dynamics box or shrink the "
-                "domain ('outer' or 'domain')"
-            )
-        log(f"[dynamics] η = {eta:.4g} ({bounds_info['bound_model']['name']} bound)")
+    system: Any
+    out: Path
+    stages: _Stages
+    log: Any
+    D: Any
+    XI: Any
+    r: float
+    eps: float
+    dynamics: Network | None = None
+    eta: float = 0.0
+    bounds: dict | None = None
+    dyn_box: np.ndarray | None = None
+    input_box: np.ndarray | None = None
+    controller: Network | None = None
 
-    # ---------------------------------------------------------------- 2. controller
-    controller = None
-    if system.nu:
-        # without a model, the LQR start linearises the learned φ (its CasADi graph)
-        cdeps = () if has_model else ("dynamics",)
-        if not stages.finished("controller", *cdeps):
-            lq = cfg.get("lqr", {})
-            res = lqr(system, lq.get("Q"), lq.get("R"),
-                      dynamics=None if has_model else dynamics)
-            ctrl = saturated_controller(system, res.K, cfg["controller_scale"])
-            ctrl.save(out / "controller_init.json")
-            write_json_atomic(out / "lqr.json", res.to_dict())
-            stages.mark("controller", *cdeps)
-        controller = Network.load(out / "controller_init.json")
+    def region(self, view: RunConfig) -> tuple:
+        """``(D, X_I, r, ε)`` for a stage whose view declares the region keys
+        (:data:`_REGION`): reading them through the view fails for one that does not, so
+        no stage key can miss a key the region comes from."""
+        for name in _REGION:
+            getattr(view, name)
+        return self.D, self.XI, self.r, self.eps
 
-    if eta > 0:
-        eps = _inner_for_margin(system, controller, dynamics, eta, eps, D,
-                                bool(cfg.get("auto_inner")), log)
+    def problem(self, view: RunConfig, V, ctrl, **kw) -> RoaProblem:
+        """The run's :class:`RoaProblem` for ``V`` and ``ctrl`` under the verifier settings
+        of ``view`` (``cegis.margin_mode``; ``cegis.verify_options`` unless given: the
+        options CEGIS certified with hold for every check of the run)."""
+        D, XI, r, eps = self.region(view)
+        kw.setdefault("verify_options", view.cegis.verify_options.to_json())
+        assumed = [] if self.bounds is None else \
+            [f"{self.bounds['bound_model']['name']} bound"] + list(
+                self.bounds["bound_model"].get("assumptions", []))
+        return RoaProblem(self.system, V, ctrl, self.dynamics, inner=eps, outer=r,
+                          eta=self.eta, margin_mode=view.cegis.margin_mode, domain=D,
+                          initial_set=XI, dynamics_box=self.dyn_box, input_box=self.input_box,
+                          dynamics_assumptions=assumed, **kw)
 
-    mode = cfg.get("cegis", {}).get("margin_mode", "pointwise")
-    assumed = [] if bounds_info is None else \
-        [f"{bounds_info['bound_model']['name']} bound"] + list(
-            bounds_info["bound_model"].get("assumptions", []))
 
-    def problem_of(V, ctrl, **kw):
-        # the verifier options CEGIS certified with (cegis.verify_options) hold for every
-        # check of the run: the certificate stage re-verifies under the same ones
-        kw.setdefault("verify_options", dict(cfg.get("cegis", {}).get("verify_options", {})))
-        return RoaProblem(system, V, ctrl, dynamics, inner=eps, outer=r, eta=eta,
-                          margin_mode=mode, domain=D, initial_set=XI, dynamics_box=dyn_box,
-                          input_box=input_box, dynamics_assumptions=assumed, **kw)
+def _dynamics_stage(ctx: _Context, seconds: dict) -> RunResult | None:
+    """Stage 1: φ and η (learned, or loaded); ``None``, or the result of a run the η gate
+    stopped."""
+    from .dynamics_stage import dynamics_stage
 
-    # ---------------------------------------------------------------- 3. quadratic
-    quad = _quadratic_stage(system, cfg, out, stages, controller, problem_of, log)
-    sos = _sos_stage(system, cfg, out, stages, controller, problem_of, log)
-    cheap = [c for c in (quad, sos) if c is not None]
-
-    # ---------------------------------------------------------------- 4. CEGIS
-    train = TrainConfig(**cfg.get("train", {}))
-    # train.init: V starts at a cheap certificate (the CEGIS stage then builds on its stage)
-    start = {"quadratic": quad, "sos": sos}.get(train.init)
-    deps = ("dynamics", "controller") + ((train.init,) if train.init != "random" else ())
-    if not stages.finished("cegis", *deps):
+    system, out, log = ctx.system, ctx.out, ctx.log
+    if not ctx.stages.finished("dynamics"):
         t = time.perf_counter()
-        V0 = None
-        if start is not None:
-            if train.init == "quadratic":
-                V0 = quadratic_start(np.asarray(start["P"], dtype=float),
-                                     float(start["level"]), train)
-            else:
-                try:
-                    V0 = sos_start(_cheap_V(out, start), float(start["level"]), train)
-                except ConfigError:
-                    raise
-                except ValueError as err:   # no Gram matrix found: a start, not a claim
-                    log(f"[cegis] V cannot start at the {start['label']} ({err}): V starts "
-                        "at random")
-            if V0 is not None:
-                log(f"[cegis] V starts at the {start['label']}: level 1 of V = its certified "
-                    f"set (level {float(start['level']):.6g})")
-        elif train.init != "random":
-            log(f"[cegis] no {train.init} certificate: V starts at random (train.init)")
-        ccfg = CegisConfig(inner=eps, outer=r, train=train, domain=D, initial_set=XI,
-                           **cfg.get("cegis", {}))
-        where = f"{eps:g} ≤ ‖x‖ ≤ {r:g}" if cfg.get("domain") is None else \
-            f"‖x‖ ≥ {eps:g} in {D.describe()}"
-        log(f"[cegis] learning V{' and κ' if controller is not None else ''} on {where}"
-            + (f", X_I = {XI.describe()}" if XI is not None else "")
-            + (f" with η = {eta:.3g}" if eta else " (true f)"))
-        if cheap:
-            best = max(cheap, key=lambda c: c["volume"])
-            log(f"[cegis] the certificate to beat: {best['label']}, volume "
-                f"{best['volume']:.4g} on the evaluation grid")
-        res = cegis(system, controller, dynamics, ccfg, eta=eta, dynamics_box=dyn_box,
-                    input_box=input_box, log=log, V0=V0)
-        res.V.save(out / "V.json")
-        if res.controller is not None:
-            res.controller.save(out / "controller.json")
-        _write_stage_json(out / "cegis.json", {
-            "status": res.status.value, "reason": res.reason, "level": res.level,
-            "margin": res.margin, "M": res.M, "smoothing": res.smoothing,
-            "area_in_ball": res.area, "history": res.history, "seconds": res.seconds})
-        seconds["cegis"] = time.perf_counter() - t
-        stages.mark("cegis", *deps)
-    cg = load_with_timings(out / "cegis.json")
-    V = Network.load(out / "V.json")
-    controller = Network.load(out / "controller.json") if controller is not None else None
+        dcfg = ctx.stages.view("dynamics").dynamics.to_json()
+        dcfg.setdefault("progress", log is print)   # progress bars on the terminal only
+        dynamics_stage(system, dcfg, log=log).save(out)
+        seconds["dynamics"] = time.perf_counter() - t
+        ctx.stages.mark("dynamics")
+    ctx.dynamics = Network.load(out / "dynamics.json")
+    # bounds.json is read back even when fresh: error_models.write_bounds writes a
+    # normalised record (inf as a string), and the certificate quotes that record
+    bounds = ctx.bounds = load_with_timings(out / "bounds.json")
+    ctx.eta = eta = float(bounds["eta"])
+    gate = bounds.get("gate") or {}
+    if gate.get("status", "ok") != "ok":
+        reason = f"η = {eta:.4g} above eta_target {gate.get('eta_target')}: " \
+            f"{gate.get('advice', '')}"
+        log(f"[done] status: not certified (dynamics stage): {reason}")
+        cert = RoaCertificate(CertStatus.NOT_CERTIFIED, reason, system.name, "learned",
+                              0.0, ctx.eps, ctx.r, eta=eta, domain=ctx.D, initial_set=ctx.XI)
+        summary = dict(cert.to_dict(), problem={}, stage="dynamics", gate=gate,
+                       provenance=fingerprint())
+        write_json_atomic(out / "certificate.json", summary)
+        return RunResult(cert, CertStatus.NOT_CERTIFIED, summary, out, reason)
+    grid_box = np.asarray(bounds["grid"]["box"], dtype=float)
+    ctx.dyn_box = dyn_box = grid_box[: system.nx]
+    # U of the bound: the grid's input rows (full model) or the system's (control-affine:
+    # the error does not depend on u)
+    ctx.input_box = grid_box[system.nx:] if len(grid_box) > system.nx else system.input_box
+    ball_box = ctx.D.bounding_box()
+    if np.any(ball_box[:, 0] < dyn_box[:, 0]) or np.any(ball_box[:, 1] > dyn_box[:, 1]):
+        raise ConfigError(
+            f"the verification domain {ctx.D.describe()} leaves the box {dyn_box.tolist()} "
+            "on which ‖f − φ‖ ≤ η was established; enlarge the dynamics box or shrink the "
+            "domain ('outer' or 'domain')"
+        )
+    log(f"[dynamics] η = {eta:.4g} ({bounds['bound_model']['name']} bound)")
+    return None
 
-    # ---------------------------------------------------------------- 5. certificate
+
+def _controller_stage(ctx: _Context) -> Network | None:
+    """Stage 2: the saturated LQR controller (``None`` for a system without inputs)."""
+    from .control import lqr, saturated_controller
+
+    system = ctx.system
+    if not system.nu:
+        return None
+    has_model = getattr(system, "has_model", True)
+    # without a model, the LQR start linearises the learned φ (its CasADi graph)
+    cdeps = () if has_model else ("dynamics",)
+    if not ctx.stages.finished("controller", *cdeps):
+        view = ctx.stages.view("controller")
+        res = lqr(system, view.lqr.Q, view.lqr.R,
+                  dynamics=None if has_model else ctx.dynamics)
+        ctrl = saturated_controller(system, res.K, view.controller_scale)
+        ctrl.save(ctx.out / "controller_init.json")
+        write_json_atomic(ctx.out / "lqr.json", res.to_dict())
+        ctx.stages.mark("controller", *cdeps)
+    return Network.load(ctx.out / "controller_init.json")
+
+
+def _cegis_stage(ctx: _Context, starts: dict, seconds: dict) -> dict:
+    """Stage 4: V and κ by CEGIS; returns the ``cegis.json`` record (fresh, or loaded)."""
+    view = ctx.stages.view("cegis")
+    train = TrainConfig(**view.train.to_json())
+    # train.init: V starts at a cheap certificate (the CEGIS stage then builds on its stage)
+    deps = ("dynamics", "controller") + ((train.init,) if train.init != "random" else ())
+    out = ctx.out
+    if ctx.stages.finished("cegis", *deps):
+        return load_with_timings(out / "cegis.json")
     t = time.perf_counter()
-    problem = problem_of(V, controller, smoothing=float(cg.get("smoothing", 0.0))
-                         if mode == "pointwise" else None)
+    V0 = _start_V(ctx, train, starts.get(train.init))
+    D, XI, r, eps = ctx.region(view)
+    ccfg = CegisConfig(inner=eps, outer=r, train=train, domain=D, initial_set=XI,
+                       **view.cegis.to_json())
+    where = f"{eps:g} ≤ ‖x‖ ≤ {r:g}" if view.domain is None else \
+        f"‖x‖ ≥ {eps:g} in {D.describe()}"
+    ctx.log(f"[cegis] learning V{' and κ' if ctx.controller is not None else ''} on {where}"
+            + (f", X_I = {XI.describe()}" if XI is not None else "")
+            + (f" with η = {ctx.eta:.3g}" if ctx.eta else " (true f)"))
+    cheap = [c for c in starts.values() if c is not None]
+    if cheap:
+        best = max(cheap, key=lambda c: c["volume"])
+        ctx.log(f"[cegis] the certificate to beat: {best['label']}, volume "
+                f"{best['volume']:.4g} on the evaluation grid")
+    res = cegis(ctx.system, ctx.controller, ctx.dynamics, ccfg, eta=ctx.eta,
+                dynamics_box=ctx.dyn_box, input_box=ctx.input_box, log=ctx.log, V0=V0)
+    res.V.save(out / "V.json")
+    if res.controller is not None:
+        res.controller.save(out / "controller.json")
+    rec = _write_stage_json(out / "cegis.json", {
+        "status": res.status.value, "reason": res.reason, "level": res.level,
+        "margin": res.margin, "M": res.M, "smoothing": res.smoothing,
+        "area_in_ball": res.area, "history": res.history, "seconds": res.seconds})
+    seconds["cegis"] = time.perf_counter() - t
+    ctx.stages.mark("cegis", *deps)
+    return rec
+
+
+def _start_V(ctx: _Context, train: TrainConfig, start: dict | None):
+    """The V that CEGIS starts at (``train.init``): the cheap certificate ``start`` as a
+    network, or ``None`` (random)."""
+    if start is None:
+        if train.init != "random":
+            ctx.log(f"[cegis] no {train.init} certificate: V starts at random (train.init)")
+        return None
+    V0 = None
+    if train.init == "quadratic":
+        V0 = quadratic_start(np.asarray(start["P"], dtype=float), float(start["level"]), train)
+    else:
+        try:
+            V0 = sos_start(_cheap_V(ctx.out, start), float(start["level"]), train)
+        except ConfigError:
+            raise
+        except ValueError as err:   # no Gram matrix found: a start, not a claim
+            ctx.log(f"[cegis] V cannot start at the {start['label']} ({err}): V starts "
+                    "at random")
+    if V0 is not None:
+        ctx.log(f"[cegis] V starts at the {start['label']}: level 1 of V = its certified "
+                f"set (level {float(start['level']):.6g})")
+    return V0
+
+
+def _certificate_stage(ctx: _Context, cfg: RunConfig, cg: dict, cheap: list, seconds: dict,
+                       client) -> RunResult:
+    """Stage 5 (always run): the saved V, κ (and φ) verified again at the saved level, the
+    saved cheap certificates too, the best one written as ``certificate.json``."""
+    from .parallel import verifying_on
+    from .report import write_report
+
+    system, out, log = ctx.system, ctx.out, ctx.log
+    t = time.perf_counter()
+    V = Network.load(out / "V.json")
+    controller = Network.load(out / "controller.json") if ctx.controller is not None else None
+    mode = cfg.cegis.margin_mode
+    problem = ctx.problem(cfg, V, controller, smoothing=float(cg.get("smoothing", 0.0))
+                          if mode == "pointwise" else None)
     claimed = cg["status"] == CertStatus.CERTIFIED.value and float(cg["level"]) > 0
     if claimed:
         log(f"[certificate] verifying the saved V{', κ' if controller else ''}"
-            f"{', φ' if dynamics else ''} at the saved level {float(cg['level']):.6g}")
+            f"{', φ' if ctx.dynamics else ''} at the saved level {float(cg['level']):.6g}")
     else:
         log(f"[certificate] CEGIS certified no level ({cg.get('reason') or cg['status']}); "
             "trying the last V with other inner radii")
     # the saved level at the configured ε first (exact re-verification); other radii only
     # if that is refused (the same V and κ; no retraining)
-    from .parallel import verifying_on
-
     with verifying_on(client):   # client None: serial
         cert = certify_with_inner_search(problem, float(cg["level"]) if claimed else None,
                                          log=lambda m: log("  " + m))
@@ -468,6 +551,19 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
         if compared:
             extra["candidates"] = compared
     seconds["certificate"] = time.perf_counter() - t
+    extra["seconds"] = _save_seconds(out, seconds)
+    if ctx.bounds is not None:
+        extra["dynamics_bound"] = {k: ctx.bounds.get(k) for k in
+                                   ("eta", "alpha", "delta", "K_f", "K_phi", "bound_model")}
+    path = save_certificate(cert, problem, out, extra, files=files)
+    summary = json.loads(path.read_text())
+    write_report(out, system, cfg, summary, ctx.bounds, cg)
+    _log_done(log, cert, summary, out)
+    return RunResult(cert, cert.status, summary, out, cert.reason)
+
+
+def _save_seconds(out: Path, seconds: dict) -> dict:
+    """``seconds.json``: this call's stage timings over those of earlier calls."""
     sec_file = out / "seconds.json"
     prev = {}
     if sec_file.exists():
@@ -477,15 +573,12 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
             prev = {}
     prev.update(seconds)
     write_json_atomic(sec_file, prev)
-    extra["seconds"] = prev
-    if bounds_info is not None:
-        extra["dynamics_bound"] = {k: bounds_info.get(k) for k in
-                                   ("eta", "alpha", "delta", "K_f", "K_phi", "bound_model")}
-    path = save_certificate(cert, problem, out, extra, files=files)
-    summary = json.loads(path.read_text())
-    from .report import status_line, write_report
+    return prev
 
-    write_report(out, system, cfg, summary, bounds_info, cg)
+
+def _log_done(log, cert: RoaCertificate, summary: dict, out: Path) -> None:
+    from .report import status_line
+
     if cert.certified and summary["true_roa_area"] is None:
         log(f"[done] status: {status_line(summary)}; certified area "
             f"{summary['certified_area']:.4g} (true ROA not available); see {out / 'report.md'}")
@@ -496,7 +589,6 @@ def _run(system, cfg, out: Path, known_dynamics: bool, log, client=None) -> RunR
             f"({summary['true_roa_area']:.4g}); see {out / 'report.md'}")
     else:
         log(f"[done] status: {cert.status.value}: {cert.reason}; see {out / 'report.md'}")
-    return RunResult(cert, cert.status, summary, out, cert.reason)
 
 
 #: the inner radius that learned dynamics afford is this multiple of the radius at which the
@@ -546,98 +638,108 @@ def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, a
     return eps
 
 
-def _eval_grid(system, cfg) -> tuple[np.ndarray, int]:
+def _eval_grid(system, cfg: RunConfig) -> tuple[np.ndarray, int]:
+    """Box and nodes per axis of the evaluation grid (``cfg`` declares :data:`_EVAL`)."""
     from .roa import axis_count
 
-    return np.asarray(cfg["eval_box"], dtype=float), axis_count(int(cfg["eval_points"]),
-                                                                system.nx)
+    return np.asarray(cfg.eval_box, dtype=float), axis_count(int(cfg.eval_points), system.nx)
 
 
-def _cheap_stage_problem(system, cfg, controller, problem_of) -> tuple[RoaProblem, dict]:
+def _cheap_stage_problem(ctx: _Context, view: RunConfig) -> tuple[RoaProblem, dict]:
     """The run's problem for the cheap certificates under the initial controller (its V a
     placeholder that each candidate replaces) and the verifier options they are proved
     with (the run's ``cegis.verify_options``, saved with each record)."""
     from .control import quadratic_lyapunov
 
-    opts = dict(cfg.get("cegis", {}).get("verify_options", {}))
-    return problem_of(quadratic_lyapunov(np.eye(system.nx)), controller,
-                      verify_options=opts), opts
+    opts = view.cegis.verify_options.to_json()
+    return ctx.problem(view, quadratic_lyapunov(np.eye(ctx.system.nx)), ctx.controller,
+                       verify_options=opts), opts
 
 
-def _quadratic_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> dict | None:
-    """Stage 3: the quadratic candidates of ``cfg["quadratic"]``; returns the best certified
+def _quadratic_stage(ctx: _Context) -> dict | None:
+    """Stage 3: the quadratic candidates of ``quadratic``; returns the best certified
     one's record (``quadratic.json``'s ``best``) or ``None``."""
-    names = list(cfg.get("quadratic") or [])
+    view = ctx.stages.view("quadratic")
+    names = list(view.quadratic or [])
     if not names:
         return None
     from .control import quadratic_lyapunov
     from .quadratic import certify_quadratics
 
     deps = ("dynamics", "controller")
-    if not stages.finished("quadratic", *deps):
+    out, log = ctx.out, ctx.log
+    if ctx.stages.finished("quadratic", *deps):
+        best = json.loads((out / "quadratic.json").read_text()).get("best")
+    else:
         t = time.perf_counter()
         log(f"[quadratic] certifying V = xᵀPx under the initial controller: "
             f"{', '.join(names)}")
-        box, n = _eval_grid(system, cfg)
-        problem, opts = _cheap_stage_problem(system, cfg, controller, problem_of)
+        box, n = _eval_grid(ctx.system, view)
+        problem, opts = _cheap_stage_problem(ctx, view)
         found = certify_quadratics(problem, names, box=box, n=n, log=log)
         ok = [c for c in found if c.certified]
-        best = max(ok, key=lambda c: c.volume) if ok else None
+        win = max(ok, key=lambda c: c.volume) if ok else None
         (out / "V_quadratic.json").unlink(missing_ok=True)
-        if best is not None:
-            quadratic_lyapunov(best.P).save(out / "V_quadratic.json")
-        _write_stage_json(out / "quadratic.json", {
+        if win is not None:
+            quadratic_lyapunov(win.P).save(out / "V_quadratic.json")
+        best = _write_stage_json(out / "quadratic.json", {
             "candidates": [c.to_dict() for c in found],
-            "best": None if best is None else dict(best.to_dict(), verify_options=opts),
-            "seconds": time.perf_counter() - t})
-        stages.mark("quadratic", *deps)
-        log(f"[quadratic] {'best: ' + best.name if best else 'none certified'} "
+            "best": None if win is None else dict(win.to_dict(), verify_options=opts),
+            "seconds": time.perf_counter() - t})["best"]
+        ctx.stages.mark("quadratic", *deps)
+        log(f"[quadratic] {'best: ' + win.name if win else 'none certified'} "
             f"({time.perf_counter() - t:.1f} s)")
-    best = json.loads((out / "quadratic.json").read_text()).get("best")
     return None if best is None else dict(best, kind="quadratic", label=f"quadratic {best['name']}",
                                           file="V_quadratic.json")
 
 
-def _sos_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> dict | None:
-    """Stage 3b: the SOS candidate of ``cfg["sos"]`` (:func:`nlyap_opt.sos.certify_sos`);
+def _sos_stage(ctx: _Context) -> dict | None:
+    """Stage 3b: the SOS candidate of ``sos`` (:func:`nlyap_opt.sos.certify_sos`);
     returns its record (``sos.json``'s ``best``) when certified, else ``None``."""
     from .sos import SOSConfig
 
-    sc = SOSConfig(**(cfg.get("sos") or {}))
+    view = ctx.stages.view("sos")
+    sc = SOSConfig(**view.sos.to_json())
     if not sc.degree:
         return None
+    deps = ("dynamics", "controller")
+    if ctx.stages.finished("sos", *deps):
+        return json.loads((ctx.out / "sos.json").read_text()).get("best")
+    return _sos_compute(ctx, view, sc, deps)
+
+
+def _sos_compute(ctx: _Context, view: RunConfig, sc, deps: tuple) -> dict | None:
     from .sos import certify_sos
 
-    deps = ("dynamics", "controller")
-    if not stages.finished("sos", *deps):
-        t = time.perf_counter()
-        log(f"[sos] SOS V of degree {sc.degree} under the initial controller "
-            f"({sc.iterations} V-s rounds per degree at most)")
-        problem, opts = _cheap_stage_problem(system, cfg, controller, problem_of)
-        res = certify_sos(problem, sc, log=log)
-        box, n = _eval_grid(system, cfg)
-        vol = res.area(box, n) if res.certified else 0.0
-        (out / "V_sos.json").unlink(missing_ok=True)
-        best = None
-        if res.certified:
-            write_json_atomic(out / "V_sos.json", res.V.as_json())
-            best = {"kind": "sos", "label": f"SOS degree {res.degree}", "file": "V_sos.json",
-                    "level": res.certified_level, "inner": res.inner, "volume": vol,
-                    "verify_options": opts}
-        _write_stage_json(out / "sos.json", {
-            "degree": sc.degree, "V_degree": res.degree, "status": res.status,
-            "sdp_level": res.sdp_level,
-            "level": res.certified_level, "inner": res.inner, "volume": vol,
-            "history": res.history, "notes": res.notes,
-            "non_polynomial": dict(res.non_polynomial), "best": best,
-            "seconds": time.perf_counter() - t})
-        stages.mark("sos", *deps)
-        for note in res.notes:
-            if note not in res.status:
-                log(f"[sos] note: {note}")
-        log(f"[sos] {res.status}" + (f", volume {vol:.4g}" if res.certified else "")
-            + f" ({time.perf_counter() - t:.1f} s)")
-    return json.loads((out / "sos.json").read_text()).get("best")
+    out, log = ctx.out, ctx.log
+    t = time.perf_counter()
+    log(f"[sos] SOS V of degree {sc.degree} under the initial controller "
+        f"({sc.iterations} V-s rounds per degree at most)")
+    problem, opts = _cheap_stage_problem(ctx, view)
+    res = certify_sos(problem, sc, log=log)
+    box, n = _eval_grid(ctx.system, view)
+    vol = res.area(box, n) if res.certified else 0.0
+    (out / "V_sos.json").unlink(missing_ok=True)
+    best = None
+    if res.certified:
+        write_json_atomic(out / "V_sos.json", res.V.as_json())
+        best = {"kind": "sos", "label": f"SOS degree {res.degree}", "file": "V_sos.json",
+                "level": res.certified_level, "inner": res.inner, "volume": vol,
+                "verify_options": opts}
+    _write_stage_json(out / "sos.json", {
+        "degree": sc.degree, "V_degree": res.degree, "status": res.status,
+        "sdp_level": res.sdp_level,
+        "level": res.certified_level, "inner": res.inner, "volume": vol,
+        "history": res.history, "notes": res.notes,
+        "non_polynomial": dict(res.non_polynomial), "best": best,
+        "seconds": time.perf_counter() - t})
+    ctx.stages.mark("sos", *deps)
+    for note in res.notes:
+        if note not in res.status:
+            log(f"[sos] note: {note}")
+    log(f"[sos] {res.status}" + (f", volume {vol:.4g}" if res.certified else "")
+        + f" ({time.perf_counter() - t:.1f} s)")
+    return best
 
 
 def _cheap_V(out: Path, rec: dict):
@@ -736,7 +838,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     controller = problem.controller
     cache = out / "true_roa.npz"
     feedback = None if controller is None else (lambda z: controller.numpy(z))
-    ckey = _hash([system.name, cfg["eval_box"], n, None if controller is None
+    ckey = _hash([system.name, cfg.eval_box, n, None if controller is None
                   else controller.to_dict(), "undecided"])
     not_available = []
     true_mask = undecided = None
@@ -761,7 +863,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         np.savez_compressed(tmp, mask=true_mask, undecided=undecided, key=ckey)
         tmp.replace(cache)
     in_d = np.ones(shape, dtype=bool)
-    if system.nu or cfg.get("domain") is not None:
+    if system.nu or cfg.domain is not None:
         # the paper's comparison for controlled systems: within the disc; with a declared
         # domain D, always within D (areas and shares on the same set)
         in_d = problem.domain.contains(pts).reshape(shape)
@@ -806,5 +908,5 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         "true_dynamics_check": true_check,
         "eval_box": box.tolist(),
         "eval_grid": n,
-        "eval_points": int(cfg["eval_points"]),
+        "eval_points": int(cfg.eval_points),
     }

@@ -122,9 +122,12 @@ class PortfolioResult:
         }
 
 
-def seed_config(cfg: dict, seed: int) -> dict:
-    """A copy of the run configuration ``cfg`` with ``train.seed = cegis.seed = seed``."""
-    out = copy.deepcopy(cfg)
+def seed_config(cfg, seed: int) -> dict:
+    """A copy of the run configuration ``cfg`` (a ``RunConfig`` or its JSON) with
+    ``train.seed = cegis.seed = seed``, as JSON."""
+    from .configs import Section
+
+    out = cfg.to_json() if isinstance(cfg, Section) else copy.deepcopy(cfg)
     for section in ("train", "cegis"):
         sec = out.get(section)
         out[section] = dict(sec) if isinstance(sec, dict) else {}
@@ -231,7 +234,7 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
     system : str, path or systems.System
         A catalogue name, or a system spec file (TOML; each worker loads it). A ``System``
         object is sent by its name: it must be registered in the worker processes too.
-    cfg : dict
+    cfg : RunConfig or dict
         A validated run configuration (:func:`nlyap_opt.configs.get_config`).
     out : path
         Portfolio directory; seed ``k`` runs in ``out/seed_k`` (an earlier portfolio's
@@ -268,12 +271,14 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
     >>> res.best.seed, res.best.certified_area                               # doctest: +SKIP
     """
     seed_list = _check_seeds(seeds)
+    from .configs import RunConfig, check_dynamics_box, validate_config
+
+    if isinstance(cfg, RunConfig):
+        cfg = cfg.to_json()
     if not isinstance(cfg, dict):
-        raise ConfigError(f"cfg must be a run configuration dict, got {type(cfg).__name__}; "
+        raise ConfigError(f"cfg must be a run configuration, got {type(cfg).__name__}; "
                           "use nlyap_opt.configs.get_config(system, preset)")
     import systems as _systems
-
-    from .configs import check_dynamics_box, validate_config
 
     spec = None
     if isinstance(system, (str, os.PathLike)) and (

@@ -562,7 +562,7 @@ def test_portfolio_bad_system_or_config_fails_before_any_work(tmp_path):
 
     with pytest.raises(UnknownNameError, match="no_such_system"):
         run_portfolio("no_such_system", _fast_vdp(), tmp_path, seeds=2, workers=1)
-    bad = _fast_vdp()
+    bad = _fast_vdp().to_json()
     bad["train"] = dict(bad["train"], steps=-1)
     with pytest.raises(ConfigError, match="steps"):
         run_portfolio("van_der_pol", bad, tmp_path, seeds=2, workers=1)

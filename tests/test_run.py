@@ -8,7 +8,7 @@ from certcheck import assert_fast_certificate
 
 import systems
 from nlyap_opt.cli import main
-from nlyap_opt.configs import get_config
+from nlyap_opt.configs import get_config, make_config
 from nlyap_opt.network import Network
 from nlyap_opt.pipeline import run
 from nlyap_opt.provenance import fingerprint, fingerprint_id
@@ -103,8 +103,8 @@ def test_changed_training_settings_rerun_the_cegis_stage(known_runs, tmp_path):
 
     d, _ = known_runs["van_der_pol"]
     shutil.copytree(d, tmp_path / "run")
-    cfg = get_config("van_der_pol", "fast")
-    cfg["train"]["steps"] += 1
+    steps = get_config("van_der_pol", "fast").train.steps
+    cfg = make_config("van_der_pol", "fast", overrides={"train": {"steps": steps + 1}})
     logs = []
     run("van_der_pol", cfg, tmp_path / "run", known_dynamics=True, log=logs.append)
     assert not any("[cegis] loaded" in m for m in logs)

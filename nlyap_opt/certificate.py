@@ -50,7 +50,7 @@ __all__ = [
     "CertStatus", "Decrease", "RoaProblem", "RoaCertificate", "InnerEllipse", "certify_roa",
     "recheck_certificate", "recheck_run", "certify_with_inner_search", "load_artifact",
     "sha256_file", "FORMAT", "VERSION", "system_fingerprint", "system_binding", "spec_factory",
-    "status_text",
+    "status_text", "LevelPolicy", "NEURAL_POLICY", "certify_candidate", "INNER_FACTORS",
 ]
 
 FORMAT = "nlyap-roa-certificate"
@@ -769,40 +769,107 @@ def _learned_closed_loop(problem: RoaProblem):
                        strict=True).rhs
 
 
-#: the inner radii :func:`certify_with_inner_search` tries, as multiples of the configured one
+#: the inner radii of a :class:`LevelPolicy` search, as multiples of the policy's radius
 INNER_FACTORS = (1.0, 0.5, 0.25, 2.0, 0.125, 3.0)
 
 
-def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
-                              factors=INNER_FACTORS, follow_violations: bool = False,
-                              smallest_level: bool = False, log=print) -> RoaCertificate:
-    r""":func:`certify_roa` at the configured inner radius ε, then at other radii.
+@dataclass(frozen=True)
+class LevelPolicy:
+    r"""How a candidate ``V``'s level and inner radius are chosen: the one certification
+    policy of :func:`certify_candidate` (quadratic, SOS and neural candidates, and the rows
+    of ``nlyap compare``).
+
+    The level is the largest sublevel set inside the domain that the interval verifier
+    proves: the search starts at :func:`nlyap_opt.roa.candidate_level` (the least ``V`` on
+    ``∂D`` or at a sampled / IPOPT decrease violation; capped by a candidate's own level, e.g.
+    an SDP level) and steps down after each refutation or undecided verdict
+    (:func:`nlyap_opt.roa.certify_level`).
+
+    Attributes
+    ----------
+    inner_fraction : float
+        The inner radius ``ε`` as a fraction of the problem's ``inner`` (> 0).
+    factors : tuple of float
+        Radii ``ε·f`` tried in turn, the first that certifies wins (``(1.0,)``: ``ε`` only).
+        With more than one, the certificate's ``history`` lists every radius tried.
+    smallest_level : bool
+        Check each radius once, at the smallest level that holds its inner ball, instead of
+        searching down from the candidate level (learned dynamics: there the robust margin
+        has the most room).
+    follow_violations : bool
+        Follow decrease counterexamples down to the least ``V`` of a violation.
+    """
+
+    inner_fraction: float = 1.0
+    factors: tuple[float, ...] = INNER_FACTORS
+    smallest_level: bool = False
+    follow_violations: bool = False
+
+    def __post_init__(self):
+        if not (math.isfinite(self.inner_fraction) and self.inner_fraction > 0):
+            raise ValueError(f"inner_fraction must be finite and > 0, got "
+                             f"{self.inner_fraction!r}")
+        f = tuple(float(v) for v in self.factors)
+        if not f or not all(math.isfinite(v) and v > 0 for v in f):
+            raise ValueError(f"factors must be finite positive numbers, got {self.factors!r}")
+        object.__setattr__(self, "factors", f)
+
+
+#: the neural ``V``: the configured ε (the saved level exactly when one is claimed), then
+#: the other radii of :data:`INNER_FACTORS`
+NEURAL_POLICY = LevelPolicy()
+
+
+def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, *,
+                      level: float | None = None, cap: float | None = None,
+                      log=print) -> RoaCertificate:
+    r"""Certify ``problem.V`` by ``policy``: conditions (a), (b), (c) by :func:`certify_roa`.
 
     The inner radius is a trade-off the user should not have to tune: a small ε makes
     condition (c) easy (a small ellipse around the origin) but the decrease (a) must then hold
     close to the origin, where a robust margin :math:`\eta\|\nabla V\|` (learned f) can beat it;
-    a large ε the other way round. The same ``V`` and ``κ`` are re-checked with
-    ``ε·factor`` for each factor (no retraining); the first radius that certifies wins (the
-    configured one first). Without ``level`` each radius gets its own candidate level
-    (:func:`nlyap_opt.roa.candidate_level`); ``follow_violations`` goes to
-    :func:`certify_roa`. With ``smallest_level`` (and no ``level``) each radius starts at
-    the smallest level that can hold its inner ball, ``(1 +``
-    :data:`nlyap_opt.roa.INNER_LEVEL_MARGIN` ``)·max_{‖x‖=ε} V``, and is skipped when the
-    candidate level lies below that (a sampled violation or the boundary inside every
-    ``Ω_c ⊇ B_ε``); that one level is checked, no search below it. Returns the certificate
-    (its ``history`` lists every radius tried) or the configured radius's refusal.
+    a large ε the other way round. The same ``V`` and ``κ`` are checked with ``ε·f`` for
+    each of the policy's factors (no retraining); the first radius that certifies wins.
+
+    Parameters
+    ----------
+    problem : RoaProblem
+        The candidate ``V`` on the run's problem; ``ε = policy.inner_fraction·problem.inner``.
+    policy : LevelPolicy
+    level : float, optional
+        A claimed level: checked exactly at the first radius (a re-verification), searched
+        from at the others. Without it each radius gets its own candidate level.
+    cap : float, optional
+        An upper bound of the candidate level (a candidate's own level, e.g. an SOS
+        program's); ignored with ``level``.
+    log : callable
+
+    Returns
+    -------
+    RoaCertificate
+        The first radius's certificate that certifies, else the first radius's refusal;
+        ``CERTIFIED`` only when every condition was verified by the interval verifier.
+
+    Raises
+    ------
+    ConfigError
+        When no radius of the policy lies inside the domain.
     """
     from dataclasses import replace
 
     from .roa import INNER_LEVEL_MARGIN, candidate_level, inner_ball_level
 
+    base = problem.inner * policy.inner_fraction
+    if policy.inner_fraction != 1.0:
+        problem = replace(problem, inner=base)
     try:  # the decrease condition does not depend on ε: built once, shared
         dec = problem.decrease()
     except InputRangeError:
         return certify_roa(problem, 1.0 if level is None else level, log=log)
+    record = len(policy.factors) > 1
     first, tried = None, []
-    for f in factors:
-        eps = problem.inner * f
+    for f in policy.factors:
+        eps = base * f
         if not 0 < eps < problem.domain.inradius():
             continue
         p = problem if f == 1.0 else replace(problem, inner=eps)
@@ -811,10 +878,12 @@ def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
         if lv is None:
             lv = candidate_level(dec.x, dec.V, dec.lie, inner=eps, domain=p.domain,
                                  margin=dec.margin).level
+            if cap is not None:
+                lv = min(lv, cap)
         if not lv > 0:
             tried.append({"inner": eps, "status": "no positive candidate level"})
             continue
-        smallest = smallest_level and level is None
+        smallest = policy.smallest_level and level is None
         if smallest:
             m = inner_ball_level(dec.x, dec.V, eps)
             if not lv > m * (1.0 + INNER_LEVEL_MARGIN):
@@ -825,17 +894,18 @@ def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
                 continue
             lv = m * (1.0 + INNER_LEVEL_MARGIN)
         cert = certify_roa(p, lv, search=(f != 1.0 or level is None) and not smallest,
-                           follow_violations=follow_violations, log=log)
+                           follow_violations=policy.follow_violations, log=log)
         tried.append({"inner": eps, "status": cert.status.value, "reason": cert.reason,
                       "level": cert.level})
         first = first or cert
         if cert.certified:
             if f != 1.0:
-                log(f"inner radius {problem.inner:g} refused; certified with ε = {eps:g}")
+                log(f"inner radius {base:g} refused; certified with ε = {eps:g}")
                 cert.assumptions.append(
                     f"inner radius ε = {eps:g} chosen by the tool (configured "
-                    f"{problem.inner:g}: {tried[0].get('reason', tried[0]['status'])})")
-            cert.history = list(cert.history) + [{"inner_radius_search": tried}]
+                    f"{base:g}: {tried[0].get('reason', tried[0]['status'])})")
+            if record:
+                cert.history = list(cert.history) + [{"inner_radius_search": tried}]
             return cert
     if first is None and not tried:
         raise ConfigError(f"no inner radius to try inside the domain "
@@ -845,8 +915,17 @@ def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
             CertStatus.NOT_CERTIFIED, "no inner radius left to check: "
             + "; ".join(f"ε = {t['inner']:g}: {t['status']}" for t in tried), level=0.0,
             assumptions=[], **_identity(problem))
-    first.history = list(first.history) + [{"inner_radius_search": tried}]
+    if record:
+        first.history = list(first.history) + [{"inner_radius_search": tried}]
     return first
+
+
+def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
+                              factors=INNER_FACTORS, follow_violations: bool = False,
+                              smallest_level: bool = False, log=print) -> RoaCertificate:
+    """:func:`certify_candidate` with the policy of these arguments at the problem's ε."""
+    policy = LevelPolicy(1.0, tuple(factors), smallest_level, follow_violations)
+    return certify_candidate(problem, policy, level=level, log=log)
 
 
 def recheck_certificate(path: str | Path, *, system=None, allow_factory: bool = False,

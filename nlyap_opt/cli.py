@@ -462,7 +462,7 @@ def cmd_verify(args) -> int:
     eta, margin, smoothing = args.eta or 0.0, args.margin or 0.0, args.smoothing or 0.0
 
     import systems
-    from verification import closed_loop_problem, verify
+    from verification import QueryStatus, closed_loop_problem, verify
 
     s = systems.get(args.system)
     V = _load_network(args.lyapunov, "--lyapunov")
@@ -504,10 +504,10 @@ def cmd_verify(args) -> int:
         else:
             print(f"  counterexample x = {c.point.tolist()} violates {c.property}: "
                   f"value in [{c.value_lower:.6g}, {c.value_upper:.6g}]")
-    if res.status == "unknown":
+    if res.status is QueryStatus.UNKNOWN:
         print(f"  {len(res.undecided)} boxes undecided at resolution {args.resolution}")
     _write_json(args.json, res.to_dict())
-    return {"verified": 0, "counterexample": 1}.get(res.status, 2)
+    return {QueryStatus.VERIFIED: 0, QueryStatus.COUNTEREXAMPLE: 1}.get(res.status, 2)
 
 
 def _run_config(args, learned: bool) -> dict:
@@ -542,8 +542,7 @@ def cmd_run(args) -> int:
     res = run(args.system, cfg, out, known_dynamics=args.known_dynamics,
               workers=args.workers, scheduler=args.scheduler,
               connect_timeout=args.connect_timeout)
-    status = res["status"] if isinstance(res, dict) else res.status
-    return 0 if getattr(status, "value", status) == "certified" else 2
+    return 0 if res.certified else 2
 
 
 def cmd_compare(args) -> int:
@@ -554,7 +553,7 @@ def cmd_compare(args) -> int:
     _check_writable(Path(out), "--out", directory=True)
     rows = compare(args.system, cfg, out, include_neural=not args.no_neural)
     print((Path(out) / "comparison.md").read_text())
-    return 0 if all(r["certified"] for r in rows if r["method"].startswith("neural")) else 2
+    return 0 if all(r.certified for r in rows if r.method.startswith("neural")) else 2
 
 
 def cmd_config(args) -> int:

@@ -625,7 +625,7 @@ def _sos_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> d
                     "level": res.certified_level, "inner": res.inner, "volume": vol,
                     "verify_options": opts}
         _write_stage_json(out / "sos.json", {
-            "degree": sc.degree, "V_degree": res.degree, "status": res.status,
+            "degree": sc.degree, "V_degree": res.degree, "status": res.text,
             "sdp_level": res.sdp_level,
             "level": res.certified_level, "inner": res.inner, "volume": vol,
             "history": res.history, "notes": res.notes,
@@ -633,9 +633,9 @@ def _sos_stage(system, cfg, out: Path, stages, controller, problem_of, log) -> d
             "seconds": time.perf_counter() - t})
         stages.mark("sos", *deps)
         for note in res.notes:
-            if note not in res.status:
+            if note not in res.text:
                 log(f"[sos] note: {note}")
-        log(f"[sos] {res.status}" + (f", volume {vol:.4g}" if res.certified else "")
+        log(f"[sos] {res.text}" + (f", volume {vol:.4g}" if res.certified else "")
             + f" ({time.perf_counter() - t:.1f} s)")
     return json.loads((out / "sos.json").read_text()).get("best")
 

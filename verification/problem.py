@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from enum import Enum
 
 import casadi as ca
 import numpy as np
@@ -29,8 +30,22 @@ from nlyap_opt.walker import compile_function
 
 __all__ = [
     "VerificationProblem", "VerificationResult", "Counterexample", "lyapunov_problem",
-    "closed_loop_problem",
+    "closed_loop_problem", "QueryStatus",
 ]
+
+
+class QueryStatus(str, Enum):
+    """Outcome of one verification query (a ``str``: saved and compared as its word)."""
+
+    VERIFIED = "verified"
+    COUNTEREXAMPLE = "counterexample"
+    UNKNOWN = "unknown"
+
+    #: hashed as its word, so that a member finds the word's entry of a dict or set
+    __hash__ = str.__hash__
+
+    def __str__(self) -> str:
+        return self.value
 
 
 @dataclass
@@ -214,7 +229,8 @@ class VerificationResult:
 
     Attributes
     ----------
-    status : {"verified", "counterexample", "unknown"}
+    status : QueryStatus
+        ``VERIFIED``, ``COUNTEREXAMPLE`` or ``UNKNOWN`` (given as the word or the member)
     counterexample : Counterexample or None
     counterexamples : list of Counterexample   all confirmed ones found (for CEGIS)
     undecided : (k, n, 2) ndarray   boxes at the resolution that stayed undecided
@@ -227,7 +243,7 @@ class VerificationResult:
                                     was found)
     """
 
-    status: str
+    status: QueryStatus
     counterexample: Counterexample | None = None
     counterexamples: list = field(default_factory=list)
     undecided: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2)))
@@ -238,9 +254,12 @@ class VerificationResult:
     backend: str = "interval"
     open: np.ndarray | None = None
 
+    def __post_init__(self):
+        self.status = QueryStatus(self.status)   # a word that is no status: ValueError
+
     @property
     def success(self) -> bool:
-        return self.status == "verified"
+        return self.status is QueryStatus.VERIFIED
 
     def to_dict(self) -> dict:
         return {

@@ -20,8 +20,13 @@ from pathlib import Path
 import numpy as np
 
 import systems
-from nlyap_opt.certificate import (RoaCertificate, RoaProblem, certify_candidate,
-                                   recheck_certificate, save_certificate)
+from nlyap_opt.certificate import (
+    RoaCertificate,
+    RoaProblem,
+    certify_candidate,
+    recheck_certificate,
+    save_certificate,
+)
 from nlyap_opt.configs import domain_of
 from nlyap_opt.control import linear_controller, lqr, quadratic_lyapunov, saturated_controller
 from nlyap_opt.network import Network

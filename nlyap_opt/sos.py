@@ -60,8 +60,14 @@ from enum import Enum
 
 import numpy as np
 
-from .certificate import (InnerEllipse, LevelPolicy, RoaCertificate, RoaProblem,
-                          certify_candidate, certify_roa)
+from .certificate import (
+    InnerEllipse,
+    LevelPolicy,
+    RoaCertificate,
+    RoaProblem,
+    certify_candidate,
+    certify_roa,
+)
 from .control import lqr
 from .errors import NotStabilizableError
 from .polynomial import NotPolynomialError, Polynomial, polynomial_closed_loop

@@ -14,6 +14,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.interpolate import RegularGridInterpolator
 
 from .certificate import CertStatus, RoaCertificate, RoaProblem, certify_roa
 from .determinism import deterministic_torch
@@ -109,7 +110,6 @@ def _simulation_rhs(learner, system, cfg, tabulate: bool):
 
     if not tabulate or system.nx > 3 or not cfg.sim_points:
         return rhs_np
-    from scipy.interpolate import RegularGridInterpolator
 
     m = axis_count(cfg.sim_points, system.nx)
     box = _domain(cfg, system.nx).bounding_box()

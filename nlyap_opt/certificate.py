@@ -32,18 +32,37 @@ import hashlib
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
+import systems
+from systems import System
+from verification import VerificationProblem
+from verification.verify import check_file_options
+
+from .bounds import gradient_bound
+from .control import lyapunov_matrix
 from .domain import Ball, Region, as_domain, parse_set
 from .errors import ConfigError, DimensionError, InputRangeError, NetworkFileError
 from .network import Network
 from .parallel import ahead
+from .parallel import check as verify
 from .provenance import fingerprint
+from .roa import (
+    INNER_LEVEL_MARGIN,
+    candidate_level,
+    certify_inner_ellipse,
+    certify_level,
+    ellipse_around_ball,
+    grid_area,
+    grid_points,
+    inner_ball_level,
+)
+from .symbolic import closed_loop, learned_components_of, lie_derivative, robust_lie
 from .walker import evaluate
 
 __all__ = [
@@ -366,12 +385,9 @@ class RoaProblem:
         """
         if getattr(self, "_decrease", None) is not None:
             return self._decrease
-        from .symbolic import closed_loop, learned_components_of, lie_derivative, robust_lie
 
         M, margin, s = None, 0.0, 0.0
         if not self.known:
-            from .bounds import gradient_bound
-
             gb = gradient_bound(self.V, self.ball_box, controller=self.controller,
                                 input_box=self.input_box if self.system.nu else None,
                                 state_box=self.dynamics_box)
@@ -467,7 +483,6 @@ class RoaCertificate:
 
     def area(self, box, n: int) -> float:
         """Area (volume) of the certified set by cell counting on an ``n^nx`` grid over box."""
-        from .roa import grid_area, grid_points
 
         box = np.asarray(box, dtype=float)
         pts, shape = grid_points(box, n)
@@ -584,7 +599,6 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
 def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violations: bool,
                  inner_job, log) -> RoaCertificate:
     """:func:`certify_roa`'s body; ``inner_job``: condition (c)'s :class:`Ahead`, or ``None``."""
-    from .roa import certify_level
 
     t0 = time.perf_counter()
     sysm = problem.system
@@ -687,9 +701,7 @@ def _identity(problem: RoaProblem) -> dict:
 
 def _initial_set_check(problem: RoaProblem, dec: Decrease, level: float):
     """``X_I ⊆ Ω_c``: on ``X_I``, ``V < level`` and every inequality of ``D`` holds strictly."""
-    from verification import VerificationProblem
 
-    from .parallel import check as verify
 
     XI = problem.initial_set
     cons = XI.constraints(dec.x)
@@ -718,7 +730,6 @@ def _inner_ellipse(problem: RoaProblem, saved: InnerEllipse | None = None
     (:func:`nlyap_opt.inner_from_data.prove_inner_ellipse_from_data`), else the ellipse of
     the learned closed loop's linearisation, *assumed* (``checked: False``).
     """
-    from .roa import certify_inner_ellipse
 
     sysm = problem.system
     if getattr(sysm, "has_model", True):
@@ -744,7 +755,6 @@ def _inner_ellipse(problem: RoaProblem, saved: InnerEllipse | None = None
 
 def _assumed_ellipse(problem: RoaProblem) -> dict:
     """The quadratic ellipse ``E ⊇ B_ε`` of the learned closed loop's linearisation."""
-    from .control import lyapunov_matrix
 
     dec = problem.decrease()
     cl_rhs = _learned_closed_loop(problem)
@@ -753,7 +763,6 @@ def _assumed_ellipse(problem: RoaProblem) -> dict:
     if np.max(np.linalg.eigvals(J).real) >= 0:
         return {"status": "closed-loop linearisation of φ not Hurwitz", "P": np.eye(len(J)),
                 "level": 0.0, "box": np.zeros(len(J)), "checked": False}
-    from .roa import ellipse_around_ball
 
     P = lyapunov_matrix(J)
     c_q, a = ellipse_around_ball(P, problem.inner)
@@ -762,8 +771,6 @@ def _assumed_ellipse(problem: RoaProblem) -> dict:
 
 
 def _learned_closed_loop(problem: RoaProblem):
-    from .symbolic import closed_loop
-
     dec = problem.decrease()
     return closed_loop(problem.system, problem.controller, problem.dynamics, x=dec.x,
                        strict=True).rhs
@@ -855,9 +862,7 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
     ConfigError
         When no radius of the policy lies inside the domain.
     """
-    from dataclasses import replace
 
-    from .roa import INNER_LEVEL_MARGIN, candidate_level, inner_ball_level
 
     base = problem.inner * policy.inner_fraction
     if policy.inner_fraction != 1.0:
@@ -975,7 +980,6 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
     proved again at the saved level. ``system`` and ``allow_factory`` as in
     :func:`recheck_certificate`.
     """
-    from verification.verify import check_file_options
 
     path = Path(path)
     if path.is_dir():
@@ -1060,8 +1064,6 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
 def _recheck_system(saved: RoaCertificate, d: dict, path: Path, system, allow_factory: bool):
     """The system a re-check runs against (module docstring of :func:`recheck_certificate`):
     nothing named inside the certificate is executed."""
-    import systems
-    from systems import System
 
     if isinstance(system, System):
         return system

@@ -16,8 +16,8 @@ import argparse
 import contextlib
 import difflib
 import json
-import math
 import os
+import signal
 import sys
 import traceback
 import warnings
@@ -25,7 +25,29 @@ from pathlib import Path
 
 import numpy as np
 
+import systems
+from verification import QueryStatus, closed_loop_problem, verify
+
+from .certificate import CertStatus, recheck_certificate, spec_factory
+from .cli_args import (
+    RADIUS_MAX,
+    connect_timeout_arg,
+    inner_radius,
+    nonneg,
+    outer_radius,
+    positive,
+    seeds,
+    time_limit_arg,
+    workers,
+)
+from .cli_deploy import register_cli as register_deploy
+from .cli_dynamics import register_cli as register_learn_dynamics
+from .configs import PRESETS, check_dynamics_box, check_lqr_weights, config_reference, make_config
+from .control import lqr
 from .errors import ConfigError, NlyapError, UsageError
+from .network import Network
+from .parallel import MAX_LOCAL_WORKERS, dask_client, verify_distributed, verifying_on
+from .provenance import PORTABLE_FLAG, differences, fingerprint_id, portable_env, portable_problems
 
 __all__ = ["EXIT_CODES", "build_parser", "main"]
 
@@ -64,70 +86,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 # ============================================================================ argument types
-def _number(check, want: str):
-    def parse(text: str) -> float:
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}") from None
-        if not math.isfinite(v) or not check(v):
-            raise argparse.ArgumentTypeError(f"must be {want}, got {text}")
-        return v
-
-    parse.__name__ = want
-    return parse
-
-
-_nonneg = _number(lambda v: v >= 0, "a finite number >= 0")
-_positive = _number(lambda v: v > 0, "a finite number > 0")
-#: the largest radius ``verify`` takes (its square, summed over the states, stays finite)
-RADIUS_MAX = 1e100
-_inner_radius = _number(lambda v: 0 <= v <= RADIUS_MAX,
-                        f"a finite number >= 0 and <= {RADIUS_MAX:g}")
-_outer_radius = _number(lambda v: 0 < v <= RADIUS_MAX,
-                        f"a finite number > 0 and <= {RADIUS_MAX:g}")
-_connect_timeout = _number(lambda v: 0 < v <= 3600, "a finite number of seconds in (0, 3600]")
-
-
-def _seed(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {v}")
-    return v
-
-
-def _seeds(text: str) -> int | list[int]:
-    """``--seeds K`` (seeds 0..K-1) or ``--seeds 0,3,7``."""
-    parts = [p.strip() for p in text.split(",")]
-    try:
-        vals = [int(p) for p in parts]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected a count K >= 1 or seeds like 0,3,7, got {text!r}") from None
-    if len(vals) == 1 and "," not in text:
-        if vals[0] < 1:
-            raise argparse.ArgumentTypeError(f"the number of seeds must be >= 1, got {vals[0]}")
-        return vals[0]
-    if any(v < 0 for v in vals) or len(set(vals)) != len(vals):
-        raise argparse.ArgumentTypeError(f"seeds must be distinct integers >= 0, got {text!r}")
-    return vals
-
-
-def _workers(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {v}")
-    return v
-
-
 def _dask_args(sp) -> None:
-    sp.add_argument("--workers", type=_workers,
+    sp.add_argument("--workers", type=workers,
                     help="Dask worker processes of a local cluster started and stopped by "
                          "nlyap (default: one per CPU core); with --scheduler: workers to "
                          "wait for. run: with --seeds the portfolio's candidates, without "
@@ -135,7 +95,7 @@ def _dask_args(sp) -> None:
     sp.add_argument("--scheduler", metavar="ADDRESS",
                     help="tcp://HOST:PORT of an existing Dask cluster (`dask scheduler`); "
                          "it is used, never closed")
-    sp.add_argument("--connect-timeout", type=_connect_timeout, metavar="SECONDS",
+    sp.add_argument("--connect-timeout", type=connect_timeout_arg, metavar="SECONDS",
                     dest="connect_timeout",
                     help="with --scheduler: seconds to reach the scheduler and have it "
                          "answer (default 10); a closed port fails at once")
@@ -143,7 +103,6 @@ def _dask_args(sp) -> None:
 
 def _check_dask_args(args) -> None:
     """``--workers`` bounded for a local cluster; ``--connect-timeout`` only with a scheduler."""
-    from .parallel import MAX_LOCAL_WORKERS
 
     workers, scheduler = getattr(args, "workers", None), getattr(args, "scheduler", None)
     if workers is not None and scheduler is None and workers > MAX_LOCAL_WORKERS:
@@ -161,14 +120,6 @@ def _connect_kw(args) -> dict:
     return {} if t is None else {"connect_timeout": t}
 
 
-def time_limit_arg(sp) -> None:
-    """Add ``--time-limit SECONDS`` (a guard that stops the command, exit 5) to ``sp``."""
-    sp.add_argument("--time-limit", type=_positive, metavar="SECONDS", dest="time_limit",
-                    help="stop after SECONDS of wall time with exit code 5, keeping the "
-                         "finished stages (the same command resumes); results never depend "
-                         "on it: every training budget is a count of steps")
-
-
 class TimeLimitReached(KeyboardInterrupt):
     """Raised in the main thread when ``--time-limit`` runs out.
 
@@ -183,7 +134,6 @@ def _time_guard(seconds: float | None):
     if seconds is None:
         yield
         return
-    import signal
 
     if not hasattr(signal, "setitimer"):
         raise UsageError("--time-limit needs POSIX interval timers, which this platform "
@@ -233,8 +183,6 @@ def _reading(what: str, fix: str = "check the input"):
 
 
 def _catalogue_system(name: str) -> None:
-    import systems
-
     if name not in systems.names():
         close = difflib.get_close_matches(name, systems.names(), n=1)
         hint = f"did you mean {close[0]!r}? " if close else ""
@@ -269,7 +217,6 @@ def _is_spec(name: str) -> bool:
 
 def _spec_system(path: str) -> str:
     """Load a system spec file (TOML), register it for this process, return its name."""
-    import systems
 
     p = Path(path)
     if not p.is_file():
@@ -289,8 +236,6 @@ def _check_paths(args) -> None:
     if getattr(args, "system", None) is not None:
         if _is_spec(args.system) and args.command == "verify" and \
                 not args.allow_factory and Path(args.system).is_file():
-            from .certificate import spec_factory
-
             factory = spec_factory(args.system)
             if factory is not None:
                 raise UsageError(f"--system {args.system} defines its system with factory = "
@@ -327,16 +272,12 @@ def _write_json(path: str | None, data: dict) -> None:
 
 
 def _load_network(path: str, option: str):
-    from .network import Network
-
     with _reading(f"{option} {path}"):
         return Network.load(path)
 
 
 # ============================================================================ commands
 def cmd_systems(args) -> int:
-    import systems
-
     if args.check:
         s = systems.load_spec(args.check) if _is_spec(args.check) else systems.get(args.check)
         print(json.dumps(s.summary(), indent=1, allow_nan=False, default=str))
@@ -352,11 +293,6 @@ def cmd_systems(args) -> int:
 
 
 def cmd_lqr(args) -> int:
-    import systems
-
-    from .configs import check_lqr_weights
-    from .control import lqr
-
     s = systems.get(args.system)
     Q, R = check_lqr_weights(s, _matrix_arg(args.Q, "--Q"), _matrix_arg(args.R, "--R"),
                              where="lqr", names=("--Q", "--R"))
@@ -381,7 +317,6 @@ _PROBLEM_OPTIONS = ("system", "lyapunov", "controller", "dynamics", "inner", "ou
 def _note_other_fingerprint(path: Path) -> None:
     """Say when a certificate was made in another numeric environment (the re-check's
     verdict does not depend on it; a re-run of its training would)."""
-    from .provenance import differences, fingerprint_id
 
     try:
         stored = json.loads(path.read_text()).get("provenance")
@@ -406,13 +341,11 @@ def _verify_certificate(args) -> int:
                          f"level; drop {', '.join(given)}")
     system = None
     if args.system is not None:      # loaded by _check_paths (a factory only when allowed)
-        import systems
 
         system = systems.get(args.system)
     path = Path(args.certificate)
     if path.is_dir():
         path = path / "certificate.json"
-    from .certificate import CertStatus, recheck_certificate
 
     verifier = [o for o, given in (("--backend", args.backend != "interval"),
                                    ("--precision", args.precision is not None),
@@ -424,7 +357,6 @@ def _verify_certificate(args) -> int:
     if args.workers is not None or args.scheduler is not None:
         # the conditions' checks run on the cluster (nlyap_opt.parallel.check): a
         # "verified" comes from it, any other verdict is decided again serially
-        from .parallel import dask_client, verifying_on
 
         with dask_client(args.workers, args.scheduler, **_connect_kw(args)) as client, \
                 verifying_on(client):
@@ -461,8 +393,6 @@ def cmd_verify(args) -> int:
         raise UsageError("--smoothing only applies with --eta > 0; drop it or give --eta")
     eta, margin, smoothing = args.eta or 0.0, args.margin or 0.0, args.smoothing or 0.0
 
-    import systems
-    from verification import QueryStatus, closed_loop_problem, verify
 
     s = systems.get(args.system)
     V = _load_network(args.lyapunov, "--lyapunov")
@@ -483,7 +413,6 @@ def cmd_verify(args) -> int:
         if args.backend != "interval":
             raise UsageError("--workers/--scheduler run the interval backend on Dask; drop "
                              "them or use --backend interval")
-        from .parallel import dask_client, verify_distributed
 
         with dask_client(args.workers, args.scheduler, **_connect_kw(args)) as client:
             res = verify_distributed(problem, client, resolution=args.resolution)
@@ -511,8 +440,6 @@ def cmd_verify(args) -> int:
 
 
 def _run_config(args, learned: bool) -> dict:
-    from .configs import PRESETS, check_dynamics_box, make_config
-
     preset = args.preset
     if preset is None:  # a catalogue system's default preset; none for a system file
         preset = "large" if args.system in PRESETS else None
@@ -557,8 +484,6 @@ def cmd_compare(args) -> int:
 
 
 def cmd_config(args) -> int:
-    from .configs import config_reference
-
     if args.keys:
         print(config_reference())
         return 0
@@ -623,22 +548,22 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--lyapunov", help="V network JSON")
     sp.add_argument("--controller", help="controller network JSON (feeds the inputs)")
     sp.add_argument("--dynamics", help="learned dynamics network JSON (replaces f)")
-    sp.add_argument("--margin", type=_nonneg, help="beta >= 0: require dV/dt < -beta")
-    sp.add_argument("--eta", type=_nonneg,
+    sp.add_argument("--margin", type=nonneg, help="beta >= 0: require dV/dt < -beta")
+    sp.add_argument("--eta", type=nonneg,
                     help="pointwise robust margin >= 0: require dV/dt + eta*|grad V| < -beta "
                          "(grad V: its entries of the components --dynamics learns)")
-    sp.add_argument("--smoothing", type=_nonneg,
+    sp.add_argument("--smoothing", type=nonneg,
                     help="s >= 0: with --eta use sqrt(|grad V|^2 + s^2) (certificate.json's "
                          "norm_smoothing)")
-    sp.add_argument("--inner", type=_inner_radius,
+    sp.add_argument("--inner", type=inner_radius,
                     help="inner radius epsilon (0 <= inner < outer)")
-    sp.add_argument("--outer", type=_outer_radius, help=f"outer radius r (<= {RADIUS_MAX:g})")
-    sp.add_argument("--level", type=_positive, help="restrict to V(x) <= level (> 0)")
+    sp.add_argument("--outer", type=outer_radius, help=f"outer radius r (<= {RADIUS_MAX:g})")
+    sp.add_argument("--level", type=positive, help="restrict to V(x) <= level (> 0)")
     sp.add_argument("--backend", default="interval", choices=["interval", "dreal"],
                     help="interval: the sound verifier; dreal: the optional second opinion")
-    sp.add_argument("--resolution", type=_positive,
+    sp.add_argument("--resolution", type=positive,
                     help="smallest box width (interval backend)")
-    sp.add_argument("--precision", type=_positive, help="delta of the dreal backend")
+    sp.add_argument("--precision", type=positive, help="delta of the dreal backend")
     sp.add_argument("--progress", action="store_true", help="show a progress bar")
     sp.add_argument("--json", help="write status, seconds, boxes, counterexample here")
     _dask_args(sp)
@@ -651,7 +576,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--known-dynamics", action="store_true",
                     help="use the true f (the paper's 'actual dynamics' setting)")
     sp.add_argument("--out", help="output directory (default runs/NAME[_known])")
-    sp.add_argument("--seeds", type=_seeds,
+    sp.add_argument("--seeds", type=seeds,
                     help="K (seeds 0..K-1) or 0,3,7: train one candidate per seed in "
                          "parallel on Dask (OUT/seed_k), keep the largest certified area "
                          "(OUT/portfolio.md)")
@@ -683,8 +608,6 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--keys", action="store_true", help="list every key, type and default")
     sp.set_defaults(func=cmd_config)
 
-    from .cli_deploy import register_cli as register_deploy
-    from .cli_dynamics import register_cli as register_learn_dynamics
 
     for register in [register_learn_dynamics, register_deploy, *_EXTRA]:
         register(sub)
@@ -736,7 +659,6 @@ def _enter_portable_mode(argv: list[str], may_restart: bool) -> None:
     The pins act only in a process that starts with them (numpy, OpenBLAS and torch read
     them when they load), so the command replaces itself by a new process with them set.
     """
-    from .provenance import PORTABLE_FLAG, portable_env, portable_problems
 
     if os.environ.get(PORTABLE_FLAG) != "1":
         if not may_restart:

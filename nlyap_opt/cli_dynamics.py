@@ -12,7 +12,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import systems
+
+from .cli_args import time_limit_arg
 from .dynamics_config import MODELS, load_dynamics_config
+from .dynamics_stage import dynamics_stage
 from .error_models import BOUND_OPTIONS, format_table
 
 __all__ = ["register_cli", "cmd_learn_dynamics"]
@@ -20,9 +24,7 @@ __all__ = ["register_cli", "cmd_learn_dynamics"]
 
 def cmd_learn_dynamics(args) -> int:
     """Run the dynamics stage for ``args.system``; print the table; 0 ok, 2 η too large."""
-    import systems
 
-    from .dynamics_stage import dynamics_stage
 
     over: dict = {}
     if args.model:
@@ -50,7 +52,6 @@ def cmd_learn_dynamics(args) -> int:
 
 def register_cli(sub) -> None:
     """Add ``nlyap learn-dynamics NAME [--config FILE] --out DIR`` to a subparsers object."""
-    from .cli import time_limit_arg
 
     sp = sub.add_parser("learn-dynamics",
                         help="learn φ ≈ f on a grid and compute α, δ, K_f, K_φ, η")

@@ -11,10 +11,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import casadi as ca
 import numpy as np
 
 from .errors import DimensionError, NotStabilizableError
 from .network import Layer, Network
+from .symbolic import learned_rhs
 
 __all__ = [
     "LQRResult", "ellipse_candidates", "lqr", "linearisation", "lyapunov_matrix",
@@ -168,9 +170,7 @@ def linearisation(system, dynamics: Network | None = None) -> tuple[np.ndarray, 
     """
     if dynamics is None:
         return system.A, system.B
-    import casadi as ca
 
-    from .symbolic import learned_rhs
 
     x, u = ca.MX.sym("x", system.nx), ca.MX.sym("u", system.nu)
     rhs = learned_rhs(system, dynamics, x, u)

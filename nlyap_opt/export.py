@@ -28,6 +28,7 @@ from pathlib import Path
 import casadi as ca
 
 from .errors import ConfigError
+from .network import Network
 
 __all__ = ["export_c", "export_onnx", "C_FUNCTIONS"]
 
@@ -157,7 +158,6 @@ def export_onnx(run, out: str | Path) -> list[Path]:
                           "pip install 'nlyap_opt[onnx]' (or pip install onnx)")
     import torch
 
-    from .network import Network
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -84,9 +84,18 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from .errors import DimensionError
+from systems.jacobian import jacobian_from_data
+from verification import VerificationProblem
+from verification.interval import Interval, IntervalArithmetic
+
+from .bounds import check_input_range
+from .control import ellipse_candidates
+from .errors import DimensionError, InputRangeError
 from .network import Network
+from .parallel import check as verify
 from .rounding import U, dn_rel, gamma, up_rel
+from .symbolic import closed_loop, learned_components_of, robust_lie
+from .walker import CHECKED_OPS, evaluate
 
 __all__ = ["prove_inner_ellipse_from_data", "SAFETY"]
 
@@ -163,16 +172,13 @@ def _ellipse_box(P, c) -> np.ndarray:
 
 def _smooth_expression(fun: ca.Function) -> bool:
     """True when every operation of an SX Function is smooth and defined on all reals."""
-    from .walker import CHECKED_OPS
 
     return not any(fun.instruction_id(k) in CHECKED_OPS for k in range(fun.n_instructions()))
 
 
 def _enclose(fun: ca.Function, lo, hi) -> list[tuple[np.ndarray, np.ndarray]]:
     """Dense outward enclosures ``(L, Ub)`` of every output of ``fun`` over the box [lo, hi]."""
-    from verification.interval import Interval, IntervalArithmetic
 
-    from .walker import evaluate
 
     outs = evaluate(fun, [Interval(np.asarray(lo, float)[None], np.asarray(hi, float)[None])],
                     IntervalArithmetic())
@@ -289,8 +295,6 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
             return _fail(f"not proved: the controller must be C² (activations {acts}; "
                          f"smooth ones: {', '.join(_SMOOTH)})", n)
     if jac is None:
-        from systems.jacobian import jacobian_from_data
-
         jac = jacobian_from_data(system)
     J_hat = np.asarray(jac.J, dtype=float)
     E = np.asarray(jac.error, dtype=float)
@@ -383,8 +387,6 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
     if P is not None:
         candidates = [np.asarray(P, dtype=float)]
     else:
-        from .control import ellipse_candidates
-
         candidates = list(ellipse_candidates(G))  # iterated twice below
     ctx = {"system": system, "controller": controller, "x": x, "Jk": Jk, "Hk": Hk,
            "k": ksym, "H": H, "G": G, "D": D, "D_norm": D_norm, "J_hat": J_hat, "E": E,
@@ -562,12 +564,7 @@ def _check(P, ctx) -> dict:
 
 def _extend_with_phi(P, ctx, dynamics, eta, eta_state_box, eta_input_box, verify_options):
     """The data proof on a small ellipse, the learned φ with η on the rest (same ``P``)."""
-    from verification import VerificationProblem
 
-    from .bounds import check_input_range
-    from .errors import InputRangeError
-    from .parallel import check as verify
-    from .symbolic import closed_loop, learned_components_of, robust_lie
 
     system, controller = ctx["system"], ctx["controller"]
     if not (np.isfinite(eta) and eta >= 0):

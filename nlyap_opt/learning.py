@@ -44,6 +44,8 @@ from .determinism import deterministic_torch
 from .errors import ConfigError
 from .network import Layer, Network, dense_network, from_torch
 from .sampling import sample_ball, sample_sphere
+from .sos_sdp import gram_factor
+from .walker import ArrayArithmetic, evaluate
 
 __all__ = ["TrainConfig", "LyapunovLearner", "sample_ball", "sample_sphere"]
 
@@ -196,7 +198,6 @@ def sos_start(V, level: float, config: TrainConfig) -> Network:
     ValueError
         No Gram matrix of ``V`` was found (the caller may start at random instead).
     """
-    from .sos_sdp import gram_factor
 
     n, deg = V.nx, V.degree
     H = list(config.hidden)
@@ -345,7 +346,6 @@ class LyapunovLearner:
             f = s.evaluate_torch(x, u)
             cols = [out[:, learned.index(i)] if i in learned else f[:, i] for i in range(s.nx)]
         else:  # no model: the components known exactly, through their CasADi graph
-            from .walker import ArrayArithmetic, evaluate
 
             kf = evaluate(s.known_function(), [x, u], ArrayArithmetic("torch"))[0]
             known = list(s.known_state_derivatives)

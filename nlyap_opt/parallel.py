@@ -41,18 +41,25 @@ scheduler only listens where ``--host`` says; keep it on a private network.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import contextvars
 import copy
 import inspect
+import logging
 import math
 import os
 import re
+import socket
 import threading
 import time
 from collections.abc import Iterator
 
 import numpy as np
+
+from verification import verify
+from verification.problem import VerificationResult
+from verification.verify import split_box, verify_interval
 
 from .errors import BackendUnavailableError, ConfigError
 
@@ -146,8 +153,6 @@ def _probe_scheduler(address: str, timeout: float) -> None:
     the deadline: a listener that accepts and never answers ends here, not in a hang.
     :class:`ConfigError` with the address when either fails.
     """
-    import asyncio
-    import socket
 
     from distributed.comm import get_address_host_port
 
@@ -251,7 +256,6 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
         raise ConfigError(f"timeout must be a positive number of seconds, got {timeout!r}")
     connect_timeout = check_connect_timeout(connect_timeout)
     distributed = _distributed()
-    import logging
 
     if address is not None:
         _probe_scheduler(address, connect_timeout)
@@ -311,7 +315,6 @@ def client_workers(client) -> int:
 # ---------------------------------------------------------------------------- verification
 def _starts_from_boxes() -> bool:
     """Whether ``verify_interval`` accepts ``boxes=`` (start from given sub-boxes, batched)."""
-    from verification.verify import verify_interval
 
     return "boxes" in inspect.signature(verify_interval).parameters
 
@@ -347,8 +350,6 @@ def _box_task(problem, boxes: np.ndarray, budget: int, options: dict, batched: b
 
 
 def _decide_boxes(problem, boxes, budget, options, batched) -> dict:
-    from verification.verify import verify_interval
-
     res = options["resolution"]
     if batched:
         r = verify_interval(problem, boxes=boxes, max_boxes=budget, presearch=0,
@@ -382,7 +383,6 @@ def _root_task(problem, options: dict, presearch: int, initial_boxes: int,
                budget: int) -> dict:
     """Worker side: the pre-search and the serial verifier on the root box until ``budget``
     boxes are spent (``budget = 0``: only the root box itself is evaluated)."""
-    from verification.verify import verify_interval
 
     t = time.thread_time()
     more = {"hand_back": True} if budget else {}  # batched: the halves go on unevaluated
@@ -484,8 +484,6 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     TypeError
         An option the interval verifier does not have.
     """
-    from verification.problem import VerificationResult
-    from verification.verify import split_box, verify_interval
 
     known = set(inspect.signature(verify_interval).parameters) - {
         "problem", "executor", "n_tasks", "progress", "boxes", "hand_back"}
@@ -654,7 +652,6 @@ def check(problem, **options):
     run leaves ``unknown`` there (never the reverse for a property that fails: that is
     decided serially).
     """
-    from verification import verify
 
     client = _CLUSTER.get()
     if client is None:

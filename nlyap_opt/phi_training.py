@@ -16,6 +16,7 @@ import math
 import time
 
 import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 from .dynamics_config import DynamicsConfig
 from .network import Layer, Network
@@ -112,8 +113,6 @@ class LevenbergMarquardt:
         return self._forward(th)[1]
 
     def run(self, th, iters, weights, bar, history, desc, stage, t_start):
-        from scipy.linalg import LinAlgError, cho_factor, cho_solve
-
         N, H, d = self.Z.shape[0], self.H, self.d
         w = np.ones(N) if weights is None else weights
         sw = np.sqrt(w)

@@ -32,9 +32,13 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import systems as _systems
+
 from .certificate import sha256_file, write_json_atomic
+from .configs import check_dynamics_box, validate_config
 from .errors import ConfigError
 from .parallel import DEFAULT_CONNECT_TIMEOUT, client_workers, cpu_cores, dask_client
+from .pipeline import run
 
 __all__ = ["run_portfolio", "PortfolioResult", "SeedRun", "seed_config"]
 
@@ -158,11 +162,8 @@ def _run_seed(system: str, cfg: dict, out: str, known_dynamics: bool,
 
     ``spec``: the system comes from this TOML spec file (loaded here, in the worker).
     """
-    from .pipeline import run
 
     if spec is not None:
-        import systems as _systems
-
         system = _systems.load_spec(spec)
     t = time.perf_counter()
     Path(out).mkdir(parents=True, exist_ok=True)
@@ -271,9 +272,7 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
     if not isinstance(cfg, dict):
         raise ConfigError(f"cfg must be a run configuration dict, got {type(cfg).__name__}; "
                           "use nlyap_opt.configs.get_config(system, preset)")
-    import systems as _systems
 
-    from .configs import check_dynamics_box, validate_config
 
     spec = None
     if isinstance(system, (str, os.PathLike)) and (

@@ -117,8 +117,6 @@ def _cpu() -> dict:
 
 def _blas() -> list[dict]:
     """numpy's and SciPy's BLAS libraries: library, version, kernel and threads."""
-    import numpy  # noqa: F401  (loads numpy's BLAS)
-    import scipy.linalg  # noqa: F401  (loads SciPy's BLAS)
     from threadpoolctl import threadpool_info
 
     out = []

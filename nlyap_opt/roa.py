@@ -42,9 +42,15 @@ from enum import Enum
 import casadi as ca
 import numpy as np
 
+from verification import VerificationProblem, lyapunov_problem
+
+from .control import ellipse_candidates, lyapunov_matrix
 from .domain import as_domain
+from .parallel import check as verify
 from .rounding import EPS
-from .walker import evaluate
+from .simulate import simulate
+from .symbolic import closed_loop
+from .walker import compile_function, evaluate
 
 __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
@@ -335,9 +341,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     that can hold the inner ball, and the search ends after that. Returns the certified
     level or why none was found.
     """
-    from verification import VerificationProblem, lyapunov_problem
 
-    from .parallel import check as verify  # serial, or on the cluster of verifying_on()
 
     t0 = time.perf_counter()
     opts = dict(verify_options or {})
@@ -460,8 +464,6 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     Returns a dict with ``status`` (``"certified"`` or why not), ``P``, ``level``
     (``c_q``), ``box``, ``form``.
     """
-    from .control import ellipse_candidates
-    from .symbolic import closed_loop
 
     cl = closed_loop(system, controller, strict=True)
     J = ca.jacobian(cl.rhs, cl.x)
@@ -550,9 +552,7 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
     re-check of a saved claim, a shell's ``ε_s`` and inner form included). ``shell``:
     whether the shell form may be tried (not inside a shell).
     """
-    from verification import VerificationProblem
 
-    from .parallel import check as verify
 
     n = P.shape[0]
     c_q, a = ellipse_around_ball(P, inner)
@@ -625,9 +625,7 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
     ``B_{ε_s} ⊆ E_s`` in finite time. A counterexample of the shell is a point of
     ``E ∖ {0}`` where ``V̇_q ≥ 0``: this ``P`` cannot certify this ``E``.
     """
-    from verification import VerificationProblem
 
-    from .parallel import check as verify
 
     eps_s = float(inner * SHELL_FRACTION if eps_s is None else eps_s)
     c_q, a = ellipse_around_ball(P, inner)
@@ -679,7 +677,6 @@ def _blowup_candidates(A_cl: np.ndarray):
     :data:`BLOWUP_WEIGHTS` (a centre decaying like ``x' = -x^{2k+1}`` balances a hyperbolic
     ``y' = -y`` under the weights ``(1, k + 1)``).
     """
-    from .control import lyapunov_matrix
 
     n = A_cl.shape[0]
     scale = max(1.0, float(np.max(np.abs(A_cl))))
@@ -738,10 +735,7 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
     whose leading term is negative on sampled face points and then verifies, or the last
     verified failure. ``candidates``: these ``(P, w)`` pairs instead (a saved claim).
     """
-    from verification import VerificationProblem
 
-    from .parallel import check as verify
-    from .walker import compile_function
 
     n = A_cl.shape[0]
     if np.max(np.linalg.eigvals(A_cl).real) > 1e-9 * max(1.0, float(np.max(np.abs(A_cl)))):
@@ -848,7 +842,6 @@ def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200,
     ``undecided``, returns ``(mask, undecided_mask)``: the second marks the states that did
     neither within ``t_final`` (the estimate counts them outside the ROA).
     """
-    from .simulate import simulate
 
     def rhs(z):
         return system.evaluate(z, None if feedback is None else feedback(z))

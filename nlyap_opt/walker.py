@@ -32,6 +32,7 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
+from scipy.special import erf as _erf
 
 from .errors import UnsupportedOperationError
 
@@ -149,8 +150,6 @@ class ArrayArithmetic:
             self._where = lambda m, a: np.where(m, a, 0.0)
 
             def erf(a):
-                from scipy.special import erf as _erf
-
                 return _erf(a)
             fn = {"atan": np.arctan, "atan2": np.arctan2, "asin": np.arcsin,
                   "acos": np.arccos, "asinh": np.arcsinh, "acosh": np.arccosh,

@@ -25,7 +25,9 @@ from enum import Enum
 import casadi as ca
 import numpy as np
 
+from nlyap_opt.domain import as_domain
 from nlyap_opt.errors import DimensionError, UnsupportedOperationError
+from nlyap_opt.symbolic import closed_loop, learned_components_of, lie_derivative, robust_lie
 from nlyap_opt.walker import compile_function
 
 __all__ = [
@@ -284,7 +286,6 @@ def lyapunov_problem(x, V, lie, *, inner: float, outer=None, level: float | None
     (``domain``, a :class:`nlyap_opt.domain.Region`; default the ball ``‖x‖ ≤ outer``) minus
     the open inner ball, intersected with :math:`V(x) \le c` when ``level`` is given.
     """
-    from nlyap_opt.domain import as_domain
 
     n = x.numel()
     if domain is None:
@@ -338,7 +339,6 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
                               cheaper to verify; see :func:`nlyap_opt.symbolic.robust_lie`)
     strict : bool             raise (True) or warn (False) if 0 is not an equilibrium
     """
-    from nlyap_opt.symbolic import closed_loop, lie_derivative
 
     if V.n_in != system.nx or V.n_out != 1:
         raise DimensionError(
@@ -349,8 +349,6 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     Vx = V.casadi(cl.x)
     lie = lie_derivative(Vx, cl.x, cl.rhs)
     if eta:
-        from nlyap_opt.symbolic import learned_components_of, robust_lie
-
         comps = None if dynamics is None else learned_components_of(system, dynamics)
         lie = robust_lie(lie, Vx, cl.x, eta, smoothing, comps)
     return lyapunov_problem(cl.x, Vx, lie, inner=inner, outer=outer, level=level,

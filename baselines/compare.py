@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 import systems
+from nlyap_opt import deps
 from nlyap_opt.certificate import (
     RoaCertificate,
     RoaProblem,
@@ -33,6 +34,8 @@ from nlyap_opt.network import Network
 from nlyap_opt.pipeline import run
 from nlyap_opt.quadratic import quadratic_policy
 from nlyap_opt.roa import axis_count, grid_area, grid_points, true_roa_mask
+
+from .sos import sos_roa
 
 __all__ = ["CompareRow", "RowStatus", "compare", "quadratic_row"]
 
@@ -175,30 +178,29 @@ def compare(system_name: str, cfg: dict, out: str | Path, *, log=print,
 def _sos_rows(system, cfg: dict, D, out: Path, log) -> list[CompareRow]:
     """SOS rows of degree 2, 4, 6 (polynomial closed loops; one explained row otherwise),
     every declared domain honoured."""
-    try:
-        from .sos import sos_roa  # lazy: cvxpy, an optional dependency
+    rows: list[CompareRow] = []
+    try:   # cvxpy is imported by the first SDP
+        for deg in (2, 4, 6):
+            t0 = time.perf_counter()
+            sos = sos_roa(system, degree=deg, inner=cfg["inner"],
+                          domain=D if cfg.get("domain") is not None else None)
+            row = CompareRow(f"sos (degree {deg}, true f)", RowStatus(sos.status.value),
+                             sos.reason, sos.certified_level or 0.0,
+                             extra={"sdp_level": sos.sdp_level},
+                             certificate=sos.certificate if sos.certified else None)
+            row.seconds = time.perf_counter() - t0
+            row.extra["notes"] = "; ".join(sos.notes)
+            if sos.certified:
+                row.extra["certificate"] = str(save_certificate(sos.certificate, sos.problem,
+                                                                out / f"sos_{deg}"))
+            if not sos.applicable:
+                row.method = "sos (true f)"  # one row: the reason holds for every degree
+                log(f"  sos: {row.status_text}")
+                return [row]
+            rows.append(row)
+            log(f"  sos degree {deg}: {row.status_text}")
     except ImportError as err:
-        return [CompareRow("sos", RowStatus.NOT_AVAILABLE, str(err))]
-    rows = []
-    for deg in (2, 4, 6):
-        t0 = time.perf_counter()
-        sos = sos_roa(system, degree=deg, inner=cfg["inner"],
-                      domain=D if cfg.get("domain") is not None else None)
-        row = CompareRow(f"sos (degree {deg}, true f)", RowStatus(sos.status.value),
-                         sos.reason, sos.certified_level or 0.0,
-                         extra={"sdp_level": sos.sdp_level},
-                         certificate=sos.certificate if sos.certified else None)
-        row.seconds = time.perf_counter() - t0
-        row.extra["notes"] = "; ".join(sos.notes)
-        if sos.certified:
-            row.extra["certificate"] = str(save_certificate(sos.certificate, sos.problem,
-                                                            out / f"sos_{deg}"))
-        if not sos.applicable:
-            row.method = "sos (true f)"  # one row: the reason holds for every degree
-            log(f"  sos: {row.status_text}")
-            return [row]
-        rows.append(row)
-        log(f"  sos degree {deg}: {row.status_text}")
+        return rows + [CompareRow("sos", RowStatus.NOT_AVAILABLE, str(err))]
     return rows
 
 
@@ -258,10 +260,7 @@ def _write(out, system, rows: list[CompareRow], true_area, true_mask, box, cfg, 
 
 
 def _plot(path, system, rows, true_mask, box, cfg, D):
-    import matplotlib  # lazy: matplotlib, heavy and only for the figure
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: matplotlib, heavy and only for the figure
+    plt = deps.pyplot()
 
     n = true_mask.shape[0]
     xs = [lo + (hi - lo) * (np.arange(n) + 0.5) / n for lo, hi in box]

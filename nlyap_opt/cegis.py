@@ -14,6 +14,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 from scipy.interpolate import RegularGridInterpolator
 
 from .certificate import CertStatus, RoaCertificate, RoaProblem, certify_roa
@@ -102,7 +103,6 @@ def _simulation_rhs(learner, system, cfg, tabulate: bool):
     dimensions: the simulations only shape the training targets, and a table is an order of
     magnitude faster than the network over ~10⁴ steps.
     """
-    import torch
 
     def rhs_np(x):
         with torch.no_grad():

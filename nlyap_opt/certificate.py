@@ -44,13 +44,14 @@ from systems import System
 from verification import VerificationProblem
 from verification.verify import check_file_options
 
+from . import parallel
 from .bounds import gradient_bound
 from .control import lyapunov_matrix
 from .domain import Ball, Region, as_domain, parse_set
 from .errors import ConfigError, DimensionError, InputRangeError, NetworkFileError
+from .inner_from_data import prove_inner_ellipse_from_data
 from .network import Network
 from .parallel import ahead
-from .parallel import check as verify
 from .provenance import fingerprint
 from .roa import (
     INNER_LEVEL_MARGIN,
@@ -198,7 +199,7 @@ def spec_factory(path: str | Path) -> str | None:
     """The ``factory`` a system spec file names (Python code run when it is loaded), or
     ``None``; read as TOML only (nothing imported). A file that cannot be read answers
     ``None``: loading it then reports why."""
-    import tomllib
+    import tomllib  # lazy: tomllib, in the standard library from Python 3.11 only
 
     try:
         with open(path, "rb") as fh:
@@ -710,7 +711,7 @@ def _initial_set_check(problem: RoaProblem, dec: Decrease, level: float):
                                [dec.V - level] + [g for g, _ in dom],
                                [nm for _, nm in cons],
                                ["V<level on X_I"] + [f"X_I in D ({nm})" for _, nm in dom])
-    return verify(prob, **problem.verify_options)
+    return parallel.check(prob, **problem.verify_options)
 
 
 def _declared(system) -> list[str]:
@@ -740,16 +741,11 @@ def _inner_ellipse(problem: RoaProblem, saved: InnerEllipse | None = None
                                      verify_options=problem.verify_options, **again), None
     decl = getattr(sysm, "declarations", None)
     if decl is not None and getattr(decl, "hessian", None) is not None:
-        try:
-            from .inner_from_data import prove_inner_ellipse_from_data
-        except ImportError:
-            prove_inner_ellipse_from_data = None
-        if prove_inner_ellipse_from_data is not None:
-            res = prove_inner_ellipse_from_data(
-                sysm, problem.controller, problem.inner, dynamics=problem.dynamics,
-                eta=problem.eta, eta_state_box=problem.dynamics_box,
-                eta_input_box=problem.input_box, verify_options=problem.verify_options)
-            return res, res.get("proved_from", "samples and the declared bound H")
+        res = prove_inner_ellipse_from_data(
+            sysm, problem.controller, problem.inner, dynamics=problem.dynamics,
+            eta=problem.eta, eta_state_box=problem.dynamics_box,
+            eta_input_box=problem.input_box, verify_options=problem.verify_options)
+        return res, res.get("proved_from", "samples and the declared bound H")
     return _assumed_ellipse(problem), None
 
 

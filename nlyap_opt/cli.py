@@ -452,13 +452,13 @@ def _run_config(args, learned: bool) -> dict:
 
 
 def cmd_run(args) -> int:
-    from .pipeline import run
+    from .pipeline import run  # lazy: torch (the pipeline trains), heavy
 
     cfg = _run_config(args, learned=not args.known_dynamics)
     out = args.out or f"runs/{args.system}{'_known' if args.known_dynamics else ''}"
     _check_writable(Path(out), "--out", directory=True)
     if args.seeds is not None:  # a portfolio of seeded candidates on Dask, the best kept
-        from .portfolio import run_portfolio
+        from .portfolio import run_portfolio  # lazy: torch and Dask, heavy
 
         pres = run_portfolio(getattr(args, "system_file", None) or args.system, cfg, out,
                              seeds=args.seeds, workers=args.workers,
@@ -469,11 +469,11 @@ def cmd_run(args) -> int:
     res = run(args.system, cfg, out, known_dynamics=args.known_dynamics,
               workers=args.workers, scheduler=args.scheduler,
               connect_timeout=args.connect_timeout)
-    return 0 if res.certified else 2
+    return 0 if CertStatus(res.status.value) is CertStatus.CERTIFIED else 2
 
 
 def cmd_compare(args) -> int:
-    from baselines.compare import compare
+    from baselines.compare import compare  # lazy: torch (the pipeline) and cvxpy, heavy
 
     cfg = _run_config(args, learned=not args.no_neural)
     out = args.out or f"runs/compare_{args.system}"

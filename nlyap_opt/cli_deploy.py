@@ -16,6 +16,7 @@ Both re-verify the run's certificate from its hashed artifacts first
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -114,8 +115,6 @@ def cmd_export(args) -> int:
     """Write the C or ONNX code of a certified run."""
 
     if args.format == "onnx":   # refuse a missing exporter before the re-check
-        import importlib.util
-
         if importlib.util.find_spec("onnx") is None:
             raise UsageError("--format onnx needs the onnx package, which is not installed; "
                              "pip install 'nlyap_opt[onnx]' (or use --format c)")

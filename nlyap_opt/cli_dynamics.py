@@ -14,9 +14,9 @@ from pathlib import Path
 
 import systems
 
+from . import dynamics_stage as stages
 from .cli_args import time_limit_arg
 from .dynamics_config import MODELS, load_dynamics_config
-from .dynamics_stage import dynamics_stage
 from .error_models import BOUND_OPTIONS, format_table
 
 __all__ = ["register_cli", "cmd_learn_dynamics"]
@@ -38,7 +38,7 @@ def cmd_learn_dynamics(args) -> int:
     cfg = load_dynamics_config(args.config, args.system, "fast" if args.fast else "default",
                                over)
     system = systems.get(args.system)
-    stage = dynamics_stage(system, cfg, log=None)
+    stage = stages.dynamics_stage(system, cfg, log=None)
     net_path, bounds_path = stage.save(Path(args.out))
     secs = {k: stage.seconds[k] for k in ("data", "training", "alpha", "bounds")
             if k in stage.seconds}

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from . import deps
 from .errors import DimensionError, NotStabilizableError
 from .network import Layer, Network
 from .symbolic import learned_rhs
@@ -88,7 +89,7 @@ def _check_stabilisable(A, B):
 
 def lyapunov_matrix(A_cl, Q=None) -> np.ndarray:
     """Solve ``A_clᵀ P + P A_cl = -Q`` (``Q = I`` by default) for a Hurwitz ``A_cl``."""
-    import control
+    control = deps.control()
 
     A_cl = np.asarray(A_cl, dtype=float)
     n = A_cl.shape[0]
@@ -117,7 +118,7 @@ def round_lyapunov_matrix(A_cl, decay_fraction: float = 0.1) -> np.ndarray | Non
     Only a candidate: whatever ``P`` is returned, condition (c) is then *verified* with it.
     Returns ``None`` when ``A_cl`` is not Hurwitz or no SDP solver succeeds.
     """
-    import cvxpy as cp
+    cp = deps.cvxpy()
 
     A_cl = np.asarray(A_cl, dtype=float)
     n = A_cl.shape[0]
@@ -202,7 +203,7 @@ def lqr(system, Q=None, R=None, *, dynamics: Network | None = None) -> LQRResult
     >>> lqr(systems.get("inverted_pendulum")).K.round(5).tolist()
     [[1.97725, 0.97624]]
     """
-    import control
+    control = deps.control()
 
     A, B = linearisation(system, dynamics)
     nx, nu = system.nx, system.nu

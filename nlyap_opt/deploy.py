@@ -26,6 +26,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from . import deps
 from .certificate import RoaCertificate, RoaProblem, recheck_run, sha256_file
 from .errors import ConfigError
 from .simulate import trajectories
@@ -290,10 +291,7 @@ def plot_simulation(run: CertifiedRun, res: SimulationResult, out: str | Path,
     n > 2: the projection on the two states that move most, over the slice of the set
     through the origin), and ``V(x(t))/c`` below; ``nominal``: an unfiltered run drawn in
     orange for contrast."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = deps.pyplot()
 
     n = run.system.nx
     names = list(getattr(run.system, "state_names", [])) or [f"x{i}" for i in range(n)]

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import casadi as ca
 
+from . import deps
 from .errors import ConfigError
 from .network import Network
 
@@ -156,7 +157,7 @@ def export_onnx(run, out: str | Path) -> list[Path]:
     if importlib.util.find_spec("onnx") is None:
         raise ConfigError("ONNX export needs the onnx package, which is not installed; "
                           "pip install 'nlyap_opt[onnx]' (or pip install onnx)")
-    import torch
+    torch = deps.torch()
 
 
     out = Path(out)

@@ -48,6 +48,7 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
+from . import deps
 from .errors import ConfigError
 from .jsonio import read_json_object
 from .network import FORMAT as NETWORK_FORMAT
@@ -144,7 +145,7 @@ class ClfQpFilter:
 
     def __init__(self, run, nominal: Callable, *, decay: float = 0.5,
                  dynamics: str | None = None):
-        import osqp
+        osqp = deps.osqp()
 
         if not 0 < decay <= 1:
             raise ConfigError(f"decay must lie in (0, 1], got {decay!r}")

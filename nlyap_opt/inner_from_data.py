@@ -88,11 +88,11 @@ from systems.jacobian import jacobian_from_data
 from verification import VerificationProblem
 from verification.interval import Interval, IntervalArithmetic
 
+from . import parallel
 from .bounds import check_input_range
 from .control import ellipse_candidates
 from .errors import DimensionError, InputRangeError
 from .network import Network
-from .parallel import check as verify
 from .rounding import U, dn_rel, gamma, up_rel
 from .symbolic import closed_loop, learned_components_of, robust_lie
 from .walker import CHECKED_OPS, evaluate
@@ -615,7 +615,7 @@ def _extend_with_phi(P, ctx, dynamics, eta, eta_state_box, eta_input_box, verify
     prob = VerificationProblem(x, box, [c_s - V, V - c_q], [lie],
                                ["outside the data-proved ellipse", "inside E"],
                                ["2x'Pφ + η‖(2Px)_L‖ < 0"])
-    res = verify(prob, **(verify_options or {}))
+    res = parallel.check(prob, **(verify_options or {}))
     out["result"] = res
     phi_part["status"] = res.status
     out["status"] = "certified" if res.status == "verified" else (

@@ -40,11 +40,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from . import sos_sdp
 from .determinism import deterministic_torch
 from .errors import ConfigError
 from .network import Layer, Network, dense_network, from_torch
 from .sampling import sample_ball, sample_sphere
-from .sos_sdp import gram_factor
 from .walker import ArrayArithmetic, evaluate
 
 __all__ = ["TrainConfig", "LyapunovLearner", "sample_ball", "sample_sphere"]
@@ -206,7 +206,7 @@ def sos_start(V, level: float, config: TrainConfig) -> Network:
     need = 2 * n + len(pairs)
     if not (np.isfinite(level) and level > 0):
         raise ConfigError(f"train.init 'sos': the SOS level must be > 0, got {level!r}")
-    z, L = gram_factor(V)     # ValueError (not a ConfigError) when no Gram matrix is found
+    z, L = sos_sdp.gram_factor(V)     # ValueError (not a ConfigError) when no Gram matrix is found
     h, F = H[0], config.features
     rnd = dense_network([n, h, F], "square", seed=config.seed)
     W1, b1 = rnd.layers[0].weight.copy(), rnd.layers[0].bias.copy()

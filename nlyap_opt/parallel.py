@@ -57,10 +57,11 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from verification import verify
+import verification
 from verification.problem import VerificationResult
 from verification.verify import split_box, verify_interval
 
+from . import deps
 from .errors import BackendUnavailableError, ConfigError
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
@@ -75,7 +76,7 @@ _INSTALL = "Dask is not installed; run: pip install 'dask[distributed]'"
 def _distributed():
     """The ``distributed`` module, or a one-line install hint."""
     try:
-        import distributed
+        distributed = deps.distributed()
     except ImportError:
         raise BackendUnavailableError(_INSTALL) from None
     return distributed
@@ -154,8 +155,7 @@ def _probe_scheduler(address: str, timeout: float) -> None:
     :class:`ConfigError` with the address when either fails.
     """
 
-    from distributed.comm import get_address_host_port
-
+    get_address_host_port = _distributed().comm.get_address_host_port
     deadline = time.monotonic() + timeout
 
     def fail(why: str):
@@ -174,8 +174,7 @@ def _probe_scheduler(address: str, timeout: float) -> None:
     outcome: list = []
 
     def ask():
-        from distributed.core import rpc
-
+        rpc = _distributed().core.rpc
         async def identity():
             async with rpc(address) as r:
                 return await r.identity()
@@ -281,8 +280,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
             client.close()
         return
 
-    import dask
-
+    dask = deps.dask()
     n = workers or cpu_cores()
     # Dask's nannies export MALLOC_TRIM_THRESHOLD_=65536 to their workers; an explicit
     # threshold turns off glibc's adaptive mmap threshold, and the verifier's many large
@@ -655,7 +653,7 @@ def check(problem, **options):
 
     client = _CLUSTER.get()
     if client is None:
-        return verify(problem, **options)
+        return verification.verify(problem, **options)
     opts = {k: v for k, v in options.items() if k not in ("n_tasks", "executor", "progress")}
     st: dict = {}
     res = verify_distributed(problem, client, stats=st, **opts)
@@ -666,7 +664,7 @@ def check(problem, **options):
         # found by the root task alone: its pre-search and first grid are the serial run's
         # first steps (same seed, grid and batch), which stops there with this very result
         return res
-    return verify(problem, **options)
+    return verification.verify(problem, **options)
 
 
 # ------------------------------------------------------------ a check ahead of its turn

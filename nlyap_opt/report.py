@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import deps
 from .certificate import CertStatus, load_artifact, status_text
 from .domain import Ball, parse_set
 from .network import Network
@@ -164,10 +165,7 @@ def plot_roa(path, system, cert: dict, out: Path):
     States beyond the first two are shown as the slice through the origin (the other
     states 0), so a run of any dimension gets its picture.
     """
-    import matplotlib  # lazy: matplotlib, heavy and only for the figure
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: matplotlib, heavy and only for the figure
+    plt = deps.pyplot()
 
     arts = cert.get("artifacts", {})   # the certified V and κ (the neural or a cheap one)
     V = load_artifact(out / arts.get("V", {}).get("file", "V.json"),

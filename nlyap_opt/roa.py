@@ -44,9 +44,9 @@ import numpy as np
 
 from verification import VerificationProblem, lyapunov_problem
 
+from . import parallel
 from .control import ellipse_candidates, lyapunov_matrix
 from .domain import as_domain
-from .parallel import check as verify
 from .rounding import EPS
 from .simulate import simulate
 from .symbolic import closed_loop
@@ -378,7 +378,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
         for pbox, cons, label in pieces:   # V > c on each piece of the boundary
             prob_b = VerificationProblem(x, pbox, [g for g, _ in cons], [c - V],
                                          [nm for _, nm in cons], [f"V>level on {label}"])
-            r = verify(prob_b, **opts)
+            r = parallel.check(prob_b, **opts)
             if res_b is not None:
                 r.seconds += res_b.seconds
                 r.boxes += res_b.boxes
@@ -387,7 +387,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                 break
         prob_a = lyapunov_problem(x, V, lie, inner=inner, domain=D, level=c, margin=margin,
                                   box=box, check_positive=False)
-        res_a = verify(prob_a, **opts) if res_b.status == "verified" else None
+        res_a = parallel.check(prob_a, **opts) if res_b.status == "verified" else None
         hist.append({"level": c, "containment": res_b.status,
                      "decrease": None if res_a is None else res_a.status,
                      "seconds": res_b.seconds + (res_a.seconds if res_a else 0.0),
@@ -399,7 +399,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
             # certificate resting on condition (c) alone)
             prob_d = VerificationProblem(x, box, [r2 - inner**2, inner**2 - r2], [V - c],
                                          ["inner", "sphere"], ["V<level on inner sphere"])
-            res_d = verify(prob_d, **opts)
+            res_d = parallel.check(prob_d, **opts)
             status = "certified" if res_d.status == "verified" else \
                 f"level {c:.4g} does not contain the inner ball ({res_d.status})"
             hist[-1]["contains_inner_ball"] = res_d.status
@@ -599,7 +599,7 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
             props = forms[form]
             prob = VerificationProblem(cl.x, box, [Vq - c_q], props, ["ellipse"],
                                        [f"{form}{k}" for k in range(1, len(props) + 1)])
-            res = verify(prob, **(verify_options or {}))
+            res = parallel.check(prob, **(verify_options or {}))
             out = {"status": "certified" if res.status == "verified"
                    else f"inner ellipse {res.status}", "P": P, "level": c_q, "box": a,
                    "result": res, "form": form}
@@ -634,7 +634,7 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
     dV = 2 * ca.dot(x, ca.mtimes(ca.DM(P), cl.rhs))
     prob = VerificationProblem(x, np.stack([-a, a], axis=1), [Vq - c_q, eps_s**2 - ca.sumsqr(x)],
                                [dV], ["ellipse", "shell"], ["dVq/dt<0 on the shell"])
-    res = verify(prob, **(verify_options or {}))
+    res = parallel.check(prob, **(verify_options or {}))
     if res.status != "verified":
         return {"status": f"inner ellipse {res.status}", "P": P, "level": c_q, "box": a,
                 "result": res, "form": f"shell r={eps_s!r}"}
@@ -783,7 +783,7 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
                 box = np.array([[0.0, R]] + [[-1.0, 1.0]] * (n - 1))
                 prob = VerificationProblem(z, box, [], [prop],
                                            [], [f"d^{m}h/dr^{m} < 0 on face u{i + 1}={sign:+g}"])
-                res = verify(prob, **(verify_options or {}))
+                res = parallel.check(prob, **(verify_options or {}))
                 if res.status != "verified":
                     break
             if res.status != "verified":

@@ -26,6 +26,7 @@ import casadi as ca
 import numpy as np
 from scipy.optimize import least_squares
 
+from nlyap_opt import deps
 from nlyap_opt.errors import ConfigError, DimensionError, EquilibriumError, NlyapError
 from nlyap_opt.simulate import trajectories
 from nlyap_opt.walker import ArrayArithmetic, compile_function, evaluate
@@ -634,7 +635,7 @@ class System:
         if self._torch is None:
             self._torch = ArrayArithmetic("torch")
         if u is None:
-            import torch
+            torch = deps.torch()
 
             u = torch.as_tensor(self.u_eq, dtype=x.dtype).expand(x.shape[0], self.nu)
         return evaluate(self._program, [x, u], self._torch)[0]

@@ -51,7 +51,10 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import ctypes
+import glob
 import inspect
+import os
 import time
 import types
 import typing
@@ -76,10 +79,6 @@ _AA = AffineArithmetic()
 def _openblas_threads():
     """(get, set) of the OpenBLAS bundled with numpy, or ``None`` (best effort)."""
     try:
-        import ctypes
-        import glob
-        import os
-
         libs = glob.glob(os.path.join(os.path.dirname(np.__file__) + ".libs", "*openblas*"))
         for path in libs:
             lib = ctypes.CDLL(path)

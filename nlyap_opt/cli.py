@@ -46,7 +46,13 @@ from .configs import PRESETS, check_dynamics_box, check_lqr_weights, config_refe
 from .control import lqr
 from .errors import ConfigError, NlyapError, UsageError
 from .network import Network
-from .parallel import MAX_LOCAL_WORKERS, dask_client, verify_distributed, verifying_on
+from .parallel import (
+    DEFAULT_CONNECT_TIMEOUT,
+    MAX_LOCAL_WORKERS,
+    dask_client,
+    verify_distributed,
+    verifying_on,
+)
 from .provenance import PORTABLE_FLAG, differences, fingerprint_id, portable_env, portable_problems
 
 __all__ = ["EXIT_CODES", "build_parser", "main"]
@@ -114,10 +120,10 @@ def _check_dask_args(args) -> None:
                          "--scheduler ADDRESS")
 
 
-def _connect_kw(args) -> dict:
-    """``connect_timeout=`` of :func:`nlyap_opt.parallel.dask_client` from the arguments."""
+def _connect_timeout(args) -> float:
+    """``connect_timeout`` of :func:`nlyap_opt.parallel.dask_client` from the arguments."""
     t = getattr(args, "connect_timeout", None)
-    return {} if t is None else {"connect_timeout": t}
+    return DEFAULT_CONNECT_TIMEOUT if t is None else t
 
 
 class TimeLimitReached(KeyboardInterrupt):
@@ -358,7 +364,8 @@ def _verify_certificate(args) -> int:
         # the conditions' checks run on the cluster (nlyap_opt.parallel.check): a
         # "verified" comes from it, any other verdict is decided again serially
 
-        with dask_client(args.workers, args.scheduler, **_connect_kw(args)) as client, \
+        with dask_client(args.workers, args.scheduler,
+                         connect_timeout=_connect_timeout(args)) as client, \
                 verifying_on(client):
             cert = recheck_certificate(path, system=system)
     else:
@@ -414,7 +421,8 @@ def cmd_verify(args) -> int:
             raise UsageError("--workers/--scheduler run the interval backend on Dask; drop "
                              "them or use --backend interval")
 
-        with dask_client(args.workers, args.scheduler, **_connect_kw(args)) as client:
+        with dask_client(args.workers, args.scheduler,
+                         connect_timeout=_connect_timeout(args)) as client:
             res = verify_distributed(problem, client, resolution=args.resolution)
     else:
         res = verify(problem, backend=args.backend, **opts)
@@ -502,35 +510,8 @@ def _preset_arg(sp) -> None:
                          "come from the default method: its boxes and its [run] table)")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``nlyap`` argument parser (usage errors raise :class:`UsageError`)."""
-    fmt = argparse.RawDescriptionHelpFormatter
-    p = _Parser(prog="nlyap", formatter_class=fmt,
-                description="Neural Lyapunov control of unknown systems with certified "
-                            "regions of attraction.",
-                epilog=_epilog([0, 1, 2, 3, 4, 130]))
-    p.add_argument("--debug", action="store_true",
-                   help="print the traceback of an internal error (exit code 4)")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
-    def add(name, **kw):
-        return sub.add_parser(name, formatter_class=fmt,
-                              epilog=_EPILOGS.get(name, _DEFAULT_EPILOG), **kw)
-
-    sp = add("systems", help="list the system catalogue (or check a system file)")
-    sp.add_argument("--check", metavar="FILE",
-                    help="load a system spec file (TOML) and print what it declares")
-    sp.set_defaults(func=cmd_systems)
-
-    sp = add("lqr", help="LQR gain and Lyapunov matrix of a catalogue system")
-    sp.add_argument("system", help="a catalogue system name or a system spec file (.toml)")
-    sp.add_argument("--Q", help="state weight: scalar or rows '1,0;0,1' (default I; symmetric "
-                                "positive semidefinite)")
-    sp.add_argument("--R", help="input weight: scalar or rows (default I; symmetric positive "
-                                "definite)")
-    sp.add_argument("--json", help="write K, P, eigenvalues to this file")
-    sp.set_defaults(func=cmd_lqr)
-
+def _add_verify(add) -> None:
+    """The ``verify`` subcommand (``add``: the subparser factory of :func:`build_parser`)."""
     sp = add("verify", help="verify V > 0 and the decrease condition on an annulus",
              description="Verify V > 0 and dV/dt < 0 on inner <= |x| <= outer (and V <= level), "
                          "or re-check a saved run with --certificate.")
@@ -568,6 +549,38 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", help="write status, seconds, boxes, counterexample here")
     _dask_args(sp)
     sp.set_defaults(func=cmd_verify)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``nlyap`` argument parser (usage errors raise :class:`UsageError`)."""
+    fmt = argparse.RawDescriptionHelpFormatter
+    p = _Parser(prog="nlyap", formatter_class=fmt,
+                description="Neural Lyapunov control of unknown systems with certified "
+                            "regions of attraction.",
+                epilog=_epilog([0, 1, 2, 3, 4, 130]))
+    p.add_argument("--debug", action="store_true",
+                   help="print the traceback of an internal error (exit code 4)")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(name, **kw):
+        return sub.add_parser(name, formatter_class=fmt,
+                              epilog=_EPILOGS.get(name, _DEFAULT_EPILOG), **kw)
+
+    sp = add("systems", help="list the system catalogue (or check a system file)")
+    sp.add_argument("--check", metavar="FILE",
+                    help="load a system spec file (TOML) and print what it declares")
+    sp.set_defaults(func=cmd_systems)
+
+    sp = add("lqr", help="LQR gain and Lyapunov matrix of a catalogue system")
+    sp.add_argument("system", help="a catalogue system name or a system spec file (.toml)")
+    sp.add_argument("--Q", help="state weight: scalar or rows '1,0;0,1' (default I; symmetric "
+                                "positive semidefinite)")
+    sp.add_argument("--R", help="input weight: scalar or rows (default I; symmetric positive "
+                                "definite)")
+    sp.add_argument("--json", help="write K, P, eigenvalues to this file")
+    sp.set_defaults(func=cmd_lqr)
+
+    _add_verify(add)
 
     sp = add("run", help="learn f (unless --known-dynamics), V and κ; certify the ROA")
     sp.add_argument("system", help="a catalogue system name or a system spec file (.toml)")
@@ -607,7 +620,6 @@ def build_parser() -> argparse.ArgumentParser:
     _preset_arg(sp)
     sp.add_argument("--keys", action="store_true", help="list every key, type and default")
     sp.set_defaults(func=cmd_config)
-
 
     for register in [register_learn_dynamics, register_deploy, *_EXTRA]:
         register(sub)

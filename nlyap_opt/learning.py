@@ -47,7 +47,31 @@ from .network import Layer, Network, dense_network, from_torch
 from .sampling import sample_ball, sample_sphere
 from .walker import ArrayArithmetic, evaluate
 
-__all__ = ["TrainConfig", "LyapunovLearner", "sample_ball", "sample_sphere"]
+__all__ = ["TrainConfig", "TrainInfo", "LyapunovLearner", "sample_ball", "sample_sphere"]
+
+
+@dataclass
+class TrainInfo:
+    """The loss terms of the last training step (:meth:`LyapunovLearner.train`).
+
+    Attributes
+    ----------
+    loss, decrease, inside, outside : float
+        The total loss and its decrease, ``V ≤ 1`` inside and ``V ≥ 1`` on the sphere terms.
+    fit : float or None
+        The fit to the targets (``None`` without targets).
+    steps : int
+        Steps run.
+    seconds : float
+    """
+
+    loss: float = float("nan")
+    decrease: float = float("nan")
+    inside: float = float("nan")
+    outside: float = float("nan")
+    fit: float | None = None
+    steps: int = 0
+    seconds: float = 0.0
 
 
 @dataclass
@@ -406,7 +430,7 @@ class LyapunovLearner:
               counterexamples: np.ndarray | None = None, steps: int | None = None,
               inside_weight: np.ndarray | None = None, progress=None,
               eta_pointwise: float = 0.0, targets: np.ndarray | None = None,
-              target_rates: np.ndarray | None = None) -> dict:
+              target_rates: np.ndarray | None = None) -> TrainInfo:
         """Run ``steps`` Adam steps; returns the last loss terms.
 
         Runs with ``config.threads`` torch threads and deterministic algorithms (restored on
@@ -432,10 +456,11 @@ class LyapunovLearner:
         with deterministic_torch(cfg.threads):
             return self._train(X, W, S, T, R, CE, margin, steps, progress, eta_pointwise)
 
-    def _train(self, X, W, S, T, R, CE, margin, steps, progress, eta_pointwise) -> dict:
+    def _train(self, X, W, S, T, R, CE, margin, steps, progress,
+               eta_pointwise) -> TrainInfo:
         cfg = self.config
         t0 = time.perf_counter()
-        info = {}
+        info = TrainInfo()
         it = -1
         gen = torch.Generator().manual_seed(cfg.seed)
         if cfg.lr_schedule not in ("constant", "cosine"):
@@ -486,14 +511,11 @@ class LyapunovLearner:
             self.opt.zero_grad()
             loss.backward()
             self.opt.step()
-            info = {"loss": loss.item(), "decrease": dec.item(), "inside": inside.item(),
-                    "outside": outside.item()}
-            if T is not None:
-                info["fit"] = fit.item()
+            info = TrainInfo(loss.item(), dec.item(), inside.item(), outside.item(),
+                             None if T is None else fit.item())
             if progress is not None and (it % 100 == 0 or it == steps - 1):
                 progress(it, info)
-        info["steps"] = it + 1
-        info["seconds"] = time.perf_counter() - t0
+        info.steps, info.seconds = it + 1, time.perf_counter() - t0
         return info
 
     # ------------------------------------------------------------------ export

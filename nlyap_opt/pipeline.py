@@ -754,7 +754,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         log("[certificate] true ROA by simulation on the evaluation grid"
             + ("" if getattr(system, "has_model", True) else " (simulating the black box)"))
         ie = cert.inner_ellipse
-        ell = (ie.P, ie.level) if ie is not None and ie.status == "certified" else None
+        ell = (ie.P, ie.level) if ie is not None and ie.certified else None
         true_mask, undecided = true_roa_mask(system, feedback, box, n, ellipse=ell,
                                              undecided=True)
         tmp = out / ".true_roa.tmp.npz"

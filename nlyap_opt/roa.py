@@ -45,7 +45,7 @@ import numpy as np
 from verification import VerificationProblem, lyapunov_problem
 
 from . import parallel
-from .control import ellipse_candidates, lyapunov_matrix
+from .control import InnerStatus, ellipse_candidates, lyapunov_matrix, verdict_of
 from .domain import as_domain
 from .rounding import EPS
 from .simulate import simulate
@@ -342,7 +342,6 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     level or why none was found.
     """
 
-
     t0 = time.perf_counter()
     opts = dict(verify_options or {})
     Vf = _fun(x, V)
@@ -461,8 +460,9 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     ``"minors"``, ``"frobenius"``, ``"shell r=… + …"`` or ``"blow-up w=[…], m=…"``, or the
     :class:`InnerForm` itself), exactly that claim is
     checked again, without any search (:func:`nlyap_opt.certificate.recheck_certificate`).
-    Returns a dict with ``status`` (``"certified"`` or why not), ``P``, ``level``
-    (``c_q``), ``box``, ``form``.
+    Returns a dict with ``verdict`` (:class:`nlyap_opt.control.InnerStatus`), ``status`` (the
+    verdict in words, saved with a certificate), ``P``, ``level`` (``c_q``), ``box``,
+    ``form``.
     """
 
     cl = closed_loop(system, controller, strict=True)
@@ -476,7 +476,8 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
         if P.shape != (n, n) or not np.all(np.isfinite(P)) or not np.array_equal(P, P.T) \
                 or np.linalg.eigvalsh(P)[0] <= 0:
             return {"status": f"inner ellipse not proved (P must be a symmetric positive "
-                              f"definite {n}x{n} matrix)", "P": np.eye(n), "level": 0.0,
+                              f"definite {n}x{n} matrix)", "verdict": InnerStatus.NOT_PROVED,
+                    "P": np.eye(n), "level": 0.0,
                     "box": np.zeros(n), "result": None, "form": form or ""}
     spec = None
     if form:
@@ -486,7 +487,8 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
         except ValueError as exc:
             c_q, a = ellipse_around_ball(P, inner)
             return {"status": f"inner ellipse not proved (the form does not apply: {exc})",
-                    "P": P, "level": c_q, "box": a, "result": None, "form": text}
+                    "verdict": InnerStatus.NOT_PROVED, "P": P, "level": c_q, "box": a,
+                    "result": None, "form": text}
         form = text
     if spec is not None and spec.kind is InnerFormKind.BLOWUP:
         w = spec.weights
@@ -497,8 +499,8 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
         if out is None:
             c_q, a = ellipse_around_ball(P, inner)
             out = {"status": f"inner ellipse not proved ({form} does not apply to this "
-                             "closed loop)", "P": P, "level": c_q, "box": a, "result": None,
-                   "form": form}
+                             "closed loop)", "verdict": InnerStatus.NOT_PROVED, "P": P,
+                   "level": c_q, "box": a, "result": None, "form": form}
         return out
     if P is not None:
         candidates = [P]
@@ -507,13 +509,14 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
             out = certify_inner_blowup(cl, A_cl, inner, verify_options=verify_options)
             if out is not None:
                 return out
-            return {"status": "closed-loop linearisation not Hurwitz", "P": np.eye(system.nx),
+            return {"status": "closed-loop linearisation not Hurwitz",
+                    "verdict": InnerStatus.NOT_HURWITZ, "P": np.eye(system.nx),
                     "level": 0.0, "box": np.zeros(system.nx), "result": None}
         candidates = ellipse_candidates(A_cl)
     first = None
     for Pc in candidates:
         out = _inner_ellipse(cl, J, Pc, inner, verify_options, only=spec)
-        if out["status"] == "certified":
+        if out["verdict"] is InnerStatus.CERTIFIED:
             return out
         first = first or out
     return first
@@ -553,15 +556,14 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
     whether the shell form may be tried (not inside a shell).
     """
 
-
     n = P.shape[0]
     c_q, a = ellipse_around_ball(P, inner)
     if only is not None and only.kind is InnerFormKind.SHELL:
         if not (shell and only.radius <= inner):
             return {"status": f"inner ellipse not proved (the form {only.to_str()!r} does not "
                               "apply: a shell needs 0 < r ≤ ε and the minors or frobenius "
-                              "form)", "P": P, "level": c_q, "box": a, "result": None,
-                    "form": only.to_str()}
+                              "form)", "verdict": InnerStatus.NOT_PROVED, "P": P,
+                    "level": c_q, "box": a, "result": None, "form": only.to_str()}
         return _inner_shell(cl, J, P, inner, verify_options, eps_s=only.radius,
                             only=only.core)
     S = ca.mtimes(ca.DM(P), J)
@@ -590,8 +592,8 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
         ["minors", "frobenius", "shell"] if n <= 3 else ["frobenius", "shell", "minors"]
     if not any(f in forms for f in order):
         return {"status": f"inner ellipse not proved (the {only.to_str()} form does not apply "
-                          "to this P)", "P": P, "level": c_q, "box": a, "result": None,
-                "form": only.to_str()}
+                          "to this P)", "verdict": InnerStatus.NOT_PROVED, "P": P,
+                "level": c_q, "box": a, "result": None, "form": only.to_str()}
     for form in [f for f in order if f in forms]:
         if forms[form] is None:
             out = _inner_shell(cl, J, P, inner, verify_options)
@@ -600,10 +602,10 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
             prob = VerificationProblem(cl.x, box, [Vq - c_q], props, ["ellipse"],
                                        [f"{form}{k}" for k in range(1, len(props) + 1)])
             res = parallel.check(prob, **(verify_options or {}))
-            out = {"status": "certified" if res.status == "verified"
-                   else f"inner ellipse {res.status}", "P": P, "level": c_q, "box": a,
+            out = {"status": "certified" if res.success else f"inner ellipse {res.status}",
+                   "verdict": verdict_of(res.status), "P": P, "level": c_q, "box": a,
                    "result": res, "form": form}
-        if out["status"] == "certified":
+        if out["verdict"] is InnerStatus.CERTIFIED:
             break
     return out
 
@@ -626,7 +628,6 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
     ``E ∖ {0}`` where ``V̇_q ≥ 0``: this ``P`` cannot certify this ``E``.
     """
 
-
     eps_s = float(inner * SHELL_FRACTION if eps_s is None else eps_s)
     c_q, a = ellipse_around_ball(P, inner)
     x = cl.x
@@ -635,14 +636,15 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
     prob = VerificationProblem(x, np.stack([-a, a], axis=1), [Vq - c_q, eps_s**2 - ca.sumsqr(x)],
                                [dV], ["ellipse", "shell"], ["dVq/dt<0 on the shell"])
     res = parallel.check(prob, **(verify_options or {}))
-    if res.status != "verified":
-        return {"status": f"inner ellipse {res.status}", "P": P, "level": c_q, "box": a,
-                "result": res, "form": f"shell r={eps_s!r}"}
+    if not res.success:
+        return {"status": f"inner ellipse {res.status}", "verdict": verdict_of(res.status),
+                "P": P, "level": c_q, "box": a, "result": res, "form": f"shell r={eps_s!r}"}
     core = _inner_ellipse(cl, J, P, eps_s, verify_options,
                           only=None if only is None else InnerForm(only), shell=False)
     form = InnerForm(InnerFormKind.SHELL, radius=eps_s, core=InnerFormKind(core["form"]))
-    return {"status": core["status"], "P": P, "level": c_q, "box": a,
-            "result": res if core["status"] == "certified" else core["result"],
+    ok = core["verdict"] is InnerStatus.CERTIFIED
+    return {"status": core["status"], "verdict": core["verdict"], "P": P, "level": c_q,
+            "box": a, "result": res if ok else core["result"],
             "form": form.to_str()}
 
 
@@ -736,7 +738,6 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
     verified failure. ``candidates``: these ``(P, w)`` pairs instead (a saved claim).
     """
 
-
     n = A_cl.shape[0]
     if np.max(np.linalg.eigvals(A_cl).real) > 1e-9 * max(1.0, float(np.max(np.abs(A_cl)))):
         return None
@@ -767,7 +768,8 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
         if not np.all(lead < 0):
             # not a counterexample of V̇_q < 0 (higher orders may still decide): unproved
             first = first or {"status": f"inner ellipse not proved ({form}: leading term "
-                                        f"≥ 0 at a face point)", "P": P, "level": c_q,
+                                        f"≥ 0 at a face point)",
+                              "verdict": InnerStatus.NOT_PROVED, "P": P, "level": c_q,
                               "box": a, "result": None, "form": form}
             continue
         res = None
@@ -788,10 +790,10 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
                     break
             if res.status != "verified":
                 break
-        out = {"status": "certified" if res.status == "verified"
-               else f"inner ellipse {res.status}", "P": P, "level": c_q, "box": a,
+        out = {"status": "certified" if res.success else f"inner ellipse {res.status}",
+               "verdict": verdict_of(res.status), "P": P, "level": c_q, "box": a,
                "result": res, "form": form}
-        if out["status"] == "certified":
+        if out["verdict"] is InnerStatus.CERTIFIED:
             return out
         first = first or out
     return first

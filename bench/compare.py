@@ -30,7 +30,7 @@ def main(argv=None):
         t0 = time.perf_counter()
         rows = compare(name, get_config(name, args.preset), f"{args.out}/{name}",
                        log=lambda m: None)
-        for r in rows:
+        for r in (row.to_json() for row in rows):
             table.append(f"| {name} | {r['method']} | {'yes' if r['certified'] else 'no'} | "
                          f"{r['level']:.5g} | {r.get('area', 0):.4g} | "
                          f"{100 * r.get('fraction_of_true_roa', 0):.1f} | {r['seconds']:.1f} |")

@@ -11,6 +11,8 @@ The pipeline and certificate names load their modules on first use (module
 ``__getattr__``), so that ``import nlyap_opt`` stays light.
 """
 
+import importlib
+
 from .errors import (
     BackendUnavailableError,
     ConfigError,
@@ -54,8 +56,6 @@ def __getattr__(name: str):
     module = _LAZY.get(name)
     if module is None:
         raise AttributeError(f"module 'nlyap_opt' has no attribute {name!r}")
-    import importlib
-
     value = getattr(importlib.import_module(module), name)
     globals()[name] = value
     return value

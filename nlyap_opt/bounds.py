@@ -43,6 +43,7 @@ from .grid import norm2_up
 from .interval_sup import counts_for, interval_arithmetic, interval_sup, subboxes
 from .network import Network
 from .rounding import mul_up
+from .walker import evaluate
 
 __all__ = [
     "BOUND_OPTIONS", "BoundOption", "BoundsResult", "GradientBound", "LipschitzBound",
@@ -139,8 +140,6 @@ def gradient_bound(V, region_box, *, boxes: int = 4096, counts=None, controller=
     M = float(np.max(norms))
     sampled = float("nan")
     if sample_points:
-        from .walker import evaluate
-
         pts = np.random.default_rng(seed).uniform(region[:, 0], region[:, 1],
                                                   size=(int(sample_points), n))
         sampled = float(np.max(np.linalg.norm(evaluate(g, [pts])[0], axis=1)))
@@ -154,7 +153,6 @@ def _controller_enclosure(controller, lo: np.ndarray, hi: np.ndarray):
     enclosed by interval arithmetic and the activation's true range (−1, 1) (or (0, 1)) is
     used to clamp, so ``C·tanh(·)`` is provably within ``[−|C|, |C|]``.
     """
-    from .walker import evaluate
 
     Interval, ia = interval_arithmetic()
     if isinstance(controller, Network) and controller.layers[-1].activation in ("tanh",
@@ -213,7 +211,6 @@ def check_input_range(controller, region_box, input_box, *, boxes: int = 4096,
         mid = 0.5 * (lo + hi)
         f = _as_function(controller, region.shape[0], "controller") \
             if not isinstance(controller, Network) else controller.function("k")
-        from .walker import evaluate
 
         val = evaluate(f, [mid])[0]
         bad = np.any((val < U[:, 0]) | (val > U[:, 1]), axis=1)

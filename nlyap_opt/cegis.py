@@ -14,6 +14,8 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
+from scipy.interpolate import RegularGridInterpolator
 
 from .certificate import CertStatus, RoaCertificate, RoaProblem, certify_roa
 from .determinism import deterministic_torch
@@ -101,7 +103,6 @@ def _simulation_rhs(learner, system, cfg, tabulate: bool):
     dimensions: the simulations only shape the training targets, and a table is an order of
     magnitude faster than the network over ~10⁴ steps.
     """
-    import torch
 
     def rhs_np(x):
         with torch.no_grad():
@@ -109,7 +110,6 @@ def _simulation_rhs(learner, system, cfg, tabulate: bool):
 
     if not tabulate or system.nx > 3 or not cfg.sim_points:
         return rhs_np
-    from scipy.interpolate import RegularGridInterpolator
 
     m = axis_count(cfg.sim_points, system.nx)
     box = _domain(cfg, system.nx).bounding_box()
@@ -186,14 +186,9 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
         return _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0)
 
 
-def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0):
-    t0 = time.perf_counter()
-    rng = np.random.default_rng(cfg.seed)
-    n = system.nx
-    D = _domain(cfg, n)
-    XI = None if cfg.initial_set is None else \
-        parse_set(cfg.initial_set, n, "initial_set", domain=False)
-    scale = D.max_norm()    # the ball's radius; jitter of extra states is relative to it
+def _samples(cfg: CegisConfig, D, XI, rng, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The training states (in ``D``, more next to the inner ball and in ``X_I``) and the
+    states on ``∂D``."""
     X = D.sample(cfg.samples, rng)
     if cfg.inner_samples:  # the decrease is hardest to learn next to the inner ball
         near = sample_ball(cfg.inner_samples, n, 3 * cfg.inner, rng, cfg.inner)
@@ -202,9 +197,13 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     if XI is not None and cfg.initial_samples:   # X_I must end inside V ≤ level
         xi = XI.sample(cfg.initial_samples, rng)
         X = np.vstack([X, xi[D.contains(xi)]])
-    learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
+    return X, S
 
-    rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
+
+def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
+    """Simulate the training states under the model: ``(X, weights, targets, rates)``, the
+    states (more around the model's ROA boundary when fitting), the pull of ``V ≤ 1`` on
+    each and the trajectory-cost targets (``None`` without ``w_fit``)."""
     conv, cost = simulate(rhs_np, X, t_final=cfg.sim_time, dt=cfg.sim_dt, tol=cfg.sim_tol)
     log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model")
     weights = conv.astype(float)
@@ -231,6 +230,22 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         weights = (conv & (cost <= w_c)).astype(float)
         log(f"  cegis: fitting V to the trajectory cost ({tc.fit_transform}; level 1 at cost "
             f"{w_c:.4g}, {len(X)} states)")
+    return X, weights, targets, rates
+
+
+def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0):
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(cfg.seed)
+    n = system.nx
+    D = _domain(cfg, n)
+    XI = None if cfg.initial_set is None else \
+        parse_set(cfg.initial_set, n, "initial_set", domain=False)
+    scale = D.max_norm()    # the ball's radius; jitter of extra states is relative to it
+    X, S = _samples(cfg, D, XI, rng, n)
+    learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
+
+    rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
+    X, weights, targets, rates = _fit_targets(cfg, D, X, rhs_np, rng, scale, log)
     box = D.bounding_box()
     cex = np.zeros((0, n))
     best: CegisResult | None = None
@@ -254,7 +269,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
             dec = problem.decrease()
         except InputRangeError as err:  # κ leaves U: no certificate for this iterate
             log(f"  cegis iteration {it}: {err}")
-            history.append({"iteration": it, "loss": info["loss"], "status": str(err),
+            history.append({"iteration": it, "loss": info.loss, "status": str(err),
                             "level": 0.0, "area": 0.0})
             continue
         M, margin, smoothing = dec.M, dec.margin, dec.smoothing
@@ -272,9 +287,9 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                                   0.0, cfg.inner, problem.outer, counterexamples=cand.violations,
                                   domain=D)
         area = cert.area(box, axis_count(cfg.area_points, n)) if cert.certified else 0.0
-        entry = {"iteration": it, "loss": info["loss"], "train_steps": info["steps"],
+        entry = {"iteration": it, "loss": info.loss, "train_steps": info.steps,
                  "margin_mode": cfg.margin_mode if eta > 0 else "none",
-                 "train_seconds": info["seconds"], "candidate_level": cand.level,
+                 "train_seconds": info.seconds, "candidate_level": cand.level,
                  "candidate_source": cand.source, "status": cert.status.value,
                  "reason": cert.reason,
                  "level": cert.level, "margin": margin, "M": M, "smoothing": smoothing,
@@ -283,7 +298,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                  "boxes": sum((h.get("boxes", 0) for h in cert.history), 0),
                  "counterexamples": int(len(cert.counterexamples))}
         history.append(entry)
-        log(f"  cegis iteration {it}: loss {info['loss']:.4g}, candidate level "
+        log(f"  cegis iteration {it}: loss {info.loss:.4g}, candidate level "
             f"{cand.level:.4g} ({cand.source}), "
             f"{'certified' if cert.certified else cert.reason} level {cert.level:.4g}, "
             f"area {area:.4g}, margin {margin:.3g}")

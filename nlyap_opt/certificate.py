@@ -32,25 +32,47 @@ import hashlib
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
+from types import SimpleNamespace
 
 import casadi as ca
 import numpy as np
 
+import systems
+from systems import System
+from verification import VerificationProblem
+from verification.verify import check_file_options
+
+from . import parallel
+from .bounds import gradient_bound
+from .control import InnerStatus, lyapunov_matrix
 from .domain import Ball, Region, as_domain, parse_set
 from .errors import ConfigError, DimensionError, InputRangeError, NetworkFileError
+from .inner_from_data import prove_inner_ellipse_from_data
 from .network import Network
 from .parallel import ahead
 from .provenance import fingerprint
+from .roa import (
+    INNER_LEVEL_MARGIN,
+    candidate_level,
+    certify_inner_ellipse,
+    certify_level,
+    ellipse_around_ball,
+    grid_area,
+    grid_points,
+    inner_ball_level,
+)
+from .symbolic import closed_loop, learned_components_of, lie_derivative, robust_lie
 from .walker import evaluate
 
 __all__ = [
     "CertStatus", "Decrease", "RoaProblem", "RoaCertificate", "InnerEllipse", "certify_roa",
     "recheck_certificate", "recheck_run", "certify_with_inner_search", "load_artifact",
     "sha256_file", "FORMAT", "VERSION", "system_fingerprint", "system_binding", "spec_factory",
-    "status_text", "bound_system",
+    "status_text", "bound_system", "LevelPolicy", "NEURAL_POLICY", "certify_candidate",
+    "INNER_FACTORS",
 ]
 
 FORMAT = "nlyap-roa-certificate"
@@ -179,7 +201,7 @@ def spec_factory(path: str | Path) -> str | None:
     """The ``factory`` a system spec file names (Python code run when it is loaded), or
     ``None``; read as TOML only (nothing imported). A file that cannot be read answers
     ``None``: loading it then reports why."""
-    import tomllib
+    import tomllib  # lazy: tomllib, in the standard library from Python 3.11 only
 
     try:
         with open(path, "rb") as fh:
@@ -221,6 +243,11 @@ class InnerEllipse:
     #: ``E∖B_{ε_s}``, one of those on a small ellipse), ``"blow-up w=[…], m=…"``
     #: (:func:`nlyap_opt.roa.certify_inner_blowup`, a centre manifold), ``""`` when not proved
     form: str = ""
+
+    @property
+    def certified(self) -> bool:
+        """Whether the check of ``E`` on the true closed loop certified it."""
+        return self.status == InnerStatus.CERTIFIED.value
 
     def contains(self, pts: np.ndarray) -> np.ndarray:
         return np.einsum("ij,jk,ik->i", pts, self.P, pts) <= self.level
@@ -366,12 +393,9 @@ class RoaProblem:
         """
         if getattr(self, "_decrease", None) is not None:
             return self._decrease
-        from .symbolic import closed_loop, learned_components_of, lie_derivative, robust_lie
 
         M, margin, s = None, 0.0, 0.0
         if not self.known:
-            from .bounds import gradient_bound
-
             gb = gradient_bound(self.V, self.ball_box, controller=self.controller,
                                 input_box=self.input_box if self.system.nu else None,
                                 state_box=self.dynamics_box)
@@ -467,7 +491,6 @@ class RoaCertificate:
 
     def area(self, box, n: int) -> float:
         """Area (volume) of the certified set by cell counting on an ``n^nx`` grid over box."""
-        from .roa import grid_area, grid_points
 
         box = np.asarray(box, dtype=float)
         pts, shape = grid_points(box, n)
@@ -588,7 +611,6 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
 def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violations: bool,
                  inner_job, log) -> RoaCertificate:
     """:func:`certify_roa`'s body; ``inner_job``: condition (c)'s :class:`Ahead`, or ``None``."""
-    from .roa import certify_level
 
     t0 = time.perf_counter()
     sysm = problem.system
@@ -646,7 +668,8 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
         reason = "conditions (a), (b), (c) and X_I ⊆ Ω_c verified"
     if inner_job is not None:
         inner, proved_from = inner_job.result()
-        ok = inner["status"] == "certified"
+        verdict = inner["verdict"]
+        ok = verdict is InnerStatus.CERTIFIED
         checks["(c) inner ellipse" + ("" if proved_from else ", true f")] = inner["status"]
         proved = problem.known or proved_from is not None
         if ok or not proved:
@@ -663,12 +686,12 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
                 "the inner ball B_ε lies in the quadratic-Lyapunov region of attraction E of "
                 "the true closed loop (the paper's Assumption 3; condition (c) is not proved "
                 "from samples)")
-            if inner.get("checked") is False and "Hurwitz" in inner["status"]:
+            if inner.get("checked") is False and verdict is InnerStatus.NOT_HURWITZ:
                 status, reason = CertStatus.NOT_CERTIFIED, f"condition (c): {inner['status']}"
             elif inner.get("checked") is False:
                 assumptions[-1] += "; no model is available to check it"
             elif not ok:
-                refuted = "counterexample" in inner["status"] or "Hurwitz" in inner["status"]
+                refuted = verdict in (InnerStatus.COUNTEREXAMPLE, InnerStatus.NOT_HURWITZ)
                 status = CertStatus.ASSUMPTION_REFUTED if refuted else CertStatus.NOT_CERTIFIED
                 reason = (f"assumption (c) is {'refuted' if refuted else 'not confirmed'} by "
                           f"the tool's true-f check: {inner['status']}")
@@ -691,9 +714,6 @@ def _identity(problem: RoaProblem) -> dict:
 
 def _initial_set_check(problem: RoaProblem, dec: Decrease, level: float):
     """``X_I ⊆ Ω_c``: on ``X_I``, ``V < level`` and every inequality of ``D`` holds strictly."""
-    from verification import VerificationProblem
-
-    from .parallel import check as verify
 
     XI = problem.initial_set
     cons = XI.constraints(dec.x)
@@ -702,7 +722,7 @@ def _initial_set_check(problem: RoaProblem, dec: Decrease, level: float):
                                [dec.V - level] + [g for g, _ in dom],
                                [nm for _, nm in cons],
                                ["V<level on X_I"] + [f"X_I in D ({nm})" for _, nm in dom])
-    return verify(prob, **problem.verify_options)
+    return parallel.check(prob, **problem.verify_options)
 
 
 def _declared(system) -> list[str]:
@@ -722,91 +742,146 @@ def _inner_ellipse(problem: RoaProblem, saved: InnerEllipse | None = None
     (:func:`nlyap_opt.inner_from_data.prove_inner_ellipse_from_data`), else the ellipse of
     the learned closed loop's linearisation, *assumed* (``checked: False``).
     """
-    from .roa import certify_inner_ellipse
 
     sysm = problem.system
     if getattr(sysm, "has_model", True):
         again = {}
-        if saved is not None and saved.status == "certified" and saved.form:
+        if saved is not None and saved.certified and saved.form:
             again = {"P": saved.P, "form": saved.form}
         return certify_inner_ellipse(sysm, problem.controller, problem.inner,
                                      verify_options=problem.verify_options, **again), None
     decl = getattr(sysm, "declarations", None)
     if decl is not None and getattr(decl, "hessian", None) is not None:
-        try:
-            from .inner_from_data import prove_inner_ellipse_from_data
-        except ImportError:
-            prove_inner_ellipse_from_data = None
-        if prove_inner_ellipse_from_data is not None:
-            res = prove_inner_ellipse_from_data(
-                sysm, problem.controller, problem.inner, dynamics=problem.dynamics,
-                eta=problem.eta, eta_state_box=problem.dynamics_box,
-                eta_input_box=problem.input_box, verify_options=problem.verify_options)
-            return res, res.get("proved_from", "samples and the declared bound H")
+        res = prove_inner_ellipse_from_data(
+            sysm, problem.controller, problem.inner, dynamics=problem.dynamics,
+            eta=problem.eta, eta_state_box=problem.dynamics_box,
+            eta_input_box=problem.input_box, verify_options=problem.verify_options)
+        return res, res.get("proved_from", "samples and the declared bound H")
     return _assumed_ellipse(problem), None
 
 
 def _assumed_ellipse(problem: RoaProblem) -> dict:
     """The quadratic ellipse ``E ⊇ B_ε`` of the learned closed loop's linearisation."""
-    from .control import lyapunov_matrix
 
     dec = problem.decrease()
     cl_rhs = _learned_closed_loop(problem)
     J = np.array(ca.Function("J", [dec.x], [ca.jacobian(cl_rhs, dec.x)])(
         np.zeros(problem.system.nx)), dtype=float)
     if np.max(np.linalg.eigvals(J).real) >= 0:
-        return {"status": "closed-loop linearisation of φ not Hurwitz", "P": np.eye(len(J)),
-                "level": 0.0, "box": np.zeros(len(J)), "checked": False}
-    from .roa import ellipse_around_ball
+        return {"status": "closed-loop linearisation of φ not Hurwitz",
+                "verdict": InnerStatus.NOT_HURWITZ, "P": np.eye(len(J)), "level": 0.0,
+                "box": np.zeros(len(J)), "checked": False}
 
     P = lyapunov_matrix(J)
     c_q, a = ellipse_around_ball(P, problem.inner)
-    return {"status": "assumed (no model to check it)", "P": P, "level": c_q, "box": a,
-            "checked": False}
+    return {"status": "assumed (no model to check it)", "verdict": InnerStatus.ASSUMED,
+            "P": P, "level": c_q, "box": a, "checked": False}
 
 
 def _learned_closed_loop(problem: RoaProblem):
-    from .symbolic import closed_loop
-
     dec = problem.decrease()
     return closed_loop(problem.system, problem.controller, problem.dynamics, x=dec.x,
                        strict=True).rhs
 
 
-#: the inner radii :func:`certify_with_inner_search` tries, as multiples of the configured one
+#: the inner radii of a :class:`LevelPolicy` search, as multiples of the policy's radius
 INNER_FACTORS = (1.0, 0.5, 0.25, 2.0, 0.125, 3.0)
 
 
-def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
-                              factors=INNER_FACTORS, follow_violations: bool = False,
-                              smallest_level: bool = False, log=print) -> RoaCertificate:
-    r""":func:`certify_roa` at the configured inner radius ε, then at other radii.
+@dataclass(frozen=True)
+class LevelPolicy:
+    r"""How a candidate ``V``'s level and inner radius are chosen: the one certification
+    policy of :func:`certify_candidate` (quadratic, SOS and neural candidates, and the rows
+    of ``nlyap compare``).
+
+    The level is the largest sublevel set inside the domain that the interval verifier
+    proves: the search starts at :func:`nlyap_opt.roa.candidate_level` (the least ``V`` on
+    ``∂D`` or at a sampled / IPOPT decrease violation; capped by a candidate's own level, e.g.
+    an SDP level) and steps down after each refutation or undecided verdict
+    (:func:`nlyap_opt.roa.certify_level`).
+
+    Attributes
+    ----------
+    inner_fraction : float
+        The inner radius ``ε`` as a fraction of the problem's ``inner`` (> 0).
+    factors : tuple of float
+        Radii ``ε·f`` tried in turn, the first that certifies wins (``(1.0,)``: ``ε`` only).
+        With more than one, the certificate's ``history`` lists every radius tried.
+    smallest_level : bool
+        Check each radius once, at the smallest level that holds its inner ball, instead of
+        searching down from the candidate level (learned dynamics: there the robust margin
+        has the most room).
+    follow_violations : bool
+        Follow decrease counterexamples down to the least ``V`` of a violation.
+    """
+
+    inner_fraction: float = 1.0
+    factors: tuple[float, ...] = INNER_FACTORS
+    smallest_level: bool = False
+    follow_violations: bool = False
+
+    def __post_init__(self):
+        if not (math.isfinite(self.inner_fraction) and self.inner_fraction > 0):
+            raise ValueError(f"inner_fraction must be finite and > 0, got "
+                             f"{self.inner_fraction!r}")
+        f = tuple(float(v) for v in self.factors)
+        if not f or not all(math.isfinite(v) and v > 0 for v in f):
+            raise ValueError(f"factors must be finite positive numbers, got {self.factors!r}")
+        object.__setattr__(self, "factors", f)
+
+
+#: the neural ``V``: the configured ε (the saved level exactly when one is claimed), then
+#: the other radii of :data:`INNER_FACTORS`
+NEURAL_POLICY = LevelPolicy()
+
+
+def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, *,
+                      level: float | None = None, cap: float | None = None,
+                      log=print) -> RoaCertificate:
+    r"""Certify ``problem.V`` by ``policy``: conditions (a), (b), (c) by :func:`certify_roa`.
 
     The inner radius is a trade-off the user should not have to tune: a small ε makes
     condition (c) easy (a small ellipse around the origin) but the decrease (a) must then hold
     close to the origin, where a robust margin :math:`\eta\|\nabla V\|` (learned f) can beat it;
-    a large ε the other way round. The same ``V`` and ``κ`` are re-checked with
-    ``ε·factor`` for each factor (no retraining); the first radius that certifies wins (the
-    configured one first). Without ``level`` each radius gets its own candidate level
-    (:func:`nlyap_opt.roa.candidate_level`); ``follow_violations`` goes to
-    :func:`certify_roa`. With ``smallest_level`` (and no ``level``) each radius starts at
-    the smallest level that can hold its inner ball, ``(1 +``
-    :data:`nlyap_opt.roa.INNER_LEVEL_MARGIN` ``)·max_{‖x‖=ε} V``, and is skipped when the
-    candidate level lies below that (a sampled violation or the boundary inside every
-    ``Ω_c ⊇ B_ε``); that one level is checked, no search below it. Returns the certificate
-    (its ``history`` lists every radius tried) or the configured radius's refusal.
+    a large ε the other way round. The same ``V`` and ``κ`` are checked with ``ε·f`` for
+    each of the policy's factors (no retraining); the first radius that certifies wins.
+
+    Parameters
+    ----------
+    problem : RoaProblem
+        The candidate ``V`` on the run's problem; ``ε = policy.inner_fraction·problem.inner``.
+    policy : LevelPolicy
+    level : float, optional
+        A claimed level: checked exactly at the first radius (a re-verification), searched
+        from at the others. Without it each radius gets its own candidate level.
+    cap : float, optional
+        An upper bound of the candidate level (a candidate's own level, e.g. an SOS
+        program's); ignored with ``level``.
+    log : callable
+
+    Returns
+    -------
+    RoaCertificate
+        The first radius's certificate that certifies, else the first radius's refusal;
+        ``CERTIFIED`` only when every condition was verified by the interval verifier.
+
+    Raises
+    ------
+    ConfigError
+        When no radius of the policy lies inside the domain.
     """
-    from dataclasses import replace
 
-    from .roa import INNER_LEVEL_MARGIN, candidate_level, inner_ball_level
-
+    base = problem.inner * policy.inner_fraction
+    if policy.inner_fraction != 1.0:
+        problem = replace(problem, inner=base)
     try:  # the decrease condition does not depend on ε: built once, shared
         dec = problem.decrease()
     except InputRangeError:
         return certify_roa(problem, 1.0 if level is None else level, log=log)
+    record = len(policy.factors) > 1
     first, tried = None, []
-    for f in factors:
-        eps = problem.inner * f
+    for f in policy.factors:
+        eps = base * f
         if not 0 < eps < problem.domain.inradius():
             continue
         p = problem if f == 1.0 else replace(problem, inner=eps)
@@ -815,10 +890,12 @@ def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
         if lv is None:
             lv = candidate_level(dec.x, dec.V, dec.lie, inner=eps, domain=p.domain,
                                  margin=dec.margin).level
+            if cap is not None:
+                lv = min(lv, cap)
         if not lv > 0:
             tried.append({"inner": eps, "status": "no positive candidate level"})
             continue
-        smallest = smallest_level and level is None
+        smallest = policy.smallest_level and level is None
         if smallest:
             m = inner_ball_level(dec.x, dec.V, eps)
             if not lv > m * (1.0 + INNER_LEVEL_MARGIN):
@@ -829,17 +906,18 @@ def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
                 continue
             lv = m * (1.0 + INNER_LEVEL_MARGIN)
         cert = certify_roa(p, lv, search=(f != 1.0 or level is None) and not smallest,
-                           follow_violations=follow_violations, log=log)
+                           follow_violations=policy.follow_violations, log=log)
         tried.append({"inner": eps, "status": cert.status.value, "reason": cert.reason,
                       "level": cert.level})
         first = first or cert
         if cert.certified:
             if f != 1.0:
-                log(f"inner radius {problem.inner:g} refused; certified with ε = {eps:g}")
+                log(f"inner radius {base:g} refused; certified with ε = {eps:g}")
                 cert.assumptions.append(
                     f"inner radius ε = {eps:g} chosen by the tool (configured "
-                    f"{problem.inner:g}: {tried[0].get('reason', tried[0]['status'])})")
-            cert.history = list(cert.history) + [{"inner_radius_search": tried}]
+                    f"{base:g}: {tried[0].get('reason', tried[0]['status'])})")
+            if record:
+                cert.history = list(cert.history) + [{"inner_radius_search": tried}]
             return cert
     if first is None and not tried:
         raise ConfigError(f"no inner radius to try inside the domain "
@@ -849,8 +927,17 @@ def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
             CertStatus.NOT_CERTIFIED, "no inner radius left to check: "
             + "; ".join(f"ε = {t['inner']:g}: {t['status']}" for t in tried), level=0.0,
             assumptions=[], **_identity(problem))
-    first.history = list(first.history) + [{"inner_radius_search": tried}]
+    if record:
+        first.history = list(first.history) + [{"inner_radius_search": tried}]
     return first
+
+
+def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
+                              factors=INNER_FACTORS, follow_violations: bool = False,
+                              smallest_level: bool = False, log=print) -> RoaCertificate:
+    """:func:`certify_candidate` with the policy of these arguments at the problem's ε."""
+    policy = LevelPolicy(1.0, tuple(factors), smallest_level, follow_violations)
+    return certify_candidate(problem, policy, level=level, log=log)
 
 
 def recheck_certificate(path: str | Path, *, system=None, allow_factory: bool = False,
@@ -900,7 +987,6 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
     proved again at the saved level. ``system`` and ``allow_factory`` as in
     :func:`recheck_certificate`.
     """
-    from verification.verify import check_file_options
 
     path = Path(path)
     if path.is_dir():
@@ -985,8 +1071,6 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
 def _recheck_system(saved: RoaCertificate, d: dict, path: Path, system, allow_factory: bool):
     """The system a re-check runs against (module docstring of :func:`recheck_certificate`):
     nothing named inside the certificate is executed."""
-    import systems
-    from systems import System
 
     if isinstance(system, System):
         return system
@@ -1042,8 +1126,6 @@ def bound_system(d: dict, path: str | Path, system=None,
     binds (:func:`system_binding`), else why not. Used by other certificate kinds
     (:mod:`nlyap_opt.compositional`).
     """
-    from types import SimpleNamespace
-
     sysm = _recheck_system(SimpleNamespace(system=str(d.get("system"))), d, Path(path),
                            system, allow_factory)
     return sysm, _binding_refusal(d, sysm)

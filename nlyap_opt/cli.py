@@ -16,8 +16,8 @@ import argparse
 import contextlib
 import difflib
 import json
-import math
 import os
+import signal
 import sys
 import traceback
 import warnings
@@ -25,7 +25,48 @@ from pathlib import Path
 
 import numpy as np
 
+import systems
+from verification import QueryStatus, closed_loop_problem, verify
+
+from .certificate import CertStatus, recheck_certificate, spec_factory
+from .cli_args import (
+    RADIUS_MAX,
+    connect_timeout_arg,
+    inner_radius,
+    nonneg,
+    outer_radius,
+    positive,
+    seeds,
+    time_limit_arg,
+    workers,
+)
+from .cli_deploy import register_cli as register_deploy
+from .cli_dynamics import register_cli as register_learn_dynamics
+from .compositional import (
+    certify_compositional,
+    is_compositional_file,
+    recheck_compositional,
+    save_compositional,
+)
+from .configs import (
+    PRESETS,
+    RunConfig,
+    check_dynamics_box,
+    check_lqr_weights,
+    config_reference,
+    make_config,
+)
+from .control import lqr
 from .errors import ConfigError, NlyapError, UsageError
+from .network import Network
+from .parallel import (
+    DEFAULT_CONNECT_TIMEOUT,
+    MAX_LOCAL_WORKERS,
+    dask_client,
+    verify_distributed,
+    verifying_on,
+)
+from .provenance import PORTABLE_FLAG, differences, fingerprint_id, portable_env, portable_problems
 
 __all__ = ["EXIT_CODES", "build_parser", "main"]
 
@@ -64,70 +105,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 # ============================================================================ argument types
-def _number(check, want: str):
-    def parse(text: str) -> float:
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}") from None
-        if not math.isfinite(v) or not check(v):
-            raise argparse.ArgumentTypeError(f"must be {want}, got {text}")
-        return v
-
-    parse.__name__ = want
-    return parse
-
-
-_nonneg = _number(lambda v: v >= 0, "a finite number >= 0")
-_positive = _number(lambda v: v > 0, "a finite number > 0")
-#: the largest radius ``verify`` takes (its square, summed over the states, stays finite)
-RADIUS_MAX = 1e100
-_inner_radius = _number(lambda v: 0 <= v <= RADIUS_MAX,
-                        f"a finite number >= 0 and <= {RADIUS_MAX:g}")
-_outer_radius = _number(lambda v: 0 < v <= RADIUS_MAX,
-                        f"a finite number > 0 and <= {RADIUS_MAX:g}")
-_connect_timeout = _number(lambda v: 0 < v <= 3600, "a finite number of seconds in (0, 3600]")
-
-
-def _seed(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {v}")
-    return v
-
-
-def _seeds(text: str) -> int | list[int]:
-    """``--seeds K`` (seeds 0..K-1) or ``--seeds 0,3,7``."""
-    parts = [p.strip() for p in text.split(",")]
-    try:
-        vals = [int(p) for p in parts]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected a count K >= 1 or seeds like 0,3,7, got {text!r}") from None
-    if len(vals) == 1 and "," not in text:
-        if vals[0] < 1:
-            raise argparse.ArgumentTypeError(f"the number of seeds must be >= 1, got {vals[0]}")
-        return vals[0]
-    if any(v < 0 for v in vals) or len(set(vals)) != len(vals):
-        raise argparse.ArgumentTypeError(f"seeds must be distinct integers >= 0, got {text!r}")
-    return vals
-
-
-def _workers(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {v}")
-    return v
-
-
 def _dask_args(sp) -> None:
-    sp.add_argument("--workers", type=_workers,
+    sp.add_argument("--workers", type=workers,
                     help="Dask worker processes of a local cluster started and stopped by "
                          "nlyap (default: one per CPU core); with --scheduler: workers to "
                          "wait for. run: with --seeds the portfolio's candidates, without "
@@ -135,7 +114,7 @@ def _dask_args(sp) -> None:
     sp.add_argument("--scheduler", metavar="ADDRESS",
                     help="tcp://HOST:PORT of an existing Dask cluster (`dask scheduler`); "
                          "it is used, never closed")
-    sp.add_argument("--connect-timeout", type=_connect_timeout, metavar="SECONDS",
+    sp.add_argument("--connect-timeout", type=connect_timeout_arg, metavar="SECONDS",
                     dest="connect_timeout",
                     help="with --scheduler: seconds to reach the scheduler and have it "
                          "answer (default 10); a closed port fails at once")
@@ -143,7 +122,6 @@ def _dask_args(sp) -> None:
 
 def _check_dask_args(args) -> None:
     """``--workers`` bounded for a local cluster; ``--connect-timeout`` only with a scheduler."""
-    from .parallel import MAX_LOCAL_WORKERS
 
     workers, scheduler = getattr(args, "workers", None), getattr(args, "scheduler", None)
     if workers is not None and scheduler is None and workers > MAX_LOCAL_WORKERS:
@@ -155,18 +133,10 @@ def _check_dask_args(args) -> None:
                          "--scheduler ADDRESS")
 
 
-def _connect_kw(args) -> dict:
-    """``connect_timeout=`` of :func:`nlyap_opt.parallel.dask_client` from the arguments."""
+def _connect_timeout(args) -> float:
+    """``connect_timeout`` of :func:`nlyap_opt.parallel.dask_client` from the arguments."""
     t = getattr(args, "connect_timeout", None)
-    return {} if t is None else {"connect_timeout": t}
-
-
-def time_limit_arg(sp) -> None:
-    """Add ``--time-limit SECONDS`` (a guard that stops the command, exit 5) to ``sp``."""
-    sp.add_argument("--time-limit", type=_positive, metavar="SECONDS", dest="time_limit",
-                    help="stop after SECONDS of wall time with exit code 5, keeping the "
-                         "finished stages (the same command resumes); results never depend "
-                         "on it: every training budget is a count of steps")
+    return DEFAULT_CONNECT_TIMEOUT if t is None else t
 
 
 class TimeLimitReached(KeyboardInterrupt):
@@ -183,7 +153,6 @@ def _time_guard(seconds: float | None):
     if seconds is None:
         yield
         return
-    import signal
 
     if not hasattr(signal, "setitimer"):
         raise UsageError("--time-limit needs POSIX interval timers, which this platform "
@@ -233,8 +202,6 @@ def _reading(what: str, fix: str = "check the input"):
 
 
 def _catalogue_system(name: str) -> None:
-    import systems
-
     if name not in systems.names():
         close = difflib.get_close_matches(name, systems.names(), n=1)
         hint = f"did you mean {close[0]!r}? " if close else ""
@@ -269,7 +236,6 @@ def _is_spec(name: str) -> bool:
 
 def _spec_system(path: str) -> str:
     """Load a system spec file (TOML), register it for this process, return its name."""
-    import systems
 
     p = Path(path)
     if not p.is_file():
@@ -289,8 +255,6 @@ def _check_paths(args) -> None:
     if getattr(args, "system", None) is not None:
         if _is_spec(args.system) and args.command == "verify" and \
                 not args.allow_factory and Path(args.system).is_file():
-            from .certificate import spec_factory
-
             factory = spec_factory(args.system)
             if factory is not None:
                 raise UsageError(f"--system {args.system} defines its system with factory = "
@@ -327,16 +291,12 @@ def _write_json(path: str | None, data: dict) -> None:
 
 
 def _load_network(path: str, option: str):
-    from .network import Network
-
     with _reading(f"{option} {path}"):
         return Network.load(path)
 
 
 # ============================================================================ commands
 def cmd_systems(args) -> int:
-    import systems
-
     if args.check:
         s = systems.load_spec(args.check) if _is_spec(args.check) else systems.get(args.check)
         print(json.dumps(s.summary(), indent=1, allow_nan=False, default=str))
@@ -352,11 +312,6 @@ def cmd_systems(args) -> int:
 
 
 def cmd_lqr(args) -> int:
-    import systems
-
-    from .configs import check_lqr_weights
-    from .control import lqr
-
     s = systems.get(args.system)
     Q, R = check_lqr_weights(s, _matrix_arg(args.Q, "--Q"), _matrix_arg(args.R, "--R"),
                              where="lqr", names=("--Q", "--R"))
@@ -381,7 +336,6 @@ _PROBLEM_OPTIONS = ("system", "lyapunov", "controller", "dynamics", "inner", "ou
 def _note_other_fingerprint(path: Path) -> None:
     """Say when a certificate was made in another numeric environment (the re-check's
     verdict does not depend on it; a re-run of its training would)."""
-    from .provenance import differences, fingerprint_id
 
     try:
         stored = json.loads(path.read_text()).get("provenance")
@@ -406,13 +360,10 @@ def _verify_certificate(args) -> int:
                          f"level; drop {', '.join(given)}")
     system = None
     if args.system is not None:      # loaded by _check_paths (a factory only when allowed)
-        import systems
-
         system = systems.get(args.system)
     path = Path(args.certificate)
     if path.is_dir():
         path = path / "certificate.json"
-    from .certificate import CertStatus, recheck_certificate
 
     verifier = [o for o, given in (("--backend", args.backend != "interval"),
                                    ("--precision", args.precision is not None),
@@ -420,7 +371,6 @@ def _verify_certificate(args) -> int:
     if verifier:
         raise UsageError("--certificate re-checks with the interval verifier and the options "
                          f"saved in the certificate; drop {', '.join(verifier)}")
-    from .compositional import is_compositional_file, recheck_compositional
 
     if is_compositional_file(path):
         if args.workers is not None or args.scheduler is not None:
@@ -435,9 +385,9 @@ def _verify_certificate(args) -> int:
     if args.workers is not None or args.scheduler is not None:
         # the conditions' checks run on the cluster (nlyap_opt.parallel.check): a
         # "verified" comes from it, any other verdict is decided again serially
-        from .parallel import dask_client, verifying_on
 
-        with dask_client(args.workers, args.scheduler, **_connect_kw(args)) as client, \
+        with dask_client(args.workers, args.scheduler,
+                         connect_timeout=_connect_timeout(args)) as client, \
                 verifying_on(client):
             cert = recheck_certificate(path, system=system)
     else:
@@ -472,8 +422,6 @@ def cmd_verify(args) -> int:
         raise UsageError("--smoothing only applies with --eta > 0; drop it or give --eta")
     eta, margin, smoothing = args.eta or 0.0, args.margin or 0.0, args.smoothing or 0.0
 
-    import systems
-    from verification import closed_loop_problem, verify
 
     s = systems.get(args.system)
     V = _load_network(args.lyapunov, "--lyapunov")
@@ -494,9 +442,9 @@ def cmd_verify(args) -> int:
         if args.backend != "interval":
             raise UsageError("--workers/--scheduler run the interval backend on Dask; drop "
                              "them or use --backend interval")
-        from .parallel import dask_client, verify_distributed
 
-        with dask_client(args.workers, args.scheduler, **_connect_kw(args)) as client:
+        with dask_client(args.workers, args.scheduler,
+                         connect_timeout=_connect_timeout(args)) as client:
             res = verify_distributed(problem, client, resolution=args.resolution)
     else:
         res = verify(problem, backend=args.backend, **opts)
@@ -515,15 +463,13 @@ def cmd_verify(args) -> int:
         else:
             print(f"  counterexample x = {c.point.tolist()} violates {c.property}: "
                   f"value in [{c.value_lower:.6g}, {c.value_upper:.6g}]")
-    if res.status == "unknown":
+    if res.status is QueryStatus.UNKNOWN:
         print(f"  {len(res.undecided)} boxes undecided at resolution {args.resolution}")
     _write_json(args.json, res.to_dict())
-    return {"verified": 0, "counterexample": 1}.get(res.status, 2)
+    return {QueryStatus.VERIFIED: 0, QueryStatus.COUNTEREXAMPLE: 1}.get(res.status, 2)
 
 
-def _run_config(args, learned: bool):
-    from .configs import PRESETS, check_dynamics_box, make_config
-
+def _run_config(args, learned: bool) -> RunConfig:
     preset = args.preset
     if preset is None:  # a catalogue system's default preset; none for a system file
         preset = "large" if args.system in PRESETS else None
@@ -538,8 +484,6 @@ def _run_config(args, learned: bool):
 def _run_compositional(args, system) -> int:
     """``nlyap run`` of a system that declares its subsystems: the compositional
     certificate (:mod:`nlyap_opt.compositional`), about the model f."""
-    from .compositional import certify_compositional, save_compositional
-
     if not args.known_dynamics:
         raise UsageError(f"{system.name} declares subsystems: its compositional certificate "
                          "is about the model f; add --known-dynamics")
@@ -559,9 +503,7 @@ def _run_compositional(args, system) -> int:
 
 
 def cmd_run(args) -> int:
-    import systems
-
-    from .pipeline import run
+    from .pipeline import run  # lazy: torch (the pipeline trains), heavy
 
     system = systems.get(args.system)
     if getattr(system, "subsystems", None) is not None:
@@ -570,7 +512,7 @@ def cmd_run(args) -> int:
     out = args.out or f"runs/{args.system}{'_known' if args.known_dynamics else ''}"
     _check_writable(Path(out), "--out", directory=True)
     if args.seeds is not None:  # a portfolio of seeded candidates on Dask, the best kept
-        from .portfolio import run_portfolio
+        from .portfolio import run_portfolio  # lazy: torch and Dask, heavy
 
         pres = run_portfolio(getattr(args, "system_file", None) or args.system, cfg, out,
                              seeds=args.seeds, workers=args.workers,
@@ -581,24 +523,21 @@ def cmd_run(args) -> int:
     res = run(args.system, cfg, out, known_dynamics=args.known_dynamics,
               workers=args.workers, scheduler=args.scheduler,
               connect_timeout=args.connect_timeout)
-    status = res["status"] if isinstance(res, dict) else res.status
-    return 0 if getattr(status, "value", status) == "certified" else 2
+    return 0 if CertStatus(res.status.value) is CertStatus.CERTIFIED else 2
 
 
 def cmd_compare(args) -> int:
-    from baselines.compare import compare
+    from baselines.compare import compare  # lazy: torch (the pipeline) and cvxpy, heavy
 
     cfg = _run_config(args, learned=not args.no_neural)
     out = args.out or f"runs/compare_{args.system}"
     _check_writable(Path(out), "--out", directory=True)
     rows = compare(args.system, cfg, out, include_neural=not args.no_neural)
     print((Path(out) / "comparison.md").read_text())
-    return 0 if all(r["certified"] for r in rows if r["method"].startswith("neural")) else 2
+    return 0 if all(r.certified for r in rows if r.method.startswith("neural")) else 2
 
 
 def cmd_config(args) -> int:
-    from .configs import config_reference
-
     if args.keys:
         print(config_reference())
         return 0
@@ -615,6 +554,47 @@ def _preset_arg(sp) -> None:
                     help="paper | large | fast | default (default large for catalogue "
                          "systems; a system file's settings, and 'default' for any system, "
                          "come from the default method: its boxes and its [run] table)")
+
+
+def _add_verify(add) -> None:
+    """The ``verify`` subcommand (``add``: the subparser factory of :func:`build_parser`)."""
+    sp = add("verify", help="verify V > 0 and the decrease condition on an annulus",
+             description="Verify V > 0 and dV/dt < 0 on inner <= |x| <= outer (and V <= level), "
+                         "or re-check a saved run with --certificate.")
+    sp.add_argument("--certificate",
+                    help="re-check DIR/certificate.json of a run (artifacts hashed, the system "
+                         "bound, conditions verified again at the saved numbers); replaces the "
+                         "options below but --system")
+    sp.add_argument("--system",
+                    help="catalogue name or spec file (TOML); with --certificate the system to "
+                         "re-check against (default: the catalogue system the certificate "
+                         "names, or the factory-free spec file it names)")
+    sp.add_argument("--allow-factory", action="store_true", dest="allow_factory",
+                    help="run the Python factory of the --system spec file (never run "
+                         "otherwise)")
+    sp.add_argument("--lyapunov", help="V network JSON")
+    sp.add_argument("--controller", help="controller network JSON (feeds the inputs)")
+    sp.add_argument("--dynamics", help="learned dynamics network JSON (replaces f)")
+    sp.add_argument("--margin", type=nonneg, help="beta >= 0: require dV/dt < -beta")
+    sp.add_argument("--eta", type=nonneg,
+                    help="pointwise robust margin >= 0: require dV/dt + eta*|grad V| < -beta "
+                         "(grad V: its entries of the components --dynamics learns)")
+    sp.add_argument("--smoothing", type=nonneg,
+                    help="s >= 0: with --eta use sqrt(|grad V|^2 + s^2) (certificate.json's "
+                         "norm_smoothing)")
+    sp.add_argument("--inner", type=inner_radius,
+                    help="inner radius epsilon (0 <= inner < outer)")
+    sp.add_argument("--outer", type=outer_radius, help=f"outer radius r (<= {RADIUS_MAX:g})")
+    sp.add_argument("--level", type=positive, help="restrict to V(x) <= level (> 0)")
+    sp.add_argument("--backend", default="interval", choices=["interval", "dreal"],
+                    help="interval: the sound verifier; dreal: the optional second opinion")
+    sp.add_argument("--resolution", type=positive,
+                    help="smallest box width (interval backend)")
+    sp.add_argument("--precision", type=positive, help="delta of the dreal backend")
+    sp.add_argument("--progress", action="store_true", help="show a progress bar")
+    sp.add_argument("--json", help="write status, seconds, boxes, counterexample here")
+    _dask_args(sp)
+    sp.set_defaults(func=cmd_verify)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -646,43 +626,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", help="write K, P, eigenvalues to this file")
     sp.set_defaults(func=cmd_lqr)
 
-    sp = add("verify", help="verify V > 0 and the decrease condition on an annulus",
-             description="Verify V > 0 and dV/dt < 0 on inner <= |x| <= outer (and V <= level), "
-                         "or re-check a saved run with --certificate.")
-    sp.add_argument("--certificate",
-                    help="re-check DIR/certificate.json of a run (artifacts hashed, the system "
-                         "bound, conditions verified again at the saved numbers); replaces the "
-                         "options below but --system")
-    sp.add_argument("--system",
-                    help="catalogue name or spec file (TOML); with --certificate the system to "
-                         "re-check against (default: the catalogue system the certificate "
-                         "names, or the factory-free spec file it names)")
-    sp.add_argument("--allow-factory", action="store_true", dest="allow_factory",
-                    help="run the Python factory of the --system spec file (never run "
-                         "otherwise)")
-    sp.add_argument("--lyapunov", help="V network JSON")
-    sp.add_argument("--controller", help="controller network JSON (feeds the inputs)")
-    sp.add_argument("--dynamics", help="learned dynamics network JSON (replaces f)")
-    sp.add_argument("--margin", type=_nonneg, help="beta >= 0: require dV/dt < -beta")
-    sp.add_argument("--eta", type=_nonneg,
-                    help="pointwise robust margin >= 0: require dV/dt + eta*|grad V| < -beta "
-                         "(grad V: its entries of the components --dynamics learns)")
-    sp.add_argument("--smoothing", type=_nonneg,
-                    help="s >= 0: with --eta use sqrt(|grad V|^2 + s^2) (certificate.json's "
-                         "norm_smoothing)")
-    sp.add_argument("--inner", type=_inner_radius,
-                    help="inner radius epsilon (0 <= inner < outer)")
-    sp.add_argument("--outer", type=_outer_radius, help=f"outer radius r (<= {RADIUS_MAX:g})")
-    sp.add_argument("--level", type=_positive, help="restrict to V(x) <= level (> 0)")
-    sp.add_argument("--backend", default="interval", choices=["interval", "dreal"],
-                    help="interval: the sound verifier; dreal: the optional second opinion")
-    sp.add_argument("--resolution", type=_positive,
-                    help="smallest box width (interval backend)")
-    sp.add_argument("--precision", type=_positive, help="delta of the dreal backend")
-    sp.add_argument("--progress", action="store_true", help="show a progress bar")
-    sp.add_argument("--json", help="write status, seconds, boxes, counterexample here")
-    _dask_args(sp)
-    sp.set_defaults(func=cmd_verify)
+    _add_verify(add)
 
     sp = add("run", help="learn f (unless --known-dynamics), V and κ; certify the ROA")
     sp.add_argument("system", help="a catalogue system name or a system spec file (.toml)")
@@ -691,7 +635,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--known-dynamics", action="store_true",
                     help="use the true f (the paper's 'actual dynamics' setting)")
     sp.add_argument("--out", help="output directory (default runs/NAME[_known])")
-    sp.add_argument("--seeds", type=_seeds,
+    sp.add_argument("--seeds", type=seeds,
                     help="K (seeds 0..K-1) or 0,3,7: train one candidate per seed in "
                          "parallel on Dask (OUT/seed_k), keep the largest certified area "
                          "(OUT/portfolio.md)")
@@ -722,9 +666,6 @@ def build_parser() -> argparse.ArgumentParser:
     _preset_arg(sp)
     sp.add_argument("--keys", action="store_true", help="list every key, type and default")
     sp.set_defaults(func=cmd_config)
-
-    from .cli_deploy import register_cli as register_deploy
-    from .cli_dynamics import register_cli as register_learn_dynamics
 
     for register in [register_learn_dynamics, register_deploy, *_EXTRA]:
         register(sub)
@@ -776,7 +717,6 @@ def _enter_portable_mode(argv: list[str], may_restart: bool) -> None:
     The pins act only in a process that starts with them (numpy, OpenBLAS and torch read
     them when they load), so the command replaces itself by a new process with them set.
     """
-    from .provenance import PORTABLE_FLAG, portable_env, portable_problems
 
     if os.environ.get(PORTABLE_FLAG) != "1":
         if not may_restart:

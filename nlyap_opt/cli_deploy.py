@@ -16,16 +16,24 @@ Both re-verify the run's certificate from its hashed artifacts first
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import sys
 from pathlib import Path
+
+from .cli_args import nonneg as _nonneg
+from .cli_args import positive as _positive
+from .cli_args import seed as _seed
+from .cli_args import workers as _count
+from .deploy import load_run, plot_simulation, simulate_run
+from .errors import UsageError
+from .export import export_c, export_onnx
+from .filter import ClfQpFilter, load_nominal
 
 __all__ = ["register_cli", "cmd_simulate", "cmd_export"]
 
 
 def _run_dir(path: str) -> Path:
-    from .errors import UsageError
-
     p = Path(path)
     if not p.exists():
         raise UsageError(f"run directory {p}: no such directory; pass the --out of a finished "
@@ -39,8 +47,6 @@ def _log(msg: str) -> None:
 
 def cmd_simulate(args) -> int:
     """Simulate from the certified set; check the certificate's promises (exit 0/1/2)."""
-    from .deploy import load_run, plot_simulation, simulate_run
-    from .errors import UsageError
 
     if args.filter and not args.nominal:
         raise UsageError("--filter clf-qp needs --nominal FILE (the controller to filter: a "
@@ -59,8 +65,6 @@ def cmd_simulate(args) -> int:
     nominal_res = None
     title = f"{run.system.name}: closed loop under κ"
     if args.filter:
-        from .filter import ClfQpFilter, load_nominal
-
         nominal = load_nominal(args.nominal, run.system.nx, run.system.nu)
         filt = ClfQpFilter(run, nominal, decay=args.decay, dynamics=which)
         nominal_res = simulate_run(run, feedback=nominal, outside=0, **opts)
@@ -109,13 +113,8 @@ def cmd_simulate(args) -> int:
 
 def cmd_export(args) -> int:
     """Write the C or ONNX code of a certified run."""
-    from .deploy import load_run
-    from .export import export_c, export_onnx
 
     if args.format == "onnx":   # refuse a missing exporter before the re-check
-        import importlib.util
-
-        from .errors import UsageError
         if importlib.util.find_spec("onnx") is None:
             raise UsageError("--format onnx needs the onnx package, which is not installed; "
                              "pip install 'nlyap_opt[onnx]' (or use --format c)")
@@ -127,8 +126,6 @@ def cmd_export(args) -> int:
 
 def register_cli(sub) -> None:
     """Add ``nlyap simulate`` and ``nlyap export`` to a subparsers object."""
-    from .cli import _nonneg, _positive, _seed
-    from .cli import _workers as _count
 
     sp = sub.add_parser("simulate", help="closed-loop trajectories from a run's certified set",
                         description="Simulate the closed loop from seeded samples of a run's "

@@ -12,6 +12,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import systems
+
+from . import dynamics_stage as stages
+from .cli_args import time_limit_arg
 from .dynamics_config import MODELS, load_dynamics_config
 from .error_models import BOUND_OPTIONS, format_table
 
@@ -20,9 +24,6 @@ __all__ = ["register_cli", "cmd_learn_dynamics"]
 
 def cmd_learn_dynamics(args) -> int:
     """Run the dynamics stage for ``args.system``; print the table; 0 ok, 2 η too large."""
-    import systems
-
-    from .dynamics_stage import dynamics_stage
 
     over: dict = {}
     if args.model:
@@ -36,7 +37,7 @@ def cmd_learn_dynamics(args) -> int:
     cfg = load_dynamics_config(args.config, args.system, "fast" if args.fast else "default",
                                over)
     system = systems.get(args.system)
-    stage = dynamics_stage(system, cfg, log=None)
+    stage = stages.dynamics_stage(system, cfg, log=None)
     net_path, bounds_path = stage.save(Path(args.out))
     secs = {k: stage.seconds[k] for k in ("data", "training", "alpha", "bounds")
             if k in stage.seconds}
@@ -50,7 +51,6 @@ def cmd_learn_dynamics(args) -> int:
 
 def register_cli(sub) -> None:
     """Add ``nlyap learn-dynamics NAME [--config FILE] --out DIR`` to a subparsers object."""
-    from .cli import time_limit_arg
 
     sp = sub.add_parser("learn-dynamics",
                         help="learn φ ≈ f on a grid and compute α, δ, K_f, K_φ, η")

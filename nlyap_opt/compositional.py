@@ -52,8 +52,9 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
+from scipy.linalg import eigh, solve_continuous_lyapunov
 
-from .certificate import CertStatus, system_binding, write_json_atomic
+from .certificate import CertStatus, bound_system, system_binding, write_json_atomic
 from .errors import ConfigError, UnsupportedOperationError
 from .interval_sup import interval_arithmetic
 from .jsonio import save_timings, split_timings
@@ -440,8 +441,6 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
 
 # ============================================================================ the search
 def _lyapunov_P(A: np.ndarray) -> np.ndarray | None:
-    from scipy.linalg import solve_continuous_lyapunov
-
     if A.size and np.max(np.linalg.eigvals(A).real) >= 0:
         return None
     P = solve_continuous_lyapunov(A.T, -np.eye(A.shape[0]))
@@ -450,8 +449,6 @@ def _lyapunov_P(A: np.ndarray) -> np.ndarray | None:
 
 def _gains(N, sizes, P, theta: float):
     """Float choice of ``α = θ α*`` and one ``β`` for all neighbours (bisection)."""
-    from scipy.linalg import eigh
-
     Nf = np.array([[float(v) for v in row] for row in N])
     n0 = sizes[0]
     Pf = [np.asarray(p, dtype=float) for p in P]
@@ -653,8 +650,6 @@ def recheck_compositional(path: str | Path, *, system=None,
     ConfigError
         Not a compositional certificate of a version this nlyap reads, or malformed.
     """
-    from .certificate import bound_system
-
     path = Path(path)
     if path.is_dir():
         path = path / "certificate.json"

@@ -10,18 +10,44 @@ closed loop :math:`A_{cl} = A - BK` (or :math:`A` for input-free systems).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 
+import casadi as ca
 import numpy as np
 
+from . import deps
 from .errors import DimensionError, NotStabilizableError
 from .network import Layer, Network
+from .symbolic import learned_rhs
 
 __all__ = [
-    "LQRResult", "ellipse_candidates", "lqr", "linearisation", "lyapunov_matrix",
-    "round_lyapunov_matrix", "saturated_controller",
+    "InnerStatus", "LQRResult", "ellipse_candidates", "verdict_of", "lqr", "linearisation",
+    "lyapunov_matrix", "round_lyapunov_matrix", "saturated_controller",
     "linear_controller",
     "quadratic_lyapunov",
 ]
+
+
+class InnerStatus(Enum):
+    """The verdict on condition (c), the inner ellipse ``E ⊇ B_ε`` (a result's ``"verdict"``;
+    its ``"status"`` says it in words)."""
+
+    CERTIFIED = "certified"
+    #: the verifier found a point of ``E`` where the claimed decrease fails
+    COUNTEREXAMPLE = "counterexample"
+    #: the closed loop's linearisation is not Hurwitz: no such ellipse exists
+    NOT_HURWITZ = "not Hurwitz"
+    #: undecided, or no form applies (no claim either way)
+    NOT_PROVED = "not proved"
+    #: no model to check it: the paper's assumption, unchecked
+    ASSUMED = "assumed"
+
+
+def verdict_of(query_status) -> InnerStatus:
+    """The inner ellipse's verdict from the verifier's status of its check."""
+    return {"verified": InnerStatus.CERTIFIED,
+            "counterexample": InnerStatus.COUNTEREXAMPLE}.get(query_status,
+                                                              InnerStatus.NOT_PROVED)
 
 
 @dataclass
@@ -86,7 +112,7 @@ def _check_stabilisable(A, B):
 
 def lyapunov_matrix(A_cl, Q=None) -> np.ndarray:
     """Solve ``A_clᵀ P + P A_cl = -Q`` (``Q = I`` by default) for a Hurwitz ``A_cl``."""
-    import control
+    control = deps.control()
 
     A_cl = np.asarray(A_cl, dtype=float)
     n = A_cl.shape[0]
@@ -115,7 +141,7 @@ def round_lyapunov_matrix(A_cl, decay_fraction: float = 0.1) -> np.ndarray | Non
     Only a candidate: whatever ``P`` is returned, condition (c) is then *verified* with it.
     Returns ``None`` when ``A_cl`` is not Hurwitz or no SDP solver succeeds.
     """
-    import cvxpy as cp
+    cp = deps.cvxpy()
 
     A_cl = np.asarray(A_cl, dtype=float)
     n = A_cl.shape[0]
@@ -168,9 +194,7 @@ def linearisation(system, dynamics: Network | None = None) -> tuple[np.ndarray, 
     """
     if dynamics is None:
         return system.A, system.B
-    import casadi as ca
 
-    from .symbolic import learned_rhs
 
     x, u = ca.MX.sym("x", system.nx), ca.MX.sym("u", system.nu)
     rhs = learned_rhs(system, dynamics, x, u)
@@ -202,7 +226,7 @@ def lqr(system, Q=None, R=None, *, dynamics: Network | None = None) -> LQRResult
     >>> lqr(systems.get("inverted_pendulum")).K.round(5).tolist()
     [[1.97725, 0.97624]]
     """
-    import control
+    control = deps.control()
 
     A, B = linearisation(system, dynamics)
     nx, nu = system.nx, system.nu

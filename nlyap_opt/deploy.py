@@ -23,10 +23,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import casadi as ca
 import numpy as np
 
+from . import deps
 from .certificate import RoaCertificate, RoaProblem, recheck_run, sha256_file
 from .errors import ConfigError
+from .simulate import trajectories
+from .symbolic import learned_rhs
+from .walker import evaluate
 
 __all__ = ["CertifiedRun", "SimulationResult", "load_run", "simulate_run", "plot_simulation"]
 
@@ -87,8 +92,6 @@ class CertifiedRun:
     def vector_field(self, which: str, feedback: Callable | None = None) -> Callable:
         """``x ↦ f(x, u(x))`` on ``(N, nx)`` batches; ``which`` is ``"true"`` or ``"learned"``;
         ``feedback`` (``(N, nx) -> (N, nu)``) defaults to ``κ``."""
-        from .symbolic import learned_rhs
-        from .walker import evaluate
 
         sysm = self.system
         if which not in self.dynamics_available():
@@ -98,7 +101,6 @@ class CertifiedRun:
         feedback = feedback or self.kappa
         if which == "true" and not getattr(sysm, "has_model", True):
             return lambda z: sysm.evaluate(z, feedback(z) if sysm.nu else None)
-        import casadi as ca
 
         x, u = ca.SX.sym("x", sysm.nx), ca.SX.sym("u", sysm.nu)
         rhs = sysm.f_fun(x, u) if which == "true" else learned_rhs(
@@ -230,7 +232,6 @@ def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = 
     tol : float, optional
         Convergence radius (default ``10⁻²·`` the inner radius ε).
     """
-    from .simulate import trajectories
 
     if points < 1 or not (horizon > 0 and dt > 0):
         raise ConfigError(f"need points >= 1, horizon > 0 and dt > 0, got {points}, "
@@ -290,10 +291,7 @@ def plot_simulation(run: CertifiedRun, res: SimulationResult, out: str | Path,
     n > 2: the projection on the two states that move most, over the slice of the set
     through the origin), and ``V(x(t))/c`` below; ``nominal``: an unfiltered run drawn in
     orange for contrast."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = deps.pyplot()
 
     n = run.system.nx
     names = list(getattr(run.system, "state_names", [])) or [f"x{i}" for i in range(n)]

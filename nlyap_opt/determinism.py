@@ -23,6 +23,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+from . import deps
 from .errors import ConfigError
 
 __all__ = ["deterministic_torch"]
@@ -43,7 +44,7 @@ def deterministic_torch(threads: int = 1) -> Iterator[None]:
     ConfigError
         ``threads`` is not a positive integer.
     """
-    import torch
+    torch = deps.torch()
 
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
         raise ConfigError(f"torch threads must be a positive integer, got {threads!r}")

@@ -58,6 +58,9 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from systems.declarations import check_declarations, probe_declarations
+from verification.interval import Interval, IntervalArithmetic
+
 from .determinism import deterministic_torch
 from .dynamics_config import MODELS, DynamicsConfig, dynamics_config, load_dynamics_config
 from .errors import ConfigError, DimensionError, NetworkFileError
@@ -66,6 +69,7 @@ from .network import Network
 from .phi_training import assemble, polish, progress_bar, train_component
 from .rounding import U, gamma
 from .symbolic import learned_components_of
+from .walker import compile_function, evaluate
 
 __all__ = [
     "Grid", "DynamicsResult", "AlphaResult", "learn_dynamics", "refine_dynamics",
@@ -495,9 +499,7 @@ def _target_rounding(system, model: str, comp: list[int]):
             return out
 
         return data_bound
-    from verification.interval import Interval, IntervalArithmetic
 
-    from .walker import compile_function, evaluate
 
     nx = system.nx
     prog = compile_function(system.f_fun)
@@ -642,7 +644,6 @@ def check_declared(system, grid, model: str, *, probe_points: int = 0,
     decl = getattr(system, "declarations", None)
     if _has_model(system) or decl is None or decl.empty:
         return None
-    from systems.declarations import check_declarations, probe_declarations
 
     nx, nu = system.nx, system.nu
     where = "(x, u)-space"

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.linalg import solve_continuous_lyapunov
 
 from .dynamics import (
     AlphaResult,
@@ -238,7 +239,6 @@ def eta_limit_linear(A_cl, inner: float) -> float:
     ConfigError
         ``A_cl`` is not Hurwitz or ``inner`` is not positive.
     """
-    from scipy.linalg import solve_continuous_lyapunov
 
     A = np.asarray(A_cl, dtype=float)
     if A.ndim != 2 or A.shape[0] != A.shape[1]:

@@ -51,6 +51,7 @@ model). A per-cell (local-constant) variant is not provided.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import time
@@ -72,8 +73,10 @@ from .errors import ConfigError, DimensionError, UnknownNameError
 from .grid import norm2_up
 from .interval_sup import counts_for, interval_sup, matrix_norm_up
 from .jsonio import save_timings, split_timings
+from .lipschitz import lipschitz_lipsdp, lipschitz_sampled
 from .network import Network
 from .rounding import add_up, mul_up, next_up
+from .walker import evaluate
 
 __all__ = [
     "BOUND_OPTIONS", "BoundOption", "BoundsResult", "LipschitzBound", "ErrorModel",
@@ -210,8 +213,6 @@ def lipschitz_f(em: ErrorModel, *, boxes: int = 16384, counts=None,
     value = float(np.max(norms))
     sampled = float("nan")
     if sample_points is not None and len(sample_points):
-        from .walker import evaluate
-
         sp = em.J_f.sparsity_out(0)
         r, c = sp.get_triplet()
         J = np.zeros((len(sample_points), m, d))
@@ -255,7 +256,6 @@ def lipschitz_phi(em: ErrorModel, *, boxes: int = 16384, counts=None,
     - ``sup ‖J_φ‖₂`` over the box from the interval Jacobian on sub-boxes (a Lipschitz
       constant on the convex box, which is all the bound needs).
     """
-    from .lipschitz import lipschitz_lipsdp, lipschitz_sampled
 
     t0 = time.perf_counter()
     W0, b0, W1, factor = em.phi_weights()
@@ -629,8 +629,6 @@ def write_bounds(path, bounds: BoundsResult, extra_seconds: dict | None = None,
                                     if k in ("data", "training", "alpha", "bounds"))
     path = Path(path)
     if network_path is not None:
-        import hashlib
-
         network_path = Path(network_path)
         shown = network_path.name if network_path.parent == path.parent else str(network_path)
         d["network"] = {"path": shown,

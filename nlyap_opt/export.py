@@ -27,7 +27,9 @@ from pathlib import Path
 
 import casadi as ca
 
+from . import deps
 from .errors import ConfigError
+from .network import Network
 
 __all__ = ["export_c", "export_onnx", "C_FUNCTIONS"]
 
@@ -155,9 +157,8 @@ def export_onnx(run, out: str | Path) -> list[Path]:
     if importlib.util.find_spec("onnx") is None:
         raise ConfigError("ONNX export needs the onnx package, which is not installed; "
                           "pip install 'nlyap_opt[onnx]' (or pip install onnx)")
-    import torch
+    torch = deps.torch()
 
-    from .network import Network
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -46,10 +46,15 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
+import scipy.sparse as sp
 
+from . import deps
 from .errors import ConfigError
+from .jsonio import read_json_object
 from .network import FORMAT as NETWORK_FORMAT
 from .network import Network
+from .symbolic import learned_components_of, learned_rhs, robust_lie
+from .walker import evaluate
 
 __all__ = ["ClfQpFilter", "FilterStats", "NOMINAL_FORMAT", "check_control_affine", "load_nominal",
            "write_linear_nominal"]
@@ -78,7 +83,6 @@ def load_nominal(path: str | Path, nx: int, nu: int) -> Callable[[np.ndarray], n
     network file (``"format": "nlyap-network"``, ``R^nx → R^nu``). Returns a batched
     ``(N, nx) -> (N, nu)`` function.
     """
-    from .jsonio import read_json_object
 
     d = read_json_object(path)
     fmt = d.get("format")
@@ -141,8 +145,7 @@ class ClfQpFilter:
 
     def __init__(self, run, nominal: Callable, *, decay: float = 0.5,
                  dynamics: str | None = None):
-        import osqp
-        import scipy.sparse as sp
+        osqp = deps.osqp()
 
         if not 0 < decay <= 1:
             raise ConfigError(f"decay must lie in (0, 1], got {decay!r}")
@@ -162,8 +165,6 @@ class ClfQpFilter:
             fhat = ca.substitute(sysm.f, ca.vertcat(sysm.x, sysm.u), ca.vertcat(x, u))
             margin = 0
         else:
-            from .symbolic import learned_components_of, learned_rhs, robust_lie
-
             fhat = learned_rhs(sysm, problem.dynamics, x, u)
             dec = problem.decrease()      # η, M, s as certified
             if problem.margin_mode == "global":
@@ -214,7 +215,6 @@ class ClfQpFilter:
     def pieces(self, pts: np.ndarray) -> tuple[np.ndarray, ...]:
         """``a (N, nu)``, ``e (N,)``, ``d (N,)``, ``κ (N, nu)`` at ``(N, nx)`` points: the
         constraint is ``e + a·u ≤ −γ``; ``d`` the decrease proven for ``κ``."""
-        from .walker import evaluate
 
         pts = np.atleast_2d(np.asarray(pts, dtype=float))
         if len(pts) == 1:        # one state (a control loop): CasADi's own call is faster

@@ -84,9 +84,18 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from .errors import DimensionError
+from systems.jacobian import jacobian_from_data
+from verification import VerificationProblem
+from verification.interval import Interval, IntervalArithmetic
+
+from . import parallel
+from .bounds import check_input_range
+from .control import InnerStatus, ellipse_candidates
+from .errors import DimensionError, InputRangeError
 from .network import Network
 from .rounding import U, dn_rel, gamma, up_rel
+from .symbolic import closed_loop, learned_components_of, robust_lie
+from .walker import CHECKED_OPS, evaluate
 
 __all__ = ["prove_inner_ellipse_from_data", "SAFETY"]
 
@@ -163,16 +172,12 @@ def _ellipse_box(P, c) -> np.ndarray:
 
 def _smooth_expression(fun: ca.Function) -> bool:
     """True when every operation of an SX Function is smooth and defined on all reals."""
-    from .walker import CHECKED_OPS
 
     return not any(fun.instruction_id(k) in CHECKED_OPS for k in range(fun.n_instructions()))
 
 
 def _enclose(fun: ca.Function, lo, hi) -> list[tuple[np.ndarray, np.ndarray]]:
     """Dense outward enclosures ``(L, Ub)`` of every output of ``fun`` over the box [lo, hi]."""
-    from verification.interval import Interval, IntervalArithmetic
-
-    from .walker import evaluate
 
     outs = evaluate(fun, [Interval(np.asarray(lo, float)[None], np.asarray(hi, float)[None])],
                     IntervalArithmetic())
@@ -197,9 +202,10 @@ def _mag(L, Ub):
 
 
 # ============================================================================ the proof
-def _fail(status: str, n: int, **extra) -> dict:
-    out = {"status": status, "P": np.eye(n), "level": 0.0, "box": np.zeros(n),
-           "result": None, "proved_from": None}
+def _fail(status: str, n: int, verdict: InnerStatus = InnerStatus.NOT_PROVED,
+          **extra) -> dict:
+    out = {"status": status, "verdict": verdict, "P": np.eye(n), "level": 0.0,
+           "box": np.zeros(n), "result": None, "proved_from": None}
     out.update(extra)
     return out
 
@@ -289,8 +295,6 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
             return _fail(f"not proved: the controller must be C² (activations {acts}; "
                          f"smooth ones: {', '.join(_SMOOTH)})", n)
     if jac is None:
-        from systems.jacobian import jacobian_from_data
-
         jac = jacobian_from_data(system)
     J_hat = np.asarray(jac.J, dtype=float)
     E = np.asarray(jac.error, dtype=float)
@@ -378,13 +382,11 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
     if np.max(np.linalg.eigvals(G).real) >= 0:
         return _fail(f"not proved: the estimated closed-loop Jacobian Ĵ_g is not Hurwitz "
                      f"(eigenvalues {np.round(np.linalg.eigvals(G), 6).tolist()})", n,
-                     terms={"G": G.tolist(), "D": D.tolist()})
+                     InnerStatus.NOT_HURWITZ, terms={"G": G.tolist(), "D": D.tolist()})
 
     if P is not None:
         candidates = [np.asarray(P, dtype=float)]
     else:
-        from .control import ellipse_candidates
-
         candidates = list(ellipse_candidates(G))  # iterated twice below
     ctx = {"system": system, "controller": controller, "x": x, "Jk": Jk, "Hk": Hk,
            "k": ksym, "H": H, "G": G, "D": D, "D_norm": D_norm, "J_hat": J_hat, "E": E,
@@ -392,18 +394,19 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
     best = None
     for Pc in candidates:
         out = _check(Pc, ctx)
-        if out["status"] == "certified":
+        if out["verdict"] is InnerStatus.CERTIFIED:
             best = out
             break
         if best is None or out["terms"].get("inner_max", 0.0) > \
                 best["terms"].get("inner_max", 0.0):
             best = out
-    if best["status"] != "certified" and dynamics is not None and eta is not None:
+    if best["verdict"] is not InnerStatus.CERTIFIED and dynamics is not None \
+            and eta is not None:
         first = None
         for Pc in candidates:
             ext = _extend_with_phi(Pc, ctx, dynamics, float(eta), eta_state_box,
                                    eta_input_box, verify_options)
-            if ext is not None and ext["status"] == "certified":
+            if ext is not None and ext["verdict"] is InnerStatus.CERTIFIED:
                 best = ext
                 break
             first = first or ext
@@ -423,7 +426,7 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
         + f" (f(0, u_eq) = 0 declared; Jacobian from {jac.source})"
         + (f"; outside the inner ellipse x'Px ≤ {best['phi_part']['inner_level']:.4g}: the "
            f"learned φ with ‖f − φ‖ ≤ η = {best['phi_part']['eta']:.4g} (interval verifier)"
-           if best["status"] == "certified" and best.get("phi_part") else ""))
+           if best["verdict"] is InnerStatus.CERTIFIED and best.get("phi_part") else ""))
     best["assumptions"] = assumptions
     best["jacobian"] = jac.to_dict()
     best["inner"] = inner
@@ -461,7 +464,8 @@ def _check(P, ctx) -> dict:
     pmin, pmax = _eig_bounds(P)
     terms: dict = {"G": G.tolist(), "D": ctx["D"].tolist(), "DeltaJ_norm": D_norm}
     if not pmin > 0:
-        return {"status": "not proved: P is not positive definite", "P": P, "level": 0.0,
+        return {"status": "not proved: P is not positive definite",
+                "verdict": InnerStatus.NOT_PROVED, "P": P, "level": 0.0,
                 "box": np.zeros(n), "result": None, "terms": terms}
     P_norm = pmax
     eps = ctx["inner"]
@@ -479,7 +483,8 @@ def _check(P, ctx) -> dict:
     lin = up_rel(2.0 * min(up_rel(P_norm * D_norm, 8), PD), 8)
     lam = dn_rel(s_min - up_rel(s_err + lin, 8), 8)
     terms.update({"lambda_S": s_min, "lambda": lam, "linear_error": lin})
-    out = {"P": P, "level": c_q, "box": box, "result": None, "terms": terms}
+    out = {"verdict": InnerStatus.NOT_PROVED, "P": P, "level": c_q, "box": box,
+           "result": None, "terms": terms}
     if not lam > 0:
         out["status"] = (
             f"not proved: the linear part is not certified: λ_min(−(PĴ_g + Ĵ_gᵀP)) = "
@@ -549,8 +554,9 @@ def _check(P, ctx) -> dict:
                   "remainder_coefficient": need, "inner_max": float(inner_max),
                   "rho_max": float(rho_max)})
     if lam > need * (1.0 + SAFETY):
-        out["status"] = "certified"
+        out["status"], out["verdict"] = "certified", InnerStatus.CERTIFIED
         return out
+    out["verdict"] = InnerStatus.NOT_PROVED
     out["status"] = (
         f"not proved: the decrease λ‖x‖² (λ = {lam:.4g}) beats the remainder "
         f"2xᵀPR(x) ≤ sqrt(c_q)·w·‖x‖² (w = {w:.4g}, H_g = {H_g:.4g}, ‖P‖ = {P_norm:.4g}) only "
@@ -562,12 +568,6 @@ def _check(P, ctx) -> dict:
 
 def _extend_with_phi(P, ctx, dynamics, eta, eta_state_box, eta_input_box, verify_options):
     """The data proof on a small ellipse, the learned φ with η on the rest (same ``P``)."""
-    from verification import VerificationProblem
-
-    from .bounds import check_input_range
-    from .errors import InputRangeError
-    from .parallel import check as verify
-    from .symbolic import closed_loop, learned_components_of, robust_lie
 
     system, controller = ctx["system"], ctx["controller"]
     if not (np.isfinite(eta) and eta >= 0):
@@ -583,7 +583,7 @@ def _extend_with_phi(P, ctx, dynamics, eta, eta_state_box, eta_input_box, verify
             small["terms"].get("inner_max", 0.0)
         eps_s = min(0.5 * eps_s, 0.9 * im) if im > 0 else 0.5 * eps_s
         small = _check(P, dict(ctx, inner=eps_s))
-        if small["status"] == "certified":
+        if small["verdict"] is InnerStatus.CERTIFIED:
             break
         if not small["terms"].get("lambda", 0.0) > 0:
             return None
@@ -594,7 +594,7 @@ def _extend_with_phi(P, ctx, dynamics, eta, eta_state_box, eta_input_box, verify
     a = np.asarray(big["box"], dtype=float)
     box = np.stack([-a, a], axis=1)
     phi_part = {"inner_level": c_s, "inner_radius": eps_s, "eta": eta, "level": c_q}
-    out = {"P": P, "level": c_q, "box": a, "result": None,
+    out = {"verdict": InnerStatus.NOT_PROVED, "P": P, "level": c_q, "box": a, "result": None,
            "terms": dict(big["terms"], inner_part=small["terms"]), "phi_part": phi_part}
     X = np.asarray(system.state_box if eta_state_box is None else eta_state_box, dtype=float)
     if np.any(box[:, 0] < X[:, 0]) or np.any(box[:, 1] > X[:, 1]):
@@ -618,10 +618,11 @@ def _extend_with_phi(P, ctx, dynamics, eta, eta_state_box, eta_input_box, verify
     prob = VerificationProblem(x, box, [c_s - V, V - c_q], [lie],
                                ["outside the data-proved ellipse", "inside E"],
                                ["2x'Pφ + η‖(2Px)_L‖ < 0"])
-    res = verify(prob, **(verify_options or {}))
+    res = parallel.check(prob, **(verify_options or {}))
     out["result"] = res
     phi_part["status"] = res.status
-    out["status"] = "certified" if res.status == "verified" else (
+    out["verdict"] = InnerStatus.CERTIFIED if res.success else InnerStatus.NOT_PROVED
+    out["status"] = "certified" if res.success else (
         f"not proved: the data prove (c) for ε ≤ {eps_s:.4g} only, and the learned φ with η = "
         f"{eta:.4g} leaves the rest {res.status}")
     return out

@@ -18,9 +18,12 @@ from collections.abc import Callable
 import casadi as ca
 import numpy as np
 
+from verification.interval import Interval, IntervalArithmetic
+
 from .errors import ConfigError
 from .grid import norm2_up
 from .rounding import U, next_up
+from .walker import evaluate
 
 __all__ = ["subboxes", "interval_sup", "matrix_norm_up", "counts_for", "interval_arithmetic"]
 
@@ -60,8 +63,6 @@ def subboxes(box, counts) -> tuple[np.ndarray, np.ndarray]:
 
 
 def interval_arithmetic():
-    from verification.interval import Interval, IntervalArithmetic
-
     return Interval, IntervalArithmetic()
 
 
@@ -72,7 +73,6 @@ def interval_sup(fun: ca.Function, box, counts, reduce: Callable, chunk: int = 2
     ``(n, rows, cols)`` array per chunk of ``n`` sub-boxes (structural zeros are 0; NaN becomes
     inf) and returns an array; the per-chunk results are concatenated.
     """
-    from .walker import evaluate
 
     Interval, ia = interval_arithmetic()
     sp = fun.sparsity_out(0)

@@ -40,12 +40,38 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from . import sos_sdp
 from .determinism import deterministic_torch
 from .errors import ConfigError
 from .network import Layer, Network, dense_network, from_torch
 from .sampling import sample_ball, sample_sphere
+from .walker import ArrayArithmetic, evaluate
 
-__all__ = ["TrainConfig", "LyapunovLearner", "sample_ball", "sample_sphere"]
+__all__ = ["TrainConfig", "TrainInfo", "LyapunovLearner", "sample_ball", "sample_sphere"]
+
+
+@dataclass
+class TrainInfo:
+    """The loss terms of the last training step (:meth:`LyapunovLearner.train`).
+
+    Attributes
+    ----------
+    loss, decrease, inside, outside : float
+        The total loss and its decrease, ``V ≤ 1`` inside and ``V ≥ 1`` on the sphere terms.
+    fit : float or None
+        The fit to the targets (``None`` without targets).
+    steps : int
+        Steps run.
+    seconds : float
+    """
+
+    loss: float = float("nan")
+    decrease: float = float("nan")
+    inside: float = float("nan")
+    outside: float = float("nan")
+    fit: float | None = None
+    steps: int = 0
+    seconds: float = 0.0
 
 
 @dataclass
@@ -196,7 +222,6 @@ def sos_start(V, level: float, config: TrainConfig) -> Network:
     ValueError
         No Gram matrix of ``V`` was found (the caller may start at random instead).
     """
-    from .sos_sdp import gram_factor
 
     n, deg = V.nx, V.degree
     H = list(config.hidden)
@@ -205,7 +230,7 @@ def sos_start(V, level: float, config: TrainConfig) -> Network:
     need = 2 * n + len(pairs)
     if not (np.isfinite(level) and level > 0):
         raise ConfigError(f"train.init 'sos': the SOS level must be > 0, got {level!r}")
-    z, L = gram_factor(V)     # ValueError (not a ConfigError) when no Gram matrix is found
+    z, L = sos_sdp.gram_factor(V)     # ValueError (not a ConfigError) when no Gram matrix is found
     h, F = H[0], config.features
     rnd = dense_network([n, h, F], "square", seed=config.seed)
     W1, b1 = rnd.layers[0].weight.copy(), rnd.layers[0].bias.copy()
@@ -345,7 +370,6 @@ class LyapunovLearner:
             f = s.evaluate_torch(x, u)
             cols = [out[:, learned.index(i)] if i in learned else f[:, i] for i in range(s.nx)]
         else:  # no model: the components known exactly, through their CasADi graph
-            from .walker import ArrayArithmetic, evaluate
 
             kf = evaluate(s.known_function(), [x, u], ArrayArithmetic("torch"))[0]
             known = list(s.known_state_derivatives)
@@ -406,7 +430,7 @@ class LyapunovLearner:
               counterexamples: np.ndarray | None = None, steps: int | None = None,
               inside_weight: np.ndarray | None = None, progress=None,
               eta_pointwise: float = 0.0, targets: np.ndarray | None = None,
-              target_rates: np.ndarray | None = None) -> dict:
+              target_rates: np.ndarray | None = None) -> TrainInfo:
         """Run ``steps`` Adam steps; returns the last loss terms.
 
         Runs with ``config.threads`` torch threads and deterministic algorithms (restored on
@@ -432,10 +456,11 @@ class LyapunovLearner:
         with deterministic_torch(cfg.threads):
             return self._train(X, W, S, T, R, CE, margin, steps, progress, eta_pointwise)
 
-    def _train(self, X, W, S, T, R, CE, margin, steps, progress, eta_pointwise) -> dict:
+    def _train(self, X, W, S, T, R, CE, margin, steps, progress,
+               eta_pointwise) -> TrainInfo:
         cfg = self.config
         t0 = time.perf_counter()
-        info = {}
+        info = TrainInfo()
         it = -1
         gen = torch.Generator().manual_seed(cfg.seed)
         if cfg.lr_schedule not in ("constant", "cosine"):
@@ -486,14 +511,11 @@ class LyapunovLearner:
             self.opt.zero_grad()
             loss.backward()
             self.opt.step()
-            info = {"loss": loss.item(), "decrease": dec.item(), "inside": inside.item(),
-                    "outside": outside.item()}
-            if T is not None:
-                info["fit"] = fit.item()
+            info = TrainInfo(loss.item(), dec.item(), inside.item(), outside.item(),
+                             None if T is None else fit.item())
             if progress is not None and (it % 100 == 0 or it == steps - 1):
                 progress(it, info)
-        info["steps"] = it + 1
-        info["seconds"] = time.perf_counter() - t0
+        info.steps, info.seconds = it + 1, time.perf_counter() - t0
         return info
 
     # ------------------------------------------------------------------ export

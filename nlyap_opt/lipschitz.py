@@ -96,6 +96,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import deps
 from .errors import DimensionError
 from .rounding import U, gamma, next_up
 
@@ -533,7 +534,7 @@ def _solve_sdp(
     A: np.ndarray, B: np.ndarray, a: float, b: float, solver: str, verbose: bool
 ) -> tuple[np.ndarray, float]:
     """Solve the Schur-lifted LipSDP on normalised weights; return ``(t, rho)``."""
-    import cvxpy as cp
+    cp = deps.cvxpy()
 
     h, n = A.shape
     m = B.shape[0]
@@ -644,7 +645,7 @@ def lipschitz_lipsdp(
     pruned = int(np.sum(~keep))
     prune_note = f"; {pruned} inactive neuron(s) pruned" if pruned else ""
 
-    import cvxpy as cp
+    cp = deps.cvxpy()
 
     installed = set(cp.installed_solvers())
     if solver is None:

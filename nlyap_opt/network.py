@@ -49,6 +49,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from . import deps
 from .errors import DimensionError, NetworkFileError, NlyapError, UnsupportedLayerError
 
 __all__ = [
@@ -341,8 +342,8 @@ class Network:
         :data:`ACTIVATIONS`) and a ``Scale`` module; with a head: a module with attributes
         ``body`` (that ``Sequential``) and ``eps``.
         """
-        import torch
-        from torch import nn
+        torch = deps.torch()
+        nn = torch.nn
 
         dtype = dtype or torch.float64
         mods = []
@@ -630,8 +631,8 @@ def _torch_classes():
     global _TORCH_CLASSES
     if _TORCH_CLASSES is not None:
         return _TORCH_CLASSES
-    import torch
-    from torch import nn
+    torch = deps.torch()
+    nn = torch.nn
 
     class Scale(nn.Module):
         """Multiply by a constant (the network's output scale)."""

@@ -41,19 +41,27 @@ scheduler only listens where ``--host`` says; keep it on a private network.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import contextvars
 import copy
 import inspect
+import logging
 import math
 import os
 import re
+import socket
 import threading
 import time
 from collections.abc import Iterator
 
 import numpy as np
 
+import verification
+from verification.problem import VerificationResult
+from verification.verify import split_box, verify_interval
+
+from . import deps
 from .errors import BackendUnavailableError, ConfigError
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
@@ -68,7 +76,7 @@ _INSTALL = "Dask is not installed; run: pip install 'dask[distributed]'"
 def _distributed():
     """The ``distributed`` module, or a one-line install hint."""
     try:
-        import distributed
+        distributed = deps.distributed()
     except ImportError:
         raise BackendUnavailableError(_INSTALL) from None
     return distributed
@@ -146,11 +154,8 @@ def _probe_scheduler(address: str, timeout: float) -> None:
     the deadline: a listener that accepts and never answers ends here, not in a hang.
     :class:`ConfigError` with the address when either fails.
     """
-    import asyncio
-    import socket
 
-    from distributed.comm import get_address_host_port
-
+    get_address_host_port = _distributed().comm.get_address_host_port
     deadline = time.monotonic() + timeout
 
     def fail(why: str):
@@ -169,8 +174,7 @@ def _probe_scheduler(address: str, timeout: float) -> None:
     outcome: list = []
 
     def ask():
-        from distributed.core import rpc
-
+        rpc = _distributed().core.rpc
         async def identity():
             async with rpc(address) as r:
                 return await r.identity()
@@ -251,7 +255,6 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
         raise ConfigError(f"timeout must be a positive number of seconds, got {timeout!r}")
     connect_timeout = check_connect_timeout(connect_timeout)
     distributed = _distributed()
-    import logging
 
     if address is not None:
         _probe_scheduler(address, connect_timeout)
@@ -277,8 +280,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
             client.close()
         return
 
-    import dask
-
+    dask = deps.dask()
     n = workers or cpu_cores()
     # Dask's nannies export MALLOC_TRIM_THRESHOLD_=65536 to their workers; an explicit
     # threshold turns off glibc's adaptive mmap threshold, and the verifier's many large
@@ -311,7 +313,6 @@ def client_workers(client) -> int:
 # ---------------------------------------------------------------------------- verification
 def _starts_from_boxes() -> bool:
     """Whether ``verify_interval`` accepts ``boxes=`` (start from given sub-boxes, batched)."""
-    from verification.verify import verify_interval
 
     return "boxes" in inspect.signature(verify_interval).parameters
 
@@ -347,8 +348,6 @@ def _box_task(problem, boxes: np.ndarray, budget: int, options: dict, batched: b
 
 
 def _decide_boxes(problem, boxes, budget, options, batched) -> dict:
-    from verification.verify import verify_interval
-
     res = options["resolution"]
     if batched:
         r = verify_interval(problem, boxes=boxes, max_boxes=budget, presearch=0,
@@ -382,7 +381,6 @@ def _root_task(problem, options: dict, presearch: int, initial_boxes: int,
                budget: int) -> dict:
     """Worker side: the pre-search and the serial verifier on the root box until ``budget``
     boxes are spent (``budget = 0``: only the root box itself is evaluated)."""
-    from verification.verify import verify_interval
 
     t = time.thread_time()
     more = {"hand_back": True} if budget else {}  # batched: the halves go on unevaluated
@@ -484,8 +482,6 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     TypeError
         An option the interval verifier does not have.
     """
-    from verification.problem import VerificationResult
-    from verification.verify import split_box, verify_interval
 
     known = set(inspect.signature(verify_interval).parameters) - {
         "problem", "executor", "n_tasks", "progress", "boxes", "hand_back"}
@@ -654,11 +650,10 @@ def check(problem, **options):
     run leaves ``unknown`` there (never the reverse for a property that fails: that is
     decided serially).
     """
-    from verification import verify
 
     client = _CLUSTER.get()
     if client is None:
-        return verify(problem, **options)
+        return verification.verify(problem, **options)
     opts = {k: v for k, v in options.items() if k not in ("n_tasks", "executor", "progress")}
     st: dict = {}
     res = verify_distributed(problem, client, stats=st, **opts)
@@ -669,7 +664,7 @@ def check(problem, **options):
         # found by the root task alone: its pre-search and first grid are the serial run's
         # first steps (same seed, grid and batch), which stops there with this very result
         return res
-    return verify(problem, **options)
+    return verification.verify(problem, **options)
 
 
 # ------------------------------------------------------------ a check ahead of its turn

@@ -16,7 +16,9 @@ import math
 import time
 
 import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
+from . import deps
 from .dynamics_config import DynamicsConfig
 from .network import Layer, Network
 
@@ -25,7 +27,7 @@ __all__ = ["train_component", "polish", "assemble", "LevenbergMarquardt", "progr
 
 def train_component(zn, y, H, cfg: DynamicsConfig, seed, progress, history, desc, t_start):
     """Adam, then Levenberg–Marquardt, then minimax (Lawson) rounds, for one output."""
-    import torch
+    torch = deps.torch()
 
     total = cfg.steps + cfg.lm_iterations + cfg.minimax_rounds * cfg.minimax_iterations
     bar = progress_bar(total, progress, desc)
@@ -112,8 +114,6 @@ class LevenbergMarquardt:
         return self._forward(th)[1]
 
     def run(self, th, iters, weights, bar, history, desc, stage, t_start):
-        from scipy.linalg import LinAlgError, cho_factor, cho_solve
-
         N, H, d = self.Z.shape[0], self.H, self.d
         w = np.ones(N) if weights is None else weights
         sw = np.sqrt(w)
@@ -196,7 +196,7 @@ def progress_bar(total: int, enabled: bool, desc: str):
     if not enabled or total <= 0:
         return None
     try:
-        from tqdm.auto import tqdm
+        tqdm = deps.tqdm()
     except ImportError:  # pragma: no cover
         return None
     return tqdm(total=total, desc=desc, leave=False, mininterval=0.5)

@@ -683,8 +683,8 @@ def _quadratic_stage(ctx: _Context) -> dict | None:
         if win is not None:
             quadratic_lyapunov(win.P).save(out / "V_quadratic.json")
         best = _write_stage_json(out / "quadratic.json", {
-            "candidates": [c.to_dict() for c in found],
-            "best": None if win is None else dict(win.to_dict(), verify_options=opts),
+            "candidates": [c.to_json() for c in found],
+            "best": None if win is None else dict(win.to_json(), verify_options=opts),
             "seconds": time.perf_counter() - t})["best"]
         ctx.stages.mark("quadratic", *deps)
         log(f"[quadratic] {'best: ' + win.name if win else 'none certified'} "
@@ -727,7 +727,7 @@ def _sos_compute(ctx: _Context, view: RunConfig, sc, deps: tuple) -> dict | None
                 "level": res.certified_level, "inner": res.inner, "volume": vol,
                 "verify_options": opts}
     _write_stage_json(out / "sos.json", {
-        "degree": sc.degree, "V_degree": res.degree, "status": res.status,
+        "degree": sc.degree, "V_degree": res.degree, "status": res.text,
         "sdp_level": res.sdp_level,
         "level": res.certified_level, "inner": res.inner, "volume": vol,
         "history": res.history, "notes": res.notes,
@@ -735,9 +735,9 @@ def _sos_compute(ctx: _Context, view: RunConfig, sc, deps: tuple) -> dict | None
         "seconds": time.perf_counter() - t})
     ctx.stages.mark("sos", *deps)
     for note in res.notes:
-        if note not in res.status:
+        if note not in res.text:
             log(f"[sos] note: {note}")
-    log(f"[sos] {res.status}" + (f", volume {vol:.4g}" if res.certified else "")
+    log(f"[sos] {res.text}" + (f", volume {vol:.4g}" if res.certified else "")
         + f" ({time.perf_counter() - t:.1f} s)")
     return best
 
@@ -856,7 +856,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         log("[certificate] true ROA by simulation on the evaluation grid"
             + ("" if getattr(system, "has_model", True) else " (simulating the black box)"))
         ie = cert.inner_ellipse
-        ell = (ie.P, ie.level) if ie is not None and ie.status == "certified" else None
+        ell = (ie.P, ie.level) if ie is not None and ie.certified else None
         true_mask, undecided = true_roa_mask(system, feedback, box, n, ellipse=ell,
                                              undecided=True)
         tmp = out / ".true_roa.tmp.npz"

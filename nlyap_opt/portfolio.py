@@ -32,9 +32,13 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import systems as _systems
+
 from .certificate import sha256_file, write_json_atomic
+from .configs import RunConfig, Section, check_dynamics_box, validate_config
 from .errors import ConfigError
 from .parallel import DEFAULT_CONNECT_TIMEOUT, client_workers, cpu_cores, dask_client
+from .pipeline import run
 
 __all__ = ["run_portfolio", "PortfolioResult", "SeedRun", "seed_config"]
 
@@ -106,7 +110,8 @@ class PortfolioResult:
     def certified(self) -> bool:
         return self.best is not None
 
-    def to_dict(self) -> dict:
+    def to_json(self) -> dict:
+        """The content of ``portfolio.json``."""
         return {
             "format": "nlyap-portfolio", "version": 1, "system": self.system,
             "setting": "known" if self.known_dynamics else "learned",
@@ -125,8 +130,6 @@ class PortfolioResult:
 def seed_config(cfg, seed: int) -> dict:
     """A copy of the run configuration ``cfg`` (a ``RunConfig`` or its JSON) with
     ``train.seed = cegis.seed = seed``, as JSON."""
-    from .configs import Section
-
     out = cfg.to_json() if isinstance(cfg, Section) else copy.deepcopy(cfg)
     for section in ("train", "cegis"):
         sec = out.get(section)
@@ -156,16 +159,13 @@ def _check_seeds(seeds) -> list[int]:
 
 
 def _run_seed(system: str, cfg: dict, out: str, known_dynamics: bool,
-              spec: str | None = None) -> dict:
-    """Worker side: one pipeline run, its log in ``out/run.log``; a plain summary back.
+              spec: str | None, seed: int) -> SeedRun:
+    """Worker side: one pipeline run, its log in ``out/run.log``; its summary back.
 
     ``spec``: the system comes from this TOML spec file (loaded here, in the worker).
     """
-    from .pipeline import run
 
     if spec is not None:
-        import systems as _systems
-
         system = _systems.load_spec(spec)
     t = time.perf_counter()
     Path(out).mkdir(parents=True, exist_ok=True)
@@ -177,17 +177,28 @@ def _run_seed(system: str, cfg: dict, out: str, known_dynamics: bool,
         res = run(system, cfg, out, known_dynamics=known_dynamics, log=log)
     s = res.summary or {}
     share = s.get("fraction_of_true_roa")
-    return {"status": str(getattr(res.status, "value", res.status)),
-            "certified": bool(res.certified),
-            "level": float(s["level"]) if res.certified and s.get("level") is not None
-            else None,
-            "certified_area": float(s.get("certified_area") or 0.0) if res.certified else 0.0,
-            "share": None if share is None or not res.certified else float(share),
-            "seconds": time.perf_counter() - t, "reason": str(res.reason or ""),
-            "stage": s.get("stage")}
+    return SeedRun(seed, str(getattr(res.status, "value", res.status)), bool(res.certified),
+                   float(s["level"]) if res.certified and s.get("level") is not None
+                   else None,
+                   float(s.get("certified_area") or 0.0) if res.certified else 0.0,
+                   None if share is None or not res.certified else float(share),
+                   time.perf_counter() - t, Path(out).name, str(res.reason or ""))
 
 
-def _dynamics_record(run_dir: Path) -> dict | None:
+@dataclass(frozen=True)
+class _DynamicsStage:
+    """A finished dynamics stage of a run directory: its ``stages.json`` entry, whose files
+    (name -> sha256) were checked against the files on disk."""
+
+    entry: dict
+
+    @property
+    def names(self) -> list[str]:
+        """The stage's files."""
+        return list(self.entry["files"])
+
+
+def _dynamics_record(run_dir: Path) -> _DynamicsStage | None:
     """The finished ``dynamics`` entry of ``run_dir/stages.json`` whose files match it."""
     try:
         rec = json.loads((run_dir / "stages.json").read_text()).get("dynamics")
@@ -198,13 +209,13 @@ def _dynamics_record(run_dir: Path) -> dict | None:
                 return None
     except (OSError, ValueError, AttributeError):
         return None
-    return rec
+    return _DynamicsStage(rec)
 
 
-def _share_dynamics(src: Path, dst: Path, rec: dict) -> None:
+def _share_dynamics(src: Path, dst: Path, rec: _DynamicsStage) -> None:
     """Copy the dynamics stage (files and ``stages.json`` entry) from ``src`` to ``dst``."""
     dst.mkdir(parents=True, exist_ok=True)
-    for name in rec["files"]:
+    for name in rec.names:
         tmp = dst / f".{name}.copy"
         shutil.copyfile(src / name, tmp)
         tmp.replace(dst / name)
@@ -214,7 +225,7 @@ def _share_dynamics(src: Path, dst: Path, rec: dict) -> None:
         stages = stages if isinstance(stages, dict) else {}
     except (OSError, ValueError):
         pass
-    stages["dynamics"] = rec
+    stages["dynamics"] = rec.entry
     write_json_atomic(dst / "stages.json", stages)
 
 
@@ -271,28 +282,12 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
     >>> res.best.seed, res.best.certified_area                               # doctest: +SKIP
     """
     seed_list = _check_seeds(seeds)
-    from .configs import RunConfig, check_dynamics_box, validate_config
-
     if isinstance(cfg, RunConfig):
         cfg = cfg.to_json()
     if not isinstance(cfg, dict):
         raise ConfigError(f"cfg must be a run configuration, got {type(cfg).__name__}; "
                           "use nlyap_opt.configs.get_config(system, preset)")
-    import systems as _systems
-
-    spec = None
-    if isinstance(system, (str, os.PathLike)) and (
-            str(system).endswith(".toml") or Path(system).is_file()):
-        spec = str(Path(system).resolve())  # a system spec file: each worker loads it
-        system = _systems.load_spec(spec)
-    elif spec is None and Path(str(getattr(system, "source", "") or "")).is_file():
-        spec = str(Path(system.source).resolve())  # a System loaded from a spec file
-    name = system if isinstance(system, str) else getattr(system, "name", None)
-    if not isinstance(name, str):
-        raise ConfigError(f"system must be a catalogue name, a spec file or a systems.System, "
-                          f"got {system!r}")
-    if spec is None:
-        _systems.get(name)  # an unknown name fails here, before a cluster starts
+    name, spec = _resolve_system(system)
     if name in _systems.names():  # the checks pipeline.run makes, once for all seeds
         for s in seed_list:
             validate_config(seed_config(cfg, s), name)
@@ -306,56 +301,11 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
         workers = max(1, min(len(seed_list), cpu_cores()))
     dirs = {s: out / f"seed_{s}" for s in seed_list}
     t0 = time.perf_counter()
-    results: dict[int, dict] = {}
-    shared = None
     with dask_client(workers=workers, scheduler=scheduler,
                      connect_timeout=connect_timeout or DEFAULT_CONNECT_TIMEOUT) as client:
         n_workers = client_workers(client)
         log(f"[portfolio] {name}: seeds {seed_list} on {n_workers} worker(s)")
-
-        def submit(s):
-            return client.submit(_run_seed, name, seed_config(cfg, s), str(dirs[s].resolve()),
-                                 known_dynamics, spec, pure=False)
-
-        first, rest = seed_list[0], seed_list[1:]
-        futures = {first: submit(first)}
-        if known_dynamics:
-            futures.update({s: submit(s) for s in rest})
-        else:  # learn φ once: wait for the first seed's dynamics stage, then share it
-            rec = None
-            while rec is None and not futures[first].done():
-                rec = _dynamics_record(dirs[first])
-                if rec is None:
-                    time.sleep(_POLL)
-            rec = rec or _dynamics_record(dirs[first])
-            if rec is not None:
-                shared = f"seed_{first}"
-                for s in rest:
-                    _share_dynamics(dirs[first], dirs[s], rec)
-                log(f"[portfolio] dynamics learned once (seed {first}), shared with "
-                    f"{len(rest)} other seed(s)")
-                futures.update({s: submit(s) for s in rest})
-            else:
-                r0 = futures[first].result()  # raises the first seed's error, if any
-                reason = (f"not run: seed {first} stopped in the shared dynamics stage "
-                          f"({r0['status']}: {r0['reason']})")
-                for s in rest:
-                    results[s] = {"status": "skipped", "certified": False, "level": None,
-                                  "certified_area": 0.0, "share": None, "seconds": 0.0,
-                                  "reason": reason}
-        try:
-            for s, fut in futures.items():
-                results[s] = fut.result()
-                r = results[s]
-                log(f"[portfolio] seed {s}: {r['status']}"
-                    + (f", level {r['level']:.6g}, area {r['certified_area']:.4g}"
-                       if r["certified"] else f" ({r['reason']})")
-                    + f", {r['seconds']:.1f} s")
-        finally:
-            client.cancel([f for f in futures.values() if not f.done()])
-    runs = [SeedRun(seed=s, dir=dirs[s].name,
-                    **{k: v for k, v in results[s].items() if k != "stage"})
-            for s in seed_list]
+        runs, shared = _run_seeds(client, name, spec, cfg, dirs, known_dynamics, log)
     res = PortfolioResult(runs, _best(runs), out, n_workers, time.perf_counter() - t0,
                           system=name, known_dynamics=known_dynamics, shared_dynamics=shared)
     _write(res)
@@ -367,10 +317,79 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
     return res
 
 
+def _resolve_system(system) -> tuple[str, str | None]:
+    """``(name, spec file or None)`` of a catalogue name, a spec file or a System (an
+    unknown name fails here, before a cluster starts)."""
+    spec = None
+    if isinstance(system, (str, os.PathLike)) and (
+            str(system).endswith(".toml") or Path(system).is_file()):
+        spec = str(Path(system).resolve())  # a system spec file: each worker loads it
+        system = _systems.load_spec(spec)
+    elif Path(str(getattr(system, "source", "") or "")).is_file():
+        spec = str(Path(system.source).resolve())  # a System loaded from a spec file
+    name = system if isinstance(system, str) else getattr(system, "name", None)
+    if not isinstance(name, str):
+        raise ConfigError(f"system must be a catalogue name, a spec file or a systems.System, "
+                          f"got {system!r}")
+    if spec is None:
+        _systems.get(name)
+    return name, spec
+
+
+def _run_seeds(client, name: str, spec: str | None, cfg: dict, dirs: dict, known_dynamics: bool,
+               log) -> tuple[list[SeedRun], str | None]:
+    """Every seed's run on ``client`` (with learned dynamics the first seed's dynamics stage
+    shared with the others); ``(the runs in the order of dirs, the seed directory φ came
+    from)``."""
+    seed_list = list(dirs)
+    results: dict[int, SeedRun] = {}
+    shared = None
+
+    def submit(s):
+        return client.submit(_run_seed, name, seed_config(cfg, s), str(dirs[s].resolve()),
+                             known_dynamics, spec, s, pure=False)
+
+    first, rest = seed_list[0], seed_list[1:]
+    futures = {first: submit(first)}
+    if known_dynamics:
+        futures.update({s: submit(s) for s in rest})
+    else:  # learn φ once: wait for the first seed's dynamics stage, then share it
+        rec = None
+        while rec is None and not futures[first].done():
+            rec = _dynamics_record(dirs[first])
+            if rec is None:
+                time.sleep(_POLL)
+        rec = rec or _dynamics_record(dirs[first])
+        if rec is not None:
+            shared = f"seed_{first}"
+            for s in rest:
+                _share_dynamics(dirs[first], dirs[s], rec)
+            log(f"[portfolio] dynamics learned once (seed {first}), shared with "
+                f"{len(rest)} other seed(s)")
+            futures.update({s: submit(s) for s in rest})
+        else:
+            r0 = futures[first].result()  # raises the first seed's error, if any
+            reason = (f"not run: seed {first} stopped in the shared dynamics stage "
+                      f"({r0.status}: {r0.reason})")
+            for s in rest:
+                results[s] = SeedRun(s, "skipped", False, None, 0.0, None, 0.0, dirs[s].name,
+                                     reason)
+    try:
+        for s, fut in futures.items():
+            results[s] = r = fut.result()
+            log(f"[portfolio] seed {s}: {r.status}"
+                + (f", level {r.level:.6g}, area {r.certified_area:.4g}"
+                   if r.certified else f" ({r.reason})")
+                + f", {r.seconds:.1f} s")
+    finally:
+        client.cancel([f for f in futures.values() if not f.done()])
+    return [results[s] for s in seed_list], shared
+
+
 def _write(res: PortfolioResult) -> None:
     """``portfolio.json``, ``portfolio.md`` and the ``best`` link in ``res.out``."""
     out = res.out
-    write_json_atomic(out / "portfolio.json", res.to_dict())
+    write_json_atomic(out / "portfolio.json", res.to_json())
 
     def num(v, fmt):
         return "–" if v is None else format(v, fmt)

@@ -45,6 +45,15 @@ import sys
 from functools import lru_cache
 from importlib import metadata
 
+from threadpoolctl import threadpool_info
+
+from . import deps
+
+try:
+    from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+except ImportError:  # numpy < 2
+    from numpy.core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+
 __all__ = ["PORTABLE_FLAG", "describe", "differences", "fingerprint", "fingerprint_id",
            "portable_env", "portable_problems"]
 
@@ -117,10 +126,6 @@ def _cpu() -> dict:
 
 def _blas() -> list[dict]:
     """numpy's and SciPy's BLAS libraries: library, version, kernel and threads."""
-    import numpy  # noqa: F401  (loads numpy's BLAS)
-    import scipy.linalg  # noqa: F401  (loads SciPy's BLAS)
-    from threadpoolctl import threadpool_info
-
     out = []
     for lib in threadpool_info():
         if lib.get("user_api") != "blas":
@@ -133,15 +138,11 @@ def _blas() -> list[dict]:
 
 def _numpy_dispatch() -> list[str]:
     """numpy's SIMD dispatch targets that run on this machine."""
-    try:
-        from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
-    except ImportError:  # numpy < 2
-        from numpy.core._multiarray_umath import __cpu_dispatch__, __cpu_features__
     return [t for t in __cpu_dispatch__ if __cpu_features__.get(t)]
 
 
 def _torch() -> dict:
-    import torch
+    torch = deps.torch()
 
     return {"cpu_capability": torch.backends.cpu.get_cpu_capability(),
             "mkl": bool(torch.backends.mkl.is_available()),

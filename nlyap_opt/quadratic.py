@@ -44,30 +44,36 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
+import casadi as ca
 import numpy as np
 
+from .certificate import INNER_FACTORS, LevelPolicy, certify_candidate
+from .control import lyapunov_matrix, quadratic_lyapunov, round_lyapunov_matrix
+from .errors import ConfigError
+from .symbolic import closed_loop
+
 __all__ = ["QUADRATIC_CANDIDATES", "QuadraticCandidate", "certify_quadratics",
-           "closed_loop_matrix"]
-
-
-def _lyapunov(A_cl):
-    from .control import lyapunov_matrix
-
-    return lyapunov_matrix(A_cl)
-
-
-def _round(A_cl):
-    from .control import round_lyapunov_matrix
-
-    return round_lyapunov_matrix(A_cl)
-
+           "closed_loop_matrix", "quadratic_policy"]
 
 #: name -> ``A_cl -> P`` (``None``: no candidate); the names a configuration may list
-QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": _lyapunov, "round": _round}
+QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": lyapunov_matrix,
+                                             "round": round_lyapunov_matrix}
 
 #: the ε of the quadratic certificates, as a fraction of the run's ``inner``: true f, learned φ
 INNER_FRACTION = 0.25
 LEARNED_INNER_FRACTION = 1.0
+
+
+def quadratic_policy(known: bool) -> LevelPolicy:
+    """The certification policy of a quadratic ``V = xᵀPx`` (the pipeline's candidates and
+    ``nlyap compare``'s LQR rows): ε = :data:`INNER_FRACTION` of the run's with the true f,
+    every radius of :data:`~nlyap_opt.certificate.INNER_FACTORS`, searched down from the
+    candidate level; with learned dynamics ε itself, no radius below it, each checked at the
+    smallest level that holds its inner ball. Decrease violations are followed down."""
+    if known:
+        return LevelPolicy(INNER_FRACTION, INNER_FACTORS, follow_violations=True)
+    return LevelPolicy(LEARNED_INNER_FRACTION, tuple(f for f in INNER_FACTORS if f >= 1),
+                       smallest_level=True, follow_violations=True)
 
 
 @dataclass
@@ -93,7 +99,8 @@ class QuadraticCandidate:
     def certified(self) -> bool:
         return self.certificate is not None and self.certificate.certified
 
-    def to_dict(self) -> dict:
+    def to_json(self) -> dict:
+        """The candidate's record in ``quadratic.json``."""
         c = self.certificate
         return {"name": self.name, "P": None if self.P is None else self.P.tolist(),
                 "certified": self.certified,
@@ -107,10 +114,6 @@ class QuadraticCandidate:
 def closed_loop_matrix(problem) -> np.ndarray:
     """``A_cl``: the Jacobian at 0 of the problem's closed loop (true ``f`` or ``φ``, with
     its controller)."""
-    import casadi as ca
-
-    from .symbolic import closed_loop
-
     x = ca.SX.sym("x", problem.system.nx)
     rhs = closed_loop(problem.system, problem.controller, problem.dynamics, x=x,
                       strict=True).rhs
@@ -139,18 +142,13 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
     list of QuadraticCandidate
         One per name, in order.
     """
-    from .certificate import INNER_FACTORS, certify_with_inner_search
-    from .control import quadratic_lyapunov
-    from .errors import ConfigError
-
     unknown = [nm for nm in names if nm not in QUADRATIC_CANDIDATES]
     if unknown:
         raise ConfigError(f"unknown quadratic candidate {unknown[0]!r}; use some of "
                           f"{', '.join(QUADRATIC_CANDIDATES)}")
-    if inner_fraction is None:
-        inner_fraction = INNER_FRACTION if problem.known else LEARNED_INNER_FRACTION
-    # learned f: no radius below ε (there the margin η‖∇V‖ ~ η‖x‖ outweighs V̇ ~ ‖x‖²)
-    factors = INNER_FACTORS if problem.known else tuple(f for f in INNER_FACTORS if f >= 1)
+    policy = quadratic_policy(problem.known)
+    if inner_fraction is not None:
+        policy = replace(policy, inner_fraction=inner_fraction)
     A_cl = closed_loop_matrix(problem)
     hurwitz = bool(np.all(np.isfinite(A_cl))) and np.max(np.linalg.eigvals(A_cl).real) < 0
     out = []
@@ -162,10 +160,8 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
                 f"{'not Hurwitz' if not hurwitz else 'gave no solution'})")
             out.append(QuadraticCandidate(name, None, seconds=time.perf_counter() - t0))
             continue
-        p = replace(problem, V=quadratic_lyapunov(P), inner=problem.inner * inner_fraction)
-        cert = certify_with_inner_search(p, None, follow_violations=True,
-                                         factors=factors, smallest_level=not problem.known,
-                                         log=lambda m: log("    " + m))
+        cert = certify_candidate(replace(problem, V=quadratic_lyapunov(P)), policy,
+                                 log=lambda m: log("    " + m))
         vol = cert.area(box, n) if cert.certified else 0.0
         out.append(QuadraticCandidate(name, P, cert, vol, time.perf_counter() - t0))
         log(f"  quadratic {name} (cond P {np.linalg.cond(P):.3g}): {cert.summary()}"

@@ -6,9 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
+from . import deps
+from .certificate import CertStatus, load_artifact, status_text
 from .domain import Ball, parse_set
+from .network import Network
 from .provenance import describe
-from .roa import InnerForm, InnerFormKind
+from .roa import InnerForm, InnerFormKind, grid_points
 
 __all__ = ["write_report", "plot_roa", "status_line"]
 
@@ -42,8 +45,6 @@ def status_line(cert: dict) -> str:
     """The status of a certificate dict in words: ``"certified under the declared
     assumptions: …"`` when it rests on declarations about ``f``
     (:func:`nlyap_opt.certificate.status_text`)."""
-    from .certificate import status_text
-
     return status_text(cert["status"], cert.get("assumptions_declared_by_user") or [])
 
 
@@ -52,7 +53,7 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
     and ``roa.png``."""
     lines = [f"# {system.name}: certified region of attraction", ""]
     lines += [f"**Status: {status_line(cert)}** ({cert['dynamics']})", ""]
-    if cert["status"] != "certified":
+    if cert["status"] != CertStatus.CERTIFIED:
         lines += [f"Reason: {cert.get('reason', '')}", ""]
     lines += ["## Parameters (paper's Table layout)", "",
               "| K_f | K_φ | δ | α | η | M = sup‖∇V‖ | β (margin) | ε | r | level |",
@@ -164,14 +165,7 @@ def plot_roa(path, system, cert: dict, out: Path):
     States beyond the first two are shown as the slice through the origin (the other
     states 0), so a run of any dimension gets its picture.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .certificate import load_artifact
-    from .network import Network
-    from .roa import grid_points
+    plt = deps.pyplot()
 
     arts = cert.get("artifacts", {})   # the certified V and κ (the neural or a cheap one)
     V = load_artifact(out / arts.get("V", {}).get("file", "V.json"),
@@ -195,7 +189,7 @@ def plot_roa(path, system, cert: dict, out: Path):
     fig, ax = plt.subplots(figsize=(7, 6))
     X1, X2 = np.meshgrid(xs[0], xs[1], indexing="ij")
     lv = cert["level"]
-    if lv > 0 and cert["status"] == "certified":
+    if lv > 0 and cert["status"] == CertStatus.CERTIFIED:
         ax.contour(X1, X2, v, levels=np.linspace(lv / 8, 2 * lv, 9), colors="0.75",
                    linewidths=0.6)
         inside = (v <= lv) & D.contains(pts).reshape(shape)

@@ -42,9 +42,15 @@ from enum import Enum
 import casadi as ca
 import numpy as np
 
+from verification import VerificationProblem, lyapunov_problem
+
+from . import parallel
+from .control import InnerStatus, ellipse_candidates, lyapunov_matrix, verdict_of
 from .domain import as_domain
 from .rounding import EPS
-from .walker import evaluate
+from .simulate import simulate
+from .symbolic import closed_loop
+from .walker import compile_function, evaluate
 
 __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
@@ -335,9 +341,6 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     that can hold the inner ball, and the search ends after that. Returns the certified
     level or why none was found.
     """
-    from verification import VerificationProblem, lyapunov_problem
-
-    from .parallel import check as verify  # serial, or on the cluster of verifying_on()
 
     t0 = time.perf_counter()
     opts = dict(verify_options or {})
@@ -374,7 +377,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
         for pbox, cons, label in pieces:   # V > c on each piece of the boundary
             prob_b = VerificationProblem(x, pbox, [g for g, _ in cons], [c - V],
                                          [nm for _, nm in cons], [f"V>level on {label}"])
-            r = verify(prob_b, **opts)
+            r = parallel.check(prob_b, **opts)
             if res_b is not None:
                 r.seconds += res_b.seconds
                 r.boxes += res_b.boxes
@@ -383,7 +386,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                 break
         prob_a = lyapunov_problem(x, V, lie, inner=inner, domain=D, level=c, margin=margin,
                                   box=box, check_positive=False)
-        res_a = verify(prob_a, **opts) if res_b.status == "verified" else None
+        res_a = parallel.check(prob_a, **opts) if res_b.status == "verified" else None
         hist.append({"level": c, "containment": res_b.status,
                      "decrease": None if res_a is None else res_a.status,
                      "seconds": res_b.seconds + (res_a.seconds if res_a else 0.0),
@@ -395,7 +398,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
             # certificate resting on condition (c) alone)
             prob_d = VerificationProblem(x, box, [r2 - inner**2, inner**2 - r2], [V - c],
                                          ["inner", "sphere"], ["V<level on inner sphere"])
-            res_d = verify(prob_d, **opts)
+            res_d = parallel.check(prob_d, **opts)
             status = "certified" if res_d.status == "verified" else \
                 f"level {c:.4g} does not contain the inner ball ({res_d.status})"
             hist[-1]["contains_inner_ball"] = res_d.status
@@ -457,11 +460,10 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     ``"minors"``, ``"frobenius"``, ``"shell r=… + …"`` or ``"blow-up w=[…], m=…"``, or the
     :class:`InnerForm` itself), exactly that claim is
     checked again, without any search (:func:`nlyap_opt.certificate.recheck_certificate`).
-    Returns a dict with ``status`` (``"certified"`` or why not), ``P``, ``level``
-    (``c_q``), ``box``, ``form``.
+    Returns a dict with ``verdict`` (:class:`nlyap_opt.control.InnerStatus`), ``status`` (the
+    verdict in words, saved with a certificate), ``P``, ``level`` (``c_q``), ``box``,
+    ``form``.
     """
-    from .control import ellipse_candidates
-    from .symbolic import closed_loop
 
     cl = closed_loop(system, controller, strict=True)
     J = ca.jacobian(cl.rhs, cl.x)
@@ -474,7 +476,8 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
         if P.shape != (n, n) or not np.all(np.isfinite(P)) or not np.array_equal(P, P.T) \
                 or np.linalg.eigvalsh(P)[0] <= 0:
             return {"status": f"inner ellipse not proved (P must be a symmetric positive "
-                              f"definite {n}x{n} matrix)", "P": np.eye(n), "level": 0.0,
+                              f"definite {n}x{n} matrix)", "verdict": InnerStatus.NOT_PROVED,
+                    "P": np.eye(n), "level": 0.0,
                     "box": np.zeros(n), "result": None, "form": form or ""}
     spec = None
     if form:
@@ -484,7 +487,8 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
         except ValueError as exc:
             c_q, a = ellipse_around_ball(P, inner)
             return {"status": f"inner ellipse not proved (the form does not apply: {exc})",
-                    "P": P, "level": c_q, "box": a, "result": None, "form": text}
+                    "verdict": InnerStatus.NOT_PROVED, "P": P, "level": c_q, "box": a,
+                    "result": None, "form": text}
         form = text
     if spec is not None and spec.kind is InnerFormKind.BLOWUP:
         w = spec.weights
@@ -495,8 +499,8 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
         if out is None:
             c_q, a = ellipse_around_ball(P, inner)
             out = {"status": f"inner ellipse not proved ({form} does not apply to this "
-                             "closed loop)", "P": P, "level": c_q, "box": a, "result": None,
-                   "form": form}
+                             "closed loop)", "verdict": InnerStatus.NOT_PROVED, "P": P,
+                   "level": c_q, "box": a, "result": None, "form": form}
         return out
     if P is not None:
         candidates = [P]
@@ -505,13 +509,14 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
             out = certify_inner_blowup(cl, A_cl, inner, verify_options=verify_options)
             if out is not None:
                 return out
-            return {"status": "closed-loop linearisation not Hurwitz", "P": np.eye(system.nx),
+            return {"status": "closed-loop linearisation not Hurwitz",
+                    "verdict": InnerStatus.NOT_HURWITZ, "P": np.eye(system.nx),
                     "level": 0.0, "box": np.zeros(system.nx), "result": None}
         candidates = ellipse_candidates(A_cl)
     first = None
     for Pc in candidates:
         out = _inner_ellipse(cl, J, Pc, inner, verify_options, only=spec)
-        if out["status"] == "certified":
+        if out["verdict"] is InnerStatus.CERTIFIED:
             return out
         first = first or out
     return first
@@ -550,9 +555,6 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
     re-check of a saved claim, a shell's ``ε_s`` and inner form included). ``shell``:
     whether the shell form may be tried (not inside a shell).
     """
-    from verification import VerificationProblem
-
-    from .parallel import check as verify
 
     n = P.shape[0]
     c_q, a = ellipse_around_ball(P, inner)
@@ -560,8 +562,8 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
         if not (shell and only.radius <= inner):
             return {"status": f"inner ellipse not proved (the form {only.to_str()!r} does not "
                               "apply: a shell needs 0 < r ≤ ε and the minors or frobenius "
-                              "form)", "P": P, "level": c_q, "box": a, "result": None,
-                    "form": only.to_str()}
+                              "form)", "verdict": InnerStatus.NOT_PROVED, "P": P,
+                    "level": c_q, "box": a, "result": None, "form": only.to_str()}
         return _inner_shell(cl, J, P, inner, verify_options, eps_s=only.radius,
                             only=only.core)
     S = ca.mtimes(ca.DM(P), J)
@@ -590,8 +592,8 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
         ["minors", "frobenius", "shell"] if n <= 3 else ["frobenius", "shell", "minors"]
     if not any(f in forms for f in order):
         return {"status": f"inner ellipse not proved (the {only.to_str()} form does not apply "
-                          "to this P)", "P": P, "level": c_q, "box": a, "result": None,
-                "form": only.to_str()}
+                          "to this P)", "verdict": InnerStatus.NOT_PROVED, "P": P,
+                "level": c_q, "box": a, "result": None, "form": only.to_str()}
     for form in [f for f in order if f in forms]:
         if forms[form] is None:
             out = _inner_shell(cl, J, P, inner, verify_options)
@@ -599,11 +601,11 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
             props = forms[form]
             prob = VerificationProblem(cl.x, box, [Vq - c_q], props, ["ellipse"],
                                        [f"{form}{k}" for k in range(1, len(props) + 1)])
-            res = verify(prob, **(verify_options or {}))
-            out = {"status": "certified" if res.status == "verified"
-                   else f"inner ellipse {res.status}", "P": P, "level": c_q, "box": a,
+            res = parallel.check(prob, **(verify_options or {}))
+            out = {"status": "certified" if res.success else f"inner ellipse {res.status}",
+                   "verdict": verdict_of(res.status), "P": P, "level": c_q, "box": a,
                    "result": res, "form": form}
-        if out["status"] == "certified":
+        if out["verdict"] is InnerStatus.CERTIFIED:
             break
     return out
 
@@ -625,9 +627,6 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
     ``B_{ε_s} ⊆ E_s`` in finite time. A counterexample of the shell is a point of
     ``E ∖ {0}`` where ``V̇_q ≥ 0``: this ``P`` cannot certify this ``E``.
     """
-    from verification import VerificationProblem
-
-    from .parallel import check as verify
 
     eps_s = float(inner * SHELL_FRACTION if eps_s is None else eps_s)
     c_q, a = ellipse_around_ball(P, inner)
@@ -636,15 +635,16 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
     dV = 2 * ca.dot(x, ca.mtimes(ca.DM(P), cl.rhs))
     prob = VerificationProblem(x, np.stack([-a, a], axis=1), [Vq - c_q, eps_s**2 - ca.sumsqr(x)],
                                [dV], ["ellipse", "shell"], ["dVq/dt<0 on the shell"])
-    res = verify(prob, **(verify_options or {}))
-    if res.status != "verified":
-        return {"status": f"inner ellipse {res.status}", "P": P, "level": c_q, "box": a,
-                "result": res, "form": f"shell r={eps_s!r}"}
+    res = parallel.check(prob, **(verify_options or {}))
+    if not res.success:
+        return {"status": f"inner ellipse {res.status}", "verdict": verdict_of(res.status),
+                "P": P, "level": c_q, "box": a, "result": res, "form": f"shell r={eps_s!r}"}
     core = _inner_ellipse(cl, J, P, eps_s, verify_options,
                           only=None if only is None else InnerForm(only), shell=False)
     form = InnerForm(InnerFormKind.SHELL, radius=eps_s, core=InnerFormKind(core["form"]))
-    return {"status": core["status"], "P": P, "level": c_q, "box": a,
-            "result": res if core["status"] == "certified" else core["result"],
+    ok = core["verdict"] is InnerStatus.CERTIFIED
+    return {"status": core["status"], "verdict": core["verdict"], "P": P, "level": c_q,
+            "box": a, "result": res if ok else core["result"],
             "form": form.to_str()}
 
 
@@ -679,7 +679,6 @@ def _blowup_candidates(A_cl: np.ndarray):
     :data:`BLOWUP_WEIGHTS` (a centre decaying like ``x' = -x^{2k+1}`` balances a hyperbolic
     ``y' = -y`` under the weights ``(1, k + 1)``).
     """
-    from .control import lyapunov_matrix
 
     n = A_cl.shape[0]
     scale = max(1.0, float(np.max(np.abs(A_cl))))
@@ -738,10 +737,6 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
     whose leading term is negative on sampled face points and then verifies, or the last
     verified failure. ``candidates``: these ``(P, w)`` pairs instead (a saved claim).
     """
-    from verification import VerificationProblem
-
-    from .parallel import check as verify
-    from .walker import compile_function
 
     n = A_cl.shape[0]
     if np.max(np.linalg.eigvals(A_cl).real) > 1e-9 * max(1.0, float(np.max(np.abs(A_cl)))):
@@ -773,7 +768,8 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
         if not np.all(lead < 0):
             # not a counterexample of V̇_q < 0 (higher orders may still decide): unproved
             first = first or {"status": f"inner ellipse not proved ({form}: leading term "
-                                        f"≥ 0 at a face point)", "P": P, "level": c_q,
+                                        f"≥ 0 at a face point)",
+                              "verdict": InnerStatus.NOT_PROVED, "P": P, "level": c_q,
                               "box": a, "result": None, "form": form}
             continue
         res = None
@@ -789,15 +785,15 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
                 box = np.array([[0.0, R]] + [[-1.0, 1.0]] * (n - 1))
                 prob = VerificationProblem(z, box, [], [prop],
                                            [], [f"d^{m}h/dr^{m} < 0 on face u{i + 1}={sign:+g}"])
-                res = verify(prob, **(verify_options or {}))
+                res = parallel.check(prob, **(verify_options or {}))
                 if res.status != "verified":
                     break
             if res.status != "verified":
                 break
-        out = {"status": "certified" if res.status == "verified"
-               else f"inner ellipse {res.status}", "P": P, "level": c_q, "box": a,
+        out = {"status": "certified" if res.success else f"inner ellipse {res.status}",
+               "verdict": verdict_of(res.status), "P": P, "level": c_q, "box": a,
                "result": res, "form": form}
-        if out["status"] == "certified":
+        if out["verdict"] is InnerStatus.CERTIFIED:
             return out
         first = first or out
     return first
@@ -848,7 +844,6 @@ def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200,
     ``undecided``, returns ``(mask, undecided_mask)``: the second marks the states that did
     neither within ``t_final`` (the estimate counts them outside the ROA).
     """
-    from .simulate import simulate
 
     def rhs(z):
         return system.evaluate(z, None if feedback is None else feedback(z))

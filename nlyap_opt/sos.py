@@ -56,20 +56,41 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from enum import Enum
 
 import numpy as np
 
-from .certificate import InnerEllipse, RoaCertificate, RoaProblem, certify_roa
+from .certificate import (
+    InnerEllipse,
+    LevelPolicy,
+    RoaCertificate,
+    RoaProblem,
+    certify_candidate,
+    certify_roa,
+)
 from .control import lqr
 from .errors import NotStabilizableError
 from .polynomial import NotPolynomialError, Polynomial, polynomial_closed_loop
-from .roa import candidate_level, grid_area, grid_points
+from .quadratic import INNER_FRACTION
+from .roa import grid_area, grid_points
 from .sos_sdp import SOSLevel, boundary_points, sos_level, star_area, vs_iteration
 
 __all__ = [
-    "NotPolynomialError", "Polynomial", "SOSConfig", "SOSLevel", "SOSResult", "certify_sos",
-    "polynomial_closed_loop", "sos_level", "sos_roa",
+    "NotPolynomialError", "Polynomial", "SOSConfig", "SOSLevel", "SOSResult", "SOSStatus",
+    "certify_sos", "polynomial_closed_loop", "sos_level", "sos_policy", "sos_roa",
 ]
+
+
+class SOSStatus(str, Enum):
+    """Outcome of :func:`sos_roa` / :func:`certify_sos` (the reason is kept beside it)."""
+
+    CERTIFIED = "certified"
+    NOT_CERTIFIED = "not certified"
+    NOT_APPLICABLE = "not applicable"
+    NO_LEVEL = "no SOS level"
+
+    def __str__(self) -> str:
+        return self.value
 
 
 # --------------------------------------------------------------------------- results
@@ -79,9 +100,9 @@ class SOSResult:
 
     Attributes
     ----------
-    status : str
-        ``"certified"``; ``"not applicable: <reason>"`` (non-polynomial closed loop);
-        or why no level was certified.
+    status : SOSStatus
+        ``CERTIFIED``; ``NOT_APPLICABLE`` (non-polynomial closed loop, learned dynamics);
+        ``NO_LEVEL`` (no SDP level); ``NOT_CERTIFIED``.
     degree : int
         Degree of ``V``.
     V : Polynomial or None
@@ -108,9 +129,11 @@ class SOSResult:
         Readable name -> ``OP_...`` name of the operations that make the closed loop
         non-polynomial (empty when SOS applies).
     sdp_seconds, certify_seconds : float
+    reason : str
+        Why not ``CERTIFIED`` (empty when certified).
     """
 
-    status: str
+    status: SOSStatus
     degree: int
     V: Polynomial | None = None
     sdp_level: float = 0.0
@@ -125,11 +148,17 @@ class SOSResult:
     non_polynomial: dict = field(default_factory=dict)
     sdp_seconds: float = 0.0
     certify_seconds: float = 0.0
+    reason: str = ""
+
+    @property
+    def text(self) -> str:
+        """The status in words: ``"certified"`` or ``"<status>: <reason>"``."""
+        return f"{self.status.value}: {self.reason}" if self.reason else self.status.value
 
     @property
     def certified(self) -> bool:
         """True when the verifier proved conditions (a), (b) and (c) at ``certified_level``."""
-        return self.status == "certified"
+        return self.status is SOSStatus.CERTIFIED
 
     @property
     def applicable(self) -> bool:
@@ -144,7 +173,7 @@ class SOSResult:
     def casadi(self, x):
         """``V`` as a CasADi expression of ``x``."""
         if self.V is None:
-            raise ValueError(f"no V in this result (status: {self.status})")
+            raise ValueError(f"no V in this result (status: {self.text})")
         return self.V.casadi(x)
 
     def mask(self, points) -> np.ndarray:
@@ -159,11 +188,11 @@ class SOSResult:
         pts, shape = grid_points(box, n)
         return grid_area(self.mask(pts).reshape(shape), box)
 
-    def to_dict(self) -> dict:
+    def to_json(self) -> dict:
         """JSON-ready summary (the certificate in its own ``certificate.json`` form)."""
         return {
             "method": f"SOS (degree {self.degree})",
-            "status": self.status, "degree": self.degree,
+            "status": self.text, "degree": self.degree,
             "V": None if self.V is None else self.V.as_json(),
             "sdp_level": self.sdp_level, "certified_level": self.certified_level,
             "level": self.certified_level, "certified": self.certified,
@@ -263,8 +292,9 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
             "bound would not vanish at the origin and could not prove decrease near 0). "
             "Neither is implemented; the LQR and neural rows cover this system."
         )
-        return SOSResult("not applicable: " + reason, degree, seconds=time.perf_counter() - t0,
-                         notes=[reason], inner=inner, non_polynomial=err.operations)
+        return SOSResult(SOSStatus.NOT_APPLICABLE, degree, seconds=time.perf_counter() - t0,
+                         notes=[reason], inner=inner, non_polynomial=err.operations,
+                         reason=reason)
     nx = system.nx
     if V0 is None:
         try:
@@ -273,8 +303,8 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
             reason = (f"no quadratic V to start the SOS programs from: {err}. The V-s "
                       "iteration starts at a quadratic Lyapunov function of the "
                       "linearisation; the neural V covers such systems")
-            return SOSResult("no SOS level: " + reason, degree, notes=[reason],
-                             seconds=time.perf_counter() - t0, inner=inner)
+            return SOSResult(SOSStatus.NO_LEVEL, degree, notes=[reason],
+                             seconds=time.perf_counter() - t0, inner=inner, reason=reason)
     P = np.asarray(V0, dtype=float)
     if P.shape != (nx, nx) or np.min(np.linalg.eigvalsh(0.5 * (P + P.T))) <= 0:
         raise ValueError(f"V0 must be a positive definite ({nx}, {nx}) matrix, got {P}")
@@ -310,10 +340,11 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
                                      **kw)
             V = Vy.substituted(1.0 / R) if Vy.degree > 2 else Vq.scaled(1.0 / ls.level)
     sdp_seconds = time.perf_counter() - t0
-    res = SOSResult("not certified", V.degree, V, level, 0.0, 0.0, notes, inner,
+    res = SOSResult(SOSStatus.NOT_CERTIFIED, V.degree, V, level, 0.0, 0.0, notes, inner,
                     history=history, sdp_seconds=sdp_seconds)
     if not certify or level <= 0:
-        res.status = "not certified (certify=False)" if level > 0 else "no SOS level"
+        res.status, res.reason = (SOSStatus.NOT_CERTIFIED, "certify=False") if level > 0 \
+            else (SOSStatus.NO_LEVEL, "")
         res.seconds = time.perf_counter() - t0
         return res
     # ---- re-certification on the true closed loop (the only claim)
@@ -321,8 +352,8 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     extent = float(np.linalg.norm(boundary_points(V, level), axis=1).max())
     res.outer = outer = extent * (1 + outer_margin) if domain is None else domain.max_norm()
     if domain is None and not outer > inner:
-        res.status = (f"not certified: the SOS level set (extent {extent:.4g}) does not "
-                      f"contain the excluded ball B_ε (ε = {inner:g})")
+        res.reason = (f"the SOS level set (extent {extent:.4g}) does not contain the "
+                      f"excluded ball B_ε (ε = {inner:g})")
         res.seconds = time.perf_counter() - t0
         return res
     res.problem = RoaProblem(system, V, controller, inner=inner, outer=outer, domain=domain,
@@ -331,14 +362,10 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
                        log=(lambda m: say("[sos] certify" + m)))
     res.certificate = cert
     res.certify_seconds = time.perf_counter() - t1
-    if cert.certified:
-        res.status = "certified"
-        res.certified_level = float(cert.level)
-    else:
-        res.status = f"not certified: {cert.reason}"
+    _record(res, cert)
     res.seconds = time.perf_counter() - t0
     say(f"[sos] degree {V.degree}: SDP level {level:.6g}, certified {res.certified_level:.6g} "
-        f"({res.status}, {res.seconds:.2f} s)")
+        f"({res.text}, {res.seconds:.2f} s)")
     return res
 
 
@@ -397,42 +424,49 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
         With :attr:`~SOSResult.certificate` and :attr:`~SOSResult.problem` set when the
         verifier ran.
     """
-    from .quadratic import INNER_FRACTION
-
     if not config.degree:
         raise ValueError("SOSConfig.degree is 0: the SOS stage is off")
-    eps = problem.inner * (INNER_FRACTION if inner_fraction is None else inner_fraction)
+    policy = sos_policy(inner_fraction)
+    eps = problem.inner * policy.inner_fraction
     t0 = time.perf_counter()
     if not problem.known:
         reason = ("learned dynamics: the SOS programs need the polynomial model of f, which "
                   "an unknown system does not have (and φ is a tanh network); the quadratic "
                   "candidates and the neural V cover this run")
-        return SOSResult("not applicable: " + reason, config.degree, notes=[reason],
-                         inner=eps, non_polynomial={"learned dynamics": "φ"})
+        return SOSResult(SOSStatus.NOT_APPLICABLE, config.degree, notes=[reason],
+                         inner=eps, non_polynomial={"learned dynamics": "φ"}, reason=reason)
     res = sos_roa(problem.system, degree=config.degree, inner=eps,
                   controller=problem.controller, iterations=config.iterations,
                   certify=False, log=log)
     if not res.applicable or res.V is None or not res.sdp_level > 0:
         return res
-    res.problem = p = replace(problem, V=res.V, inner=eps)
+    res.problem = replace(problem, V=res.V, inner=eps)
     t1 = time.perf_counter()
     # the SDP level is a candidate on R^n; on the run's domain D the level must also keep
-    # {V <= c} off ∂D: start at the lesser of the SDP level and the least V on ∂D or at a
-    # sampled / IPOPT decrease violation (nlyap_opt.roa.candidate_level)
-    dec = p.decrease()
-    start = min(res.sdp_level, candidate_level(dec.x, dec.V, dec.lie, inner=eps,
-                                               domain=p.domain, margin=dec.margin).level)
-    if not start > 0:
-        res.status = "not certified: no positive candidate level on the domain"
-        res.seconds = time.perf_counter() - t0
-        return res
-    cert = certify_roa(p, start, search=True, follow_violations=True,
-                       log=lambda m: log("  " + m))
+    # {V <= c} off ∂D: the policy starts at the lesser of the SDP level and the least V on
+    # ∂D or at a sampled / IPOPT decrease violation
+    cert = certify_candidate(replace(problem, V=res.V), policy, cap=res.sdp_level,
+                             log=lambda m: log("  " + m))
     res.certificate, res.certify_seconds = cert, time.perf_counter() - t1
     res.outer = float(problem.domain.max_norm())
-    if cert.certified:
-        res.status, res.certified_level = "certified", float(cert.level)
-    else:
-        res.status = f"not certified: {cert.reason}"
+    _record(res, cert)
     res.seconds = time.perf_counter() - t0
     return res
+
+
+def sos_policy(inner_fraction: float | None = None) -> LevelPolicy:
+    """The certification policy of the pipeline's SOS candidate: ε = ``inner_fraction`` of
+    the run's (default :data:`nlyap_opt.quadratic.INNER_FRACTION`, as the quadratic
+    candidates with the true ``f``), that radius only, searched down from the lesser of the
+    SDP level and the candidate level, decrease violations followed down."""
+    return LevelPolicy(INNER_FRACTION if inner_fraction is None else inner_fraction, (1.0,),
+                       follow_violations=True)
+
+
+def _record(res: SOSResult, cert: RoaCertificate) -> None:
+    """The verdict of ``cert`` into ``res``."""
+    if cert.certified:
+        res.status, res.reason = SOSStatus.CERTIFIED, ""
+        res.certified_level = float(cert.level)
+    else:
+        res.status, res.reason = SOSStatus.NOT_CERTIFIED, cert.reason

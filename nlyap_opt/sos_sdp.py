@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import coo_matrix
 
+from . import deps
 from .polynomial import Polynomial, monomial_matrix, monomials
 
 __all__ = ["SOSLevel", "boundary_points", "gram_factor", "sos_level", "star_area", "v_step",
@@ -113,7 +114,7 @@ class _Space:
     def gram_variable(self, degree: int):
         """A PSD Gram matrix over the monomials of degree ``1..degree/2`` and the coefficient
         map of its polynomial: ``(G, M)`` with ``p = M @ vec(G)``."""
-        import cvxpy as cp
+        cp = deps.cvxpy()
 
         z = monomials(self.nx, 1, degree // 2)
         return cp.Variable((len(z), len(z)), PSD=True), self.gram(z)
@@ -129,7 +130,7 @@ def _add(e1, e2) -> tuple:
 
 
 def _vec(Q):
-    import cvxpy as cp
+    cp = deps.cvxpy()
 
     return cp.vec(Q, order="F")
 
@@ -177,7 +178,7 @@ def _solve(prob, solver: str) -> bool:
     (eigenvalue failures on badly scaled SOS programs of degree 4 in 3-D) -- counts as an
     infeasible program; the panic's message is not printed (it is no error of the run:
     the V-s iteration keeps its last good ``V``)."""
-    import cvxpy as cp
+    cp = deps.cvxpy()
 
     with _stderr_held() as drop:
         try:
@@ -255,7 +256,7 @@ def sos_level(V: Polynomial, f: list[Polynomial], *, multiplier_degree: int | No
         ``upper`` (least infeasible level tried), ``backoff_level`` and
         ``backoff_multiplier``.
     """
-    import cvxpy as cp
+    cp = deps.cvxpy()
 
     dV = V.degree
     df = max(p.degree for p in f)
@@ -317,7 +318,7 @@ def v_step(V: Polynomial, inside: np.ndarray, level: float, s: dict, f: list[Pol
     previous set (kept with ``V ≤ level``: a heuristic for monotone growth, no part of any
     claim); ``targets``: points just outside it.
     """
-    import cvxpy as cp
+    cp = deps.cvxpy()
 
     nx = V.nx
     ds = max(sum(e) for e in s) if s else 2
@@ -454,7 +455,7 @@ def gram_factor(V: Polynomial, *, solver: str = "CLARABEL") -> tuple[list[tuple]
     ValueError
         ``V`` has odd degree, a constant or linear term, or no Gram matrix was found.
     """
-    import cvxpy as cp
+    cp = deps.cvxpy()
 
     if V.degree % 2 or V.degree < 2:
         raise ValueError(f"a Gram factor needs an even degree >= 2, got {V.degree}")

@@ -32,7 +32,9 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
+from scipy.special import erf as _erf
 
+from . import deps
 from .errors import UnsupportedOperationError
 
 __all__ = [
@@ -149,14 +151,12 @@ class ArrayArithmetic:
             self._where = lambda m, a: np.where(m, a, 0.0)
 
             def erf(a):
-                from scipy.special import erf as _erf
-
                 return _erf(a)
             fn = {"atan": np.arctan, "atan2": np.arctan2, "asin": np.arcsin,
                   "acos": np.arccos, "asinh": np.arcsinh, "acosh": np.arccosh,
                   "atanh": np.arctanh, "erf": erf}
         elif lib == "torch":
-            import torch
+            torch = deps.torch()
 
             xp = torch
             self.asarray = lambda v: torch.as_tensor(np.asarray(v, dtype=float))
@@ -273,7 +273,7 @@ def _broadcast_batch(arrays: Sequence, tail_dims: Sequence[int]):
 def _concat(arrays: Sequence, axis: int):
     arrays, _ = _broadcast_batch(arrays, [2] * len(arrays))
     if _is_torch(arrays[0]):
-        import torch
+        torch = deps.torch()
 
         return torch.cat(list(arrays), dim=axis)
     return np.concatenate(arrays, axis=axis)
@@ -825,7 +825,7 @@ def _finish_mx_output(parts, n, arith):
 def _concat_last(*parts):
     b = np.broadcast_shapes(*[tuple(p.shape[:-1]) for p in parts])
     if _is_torch(parts[0]):
-        import torch
+        torch = deps.torch()
 
         return torch.cat([p.expand(b + (p.shape[-1],)) for p in parts], dim=-1)
     return np.concatenate([np.broadcast_to(p, b + (p.shape[-1],)) for p in parts], axis=-1)
@@ -834,7 +834,7 @@ def _concat_last(*parts):
 def _stack_last(*cols):
     b = np.broadcast_shapes(*[tuple(c.shape) for c in cols])
     if _is_torch(cols[0]):
-        import torch
+        torch = deps.torch()
 
         return torch.stack([c.expand(b) for c in cols], dim=-1)
     return np.stack([np.broadcast_to(c, b) for c in cols], axis=-1)

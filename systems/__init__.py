@@ -34,6 +34,8 @@ from .catalogue import (
 from .declarations import Declarations, check_declarations
 from .jacobian import JacobianBound, jacobian_from_data
 from .samples import SampleSet, load_samples, sample_function, save_samples
+from .spec import default_run_settings as _default
+from .spec import load_spec as _load_spec
 
 __all__ = ["System", "SEED_SYSTEMS", "get", "names", "register", "REGISTRY", "CATALOGUE",
            "ModelUnavailableError",
@@ -87,13 +89,11 @@ def load_spec(path) -> System:
 
     Imports SymPy (the expression parser) only when called.
     """
-    from .spec import load_spec as _load_spec
 
     return _load_spec(path)
 
 
 def default_run_settings(system: System) -> dict:
     """Proposed run settings from a system's box (:func:`systems.spec.default_run_settings`)."""
-    from .spec import default_run_settings as _default
 
     return _default(system)

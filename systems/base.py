@@ -24,8 +24,11 @@ from collections.abc import Callable, Sequence
 
 import casadi as ca
 import numpy as np
+from scipy.optimize import least_squares
 
+from nlyap_opt import deps
 from nlyap_opt.errors import ConfigError, DimensionError, EquilibriumError, NlyapError
+from nlyap_opt.simulate import trajectories
 from nlyap_opt.walker import ArrayArithmetic, compile_function, evaluate
 
 from .declarations import Declarations, check_declarations
@@ -585,7 +588,6 @@ class System:
     def _equilibrium_input(self, u_eq) -> np.ndarray:
         zero = np.zeros(self.nx)
         if u_eq is None and self.nu:  # solve f(0, u) = 0 in the least-squares sense
-            from scipy.optimize import least_squares
 
             u = ca.SX.sym("u", self.nu)
             r = self.f_fun(zero, u)
@@ -649,7 +651,7 @@ class System:
         if self._torch is None:
             self._torch = ArrayArithmetic("torch")
         if u is None:
-            import torch
+            torch = deps.torch()
 
             u = torch.as_tensor(self.u_eq, dtype=x.dtype).expand(x.shape[0], self.nu)
         return evaluate(self._program, [x, u], self._torch)[0]
@@ -694,7 +696,6 @@ class System:
             with np.errstate(all="ignore"):
                 return self.evaluate(z, u)
 
-        from nlyap_opt.simulate import trajectories
 
         return trajectories(rhs, x0, t_final, n_steps)
 

@@ -129,7 +129,9 @@ def test_verify_certificate_exit_codes(monkeypatch, tmp_path, capsys, status, co
     f.write_text("{}")
     fake = types.SimpleNamespace(status=certificate.CertStatus(status),
                                  summary=lambda: f"{status}: because")
-    monkeypatch.setattr(certificate, "recheck_certificate", lambda path, **k: fake)
+    import nlyap_opt.cli
+
+    monkeypatch.setattr(nlyap_opt.cli, "recheck_certificate", lambda path, **k: fake)
     assert main(["verify", "--certificate", str(tmp_path)]) == code
     assert f"{status}: because" in capsys.readouterr().out
 

@@ -7,7 +7,7 @@ import pytest
 from vdp_reference import vdp_lyapunov_matrix, vdp_quadratic_level, vdp_true_roa_area
 
 import systems
-from baselines.compare import compare
+from baselines.compare import CompareRow, compare
 from baselines.lqr import linear_controller, lqr, saturated_controller
 from nlyap_opt.certificate import recheck_certificate
 from nlyap_opt.configs import get_config
@@ -37,7 +37,9 @@ def baseline_rows(tmp_path_factory):
     for name in systems.SEED_SYSTEMS:
         d = tmp_path_factory.mktemp("cmp_" + name)
         cfg = get_config(name, "large" if name == "van_der_pol" else "fast")
-        out[name] = (d, cfg, compare(name, cfg, d, log=lambda m: None, include_neural=False))
+        rows = compare(name, cfg, d, log=lambda m: None, include_neural=False)
+        assert all(isinstance(r, CompareRow) for r in rows)
+        out[name] = (d, cfg, [r.to_json() for r in rows])
     return out
 
 
@@ -87,7 +89,7 @@ def test_sos_not_applicable_exactly_for_non_polynomial_systems(baseline_rows, na
             assert op in row["status"], (op, row["status"])
         assert not row["certified"] and row["level"] == 0.0
         assert row.get("area", 0.0) == 0.0
-        assert row["status"] == sos_roa(systems.get(name), inner=cfg["inner"]).status
+        assert row["status"] == sos_roa(systems.get(name), inner=cfg["inner"]).text
     else:
         assert len(sos) == 3
         for row in sos:

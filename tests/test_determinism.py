@@ -81,7 +81,7 @@ def _train_V_kappa():
     X = sample_ball(2000, 2, 2.0, rng)
     S = sample_sphere(200, 2, 2.0, rng)
     info = L.train(X, S, 0.0)
-    assert info["steps"] == 40  # all steps ran: no clock can stop it early
+    assert info.steps == 40  # all steps ran: no clock can stop it early
     V, k = L.export()
     return json.dumps(V.to_dict(), sort_keys=True), json.dumps(k.to_dict(), sort_keys=True)
 

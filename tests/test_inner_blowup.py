@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import systems
+from nlyap_opt.control import InnerStatus, verdict_of
 from nlyap_opt.roa import _blowup_candidates, certify_inner_ellipse
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -72,6 +73,7 @@ def test_higher_order_terms_decide_inside_e(gain, inner, certified):
     truth = bool(np.all(_vdot(s, P, pts) < 0))
     assert truth is certified          # g = 10: a false property on E
     assert (out["status"] == "certified") is certified
+    assert (out["verdict"] is InnerStatus.CERTIFIED) is certified
     if certified:
         assert out["form"].startswith("blow-up")
 
@@ -81,6 +83,7 @@ def test_non_smooth_closed_loop_is_refused():
     s = _system(lambda x: [-x[0] * ca.fabs(x[0]), -x[1]], 2)
     out = certify_inner_ellipse(s, None, 0.1)
     assert out["status"] == "closed-loop linearisation not Hurwitz"
+    assert out["verdict"] is InnerStatus.NOT_HURWITZ     # what refutes assumption (c)
 
 
 def test_centre_off_the_axes_has_no_candidate():
@@ -120,3 +123,12 @@ def test_saved_P_must_be_symmetric_positive_definite(P):
     s = _system(lambda x: [-x[0] + x[1] ** 2, -2 * x[1]], 2)
     out = certify_inner_ellipse(s, None, 0.1, P=P, form="minors")
     assert out["status"] != "certified" and "positive definite" in out["status"]
+
+
+def test_the_verdict_of_a_query():
+    """Only a verified check certifies; only a counterexample refutes; anything else (an
+    unknown, a word that is no verdict) proves nothing."""
+    assert verdict_of("verified") is InnerStatus.CERTIFIED
+    assert verdict_of("counterexample") is InnerStatus.COUNTEREXAMPLE
+    for other in ("unknown", "verified ", "", None):
+        assert verdict_of(other) is InnerStatus.NOT_PROVED

@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.certificate import RoaProblem, recheck_certificate
+from baselines.compare import RowStatus, quadratic_row
+from nlyap_opt.certificate import LevelPolicy, RoaProblem, recheck_certificate
 from nlyap_opt.configs import get_config, make_config
-from nlyap_opt.control import lqr, saturated_controller
+from nlyap_opt.control import lqr, quadratic_lyapunov, saturated_controller
 from nlyap_opt.domain import Ball
 from nlyap_opt.errors import ConfigError
 from nlyap_opt.network import Network
 from nlyap_opt.pipeline import run
-from nlyap_opt.quadratic import certify_quadratics, closed_loop_matrix
+from nlyap_opt.quadratic import certify_quadratics, closed_loop_matrix, quadratic_policy
 from nlyap_opt.roa import certify_level, least_violation
 
 
@@ -175,6 +176,45 @@ def test_the_winning_quadratic_rechecks_and_a_tampered_one_does_not(quad_run, tm
     assert "[quadratic] V_quadratic.json changed" in "\n".join(logs)
     assert res.certified
     assert recheck_certificate(e, log=lambda m: None).certified
+
+
+
+def test_compare_rows_and_the_pipeline_certify_the_same_p_at_the_same_level(quad_run):
+    """One certification policy: ``nlyap compare``'s quadratic row, given the matrix ``P``
+    the pipeline's quadratic stage certified (and compare's saturated LQR controller, the
+    pipeline's initial one), proves exactly the pipeline's level and inner radius."""
+    d, cfg, _, _ = quad_run
+    s = systems.get("inverted_pendulum")
+    ctrl = saturated_controller(s, lqr(s, cfg["lqr"]["Q"], cfg["lqr"]["R"]).K,
+                                cfg["controller_scale"])
+    z = np.random.default_rng(2).normal(size=(40, 2))
+    np.testing.assert_array_equal(ctrl.numpy(z),
+                                  Network.load(d / "controller_init.json").numpy(z))
+    cands = json.loads((d / "quadratic.json").read_text())["candidates"]
+    assert [c["name"] for c in cands] == ["lyapunov", "round"]
+    for c in cands:
+        assert c["certified"], c
+        row = quadratic_row(s, cfg, quadratic_lyapunov(np.asarray(c["P"])), ctrl,
+                            method=f"lqr ({c['name']} P)", log=lambda m: None)
+        assert row.status is RowStatus.CERTIFIED, row.status_text
+        assert row.level == c["level"] > 0                 # the same level, bit for bit
+        assert row.certificate.inner == c["inner"] == pytest.approx(0.25 * cfg["inner"])
+        assert row.to_json()["level"] == c["level"]
+
+
+def test_level_policies():
+    """The quadratic policy searches radii from ε/4 with the true f and from ε upwards with
+    learned dynamics; a policy without a positive fraction or radius is refused."""
+    known, learned = quadratic_policy(True), quadratic_policy(False)
+    assert known.inner_fraction == 0.25 and 1.0 in known.factors and min(known.factors) < 1
+    assert learned.inner_fraction == 1.0 and min(learned.factors) == 1.0
+    assert learned.smallest_level and not known.smallest_level
+    for bad in ({"inner_fraction": 0.0}, {"inner_fraction": float("nan")}, {"factors": ()},
+                {"factors": (1.0, -2.0)}):
+        with pytest.raises(ValueError):
+            LevelPolicy(**bad)
+    with pytest.raises(AttributeError):
+        known.inner_fraction = 1.0         # frozen: one policy object, shared
 
 
 # ------------------------------------------------------------- V warm-started (train.init)

@@ -45,7 +45,7 @@ def test_a_saturated_controller_makes_sos_not_applicable():
     p = RoaProblem(s, quadratic_lyapunov(np.eye(2)), ctrl, inner=0.1, outer=1.0)
     res = certify_sos(p, SOSConfig(degree=2), log=lambda m: None)
     assert not res.applicable and not res.certified
-    assert res.status.startswith("not applicable") and res.certificate is None
+    assert res.text.startswith("not applicable") and res.certificate is None
     assert "tanh" in res.non_polynomial
 
 
@@ -58,7 +58,7 @@ def test_learned_dynamics_make_sos_not_applicable():
     p = RoaProblem(s, quadratic_lyapunov(np.eye(2)), None, phi, inner=0.1, outer=1.0,
                    eta=0.01, dynamics_box=[[-2, 2], [-2, 2]])
     res = certify_sos(p, SOSConfig(degree=4), log=lambda m: None)
-    assert res.status.startswith("not applicable: learned dynamics")
+    assert res.text.startswith("not applicable: learned dynamics")
     assert res.V is None and res.history == [] and res.certificate is None
 
 
@@ -289,7 +289,7 @@ def test_a_linearisation_without_a_quadratic_lyapunov_function_gives_no_sos_leve
     s = systems.load_spec(Path(__file__).resolve().parents[1] / "examples" / "fossil_poly1.toml")
     p = RoaProblem(s, quadratic_lyapunov(np.eye(3)), None, inner=0.1, outer=1.0)
     res = certify_sos(p, SOSConfig(degree=4), log=lambda m: None)
-    assert res.status.startswith("no SOS level") and "not Hurwitz" in res.status
+    assert res.text.startswith("no SOS level") and "not Hurwitz" in res.text
     assert not res.certified and res.certificate is None and res.applicable
 
 

@@ -14,6 +14,7 @@ from .formula import Formula, build_formula
 from .interval import Interval, IntervalArithmetic
 from .problem import (
     Counterexample,
+    QueryStatus,
     VerificationProblem,
     VerificationResult,
     closed_loop_problem,
@@ -22,7 +23,7 @@ from .problem import (
 from .smtlib import evaluate_smtlib, to_smtlib, write_smtlib
 
 __all__ = [
-    "verify", "VerificationProblem", "VerificationResult", "Counterexample",
+    "verify", "QueryStatus", "VerificationProblem", "VerificationResult", "Counterexample",
     "lyapunov_problem", "closed_loop_problem", "Interval", "IntervalArithmetic", "BACKENDS",
     "Backend",
     "get_backend", "to_smtlib", "write_smtlib", "evaluate_smtlib", "Formula", "build_formula",

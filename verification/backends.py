@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from nlyap_opt import deps
 from nlyap_opt.errors import BackendUnavailableError, UnknownNameError, UnsupportedOperationError
 
 from .formula import Formula, build_formula, topological
@@ -136,7 +137,7 @@ class DrealBackend(Backend):
                                    "available: precision, samples")
         if not self.is_available():
             raise BackendUnavailableError(f"the 'dreal' backend needs dreal: {self.install_hint}")
-        import dreal
+        dreal = deps.dreal()
 
         t0 = time.perf_counter()
         xs, formula = formula_to_dreal(build_formula(problem), dreal)

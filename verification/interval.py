@@ -62,6 +62,7 @@ from collections.abc import Callable
 
 import casadi as ca
 import numpy as np
+from scipy.special import erf
 
 from nlyap_opt.errors import UnsupportedOperationError
 from nlyap_opt.rounding import (
@@ -424,8 +425,6 @@ def _clipped_domain(f, dlo, dhi, lo, hi, clip_lo, clip_hi, increasing=True, open
 
 
 def _erf(lo, hi):
-    from scipy.special import erf
-
     return _guard(*_monotone(erf, lo, hi, clip_lo=-1.0, clip_hi=1.0))
 
 

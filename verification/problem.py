@@ -20,17 +20,34 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from enum import Enum
 
 import casadi as ca
 import numpy as np
 
+from nlyap_opt.domain import as_domain
 from nlyap_opt.errors import DimensionError, UnsupportedOperationError
+from nlyap_opt.symbolic import closed_loop, learned_components_of, lie_derivative, robust_lie
 from nlyap_opt.walker import compile_function
 
 __all__ = [
     "VerificationProblem", "VerificationResult", "Counterexample", "lyapunov_problem",
-    "closed_loop_problem",
+    "closed_loop_problem", "QueryStatus",
 ]
+
+
+class QueryStatus(str, Enum):
+    """Outcome of one verification query (a ``str``: saved and compared as its word)."""
+
+    VERIFIED = "verified"
+    COUNTEREXAMPLE = "counterexample"
+    UNKNOWN = "unknown"
+
+    #: hashed as its word, so that a member finds the word's entry of a dict or set
+    __hash__ = str.__hash__
+
+    def __str__(self) -> str:
+        return self.value
 
 
 @dataclass
@@ -214,7 +231,8 @@ class VerificationResult:
 
     Attributes
     ----------
-    status : {"verified", "counterexample", "unknown"}
+    status : QueryStatus
+        ``VERIFIED``, ``COUNTEREXAMPLE`` or ``UNKNOWN`` (given as the word or the member)
     counterexample : Counterexample or None
     counterexamples : list of Counterexample   all confirmed ones found (for CEGIS)
     undecided : (k, n, 2) ndarray   boxes at the resolution that stayed undecided
@@ -227,7 +245,7 @@ class VerificationResult:
                                     was found)
     """
 
-    status: str
+    status: QueryStatus
     counterexample: Counterexample | None = None
     counterexamples: list = field(default_factory=list)
     undecided: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2)))
@@ -238,9 +256,12 @@ class VerificationResult:
     backend: str = "interval"
     open: np.ndarray | None = None
 
+    def __post_init__(self):
+        self.status = QueryStatus(self.status)   # a word that is no status: ValueError
+
     @property
     def success(self) -> bool:
-        return self.status == "verified"
+        return self.status is QueryStatus.VERIFIED
 
     def to_dict(self) -> dict:
         return {
@@ -265,7 +286,6 @@ def lyapunov_problem(x, V, lie, *, inner: float, outer=None, level: float | None
     (``domain``, a :class:`nlyap_opt.domain.Region`; default the ball ``‖x‖ ≤ outer``) minus
     the open inner ball, intersected with :math:`V(x) \le c` when ``level`` is given.
     """
-    from nlyap_opt.domain import as_domain
 
     n = x.numel()
     if domain is None:
@@ -319,7 +339,6 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
                               cheaper to verify; see :func:`nlyap_opt.symbolic.robust_lie`)
     strict : bool             raise (True) or warn (False) if 0 is not an equilibrium
     """
-    from nlyap_opt.symbolic import closed_loop, lie_derivative
 
     if V.n_in != system.nx or V.n_out != 1:
         raise DimensionError(
@@ -330,8 +349,6 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     Vx = V.casadi(cl.x)
     lie = lie_derivative(Vx, cl.x, cl.rhs)
     if eta:
-        from nlyap_opt.symbolic import learned_components_of, robust_lie
-
         comps = None if dynamics is None else learned_components_of(system, dynamics)
         lie = robust_lie(lie, Vx, cl.x, eta, smoothing, comps)
     return lyapunov_problem(cl.x, Vx, lie, inner=inner, outer=outer, level=level,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 from decimal import Decimal
 from pathlib import Path
 
@@ -168,7 +169,6 @@ def evaluate_smtlib(text: str, point) -> tuple[bool, list[float]]:
     the formula's atoms in order: region terms ``g_i``, property terms ``p_j``, then the
     arguments of the domain-violation atoms (if any).
     """
-    import sys
 
     lines = [ln for ln in text.splitlines() if ln.startswith("(declare-fun")]
     names = [ln.split()[1] for ln in lines]

@@ -51,13 +51,19 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import ctypes
+import glob
+import inspect
+import os
 import time
+import types
+import typing
 from concurrent.futures import Executor
 
 import casadi as ca
 import numpy as np
 
-from nlyap_opt.errors import DimensionError
+from nlyap_opt.errors import ConfigError, DimensionError
 from nlyap_opt.walker import NUMPY, compile_function, evaluate, op_name
 
 from .affine import Affine, AffineArithmetic
@@ -73,10 +79,6 @@ _AA = AffineArithmetic()
 def _openblas_threads():
     """(get, set) of the OpenBLAS bundled with numpy, or ``None`` (best effort)."""
     try:
-        import ctypes
-        import glob
-        import os
-
         libs = glob.glob(os.path.join(os.path.dirname(np.__file__) + ".libs", "*openblas*"))
         for path in libs:
             lib = ctypes.CDLL(path)
@@ -922,8 +924,6 @@ def file_options() -> dict[str, tuple]:
     (:func:`nlyap_opt.configs.schema`) and the check of the options a certificate was proved
     with (:func:`check_file_options`).
     """
-    import inspect
-    import typing
 
     hints = typing.get_type_hints(verify_interval)
     out = {}
@@ -940,8 +940,6 @@ def file_options() -> dict[str, tuple]:
 
 def _plain_type(hint):
     """``int`` of ``int | None`` (else the hint itself)."""
-    import types
-    import typing
 
     if typing.get_origin(hint) in (typing.Union, types.UnionType):
         rest = [a for a in typing.get_args(hint) if a is not type(None)]
@@ -953,7 +951,6 @@ def check_file_options(opts, where: str, fix: str) -> dict:
     """Options read from a file, checked against :func:`file_options` (names, types,
     ranges); a one-line :class:`~nlyap_opt.errors.ConfigError` naming ``where``, the first
     bad option and ``fix``."""
-    from nlyap_opt.errors import ConfigError
 
     if opts is None:
         return {}

@@ -157,7 +157,11 @@ def _run_seed(system: str, cfg: dict, out: str, known_dynamics: bool,
     """Worker side: one pipeline run, its log in ``out/run.log``; a plain summary back.
 
     ``spec``: the system comes from this TOML spec file (loaded here, in the worker).
+    One BLAS/OpenMP thread (a worker is one of as many as there are cores; Dask's nanny
+    sets the same through the environment, a worker started without one does not).
     """
+    from threadpoolctl import threadpool_limits
+
     from .pipeline import run
 
     if spec is not None:
@@ -171,7 +175,8 @@ def _run_seed(system: str, cfg: dict, out: str, known_dynamics: bool,
             fh.write(f"{msg}\n")
             fh.flush()
 
-        res = run(system, cfg, out, known_dynamics=known_dynamics, log=log)
+        with threadpool_limits(limits=1):
+            res = run(system, cfg, out, known_dynamics=known_dynamics, log=log)
     s = res.summary or {}
     share = s.get("fraction_of_true_roa")
     return {"status": str(getattr(res.status, "value", res.status)),

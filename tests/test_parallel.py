@@ -182,7 +182,6 @@ def test_one_and_two_workers_decide_as_serially_with_the_same_boxes(client):
             for res, st in runs:
                 assert res.status == serial.status == "verified"
                 assert res.boxes == serial.boxes and st["tasks"] > 1
-            assert runs[0][1]["grains"] != runs[1][1]["grains"] or opts
 
 
 def test_no_task_starts_from_fewer_than_min_task_boxes(client):

@@ -44,6 +44,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import copy
+import heapq
 import inspect
 import math
 import os
@@ -57,7 +58,7 @@ import numpy as np
 from .errors import BackendUnavailableError, ConfigError
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
-           "SimulatedCluster", "model_speedups", "task_defaults", "deal_boxes",
+           "SimulatedCluster", "model_speedups", "task_defaults",
            "parse_scheduler", "client_workers", "cpu_cores", "check_connect_timeout",
            "MAX_LOCAL_WORKERS", "DEFAULT_CONNECT_TIMEOUT"]
 
@@ -433,7 +434,7 @@ def task_defaults(workers: int, batch: int = 8192) -> dict:
             "min_task_boxes": max(min(128, grain // 8), grain // (8 * w), 1)}
 
 
-def deal_boxes(boxes: np.ndarray, parts: int) -> list[np.ndarray]:
+def _deal_boxes(boxes: np.ndarray, parts: int) -> list[np.ndarray]:
     """``boxes`` dealt into ``parts`` strided shares: share ``i`` holds boxes ``i``,
     ``i + parts``, ``i + 2·parts``, ...
 
@@ -444,7 +445,7 @@ def deal_boxes(boxes: np.ndarray, parts: int) -> list[np.ndarray]:
 
     Examples
     --------
-    >>> [s[:, 0, 0].tolist() for s in deal_boxes(np.arange(5.0).reshape(5, 1, 1), 2)]
+    >>> [s[:, 0, 0].tolist() for s in _deal_boxes(np.arange(5.0).reshape(5, 1, 1), 2)]
     [[0.0, 2.0, 4.0], [1.0, 3.0]]
     """
     parts = max(1, min(int(parts), len(boxes)))
@@ -543,9 +544,6 @@ class _SimRun:
     """The tasks of one :func:`verify_distributed` call on a :class:`SimulatedCluster`."""
 
     def __init__(self, sim: SimulatedCluster, problem):
-        import heapq
-
-        self.heapq = heapq
         self.sim, self.problem, self.workers = sim, problem, sim.workers
         self.free = [0.0] * sim.workers      # when each virtual worker is free (a heap)
         self.pending: list = []              # (finish, seq, out) of tasks not absorbed
@@ -555,7 +553,7 @@ class _SimRun:
         self.end = 0.0
 
     def submit(self, fn, *args):
-        hq = self.heapq
+        hq = heapq
         start = max(self.now, hq.heappop(self.free))
         t = time.thread_time()
         out = fn(self.problem, *args)
@@ -571,7 +569,7 @@ class _SimRun:
     def next(self):
         if not self.pending:
             return None
-        finish, key, out = self.heapq.heappop(self.pending)
+        finish, key, out = heapq.heappop(self.pending)
         self.now = finish
         return key, out
 
@@ -635,7 +633,7 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
        bisected once more and their halves come back *open*, unevaluated
        (``verify_interval(hand_back=True)``: no box is evaluated twice, which cost the
        cartpole certificate's decrease check 54 % more boxes);
-    2. open boxes are dealt (in strided shares, :func:`deal_boxes`) into enough tasks to
+    2. open boxes are dealt (in strided shares) into enough tasks to
        keep ``tasks_per_worker`` per worker busy, but none gets fewer than
        ``min_task_boxes`` to start from; each task bisects its
        boxes (all in one batch) by the serial verifier's rules until it has spent
@@ -811,7 +809,7 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         # a task's thin tail (its queue below half a start) comes back to be merged with
         # others' (unless this is all the work there is: then it finishes it)
         tail = min_task // 2 if batched and (state["running"] or parts > 1) else 0
-        for chunk in deal_boxes(open_boxes, parts):  # sizes differ by one at most
+        for chunk in _deal_boxes(open_boxes, parts):  # sizes differ by one at most
             tally["starts"].append(len(chunk))
             key = runner.submit(_box_task, chunk, budget, options, batched, tail)
             offsets[key] = _depth(chunk, root_w)

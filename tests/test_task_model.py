@@ -13,7 +13,7 @@ from baselines.lqr import quadratic_lyapunov
 from nlyap_opt.errors import ConfigError
 from nlyap_opt.parallel import (
     SimulatedCluster,
-    deal_boxes,
+    _deal_boxes,
     model_speedups,
     task_defaults,
     verify_distributed,
@@ -33,7 +33,7 @@ def _vdp_problem(outer: float):
 @pytest.mark.parametrize("k, parts", [(10, 3), (7, 7), (5, 9), (1, 4), (64, 8)])
 def test_deal_boxes_is_a_partition_in_queue_order(k, parts):
     boxes = np.arange(float(k)).reshape(k, 1, 1) * np.ones((1, 1, 2))
-    shares = deal_boxes(boxes, parts)
+    shares = _deal_boxes(boxes, parts)
     assert len(shares) == min(parts, k)
     sizes = [len(s) for s in shares]
     assert max(sizes) - min(sizes) <= 1 and sum(sizes) == k
@@ -45,7 +45,7 @@ def test_deal_boxes_is_a_partition_in_queue_order(k, parts):
 
 def test_deal_boxes_spreads_a_cluster_of_hard_boxes():
     """Neighbouring queue entries (a cluster) go to different shares, not to one chunk."""
-    shares = deal_boxes(np.zeros((40, 2, 2)) + np.arange(40.0)[:, None, None], 4)
+    shares = _deal_boxes(np.zeros((40, 2, 2)) + np.arange(40.0)[:, None, None], 4)
     cluster = set(range(8, 16))
     per_share = [len(cluster & set(s[:, 0, 0].astype(int).tolist())) for s in shares]
     assert per_share == [2, 2, 2, 2]

@@ -148,3 +148,25 @@ def test_hand_back_below_evaluates_no_box_twice():
         r = verify_interval(problem, boxes=r.open, presearch=0, hand_back=True,
                             hand_back_below=64)
     assert passes > 1 and total == serial.boxes and serial.status == "verified"
+
+
+def test_a_certificate_modelled_on_a_simulated_cluster_is_the_serial_one():
+    """``verifying_on(SimulatedCluster(W))``: every check of the certificate goes through
+    the model (no thread runs ahead), and the certificate is the serial one."""
+    import threading
+
+    from nlyap_opt.certificate import RoaProblem, certify_roa
+    from nlyap_opt.parallel import verifying_on
+
+    prob = RoaProblem(systems.get("van_der_pol"), quadratic_lyapunov(P_VDP), inner=0.3,
+                      outer=1.5)
+    serial = certify_roa(prob, 1.0, log=lambda m: None)
+    sim = SimulatedCluster(4)
+    before = threading.active_count()
+    with verifying_on(sim):
+        modelled = certify_roa(prob, 1.0, log=lambda m: None)
+        assert threading.active_count() == before
+    assert serial.status.value == modelled.status.value == "certified"
+    assert (modelled.level, modelled.checks) == (serial.level, serial.checks)
+    np.testing.assert_array_equal(modelled.inner_ellipse.P, serial.inner_ellipse.P)
+    assert len(sim.calls) >= 2 and sim.work() > 0 and 1.0 <= sim.speedup() <= 4

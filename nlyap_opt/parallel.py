@@ -678,8 +678,10 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         as the grain the other defaults follow).
     task_boxes : int
         Boxes one task processes before it hands its open boxes back (the load-balancing
-        grain; one walker pass evaluates up to ``batch`` boxes). While workers would idle,
-        a new task gets at most four times the boxes it starts from (ramp-up).
+        grain; one walker pass evaluates up to ``batch`` boxes), or, once more boxes are
+        done, the boxes done so far over twice the tasks in flight (guided
+        self-scheduling: a large check pays fewer fixed costs per pass). While workers
+        would idle, a new task gets at most four times the boxes it starts from (ramp-up).
     tasks_per_worker : int
         Tasks kept in flight per worker (one up to two workers: each finished task's open
         boxes go whole to the next task; on the cartpole certificate's decrease check two
@@ -793,15 +795,18 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         if left <= 0:  # the global budget is spent: these stay undecided
             unknown.append(open_boxes)
             return
+        # guided self-scheduling: a budget grows with the work done so far (a large check
+        # pays fewer fixed costs per pass; the last tasks stay a small part of the whole)
+        grain = max(task_boxes, state["boxes"] // (2 * target))
         # enough parts for the free task slots, and for a large open set enough that no
         # task starts from more than a quarter of its budget (it would run long while the
         # others run dry): extra tasks wait in the scheduler's queue
-        parts = max(1, parts, -(-k // max(1, task_boxes // 4)))
+        parts = max(1, parts, -(-k // max(1, grain // 4)))
         parts = min(parts, k)
         if batched:  # no task starts from fewer than min_task boxes (but one from all)
             parts = max(1, min(parts, k // min_task))
         share = max(1, left // parts)  # of the global budget, per new task
-        budget = min(task_boxes, share) if batched else share
+        budget = min(grain, share) if batched else share
         if batched and state["running"] + parts < n_workers:
             # workers would idle: a short task, so that its open boxes (about twice its
             # undecided ones) come back soon to be dealt wider (ramp-up)

@@ -100,7 +100,7 @@ def test_simulated_runs_decide_as_the_serial_verifier(workers, outer, expected):
     if expected == "verified":
         # every box decided once, by the serial rules: the serial run's boxes exactly
         assert res.boxes == serial.boxes == sim.work() == sum(st["task_boxes"])
-        assert st["tasks"] > 2  # really cut into tasks
+        assert st["tasks"] >= 2  # really cut into tasks
         assert 1.0 <= sim.speedup() <= workers + 1e-9
 
 

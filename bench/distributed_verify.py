@@ -1,4 +1,4 @@
-"""Distributed verification benchmark: 1 vs 2 Dask workers.
+"""Distributed verification benchmark: measured on 1 and 2 Dask workers, modelled up to 16.
 
 Two certificate queries, each decided serially (``verification.verify``), then by
 :func:`nlyap_opt.parallel.verify_distributed` on a ``LocalCluster`` of 1 and of 2 workers,
@@ -22,8 +22,18 @@ into ``n_tasks`` sub-boxes) for comparison:
 Seconds are the best of ``--repeat`` runs (cluster start-up excluded). Figures are printed,
 not asserted; on a shared machine read them with the load average printed beside them.
 
+*Measured* rows (a real ``LocalCluster``) give the efficiency (speed-up per worker) on the
+worker counts this machine has. *Modelled* rows (``--model 4 8 16``) come from
+:class:`nlyap_opt.parallel.SimulatedCluster`: the same task graph that ``verify_distributed``
+builds for W workers, run task by task in this process and list-scheduled on W virtual
+workers; the cost of a task is the boxes it processed (deterministic) or its CPU seconds
+here (which include each walker pass's fixed cost). For (D) the CPU model adds the recheck's
+CPU seconds outside the tasks (loading, building the checks) to every worker count. The
+model leaves out the scheduler's latency per task (a few ms) and runs the checks of (D) one
+after another (a cluster runs condition (c) beside (a) and (b)).
+
     python bench/distributed_verify.py [--repeat 3] [--workers 1 2] [--cartpole-r 0.5]
-                                       [--no-certificate]
+                                       [--no-certificate] [--model 4 8 16]
 """
 
 from __future__ import annotations
@@ -38,7 +48,12 @@ import numpy as np
 
 import systems
 from nlyap_opt.network import Network
-from nlyap_opt.parallel import _starts_from_boxes, dask_client, verify_distributed
+from nlyap_opt.parallel import (
+    _starts_from_boxes,
+    dask_client,
+    model_speedups,
+    verify_distributed,
+)
 from verification import lyapunov_problem, verify
 
 DATA = Path(__file__).parent / "data"
@@ -102,10 +117,11 @@ def cartpole_certificate():
     return replace(base, V=quadratic_lyapunov(cand.P), inner=cert.inner), cert.level
 
 
-def certificate_rows(workers, repeat):
+def certificate_rows(workers, repeat, model=()):
     """Seconds of ``nlyap verify --certificate`` on query (D): serial, then on clusters of
     ``workers`` (:func:`nlyap_opt.certificate.recheck_certificate` of the saved certificate,
-    inside :func:`nlyap_opt.parallel.verifying_on` as the CLI runs it)."""
+    inside :func:`nlyap_opt.parallel.verifying_on` as the CLI runs it); the model on
+    ``model`` workers."""
     import tempfile
 
     from nlyap_opt.certificate import certify_roa, recheck_certificate, save_certificate
@@ -126,16 +142,49 @@ def certificate_rows(workers, repeat):
             with dask_client(workers=w) as client, verifying_on(client):
                 client.submit(sum, [1]).result()  # workers up
                 rows.append((w, *_best(once, repeat)))
+        modelled = {}
+        if model:
+            cpu_total = {}
+
+            def run(sim, cpu_total=cpu_total):
+                t = time.process_time()
+                with verifying_on(sim):
+                    once()
+                cpu_total[sim.workers] = time.process_time() - t
+
+            for cost in ("boxes", "cpu"):
+                m = model_speedups(run, model, cost=cost)
+                if cost == "cpu":  # the CPU outside the tasks, on every worker count
+                    other = max(0.0, cpu_total[1] - m[1]["work"])
+                    one = other + m[1]["makespan"]
+                    for w, row in m.items():
+                        row["speedup"] = one / (other + row["makespan"])
+                        row["efficiency"] = row["speedup"] / w
+                modelled[cost] = m
     print(f"(D) cartpole certificate (round quadratic, level {level:.6g}, ε = "
           f"{problem.inner:g}, (c) by the {cert.inner_ellipse.form} form): "
           "nlyap verify --certificate, conditions (a), (b), (c) re-checked")
-    print("| workers | seconds (best) | speed-up vs 1 worker | status |")
-    print("|---|---|---|---|")
+    print("| workers | how | seconds (best) | speed-up vs 1 worker | efficiency | status |")
+    print("|---|---|---|---|---|---|")
     one = [t for w, t, _ in rows if w == 1]
     for w, t, c in rows:
-        up = f"{one[0] / t:.2f}" if one and w != "serial" else "–"
-        print(f"| {w} | {t:.2f} | {up} | {c.status.value} |")
+        up = one[0] / t if one and w != "serial" else None
+        eff = f"{up / w:.2f}" if up else "–"
+        print(f"| {w} | measured | {t:.2f} | {f'{up:.2f}' if up else '–'} | {eff} | "
+              f"{c.status.value} |")
+    _print_model(modelled)
     print()
+
+
+def _print_model(modelled):
+    """Rows of modelled speed-ups (boxes and CPU cost) per worker count."""
+    if not modelled:
+        return
+    for w in sorted(modelled["boxes"]):
+        b, c = modelled["boxes"][w], modelled["cpu"][w]
+        print(f"| {w} | MODELLED (tasks: {b['tasks']}) | – | {b['speedup']:.2f} by boxes, "
+              f"{c['speedup']:.2f} by CPU s | {b['efficiency']:.2f}, {c['efficiency']:.2f} "
+              "| – |")
 
 
 def _best(fn, repeat):
@@ -156,9 +205,12 @@ def main(argv=None):
                     help="ball radius of query (C)")
     ap.add_argument("--no-certificate", action="store_true",
                     help="skip query (D), the cartpole certificate (about 3 minutes)")
+    ap.add_argument("--model", type=int, nargs="*", default=[],
+                    help="worker counts to model (SimulatedCluster), e.g. 4 8 16; each "
+                         "costs a serial run per cost measure")
     args = ap.parse_args(argv)
     if not args.no_certificate:
-        certificate_rows(args.workers, args.repeat)
+        certificate_rows(args.workers, args.repeat, args.model)
     queries = [("(A) 4-D, 64-neuron V factor", problem_4d(1.1, 64), {})]
     p = problem_vdp30()
     if p is not None:
@@ -189,12 +241,29 @@ def main(argv=None):
                     prob, executor=client.get_executor(), n_tasks=args.n_tasks, **opt),
                     args.repeat)
                 rows.append((label, f"executor hook, n_tasks={args.n_tasks}", w, t, r))
-    print("| query | how | workers | seconds (best) | speed-up vs 1 worker | boxes | verdict |")
-    print("|---|---|---|---|---|---|---|")
+    print("| query | how | workers | seconds (best) | speed-up vs 1 worker | efficiency | "
+          "boxes | verdict |")
+    print("|---|---|---|---|---|---|---|---|")
     for label, how, w, t, r in rows:
         one = [t1 for lb, h, w1, t1, _ in rows if lb == label and h == how and w1 == 1]
-        up = f"{one[0] / t:.2f}" if one and w != "–" else "–"
-        print(f"| {label} | {how} | {w} | {t:.2f} | {up} | {r.boxes} | {r.status} |")
+        up = one[0] / t if one and w != "–" else None
+        print(f"| {label} | {how} (measured) | {w} | {t:.2f} | "
+              f"{f'{up:.2f}' if up else '–'} | {f'{up / w:.2f}' if up else '–'} | "
+              f"{r.boxes} | {r.status} |")
+    if args.model:
+        print()
+        print("MODELLED speed-ups (SimulatedCluster: the task graph of W workers, "
+              "list-scheduled; cost = boxes | CPU s here):")
+        print("| query | workers | tasks | speed-up (boxes) | efficiency (boxes) | "
+              "speed-up (CPU s) | efficiency (CPU s) |")
+        print("|---|---|---|---|---|---|---|")
+        for label, prob, opt in queries:
+            mb, mc = (model_speedups(lambda c, prob=prob, opt=opt: verify_distributed(
+                prob, c, **opt), args.model, cost=cost) for cost in ("boxes", "cpu"))
+            for w in sorted(mb):
+                print(f"| {label} | {w} | {mb[w]['tasks']} | {mb[w]['speedup']:.2f} | "
+                      f"{mb[w]['efficiency']:.2f} | {mc[w]['speedup']:.2f} | "
+                      f"{mc[w]['efficiency']:.2f} |")
     print()
     print("Load balance of verify_distributed from the tasks' CPU seconds (last run; other "
           "load on the machine does not enter): the root task runs alone, then the rest is "

@@ -42,12 +42,13 @@ def main(argv=None):
     print(f"{args.system}, preset {args.preset}, {'learned φ' if args.learned else 'true f'}, "
           f"{args.seeds} seeds; load average before: {load:.2f}, after: "
           f"{os.getloadavg()[0]:.2f} ({os.cpu_count()} cores)")
-    print("| workers | seconds | speed-up | sum of seed seconds | best seed | best area | "
-          "certified seeds |")
-    print("|---|---|---|---|---|---|---|")
+    print("| workers | seconds | speed-up | efficiency | sum of seed seconds | best seed | "
+          "best area | certified seeds |")
+    print("|---|---|---|---|---|---|---|---|")
     for w, sec, res in rows:
         best = res.best
-        print(f"| {w} | {sec:.1f} | {base / sec:.2f} | {sum(r.seconds for r in res.runs):.1f} | "
+        print(f"| {w} | {sec:.1f} | {base / sec:.2f} | {base / sec * rows[0][0] / w:.2f} | "
+              f"{sum(r.seconds for r in res.runs):.1f} | "
               f"{'–' if best is None else best.seed} | "
               f"{'–' if best is None else f'{best.certified_area:.4g}'} | "
               f"{sum(r.certified for r in res.runs)}/{len(res.runs)} |")

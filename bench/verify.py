@@ -87,6 +87,51 @@ def _timed(fn, repeat):
     return (best, cpu), res
 
 
+_PHASES = """
+import time
+t0 = time.perf_counter()
+import systems
+from nlyap_opt.network import Network
+from verification import closed_loop_problem, verify
+t1 = time.perf_counter()
+V = Network.load({path!r})
+p = closed_loop_problem(systems.get("van_der_pol"), V, inner=0.2, outer=1.2)
+t2 = time.perf_counter()
+r = verify(p)
+t3 = time.perf_counter()
+verify(p)
+t4 = time.perf_counter()
+print(t1 - t0, t2 - t1, t3 - t2, t4 - t3, r.status)
+"""
+
+
+def per_query(repeat: int) -> None:
+    """Fixed costs of one small query in a fresh process: ``nlyap verify`` end to end, and
+    its phases (imports, building the problem, the first and a second verification)."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    cmd = [sys.executable, "-m", "nlyap_opt.cli", "verify", "--system", "van_der_pol",
+           "--lyapunov", str(DATA / "vdp_V6.json"), "--inner", "0.2", "--outer", "1.2"]
+    walls, phases = [], []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        subprocess.run(cmd, check=True, capture_output=True, env=env)
+        walls.append(time.perf_counter() - t)
+        out = subprocess.run([sys.executable, "-c", _PHASES.format(path=str(DATA / "vdp_V6.json"))],
+                             check=True, capture_output=True, text=True, env=env)
+        phases.append([float(v) for v in out.stdout.split()[:4]])
+    ph = np.min(np.array(phases), axis=0)
+    print("Per query, query (i) in a fresh process (best of runs; seconds):")
+    print("| `nlyap verify` end to end | imports | build the problem | first verify | "
+          "second verify (warm) |")
+    print("|---|---|---|---|---|")
+    print(f"| {min(walls):.3f} | {ph[0]:.3f} | {ph[1]:.3f} | {ph[2]:.3f} | {ph[3]:.3f} |")
+    print()
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=5)
@@ -98,6 +143,7 @@ def main(argv=None):
     V6 = _train_V("vdp_V6", [6], 3, 1.4, 1500)
     phi = _dynamics_200()
     V30 = _train_V("vdp_V30x30", [30, 30], 4, 2.5, 2500)
+    per_query(max(1, args.repeat // 2))
     rows = []
 
     def run(p, repeat):

@@ -14,6 +14,7 @@ from enum import Enum
 
 import casadi as ca
 import numpy as np
+from scipy.linalg import solve_continuous_are, solve_continuous_lyapunov
 
 from . import deps
 from .errors import DimensionError, NotStabilizableError
@@ -111,8 +112,12 @@ def _check_stabilisable(A, B):
 
 
 def lyapunov_matrix(A_cl, Q=None) -> np.ndarray:
-    """Solve ``A_clᵀ P + P A_cl = -Q`` (``Q = I`` by default) for a Hurwitz ``A_cl``."""
-    control = deps.control()
+    """Solve ``A_clᵀ P + P A_cl = -Q`` (``Q = I`` by default) for a Hurwitz ``A_cl``.
+
+    SciPy's Bartels-Stewart solver, called as python-control's ``lyap`` calls it without
+    slycot (the same numbers; importing python-control costs about a CPU second per
+    process, paid by every ``nlyap verify`` and every portfolio worker).
+    """
 
     A_cl = np.asarray(A_cl, dtype=float)
     n = A_cl.shape[0]
@@ -122,8 +127,21 @@ def lyapunov_matrix(A_cl, Q=None) -> np.ndarray:
             "Lyapunov function exists"
         )
     Q = np.eye(n) if Q is None else _matrix(Q, n, "Q")
-    P = control.lyap(A_cl.T, Q)  # solves A_clᵀ P + P A_cl + Q = 0
+    P = solve_continuous_lyapunov(np.array(A_cl.T, ndmin=2), -np.array(Q, ndmin=2))
     return 0.5 * (P + P.T)
+
+
+def _lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(K, S, E)``: gain, Riccati solution and closed-loop eigenvalues of the LQR.
+
+    SciPy's Riccati solver and the gain ``R⁻¹BᵀS``, computed as python-control's ``lqr``
+    does without slycot (the same numbers, without importing python-control).
+    """
+    A, B, Q, R = (np.array(M, ndmin=2, dtype=float) for M in (A, B, Q, R))
+    S = solve_continuous_are(A, B, Q, R)
+    K = np.linalg.solve(R, B.T @ S)
+    E, _ = np.linalg.eig(A - B @ K)
+    return K, S, E
 
 
 def round_lyapunov_matrix(A_cl, decay_fraction: float = 0.1) -> np.ndarray | None:
@@ -226,8 +244,6 @@ def lqr(system, Q=None, R=None, *, dynamics: Network | None = None) -> LQRResult
     >>> lqr(systems.get("inverted_pendulum")).K.round(5).tolist()
     [[1.97725, 0.97624]]
     """
-    control = deps.control()
-
     A, B = linearisation(system, dynamics)
     nx, nu = system.nx, system.nu
     Q = np.eye(nx) if Q is None else _matrix(Q, nx, "Q")
@@ -239,8 +255,7 @@ def lqr(system, Q=None, R=None, *, dynamics: Network | None = None) -> LQRResult
     if np.min(np.linalg.eigvalsh(R)) <= 0:
         raise ValueError("R must be positive definite")
     _check_stabilisable(A, B)
-    K, S, E = control.lqr(A, B, Q, R)
-    K, S = np.asarray(K, dtype=float), np.asarray(S, dtype=float)
+    K, S, E = _lqr(A, B, Q, R)
     P = lyapunov_matrix(A - B @ K)
     return LQRResult(K, S, P, np.asarray(E), A, B, Q, R)
 

@@ -52,9 +52,30 @@ def deterministic_torch(threads: int = 1) -> Iterator[None]:
     old_det = torch.are_deterministic_algorithms_enabled()
     old_warn = torch.is_deterministic_algorithms_warn_only_enabled()
     torch.set_num_threads(threads)
-    torch.use_deterministic_algorithms(True)
+    _set_deterministic(True, False)
     try:
         yield
     finally:
-        torch.use_deterministic_algorithms(old_det, warn_only=old_warn)
+        _set_deterministic(old_det, old_warn)
         torch.set_num_threads(old_threads)
+
+
+def _set_deterministic(mode: bool, warn_only: bool) -> None:
+    """Set torch's deterministic-algorithms flag for its eager kernels.
+
+    ``torch.use_deterministic_algorithms`` also sets the flag of torch's inductor compiler,
+    and importing that compiler's configuration loads ``torch._dynamo`` and sympy: about
+    1.2 CPU seconds (4-5 s wall on a loaded machine) in every process that trains, the
+    first seed on each worker of a portfolio included. Nothing here compiles with
+    inductor, so while it is not loaded only the eager flag is set (the same kernels are
+    chosen); once something has loaded it, the public call sets both.
+    """
+    import sys
+
+    import torch
+
+    setter = getattr(torch._C, "_set_deterministic_algorithms", None)
+    if setter is None or "torch._inductor.config" in sys.modules:
+        torch.use_deterministic_algorithms(mode, warn_only=warn_only)
+    else:
+        setter(bool(mode), warn_only=bool(warn_only))

@@ -45,6 +45,7 @@ import asyncio
 import contextlib
 import contextvars
 import copy
+import heapq
 import inspect
 import logging
 import math
@@ -65,6 +66,7 @@ from . import deps
 from .errors import BackendUnavailableError, ConfigError
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
+           "SimulatedCluster", "model_speedups", "task_defaults",
            "parse_scheduler", "client_workers", "cpu_cores", "check_connect_timeout",
            "MAX_LOCAL_WORKERS", "DEFAULT_CONNECT_TIMEOUT"]
 
@@ -334,24 +336,26 @@ def _pack(r, resolution: float, n: int) -> dict:
             "depth": r.depth, "leaves": r.leaves or []}
 
 
-def _box_task(problem, boxes: np.ndarray, budget: int, options: dict, batched: bool) -> dict:
+def _box_task(problem, boxes: np.ndarray, budget: int, options: dict, batched: bool,
+              tail: int = 0) -> dict:
     """Worker side: bisect ``boxes`` ``(k, n, 2)`` by the serial verifier's rules until
     ``budget`` boxes are spent; what it would still bisect comes back *open*.
 
     ``batched``: all boxes start in one batch (``verify_interval(boxes=...)``). Otherwise
     each box is a serial run of its own (a restricted copy of the problem, sharing its
     compiled CasADi Functions), run to the end (``budget`` is then the global cap).
+    ``tail`` (batched): a queue that shrinks below this many boxes comes back open too.
     """
     t = time.thread_time()
-    out = _decide_boxes(problem, boxes, budget, options, batched)
+    out = _decide_boxes(problem, boxes, budget, options, batched, tail)
     return dict(out, cpu=time.thread_time() - t, pid=os.getpid())
 
 
-def _decide_boxes(problem, boxes, budget, options, batched) -> dict:
+def _decide_boxes(problem, boxes, budget, options, batched, tail: int = 0) -> dict:
     res = options["resolution"]
     if batched:
         r = verify_interval(problem, boxes=boxes, max_boxes=budget, presearch=0,
-                            hand_back=True, **options)
+                            hand_back=True, hand_back_below=tail, **options)
         return _pack(r, res, problem.n)
     found, unknown, open_, leaves = [], [], [], []
     used, depth = 0, 0
@@ -390,11 +394,229 @@ def _root_task(problem, options: dict, presearch: int, initial_boxes: int,
                 pid=os.getpid())
 
 
+def task_defaults(workers: int, batch: int = 8192) -> dict:
+    """The task sizes :func:`verify_distributed` uses on ``workers`` workers by default.
+
+    The work is over-decomposed in proportion to the workers: the root task stops sooner,
+    tasks start from fewer open boxes and spend fewer boxes before they hand the rest back,
+    so that on many workers none waits for a long task while the others idle. On one or two
+    workers the grains stay coarse (each walker pass costs a fixed time per instruction of
+    the graphs besides its time per box): two workers get the grains of one, measured best
+    on two cores (the cartpole certificate's decrease check, 2 workers).
+
+    Parameters
+    ----------
+    workers : int
+        Worker threads of the cluster.
+    batch : int
+        The verifier's boxes per walker pass (the grain everything is measured in).
+
+    Returns
+    -------
+    dict
+        ``task_boxes``, ``tasks_per_worker``, ``root_boxes``, ``min_task_boxes``.
+
+    Examples
+    --------
+    >>> task_defaults(1)
+    {'task_boxes': 16384, 'tasks_per_worker': 1, 'root_boxes': 2048, 'min_task_boxes': 1024}
+    >>> task_defaults(16)
+    {'task_boxes': 2048, 'tasks_per_worker': 2, 'root_boxes': 128, 'min_task_boxes': 128}
+    """
+    w = max(1, int(workers))
+    w = 1 if w <= 2 else w  # up to two workers: the grains measured best on two cores
+    grain = max(1, int(batch))
+    return {"task_boxes": min(grain, 2048) if grain < 2048 else max(2048, 2 * grain // w),
+            "tasks_per_worker": 1 if w <= 2 else 2,
+            "root_boxes": max(1, grain // (4 * w)),
+            "min_task_boxes": max(min(128, grain // 8), grain // (8 * w), 1)}
+
+
+def _deal_boxes(boxes: np.ndarray, parts: int) -> list[np.ndarray]:
+    """``boxes`` dealt into ``parts`` strided shares: share ``i`` holds boxes ``i``,
+    ``i + parts``, ``i + 2·parts``, ...
+
+    The verifier's queue lists neighbouring boxes next to each other, and the hard boxes
+    (near a level set, near the inner ball) come in clusters: contiguous chunks would give
+    one task a whole cluster, strided shares give every task a part of each. Sizes differ by
+    one at most; every box is in exactly one share, in its queue order.
+
+    Examples
+    --------
+    >>> [s[:, 0, 0].tolist() for s in _deal_boxes(np.arange(5.0).reshape(5, 1, 1), 2)]
+    [[0.0, 2.0, 4.0], [1.0, 3.0]]
+    """
+    parts = max(1, min(int(parts), len(boxes)))
+    return [boxes[i::parts] for i in range(parts)]
+
+
+class _DaskRunner:
+    """The tasks of one :func:`verify_distributed` call on a Dask client."""
+
+    def __init__(self, client, problem):
+        self.client = client
+        self.workers = client_workers(client)
+        [self.pf] = client.scatter([problem], broadcast=True, hash=False)
+        self.ac = _distributed().as_completed([], loop=client.loop)
+        self.submitted: list = []
+
+    def submit(self, fn, *args):
+        fut = self.client.submit(fn, self.pf, *args, pure=False)
+        self.submitted.append(fut)
+        self.ac.add(fut)
+        return fut.key
+
+    def next(self):
+        """``(key, output)`` of the next task to finish, ``None`` when none is left."""
+        with _waiting():  # another check may take its turn meanwhile (ahead())
+            fut = next(self.ac, None)
+        if fut is None:
+            return None
+        out = fut.result()
+        fut.release()
+        return fut.key, out
+
+    def close(self):
+        self.client.cancel([f for f in self.submitted if not f.done()])
+        self.pf.release()
+
+
+class SimulatedCluster:
+    """A stand-in for a Dask client that models ``workers`` workers: the speed-up model.
+
+    Pass it to :func:`verify_distributed` (or to :func:`verifying_on`) in place of a client:
+    every task runs here, in this process, when it is submitted, and is scheduled on
+    ``workers`` virtual workers by list scheduling (a task starts on the first worker to
+    be free, in the order of submission, as Dask's scheduler hands out queued tasks), its
+    duration its *cost*. Completions are absorbed in the order of their virtual finishing
+    times, so the task graph is the one :func:`verify_distributed` builds on a real cluster
+    of that size; only the clock is modelled. ``cost="boxes"``: the boxes a task processed
+    (deterministic: the same run gives the same model on any machine and load);
+    ``cost="cpu"``: its CPU seconds here (which include each walker pass's fixed cost).
+
+    Attributes
+    ----------
+    workers : int
+    cost : str
+    calls : list of dict
+        Per :func:`verify_distributed` call: ``makespan`` (modelled time from the root
+        task's start to the last completion), ``work`` (the sum of the task costs, which is
+        the time on one worker) and ``tasks`` (count).
+
+    Examples
+    --------
+    >>> sim = SimulatedCluster(4)                                 # doctest: +SKIP
+    >>> verify_distributed(problem, sim).status                   # doctest: +SKIP
+    'verified'
+    >>> sim.speedup()                                             # doctest: +SKIP
+    3.6
+    """
+
+    simulated = True
+
+    def __init__(self, workers: int, cost: str = "boxes"):
+        self.workers = _check_workers(workers, local=False)
+        if cost not in ("boxes", "cpu"):
+            raise ConfigError(f"cost must be 'boxes' or 'cpu', got {cost!r}")
+        self.cost = cost
+        self.calls: list[dict] = []
+
+    def _runner(self, problem) -> _SimRun:
+        return _SimRun(self, problem)
+
+    def work(self) -> float:
+        """Sum of all task costs over every call (the modelled time on one worker)."""
+        return float(sum(c["work"] for c in self.calls))
+
+    def makespan(self) -> float:
+        """Sum of the calls' modelled times on :attr:`workers` workers (calls in turn)."""
+        return float(sum(c["makespan"] for c in self.calls))
+
+    def speedup(self) -> float:
+        """Modelled speed-up over one worker: :meth:`work` / :meth:`makespan`."""
+        span = self.makespan()
+        return self.work() / span if span > 0 else 1.0
+
+
+class _SimRun:
+    """The tasks of one :func:`verify_distributed` call on a :class:`SimulatedCluster`."""
+
+    def __init__(self, sim: SimulatedCluster, problem):
+        self.sim, self.problem, self.workers = sim, problem, sim.workers
+        self.free = [0.0] * sim.workers      # when each virtual worker is free (a heap)
+        self.pending: list = []              # (finish, seq, out) of tasks not absorbed
+        self.now = 0.0
+        self.seq = 0
+        self.work = 0.0
+        self.end = 0.0
+
+    def submit(self, fn, *args):
+        hq = heapq
+        start = max(self.now, hq.heappop(self.free))
+        t = time.thread_time()
+        out = fn(self.problem, *args)
+        cost = float(out["boxes"]) if self.sim.cost == "boxes" else time.thread_time() - t
+        finish = start + cost
+        hq.heappush(self.free, finish)
+        self.seq += 1
+        hq.heappush(self.pending, (finish, self.seq, out))
+        self.work += cost
+        self.end = max(self.end, finish)
+        return self.seq
+
+    def next(self):
+        if not self.pending:
+            return None
+        finish, key, out = heapq.heappop(self.pending)
+        self.now = finish
+        return key, out
+
+    def close(self):
+        # with stop_at_first, tasks not absorbed would be cancelled: end at the last absorbed
+        end = self.now if self.pending else self.end
+        self.sim.calls.append({"makespan": end, "work": self.work, "tasks": self.seq})
+
+
+def model_speedups(run, workers=(1, 2, 4, 8, 16), cost: str = "boxes") -> dict[int, dict]:
+    """Modelled speed-ups of ``run(client)`` on each worker count (:class:`SimulatedCluster`).
+
+    Parameters
+    ----------
+    run : callable
+        ``run(client)`` makes its :func:`verify_distributed` calls (or :func:`check` calls,
+        inside :func:`verifying_on`) on the client it is given; it is run once per worker
+        count, serially in this process.
+    workers : sequence of int
+    cost : {"boxes", "cpu"}
+
+    Returns
+    -------
+    dict
+        Worker count (1 always among them) to ``{"work", "makespan", "speedup",
+        "efficiency", "tasks"}``: ``work`` the sum of the task costs, ``makespan`` the
+        modelled time, ``speedup`` the makespan on one worker over this one (with
+        ``cost="cpu"`` the extra cost of smaller tasks on more workers counts against it),
+        ``efficiency`` the speed-up per worker.
+    """
+    counts = sorted({1, *(int(_check_workers(w, local=False)) for w in workers)})
+    out = {}
+    for w in counts:
+        sim = SimulatedCluster(w, cost)
+        run(sim)
+        out[w] = {"work": sim.work(), "makespan": sim.makespan(),
+                  "tasks": sum(c["tasks"] for c in sim.calls)}
+    one = out[1]["makespan"]
+    for w, row in out.items():
+        row["speedup"] = one / row["makespan"] if row["makespan"] > 0 else 1.0
+        row["efficiency"] = row["speedup"] / w
+    return out
+
+
 def verify_distributed(problem, client, *, resolution: float | None = None,
                        max_boxes: int = 2_000_000, presearch: int = 500,
                        stop_at_first: bool = True, keep_leaves: bool = False,
-                       initial_boxes: int = 256, task_boxes: int = 16384,
-                       tasks_per_worker: int = 1, root_boxes: int | None = None,
+                       initial_boxes: int = 256, task_boxes: int | None = None,
+                       tasks_per_worker: int | None = None, root_boxes: int | None = None,
                        min_task_boxes: int | None = None, stats: dict | None = None,
                        **options):
     """Decide ``problem`` with the interval verifier on a Dask cluster, load-balanced.
@@ -409,11 +631,15 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
        bisected once more and their halves come back *open*, unevaluated
        (``verify_interval(hand_back=True)``: no box is evaluated twice, which cost the
        cartpole certificate's decrease check 54 % more boxes);
-    2. open boxes are dealt into enough tasks to keep ``tasks_per_worker`` per worker busy,
-       but none gets fewer than ``min_task_boxes`` to start from; each task bisects its
+    2. open boxes are dealt (in strided shares) into enough tasks to
+       keep ``tasks_per_worker`` per worker busy, but none gets fewer than
+       ``min_task_boxes`` to start from; each task bisects its
        boxes (all in one batch) by the serial verifier's rules until it has spent
        ``task_boxes`` boxes, and returns what is still open;
-    3. each finished task's open boxes are dealt out again at once, until none is left.
+    3. each finished task's open boxes are dealt out again at once (a few are held back
+       while every worker is busy, to start the next task with others'), until none is
+       left. :class:`SimulatedCluster` models the schedule of this graph on any number of
+       workers.
 
     Each walker pass costs a fixed time per instruction of the graphs besides its time per
     box (about 0.12 s against 70 µs per box for the cartpole's Frobenius form of condition
@@ -437,33 +663,42 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     Parameters
     ----------
     problem : verification.VerificationProblem
-    client : distributed.Client
-        From :func:`dask_client`.
+    client : distributed.Client or SimulatedCluster
+        From :func:`dask_client`; a :class:`SimulatedCluster` runs the same task graph in
+        this process and models its schedule on that many workers.
     resolution, max_boxes, presearch, stop_at_first, keep_leaves, initial_boxes
         As in :func:`verification.verify` (interval backend); ``resolution`` is the root
         problem's; ``max_boxes`` bounds the boxes of all tasks together (each new task gets
         a share of what is left; a first grid is always evaluated whole, as serially).
+    task_boxes, tasks_per_worker, root_boxes, min_task_boxes : int, optional
+        The grains; by default :func:`task_defaults` for the cluster's worker count and
+        ``batch`` (finer on more workers; a ``task_boxes`` below ``batch`` takes its place
+        as the grain the other defaults follow).
     task_boxes : int
         Boxes one task processes before it hands its open boxes back (the load-balancing
-        grain; one walker pass evaluates up to ``batch`` boxes).
+        grain; one walker pass evaluates up to ``batch`` boxes), or, once more boxes are
+        done, the boxes done so far over twice the tasks in flight (guided
+        self-scheduling: a large check pays fewer fixed costs per pass). While workers
+        would idle, a new task gets at most four times the boxes it starts from (ramp-up).
     tasks_per_worker : int
-        Tasks kept in flight per worker. One (the default) deals each finished task's open
-        boxes whole to the next task: a task bisects its queue in passes of up to ``batch``
-        boxes, and one that starts from a smaller share runs out of full passes sooner (each
-        pass costs a fixed time per instruction). On the cartpole certificate's decrease
-        check (970 588 boxes, second-order form) two tasks per worker spent 19.5 CPU seconds
-        on 2 workers against 16.5 with one (16.0 on 1 worker), 11.2 s against 9.7 s wall.
+        Tasks kept in flight per worker (one up to two workers: each finished task's open
+        boxes go whole to the next task; on the cartpole certificate's decrease check two
+        per worker spent 19.5 CPU seconds on 2 workers against 16.5 with one). A large open
+        set is dealt into more tasks than that, none starting from more than a quarter of
+        ``task_boxes``; the extra ones wait in the scheduler's queue.
     root_boxes : int, optional
-        Boxes of step 1 (default: a quarter of ``min(batch, task_boxes)``, a quarter of
-        the verifier's ``batch``; 1: only the initial grid, then the work is dealt out).
+        Boxes of step 1 (1: only the initial grid, then the work is dealt out).
     min_task_boxes : int, optional
-        Least number of open boxes a new task starts from (default: an eighth of
-        ``min(batch, task_boxes)``).
+        Least number of open boxes a new task starts from. A task whose queue thins below
+        half of it hands the queue back; while every worker is busy, open sets smaller than
+        this wait to be merged with the next ones (a walker pass costs a fixed time per
+        instruction of the graphs: thin passes are mostly that).
     stats : dict, optional
         Filled with ``tasks`` (count), ``root_cpu`` (CPU seconds of step 1),
         ``cpu_by_worker`` (CPU seconds of the other tasks per worker process: the load
-        balance, independent of other load on the machines) and ``starts`` (the number of
-        open boxes each task after the root started from).
+        balance, independent of other load on the machines), ``starts`` (the number of
+        open boxes each task after the root started from), ``task_boxes`` (the boxes each
+        task processed, in the order they were absorbed) and ``grains`` (the grains used).
     **options
         Any other option of the interval verifier (``batch``, ``mean_value``, ``affine``,
         ``seed``, ...), passed to every task.
@@ -484,23 +719,18 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     """
 
     known = set(inspect.signature(verify_interval).parameters) - {
-        "problem", "executor", "n_tasks", "progress", "boxes", "hand_back"}
+        "problem", "executor", "n_tasks", "progress", "boxes", "hand_back", "hand_back_below"}
     for name in options:
         if name not in known:
             raise TypeError(f"verify_distributed() got an unknown option {name!r}; options: "
                             f"{', '.join(sorted(known))}")
     batch = options.get("batch", inspect.signature(verify_interval).parameters["batch"].default)
-    ints = [v for v in (batch, task_boxes) if isinstance(v, (int, np.integer))
-            and not isinstance(v, bool) and v >= 1]
-    grain = int(min(ints)) if ints else 1  # the boxes of one walker pass (checked below)
-    root_boxes = max(1, grain // 4) if root_boxes is None else root_boxes
-    min_task_boxes = max(1, grain // 8) if min_task_boxes is None else min_task_boxes
     for name, v in (("task_boxes", task_boxes), ("tasks_per_worker", tasks_per_worker),
-                    ("root_boxes", root_boxes), ("max_boxes", max_boxes),
-                    ("initial_boxes", initial_boxes), ("min_task_boxes", min_task_boxes)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                    ("root_boxes", root_boxes), ("min_task_boxes", min_task_boxes),
+                    ("max_boxes", max_boxes), ("initial_boxes", initial_boxes)):
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
+                              or v < 1):
             raise ConfigError(f"{name} must be an integer >= 1, got {v!r}")
-    as_completed = _distributed().as_completed
     t0 = time.perf_counter()
     box = np.asarray(problem.box, dtype=float)
     root_w = box[:, 1] - box[:, 0]
@@ -511,24 +741,34 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
                    keep_leaves=bool(keep_leaves))
     if not batched:  # each fixed sub-box starts from its own grid
         options["initial_boxes"] = int(initial_boxes)
-    n_workers = client_workers(client)
-    target = tasks_per_worker * n_workers
-    min_task = int(min_task_boxes)
     if options.get("second_order"):
         problem.second_order_functions  # built before pickling: workers get them
-    [pf] = client.scatter([problem], broadcast=True, hash=False)
+    runner = client._runner(problem) if getattr(client, "simulated", False) else \
+        _DaskRunner(client, problem)
+    n_workers = runner.workers
+    ok_batch = isinstance(batch, (int, np.integer)) and not isinstance(batch, bool) and batch >= 1
+    grain = int(batch) if ok_batch else 1
+    if task_boxes is not None:  # a finer task grain given: the other grains follow it
+        grain = min(grain, int(task_boxes))
+    grains = task_defaults(n_workers, grain)
+    given = {"task_boxes": task_boxes, "tasks_per_worker": tasks_per_worker,
+             "root_boxes": root_boxes, "min_task_boxes": min_task_boxes}
+    grains.update({k: int(v) for k, v in given.items() if v is not None})
+    task_boxes = grains["task_boxes"]
+    target = grains["tasks_per_worker"] * n_workers
+    min_task = grains["min_task_boxes"]
+    root_boxes = grains["root_boxes"]
 
     found, unknown, leaves = [], [], []
     state = {"boxes": 0, "depth": 0, "running": 0}
-    submitted: list = []
-    ac = as_completed([], loop=client.loop)
-
-    tally = {"tasks": 0, "root_cpu": None, "cpu_by_worker": {}, "starts": []}
+    tally = {"tasks": 0, "root_cpu": None, "cpu_by_worker": {}, "starts": [],
+             "task_boxes": [], "grains": dict(grains)}
 
     offsets: dict = {}  # task key -> bisection depth of its deepest starting box
 
     def absorb(out, offset: int = 0) -> np.ndarray:
         tally["tasks"] += 1
+        tally["task_boxes"].append(int(out["boxes"]))
         if tally["root_cpu"] is None:
             tally["root_cpu"] = out["cpu"]
         else:
@@ -551,26 +791,50 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         if left <= 0:  # the global budget is spent: these stay undecided
             unknown.append(open_boxes)
             return
-        parts = max(1, min(parts, k))
+        # guided self-scheduling: a budget grows with the work done so far (a large check
+        # pays fewer fixed costs per pass; the last tasks stay a small part of the whole)
+        grain = max(task_boxes, state["boxes"] // (2 * target))
+        # enough parts for the free task slots, and for a large open set enough that no
+        # task starts from more than a quarter of its budget (it would run long while the
+        # others run dry): extra tasks wait in the scheduler's queue
+        parts = max(1, parts, -(-k // max(1, grain // 4)))
+        parts = min(parts, k)
         if batched:  # no task starts from fewer than min_task boxes (but one from all)
             parts = max(1, min(parts, k // min_task))
         share = max(1, left // parts)  # of the global budget, per new task
-        budget = min(task_boxes, share) if batched else share
-        for chunk in np.array_split(open_boxes, parts):  # sizes differ by one at most
+        budget = min(grain, share) if batched else share
+        if batched and state["running"] + parts < n_workers:
+            # workers would idle: a short task, so that its open boxes (about twice its
+            # undecided ones) come back soon to be dealt wider (ramp-up)
+            budget = min(budget, max(min_task, 4 * -(-k // parts)))
+        # a task's thin tail (its queue below half a start) comes back to be merged with
+        # others' (unless this is all the work there is: then it finishes it)
+        tail = min_task // 2 if batched and (state["running"] or parts > 1) else 0
+        for chunk in _deal_boxes(open_boxes, parts):  # sizes differ by one at most
             tally["starts"].append(len(chunk))
-            fut = client.submit(_box_task, pf, chunk, budget, options, batched, pure=False)
-            offsets[fut.key] = _depth(chunk, root_w)
-            submitted.append(fut)
-            ac.add(fut)
+            key = runner.submit(_box_task, chunk, budget, options, batched, tail)
+            offsets[key] = _depth(chunk, root_w)
             state["running"] += 1
+
+    pool: list = []  # open boxes held back until there are enough to start a task
+
+    def offer(open_boxes: np.ndarray) -> None:
+        """Deal open boxes out, or hold a few back while every worker is busy (they
+        join the next task's start instead of making a thin task of their own)."""
+        if len(open_boxes):
+            pool.append(open_boxes)
+        k = sum(len(b) for b in pool)
+        if not k or (k < min_task and state["running"] >= n_workers):
+            return
+        merged = pool[0] if len(pool) == 1 else np.concatenate(pool)
+        pool.clear()
+        deal(merged, target - state["running"])
 
     try:
         root = {k: v for k, v in options.items() if k != "initial_boxes"}
-        first = client.submit(_root_task, pf, root, presearch,
-                              initial_boxes if batched else 1,
-                              min(root_boxes, max_boxes) if batched else 0, pure=False)
-        with _waiting():
-            out = first.result()
+        runner.submit(_root_task, root, presearch, initial_boxes if batched else 1,
+                      min(root_boxes, max_boxes) if batched else 0)
+        _, out = runner.next()
         opened = absorb(out)
         if not (found and stop_at_first):
             if not batched and len(opened):  # fixed split, scheduled as workers free up
@@ -580,21 +844,19 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
                 options["initial_boxes"] = max(1, int(initial_boxes) // parts)
                 deal(opened, len(opened))
             else:
-                deal(opened, target)
+                offer(opened)
             while True:
-                with _waiting():  # another check may take its turn meanwhile (ahead())
-                    fut = next(ac, None)
-                if fut is None:
+                done = runner.next()
+                if done is None:
                     break
+                key, out = done
                 state["running"] -= 1
-                opened = absorb(fut.result(), offsets.pop(fut.key, 0))
-                fut.release()
+                opened = absorb(out, offsets.pop(key, 0))
                 if found and stop_at_first:
                     break
-                deal(opened, target - state["running"])
+                offer(opened)
     finally:
-        client.cancel([f for f in submitted if not f.done()])
-        pf.release()
+        runner.close()
 
     if stats is not None:
         stats.update(tally)
@@ -725,7 +987,9 @@ class Ahead:
         self._thread = None
         self._took = False          # the caller took the turn to start the thread
         self._out: tuple | None = None
-        if _defer or _CLUSTER.get() is None or getattr(_LOCAL, "job", None) is not None:
+        cluster = _CLUSTER.get()
+        if _defer or cluster is None or getattr(cluster, "simulated", False) or \
+                getattr(_LOCAL, "job", None) is not None:  # a model runs its checks in turn
             return
         if not getattr(_LOCAL, "holds", False):
             _TURN.acquire()

@@ -32,6 +32,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from threadpoolctl import threadpool_limits
+
 import systems as _systems
 
 from .certificate import sha256_file, write_json_atomic
@@ -163,6 +165,8 @@ def _run_seed(system: str, cfg: dict, out: str, known_dynamics: bool,
     """Worker side: one pipeline run, its log in ``out/run.log``; its summary back.
 
     ``spec``: the system comes from this TOML spec file (loaded here, in the worker).
+    One BLAS/OpenMP thread (a worker is one of as many as there are cores; Dask's nanny
+    sets the same through the environment, a worker started without one does not).
     """
 
     if spec is not None:
@@ -174,7 +178,8 @@ def _run_seed(system: str, cfg: dict, out: str, known_dynamics: bool,
             fh.write(f"{msg}\n")
             fh.flush()
 
-        res = run(system, cfg, out, known_dynamics=known_dynamics, log=log)
+        with threadpool_limits(limits=1):
+            res = run(system, cfg, out, known_dynamics=known_dynamics, log=log)
     s = res.summary or {}
     share = s.get("fraction_of_true_roa")
     return SeedRun(seed, str(getattr(res.status, "value", res.status)), bool(res.certified),

@@ -117,6 +117,24 @@ def test_deterministic_torch_is_scoped_and_checked():
         LyapunovLearner(systems.get("van_der_pol"), None, None, TrainConfig(threads=0))
 
 
+def test_deterministic_torch_loads_no_compiler_and_enforces_determinism():
+    """The eager flag alone (no inductor import: about a CPU second per process), and the
+    kernels obey it: deterministic mode fills uninitialised memory (NaN for floats)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, torch\n"
+            "from nlyap_opt.determinism import deterministic_torch\n"
+            "with deterministic_torch(1):\n"
+            "    assert torch.are_deterministic_algorithms_enabled()\n"
+            "    assert torch.isnan(torch.empty(64, dtype=torch.float64)).all()\n"
+            "assert not torch.are_deterministic_algorithms_enabled()\n"
+            "print('torch._inductor.config' in sys.modules, 'torch._dynamo' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.split() == ["False", "False"], out.stdout + out.stderr
+
+
 def _run_files(d):
     """sha256 of every hashed artifact of a run (the stage files and the certificate's
     artifacts) and certificate.json without its timings and numeric environment."""

@@ -45,6 +45,38 @@ def test_lqr_is_optimal_against_perturbed_gains(rng):
         assert x0 @ Pk @ x0 >= best - 1e-9
 
 
+@pytest.mark.parametrize("name", list(systems.names()))
+def test_lqr_and_lyapunov_matrix_are_python_controls_numbers_bit_for_bit(name):
+    """The solvers are called as python-control calls them (without slycot), without
+    importing it: the same gains, Riccati and Lyapunov solutions to the last bit, so that
+    saved certificates do not change."""
+    import subprocess
+    import sys
+
+    control = pytest.importorskip("control")
+    from nlyap_opt.control import linearisation, lyapunov_matrix
+
+    if control.mateqn.slycot_check():
+        pytest.skip("python-control uses slycot here, another solver")
+    s = systems.get(name)
+    if s.nu == 0:
+        pytest.skip("no input")
+    A, B = linearisation(s)
+    Q, R = np.diag(np.arange(1.0, s.nx + 1)), 0.5 * np.eye(s.nu)
+    res = lqr(s, Q, R)
+    K, S, E = control.lqr(A, B, Q, R)
+    assert np.array_equal(res.K, K) and np.array_equal(res.S, S)
+    assert np.array_equal(res.eigenvalues, E)
+    Acl = A - B @ res.K
+    P = control.lyap(Acl.T, 2.0 * np.eye(s.nx))
+    assert np.array_equal(lyapunov_matrix(Acl, 2.0 * np.eye(s.nx)), 0.5 * (P + P.T))
+    code = ("import sys, systems\nfrom nlyap_opt.control import lqr\n"
+            f"lqr(systems.get({name!r}))\nprint('control' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.split()[-1] == "False"
+
+
 def test_van_der_pol_lyapunov_matrix():
     res = lqr(systems.get("van_der_pol"))
     np.testing.assert_allclose(res.P, [[1.5, -0.5], [-0.5, 1.0]], atol=1e-12)

@@ -161,6 +161,29 @@ def test_distributed_verdict_equals_serial(client, mode, outer, expected):
         assert len(dist.undecided) == 0 and dist.boxes >= 0.5 * serial.boxes
 
 
+def test_one_and_two_workers_decide_as_serially_with_the_same_boxes(client):
+    """Default grains and fine ones, on a 1-worker and the 2-worker cluster: the verdict and
+    the boxes processed are the serial run's (every box decided once, by the serial rules),
+    and the 4-D check is really cut into tasks on both."""
+    from verification import lyapunov_problem
+
+    x = ca.MX.sym("x", 4)
+    f = ca.vertcat(-x[1], x[0] - (1 - x[0]**2) * x[1], -x[3], x[2] - (1 - x[2]**2) * x[3])
+    V = ca.bilin(ca.DM(np.kron(np.eye(2), P_VDP)), x, x)
+    four = lyapunov_problem(x, V, ca.dot(ca.gradient(V, x), f), inner=0.1, outer=0.9)
+    problems = [(_vdp_problem(1.0), {"task_boxes": 64}), (four, {})]
+    with dask_client(workers=1) as one:
+        for problem, opts in problems:
+            serial = verify(problem)
+            runs = []
+            for c in (one, client):
+                st: dict = {}
+                runs.append((verify_distributed(problem, c, stats=st, **opts), st))
+            for res, st in runs:
+                assert res.status == serial.status == "verified"
+                assert res.boxes == serial.boxes and st["tasks"] > 1
+
+
 def test_no_task_starts_from_fewer_than_min_task_boxes(client):
     """Open boxes are dealt out in chunks of at least ``min_task_boxes`` (a task that starts
     from a few boxes pays the walker's fixed cost per pass for them); the verdict and the

@@ -690,6 +690,7 @@ def verify_interval(
     second_order: bool = False,
     boxes: np.ndarray | None = None,
     hand_back: bool = False,
+    hand_back_below: int = 0,
 ) -> VerificationResult:
     """Decide ``problem`` with interval branch-and-prune; see :func:`verification.verify`.
 
@@ -712,6 +713,10 @@ def verify_interval(
     ``hand_back``: once ``max_boxes`` are spent, a box still to bisect is bisected by the
     usual rule and its two halves come back *unevaluated* in ``result.open`` (not in
     ``undecided``), so that the task that takes them on evaluates no box twice.
+    ``hand_back_below`` (with ``hand_back``): also hand back, after the first pass, a
+    queue that has shrunk below this many boxes (a pass costs a fixed time per graph
+    instruction besides its time per box: the caller merges such tails of several tasks
+    into one task's passes).
     """
     t0 = time.perf_counter()
     if mean_value is None:  # with affine forms: the mean-value form on undecided boxes
@@ -740,12 +745,13 @@ def verify_interval(
     with _single_thread_blas():
         return _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
                              stop_at_first, keep_leaves, seed, initial_boxes, progress,
-                             affine, second_order, boxes, hand_back)
+                             affine, second_order, boxes, hand_back,
+                             int(hand_back_below) if hand_back else 0)
 
 
 def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
                   stop_at_first, keep_leaves, seed, initial_boxes, progress, affine=False,
-                  second_order=False, boxes=None, hand_back=False):
+                  second_order=False, boxes=None, hand_back=False, hand_back_below=0):
     box = problem.box
     compile_function(problem.function_jacobian)
     rng = np.random.default_rng(seed)
@@ -767,6 +773,9 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
     n_boxes = 0
     max_depth = 0
     while len(queue_lo):
+        if n_boxes and len(queue_lo) < hand_back_below:  # a thin tail: to be merged
+            opened.append(np.stack([queue_lo, queue_hi], axis=-1))
+            break
         lo, hi, dq = queue_lo[:batch], queue_hi[:batch], depth_q[:batch]
         queue_lo, queue_hi, depth_q = queue_lo[batch:], queue_hi[batch:], depth_q[batch:]
         n_boxes += len(lo)
@@ -913,7 +922,7 @@ def _verify_distributed(problem, executor, n_tasks, t0, **kwargs) -> Verificatio
 # ============================================================================ options in files
 #: keyword options of :func:`verify_interval` that are run-time objects, not settings a file
 #: (a run configuration, a certificate) can hold
-RUNTIME_OPTIONS = ("executor", "progress", "boxes", "hand_back")
+RUNTIME_OPTIONS = ("executor", "progress", "boxes", "hand_back", "hand_back_below")
 
 
 def file_options() -> dict[str, tuple]:

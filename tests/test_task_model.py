@@ -1,0 +1,172 @@
+"""How verification work is cut into tasks, and the task-level speed-up model (no Dask).
+
+:class:`~nlyap_opt.parallel.SimulatedCluster` runs :func:`~nlyap_opt.parallel.verify_distributed`'s
+task graph in this process and schedules it on virtual workers: the verdicts and box counts
+are those of a real cluster run, so they are checked against the serial verifier here.
+"""
+
+import numpy as np
+import pytest
+
+import systems
+from baselines.lqr import quadratic_lyapunov
+from nlyap_opt.errors import ConfigError
+from nlyap_opt.parallel import (
+    SimulatedCluster,
+    _deal_boxes,
+    model_speedups,
+    task_defaults,
+    verify_distributed,
+)
+from verification import VerificationProblem, closed_loop_problem, verify
+from verification.verify import verify_interval
+
+P_VDP = np.array([[1.5, -0.5], [-0.5, 1.0]])
+
+
+def _vdp_problem(outer: float):
+    return closed_loop_problem(systems.get("van_der_pol"), quadratic_lyapunov(P_VDP),
+                               inner=0.1, outer=outer)
+
+
+# ------------------------------------------------------------------------- dealing boxes
+@pytest.mark.parametrize("k, parts", [(10, 3), (7, 7), (5, 9), (1, 4), (64, 8)])
+def test_deal_boxes_is_a_partition_in_queue_order(k, parts):
+    boxes = np.arange(float(k)).reshape(k, 1, 1) * np.ones((1, 1, 2))
+    shares = _deal_boxes(boxes, parts)
+    assert len(shares) == min(parts, k)
+    sizes = [len(s) for s in shares]
+    assert max(sizes) - min(sizes) <= 1 and sum(sizes) == k
+    ids = np.concatenate([s[:, 0, 0] for s in shares])
+    assert sorted(ids.tolist()) == list(range(k))      # every box once
+    for s in shares:                                    # queue order kept inside a share
+        assert np.all(np.diff(s[:, 0, 0]) > 0)
+
+
+def test_deal_boxes_spreads_a_cluster_of_hard_boxes():
+    """Neighbouring queue entries (a cluster) go to different shares, not to one chunk."""
+    shares = _deal_boxes(np.zeros((40, 2, 2)) + np.arange(40.0)[:, None, None], 4)
+    cluster = set(range(8, 16))
+    per_share = [len(cluster & set(s[:, 0, 0].astype(int).tolist())) for s in shares]
+    assert per_share == [2, 2, 2, 2]
+
+
+def test_task_grains_get_finer_with_more_workers():
+    rows = [task_defaults(w) for w in (1, 2, 4, 8, 16, 64)]
+    for key in ("task_boxes", "root_boxes", "min_task_boxes"):
+        vals = [r[key] for r in rows]
+        assert all(a >= b for a, b in zip(vals, vals[1:])), (key, vals)
+        assert min(vals) >= 1
+    # a task still starts from enough boxes to amortise a walker pass, and the root task
+    # of 16 workers does no more than the first grid's pass
+    assert task_defaults(16)["min_task_boxes"] >= 128 and task_defaults(16)["root_boxes"] <= 256
+    small = task_defaults(16, batch=8)
+    assert small["task_boxes"] <= 8 and all(v >= 1 for v in small.values())
+
+
+# ---------------------------------------------------------------------- the schedule model
+def test_simulated_cluster_is_list_scheduling():
+    """Tasks start on the first free virtual worker in submission order: costs 3, 3, 2 on
+    two workers end at 3, 3 and 5."""
+    sim = SimulatedCluster(2)
+    run = sim._runner(None)
+    for c in (3, 3, 2):
+        run.submit(lambda _p, c: {"boxes": c}, c)
+    finished = []
+    while (nxt := run.next()) is not None:
+        finished.append((run.now, nxt[1]["boxes"]))
+    run.close()
+    assert finished == [(3.0, 3), (3.0, 3), (5.0, 2)]
+    assert sim.calls == [{"makespan": 5.0, "work": 8.0, "tasks": 3}]
+    assert sim.speedup() == pytest.approx(8 / 5)
+
+
+def test_simulated_cluster_rejects_bad_arguments():
+    with pytest.raises(ConfigError, match="workers must be an integer"):
+        SimulatedCluster(0)
+    with pytest.raises(ConfigError, match="cost must be"):
+        SimulatedCluster(2, cost="seconds")
+
+
+@pytest.mark.parametrize("workers", [1, 2, 16])
+@pytest.mark.parametrize("outer, expected", [(1.0, "verified"), (1.2, "counterexample")])
+def test_simulated_runs_decide_as_the_serial_verifier(workers, outer, expected):
+    problem = _vdp_problem(outer)
+    serial = verify(problem, presearch=0)
+    sim = SimulatedCluster(workers)
+    st: dict = {}
+    res = verify_distributed(problem, sim, presearch=0, task_boxes=64, stats=st)
+    assert res.status == serial.status == expected
+    if expected == "verified":
+        # every box decided once, by the serial rules: the serial run's boxes exactly
+        assert res.boxes == serial.boxes == sim.work() == sum(st["task_boxes"])
+        assert st["tasks"] >= 2  # really cut into tasks
+        assert 1.0 <= sim.speedup() <= workers + 1e-9
+
+
+def test_unknown_stays_unknown_in_the_model():
+    import casadi as ca
+
+    x = ca.MX.sym("x", 1)
+    problem = VerificationProblem(x, [[-1, 1]], [], [(x - 0.3) * (0.3 - x) - 1e-12])
+    res = verify_distributed(problem, SimulatedCluster(4), resolution=0.1, presearch=0,
+                             task_boxes=4)
+    assert res.status == verify(problem, resolution=0.1, presearch=0).status == "unknown"
+
+
+def test_model_speedups_are_deterministic_and_bounded():
+    problem = _vdp_problem(1.0)
+
+    def run(client):
+        return verify_distributed(problem, client, presearch=0, task_boxes=32)
+
+    a = model_speedups(run, workers=(2, 4))
+    b = model_speedups(run, workers=(4, 2))
+    assert a == b and sorted(a) == [1, 2, 4]
+    assert a[1]["speedup"] == 1.0
+    for w, row in a.items():
+        assert row["work"] == a[1]["work"]        # same boxes on every worker count
+        assert 1.0 <= row["speedup"] <= w + 1e-9
+        assert row["efficiency"] == pytest.approx(row["speedup"] / w)
+    assert a[4]["speedup"] >= a[2]["speedup"] - 1e-9 and a[4]["speedup"] > 1.0
+
+
+# ------------------------------------------------------------------ tails handed back
+def test_hand_back_below_evaluates_no_box_twice():
+    """A queue that thins below ``hand_back_below`` comes back open, unevaluated: carrying
+    on from the open boxes processes exactly the serial run's boxes."""
+    problem = _vdp_problem(1.0)
+    serial = verify_interval(problem, presearch=0)
+    total, passes = 0, 0
+    r = verify_interval(problem, presearch=0, hand_back=True, hand_back_below=64)
+    while True:
+        total += r.boxes
+        passes += 1
+        assert r.status in ("verified", "unknown") and not len(r.undecided)
+        if r.open is None or not len(r.open):
+            break
+        r = verify_interval(problem, boxes=r.open, presearch=0, hand_back=True,
+                            hand_back_below=64)
+    assert passes > 1 and total == serial.boxes and serial.status == "verified"
+
+
+def test_a_certificate_modelled_on_a_simulated_cluster_is_the_serial_one():
+    """``verifying_on(SimulatedCluster(W))``: every check of the certificate goes through
+    the model (no thread runs ahead), and the certificate is the serial one."""
+    import threading
+
+    from nlyap_opt.certificate import RoaProblem, certify_roa
+    from nlyap_opt.parallel import verifying_on
+
+    prob = RoaProblem(systems.get("van_der_pol"), quadratic_lyapunov(P_VDP), inner=0.3,
+                      outer=1.5)
+    serial = certify_roa(prob, 1.0, log=lambda m: None)
+    sim = SimulatedCluster(4)
+    before = threading.active_count()
+    with verifying_on(sim):
+        modelled = certify_roa(prob, 1.0, log=lambda m: None)
+        assert threading.active_count() == before
+    assert serial.status.value == modelled.status.value == "certified"
+    assert (modelled.level, modelled.checks) == (serial.level, serial.checks)
+    np.testing.assert_array_equal(modelled.inner_ellipse.P, serial.inner_ellipse.P)
+    assert len(sim.calls) >= 2 and sim.work() > 0 and 1.0 <= sim.speedup() <= 4

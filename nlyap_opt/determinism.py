@@ -20,6 +20,7 @@ True
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -70,10 +71,7 @@ def _set_deterministic(mode: bool, warn_only: bool) -> None:
     inductor, so while it is not loaded only the eager flag is set (the same kernels are
     chosen); once something has loaded it, the public call sets both.
     """
-    import sys
-
-    import torch
-
+    torch = deps.torch()
     setter = getattr(torch._C, "_set_deterministic_algorithms", None)
     if setter is None or "torch._inductor.config" in sys.modules:
         torch.use_deterministic_algorithms(mode, warn_only=warn_only)

@@ -401,9 +401,9 @@ def _verify_certificate(args) -> int:
     return 1 if cert.status is CertStatus.COUNTEREXAMPLE else 2
 
 
-def cmd_verify(args) -> int:
-    if args.certificate:
-        return _verify_certificate(args)
+def _check_verify_args(args) -> None:
+    """The options of ``nlyap verify`` without a certificate file, checked together
+    (a :class:`UsageError` naming the fix)."""
     missing = [f"--{o}" for o in ("system", "lyapunov", "inner", "outer")
                if getattr(args, o) is None]
     if missing:
@@ -420,9 +420,13 @@ def cmd_verify(args) -> int:
                          "--precision with dreal")
     if args.smoothing and not args.eta:
         raise UsageError("--smoothing only applies with --eta > 0; drop it or give --eta")
+
+
+def cmd_verify(args) -> int:
+    if args.certificate:
+        return _verify_certificate(args)
+    _check_verify_args(args)
     eta, margin, smoothing = args.eta or 0.0, args.margin or 0.0, args.smoothing or 0.0
-
-
     s = systems.get(args.system)
     V = _load_network(args.lyapunov, "--lyapunov")
     ctrl = _load_network(args.controller, "--controller") if args.controller else None

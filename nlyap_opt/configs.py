@@ -57,10 +57,21 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from numbers import Integral, Real
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
+import numpy as np
+
+import systems
+from verification.verify import file_options
+
+from .control import lqr
+from .domain import Ball, parse_set
+from .dynamics_config import DynamicsConfig, dynamics_config
 from .errors import ConfigError, UnknownNameError
 from .jsonio import read_json_object
+from .quadratic import QUADRATIC_CANDIDATES
+from .sos import SOSConfig
 
 __all__ = [
     "DEFAULT_CEGIS", "DEFAULT_TRAIN", "PRESETS", "Key", "RunConfig", "Section",
@@ -586,8 +597,8 @@ def _kind_of(tp) -> tuple[str, bool]:
     return "any", False
 
 
-def _keys_of(cls, section: str) -> dict[str, Key]:
-    """The :class:`Key` of every field of the dataclass ``cls`` (introspection)."""
+def _keys_of(cls, section: str) -> Mapping[str, Key]:
+    """The :class:`Key` of every field of the dataclass ``cls`` (introspection), read-only."""
     hints = typing.get_type_hints(cls)
     out = {}
     for f in dataclasses.fields(cls):
@@ -605,47 +616,43 @@ def _keys_of(cls, section: str) -> dict[str, Key]:
                 **{k: v for k, v in f.metadata.items()
                    if k in ("lo", "lo_open", "hi", "hi_open", "choices", "doc")}}
         out[f.name] = Key(f"{section}.{f.name}", kind, default, optional, **rule)
-    return out
+    return MappingProxyType(out)
 
 
-def _dynamics_keys() -> dict[str, Key]:
-    from .dynamics_config import DynamicsConfig
-
-    keys = _keys_of(DynamicsConfig, "dynamics")
+def _dynamics_keys() -> Mapping[str, Key]:
+    keys = dict(_keys_of(DynamicsConfig, "dynamics"))
     keys["preset"] = dataclasses.replace(keys["preset"], choices=("default", "fast"))
-    return keys
+    return MappingProxyType(keys)
 
 
-def _verify_option_keys() -> dict[str, Key]:
-    """Keyword options of the interval verifier that a JSON file can hold."""
-    from verification.verify import file_options
-
+def _verify_option_keys() -> Mapping[str, Key]:
+    """Keyword options of the interval verifier that a JSON file can hold (read-only)."""
     out = {}
     for name, (hint, default, lo, lo_open) in file_options().items():
         kind, optional = _kind_of(hint)
         rule = {} if lo is None else {"lo": lo, "lo_open": lo_open}
         rule["doc"] = _FIELD_DOCS["cegis.verify_options"].get(name, "")
         out[name] = Key(f"cegis.verify_options.{name}", kind, default, optional, **rule)
-    return out
+    return MappingProxyType(out)
 
 
 def _quadratic_names() -> tuple:
-    from .quadratic import QUADRATIC_CANDIDATES
-
     return tuple(QUADRATIC_CANDIDATES)
 
 
 @functools.cache
-def schema() -> dict[str, dict[str, Key]]:
+def schema() -> Mapping[str, Mapping[str, Key]]:
     """Every key of the run configuration: ``{section: {key: Key}}``, ``""`` the top level.
+
+    Read-only (it is computed once and shared): a caller cannot change the keys every
+    later check reads.
 
     The ``train`` and ``cegis`` sections are derived from
     :class:`~nlyap_opt.learning.TrainConfig` and :class:`~nlyap_opt.cegis.CegisConfig`,
     the ``dynamics`` section from :class:`~nlyap_opt.dynamics_config.DynamicsConfig`.
     """
-    from .cegis import CegisConfig
-    from .learning import TrainConfig
-    from .sos import SOSConfig
+    from .cegis import CegisConfig  # lazy: torch, heavy (CEGIS trains with it)
+    from .learning import TrainConfig  # lazy: torch, heavy (the learner trains with it)
 
     d = _TOP_DOCS
     top = {
@@ -669,16 +676,17 @@ def schema() -> dict[str, dict[str, Key]]:
         "comment": Key("comment", "str", doc=d["comment"]),
         "auto_inner": Key("auto_inner", "bool", False, doc=d["auto_inner"]),
     }
-    return {
-        "": top,
-        "lqr": {"Q": Key("lqr.Q", "matrix", None, True, doc="state weight (default I)"),
-                "R": Key("lqr.R", "matrix", None, True, doc="input weight (default I)")},
+    return MappingProxyType({
+        "": MappingProxyType(top),
+        "lqr": MappingProxyType({
+            "Q": Key("lqr.Q", "matrix", None, True, doc="state weight (default I)"),
+            "R": Key("lqr.R", "matrix", None, True, doc="input weight (default I)")}),
         "train": _keys_of(TrainConfig, "train"),
         "cegis": _keys_of(CegisConfig, "cegis"),
         "dynamics": _dynamics_keys(),
         "sos": _keys_of(SOSConfig, "sos"),
         "cegis.verify_options": _verify_option_keys(),
-    }
+    })
 
 
 # ============================================================================ validation
@@ -787,8 +795,6 @@ _KIND_CHECKS = {
 
 def _matrix(key: Key, v, where: str):
     """A finite scalar or a rectangular 2-D list as an ndarray (else ConfigError)."""
-    import numpy as np
-
     if isinstance(v, np.ndarray) and v.ndim <= 2 and v.size and \
             np.issubdtype(v.dtype, np.number):
         M = np.atleast_2d(v.astype(float))
@@ -871,8 +877,6 @@ def validate_config(cfg: Mapping, system: str, *, where: str = "run config") -> 
     ConfigError
         The first problem found, naming the key, what it accepts and what came.
     """
-    import systems
-
     data = cfg.to_json() if isinstance(cfg, Section) else cfg
     _check_keys(data, where)
     rc = RunConfig._build("", data)
@@ -911,8 +915,6 @@ def _check_values(rc: RunConfig, where: str) -> None:
 
 def _check_region(rc: RunConfig, s, where: str) -> None:
     """``inner`` against ``outer`` or the domain; the initial set inside the domain."""
-    import numpy as np
-
     inner, outer = rc.inner, rc.outer
     if outer is not None and not inner < outer:
         raise ConfigError(f"{where}: need 0 < inner < outer, got inner = {inner:g}, "
@@ -940,7 +942,7 @@ def _check_start(rc: RunConfig, s, where: str) -> None:
         raise ConfigError(f"{where}: train.init 'sos' starts V at the certified SOS V, but the "
                           "SOS stage is off; set sos: {\"degree\": 4} (or 2) or init 'random'")
     if init != "random":
-        from .learning import check_start_architecture
+        from .learning import check_start_architecture  # lazy: torch, heavy (the learner)
 
         try:
             check_start_architecture(init, s.nx, rc.train.activation, rc.train.hidden,
@@ -978,8 +980,6 @@ def _check_controller(rc: RunConfig, s, where: str) -> None:
     if s.nu and getattr(s, "has_model", True):
         # the controller stage comes after the dynamics stage: fail now, not then (without a
         # model the LQR start linearises the learned φ, known only after the dynamics stage)
-        from .control import lqr
-
         try:
             with warnings.catch_warnings():  # the failure is reported, not its warnings
                 warnings.simplefilter("ignore", RuntimeWarning)
@@ -1014,8 +1014,6 @@ def check_lqr_weights(system, Q=None, R=None, *, where: str = "lqr",
         Not a finite number or rectangular matrix, wrong size, not symmetric, not
         positive (semi)definite, or ``R`` for a system without inputs.
     """
-    import numpy as np
-
     out = []
     for value, name, n, strict in ((Q, names[0], system.nx, False),
                                    (R, names[1], system.nu, True)):
@@ -1055,10 +1053,6 @@ def check_dynamics_box(cfg: Mapping) -> None:
     ConfigError
         Naming the box and the fixes (a larger ``dynamics.state_box`` or a smaller ``outer``).
     """
-    import numpy as np
-
-    import systems
-
     rc = RunConfig.from_json(cfg)
     s = systems.get(rc.system)
     box = rc.dynamics.state_box
@@ -1094,8 +1088,6 @@ def domain_of(cfg: Mapping, nx: int, where: str = "run config"):
     ConfigError
         A malformed set, one of the wrong dimension, or a domain without the origin inside.
     """
-    from .domain import Ball, parse_set
-
     rc = cfg if isinstance(cfg, RunConfig) else RunConfig.from_json(cfg, where=where)
     try:
         D = Ball(float(rc.outer), nx) if rc.domain is None else \
@@ -1110,8 +1102,6 @@ def domain_of(cfg: Mapping, nx: int, where: str = "run config"):
 def _check_dynamics(dyn, system: str, where: str) -> None:
     if not isinstance(dyn, dict):
         raise ConfigError(f"{where}: dynamics must be a JSON object {{...}}, got {dyn!r}")
-    from .dynamics_config import dynamics_config
-
     try:
         dynamics_config(system, dyn)
     except (ConfigError, UnknownNameError, ValueError, TypeError) as err:
@@ -1276,7 +1266,7 @@ class RunConfig(Section):
     >>> cfg = make_config("van_der_pol", "fast")
     >>> cfg.train.steps, cfg.cegis.margin_mode, cfg["train"]["steps"]
     (300, 'pointwise', 300)
-    >>> cfg.view(("inner", "cegis.margin_mode")).declared()
+    >>> dict(cfg.view(("inner", "cegis.margin_mode")).declared())
     {'cegis.margin_mode': None, 'inner': 0.3}
     """
 
@@ -1301,10 +1291,10 @@ class RunConfig(Section):
         whole value or section): what a stage reads, and all it may read."""
         return RunConfig(self._path, self._given, frozenset(fields))
 
-    def declared(self) -> dict:
-        """``{dotted key: value given or None}`` of a view's declared keys: the JSON its
-        stage key hashes (a default is not filled in: a stated default and an absent key
-        differ only in a recomputation)."""
+    def declared(self) -> Mapping[str, Any]:
+        """``{dotted key: value given or None}`` of a view's declared keys, read-only and
+        sorted: the JSON its stage key hashes (a default is not filled in: a stated
+        default and an absent key differ only in a recomputation)."""
         if self._only is None:
             raise UndeclaredKeyError("declared() needs a view: call view(fields) first")
         data = RunConfig(self._path, self._given).to_json()
@@ -1314,9 +1304,10 @@ class RunConfig(Section):
             for part in dotted.split("."):
                 node = node.get(part) if isinstance(node, dict) else None
             out[dotted] = node
-        return out
-def _merge(base: dict, over: dict) -> dict:
-    out = copy.deepcopy(base)
+        return MappingProxyType(out)
+def _merge_into(out: dict, over: Mapping) -> None:
+    """Merge the layer ``over`` into the configuration JSON ``out`` (in place; ``out`` is the
+    caller's own copy, values of ``over`` are copied)."""
     # a region given one way replaces the other way of the layer below: a domain replaces
     # the ball's radius, a radius the domain
     if over.get("domain") is not None and "outer" not in over:
@@ -1326,15 +1317,14 @@ def _merge(base: dict, over: dict) -> dict:
     for k, v in over.items():
         if isinstance(v, dict) and isinstance(out.get(k), dict) and \
                 k not in ("domain", "initial_set"):   # a set is replaced whole
-            sub = dict(out[k])
+            sub = out[k]
             if k == "dynamics":  # a grid given one way replaces the preset's other way
                 for a, b in (("grid_spacing", "grid_counts"), ("grid_counts", "grid_spacing")):
                     if v.get(a) is not None and b not in v:
                         sub.pop(b, None)
-            out[k] = _merge(sub, v)
+            _merge_into(sub, v)
         else:
             out[k] = copy.deepcopy(v)
-    return out
 
 
 def make_config(system: str, preset: str | None = "large", overrides: dict | None = None,
@@ -1376,8 +1366,6 @@ def make_config(system: str, preset: str | None = "large", overrides: dict | Non
     >>> cfg.cegis.iterations, cfg.preset, cfg["cegis"]["iterations"]
     (1, 'fast', 1)
     """
-    import systems
-
     if not isinstance(system, str):
         raise ConfigError(f"system must be a name (str), got {system!r}")
     s = systems.get(system)  # UnknownNameError listing the catalogue
@@ -1387,10 +1375,10 @@ def make_config(system: str, preset: str | None = "large", overrides: dict | Non
         if not s.nu:
             cfg["controller_scale"] = None
         # a new system's settings come from its boxes, then from its spec file's [run] table
-        cfg = _merge(cfg, systems.default_run_settings(s))
+        _merge_into(cfg, systems.default_run_settings(s))
         if getattr(s, "run_overrides", None):
             _check_keys(s.run_overrides, f"system {system!r} [run]")
-            cfg = _merge(cfg, s.run_overrides)
+            _merge_into(cfg, s.run_overrides)
     elif system not in PRESETS:
         raise UnknownNameError(
             f"no preset for system {system!r} (presets exist for {', '.join(PRESETS)}); "
@@ -1421,7 +1409,7 @@ def make_config(system: str, preset: str | None = "large", overrides: dict | Non
             if over.get(k) is not None and want is not None and over[k] != want:
                 raise ConfigError(f"{where}: is for {k} {over[k]!r}, not {want!r}; fix its "
                                   f"{k!r} key or drop it")
-        cfg = _merge(cfg, over)
+        _merge_into(cfg, over)
     if file is not None and overrides is not None:
         where = f"config {file} with overrides"
     cfg["system"], cfg["preset"] = system, preset

@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import dataclass, field
+from enum import Enum
 from pathlib import Path
 
 import numpy as np
@@ -47,10 +48,22 @@ from .error_models import BoundsResult, compute_bounds, write_bounds
 from .errors import ConfigError
 from .network import Network
 
-__all__ = ["DynamicsStage", "dynamics_stage", "eta_advice", "eta_limit_linear", "STATUSES"]
+__all__ = ["DynamicsStage", "GateStatus", "dynamics_stage", "eta_advice", "eta_limit_linear",
+           "STATUSES"]
+
+
+class GateStatus(str, Enum):
+    """Outcome of the η gate of :func:`dynamics_stage` (``bounds.json``'s ``gate.status``)."""
+
+    OK = "ok"
+    ETA_TOO_LARGE = "eta_too_large"
+
+    def __str__(self) -> str:
+        return self.value
+
 
 #: the statuses of :class:`DynamicsStage`
-STATUSES = ("ok", "eta_too_large")
+STATUSES = tuple(s.value for s in GateStatus)
 
 
 @dataclass
@@ -68,7 +81,7 @@ class DynamicsStage:
         Every η option; ``bounds.eta`` is the one used.
     seconds : dict
         Wall time per part (reported only).
-    status : str
+    status : GateStatus
         ``"ok"`` or ``"eta_too_large"`` (η above ``eta_target`` after ``eta_rounds``
         refinement rounds).
     advice : str
@@ -88,7 +101,7 @@ class DynamicsStage:
     alpha: AlphaResult
     bounds: BoundsResult
     seconds: dict
-    status: str
+    status: GateStatus
     advice: str
     eta_target: float | None
     rounds: int
@@ -102,7 +115,7 @@ class DynamicsStage:
 
     @property
     def ok(self) -> bool:
-        return self.status == "ok"
+        return self.status is GateStatus.OK
 
     def gate(self) -> dict:
         """The gate's record (written into ``bounds.json`` under ``"gate"``)."""
@@ -172,9 +185,9 @@ def dynamics_stage(system, dcfg: DynamicsConfig | dict | None = None, log=print
         if bounds.eta < best[1].eta:
             best = (res, bounds)
     res, bounds = best
-    status, advice = "ok", ""
+    status, advice = GateStatus.OK, ""
     if target is not None and bounds.eta > target:
-        status, advice = "eta_too_large", eta_advice(system, cfg, res, bounds)
+        status, advice = GateStatus.ETA_TOO_LARGE, eta_advice(system, cfg, res, bounds)
         log(f"[dynamics] stopped: {advice}")
     seconds = dict(res.seconds)
     seconds["bounds"] = bounds.seconds.get("bounds", 0.0)

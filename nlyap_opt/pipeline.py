@@ -36,28 +36,43 @@ import hashlib
 import json
 import os
 import time
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
+from types import MappingProxyType, SimpleNamespace
 from typing import Any
 
 import numpy as np
+
+import systems as _systems
+from verification import closed_loop_problem
 
 from .cegis import CegisConfig, cegis
 from .certificate import (
     CertStatus,
     RoaCertificate,
     RoaProblem,
+    certify_roa,
     certify_with_inner_search,
     save_certificate,
     sha256_file,
     write_json_atomic,
 )
-from .configs import RunConfig
+from .configs import RunConfig, check_dynamics_box, domain_of, validate_config
+from .control import lqr, quadratic_lyapunov, saturated_controller
+from .dynamics_stage import GateStatus, dynamics_stage, eta_limit_linear
 from .errors import ConfigError, NlyapError
 from .jsonio import load_with_timings, save_timings, split_timings
 from .learning import TrainConfig, quadratic_start, sos_start
 from .network import Network
+from .parallel import DEFAULT_CONNECT_TIMEOUT, client_workers, dask_client, verifying_on
+from .parallel import check as parallel_check
+from .polynomial import Polynomial
 from .provenance import fingerprint
+from .quadratic import certify_quadratics, closed_loop_matrix
+from .report import status_line, write_report
+from .roa import TRUE_ROA_TIME, axis_count, grid_area, grid_points, true_roa_mask
+from .sos import SOSConfig, certify_sos
 
 __all__ = ["run", "RunResult", "RunLockedError"]
 
@@ -126,14 +141,136 @@ _STAGE_FILES = {
 }
 
 
-def _write_stage_json(path: Path, data: dict) -> dict:
+def _write_stage_json(path: Path, data: dict) -> None:
     """A stage file: hashed, so its wall-clock timings go to ``timings.json`` beside it
-    (the same input then gives the same bytes). Returns ``data`` (the fresh record, with
-    its timings) for the caller to use in memory."""
+    (the same input then gives the same bytes)."""
     clean, timings = split_timings(data)
     write_json_atomic(path, clean)
     save_timings(path, timings)
-    return data
+
+
+def _record_error(path: Path, err: Exception) -> ConfigError:
+    return ConfigError(f"{path} cannot be read ({err}); delete it and rerun (its stage is "
+                       "recomputed)")
+
+
+@dataclass(frozen=True)
+class _CegisRecord:
+    """The CEGIS stage's record (``cegis.json``; its timings in ``timings.json``).
+
+    Attributes
+    ----------
+    status : CertStatus
+        What CEGIS certified (the certificate stage verifies the saved V again).
+    reason : str
+    level : float
+        The level CEGIS certified (0 when none).
+    margin, M, smoothing, area_in_ball
+        The margin, the bound M, the smoothing of the pointwise margin and the share of
+        the ball inside the level set, as CEGIS reported them.
+    history : list
+        One entry per CEGIS iteration.
+    seconds : float or None
+        Wall-clock seconds of the stage (``None`` when its timings file is gone).
+    """
+
+    status: CertStatus
+    reason: str
+    level: float
+    margin: Any
+    M: Any
+    smoothing: Any
+    area_in_ball: Any
+    history: list
+    seconds: float | None = None
+
+    def to_json(self) -> dict:
+        """The content of ``cegis.json`` (with its timings)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["status"] = self.status.value
+        return out
+
+    @classmethod
+    def load(cls, path: Path) -> _CegisRecord:
+        """The record saved at ``path`` (its timings put back), its content checked."""
+        data = load_with_timings(path)
+        try:
+            if not isinstance(data, dict):
+                raise ValueError("not a JSON object")
+            return cls(**{**{f.name: data[f.name] for f in fields(cls) if f.name != "seconds"},
+                          "status": CertStatus(data["status"]),
+                          "seconds": data.get("seconds")})
+        except (KeyError, TypeError, ValueError) as err:
+            raise _record_error(path, err) from None
+
+
+@dataclass(frozen=True)
+class _CheapRecord:
+    """A certified cheap certificate (quadratic or SOS) as its stage saved it: what CEGIS
+    may start at and what the certificate stage verifies again.
+
+    Attributes
+    ----------
+    kind : str
+        ``"quadratic"`` or ``"sos"``.
+    label : str
+        How messages name it (``"quadratic round"``, ``"SOS degree 4"``).
+    file : str
+        Its V's file in the output directory.
+    level, inner, volume : float
+        The certified level, its inner radius ε and the certified volume on the evaluation
+        grid.
+    verify_options : Mapping
+        The verifier options it was proved with.
+    name : str
+        The quadratic candidate's name (``""`` for SOS).
+    P : list or None
+        The quadratic candidate's matrix (``None`` for SOS).
+    """
+
+    kind: str
+    label: str
+    file: str
+    level: float
+    inner: float
+    volume: float
+    verify_options: Mapping
+    name: str = ""
+    P: list | None = None
+
+    def to_json(self) -> dict:
+        """The SOS stage's ``best`` record in ``sos.json``."""
+        return {"kind": self.kind, "label": self.label, "file": self.file,
+                "level": self.level, "inner": self.inner, "volume": self.volume,
+                "verify_options": dict(self.verify_options)}
+
+    @classmethod
+    def of_stage(cls, kind: str, best: Mapping | None, path: Path) -> _CheapRecord | None:
+        """The record of a ``kind`` stage's ``best`` (``quadratic.json``: the winning
+        candidate's record; ``sos.json``: :meth:`to_json`), ``None`` when none was
+        certified; ``path`` names the file in an error."""
+        if best is None:
+            return None
+        try:
+            if kind == "quadratic":
+                return cls(kind, f"quadratic {best['name']}", "V_quadratic.json",
+                           best["level"], best["inner"], best["volume"],
+                           best.get("verify_options") or {}, str(best["name"]), best["P"])
+            return cls(best["kind"], best["label"], best["file"], best["level"],
+                       best["inner"], best["volume"], best.get("verify_options") or {})
+        except (KeyError, TypeError, AttributeError) as err:
+            raise _record_error(path, err) from None
+
+    @classmethod
+    def load(cls, kind: str, path: Path) -> _CheapRecord | None:
+        """The ``best`` record of the stage file ``path`` (see :meth:`of_stage`)."""
+        try:
+            data = json.loads(path.read_text())
+            if not isinstance(data, dict):
+                raise ValueError("not a JSON object")
+        except (OSError, ValueError) as err:
+            raise _record_error(path, err) from None
+        return cls.of_stage(kind, data.get("best"), path)
 
 
 class _Stages:
@@ -165,7 +302,7 @@ class _Stages:
         return self.cfg.view(_STAGE_FIELDS[stage])
 
     def key(self, stage: str, *deps) -> str:
-        return _hash([stage, self.system, self.known, self.view(stage).declared(),
+        return _hash([stage, self.system, self.known, dict(self.view(stage).declared()),
                       [self.done.get(d, {}).get("files") for d in deps]])
 
     def finished(self, stage: str, *deps) -> bool:
@@ -278,10 +415,6 @@ def run(system, cfg: RunConfig | dict, out: str | Path, *, known_dynamics: bool 
     -------
     RunResult
     """
-    import systems as _systems
-
-    from .configs import check_dynamics_box, validate_config
-
     system = _systems.get(system) if isinstance(system, str) else system
     if system.name in _systems.names():   # a hand-built dict gets the CLI's checks too
         validate_config(cfg, system.name)
@@ -300,8 +433,6 @@ def _client(workers, scheduler, log, connect_timeout=None):
     if workers is None and scheduler is None:
         yield None
         return
-    from .parallel import DEFAULT_CONNECT_TIMEOUT, client_workers, dask_client
-
     with dask_client(workers, scheduler,
                      connect_timeout=connect_timeout or DEFAULT_CONNECT_TIMEOUT) as client:
         log(f"[dask] certificate checks on {client_workers(client)} workers")
@@ -312,8 +443,6 @@ def _run(system, cfg: RunConfig, out: Path, known_dynamics: bool, log,
          client=None) -> RunResult:
     """The stages in order (each loads its finished files or computes them), then the
     certificate stage."""
-    from .configs import domain_of
-
     _check_setting(system, cfg, known_dynamics)
     region = cfg.view(_REGION)
     D, XI = domain_of(region, system.nx)
@@ -394,8 +523,6 @@ class _Context:
 def _dynamics_stage(ctx: _Context, seconds: dict) -> RunResult | None:
     """Stage 1: φ and η (learned, or loaded); ``None``, or the result of a run the η gate
     stopped."""
-    from .dynamics_stage import dynamics_stage
-
     system, out, log = ctx.system, ctx.out, ctx.log
     if not ctx.stages.finished("dynamics"):
         t = time.perf_counter()
@@ -410,7 +537,7 @@ def _dynamics_stage(ctx: _Context, seconds: dict) -> RunResult | None:
     bounds = ctx.bounds = load_with_timings(out / "bounds.json")
     ctx.eta = eta = float(bounds["eta"])
     gate = bounds.get("gate") or {}
-    if gate.get("status", "ok") != "ok":
+    if _gate_status(gate, out / "bounds.json") is not GateStatus.OK:
         reason = f"η = {eta:.4g} above eta_target {gate.get('eta_target')}: " \
             f"{gate.get('advice', '')}"
         log(f"[done] status: not certified (dynamics stage): {reason}")
@@ -436,10 +563,16 @@ def _dynamics_stage(ctx: _Context, seconds: dict) -> RunResult | None:
     return None
 
 
+def _gate_status(gate: Mapping, path: Path) -> GateStatus:
+    """The η gate's status in the record ``gate`` of ``path`` (passed when not recorded)."""
+    try:
+        return GateStatus(gate.get("status", GateStatus.OK.value))
+    except (AttributeError, ValueError) as err:
+        raise _record_error(path, err) from None
+
+
 def _controller_stage(ctx: _Context) -> Network | None:
     """Stage 2: the saturated LQR controller (``None`` for a system without inputs)."""
-    from .control import lqr, saturated_controller
-
     system = ctx.system
     if not system.nu:
         return None
@@ -457,7 +590,8 @@ def _controller_stage(ctx: _Context) -> Network | None:
     return Network.load(ctx.out / "controller_init.json")
 
 
-def _cegis_stage(ctx: _Context, starts: dict, seconds: dict) -> dict:
+def _cegis_stage(ctx: _Context, starts: Mapping[str, _CheapRecord | None],
+                 seconds: dict) -> _CegisRecord:
     """Stage 4: V and κ by CEGIS; returns the ``cegis.json`` record (fresh, or loaded)."""
     view = ctx.stages.view("cegis")
     train = TrainConfig(**view.train.to_json())
@@ -465,7 +599,7 @@ def _cegis_stage(ctx: _Context, starts: dict, seconds: dict) -> dict:
     deps = ("dynamics", "controller") + ((train.init,) if train.init != "random" else ())
     out = ctx.out
     if ctx.stages.finished("cegis", *deps):
-        return load_with_timings(out / "cegis.json")
+        return _CegisRecord.load(out / "cegis.json")
     t = time.perf_counter()
     V0 = _start_V(ctx, train, starts.get(train.init))
     D, XI, r, eps = ctx.region(view)
@@ -478,24 +612,23 @@ def _cegis_stage(ctx: _Context, starts: dict, seconds: dict) -> dict:
             + (f" with η = {ctx.eta:.3g}" if ctx.eta else " (true f)"))
     cheap = [c for c in starts.values() if c is not None]
     if cheap:
-        best = max(cheap, key=lambda c: c["volume"])
-        ctx.log(f"[cegis] the certificate to beat: {best['label']}, volume "
-                f"{best['volume']:.4g} on the evaluation grid")
+        best = max(cheap, key=lambda c: c.volume)
+        ctx.log(f"[cegis] the certificate to beat: {best.label}, volume "
+                f"{best.volume:.4g} on the evaluation grid")
     res = cegis(ctx.system, ctx.controller, ctx.dynamics, ccfg, eta=ctx.eta,
                 dynamics_box=ctx.dyn_box, input_box=ctx.input_box, log=ctx.log, V0=V0)
     res.V.save(out / "V.json")
     if res.controller is not None:
         res.controller.save(out / "controller.json")
-    rec = _write_stage_json(out / "cegis.json", {
-        "status": res.status.value, "reason": res.reason, "level": res.level,
-        "margin": res.margin, "M": res.M, "smoothing": res.smoothing,
-        "area_in_ball": res.area, "history": res.history, "seconds": res.seconds})
+    rec = _CegisRecord(res.status, res.reason, res.level, res.margin, res.M, res.smoothing,
+                       res.area, res.history, res.seconds)
+    _write_stage_json(out / "cegis.json", rec.to_json())
     seconds["cegis"] = time.perf_counter() - t
     ctx.stages.mark("cegis", *deps)
     return rec
 
 
-def _start_V(ctx: _Context, train: TrainConfig, start: dict | None):
+def _start_V(ctx: _Context, train: TrainConfig, start: _CheapRecord | None):
     """The V that CEGIS starts at (``train.init``): the cheap certificate ``start`` as a
     network, or ``None`` (random)."""
     if start is None:
@@ -504,66 +637,64 @@ def _start_V(ctx: _Context, train: TrainConfig, start: dict | None):
         return None
     V0 = None
     if train.init == "quadratic":
-        V0 = quadratic_start(np.asarray(start["P"], dtype=float), float(start["level"]), train)
+        V0 = quadratic_start(np.asarray(start.P, dtype=float), float(start.level), train)
     else:
         try:
-            V0 = sos_start(_cheap_V(ctx.out, start), float(start["level"]), train)
+            V0 = sos_start(_cheap_V(ctx.out, start), float(start.level), train)
         except ConfigError:
             raise
         except ValueError as err:   # no Gram matrix found: a start, not a claim
-            ctx.log(f"[cegis] V cannot start at the {start['label']} ({err}): V starts "
+            ctx.log(f"[cegis] V cannot start at the {start.label} ({err}): V starts "
                     "at random")
     if V0 is not None:
-        ctx.log(f"[cegis] V starts at the {start['label']}: level 1 of V = its certified "
-                f"set (level {float(start['level']):.6g})")
+        ctx.log(f"[cegis] V starts at the {start.label}: level 1 of V = its certified "
+                f"set (level {float(start.level):.6g})")
     return V0
 
 
-def _certificate_stage(ctx: _Context, cfg: RunConfig, cg: dict, cheap: list, seconds: dict,
-                       client) -> RunResult:
+def _certificate_stage(ctx: _Context, cfg: RunConfig, cg: _CegisRecord,
+                       cheap: list[_CheapRecord], seconds: dict, client) -> RunResult:
     """Stage 5 (always run): the saved V, κ (and φ) verified again at the saved level, the
     saved cheap certificates too, the best one written as ``certificate.json``."""
-    from .parallel import verifying_on
-    from .report import write_report
-
     system, out, log = ctx.system, ctx.out, ctx.log
     t = time.perf_counter()
     V = Network.load(out / "V.json")
     controller = Network.load(out / "controller.json") if ctx.controller is not None else None
     mode = cfg.cegis.margin_mode
-    problem = ctx.problem(cfg, V, controller, smoothing=float(cg.get("smoothing", 0.0))
+    problem = ctx.problem(cfg, V, controller, smoothing=float(cg.smoothing)
                           if mode == "pointwise" else None)
-    claimed = cg["status"] == CertStatus.CERTIFIED.value and float(cg["level"]) > 0
+    claimed = cg.status is CertStatus.CERTIFIED and float(cg.level) > 0
     if claimed:
         log(f"[certificate] verifying the saved V{', κ' if controller else ''}"
-            f"{', φ' if ctx.dynamics else ''} at the saved level {float(cg['level']):.6g}")
+            f"{', φ' if ctx.dynamics else ''} at the saved level {float(cg.level):.6g}")
     else:
-        log(f"[certificate] CEGIS certified no level ({cg.get('reason') or cg['status']}); "
+        log(f"[certificate] CEGIS certified no level ({cg.reason or cg.status.value}); "
             "trying the last V with other inner radii")
     # the saved level at the configured ε first (exact re-verification); other radii only
     # if that is refused (the same V and κ; no retraining)
     with verifying_on(client):   # client None: serial
-        cert = certify_with_inner_search(problem, float(cg["level"]) if claimed else None,
+        cert = certify_with_inner_search(problem, float(cg.level) if claimed else None,
                                          log=lambda m: log("  " + m))
         cert, problem, files, compared = _best_certificate(
             system, cfg, out, cert, problem, cheap, log)
-        extra = _areas_and_checks(system, cfg, cert, problem, out, log)
+        extra = _areas_and_checks(system, cfg, cert, problem, out, log).to_json()
         if compared:
             extra["candidates"] = compared
     seconds["certificate"] = time.perf_counter() - t
-    extra["seconds"] = _save_seconds(out, seconds)
+    extra["seconds"] = dict(_save_seconds(out, seconds))
     if ctx.bounds is not None:
         extra["dynamics_bound"] = {k: ctx.bounds.get(k) for k in
                                    ("eta", "alpha", "delta", "K_f", "K_phi", "bound_model")}
     path = save_certificate(cert, problem, out, extra, files=files)
     summary = json.loads(path.read_text())
-    write_report(out, system, cfg, summary, ctx.bounds, cg)
+    write_report(out, system, cfg, summary, ctx.bounds, cg.to_json())
     _log_done(log, cert, summary, out)
     return RunResult(cert, cert.status, summary, out, cert.reason)
 
 
-def _save_seconds(out: Path, seconds: dict) -> dict:
-    """``seconds.json``: this call's stage timings over those of earlier calls."""
+def _save_seconds(out: Path, seconds: Mapping[str, float]) -> Mapping[str, float]:
+    """``seconds.json``: this call's stage timings over those of earlier calls (returned
+    read-only)."""
     sec_file = out / "seconds.json"
     prev = {}
     if sec_file.exists():
@@ -573,12 +704,10 @@ def _save_seconds(out: Path, seconds: dict) -> dict:
             prev = {}
     prev.update(seconds)
     write_json_atomic(sec_file, prev)
-    return prev
+    return MappingProxyType(prev)
 
 
 def _log_done(log, cert: RoaCertificate, summary: dict, out: Path) -> None:
-    from .report import status_line
-
     if cert.certified and summary["true_roa_area"] is None:
         log(f"[done] status: {status_line(summary)}; certified area "
             f"{summary['certified_area']:.4g} (true ROA not available); see {out / 'report.md'}")
@@ -608,11 +737,6 @@ def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, a
     :data:`INNER_MARGIN_FACTOR` times that. Only the radius changes: every condition is
     verified as configured, at the radius used (and recorded in the certificate).
     """
-    from types import SimpleNamespace
-
-    from .dynamics_stage import eta_limit_linear
-    from .quadratic import closed_loop_matrix
-
     try:
         A = closed_loop_matrix(SimpleNamespace(system=system, controller=controller,
                                                dynamics=dynamics))
@@ -640,82 +764,69 @@ def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, a
 
 def _eval_grid(system, cfg: RunConfig) -> tuple[np.ndarray, int]:
     """Box and nodes per axis of the evaluation grid (``cfg`` declares :data:`_EVAL`)."""
-    from .roa import axis_count
-
     return np.asarray(cfg.eval_box, dtype=float), axis_count(int(cfg.eval_points), system.nx)
 
 
-def _cheap_stage_problem(ctx: _Context, view: RunConfig) -> tuple[RoaProblem, dict]:
+def _cheap_stage_problem(ctx: _Context, view: RunConfig) -> RoaProblem:
     """The run's problem for the cheap certificates under the initial controller (its V a
-    placeholder that each candidate replaces) and the verifier options they are proved
-    with (the run's ``cegis.verify_options``, saved with each record)."""
-    from .control import quadratic_lyapunov
-
-    opts = view.cegis.verify_options.to_json()
-    return ctx.problem(view, quadratic_lyapunov(np.eye(ctx.system.nx)), ctx.controller,
-                       verify_options=opts), opts
+    placeholder that each candidate replaces); its ``verify_options`` (the run's
+    ``cegis.verify_options``) are those they are proved with, saved with each record."""
+    return ctx.problem(view, quadratic_lyapunov(np.eye(ctx.system.nx)), ctx.controller)
 
 
-def _quadratic_stage(ctx: _Context) -> dict | None:
+def _quadratic_stage(ctx: _Context) -> _CheapRecord | None:
     """Stage 3: the quadratic candidates of ``quadratic``; returns the best certified
     one's record (``quadratic.json``'s ``best``) or ``None``."""
     view = ctx.stages.view("quadratic")
     names = list(view.quadratic or [])
     if not names:
         return None
-    from .control import quadratic_lyapunov
-    from .quadratic import certify_quadratics
-
     deps = ("dynamics", "controller")
     out, log = ctx.out, ctx.log
     if ctx.stages.finished("quadratic", *deps):
-        best = json.loads((out / "quadratic.json").read_text()).get("best")
+        return _CheapRecord.load("quadratic", out / "quadratic.json")
     else:
         t = time.perf_counter()
         log(f"[quadratic] certifying V = xᵀPx under the initial controller: "
             f"{', '.join(names)}")
         box, n = _eval_grid(ctx.system, view)
-        problem, opts = _cheap_stage_problem(ctx, view)
+        problem = _cheap_stage_problem(ctx, view)
+        opts = dict(problem.verify_options)
         found = certify_quadratics(problem, names, box=box, n=n, log=log)
         ok = [c for c in found if c.certified]
         win = max(ok, key=lambda c: c.volume) if ok else None
         (out / "V_quadratic.json").unlink(missing_ok=True)
         if win is not None:
             quadratic_lyapunov(win.P).save(out / "V_quadratic.json")
-        best = _write_stage_json(out / "quadratic.json", {
-            "candidates": [c.to_json() for c in found],
-            "best": None if win is None else dict(win.to_json(), verify_options=opts),
-            "seconds": time.perf_counter() - t})["best"]
+        best = None if win is None else dict(win.to_json(), verify_options=opts)
+        _write_stage_json(out / "quadratic.json", {
+            "candidates": [c.to_json() for c in found], "best": best,
+            "seconds": time.perf_counter() - t})
         ctx.stages.mark("quadratic", *deps)
         log(f"[quadratic] {'best: ' + win.name if win else 'none certified'} "
             f"({time.perf_counter() - t:.1f} s)")
-    return None if best is None else dict(best, kind="quadratic", label=f"quadratic {best['name']}",
-                                          file="V_quadratic.json")
+    return _CheapRecord.of_stage("quadratic", best, out / "quadratic.json")
 
 
-def _sos_stage(ctx: _Context) -> dict | None:
+def _sos_stage(ctx: _Context) -> _CheapRecord | None:
     """Stage 3b: the SOS candidate of ``sos`` (:func:`nlyap_opt.sos.certify_sos`);
     returns its record (``sos.json``'s ``best``) when certified, else ``None``."""
-    from .sos import SOSConfig
-
     view = ctx.stages.view("sos")
     sc = SOSConfig(**view.sos.to_json())
     if not sc.degree:
         return None
     deps = ("dynamics", "controller")
     if ctx.stages.finished("sos", *deps):
-        return json.loads((ctx.out / "sos.json").read_text()).get("best")
+        return _CheapRecord.load("sos", ctx.out / "sos.json")
     return _sos_compute(ctx, view, sc, deps)
 
 
-def _sos_compute(ctx: _Context, view: RunConfig, sc, deps: tuple) -> dict | None:
-    from .sos import certify_sos
-
+def _sos_compute(ctx: _Context, view: RunConfig, sc, deps: tuple) -> _CheapRecord | None:
     out, log = ctx.out, ctx.log
     t = time.perf_counter()
     log(f"[sos] SOS V of degree {sc.degree} under the initial controller "
         f"({sc.iterations} V-s rounds per degree at most)")
-    problem, opts = _cheap_stage_problem(ctx, view)
+    problem = _cheap_stage_problem(ctx, view)
     res = certify_sos(problem, sc, log=log)
     box, n = _eval_grid(ctx.system, view)
     vol = res.area(box, n) if res.certified else 0.0
@@ -723,15 +834,16 @@ def _sos_compute(ctx: _Context, view: RunConfig, sc, deps: tuple) -> dict | None
     best = None
     if res.certified:
         write_json_atomic(out / "V_sos.json", res.V.as_json())
-        best = {"kind": "sos", "label": f"SOS degree {res.degree}", "file": "V_sos.json",
-                "level": res.certified_level, "inner": res.inner, "volume": vol,
-                "verify_options": opts}
+        best = _CheapRecord("sos", f"SOS degree {res.degree}", "V_sos.json",
+                            res.certified_level, res.inner, vol,
+                            dict(problem.verify_options))
     _write_stage_json(out / "sos.json", {
         "degree": sc.degree, "V_degree": res.degree, "status": res.text,
         "sdp_level": res.sdp_level,
         "level": res.certified_level, "inner": res.inner, "volume": vol,
         "history": res.history, "notes": res.notes,
-        "non_polynomial": dict(res.non_polynomial), "best": best,
+        "non_polynomial": dict(res.non_polynomial),
+        "best": None if best is None else best.to_json(),
         "seconds": time.perf_counter() - t})
     ctx.stages.mark("sos", *deps)
     for note in res.notes:
@@ -742,31 +854,27 @@ def _sos_compute(ctx: _Context, view: RunConfig, sc, deps: tuple) -> dict | None
     return best
 
 
-def _cheap_V(out: Path, rec: dict):
+def _cheap_V(out: Path, rec: _CheapRecord):
     """The V of a saved cheap certificate (the file's hash was checked by its stage; its
     content is parsed, not trusted)."""
-    if rec["kind"] == "quadratic":
-        V = Network.load(out / rec["file"])
+    if rec.kind == "quadratic":
+        V = Network.load(out / rec.file)
     else:
-        from .polynomial import Polynomial
-
         try:
-            V = Polynomial.from_json(json.loads((out / rec["file"]).read_text()))
+            V = Polynomial.from_json(json.loads((out / rec.file).read_text()))
         except ValueError as err:
-            raise ConfigError(f"{out / rec['file']} cannot be read ({err}); delete it and "
+            raise ConfigError(f"{out / rec.file} cannot be read ({err}); delete it and "
                               "rerun (the SOS stage is recomputed)") from None
     return V
 
 
-def _cheap_problem(system, out: Path, problem: RoaProblem, rec: dict) -> RoaProblem:
+def _cheap_problem(system, out: Path, problem: RoaProblem, rec: _CheapRecord) -> RoaProblem:
     """The problem of a saved cheap certificate: its V file, the initial controller, its ε
     and verifier options."""
-    from dataclasses import replace
-
     V = _cheap_V(out, rec)
     ctrl0 = Network.load(out / "controller_init.json") if system.nu else None
-    return replace(problem, V=V, controller=ctrl0, inner=float(rec["inner"]), smoothing=None,
-                   verify_options=dict(rec.get("verify_options") or {}))
+    return replace(problem, V=V, controller=ctrl0, inner=float(rec.inner), smoothing=None,
+                   verify_options=dict(rec.verify_options))
 
 
 def _best_certificate(system, cfg, out: Path, cert, problem, cheap: list, log):
@@ -778,8 +886,6 @@ def _best_certificate(system, cfg, out: Path, cert, problem, cheap: list, log):
     names of :func:`save_certificate` and the table of every candidate (``[]`` without a
     cheap certificate).
     """
-    from .certificate import certify_roa
-
     if not cheap:
         return cert, problem, None, []
     box, n = _eval_grid(system, cfg)
@@ -792,11 +898,11 @@ def _best_certificate(system, cfg, out: Path, cert, problem, cheap: list, log):
     best = (vol_n if cert.certified else -1.0, cert, problem, None, compared[0])
     for rec in cheap:
         pc = _cheap_problem(system, out, problem, rec)
-        log(f"[certificate] verifying the saved {rec['label']} ({rec['file']}) at its saved "
-            f"level {float(rec['level']):.6g}, ε = {float(rec['inner']):g}")
-        c = certify_roa(pc, float(rec["level"]), log=lambda m: log("  " + m))
+        log(f"[certificate] verifying the saved {rec.label} ({rec.file}) at its saved "
+            f"level {float(rec.level):.6g}, ε = {float(rec.inner):g}")
+        c = certify_roa(pc, float(rec.level), log=lambda m: log("  " + m))
         vol = c.area(box, n) if c.certified else 0.0
-        row = {"V": f"{rec['label']} ({rec['file']})",
+        row = {"V": f"{rec.label} ({rec.file})",
                "controller": "controller_init.json" if system.nu else None,
                "status": c.status.value, "reason": c.reason, "level": c.level,
                "inner": c.inner, "certified_volume": vol, "winner": False}
@@ -805,16 +911,16 @@ def _best_certificate(system, cfg, out: Path, cert, problem, cheap: list, log):
             best = (vol, c, pc, rec, row)
     _, win, wp, rec, row = best
     row["winner"] = True
-    log(f"[certificate] best certificate: {'neural' if rec is None else rec['label']} ("
+    log(f"[certificate] best certificate: {'neural' if rec is None else rec.label} ("
         + "; ".join(f"{r['V']} {r['status']} {r['certified_volume']:.4g}" for r in compared)
         + ")")
     if rec is None:
         return cert, problem, None, compared
-    if rec["kind"] == "quadratic":
-        what = f"the quadratic xᵀPx ({rec['name']} candidate, {rec['file']})"
-        files = {"V": rec["file"], "controller": "controller_init.json"}
+    if rec.kind == "quadratic":
+        what = f"the quadratic xᵀPx ({rec.name} candidate, {rec.file})"
+        files = {"V": rec.file, "controller": "controller_init.json"}
     else:
-        what = f"the {rec['label']} polynomial ({rec['file']}; saved as V.casadi)"
+        what = f"the {rec.label} polynomial ({rec.file}; saved as V.casadi)"
         files = {"controller": "controller_init.json"}
     win.assumptions.append(
         f"the certified V is {what} under the initial controller"
@@ -823,15 +929,31 @@ def _best_certificate(system, cfg, out: Path, cert, problem, cheap: list, log):
     return win, wp, files, compared
 
 
+@dataclass(frozen=True)
+class _Areas:
+    """Certified and true-ROA areas on the evaluation grid, and the check of the same V
+    and κ against the true f (``certificate.json``'s entries of the same names)."""
+
+    certified_area: float
+    true_roa_area: float | None
+    true_roa_undecided: float | None
+    fraction_of_true_roa: float | None
+    certified_points_converge_in_simulation: bool | None
+    not_available: list[str]
+    true_dynamics_check: Mapping | None
+    eval_box: list
+    eval_grid: int
+    eval_points: int
+
+    def to_json(self) -> dict:
+        """The entries, in the order ``certificate.json`` writes them."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
 def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, out: Path,
-                      log) -> dict:
+                      log) -> _Areas:
     """Certified and true-ROA areas on the evaluation grid; the same V and κ against the
     true f (a benchmark, not part of a learned-f certificate)."""
-    from verification import closed_loop_problem
-
-    from .parallel import check as verify
-    from .roa import TRUE_ROA_TIME, grid_area, grid_points, true_roa_mask
-
     box, n = _eval_grid(system, cfg)   # n: nodes per axis
     pts, shape = grid_points(box, n)
     omega = cert.contains(pts).reshape(shape)
@@ -890,23 +1012,23 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         prob = closed_loop_problem(system, problem.V, controller, None, inner=problem.inner,
                                    domain=problem.domain, level=cert.level, margin=0.0,
                                    strict=False, check_positive=False)
-        res = verify(prob)
+        res = parallel_check(prob)
         true_check = {"decrease_true_f": res.status,
                       "inner_ball_true_f": cert.inner_ellipse.status, "seconds": res.seconds}
         log(f"[certificate] same V, κ against the true f: decrease {res.status}, "
             f"inner ball {cert.inner_ellipse.status}")
     simulated = not any(a.startswith("true ROA") for a in not_available)
-    return {
-        "certified_area": cert_area,
-        "true_roa_area": true_area if simulated else None,
-        "true_roa_undecided": open_share if simulated else None,
-        "fraction_of_true_roa": (cert_area / true_area if true_area else 0.0) if simulated
+    return _Areas(
+        certified_area=cert_area,
+        true_roa_area=true_area if simulated else None,
+        true_roa_undecided=open_share if simulated else None,
+        fraction_of_true_roa=(cert_area / true_area if true_area else 0.0) if simulated
         else None,
-        "certified_points_converge_in_simulation":
-            bool(np.all(true_mask[omega]) if omega.any() else True) if simulated else None,
-        "not_available": not_available,
-        "true_dynamics_check": true_check,
-        "eval_box": box.tolist(),
-        "eval_grid": n,
-        "eval_points": int(cfg.eval_points),
-    }
+        certified_points_converge_in_simulation=bool(np.all(true_mask[omega])
+                                                     if omega.any() else True)
+        if simulated else None,
+        not_available=not_available,
+        true_dynamics_check=true_check,
+        eval_box=box.tolist(),
+        eval_grid=n,
+        eval_points=int(cfg.eval_points))

@@ -129,15 +129,15 @@ class PortfolioResult:
         }
 
 
-def seed_config(cfg, seed: int) -> dict:
-    """A copy of the run configuration ``cfg`` (a ``RunConfig`` or its JSON) with
-    ``train.seed = cegis.seed = seed``, as JSON."""
+def seed_config(cfg, seed: int) -> RunConfig:
+    """The run configuration ``cfg`` (a ``RunConfig`` or its JSON) with
+    ``train.seed = cegis.seed = seed`` (``cfg`` is left as it is)."""
     out = cfg.to_json() if isinstance(cfg, Section) else copy.deepcopy(cfg)
     for section in ("train", "cegis"):
         sec = out.get(section)
         out[section] = dict(sec) if isinstance(sec, dict) else {}
         out[section]["seed"] = int(seed)
-    return out
+    return RunConfig.from_json(out)
 
 
 def _check_seeds(seeds) -> list[int]:
@@ -160,7 +160,7 @@ def _check_seeds(seeds) -> list[int]:
     return out
 
 
-def _run_seed(system: str, cfg: dict, out: str, known_dynamics: bool,
+def _run_seed(system: str, cfg: RunConfig, out: str, known_dynamics: bool,
               spec: str | None, seed: int) -> SeedRun:
     """Worker side: one pipeline run, its log in ``out/run.log``; its summary back.
 

@@ -183,12 +183,13 @@ def _tripwire(monkeypatch):
     import baselines.compare
 
     monkeypatch.setattr(baselines.compare, "compare", boom)
-    try:
-        import nlyap_opt.dynamics_stage
+    import nlyap_opt.cli_dynamics
+    import nlyap_opt.dynamics_stage
 
-        monkeypatch.setattr(nlyap_opt.dynamics_stage, "dynamics_stage", boom)
-    except ImportError:  # pragma: no cover - older layout
-        pass
+    # every module that binds the φ stage by name (bound at import, so each is patched)
+    for mod in (nlyap_opt.dynamics_stage, nlyap_opt.pipeline, nlyap_opt.cli_dynamics):
+        if callable(getattr(mod, "dynamics_stage", None)):
+            monkeypatch.setattr(mod, "dynamics_stage", boom)
 
 
 VERIFY = ["verify", "--system", "van_der_pol", "--lyapunov", "{V}"]

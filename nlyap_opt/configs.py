@@ -250,7 +250,7 @@ PRESETS["inverted_pendulum"]["large"]["cegis"]["iterations"] = 8
 DEFAULT_TRAIN: dict = {
     "hidden": [20, 20], "features": 6, "steps": 3000, "lr": 0.01, "lr_schedule": "cosine",
     "decay": 0.0, "level_slack": 0.5, "relative_decrease": True, "w_fit": 10.0,
-    "w_pde": 2.5, "w_local": 10.0, "fit_domain": True,
+    "w_pde": 2.5, "w_local": 10.0, "fit_domain": True, "w_outside": 10.0,
 }
 #: CEGIS of the default method: the verifier every third iteration and the last; training
 #: states near the model's ROA boundary; simulations on a table of φ (learned f, <= 3-D)

@@ -8,10 +8,11 @@ Each case is run as a user would, with default settings: ``nlyap run SPEC
 catalogue system (its preset is not used). Prints one Markdown row per run (status, the
 certified share of the simulated true ROA within the domain; the share of that true ROA
 whose trajectories never leave the domain, which bounds every certificate in it; wall
-seconds and the run's CPU seconds) with the command, the machine and its load average. The run is single-threaded
-but for NumPy's BLAS outside the φ fit, so on a machine shared with other jobs its CPU
-seconds are close to the wall seconds it takes on an idle one, while its wall seconds grow
-with the load. The peers' shares are LyZNet's published ones on the same boxes.
+seconds and the run's CPU seconds) with the command, the machine and its load average.
+The run is single-threaded but for NumPy's BLAS outside the φ fit, so on a machine shared
+with other jobs its CPU seconds are close to the wall seconds it takes on an idle one,
+while its wall seconds grow with the load. The peers' shares are LyZNet's published ones
+on the same boxes.
 """
 
 from __future__ import annotations

@@ -208,7 +208,9 @@ def test_catalogue_van_der_pol_box_lying_mostly_in_the_roa(tmp_path):
     assert cert["status"] == "certified" and cert["certified_points_converge_in_simulation"]
     s, D = systems.get("van_der_pol"), Box(cert["domain"]["box"])
     pts, _ = grid_points(np.asarray(cert["eval_box"]), cert["eval_grid"])
-    rhs = (lambda z: s.evaluate(z, None))
+    def rhs(z):
+        return s.evaluate(z, None)
+
     roa = simulate(rhs, pts, 60.0, 0.02, 1e-3)[0]
     stays = simulate(rhs, pts, 60.0, 0.02, 1e-3, stay=D.contains)[0]
     ceiling = stays.sum() / roa.sum()
@@ -253,7 +255,9 @@ def test_simulation_inside_the_domain_counts_only_states_that_never_leave_it():
     x1 = np.exp(-0.2 * t)[None] * (c[None] * X[:, :1] + s[None] * X[:, 1:])
     x2 = np.exp(-0.2 * t)[None] * (-s[None] * X[:, :1] + c[None] * X[:, 1:])
     excess = np.maximum(np.abs(x1) - 1.0, np.abs(x2) - 0.5).max(axis=1)  # > 0: leaves D
-    rhs = (lambda x: x @ A.T)
+    def rhs(x):
+        return x @ A.T
+
     conv, cost, peak = simulate(rhs, X, t_final=50.0, dt=0.02, tol=1e-3, track=D.gauge)
     conv_in, cost_in = simulate(rhs, X, t_final=50.0, dt=0.02, tol=1e-3, stay=D.contains)
     assert conv.all()                                       # the origin attracts every state

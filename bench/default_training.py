@@ -6,8 +6,13 @@ Usage: python bench/default_training.py [--cases vdp3,power,...] [--settings kno
 Each case is run as a user would, with default settings: ``nlyap run SPEC
 [--known-dynamics] --out DIR`` for a spec file, ``nlyap run NAME --preset default`` for a
 catalogue system (its preset is not used). Prints one Markdown row per run (status, the
-certified share of the simulated true ROA within the domain, wall seconds) with the command
-and the machine. The peers' shares are LyZNet's published ones on the same boxes.
+certified share of the simulated true ROA within the domain; the share of that true ROA
+whose trajectories never leave the domain, which bounds every certificate in it; wall
+seconds and the run's CPU seconds) with the command, the machine and its load average.
+The run is single-threaded but for NumPy's BLAS outside the φ fit, so on a machine shared
+with other jobs its CPU seconds are close to the wall seconds it takes on an idle one,
+while its wall seconds grow with the load. The peers' shares are LyZNet's published ones
+on the same boxes.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import subprocess
 import sys
 import tempfile
@@ -40,20 +46,53 @@ def _machine() -> str:
             f"{os.cpu_count()} CPUs, Python {platform.python_version()}")
 
 
-def run_case(target: str, known: bool, out: Path) -> tuple[list[str], dict, float]:
-    """``nlyap run`` of one case; returns the command, certificate.json and wall seconds."""
+def run_case(target: str, known: bool, out: Path) -> tuple[list[str], dict, float, float]:
+    """``nlyap run`` of one case; returns the command, certificate.json, wall seconds and
+    the CPU seconds (user + system) of the run."""
     cmd = [sys.executable, "-m", "nlyap_opt.cli", "run", target, "--out", str(out)]
     if not target.endswith(".toml"):
         cmd += ["--preset", "default"]
     if known:
         cmd.append("--known-dynamics")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     subprocess.run(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                    check=False)
     seconds = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     path = out / "certificate.json"
     cert = json.loads(path.read_text()) if path.exists() else {"status": "failed"}
-    return cmd, cert, seconds
+    return cmd, cert, seconds, cpu
+
+
+def stay_share(target: str, out: Path, cert: dict) -> float | None:
+    """The share of the simulated true ROA within D whose trajectories never leave D, under
+    the run's controller: no certificate in D can hold more (a certified set lies in D and
+    is forward invariant). ``None`` when the run wrote no certificate."""
+    import numpy as np
+
+    import systems
+    from nlyap_opt.domain import parse_set
+    from nlyap_opt.network import Network
+    from nlyap_opt.roa import grid_points
+    from nlyap_opt.simulate import simulate
+
+    if cert.get("status") != "certified" or cert.get("domain") is None:
+        return None
+    s = systems.load_spec(ROOT / target) if target.endswith(".toml") else systems.get(target)
+    D = parse_set(cert["domain"], s.nx, "domain")
+    ctrl = out / "controller.json"
+    kappa = Network.load(ctrl) if ctrl.exists() else None
+    pts, _ = grid_points(np.asarray(cert["eval_box"], dtype=float), cert["eval_grid"])
+
+    def rhs(z):
+        return s.evaluate(z, None if kappa is None else kappa.numpy(z))
+
+    inside = D.contains(pts)
+    conv = simulate(rhs, pts, 60.0, 0.02, 1e-3)[0] & inside
+    stays = simulate(rhs, pts, 60.0, 0.02, 1e-3, stay=D.contains)[0] & inside
+    return float(stays.sum() / max(conv.sum(), 1))
 
 
 def main() -> None:
@@ -63,14 +102,16 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="keep the runs here (default: a temp dir)")
     args = ap.parse_args()
     base = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="nlyap_default_"))
-    print(f"machine: {_machine()}")
-    print("| case | f | status | share % | peer % | seconds | command |")
-    print("|---|---|---|---|---|---|---|")
+    print(f"machine: {_machine()}; load average {os.getloadavg()[0]:.1f} at the start")
+    print("| case | f | status | share % | stays in D % | peer % | wall s | CPU s | load | "
+          "command |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name in args.cases.split(","):
         target, peer = CASES[name]
         for setting in args.settings.split(","):
             known = setting == "known"
-            cmd, cert, sec = run_case(target, known, base / f"{name}_{setting}")
+            cmd, cert, sec, cpu = run_case(target, known, base / f"{name}_{setting}")
+            bound = stay_share(target, base / f"{name}_{setting}", cert)
             share = cert.get("fraction_of_true_roa")
             shown = "–" if share is None or cert["status"] != "certified" else \
                 f"{100 * share:.1f}"
@@ -78,7 +119,9 @@ def main() -> None:
                                                         in cmd else "") + \
                 (" --known-dynamics" if known else "")
             print(f"| {name} | {'true' if known else 'learned'} | {cert['status']} | "
-                  f"{shown} | {'' if peer is None else peer} | {sec:.0f} | `{command}` |",
+                  f"{shown} | {'–' if bound is None else f'{100 * bound:.1f}'} | "
+                  f"{'' if peer is None else peer} | {sec:.0f} | {cpu:.0f} | "
+                  f"{os.getloadavg()[1]:.1f} | `{command}` |",
                   flush=True)
 
 

@@ -60,6 +60,10 @@ class CegisConfig:
     # a training state 'converges' once ‖x‖ < sim_tol within sim_time (raise it, up to the
     # inner radius, for an origin that attracts slowly: x' = -x³ takes 5000 s to 0.01)
     sim_tol: float = 1e-2
+    # a training state whose simulated trajectory leaves the domain D counts as not
+    # converging (target at its cap): a certified sublevel set lies in D and is forward
+    # invariant, so it holds only states that reach the origin without leaving D
+    sim_in_domain: bool = False
     # learned dynamics: "pointwise" verifies ∇V·φ + η‖∇V(x)‖ < 0 (Cauchy–Schwarz: implies
     # ∇V·f < 0 wherever ‖f − φ‖ ≤ η); "global" verifies the paper's ∇V·φ < −β, β = M·η
     margin_mode: str = "pointwise"
@@ -204,8 +208,13 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
     """Simulate the training states under the model: ``(X, weights, targets, rates)``, the
     states (more around the model's ROA boundary when fitting), the pull of ``V ≤ 1`` on
     each and the trajectory-cost targets (``None`` without ``w_fit``)."""
-    conv, cost = simulate(rhs_np, X, t_final=cfg.sim_time, dt=cfg.sim_dt, tol=cfg.sim_tol)
-    log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model")
+    stay = D.contains if cfg.sim_in_domain else None
+    # fit_domain: the largest gauge of D along each simulated trajectory (see below)
+    track = D.gauge if cfg.train.w_fit and cfg.train.fit_domain else None
+    conv, cost, *peak = simulate(rhs_np, X, t_final=cfg.sim_time, dt=cfg.sim_dt,
+                                 tol=cfg.sim_tol, stay=stay, track=track)
+    log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model"
+        + (" without leaving the domain" if stay is not None else ""))
     weights = conv.astype(float)
     targets, rates = None, None
     tc = cfg.train
@@ -219,12 +228,18 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
                 extra = near[rng.integers(0, len(near), cfg.boundary_samples)]
                 extra = extra + 0.03 * scale * rng.standard_normal(extra.shape)
                 extra = extra[D.contains(extra)]
-                c2, w2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=cfg.sim_dt,
-                                  tol=cfg.sim_tol)
+                c2, w2, *p2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=cfg.sim_dt,
+                                       tol=cfg.sim_tol, stay=stay, track=track)
                 X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
+                peak = [np.r_[peak[0], p2[0]]] if peak else peak
         targets, rates = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)
-        if tc.fit_domain:   # containment (b): the target rises to 1 + s on ∂D
-            rim = (1.0 + tc.level_slack) * D.gauge(X) ** DOMAIN_TARGET_POWER
+        if tc.fit_domain:
+            # containment (b): the target rises to 1 + s where the trajectory from x reaches
+            # ∂D. h(x), the largest gauge of D along it (1 on ∂D), is non-increasing along
+            # trajectories, so the lifted target keeps the decrease law's direction, and
+            # its sublevel sets below 1 + s hold only states whose trajectories stay in D
+            rim = np.minimum((1.0 + tc.level_slack) * peak[0] ** DOMAIN_TARGET_POWER,
+                             tc.fit_cap)
             lift = rim > targets
             targets, rates = np.where(lift, rim, targets), np.where(lift, 0.0, rates)
         weights = (conv & (cost <= w_c)).astype(float)

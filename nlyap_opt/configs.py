@@ -265,13 +265,14 @@ PRESETS["inverted_pendulum"]["large"]["cegis"]["iterations"] = 8
 DEFAULT_TRAIN: dict = {
     "hidden": [20, 20], "features": 6, "steps": 3000, "lr": 0.01, "lr_schedule": "cosine",
     "decay": 0.0, "level_slack": 0.5, "relative_decrease": True, "w_fit": 10.0,
-    "w_pde": 2.5, "w_local": 10.0, "fit_domain": True,
+    "w_pde": 2.5, "w_local": 10.0, "fit_domain": True, "w_outside": 10.0,
 }
 #: CEGIS of the default method: the verifier every third iteration and the last; training
 #: states near the model's ROA boundary; simulations on a table of φ (learned f, <= 3-D)
 DEFAULT_CEGIS: dict = {
     "iterations": 6, "steps": 1000, "verify_every": 3, "sim_time": 30.0, "sim_dt": 0.04,
     "sim_points": 90601, "inner_samples": 2000, "boundary_samples": 20000,
+    "sim_in_domain": True,
 }
 
 #: the base of ``make_config(name, preset=None, ...)`` for a system without a preset; the
@@ -498,6 +499,9 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
                       "(0: evaluate the network)",
         "sim_time": "simulated horizon of the training states (convergence, cost)",
         "sim_tol": "a training state converges once ‖x‖ < sim_tol within sim_time",
+        "sim_in_domain": "a training state whose simulated trajectory leaves the domain "
+                         "counts as not converging (a certified set lies in D and is "
+                         "invariant)",
         "margin_mode": "learned f: pointwise verifies ∇V·φ + η‖∇_L V‖ < 0; global the "
                        "paper's ∇V·φ < −β, β = M·η",
         "norm_smoothing": "pointwise mode: s = norm_smoothing·M in sqrt(‖∇_L V‖² + s²) "

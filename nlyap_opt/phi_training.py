@@ -72,7 +72,20 @@ def train_component(zn, y, H, cfg: DynamicsConfig, seed, progress, history, desc
 
 
 def polish(zn, y, H, cfg: DynamicsConfig, theta, bar, history, desc, t_start):
-    """Levenberg–Marquardt, then Lawson minimax rounds; the weights with the least max error."""
+    """Levenberg–Marquardt, then Lawson minimax rounds; the weights with the least max error.
+
+    NumPy's BLAS runs with ``cfg.threads`` threads here (restored on return), like torch:
+    the normal equations JᵀJ are the whole cost, and BLAS threads that spin while other
+    processes hold the cores made each iteration two to four times slower on a shared
+    machine.
+    """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=cfg.threads, user_api="blas"):
+        return _polish(zn, y, H, cfg, theta, bar, history, desc, t_start)
+
+
+def _polish(zn, y, H, cfg: DynamicsConfig, theta, bar, history, desc, t_start):
     lm = LevenbergMarquardt(zn, y, H, cfg.lm_ridge)
     theta = lm.run(theta, cfg.lm_iterations, None, bar, history, desc, "lm", t_start)
     weights = np.ones(zn.shape[0])

@@ -21,12 +21,24 @@ def rk4_step(rhs: Callable[[np.ndarray], np.ndarray], x: np.ndarray, dt: float) 
 def simulate(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
              dt: float = 0.02, tol: float = 1e-3, blow_up: float = 1e6,
              target: Callable[[np.ndarray], np.ndarray] | None = None,
-             return_undecided: bool = False) -> tuple[np.ndarray, ...]:
+             return_undecided: bool = False,
+             stay: Callable[[np.ndarray], np.ndarray] | None = None,
+             track: Callable[[np.ndarray], np.ndarray] | None = None
+             ) -> tuple[np.ndarray, ...]:
     r"""Integrate ``x' = rhs(x)`` from every row of ``x0`` at once.
 
     ``target`` (optional, batch of states → bool) marks a set known to lie in the region of
     attraction, e.g. a certified quadratic sublevel set: a state that enters it counts as
     converged there (slowly converging closed loops then need far fewer steps).
+
+    ``stay`` (optional, batch of states → bool) marks a set the trajectory must not leave: a
+    state whose trajectory leaves it stops there and does not count as converged. Then
+    ``converged`` marks the states that reach the origin *without leaving* the set, the only
+    ones a sublevel set inside that set can hold (it must be forward invariant).
+
+    ``track`` (optional, batch of states → float) is a function whose largest value along
+    each trajectory is returned (``peak``), e.g. a domain's gauge: the largest gauge
+    reached from ``x₀`` on is non-increasing along trajectories.
 
     Returns
     -------
@@ -41,11 +53,15 @@ def simulate(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
     undecided : (N,) bool, only with ``return_undecided``
         Neither converged nor left ``blow_up`` within ``t_final``: the horizon was too short
         to tell (a slow approach to the origin, or a bounded non-converging orbit).
+    peak : (N,) float, only with ``track``
+        The largest ``track(x(t))`` from ``t = 0`` until the state converged, stopped or
+        ``t_final`` (after ``undecided`` when both are asked for).
     """
     x = np.array(x0, dtype=float)
     done = np.zeros(len(x), bool)
     alive = np.ones(len(x), bool)
     cost = np.zeros(len(x))
+    peak = None if track is None else np.array(track(x), dtype=float)
     with np.errstate(all="ignore"):
         for _ in range(int(np.ceil(t_final / dt))):
             idx = np.nonzero(alive)[0]
@@ -55,16 +71,19 @@ def simulate(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
             z = rk4_step(rhs, z0, dt)
             x[idx] = z
             cost[idx] += 0.5 * dt * (np.einsum("ij,ij->i", z0, z0) + np.einsum("ij,ij->i", z, z))
+            if peak is not None:
+                peak[idx] = np.fmax(peak[idx], track(z))
             conv = np.linalg.norm(z, axis=1) < tol
             if target is not None:
                 conv |= target(z)
             blow = ~np.all(np.isfinite(z), axis=1) | (np.max(np.abs(z), axis=1) > blow_up)
+            if stay is not None:
+                blow |= ~conv & ~stay(z)
             done[idx[conv]] = True
             alive[idx[conv | blow]] = False
     cost[~np.isfinite(cost)] = np.inf
-    if return_undecided:
-        return done, cost, alive & ~done
-    return done, cost
+    out = (done, cost) + ((alive & ~done,) if return_undecided else ())
+    return out + ((peak,) if peak is not None else ())
 
 
 def simulate_converges(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,

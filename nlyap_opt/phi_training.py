@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
+from threadpoolctl import threadpool_limits
 
 from . import deps
 from .dynamics_config import DynamicsConfig
@@ -79,8 +80,6 @@ def polish(zn, y, H, cfg: DynamicsConfig, theta, bar, history, desc, t_start):
     processes hold the cores made each iteration two to four times slower on a shared
     machine.
     """
-    from threadpoolctl import threadpool_limits
-
     with threadpool_limits(limits=cfg.threads, user_api="blas"):
         return _polish(zn, y, H, cfg, theta, bar, history, desc, t_start)
 

@@ -15,7 +15,11 @@ Candidates (:data:`QUADRATIC_CANDIDATES`, a registry of ``A_cl -> P or None``):
 - ``"round"``: the Lyapunov matrix of smallest condition number
   (:func:`nlyap_opt.control.round_lyapunov_matrix`); a round ``P`` keeps its sublevel sets
   away from the thin directions of a badly conditioned one (cartpole: condition number 60
-  against 328, a certified volume about 45 times that of the LQR ``P``).
+  against 328, a certified volume about 45 times that of the LQR ``P``);
+- ``"volume"``: the Lyapunov matrix (same decay rate) whose ellipsoid in the unit ball is
+  largest (:func:`nlyap_opt.control.volume_lyapunov_matrix`): only the directions the
+  linearisation pins stay thin (cartpole, true f: certified volume 0.45, three times the
+  round ``P``'s; planar quadrotor: see ``docs/topics/high_dimension.md``).
 
 The quadratic's inner radius is ``inner_fraction`` times the run's ``ε``. With the true f
 the default is 1/4, as the ``nlyap compare`` LQR rows: a quadratic ``V`` needs no large
@@ -62,8 +66,15 @@ def _round(A_cl):
     return round_lyapunov_matrix(A_cl)
 
 
+def _volume(A_cl):
+    from .control import volume_lyapunov_matrix
+
+    return volume_lyapunov_matrix(A_cl)
+
+
 #: name -> ``A_cl -> P`` (``None``: no candidate); the names a configuration may list
-QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": _lyapunov, "round": _round}
+QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": _lyapunov, "round": _round,
+                                             "volume": _volume}
 
 #: the ε of the quadratic certificates, as a fraction of the run's ``inner``: true f, learned φ
 INNER_FRACTION = 0.25

@@ -257,3 +257,47 @@ def test_closed_loop_matrix_without_a_controller(name):
     np.testing.assert_allclose(A, fd, atol=1e-6)
     cl = closed_loop(s, None, x=ca.SX.sym("x", s.nx))
     assert isinstance(cl.u, ca.SX) and isinstance(cl.rhs, ca.SX)
+
+
+# --------------------------------------------------------------------- the volume candidate
+def _lmi_ok(A, P, alpha, tol=1e-6):
+    S = A.T @ P + P @ A + 2 * alpha * P
+    return np.linalg.eigvalsh(0.5 * (S + S.T))[-1] <= tol * np.linalg.eigvalsh(P)[-1]
+
+
+def test_volume_matrix_of_a_symmetric_loop_is_the_ball():
+    """``A_cl = −diag(1, 2, 3)``: every ``P ⪰ I`` with ``P = I`` satisfies the decay LMI, and
+    ``det P ≥ 1`` on ``P ⪰ I`` with equality only at ``I``: the optimum is the unit ball."""
+    from nlyap_opt.control import volume_lyapunov_matrix
+
+    P = volume_lyapunov_matrix(-np.diag([1.0, 2.0, 3.0]))
+    np.testing.assert_allclose(P, np.eye(3), atol=1e-5)
+    assert volume_lyapunov_matrix(np.diag([-1.0, 0.5])) is None      # not Hurwitz
+
+
+@pytest.mark.parametrize("seed", [1, 4, 10])   # non-normal: the round P is not I
+def test_volume_matrix_is_feasible_larger_than_round_and_locally_optimal(seed):
+    """On random Hurwitz matrices: ``P ⪰ I`` and the decay LMI hold, the ellipsoid
+    ``{xᵀPx ≤ 1}`` is at least as large as the round matrix's (scaled into the unit ball),
+    and no feasible perturbation of ``P`` found by sampling has a smaller ``log det``."""
+    from nlyap_opt.control import round_lyapunov_matrix, volume_lyapunov_matrix
+
+    rng = np.random.default_rng(seed)
+    n = 3
+    A = rng.normal(size=(n, n))
+    A -= (np.max(np.linalg.eigvals(A).real) + 0.5) * np.eye(n)
+    alpha = 0.1 * -np.max(np.linalg.eigvals(A).real)
+    P = volume_lyapunov_matrix(A)
+    assert np.linalg.eigvalsh(P)[0] >= 1 - 1e-6
+    assert _lmi_ok(A, P, alpha)
+    R = round_lyapunov_matrix(A)
+    R = R / np.linalg.eigvalsh(R)[0]
+    ld = np.linalg.slogdet(P)[1]
+    assert ld < np.linalg.slogdet(R)[1] - 0.02      # the descent moved (R is a start)
+    better = 0
+    for _ in range(3000):
+        D = rng.normal(size=(n, n))
+        Q = P + 1e-3 * (D + D.T)
+        if np.linalg.eigvalsh(Q)[0] >= 1 and _lmi_ok(A, Q, alpha, tol=0.0):
+            better += np.linalg.slogdet(Q)[1] < ld - 1e-6
+    assert better == 0

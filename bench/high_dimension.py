@@ -89,7 +89,7 @@ def main(argv=None) -> None:
         s, ctrl, A, cfg = loop(name)
         eps = 0.25 * cfg["inner"]
         for cand in a.candidates:
-            P = QUADRATIC_CANDIDATES[cand](A)
+            P = QUADRATIC_CANDIDATES[cand](A, True)
             c = sampled_level(s, ctrl, P, inner=eps, samples=a.samples)
             row = [name, cand, f"{np.linalg.cond(P):.3g}", f"{c:.4g}", f"{_volume(P, c):.4g}"]
             if a.certify:

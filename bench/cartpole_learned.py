@@ -1,4 +1,5 @@
-"""The cartpole with learned f: the round quadratic certified on a run's φ.
+"""The cartpole with learned f: a quadratic candidate (default the round one) certified on a
+run's φ.
 
 Reads the dynamics and controller stages of a run of ``nlyap run cartpole --preset large``
 (learned f: ``dynamics.json``, ``bounds.json`` with ``η``, ``controller_init.json``; the
@@ -16,7 +17,7 @@ to ``--out`` (default ``RUN/round_certificate``) and re-checked by
 
     nlyap run cartpole --preset large --out runs/cp_learned      # φ, η, κ (its first stages)
     python bench/cartpole_learned.py --run runs/cp_learned [--workers 2] [--delta 0.02]
-                                     [--no-inner-check]
+                                     [--no-inner-check] [--candidate round|volume|lyapunov]
 
 Measured (2-core machine, 2 workers, the large preset's φ with η = 0.00413, ε = 0.1,
 ``--delta 0.02``, level 0.6105): **certified**; (a) and (b) in 2,427,470 boxes, (c) on the
@@ -39,15 +40,18 @@ import numpy as np
 import systems
 from nlyap_opt.certificate import RoaProblem, certify_roa, save_certificate
 from nlyap_opt.configs import domain_of, make_config
-from nlyap_opt.control import quadratic_lyapunov, round_lyapunov_matrix
+from nlyap_opt.control import quadratic_lyapunov
 from nlyap_opt.network import Network
 from nlyap_opt.parallel import dask_client, verifying_on
-from nlyap_opt.quadratic import closed_loop_matrix
+from nlyap_opt.quadratic import QUADRATIC_CANDIDATES, closed_loop_matrix
 from nlyap_opt.roa import INNER_LEVEL_MARGIN
 
 
-def learned_problem(run: Path, max_boxes: int) -> tuple[RoaProblem, np.ndarray]:
-    """(problem with the round quadratic V, P) from the run directory's φ, η and κ."""
+def learned_problem(run: Path, max_boxes: int, candidate: str = "round"
+                    ) -> tuple[RoaProblem, np.ndarray]:
+    """(problem with the quadratic V of ``candidate``, P) from the run directory's φ, η and
+    κ; ``candidate`` a key of :data:`nlyap_opt.quadratic.QUADRATIC_CANDIDATES` (its
+    learned-dynamics matrix)."""
     s = systems.get("cartpole")
     cfg = make_config("cartpole", "large")
     missing = [f for f in ("dynamics.json", "bounds.json", "controller_init.json")
@@ -63,9 +67,9 @@ def learned_problem(run: Path, max_boxes: int) -> tuple[RoaProblem, np.ndarray]:
                       domain=domain_of(cfg, s.nx)[0], eta=float(bounds["eta"]),
                       dynamics_box=grid[:s.nx], input_box=grid[s.nx:],
                       verify_options=dict(cfg["cegis"]["verify_options"], max_boxes=max_boxes))
-    P = round_lyapunov_matrix(closed_loop_matrix(base))
+    P = QUADRATIC_CANDIDATES[candidate](closed_loop_matrix(base), False)
     if P is None:
-        raise SystemExit("no round Lyapunov matrix for the learned closed loop (SDP failed)")
+        raise SystemExit(f"no {candidate} matrix for the learned closed loop (SDP failed)")
     return replace(base, V=quadratic_lyapunov(P)), P
 
 
@@ -76,12 +80,14 @@ def main(argv=None) -> None:
     ap.add_argument("--delta", type=float, default=INNER_LEVEL_MARGIN,
                     help="level = (1 + delta)·λ_max(P)·ε²")
     ap.add_argument("--max-boxes", type=int, default=5_000_000)
+    ap.add_argument("--candidate", choices=list(QUADRATIC_CANDIDATES), default="round",
+                    help="the quadratic candidate's P (default round)")
     ap.add_argument("--out", type=Path,
-                    help="certificate directory (default RUN/round_certificate)")
+                    help="certificate directory (default RUN/CANDIDATE_certificate)")
     ap.add_argument("--no-inner-check", action="store_true",
                     help="prove (a) and (b) only; the certificate then says (c) was not checked")
     args = ap.parse_args(argv)
-    problem, P = learned_problem(args.run, args.max_boxes)
+    problem, P = learned_problem(args.run, args.max_boxes, args.candidate)
     lam = np.linalg.eigvalsh(P)
     level = (1.0 + args.delta) * lam[-1] * problem.inner**2
     print(f"η = {problem.eta:.6g}, ε = {problem.inner:g}, eig P = {np.round(lam, 3).tolist()}, "
@@ -91,7 +97,7 @@ def main(argv=None) -> None:
         cert = certify_roa(problem, level, search=False, log=print,
                            check_inner_ellipse=not args.no_inner_check)
     seconds = time.perf_counter() - t
-    out = args.out or args.run / "round_certificate"
+    out = args.out or args.run / f"{args.candidate}_certificate"
     save_certificate(cert, problem, out, extra={"seconds": seconds, "workers": args.workers})
     print(f"{cert.status.value}: {cert.reason} ({seconds:.1f} s on {args.workers} workers)")
     for name, verdict in cert.checks.items():

@@ -23,7 +23,7 @@ from .symbolic import learned_rhs
 
 __all__ = [
     "InnerStatus", "LQRResult", "ellipse_candidates", "verdict_of", "lqr", "linearisation",
-    "lyapunov_matrix", "round_lyapunov_matrix", "saturated_controller",
+    "lyapunov_matrix", "round_lyapunov_matrix", "saturated_controller", "volume_lyapunov_matrix",
     "linear_controller",
     "quadratic_lyapunov",
 ]
@@ -182,6 +182,63 @@ def round_lyapunov_matrix(A_cl, decay_fraction: float = 0.1) -> np.ndarray | Non
         if np.all(np.isfinite(Pv)) and np.linalg.eigvalsh(Pv)[0] > 0:
             return Pv
     return None
+
+
+def volume_lyapunov_matrix(A_cl, decay_fraction: float = 0.1, *, rounds: int = 40,
+                           tol: float = 1e-7) -> np.ndarray | None:
+    r"""The Lyapunov matrix of ``A_cl`` whose ellipsoid inside the unit ball is largest.
+
+    Among the ``P`` with :math:`P \succeq I` (the ellipsoid :math:`\{x^\top P x \le 1\}`
+    lies in the unit ball) and :math:`A_{cl}^\top P + P A_{cl} \preceq -2\alpha P` (the
+    decay rate ``α`` of :func:`round_lyapunov_matrix`), the one of least
+    :math:`\log\det P`, i.e. of largest volume :math:`\mathrm{vol}(B)/\sqrt{\det P}`.
+    :math:`\log\det` is concave, so each round minimises its tangent
+    :math:`\mathrm{tr}(P_k^{-1} P)` (majorisation-minimisation): :math:`\log\det P_k`
+    never increases, from the round matrix until it changes by less than ``tol``.
+
+    The round matrix makes the ellipsoid's *axes* alike; the whole ball is a better guide:
+    a quadratic V's certified set must lie in the domain, and only the directions the decay
+    LMI pins need be thin (cartpole LQR loop: ellipsoid volume 0.47 in the unit ball
+    against 0.155 for the round matrix; planar quadrotor 0.37 against 0.0022).
+
+    Only a candidate: the certificate proves the decrease of ``xᵀPx`` on the nonlinear loop
+    at a verified level. Returns ``None`` when ``A_cl`` is not Hurwitz or no SDP solver
+    succeeds.
+    """
+    cp = deps.cvxpy()
+
+    P = round_lyapunov_matrix(A_cl, decay_fraction)
+    if P is None:
+        return None
+    A_cl = np.asarray(A_cl, dtype=float)
+    n = A_cl.shape[0]
+    alpha = decay_fraction * -float(np.max(np.linalg.eigvals(A_cl).real))
+    P = P / np.linalg.eigvalsh(P)[0]
+    logdet = np.linalg.slogdet(P)[1]
+    installed = set(cp.installed_solvers())
+    for _ in range(rounds):
+        X = cp.Variable((n, n), symmetric=True)
+        cons = [X >> np.eye(n), A_cl.T @ X + X @ A_cl + 2 * alpha * X << 0]
+        prob = cp.Problem(cp.Minimize(cp.trace(np.linalg.inv(P) @ X)), cons)
+        new = None
+        for solver in [s for s in ("CLARABEL", "SCS") if s in installed]:
+            try:
+                prob.solve(solver=solver)
+            except Exception:  # a failed solve only ends the descent
+                continue
+            if X.value is not None and np.all(np.isfinite(X.value)):
+                new = 0.5 * (X.value + X.value.T)
+                break
+        if new is None or np.linalg.eigvalsh(new)[0] <= 0:
+            break
+        new_logdet = np.linalg.slogdet(new)[1]
+        if not new_logdet < logdet:
+            break
+        P, done = new, logdet - new_logdet < tol
+        logdet = new_logdet
+        if done:
+            break
+    return P
 
 
 def ellipse_candidates(A_cl):

@@ -7,6 +7,10 @@ each system (learned f unless --known), alternating the two modes, and prints th
 time of each with the machine's numeric-environment fingerprint, plus whether the networks
 (V.json, dynamics.json) of the portable runs are identical whatever the shell's
 OPENBLAS_CORETYPE (the portable pins override it).
+
+Measured (2-core AMD EPYC with AVX-512, load about 1.5, ``--repeat 2``): Van der Pol 7.9 s
+plain / 8.5 s portable (1.08x), path following 12.9 / 13.3 s (1.03x), pendulum 12.1 / 14.9 s
+(1.23x); portable networks identical under SkylakeX/Haswell/Zen for all three.
 """
 
 from __future__ import annotations

@@ -36,10 +36,10 @@ Examples
 >>> cfg = make_config("van_der_pol", "fast", overrides={"train": {"steps": 50}})
 >>> cfg.train.steps, cfg.outer, cfg.cegis.margin_mode
 (50, 1.0, 'pointwise')
->>> make_config("van_der_pol", "fast", overrides={"train": {"stpes": 50}})
+>>> make_config("van_der_pol", "fast", overrides={"train": {"stpes": 50}})  # doctest: +ELLIPSIS
 Traceback (most recent call last):
 ...
-nlyap_opt.errors.ConfigError: run config: unknown key 'train.stpes'; did you mean 'train.steps'?
+nlyap_opt...ConfigError: run config: unknown key 'train.stpes'; did you mean 'train.steps'?
 """
 
 from __future__ import annotations

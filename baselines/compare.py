@@ -20,20 +20,25 @@ from pathlib import Path
 import numpy as np
 
 import systems
-from nlyap_opt import deps
-from nlyap_opt.certificate import (
+from nlyap_opt.candidates.quadratic import quadratic_policy
+from nlyap_opt.certification.certificate import (
     RoaCertificate,
     RoaProblem,
     certify_candidate,
     recheck_certificate,
     save_certificate,
 )
-from nlyap_opt.configs import domain_of
-from nlyap_opt.control import linear_controller, lqr, quadratic_lyapunov, saturated_controller
-from nlyap_opt.network import Network
-from nlyap_opt.pipeline import run
-from nlyap_opt.quadratic import quadratic_policy
-from nlyap_opt.roa import axis_count, grid_area, grid_points, true_roa_mask
+from nlyap_opt.certification.roa import axis_count, grid_area, grid_points, true_roa_mask
+from nlyap_opt.design.control import (
+    linear_controller,
+    lqr,
+    quadratic_lyapunov,
+    saturated_controller,
+)
+from nlyap_opt.kernel import deps
+from nlyap_opt.kernel.network import Network
+from nlyap_opt.workflow.configs import domain_of
+from nlyap_opt.workflow.pipeline import run
 
 from .sos import sos_roa
 
@@ -102,9 +107,9 @@ def quadratic_row(system, cfg: dict, V, controller, *, method: str, dynamics=Non
     """Certify ``V`` (a Network) under ``controller`` by the quadratic candidates' policy.
 
     The level and the inner radius are chosen by
-    :func:`nlyap_opt.quadratic.quadratic_policy` through
-    :func:`nlyap_opt.certificate.certify_candidate` (conditions (a), (b), (c), exactly as the
-    neural rows), so the LQR row and the pipeline's ``"lyapunov"`` quadratic certify the same
+    :func:`nlyap_opt.candidates.quadratic.quadratic_policy` through
+    :func:`nlyap_opt.certification.certificate.certify_candidate` (conditions (a), (b), (c), exactly
+    as the neural rows), so the LQR row and the pipeline's ``"lyapunov"`` quadratic certify the same
     ``P`` at the same level; with ``out`` the certificate is saved there
     (``nlyap verify --certificate OUT/certificate.json`` re-checks it).
     """

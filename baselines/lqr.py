@@ -1,6 +1,7 @@
-"""The LQR baseline uses the method's own LQR start: :mod:`nlyap_opt.control` (re-exported)."""
+"""The LQR baseline uses the method's own LQR start: :mod:`nlyap_opt.design.control`
+(re-exported)."""
 
-from nlyap_opt.control import (
+from nlyap_opt.design.control import (
     LQRResult,
     linear_controller,
     lqr,

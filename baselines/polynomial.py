@@ -1,4 +1,4 @@
-"""Exact polynomials of the SOS baseline: :mod:`nlyap_opt.polynomial` (re-exported)."""
+"""Exact polynomials of the SOS baseline: :mod:`nlyap_opt.design.polynomial` (re-exported)."""
 
-from nlyap_opt.polynomial import *  # noqa: F403
-from nlyap_opt.polynomial import __all__  # noqa: F401
+from nlyap_opt.design.polynomial import *  # noqa: F403
+from nlyap_opt.design.polynomial import __all__  # noqa: F401

@@ -1,12 +1,14 @@
-"""The SOS baseline is the method's own SOS certificate: :mod:`nlyap_opt.sos` (re-exported).
+"""The SOS baseline is the method's own SOS certificate: :mod:`nlyap_opt.candidates.sos`
+(re-exported).
 
 The SOS programs, the polynomial expansion and the re-certification live in
-:mod:`nlyap_opt.sos`, :mod:`nlyap_opt.sos_sdp` and :mod:`nlyap_opt.polynomial`, below the
-pipeline, which runs them as a cheap certificate before the neural stage (the ``sos`` key of
-the run configuration); ``nlyap compare`` lists the same result as its SOS row.
+:mod:`nlyap_opt.candidates.sos`, :mod:`nlyap_opt.design.sos_sdp` and
+:mod:`nlyap_opt.design.polynomial`, below the pipeline, which runs them as a cheap certificate
+before the neural stage (the ``sos`` key of the run configuration); ``nlyap compare`` lists the same
+result as its SOS row.
 """
 
-from nlyap_opt.sos import (
+from nlyap_opt.candidates.sos import (
     NotPolynomialError,
     Polynomial,
     SOSLevel,

@@ -4,12 +4,12 @@ run's φ.
 Reads the dynamics and controller stages of a run of ``nlyap run cartpole --preset large``
 (learned f: ``dynamics.json``, ``bounds.json`` with ``η``, ``controller_init.json``; the
 run may be stopped once its ``stages.json`` lists both stages), then proves conditions (a),
-(b), (c) for the round quadratic ``V = xᵀPx`` (:func:`nlyap_opt.control.round_lyapunov_matrix`
-of the learned closed loop's linearisation) on the learned ``φ`` with the robust decrease
-``∇V·(φ + gκ) + η‖∇V‖ < 0``, at the smallest level that holds the preset's inner ball
-(``level = (1 + δ)·λ_max(P)·ε²``): near ``B_ε`` the robust margin is thin (``η‖∇V‖``
-against ``−∇V·f``), so this is the certificate with the most room. Condition (c) is the
-paper's assumption for learned f, checked here on the true closed loop.
+(b), (c) for the round quadratic ``V = xᵀPx``
+(:func:`nlyap_opt.design.control.round_lyapunov_matrix` of the learned closed loop's linearisation)
+on the learned ``φ`` with the robust decrease ``∇V·(φ + gκ) + η‖∇V‖ < 0``, at the smallest level
+that holds the preset's inner ball (``level = (1 + δ)·λ_max(P)·ε²``): near ``B_ε`` the robust margin
+is thin (``η‖∇V‖`` against ``−∇V·f``), so this is the certificate with the most room. Condition (c)
+is the paper's assumption for learned f, checked here on the true closed loop.
 
 The checks run on a ``LocalCluster`` of ``--workers`` (default 2); the certificate is saved
 to ``--out`` (default ``RUN/round_certificate``) and re-checked by
@@ -23,8 +23,8 @@ Measured (2-core machine, 2 workers, the large preset's φ with η = 0.00413, ε
 ``--delta 0.02``, level 0.6105): **certified**; (a) and (b) in 2,427,470 boxes, (c) on the
 true closed loop by the shell form (``shell r=0.025 + frobenius``), 156 s in all;
 ``nlyap verify --certificate OUT --workers 2`` re-checks it in 146 s. ``nlyap run`` now
-takes the same level for its learned-f quadratics (:data:`nlyap_opt.roa.INNER_LEVEL_MARGIN`
-is the default ``--delta``).
+takes the same level for its learned-f quadratics
+(:data:`nlyap_opt.certification.roa.INNER_LEVEL_MARGIN` is the default ``--delta``).
 """
 
 from __future__ import annotations
@@ -38,19 +38,19 @@ from pathlib import Path
 import numpy as np
 
 import systems
-from nlyap_opt.certificate import RoaProblem, certify_roa, save_certificate
-from nlyap_opt.configs import domain_of, make_config
-from nlyap_opt.control import quadratic_lyapunov
-from nlyap_opt.network import Network
-from nlyap_opt.parallel import dask_client, verifying_on
-from nlyap_opt.quadratic import QUADRATIC_CANDIDATES, closed_loop_matrix
-from nlyap_opt.roa import INNER_LEVEL_MARGIN
+from nlyap_opt.candidates.quadratic import QUADRATIC_CANDIDATES, closed_loop_matrix
+from nlyap_opt.certification.certificate import RoaProblem, certify_roa, save_certificate
+from nlyap_opt.certification.roa import INNER_LEVEL_MARGIN
+from nlyap_opt.design.control import quadratic_lyapunov
+from nlyap_opt.distributed.parallel import dask_client, verifying_on
+from nlyap_opt.kernel.network import Network
+from nlyap_opt.workflow.configs import domain_of, make_config
 
 
 def learned_problem(run: Path, max_boxes: int, candidate: str = "round"
                     ) -> tuple[RoaProblem, np.ndarray]:
     """(problem with the quadratic V of ``candidate``, P) from the run directory's φ, η and
-    κ; ``candidate`` a key of :data:`nlyap_opt.quadratic.QUADRATIC_CANDIDATES` (its
+    κ; ``candidate`` a key of :data:`nlyap_opt.candidates.quadratic.QUADRATIC_CANDIDATES` (its
     learned-dynamics matrix)."""
     s = systems.get("cartpole")
     cfg = make_config("cartpole", "large")

@@ -15,7 +15,7 @@ import time
 
 import systems
 from baselines.compare import compare
-from nlyap_opt.configs import get_config
+from nlyap_opt.workflow.configs import get_config
 
 
 def main(argv=None):

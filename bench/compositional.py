@@ -4,8 +4,8 @@ Usage: python bench/compositional.py [--repeat 2]
 
 Runs ``nlyap run NAME --known-dynamics`` and ``nlyap verify --certificate`` as fresh
 processes for ``lyznet_10d`` (on [-1, 1]^10) and ``lyznet_chain`` (20 states), then, in
-this process, :func:`nlyap_opt.compositional.certify_compositional` for larger domains and
-longer chains. Per row: the best wall time, the status, the level ``c`` of
+this process, :func:`nlyap_opt.certification.compositional.certify_compositional` for larger domains
+and longer chains. Per row: the best wall time, the status, the level ``c`` of
 ``V = Σ w_i x_iᵀ P_i x_i``, the proved decay rate ``γ`` (``dV/dt ≤ -γ V``), the certified
 set's semi-axes along the coordinates (smallest and largest, as a fraction of the box's
 half-width) and ``log10`` of its volume over the box's.
@@ -26,7 +26,7 @@ import numpy as np
 
 
 def _cli(argv: list[str]) -> float:
-    cmd = [sys.executable, "-m", "nlyap_opt.cli", *argv]
+    cmd = [sys.executable, "-m", "nlyap_opt.interface.cli", *argv]
     t = time.perf_counter()
     p = subprocess.run(cmd, capture_output=True, text=True)
     if p.returncode not in (0, 2):
@@ -54,8 +54,8 @@ def _region(cert) -> tuple[float, float, float]:
 
 def main() -> None:
     import systems
-    from nlyap_opt.compositional import certify_compositional, recheck_compositional
-    from nlyap_opt.provenance import fingerprint, fingerprint_id
+    from nlyap_opt.certification.compositional import certify_compositional, recheck_compositional
+    from nlyap_opt.kernel.provenance import fingerprint, fingerprint_id
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=2)

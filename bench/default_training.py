@@ -49,7 +49,7 @@ def _machine() -> str:
 def run_case(target: str, known: bool, out: Path) -> tuple[list[str], dict, float, float]:
     """``nlyap run`` of one case; returns the command, certificate.json, wall seconds and
     the CPU seconds (user + system) of the run."""
-    cmd = [sys.executable, "-m", "nlyap_opt.cli", "run", target, "--out", str(out)]
+    cmd = [sys.executable, "-m", "nlyap_opt.interface.cli", "run", target, "--out", str(out)]
     if not target.endswith(".toml"):
         cmd += ["--preset", "default"]
     if known:
@@ -73,10 +73,10 @@ def stay_share(target: str, out: Path, cert: dict) -> float | None:
     import numpy as np
 
     import systems
-    from nlyap_opt.domain import parse_set
-    from nlyap_opt.network import Network
-    from nlyap_opt.roa import grid_points
-    from nlyap_opt.simulate import simulate
+    from nlyap_opt.certification.roa import grid_points
+    from nlyap_opt.kernel.domain import parse_set
+    from nlyap_opt.kernel.network import Network
+    from nlyap_opt.kernel.simulate import simulate
 
     if cert.get("status") != "certified" or cert.get("domain") is None:
         return None

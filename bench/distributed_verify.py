@@ -1,8 +1,8 @@
 """Distributed verification benchmark: measured on 1 and 2 Dask workers, modelled up to 16.
 
 Two certificate queries, each decided serially (``verification.verify``), then by
-:func:`nlyap_opt.parallel.verify_distributed` on a ``LocalCluster`` of 1 and of 2 workers,
-and by the executor hook ``verify(problem, executor=client.get_executor())`` (a fixed split
+:func:`nlyap_opt.distributed.parallel.verify_distributed` on a ``LocalCluster`` of 1 and of 2
+workers, and by the executor hook ``verify(problem, executor=client.get_executor())`` (a fixed split
 into ``n_tasks`` sub-boxes) for comparison:
 
 (A) 4-D: two coupled reversed Van der Pol oscillators, a quadratic V with a 64-neuron tanh
@@ -15,18 +15,19 @@ into ``n_tasks`` sub-boxes) for comparison:
 (D) 4-D: the certificate of ``nlyap run cartpole --preset large --known-dynamics`` (the
     round quadratic under the saturated LQR controller, conditions (a), (b), (c) at the level
     its search certifies, found first, serially, and saved), re-checked as ``nlyap verify
-    --certificate DIR [--workers W]`` does: :func:`nlyap_opt.certificate.recheck_certificate`
-    serially and inside :func:`nlyap_opt.parallel.verifying_on` (every check on the
-    cluster). ``--no-certificate`` skips it (about 3 minutes).
+    --certificate DIR [--workers W]`` does:
+    :func:`nlyap_opt.certification.certificate.recheck_certificate` serially and inside
+    :func:`nlyap_opt.distributed.parallel.verifying_on` (every check on the cluster).
+    ``--no-certificate`` skips it (about 3 minutes).
 
 Seconds are the best of ``--repeat`` runs (cluster start-up excluded). Figures are printed,
 not asserted; on a shared machine read them with the load average printed beside them.
 
 *Measured* rows (a real ``LocalCluster``) give the efficiency (speed-up per worker) on the
 worker counts this machine has. *Modelled* rows (``--model 4 8 16``) come from
-:class:`nlyap_opt.parallel.SimulatedCluster`: the same task graph that ``verify_distributed``
-builds for W workers, run task by task in this process and list-scheduled on W virtual
-workers; the cost of a task is the boxes it processed (deterministic) or its CPU seconds
+:class:`nlyap_opt.distributed.parallel.SimulatedCluster`: the same task graph that
+``verify_distributed`` builds for W workers, run task by task in this process and list-scheduled on
+W virtual workers; the cost of a task is the boxes it processed (deterministic) or its CPU seconds
 here (which include each walker pass's fixed cost). For (D) the CPU model adds the recheck's
 CPU seconds outside the tasks (loading, building the checks) to every worker count. The
 model leaves out the scheduler's latency per task (a few ms) and runs the checks of (D) one
@@ -47,13 +48,13 @@ import casadi as ca
 import numpy as np
 
 import systems
-from nlyap_opt.network import Network
-from nlyap_opt.parallel import (
+from nlyap_opt.distributed.parallel import (
     _starts_from_boxes,
     dask_client,
     model_speedups,
     verify_distributed,
 )
+from nlyap_opt.kernel.network import Network
 from verification import lyapunov_problem, verify
 
 DATA = Path(__file__).parent / "data"
@@ -80,8 +81,8 @@ def problem_4d(outer: float = 1.1, neurons: int = 16):
 
 
 def problem_vdp30():
-    from nlyap_opt.roa import candidate_level
-    from nlyap_opt.symbolic import closed_loop, lie_derivative
+    from nlyap_opt.certification.roa import candidate_level
+    from nlyap_opt.kernel.symbolic import closed_loop, lie_derivative
 
     path = DATA / "vdp_V30x30.json"
     if not path.exists():
@@ -95,13 +96,13 @@ def problem_vdp30():
 
 def cartpole_certificate():
     """(problem, level) of the cartpole large preset's certificate with the true f: the round
-    quadratic at the level :func:`nlyap_opt.quadratic.certify_quadratics` certifies."""
+    quadratic at the level :func:`nlyap_opt.candidates.quadratic.certify_quadratics` certifies."""
     from dataclasses import replace
 
-    from nlyap_opt.certificate import RoaProblem
-    from nlyap_opt.configs import domain_of, make_config
-    from nlyap_opt.control import lqr, quadratic_lyapunov, saturated_controller
-    from nlyap_opt.quadratic import certify_quadratics
+    from nlyap_opt.candidates.quadratic import certify_quadratics
+    from nlyap_opt.certification.certificate import RoaProblem
+    from nlyap_opt.design.control import lqr, quadratic_lyapunov, saturated_controller
+    from nlyap_opt.workflow.configs import domain_of, make_config
 
     s = systems.get("cartpole")
     cfg = make_config("cartpole", "large")
@@ -119,13 +120,18 @@ def cartpole_certificate():
 
 def certificate_rows(workers, repeat, model=()):
     """Seconds of ``nlyap verify --certificate`` on query (D): serial, then on clusters of
-    ``workers`` (:func:`nlyap_opt.certificate.recheck_certificate` of the saved certificate,
-    inside :func:`nlyap_opt.parallel.verifying_on` as the CLI runs it); the model on
+    ``workers`` (:func:`nlyap_opt.certification.certificate.recheck_certificate` of the saved
+    certificate, inside :func:`nlyap_opt.distributed.parallel.verifying_on` as the CLI runs it); the
+    model on
     ``model`` workers."""
     import tempfile
 
-    from nlyap_opt.certificate import certify_roa, recheck_certificate, save_certificate
-    from nlyap_opt.parallel import verifying_on
+    from nlyap_opt.certification.certificate import (
+        certify_roa,
+        recheck_certificate,
+        save_certificate,
+    )
+    from nlyap_opt.distributed.parallel import verifying_on
 
     problem, level = cartpole_certificate()
     cert = certify_roa(problem, level, log=lambda m: None)

@@ -28,8 +28,8 @@ import casadi as ca
 import numpy as np
 
 import systems
-from nlyap_opt.network import Network
-from nlyap_opt.walker import compile_function, evaluate
+from nlyap_opt.kernel.network import Network
+from nlyap_opt.kernel.walker import compile_function, evaluate
 from verification import closed_loop_problem
 from verification.formula import Formula, FormulaArithmetic, TermTable, build_formula
 
@@ -143,7 +143,7 @@ def queries():
     phi = Network.load(DATA / "vdp_phi_200.json")
     x = ca.MX.sym("x", 2)
     grad = ca.Function("g", [x], [ca.gradient(V6.casadi(x), x)])
-    from nlyap_opt.learning import sample_ball
+    from nlyap_opt.candidates.learning import sample_ball
 
     pts = sample_ball(20000, 2, 1.2, np.random.default_rng(0))
     smooth = 1e-3 * float(np.max(np.linalg.norm(np.array(grad(pts.T)), axis=0)))

@@ -36,8 +36,8 @@ def _cpu() -> str:
 
 def _small_cartpole(out: Path) -> Path:
     import systems
-    from nlyap_opt.certificate import RoaProblem, certify_roa, save_certificate
-    from nlyap_opt.control import linear_controller, lqr, quadratic_lyapunov
+    from nlyap_opt.certification.certificate import RoaProblem, certify_roa, save_certificate
+    from nlyap_opt.design.control import linear_controller, lqr, quadratic_lyapunov
 
     s = systems.get("cartpole")
     res = lqr(s)
@@ -54,8 +54,8 @@ def _small_cartpole(out: Path) -> Path:
 
 
 def main(argv=None) -> None:
-    from nlyap_opt.deploy import load_run
-    from nlyap_opt.filter import ClfQpFilter
+    from nlyap_opt.deployment.deploy import load_run
+    from nlyap_opt.deployment.filter import ClfQpFilter
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run_dir", nargs="?", help="a certified run (default: a small cartpole "

@@ -1,9 +1,9 @@
 """Quadratic certificates of the 4-D cartpole and the 6-D planar quadrotor: which ``P``.
 
 For the saturated LQR loop of each system's ``large`` preset (true f), three candidate
-matrices of :mod:`nlyap_opt.quadratic` -- ``lyapunov`` (``A_clᵀP + PA_cl = −I``), ``round``
-(smallest condition number) and ``volume`` (largest Lyapunov ellipsoid in the unit ball,
-:func:`nlyap_opt.control.volume_lyapunov_matrix`) -- each with:
+matrices of :mod:`nlyap_opt.candidates.quadratic` -- ``lyapunov`` (``A_clᵀP + PA_cl = −I``),
+``round`` (smallest condition number) and ``volume`` (largest Lyapunov ellipsoid in the unit ball,
+:func:`nlyap_opt.design.control.volume_lyapunov_matrix`) -- each with:
 
 - the *sampled* level: the least ``V`` of a sampled decrease violation or of the domain's
   boundary (``‖x‖ = 1``), over ``--samples`` uniform points of the ellipsoid;
@@ -30,13 +30,13 @@ import casadi as ca
 import numpy as np
 
 import systems
-from nlyap_opt.certificate import RoaProblem
-from nlyap_opt.configs import make_config
-from nlyap_opt.control import lqr, quadratic_lyapunov, saturated_controller
-from nlyap_opt.quadratic import QUADRATIC_CANDIDATES, certify_quadratics
-from nlyap_opt.roa import axis_count
-from nlyap_opt.symbolic import closed_loop
-from nlyap_opt.walker import evaluate
+from nlyap_opt.candidates.quadratic import QUADRATIC_CANDIDATES, certify_quadratics
+from nlyap_opt.certification.certificate import RoaProblem
+from nlyap_opt.certification.roa import axis_count
+from nlyap_opt.design.control import lqr, quadratic_lyapunov, saturated_controller
+from nlyap_opt.kernel.symbolic import closed_loop
+from nlyap_opt.kernel.walker import evaluate
+from nlyap_opt.workflow.configs import make_config
 
 __all__ = ["loop", "sampled_level", "main"]
 

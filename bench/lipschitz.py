@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from nlyap_opt.lipschitz import lipschitz_lipsdp, lipschitz_sampled
+from nlyap_opt.learned.lipschitz import lipschitz_lipsdp, lipschitz_sampled
 
 
 def _net(rng, n, h, m, w0_scale=1.5, b0_scale=1.0):

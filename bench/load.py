@@ -22,7 +22,7 @@ from pathlib import Path
 
 
 def _run(system: str, preset: str, known: bool, out: Path) -> tuple[float, dict]:
-    cmd = [sys.executable, "-m", "nlyap_opt.cli", "run", system, "--preset", preset,
+    cmd = [sys.executable, "-m", "nlyap_opt.interface.cli", "run", system, "--preset", preset,
            "--out", str(out)] + (["--known-dynamics"] if known else [])
     t = time.perf_counter()
     rc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL).returncode

@@ -28,7 +28,7 @@ SEED_SYSTEMS = ("van_der_pol", "unicycle_path_following", "inverted_pendulum")
 
 
 def _run(name: str, out: Path, portable: bool, known: bool, env: dict | None = None) -> float:
-    cmd = [sys.executable, "-m", "nlyap_opt.cli", "run", name, "--preset", "fast",
+    cmd = [sys.executable, "-m", "nlyap_opt.interface.cli", "run", name, "--preset", "fast",
            "--out", str(out)] + (["--portable"] if portable else []) + \
         (["--known-dynamics"] if known else [])
     t = time.perf_counter()
@@ -47,7 +47,7 @@ def _digest(d: Path) -> str:
 
 
 def main() -> None:
-    from nlyap_opt.provenance import fingerprint, fingerprint_id
+    from nlyap_opt.kernel.provenance import fingerprint, fingerprint_id
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--systems", default=",".join(SEED_SYSTEMS))

@@ -1,7 +1,7 @@
 """Seed-portfolio benchmark: K seeds on 1 vs 2 Dask workers.
 
-Runs :func:`nlyap_opt.portfolio.run_portfolio` twice with the same seeds (``fast`` preset by
-default), each time into a fresh directory on a ``LocalCluster`` started by the call, and
+Runs :func:`nlyap_opt.workflow.portfolio.run_portfolio` twice with the same seeds (``fast`` preset
+by default), each time into a fresh directory on a ``LocalCluster`` started by the call, and
 prints the wall-clock seconds, the speed-up and the chosen seed (which must not depend on
 the worker count). Figures are printed, not asserted.
 
@@ -16,8 +16,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from nlyap_opt.configs import get_config
-from nlyap_opt.portfolio import run_portfolio
+from nlyap_opt.workflow.configs import get_config
+from nlyap_opt.workflow.portfolio import run_portfolio
 
 
 def main(argv=None):

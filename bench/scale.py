@@ -8,7 +8,7 @@ Two tables:
   up to 10 %), with ``ε = ½·sqrt(c / λ_max(P))`` (so ``B_ε ⊆ Ω_c``). Systems: reversed
   Van der Pol (2-D, ``P`` from ``A_clᵀP + PA_cl = −I``), the cartpole without its
   position (3-D: ``v, θ, ω``; ``p`` does not enter ``f``), the cartpole (4-D) and the planar
-  quadrotor (6-D), ``P`` the Lyapunov matrix of :func:`nlyap_opt.control.lqr`
+  quadrotor (6-D), ``P`` the Lyapunov matrix of :func:`nlyap_opt.design.control.lqr`
   (``A_clᵀP + PA_cl = −I``, ``Q = I``, ``R = I``). Same relative geometry in every
   dimension; a ``--max-boxes`` cap ends a query as ``unknown``. Each system is run three
   ways: the true ``f``; its closed-loop linearisation written as the certificate writes a
@@ -38,9 +38,9 @@ import casadi as ca
 import numpy as np
 
 import systems
-from nlyap_opt.certificate import RoaProblem
-from nlyap_opt.control import linear_controller, lqr, lyapunov_matrix, quadratic_lyapunov
-from nlyap_opt.network import Layer, Network
+from nlyap_opt.certification.certificate import RoaProblem
+from nlyap_opt.design.control import linear_controller, lqr, lyapunov_matrix, quadratic_lyapunov
+from nlyap_opt.kernel.network import Layer, Network
 from verification import lyapunov_problem, verify
 
 __all__ = ["cartpole_reduced", "dimension_rows", "quadratic_queries", "width_rows", "main"]

@@ -3,7 +3,7 @@
 Usage: python bench/seeds.py [--seeds 0-9] [--preset large] [--systems a,b]
        [--settings known,learned]
 
-For each system and setting, runs `nlyap_opt.pipeline.run` once per seed (the seed of V/κ
+For each system and setting, runs `nlyap_opt.workflow.pipeline.run` once per seed (the seed of V/κ
 training, CEGIS sampling and, for learned f, φ's training) into a temporary directory and
 prints one row per run, then the median and minimum certified share (of the simulated true
 ROA; for controlled systems within the verification disc) and the median seconds.
@@ -28,8 +28,8 @@ def _seeds(text: str) -> list[int]:
 
 
 def main() -> None:
-    from nlyap_opt.configs import make_config
-    from nlyap_opt.pipeline import run
+    from nlyap_opt.workflow.configs import make_config
+    from nlyap_opt.workflow.pipeline import run
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="0-9")

@@ -28,10 +28,10 @@ import casadi as ca
 import numpy as np
 
 import systems
-from nlyap_opt.learning import LyapunovLearner, TrainConfig, sample_ball, sample_sphere
-from nlyap_opt.network import Layer, Network
-from nlyap_opt.roa import candidate_level, certify_level
-from nlyap_opt.symbolic import closed_loop, lie_derivative
+from nlyap_opt.candidates.learning import LyapunovLearner, TrainConfig, sample_ball, sample_sphere
+from nlyap_opt.certification.roa import candidate_level, certify_level
+from nlyap_opt.kernel.network import Layer, Network
+from nlyap_opt.kernel.symbolic import closed_loop, lie_derivative
 from verification import closed_loop_problem, verify
 
 DATA = Path(__file__).parent / "data"
@@ -91,7 +91,7 @@ _PHASES = """
 import time
 t0 = time.perf_counter()
 import systems
-from nlyap_opt.network import Network
+from nlyap_opt.kernel.network import Network
 from verification import closed_loop_problem, verify
 t1 = time.perf_counter()
 V = Network.load({path!r})
@@ -113,7 +113,7 @@ def per_query(repeat: int) -> None:
     import sys
 
     env = dict(os.environ)
-    cmd = [sys.executable, "-m", "nlyap_opt.cli", "verify", "--system", "van_der_pol",
+    cmd = [sys.executable, "-m", "nlyap_opt.interface.cli", "verify", "--system", "van_der_pol",
            "--lyapunov", str(DATA / "vdp_V6.json"), "--inner", "0.2", "--outer", "1.2"]
     walls, phases = [], []
     for _ in range(repeat):

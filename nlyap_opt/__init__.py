@@ -13,7 +13,7 @@ The pipeline and certificate names load their modules on first use (module
 
 import importlib
 
-from .errors import (
+from .kernel.errors import (
     BackendUnavailableError,
     ConfigError,
     DimensionError,
@@ -26,9 +26,9 @@ from .errors import (
     UnsupportedLayerError,
     UnsupportedOperationError,
 )
-from .network import Layer, Network, from_torch, load_network
-from .symbolic import closed_loop, lie_derivative
-from .walker import evaluate
+from .kernel.network import Layer, Network, from_torch, load_network
+from .kernel.symbolic import closed_loop, lie_derivative
+from .kernel.walker import evaluate
 
 __version__ = "0.1.0"
 
@@ -42,12 +42,12 @@ __all__ = [
 
 #: the public names loaded on first use: name -> the module that defines it
 _LAZY = {
-    "run": "nlyap_opt.pipeline",
-    "make_config": "nlyap_opt.configs",
-    "RoaProblem": "nlyap_opt.certificate",
-    "certify_roa": "nlyap_opt.certificate",
-    "recheck_certificate": "nlyap_opt.certificate",
-    "CertStatus": "nlyap_opt.certificate",
+    "run": "nlyap_opt.workflow.pipeline",
+    "make_config": "nlyap_opt.workflow.configs",
+    "RoaProblem": "nlyap_opt.certification.certificate",
+    "certify_roa": "nlyap_opt.certification.certificate",
+    "recheck_certificate": "nlyap_opt.certification.certificate",
+    "CertStatus": "nlyap_opt.certification.certificate",
 }
 
 

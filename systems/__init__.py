@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from nlyap_opt.errors import UnknownNameError
+from nlyap_opt.kernel.errors import UnknownNameError
 
 from .base import ModelUnavailableError, System
 from .catalogue import (

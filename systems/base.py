@@ -26,10 +26,10 @@ import casadi as ca
 import numpy as np
 from scipy.optimize import least_squares
 
-from nlyap_opt import deps
-from nlyap_opt.errors import ConfigError, DimensionError, EquilibriumError, NlyapError
-from nlyap_opt.simulate import trajectories
-from nlyap_opt.walker import ArrayArithmetic, compile_function, evaluate
+from nlyap_opt.kernel import deps
+from nlyap_opt.kernel.errors import ConfigError, DimensionError, EquilibriumError, NlyapError
+from nlyap_opt.kernel.simulate import trajectories
+from nlyap_opt.kernel.walker import ArrayArithmetic, compile_function, evaluate
 
 from .declarations import Declarations, check_declarations
 from .samples import SampleSet
@@ -95,7 +95,7 @@ class System:
     subsystems : sequence of sequence of int, optional
         A partition of the state indices into the subsystems of an interconnected system
         (each subsystem's states, e.g. ``[(0, 1), (2, 3)]``): declares that a
-        compositional certificate (:mod:`nlyap_opt.compositional`) may be tried.
+        compositional certificate (:mod:`nlyap_opt.certification.compositional`) may be tried.
 
     Attributes
     ----------

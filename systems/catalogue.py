@@ -5,7 +5,7 @@ domains; :func:`cartpole` (4 states) and :func:`planar_quadrotor` (6 states) are
 benchmarks of the neural-Lyapunov-control literature, with their published parameters.
 :func:`lyznet_10d` and :func:`lyznet_chain` are interconnected systems of 2-D subsystems
 that declare their structure (``subsystems``): they are certified compositionally
-(:mod:`nlyap_opt.compositional`).
+(:mod:`nlyap_opt.certification.compositional`).
 """
 
 from __future__ import annotations

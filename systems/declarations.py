@@ -37,8 +37,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from nlyap_opt.errors import ConfigError, DimensionError
-from nlyap_opt.rounding import EPS, next_up
+from nlyap_opt.kernel.errors import ConfigError, DimensionError
+from nlyap_opt.kernel.rounding import EPS, next_up
 
 __all__ = ["Declarations", "check_declarations", "probe_declarations", "RTOL"]
 
@@ -344,7 +344,7 @@ def check_declarations(
         Anything with ``axes`` (list of the ``d`` per-axis node coordinates, increasing)
         and ``counts``; the nodes in C order. The axes are ``(x, u)``: ``d = nx + nu``
         (``nu = 0``: a grid over ``x`` only, as for control-affine data, where a declared
-        ``B`` is not checked). A :class:`nlyap_opt.dynamics.Grid` and a
+        ``B`` is not checked). A :class:`nlyap_opt.learned.dynamics.Grid` and a
         :class:`~systems.samples.SampleSet` qualify.
     values : (N, nx) array_like
         ``f`` at the nodes, in the grid's C order.

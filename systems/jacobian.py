@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.rounding import U, up_rel
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.kernel.rounding import U, up_rel
 
 from .base import System
 

@@ -4,7 +4,7 @@ A sample file holds rows ``(x, u, ẋ)``. :func:`load_samples` accepts it only i
 ``(x, u)`` rows form a **complete regular grid** over a box: on every axis the coordinates
 are ``lo + k h`` (``k = 0 … n−1``) within a relative ``1e-9`` of ``h``, every node appears
 exactly once, and nothing is NaN or inf. The result, a :class:`SampleSet`, has the same nodes
-as ``nlyap_opt.dynamics.Grid(box, counts)`` (same ``np.linspace`` construction, both box
+as ``nlyap_opt.learned.dynamics.Grid(box, counts)`` (same ``np.linspace`` construction, both box
 ends exact) and the same covering radius :math:`\delta = \tfrac12\|h\|_2` (rounded up the
 same way), plus the values in the grid's C order. Where the file's coordinates are not
 bitwise the nodes (a csv printed with fewer digits), the largest distance ``offset`` between
@@ -37,9 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from nlyap_opt.errors import ConfigError, DimensionError
-from nlyap_opt.grid import GridNodes
-from nlyap_opt.grid import norm2_up as _norm2_up
+from nlyap_opt.kernel.errors import ConfigError, DimensionError
+from nlyap_opt.kernel.grid import GridNodes
+from nlyap_opt.kernel.grid import norm2_up as _norm2_up
 
 __all__ = ["SampleSet", "load_samples", "save_samples", "sample_function", "RTOL_GRID"]
 
@@ -48,7 +48,7 @@ RTOL_GRID = 1e-9
 
 
 def _nodes(lo: float, hi: float, n: int) -> np.ndarray:
-    """Axis nodes exactly as ``nlyap_opt.dynamics.Grid`` builds them."""
+    """Axis nodes exactly as ``nlyap_opt.learned.dynamics.Grid`` builds them."""
     ax = np.linspace(lo, hi, n)
     ax[0], ax[-1] = lo, hi
     return ax

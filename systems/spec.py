@@ -63,8 +63,8 @@ import numpy as np
 import sympy
 import tomllib
 
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.walker import OP_TABLE
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.kernel.walker import OP_TABLE
 
 from .base import System
 from .declarations import Declarations, check_declarations

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from nlyap_opt.walker import evaluate
+from nlyap_opt.kernel.walker import evaluate
 
 
 def dense_region_samples(problem, n: int, seed: int = 0, chunk: int = 250_000):
@@ -60,8 +60,8 @@ def fast_references() -> dict:
 
 def fast_reference() -> tuple[str, dict | None]:
     """``(fingerprint_id, values)``: the fast certificates recorded on this process's
-    numeric environment (:func:`nlyap_opt.provenance.fingerprint_id`), or ``None``."""
-    from nlyap_opt.provenance import fingerprint_id
+    numeric environment (:func:`nlyap_opt.kernel.provenance.fingerprint_id`), or ``None``."""
+    from nlyap_opt.kernel.provenance import fingerprint_id
 
     fid = fingerprint_id()
     rec = fast_references()["fingerprints"].get(fid)

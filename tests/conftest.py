@@ -3,7 +3,7 @@ import pytest
 import torch
 
 import systems
-from nlyap_opt.dynamics import default_config, learn_dynamics
+from nlyap_opt.learned.dynamics import default_config, learn_dynamics
 
 SEED_SYSTEMS = ["van_der_pol", "unicycle_path_following", "inverted_pendulum"]
 

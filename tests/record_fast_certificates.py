@@ -6,7 +6,7 @@ networks) under this machine's numeric-environment fingerprint.
 
 A recorded fingerprint makes the tests compare these runs bit for bit on machines with the
 same fingerprint (CPU model and flags, package versions, BLAS kernel and threads, numpy and
-torch dispatch: ``nlyap_opt.provenance``); elsewhere the tests check only the floors. Record
+torch dispatch: ``nlyap_opt.kernel.provenance``); elsewhere the tests check only the floors. Record
 for a new machine you want bit-for-bit regression checks on, or after a deliberate change of
 the training (then drop the old fingerprints, saying so in the commit). The floors are not
 written by this script: they are properties every machine must reach, set by hand with a
@@ -22,9 +22,9 @@ import tempfile
 from certcheck import _REFERENCE_FILE, fast_references, fast_summary
 
 import systems
-from nlyap_opt.configs import get_config
-from nlyap_opt.pipeline import run
-from nlyap_opt.provenance import fingerprint, fingerprint_id
+from nlyap_opt.kernel.provenance import fingerprint, fingerprint_id
+from nlyap_opt.workflow.configs import get_config
+from nlyap_opt.workflow.pipeline import run
 
 
 def record() -> dict:

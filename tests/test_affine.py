@@ -13,7 +13,7 @@ import mpmath as mp
 import numpy as np
 import pytest
 
-from nlyap_opt.walker import evaluate
+from nlyap_opt.kernel.walker import evaluate
 from verification import closed_loop_problem, lyapunov_problem, verify
 from verification.affine import Affine, AffineArithmetic
 from verification.interval import Interval, IntervalArithmetic
@@ -250,7 +250,7 @@ def test_closed_loop_problem_unchanged_verdict():
     from pathlib import Path
 
     import systems
-    from nlyap_opt.network import Network
+    from nlyap_opt.kernel.network import Network
 
     path = Path(__file__).parents[1] / "bench" / "data" / "vdp_V6.json"
     if not path.exists():
@@ -265,7 +265,7 @@ def test_closed_loop_problem_unchanged_verdict():
 def test_the_checker_sees_missing_rounding_slack(monkeypatch):
     """Without the rounding terms (u = 0), sums and products of forms at small widths
     violate the exact check: the tests resolve rounding errors, not only relaxations."""
-    import nlyap_opt.rounding as rounding
+    import nlyap_opt.kernel.rounding as rounding
     import verification.affine as affine
 
     monkeypatch.setattr(affine, "U", 0.0)

@@ -10,7 +10,7 @@ import torch
 
 import systems
 from baselines.lqr import lqr, saturated_controller
-from nlyap_opt.errors import (
+from nlyap_opt.kernel.errors import (
     DimensionError,
     EquilibriumError,
     EquilibriumWarning,
@@ -19,8 +19,8 @@ from nlyap_opt.errors import (
     UnknownNameError,
     UnsupportedLayerError,
 )
-from nlyap_opt.network import Layer, Network, from_torch
-from nlyap_opt.symbolic import closed_loop
+from nlyap_opt.kernel.network import Layer, Network, from_torch
+from nlyap_opt.kernel.symbolic import closed_loop
 
 
 def _shifted_system():
@@ -151,7 +151,7 @@ _NET_FILES = {
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
-    from nlyap_opt.control import lyapunov_matrix, quadratic_lyapunov
+    from nlyap_opt.design.control import lyapunov_matrix, quadratic_lyapunov
 
     d = tmp_path_factory.mktemp("bad")
     paths = {"tmp": str(d)}
@@ -174,20 +174,21 @@ def files(tmp_path_factory):
 @pytest.fixture(autouse=True)
 def _tripwire(monkeypatch):
     """A bad input that reaches training fails the test at once (code 4), never trains."""
-    import nlyap_opt.pipeline
+    import nlyap_opt.workflow.pipeline
 
     def boom(*a, **k):
         raise RuntimeError("TRIPWIRE: reached training")
 
-    monkeypatch.setattr(nlyap_opt.pipeline, "run", boom)
+    monkeypatch.setattr(nlyap_opt.workflow.pipeline, "run", boom)
     import baselines.compare
 
     monkeypatch.setattr(baselines.compare, "compare", boom)
-    import nlyap_opt.cli_dynamics
-    import nlyap_opt.dynamics_stage
+    import nlyap_opt.interface.cli_dynamics
+    import nlyap_opt.learned.dynamics_stage
 
     # every module that binds the φ stage by name (bound at import, so each is patched)
-    for mod in (nlyap_opt.dynamics_stage, nlyap_opt.pipeline, nlyap_opt.cli_dynamics):
+    for mod in (nlyap_opt.learned.dynamics_stage, nlyap_opt.workflow.pipeline,
+                nlyap_opt.interface.cli_dynamics):
         if callable(getattr(mod, "dynamics_stage", None)):
             monkeypatch.setattr(mod, "dynamics_stage", boom)
 
@@ -498,7 +499,7 @@ def test_cli_table_has_over_100_cases():
 
 @pytest.mark.parametrize("argv,code,words,config", CLI_CASES)
 def test_cli_bad_input(argv, code, words, config, files, capsys, request):
-    from nlyap_opt.cli import main
+    from nlyap_opt.interface.cli import main
 
     label = request.node.callspec.id
     with warnings.catch_warnings(record=True) as caught:  # a warning prints more lines
@@ -528,7 +529,8 @@ def test_cli_bad_input_in_a_real_process(argv, files, tmp_path):
     cfg = tmp_path / "c.json"
     cfg.write_text('{"train": {"stpes": 1}}')
     argv = [a.format(**files, cfg=str(cfg)) for a in argv]
-    res = subprocess.run([sys.executable, "-m", "nlyap_opt.cli", *argv], capture_output=True,
+    res = subprocess.run([sys.executable, "-m", "nlyap_opt.interface.cli", *argv],
+                         capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 3, res.stderr
     assert "Traceback" not in res.stderr

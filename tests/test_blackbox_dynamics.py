@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.dynamics import Grid, learn_dynamics
-from nlyap_opt.dynamics_stage import dynamics_stage
-from nlyap_opt.error_models import compute_bounds
-from nlyap_opt.errors import ConfigError
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.learned.dynamics import Grid, learn_dynamics
+from nlyap_opt.learned.dynamics_stage import dynamics_stage
+from nlyap_opt.learned.error_models import compute_bounds
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -192,7 +192,7 @@ def test_declared_sample_error_is_added_to_alpha(pend):
 
 
 def test_stage_of_a_sample_file_saves_and_reloads(pend, tmp_path):
-    from nlyap_opt.network import Network
+    from nlyap_opt.kernel.network import Network
 
     smp = _slice_samples(pend, [21, 21], tmp_path / "p.csv")
     st = dynamics_stage(_from_samples(pend, smp), FAST | {"model": "control_affine"}, log=None)

@@ -8,8 +8,11 @@ import pytest
 
 import systems
 from baselines.lqr import lqr, saturated_controller
-from nlyap_opt import cli
-from nlyap_opt.bounds import (
+from nlyap_opt.interface import cli
+from nlyap_opt.kernel.errors import ConfigError, InputRangeError, UnknownNameError
+from nlyap_opt.kernel.jsonio import load_with_timings, split_timings
+from nlyap_opt.kernel.network import Layer, Network, dense_network
+from nlyap_opt.learned.bounds import (
     BOUND_OPTIONS,
     ErrorModel,
     check_input_range,
@@ -19,11 +22,8 @@ from nlyap_opt.bounds import (
     margin,
     subboxes,
 )
-from nlyap_opt.dynamics import Grid, measure_alpha
-from nlyap_opt.errors import ConfigError, InputRangeError, UnknownNameError
-from nlyap_opt.jsonio import load_with_timings, split_timings
-from nlyap_opt.lipschitz import lipschitz_sampled
-from nlyap_opt.network import Layer, Network, dense_network
+from nlyap_opt.learned.dynamics import Grid, measure_alpha
+from nlyap_opt.learned.lipschitz import lipschitz_sampled
 
 NAMES = ["van_der_pol", "unicycle_path_following", "inverted_pendulum"]
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.certificate import (
+from nlyap_opt.certification.certificate import (
     CertStatus,
     RoaCertificate,
     RoaProblem,
@@ -13,9 +13,9 @@ from nlyap_opt.certificate import (
     recheck_certificate,
     save_certificate,
 )
-from nlyap_opt.control import lqr, lyapunov_matrix, quadratic_lyapunov
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.network import Layer, Network
+from nlyap_opt.design.control import lqr, lyapunov_matrix, quadratic_lyapunov
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.kernel.network import Layer, Network
 
 QUIET = {"log": lambda m: None}
 
@@ -65,7 +65,7 @@ def test_known_f_quadratic_certificate_and_mutations():
 def test_flipped_gain_is_refused():
     s = systems.get("inverted_pendulum")
     res = lqr(s)
-    from nlyap_opt.control import linear_controller
+    from nlyap_opt.design.control import linear_controller
 
     bad_ctrl = linear_controller(s, -res.K)  # wrong sign: the closed loop is unstable
     prob = RoaProblem(s, quadratic_lyapunov(res.P), bad_ctrl, inner=0.1, outer=1.0)
@@ -150,7 +150,7 @@ def test_recheck_checks_the_saved_inner_ellipse_without_a_search(tmp_path, monke
     definite at 0) or by an indefinite matrix is not certified any more."""
     import json
 
-    import nlyap_opt.roa as roa
+    import nlyap_opt.certification.roa as roa
 
     s, V, P = _vdp_quadratic()
     prob = RoaProblem(s, V, inner=0.05, outer=2.0)
@@ -212,8 +212,8 @@ def test_inner_radius_is_chosen_by_the_tool_without_retraining():
     B_1.2, and condition (c) fails on so large an ellipse: every candidate quadratic
     increases somewhere on it, sampled V̇_q up to 0.28); the same V certifies with a
     smaller ε, and the certificate says which and why."""
-    from nlyap_opt.certificate import certify_with_inner_search
-    from nlyap_opt.roa import certify_inner_ellipse
+    from nlyap_opt.certification.certificate import certify_with_inner_search
+    from nlyap_opt.certification.roa import certify_inner_ellipse
 
     s, V, P = _vdp_quadratic()
     prob = RoaProblem(s, V, inner=1.2, outer=2.0)

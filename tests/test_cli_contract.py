@@ -14,10 +14,10 @@ import pytest
 from certcheck import assert_fast_certificate
 
 import systems
-from nlyap_opt import cli
-from nlyap_opt.cli import EXIT_CODES, build_parser, main
-from nlyap_opt.control import lyapunov_matrix, quadratic_lyapunov
-from nlyap_opt.errors import ConfigError
+from nlyap_opt.design.control import lyapunov_matrix, quadratic_lyapunov
+from nlyap_opt.interface import cli
+from nlyap_opt.interface.cli import EXIT_CODES, build_parser, main
+from nlyap_opt.kernel.errors import ConfigError
 
 
 def _err_lines(capsys):
@@ -124,14 +124,14 @@ def test_never_exit_1_for_errors(monkeypatch, capsys):
 @pytest.mark.parametrize("status,code", [("certified", 0), ("counterexample", 1),
                                          ("not certified", 2), ("assumption refuted", 2)])
 def test_verify_certificate_exit_codes(monkeypatch, tmp_path, capsys, status, code):
-    certificate = pytest.importorskip("nlyap_opt.certificate")
+    certificate = pytest.importorskip("nlyap_opt.certification.certificate")
     f = tmp_path / "certificate.json"
     f.write_text("{}")
     fake = types.SimpleNamespace(status=certificate.CertStatus(status),
                                  summary=lambda: f"{status}: because")
-    import nlyap_opt.cli
+    import nlyap_opt.interface.cli
 
-    monkeypatch.setattr(nlyap_opt.cli, "recheck_certificate", lambda path, **k: fake)
+    monkeypatch.setattr(nlyap_opt.interface.cli, "recheck_certificate", lambda path, **k: fake)
     assert main(["verify", "--certificate", str(tmp_path)]) == code
     assert f"{status}: because" in capsys.readouterr().out
 
@@ -139,7 +139,7 @@ def test_verify_certificate_exit_codes(monkeypatch, tmp_path, capsys, status, co
 @pytest.mark.parametrize("status,code", [("certified", 0), ("not certified", 2)])
 def test_run_passes_the_validated_config_and_maps_the_status(monkeypatch, tmp_path, status,
                                                              code):
-    import nlyap_opt.pipeline
+    import nlyap_opt.workflow.pipeline
 
     seen = {}
 
@@ -147,7 +147,7 @@ def test_run_passes_the_validated_config_and_maps_the_status(monkeypatch, tmp_pa
         seen.update(system=system, cfg=cfg, out=out, known=known_dynamics)
         return types.SimpleNamespace(status=types.SimpleNamespace(value=status))
 
-    monkeypatch.setattr(nlyap_opt.pipeline, "run", fake_run)
+    monkeypatch.setattr(nlyap_opt.workflow.pipeline, "run", fake_run)
     c = tmp_path / "c.json"
     c.write_text(json.dumps({"train": {"steps": 11}}))
     argv = ["run", "van_der_pol", "--preset", "fast", "--config", str(c), "--known-dynamics",
@@ -169,7 +169,7 @@ def test_config_command_round_trips(tmp_path, capsys):
 
 
 def _nlyap(*argv, **kw):
-    return subprocess.Popen([sys.executable, "-m", "nlyap_opt.cli", *argv], text=True,
+    return subprocess.Popen([sys.executable, "-m", "nlyap_opt.interface.cli", *argv], text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
 
 
@@ -241,7 +241,7 @@ def test_an_open_progress_bar_does_not_swallow_the_one_line_message(capsys):
 
     from tqdm import tqdm
 
-    from nlyap_opt.cli import _close_progress_bars
+    from nlyap_opt.interface.cli import _close_progress_bars
 
     bar = tqdm(total=10, desc="φ[1] test", leave=False, mininterval=0)
     bar.update(3)

@@ -9,11 +9,11 @@ from vdp_reference import vdp_lyapunov_matrix, vdp_quadratic_level, vdp_true_roa
 import systems
 from baselines.compare import CompareRow, compare
 from baselines.lqr import linear_controller, lqr, saturated_controller
-from nlyap_opt.certificate import recheck_certificate
-from nlyap_opt.configs import get_config
-from nlyap_opt.roa import grid_points
-from nlyap_opt.simulate import simulate_converges
-from nlyap_opt.sos import sos_roa
+from nlyap_opt.candidates.sos import sos_roa
+from nlyap_opt.certification.certificate import recheck_certificate
+from nlyap_opt.certification.roa import grid_points
+from nlyap_opt.kernel.simulate import simulate_converges
+from nlyap_opt.workflow.configs import get_config
 
 # The non-polynomial operations of each seed system's SOS closed loop (u = u_eq), read off the
 # model equations (systems/catalogue.py):

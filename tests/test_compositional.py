@@ -1,4 +1,5 @@
-"""Compositional certificates (:mod:`nlyap_opt.compositional`): the mathematics on examples
+"""Compositional certificates (:mod:`nlyap_opt.certification.compositional`): the mathematics on
+examples
 with known answers, soundness on samples, the re-check, refusals and the command line."""
 
 from __future__ import annotations
@@ -14,9 +15,8 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.certificate import CertStatus
-from nlyap_opt.cli import main
-from nlyap_opt.compositional import (
+from nlyap_opt.certification.certificate import CertStatus
+from nlyap_opt.certification.compositional import (
     FORMAT,
     _inverse_diagonal,
     _positive_definite,
@@ -25,7 +25,8 @@ from nlyap_opt.compositional import (
     recheck_compositional,
     save_compositional,
 )
-from nlyap_opt.errors import ConfigError
+from nlyap_opt.interface.cli import main
+from nlyap_opt.kernel.errors import ConfigError
 
 QUIET = {"log": lambda m: None}
 
@@ -277,7 +278,7 @@ def test_cli_refusals_are_one_line_exit_3(tmp_path, capsys, argv, words):
 
 
 def test_neural_tools_refuse_a_compositional_certificate(saved, capsys):
-    from nlyap_opt.certificate import recheck_run
+    from nlyap_opt.certification.certificate import recheck_run
 
     with pytest.raises(ConfigError, match="compositional certificate"):
         recheck_run(saved[0])
@@ -335,11 +336,12 @@ def test_end_to_end_20d_chain_from_a_fresh_process(tmp_path):
     fresh interpreter, within the 10-minute budget of the acceptance test."""
     out = tmp_path / "chain"
     t0 = time.perf_counter()
-    run = subprocess.run([sys.executable, "-m", "nlyap_opt.cli", "run", "lyznet_chain",
+    run = subprocess.run([sys.executable, "-m", "nlyap_opt.interface.cli", "run", "lyznet_chain",
                           "--known-dynamics", "--out", str(out)], capture_output=True,
                          text=True, timeout=600)
     assert run.returncode == 0, run.stderr
-    chk = subprocess.run([sys.executable, "-m", "nlyap_opt.cli", "verify", "--certificate",
+    chk = subprocess.run([sys.executable, "-m", "nlyap_opt.interface.cli", "verify",
+                          "--certificate",
                           str(out)], capture_output=True, text=True, timeout=600)
     assert chk.returncode == 0 and chk.stdout.startswith("certified"), chk.stderr
     assert time.perf_counter() - t0 < 600

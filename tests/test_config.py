@@ -5,9 +5,11 @@ import json
 
 import pytest
 
-from nlyap_opt import configs
-from nlyap_opt.cegis import CegisConfig
-from nlyap_opt.configs import (
+from nlyap_opt.candidates.cegis import CegisConfig
+from nlyap_opt.candidates.learning import TrainConfig
+from nlyap_opt.kernel.errors import ConfigError, UnknownNameError
+from nlyap_opt.workflow import configs
+from nlyap_opt.workflow.configs import (
     PRESETS,
     check_dynamics_box,
     check_lqr_weights,
@@ -15,8 +17,6 @@ from nlyap_opt.configs import (
     make_config,
     schema,
 )
-from nlyap_opt.errors import ConfigError, UnknownNameError
-from nlyap_opt.learning import TrainConfig
 
 ALL_PRESETS = [(s, p) for s in PRESETS for p in PRESETS[s]]
 
@@ -63,7 +63,7 @@ def test_range_rules_name_existing_fields_only():
 
 
 def test_dynamics_section_follows_the_dynamics_dataclass():
-    dc = pytest.importorskip("nlyap_opt.dynamics_config")
+    dc = pytest.importorskip("nlyap_opt.learned.dynamics_config")
     names = {f.name for f in dataclasses.fields(dc.DynamicsConfig)}
     assert set(schema()["dynamics"]) == names
 

@@ -4,15 +4,15 @@ On x' = −x + x³ (ROA |x| < 1; in 2-D, componentwise, the open square) the tra
 W(x₀) = ∫₀^∞ x(t)² dt is known in closed form, W = −½ log(1 − x₀²), and the Zubov function
 Z = 1 − exp(−2W) = x₀² solves ∇Z·f = −ψ(1 − Z) with ψ = 2x². These tests check the
 simulated costs, the Zubov equation and the targets and decrease rates the learner fits
-(:func:`nlyap_opt.cegis.cost_targets`) against that, and that the default method is
+(:func:`nlyap_opt.candidates.cegis.cost_targets`) against that, and that the default method is
 deterministic.
 """
 
 import numpy as np
 import pytest
 
-from nlyap_opt.cegis import cost_targets
-from nlyap_opt.simulate import simulate
+from nlyap_opt.candidates.cegis import cost_targets
+from nlyap_opt.kernel.simulate import simulate
 
 
 def cubic(x):
@@ -96,9 +96,9 @@ def test_default_method_fits_the_zubov_target_and_is_deterministic():
     """make_config(name, preset=None): the Zubov-type fit on the state box; two CEGIS runs
     of it (small budgets) give bit-identical networks and levels."""
     import systems
-    from nlyap_opt.cegis import CegisConfig, cegis
-    from nlyap_opt.configs import domain_of, make_config
-    from nlyap_opt.learning import TrainConfig
+    from nlyap_opt.candidates.cegis import CegisConfig, cegis
+    from nlyap_opt.candidates.learning import TrainConfig
+    from nlyap_opt.workflow.configs import domain_of, make_config
 
     cfg = make_config("van_der_pol", preset=None)
     assert cfg["train"]["w_fit"] > 0 and cfg["train"]["w_pde"] > 0
@@ -130,8 +130,8 @@ def test_inner_radius_follows_from_eta_and_the_linearisation():
     import casadi as ca
 
     import systems
-    from nlyap_opt.domain import Ball
-    from nlyap_opt.pipeline import INNER_MARGIN_FACTOR, _inner_for_margin
+    from nlyap_opt.kernel.domain import Ball
+    from nlyap_opt.workflow.pipeline import INNER_MARGIN_FACTOR, _inner_for_margin
 
     x = ca.SX.sym("x", 2)
     s = systems.System("test_linear_decay", x, None, -x, state_box=[[-2, 2], [-2, 2]])
@@ -150,13 +150,13 @@ def test_inner_radius_follows_from_eta_and_the_linearisation():
 def test_domain_gauge_is_one_on_the_boundary_and_homogeneous():
     """The gauge that lifts the fit target near ∂D (train.fit_domain): g(x) = max_i x_i/hi_i
     or x_i/lo_i for a box, ‖x‖/r for a ball; g(t·x) = t·g(x)."""
-    from nlyap_opt.domain import Ball, Box
+    from nlyap_opt.kernel.domain import Ball, Box
 
     B = Box([[-1.0, 2.0], [-0.5, 0.5]])
     pts = np.array([[1.0, 0.0], [-1.0, 0.25], [0.0, -0.1], [4.0, 0.0], [0.0, 0.0]])
     np.testing.assert_allclose(B.gauge(pts), [0.5, 1.0, 0.2, 2.0, 0.0], atol=1e-9)
     # the box's closed form is the bisection of the general region on contains()
-    from nlyap_opt.domain import Region
+    from nlyap_opt.kernel.domain import Region
 
     y = np.random.default_rng(2).uniform(-3, 3, (200, 2))
     np.testing.assert_allclose(B.gauge(y), Region.gauge(B, y), rtol=1e-9)
@@ -175,8 +175,8 @@ def test_reversed_van_der_pol_mu3_with_default_settings(tmp_path):
     import json
     from pathlib import Path
 
-    from nlyap_opt.certificate import recheck_certificate
-    from nlyap_opt.cli import main
+    from nlyap_opt.certification.certificate import recheck_certificate
+    from nlyap_opt.interface.cli import main
 
     spec = Path(__file__).resolve().parents[1] / "examples" / "van_der_pol_mu3.toml"
     out = tmp_path / "vdp3"
@@ -197,9 +197,9 @@ def test_catalogue_van_der_pol_box_lying_mostly_in_the_roa(tmp_path):
     import json
 
     import systems
-    from nlyap_opt.cli import main
-    from nlyap_opt.domain import Box
-    from nlyap_opt.roa import grid_points
+    from nlyap_opt.certification.roa import grid_points
+    from nlyap_opt.interface.cli import main
+    from nlyap_opt.kernel.domain import Box
 
     out = tmp_path / "vdp"
     assert main(["run", "van_der_pol", "--preset", "default", "--known-dynamics",
@@ -224,7 +224,7 @@ def test_true_roa_estimate_says_which_states_it_could_not_decide():
     import casadi as ca
 
     import systems
-    from nlyap_opt.roa import TRUE_ROA_TIME, true_roa_mask
+    from nlyap_opt.certification.roa import TRUE_ROA_TIME, true_roa_mask
 
     x = ca.SX.sym("x", 2)
     box = np.array([[-1.0, 1.0], [-1.0, 1.0]])
@@ -244,7 +244,7 @@ def test_simulation_inside_the_domain_counts_only_states_that_never_leave_it():
     ``stay=D.contains`` exactly when its exact trajectory never leaves D (away from the
     tangency states, where a step of the scheme decides); the cost of those states is the
     cost without ``stay``."""
-    from nlyap_opt.domain import Box
+    from nlyap_opt.kernel.domain import Box
 
     A = np.array([[-0.2, 1.0], [-1.0, -0.2]])
     D = Box([[-1.0, 1.0], [-0.5, 0.5]])

@@ -18,15 +18,25 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.certificate import RoaProblem, certify_roa, save_certificate, sha256_file
-from nlyap_opt.cli import main
-from nlyap_opt.configs import get_config
-from nlyap_opt.control import linear_controller, lqr, quadratic_lyapunov
-from nlyap_opt.deploy import load_run, simulate_run
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.filter import ClfQpFilter, check_control_affine, load_nominal, write_linear_nominal
-from nlyap_opt.pipeline import run as run_pipeline
-from nlyap_opt.walker import evaluate
+from nlyap_opt.certification.certificate import (
+    RoaProblem,
+    certify_roa,
+    save_certificate,
+    sha256_file,
+)
+from nlyap_opt.deployment.deploy import load_run, simulate_run
+from nlyap_opt.deployment.filter import (
+    ClfQpFilter,
+    check_control_affine,
+    load_nominal,
+    write_linear_nominal,
+)
+from nlyap_opt.design.control import linear_controller, lqr, quadratic_lyapunov
+from nlyap_opt.interface.cli import main
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.kernel.walker import evaluate
+from nlyap_opt.workflow.configs import get_config
+from nlyap_opt.workflow.pipeline import run as run_pipeline
 
 QUIET = dict(log=lambda m: None)
 

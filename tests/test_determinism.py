@@ -18,11 +18,11 @@ import torch
 
 import systems
 from baselines.lqr import lqr, saturated_controller
-from nlyap_opt import phi_training
-from nlyap_opt.determinism import deterministic_torch
-from nlyap_opt.dynamics import learn_dynamics
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.learning import LyapunovLearner, TrainConfig, sample_ball, sample_sphere
+from nlyap_opt.candidates.learning import LyapunovLearner, TrainConfig, sample_ball, sample_sphere
+from nlyap_opt.kernel.determinism import deterministic_torch
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.learned import phi_training
+from nlyap_opt.learned.dynamics import learn_dynamics
 
 PHI = {"preset": "fast", "hidden": 8, "steps": 60, "lm_iterations": 8, "minimax_rounds": 1,
        "minimax_iterations": 3, "progress": False}
@@ -124,7 +124,7 @@ def test_deterministic_torch_loads_no_compiler_and_enforces_determinism():
     import sys
 
     code = ("import sys, torch\n"
-            "from nlyap_opt.determinism import deterministic_torch\n"
+            "from nlyap_opt.kernel.determinism import deterministic_torch\n"
             "with deterministic_torch(1):\n"
             "    assert torch.are_deterministic_algorithms_enabled()\n"
             "    assert torch.isnan(torch.empty(64, dtype=torch.float64)).all()\n"
@@ -141,7 +141,7 @@ def _run_files(d):
     import hashlib
     from pathlib import Path
 
-    from nlyap_opt.jsonio import split_timings
+    from nlyap_opt.kernel.jsonio import split_timings
 
     d = Path(d)
     names = {n for rec in json.loads((d / "stages.json").read_text()).values()
@@ -165,7 +165,7 @@ def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_by
     def nlyap(out, threads):
         env = dict(os.environ, OPENBLAS_NUM_THREADS=str(threads), OMP_NUM_THREADS=str(threads),
                    MKL_NUM_THREADS=str(threads))
-        p = subprocess.run([sys.executable, "-m", "nlyap_opt.cli", "run", "van_der_pol",
+        p = subprocess.run([sys.executable, "-m", "nlyap_opt.interface.cli", "run", "van_der_pol",
                             "--preset", "fast", "--out", str(out)], env=env, text=True,
                            capture_output=True, timeout=600)
         assert p.returncode == 0, p.stderr
@@ -178,8 +178,8 @@ def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_by
         busy.kill()
         busy.wait()
     # the same run from Python (no progress bars: a display choice must not reach a file)
-    from nlyap_opt.configs import get_config
-    from nlyap_opt.pipeline import run
+    from nlyap_opt.workflow.configs import get_config
+    from nlyap_opt.workflow.pipeline import run
 
     run("van_der_pol", get_config("van_der_pol", "fast"), tmp_path / "c",
         known_dynamics=False, log=lambda m: None)

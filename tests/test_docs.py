@@ -96,7 +96,7 @@ def test_gallery_examples_run(example, monkeypatch):
 
 
 def test_every_config_key_has_a_description():
-    from nlyap_opt.configs import config_reference, schema
+    from nlyap_opt.workflow.configs import config_reference, schema
 
     missing = [k.name for sec in schema().values() for k in sec.values() if not k.doc.strip()]
     assert not missing, f"config keys without a description: {missing}"

@@ -11,13 +11,18 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.certificate import CertStatus, RoaProblem, certify_roa, recheck_certificate
-from nlyap_opt.cli import main
-from nlyap_opt.configs import domain_of, make_config
-from nlyap_opt.control import lqr, quadratic_lyapunov
-from nlyap_opt.domain import Ball, Box, Ellipsoid, parse_set
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.roa import candidate_level, certify_level
+from nlyap_opt.certification.certificate import (
+    CertStatus,
+    RoaProblem,
+    certify_roa,
+    recheck_certificate,
+)
+from nlyap_opt.certification.roa import candidate_level, certify_level
+from nlyap_opt.design.control import lqr, quadratic_lyapunov
+from nlyap_opt.interface.cli import main
+from nlyap_opt.kernel.domain import Ball, Box, Ellipsoid, parse_set
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.workflow.configs import domain_of, make_config
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 

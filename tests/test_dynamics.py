@@ -9,7 +9,10 @@ import pytest
 import torch
 
 import systems
-from nlyap_opt.dynamics import (
+from nlyap_opt.kernel.errors import ConfigError, DimensionError, NetworkFileError
+from nlyap_opt.kernel.network import Network, dense_network
+from nlyap_opt.kernel.symbolic import learned_rhs
+from nlyap_opt.learned.dynamics import (
     Grid,
     check_dynamics_network,
     default_config,
@@ -18,11 +21,8 @@ from nlyap_opt.dynamics import (
     measure_alpha,
     refine_dynamics,
 )
-from nlyap_opt.dynamics_config import PRESETS, DynamicsConfig, config_keys, dynamics_config
-from nlyap_opt.dynamics_stage import dynamics_stage, eta_limit_linear
-from nlyap_opt.errors import ConfigError, DimensionError, NetworkFileError
-from nlyap_opt.network import Network, dense_network
-from nlyap_opt.symbolic import learned_rhs
+from nlyap_opt.learned.dynamics_config import PRESETS, DynamicsConfig, config_keys, dynamics_config
+from nlyap_opt.learned.dynamics_stage import dynamics_stage, eta_limit_linear
 
 NAMES = ["van_der_pol", "unicycle_path_following", "inverted_pendulum"]
 
@@ -217,7 +217,7 @@ def test_config_file_grid_spacing_replaces_default_counts(tmp_path):
     p = tmp_path / "c.json"
     p.write_text(json.dumps({"grid_spacing": [0.5, 0.25]}))
     cfg = load_config(p, "van_der_pol")
-    from nlyap_opt.dynamics import make_grid
+    from nlyap_opt.learned.dynamics import make_grid
 
     g = make_grid(systems.get("van_der_pol"), cfg)
     assert g.counts.tolist() == [7, 13] and g.spacing.tolist() == [0.5, 0.25]
@@ -264,8 +264,8 @@ def test_dynamics_config_presets_and_types():
     # no wall-clock key anywhere: budgets are counts
     assert not any("time" in k for k in config_keys())
     # the bound names the config accepts are the ones that exist
-    from nlyap_opt.bounds import BOUND_OPTIONS
-    from nlyap_opt.dynamics_config import _BOUND_NAMES
+    from nlyap_opt.learned.bounds import BOUND_OPTIONS
+    from nlyap_opt.learned.dynamics_config import _BOUND_NAMES
 
     assert set(_BOUND_NAMES) == set(BOUND_OPTIONS)
 
@@ -357,7 +357,7 @@ def test_hopeless_eta_stops_the_stage_with_advice():
 
 
 def test_learn_dynamics_cli_exits_2_with_advice_on_a_hopeless_eta(tmp_path, capsys):
-    from nlyap_opt import cli
+    from nlyap_opt.interface import cli
 
     cfg = tmp_path / "tiny.json"
     cfg.write_text(json.dumps({k: v for k, v in TINY.items() if k != "preset"}))
@@ -394,7 +394,7 @@ def test_alpha_pairs_each_output_with_its_listed_component():
     (a sorted copy of the list paired each output with the other component of f)."""
     import copy
 
-    from nlyap_opt.dynamics import Grid, learn_dynamics, measure_alpha
+    from nlyap_opt.learned.dynamics import Grid, learn_dynamics, measure_alpha
 
     s = systems.get("unicycle_path_following")
     res = learn_dynamics(s, {"preset": "fast", "model": "full", "hidden": 8,

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from nlyap_opt.certificate import recheck_certificate, spec_factory
-from nlyap_opt.cli import main
+from nlyap_opt.certification.certificate import recheck_certificate, spec_factory
+from nlyap_opt.interface.cli import main
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 

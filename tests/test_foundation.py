@@ -7,9 +7,9 @@ import torch
 
 import systems
 from baselines.lqr import lqr, saturated_controller
-from nlyap_opt.network import dense_network, from_torch
-from nlyap_opt.symbolic import closed_loop, lie_derivative
-from nlyap_opt.walker import ArrayArithmetic, evaluate
+from nlyap_opt.kernel.network import dense_network, from_torch
+from nlyap_opt.kernel.symbolic import closed_loop, lie_derivative
+from nlyap_opt.kernel.walker import ArrayArithmetic, evaluate
 
 ALL = list(systems.SEED_SYSTEMS)
 
@@ -54,7 +54,7 @@ def test_lqr_and_lyapunov_matrix_are_python_controls_numbers_bit_for_bit(name):
     import sys
 
     control = pytest.importorskip("control")
-    from nlyap_opt.control import linearisation, lyapunov_matrix
+    from nlyap_opt.design.control import linearisation, lyapunov_matrix
 
     if control.mateqn.slycot_check():
         pytest.skip("python-control uses slycot here, another solver")
@@ -70,7 +70,7 @@ def test_lqr_and_lyapunov_matrix_are_python_controls_numbers_bit_for_bit(name):
     Acl = A - B @ res.K
     P = control.lyap(Acl.T, 2.0 * np.eye(s.nx))
     assert np.array_equal(lyapunov_matrix(Acl, 2.0 * np.eye(s.nx)), 0.5 * (P + P.T))
-    code = ("import sys, systems\nfrom nlyap_opt.control import lqr\n"
+    code = ("import sys, systems\nfrom nlyap_opt.design.control import lqr\n"
             f"lqr(systems.get({name!r}))\nprint('control' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)

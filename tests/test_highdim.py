@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.certificate import CertStatus, RoaProblem, certify_roa
-from nlyap_opt.configs import PRESETS, check_dynamics_box, get_config
-from nlyap_opt.control import (
+from nlyap_opt.certification.certificate import CertStatus, RoaProblem, certify_roa
+from nlyap_opt.design.control import (
     linear_controller,
     lqr,
     quadratic_lyapunov,
     saturated_controller,
 )
+from nlyap_opt.workflow.configs import PRESETS, check_dynamics_box, get_config
 
 HIGHDIM = ("cartpole", "planar_quadrotor")
 
@@ -158,7 +158,7 @@ def test_presets_validate(name, preset):
 def _small_problem(name, broken=False):
     """A quadratic certificate of the LQR closed loop on a small ball.
 
-    ``V = xᵀPx`` with ``A_clᵀP + PA_cl = −I`` (:func:`nlyap_opt.control.lqr`) for the
+    ``V = xᵀPx`` with ``A_clᵀP + PA_cl = −I`` (:func:`nlyap_opt.design.control.lqr`) for the
     linear LQR controller; ball radius ``r = 0.05``, inner radius
     ``ε = ½·sqrt(c / λ_max(P))`` at the level ``c = 0.9·λ_min(P)·r²``, so that
     ``B_ε ⊆ Ω_c ⊆ B_r``. The verifier is capped at 100 000 boxes (seconds).
@@ -230,7 +230,7 @@ def _saturated_lqr_loop(name):
 
 @pytest.mark.parametrize("name", HIGHDIM)
 def test_round_lyapunov_matrix_solves_the_lmi_with_a_small_condition_number(name):
-    from nlyap_opt.control import ellipse_candidates, lyapunov_matrix, round_lyapunov_matrix
+    from nlyap_opt.design.control import ellipse_candidates, lyapunov_matrix, round_lyapunov_matrix
 
     _, res, _ = _saturated_lqr_loop(name)
     A = res.A - res.B @ res.K
@@ -258,9 +258,9 @@ def test_inner_ellipse_of_the_saturated_cartpole_loop():
     it; the round matrix (condition number 60) is certified by the Frobenius form alone."""
     import casadi as ca
 
-    from nlyap_opt.control import lyapunov_matrix, round_lyapunov_matrix
-    from nlyap_opt.roa import certify_inner_ellipse
-    from nlyap_opt.symbolic import closed_loop
+    from nlyap_opt.certification.roa import certify_inner_ellipse
+    from nlyap_opt.design.control import lyapunov_matrix, round_lyapunov_matrix
+    from nlyap_opt.kernel.symbolic import closed_loop
 
     s, res, sat = _saturated_lqr_loop("cartpole")
     opts = {"second_order": True}
@@ -304,7 +304,7 @@ def test_inner_ellipse_of_the_saturated_cartpole_loop():
 
 # ------------------------------------------------ learned dynamics on the variables f reads
 def test_input_columns_are_the_models_dependencies():
-    from nlyap_opt.dynamics import input_columns, learned_components
+    from nlyap_opt.learned.dynamics import input_columns, learned_components
 
     cp, q = systems.get("cartpole"), systems.get("planar_quadrotor")
     # cartpole (p, v, θ, ω | F): v' and ω' read θ, ω and F only
@@ -316,7 +316,7 @@ def test_input_columns_are_the_models_dependencies():
 
 
 def _tiny_phi(inputs):
-    from nlyap_opt.dynamics import learn_dynamics
+    from nlyap_opt.learned.dynamics import learn_dynamics
 
     return learn_dynamics(systems.get("cartpole"), {
         "preset": "fast", "inputs": inputs, "hidden": 8, "grid_counts": [2, 2, 9, 9, 5],
@@ -328,7 +328,7 @@ def test_phi_on_the_models_dependencies_ignores_the_other_axes():
     """``inputs: model``: φ's hidden weights are exact zeros on the cart's position and
     velocity, so φ (and f − φ) is constant along them: the second-order bound's curvature
     terms of those axes are exactly 0, and α is the same on every (p, v) slice."""
-    from nlyap_opt.error_models import compute_bounds
+    from nlyap_opt.learned.error_models import compute_bounds
 
     res = _tiny_phi("model")
     W0 = res.network.layers[0].weight
@@ -352,7 +352,7 @@ def test_robust_margin_takes_the_learned_components_only():
     pointwise margin of the decrease is ``η‖∇_L V‖`` (cartpole: ∂V/∂v, ∂V/∂ω)."""
     import casadi as ca
 
-    from nlyap_opt.symbolic import robust_lie
+    from nlyap_opt.kernel.symbolic import robust_lie
 
     x = ca.SX.sym("x", 4)
     V = ca.sumsqr(x) + x[0] * x[2]
@@ -368,7 +368,7 @@ def test_robust_margin_takes_the_learned_components_only():
                       res.network, inner=0.1, outer=0.5, eta=0.5, smoothing=0.0,
                       dynamics_box=res.grid.box[:4], input_box=res.grid.box[4:])
     dec = prob.decrease()
-    from nlyap_opt.symbolic import closed_loop, lie_derivative
+    from nlyap_opt.kernel.symbolic import closed_loop, lie_derivative
 
     cl = closed_loop(systems.get("cartpole"), None, res.network, x=dec.x, strict=False)
     robust = ca.Function("d", [dec.x], [dec.lie])
@@ -387,9 +387,9 @@ def test_cartpole_volume_quadratic_certifies_three_times_the_round_volume():
     and sampled points of it decrease."""
     import math
 
-    from nlyap_opt.control import quadratic_lyapunov
-    from nlyap_opt.quadratic import certify_quadratics
-    from nlyap_opt.roa import axis_count
+    from nlyap_opt.candidates.quadratic import certify_quadratics
+    from nlyap_opt.certification.roa import axis_count
+    from nlyap_opt.design.control import quadratic_lyapunov
 
     s, _, sat = _saturated_lqr_loop("cartpole")
     cfg = get_config("cartpole", "large")

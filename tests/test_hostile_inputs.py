@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.cli import main
-from nlyap_opt.dynamics import Grid, check_declared
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.walker import OP_TABLE
+from nlyap_opt.interface.cli import main
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.kernel.walker import OP_TABLE
+from nlyap_opt.learned.dynamics import Grid, check_declared
 from systems.declarations import Declarations, probe_declarations
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -218,7 +218,7 @@ def test_zero_over_zero_same_exit_and_message_under_any_hash_seed(tmp_path):
     for i, e in enumerate(ZERO_ZERO):
         files.append(_spec(tmp_path, f'states = ["x", "y"]\nstate_box = [[-1, 1], [-1, 1]]\n'
                                      f'[rhs]\nx = "{e}"\ny = "-y"\n', f"z{i}.toml"))
-    prog = ("import sys\nfrom nlyap_opt.cli import main\n"
+    prog = ("import sys\nfrom nlyap_opt.interface.cli import main\n"
             "for f in sys.argv[1:]:\n    print(main(['systems', '--check', f]))\n")
     seen = None
     for seed in ("0", "1", "2", "3", "17"):
@@ -405,7 +405,7 @@ def test_probe_budget_zero_and_seed_reproducible():
 
 
 def test_probe_points_is_a_dynamics_config_key():
-    from nlyap_opt.dynamics_config import dynamics_config
+    from nlyap_opt.learned.dynamics_config import dynamics_config
 
     assert dynamics_config("van_der_pol", {}).probe_points == 30000
     with pytest.raises(ConfigError, match="probe_points"):

@@ -1,7 +1,7 @@
 """Condition (c) without exponential stability: the weighted blow-up of the origin.
 
-``nlyap_opt.roa.certify_inner_blowup`` proves ``V̇_q < 0`` on ``E∖{0}`` when the closed
-loop's linearisation has a zero eigenvalue (a centre manifold). The tests check it against
+``nlyap_opt.certification.roa.certify_inner_blowup`` proves ``V̇_q < 0`` on ``E∖{0}`` when the
+closed loop's linearisation has a zero eigenvalue (a centre manifold). The tests check it against
 the mathematics: a certified ``E`` has ``V̇_q < 0`` at sampled points, a false property (the
 centre unstable, or unstable inside ``E``) is never certified, a non-smooth closed loop is
 refused, and the hyperbolic case keeps its exponential forms.
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.control import InnerStatus, verdict_of
-from nlyap_opt.roa import _blowup_candidates, certify_inner_ellipse
+from nlyap_opt.certification.roa import _blowup_candidates, certify_inner_ellipse
+from nlyap_opt.design.control import InnerStatus, verdict_of
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 

@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.control import saturated_controller
-from nlyap_opt.dynamics import Grid, check_declared, learn_dynamics
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.inner_from_data import prove_inner_ellipse_from_data
-from nlyap_opt.network import Layer, Network
+from nlyap_opt.design.control import saturated_controller
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.kernel.network import Layer, Network
+from nlyap_opt.learned.dynamics import Grid, check_declared, learn_dynamics
+from nlyap_opt.learned.inner_from_data import prove_inner_ellipse_from_data
 from systems.jacobian import jacobian_from_data
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"

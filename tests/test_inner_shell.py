@@ -14,7 +14,12 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.roa import SHELL_FRACTION, InnerForm, InnerFormKind, certify_inner_ellipse
+from nlyap_opt.certification.roa import (
+    SHELL_FRACTION,
+    InnerForm,
+    InnerFormKind,
+    certify_inner_ellipse,
+)
 
 EPS = 0.2
 

@@ -644,7 +644,7 @@ def test_unsupported_operation_raises_not_implemented():
 
 
 def test_walker_evaluation_encloses_point_values():
-    from nlyap_opt.walker import evaluate
+    from nlyap_opt.kernel.walker import evaluate
 
     x = ca.SX.sym("x", 2)
     e = ca.vertcat(ca.sin(x[0]) * x[1] + ca.exp(-x[0] ** 2), ca.tanh(x[0] - 3 * x[1]) ** 3,
@@ -664,7 +664,7 @@ def test_walker_evaluation_encloses_point_values():
 def test_walker_mx_mtimes_zero_addend_and_cached_constants():
     """``W @ x`` (a zero addend, skipped) and ``W @ x + b`` in MX enclose point values;
     constants reused across passes give identical results."""
-    from nlyap_opt.walker import NUMPY, compile_function, evaluate
+    from nlyap_opt.kernel.walker import NUMPY, compile_function, evaluate
 
     rng = np.random.default_rng(11)
     W = rng.normal(size=(5, 3))
@@ -693,7 +693,7 @@ def test_walker_mx_mtimes_zero_addend_and_cached_constants():
 def test_walker_mx_dot_of_a_register_with_itself_is_a_sum_of_squares():
     """``sumsqr(v)`` (CasADi ``dot(v, v)``) encloses ``‖v‖²`` by ``[min, max]`` of the squares,
     not the product of two independent copies; ``dot(v, w)`` keeps the product."""
-    from nlyap_opt.walker import NUMPY, evaluate
+    from nlyap_opt.kernel.walker import NUMPY, evaluate
 
     x = ca.MX.sym("x", 2)
     W = np.array([[1.0, -2.0], [0.5, 1.0]])
@@ -718,7 +718,7 @@ def test_constants_folded_by_casadi_are_enclosed():
     """CasADi folds ``0.1 * 3`` into ``0.30000000000000004`` in the gradient of
     ``(x * 0.1) * 3``, and SX folds ``0.1 * (0.3 * x)`` into ``0.03 * x``; the enclosures
     must hold the real values ``3 · fl(0.1)`` and ``fl(0.1) · fl(0.3)``."""
-    from nlyap_opt.walker import evaluate
+    from nlyap_opt.kernel.walker import evaluate
 
     x = ca.MX.sym("x")
     xs = ca.SX.sym("x")
@@ -755,7 +755,7 @@ def test_sums_keep_exact_zero_lower_bounds_and_round_outward():
 
 
 def test_checked_arithmetic_flags_per_box_and_output():
-    from nlyap_opt.walker import compile_function, evaluate
+    from nlyap_opt.kernel.walker import compile_function, evaluate
     from verification.interval import CheckedIntervalArithmetic
 
     x = ca.SX.sym("x", 2)
@@ -774,7 +774,7 @@ def test_checked_arithmetic_flags_per_box_and_output():
 
 
 def test_checked_arithmetic_through_mx_calls_and_constants():
-    from nlyap_opt.walker import compile_function, evaluate
+    from nlyap_opt.kernel.walker import compile_function, evaluate
     from verification.interval import CheckedIntervalArithmetic
 
     xs = ca.SX.sym("x", 2)
@@ -796,7 +796,7 @@ def test_checked_arithmetic_through_mx_calls_and_constants():
 
 
 def test_statically_safe_operations_are_not_checked():
-    from nlyap_opt.walker import compile_function
+    from nlyap_opt.kernel.walker import compile_function
 
     x = ca.SX.sym("x", 2)
     cases = [(x[0] / 3.0, False), (x[0] ** 3, False), (ca.fmax(1.0, 2.0) * x[0], False),
@@ -811,7 +811,7 @@ def test_statically_safe_operations_are_not_checked():
 
 
 def test_domain_taint_flows_through_mx_layers_and_respects_if_else_guards():
-    from nlyap_opt.walker import evaluate
+    from nlyap_opt.kernel.walker import evaluate
     from verification.interval import CheckedIntervalArithmetic
 
     xm = ca.MX.sym("x", 2)

@@ -84,7 +84,7 @@ def test_package_root_imports_core_only():
     layers = _layers()
     below_systems = layers[[i for i, layer in enumerate(layers) if "systems" in layer][0] + 1:]
     core = {m for layer in below_systems for m in layer}
-    assert _covered("nlyap_opt.errors", core) and _covered("nlyap_opt.network", core)
+    assert _covered("nlyap_opt.kernel.errors", core) and _covered("nlyap_opt.kernel.network", core)
     tree = ast.parse((ROOT / "nlyap_opt" / "__init__.py").read_text())
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.level == 1:

@@ -11,11 +11,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
-import nlyap_opt.parallel as par
+import nlyap_opt.distributed.parallel as par
 import systems
-from nlyap_opt.certificate import RoaProblem, certify_roa
-from nlyap_opt.control import quadratic_lyapunov
-from nlyap_opt.roa import INNER_LEVEL_MARGIN, inner_ball_level
+from nlyap_opt.certification.certificate import RoaProblem, certify_roa
+from nlyap_opt.certification.roa import INNER_LEVEL_MARGIN, inner_ball_level
+from nlyap_opt.design.control import quadratic_lyapunov
 from verification import VerificationResult
 
 EPS = 0.95
@@ -84,7 +84,7 @@ def test_smallest_level_start_and_radii_below_their_inner_ball_are_skipped():
     """``f = x(‖x‖² − 1/4)``, ``V = ‖x‖²``: V̇ < 0 exactly for ‖x‖ < 1/2 (candidate level
     1/4). At ε = 0.6 every Ω_c ⊇ B_ε holds violations: the radius is skipped, not searched;
     at ε = 0.3 exactly 1.02·0.09 is checked, the smallest level holding B_0.3."""
-    from nlyap_opt.certificate import certify_with_inner_search
+    from nlyap_opt.certification.certificate import certify_with_inner_search
 
     x = ca.SX.sym("x", 2)
     s = systems.System("shell", x, None, x * (ca.sumsqr(x) - 0.25), state_box=[[-3.0, 3.0]] * 2)
@@ -101,7 +101,7 @@ def test_every_radius_skipped_is_a_refusal_not_an_error():
     """The learned-f cartpole's LQR matrix: every radius skipped (its candidate level lies
     below each inner ball's); the run must go on to the next candidate, not stop with an
     input error. Same situation here with the radii 0.6 and 1.2."""
-    from nlyap_opt.certificate import certify_with_inner_search
+    from nlyap_opt.certification.certificate import certify_with_inner_search
 
     x = ca.SX.sym("x", 2)
     s = systems.System("shell", x, None, x * (ca.sumsqr(x) - 0.25), state_box=[[-3.0, 3.0]] * 2)

@@ -1,4 +1,4 @@
-"""Tests of nlyap_opt.lipschitz: LipSDP bounds are rigorous, tight-ish and re-certified."""
+"""Tests of nlyap_opt.learned.lipschitz: LipSDP bounds are rigorous, tight-ish and re-certified."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from nlyap_opt.errors import DimensionError
-from nlyap_opt.lipschitz import (
+from nlyap_opt.kernel.errors import DimensionError
+from nlyap_opt.learned.lipschitz import (
     LipschitzResult,
     _build_lmi,
     _certify,
@@ -257,7 +257,7 @@ def test_recertify_corrupted_multipliers_never_unsound():
 
 
 def test_failed_recertification_returns_naive(monkeypatch):
-    import nlyap_opt.lipschitz as lip
+    import nlyap_opt.learned.lipschitz as lip
 
     rng = np.random.default_rng(17)
     W0, b0, W1 = _net(rng, 2, 12, 2)

@@ -4,7 +4,7 @@ pass elsewhere in the package ≡ :meth:`Network.casadi`, and the validation of 
 Exactness is checked over a product of architectures (depth, width, activation, output scale,
 sum-of-squares head) in float64: values to 1e-13 relative to the batch's magnitude, and CasADi
 Jacobians against torch autograd. The CasADi side is evaluated by CasADi itself (``map``), not
-by the project's walker, so the reference is independent of ``nlyap_opt.walker``.
+by the project's walker, so the reference is independent of ``nlyap_opt.kernel.walker``.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ import pytest
 import torch
 
 import systems
-from nlyap_opt.errors import DimensionError, NetworkFileError, UnsupportedLayerError
-from nlyap_opt.network import ACTIVATIONS, Layer, Network, dense_network, from_torch
+from nlyap_opt.kernel.errors import DimensionError, NetworkFileError, UnsupportedLayerError
+from nlyap_opt.kernel.network import ACTIVATIONS, Layer, Network, dense_network, from_torch
 
 RTOL = 1e-13
 
@@ -193,7 +193,7 @@ def _private(name: str, *modules: str):
                                        ("sigmoid", "vector")])
 def test_learning_body_jacobian_at_zero_equals_casadi(act, scale):
     """``learning._body_jacobian_at_zero`` (forward-mode ∂N/∂x(0)) ≡ CasADi ``jacobian``."""
-    jac0 = _private("_body_jacobian_at_zero", "nlyap_opt.learning")
+    jac0 = _private("_body_jacobian_at_zero", "nlyap_opt.candidates.learning")
     body = _build(3, 6, act, scale, None, seed=2)
     x = ca.SX.sym("x", body.n_in)
     want = np.array(ca.Function("J", [x], [ca.jacobian(body.casadi(x), x)])(
@@ -203,8 +203,8 @@ def test_learning_body_jacobian_at_zero_equals_casadi(act, scale):
 
 
 def _pendulum_learner(**cfg):
-    from nlyap_opt.control import lqr, saturated_controller
-    from nlyap_opt.learning import LyapunovLearner, TrainConfig
+    from nlyap_opt.candidates.learning import LyapunovLearner, TrainConfig
+    from nlyap_opt.design.control import lqr, saturated_controller
 
     s = systems.get("inverted_pendulum")
     ctrl = saturated_controller(s, lqr(s).K, s.input_box[0, 1])
@@ -233,7 +233,7 @@ def test_learning_controller_and_V_equal_their_networks():
     ref = _casadi_eval(F, X)[:, :, 0]
     _close(v.detach().numpy(), ref[:, 0])
     _close(g.detach().numpy(), ref[:, 1:])
-    jac0 = _private("_body_jacobian_at_zero", "nlyap_opt.learning")
+    jac0 = _private("_body_jacobian_at_zero", "nlyap_opt.candidates.learning")
     J = jac0(learner.V.body, s.nx)
     H = (2 * (J.T @ J + learner.V.eps * torch.eye(s.nx, dtype=torch.float64))).detach().numpy()
     H_ref = np.array(ca.Function("H", [x], [ca.hessian(Vx, x)[0]])(np.zeros(s.nx)), dtype=float)
@@ -244,8 +244,8 @@ def test_dynamics_levenberg_marquardt_forward_equals_casadi():
     """``phi_training.LevenbergMarquardt._forward`` (w1·tanh(W0 z + b0) + b1 in numpy) ≡
     ``Network.casadi`` of the same weights, and ``phi_training.assemble`` (normalisation folded
     into one network) ≡ σ·(block forward on normalised inputs) + μ."""
-    lm_cls = _private("LevenbergMarquardt", "nlyap_opt.phi_training")
-    assemble = _private("assemble", "nlyap_opt.phi_training")
+    lm_cls = _private("LevenbergMarquardt", "nlyap_opt.learned.phi_training")
+    assemble = _private("assemble", "nlyap_opt.learned.phi_training")
     rng = np.random.default_rng(5)
     d, H, m = 3, 6, 2
     centre, radius = rng.uniform(-1, 1, d), rng.uniform(0.5, 3, d)
@@ -272,7 +272,8 @@ def test_dynamics_levenberg_marquardt_forward_equals_casadi():
 def test_bounds_phi_derivatives_equal_casadi_derivatives():
     """``ErrorModel._phi_derivatives`` (explicit J_φ and ∂²φ/∂z_i² of one tanh layer) ≡
     CasADi ``jacobian`` / ``hessian`` of ``Network.casadi``."""
-    error_model = _private("ErrorModel", "nlyap_opt.error_models", "nlyap_opt.bounds")
+    error_model = _private("ErrorModel", "nlyap_opt.learned.error_models",
+                           "nlyap_opt.learned.bounds")
     s = systems.get("van_der_pol")
     for scale in ("one", "vector"):
         net = _build(2, 8, "tanh", scale, None, n_in=s.nx, n_out=s.nx, seed=6)
@@ -295,7 +296,7 @@ def test_bounds_phi_derivatives_equal_casadi_derivatives():
 def test_bounds_controller_enclosure_contains_the_network(act):
     """``bounds._controller_enclosure`` (pre-activation by intervals, saturating activation
     clamped) encloses ``Network.numpy`` on every box."""
-    enclosure = _private("_controller_enclosure", "nlyap_opt.bounds")
+    enclosure = _private("_controller_enclosure", "nlyap_opt.learned.bounds")
     rng = np.random.default_rng(8)
     net = Network([Layer(rng.uniform(-3, 3, (2, 2)), rng.uniform(-1, 1, 2), act)],
                   [2.0, -0.5])
@@ -316,7 +317,7 @@ def test_network_error_bound_covers_numpy_rounding():
     (mpmath, 50 digits) on random points of the box."""
     mpmath = pytest.importorskip("mpmath", reason="mpmath (dev extra) is needed for the exact "
                                  "reference")
-    bound_fn = _private("network_error_bound", "nlyap_opt.dynamics")
+    bound_fn = _private("network_error_bound", "nlyap_opt.learned.dynamics")
     net = _build(2, 12, "tanh", "vector", None, n_in=3, n_out=2, seed=11)
     zmax = np.array([2.0, 1.0, 3.0])
     Z = np.random.default_rng(11).uniform(-1, 1, (40, 3)) * zmax

@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from nlyap_opt.certificate import recheck_certificate
-from nlyap_opt.cli import main
+from nlyap_opt.certification.certificate import recheck_certificate
+from nlyap_opt.interface.cli import main
 
 SPEC = '''
 name = "{name}"
@@ -52,7 +52,7 @@ def test_spec_system_runs_end_to_end_from_the_cli(tmp_path, capsys):
     assert cert["status"] == "certified" and cert["system"] == "own_cubic"
     # from [run]: r = 1 and ε = 0.2 (the winning certificate may use another radius of the
     # inner search, a fixed multiple of the configured one)
-    from nlyap_opt.certificate import INNER_FACTORS
+    from nlyap_opt.certification.certificate import INNER_FACTORS
 
     assert cert["outer_radius"] == 1.0
     assert any(abs(cert["inner_radius"] - 0.2 * k) < 1e-12 for k in INNER_FACTORS)
@@ -119,7 +119,8 @@ def test_spec_system_certificate_rechecks_in_a_new_process(tmp_path):
     spec = _spec(tmp_path, name="own_cubic_c")
     out = tmp_path / "run"
     assert main(["run", str(spec), "--known-dynamics", "--out", str(out)]) == 0
-    proc = subprocess.run([sys.executable, "-m", "nlyap_opt.cli", "verify", "--certificate",
+    proc = subprocess.run([sys.executable, "-m", "nlyap_opt.interface.cli", "verify",
+                           "--certificate",
                            str(out)], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
 

@@ -20,9 +20,8 @@ from certcheck import assert_confirmed
 
 import systems
 from baselines.lqr import quadratic_lyapunov
-from nlyap_opt import parallel
-from nlyap_opt.errors import BackendUnavailableError, ConfigError
-from nlyap_opt.parallel import (
+from nlyap_opt.distributed import parallel
+from nlyap_opt.distributed.parallel import (
     _starts_from_boxes,
     ahead,
     check,
@@ -31,6 +30,7 @@ from nlyap_opt.parallel import (
     verify_distributed,
     verifying_on,
 )
+from nlyap_opt.kernel.errors import BackendUnavailableError, ConfigError
 from verification import VerificationProblem, closed_loop_problem, verify
 
 pytest.importorskip("distributed")
@@ -67,7 +67,7 @@ def client():
 
 @pytest.fixture(params=MODES, ids=lambda b: "batched" if b else "fixed-split")
 def mode(request, monkeypatch):
-    monkeypatch.setattr("nlyap_opt.parallel._starts_from_boxes", lambda: request.param)
+    monkeypatch.setattr("nlyap_opt.distributed.parallel._starts_from_boxes", lambda: request.param)
     return request.param
 
 
@@ -254,7 +254,7 @@ def test_unpickled_copies_of_a_problem_share_their_compiled_graphs():
     unpickled copy holds the same Function objects (the walker caches per object)."""
     import pickle
 
-    from nlyap_opt.walker import compile_function
+    from nlyap_opt.kernel.walker import compile_function
 
     problem = _vdp_problem(1.0)
     problem.second_order_functions
@@ -439,7 +439,7 @@ def test_ahead_left_early_stops_its_job_at_the_next_wait(client):
 def test_certify_roa_on_a_cluster_checks_c_beside_a_and_b(client, monkeypatch):
     """``certify_roa`` inside ``verifying_on``: condition (c) runs ahead, beside (a) and (b),
     and the certificate (status, level, checks, proved ellipse) is the serial one."""
-    from nlyap_opt.certificate import RoaProblem, certify_roa
+    from nlyap_opt.certification.certificate import RoaProblem, certify_roa
 
     s = systems.get("van_der_pol")
     prob = RoaProblem(s, quadratic_lyapunov(P_VDP), inner=0.3, outer=1.5)
@@ -474,9 +474,9 @@ def test_run_with_dask_certificate_stage_gives_the_serial_certificate(client, tm
                                                                       monkeypatch):
     """``nlyap run NAME --scheduler ADDR`` (no ``--seeds``): the certificate stage's checks
     run on the cluster; status, level, area, checks and artifact hashes are the serial run's."""
-    from nlyap_opt.cli import main
-    from nlyap_opt.configs import make_config
-    from nlyap_opt.pipeline import run
+    from nlyap_opt.interface.cli import main
+    from nlyap_opt.workflow.configs import make_config
+    from nlyap_opt.workflow.pipeline import run
 
     cfg = make_config("van_der_pol", "fast")
     serial = run("van_der_pol", cfg, tmp_path / "serial", known_dynamics=True,
@@ -500,8 +500,8 @@ def test_run_with_dask_certificate_stage_gives_the_serial_certificate(client, tm
 @pytest.mark.parametrize("kwargs, match", [({"scheduler": "localhost"}, "tcp://HOST:PORT"),
                                            ({"workers": 0}, "workers must be an integer")])
 def test_run_with_bad_dask_options_fails_before_any_stage(tmp_path, kwargs, match):
-    from nlyap_opt.configs import make_config
-    from nlyap_opt.pipeline import run
+    from nlyap_opt.workflow.configs import make_config
+    from nlyap_opt.workflow.pipeline import run
 
     cfg = make_config("van_der_pol", "fast")
     with pytest.raises(ConfigError, match=match):
@@ -562,7 +562,7 @@ def test_existing_cluster_scheduler_and_two_worker_processes(tmp_path):
 
 # ----------------------------------------------------------------------------- portfolio
 def _fast_vdp():
-    from nlyap_opt.configs import get_config
+    from nlyap_opt.workflow.configs import get_config
 
     return get_config("van_der_pol", "fast")
 
@@ -572,7 +572,7 @@ def _fast_vdp():
     ([0, 0], "distinct"), (True, "seeds must be"), ("3", "seeds must be"),
 ])
 def test_portfolio_bad_seeds(tmp_path, seeds, match):
-    from nlyap_opt.portfolio import run_portfolio
+    from nlyap_opt.workflow.portfolio import run_portfolio
 
     with pytest.raises(ConfigError, match=match):
         run_portfolio("van_der_pol", _fast_vdp(), tmp_path, seeds=seeds, workers=1)
@@ -580,8 +580,8 @@ def test_portfolio_bad_seeds(tmp_path, seeds, match):
 
 
 def test_portfolio_bad_system_or_config_fails_before_any_work(tmp_path):
-    from nlyap_opt.errors import UnknownNameError
-    from nlyap_opt.portfolio import run_portfolio
+    from nlyap_opt.kernel.errors import UnknownNameError
+    from nlyap_opt.workflow.portfolio import run_portfolio
 
     with pytest.raises(UnknownNameError, match="no_such_system"):
         run_portfolio("no_such_system", _fast_vdp(), tmp_path, seeds=2, workers=1)
@@ -593,7 +593,7 @@ def test_portfolio_bad_system_or_config_fails_before_any_work(tmp_path):
 
 
 def test_seed_config_sets_both_training_seeds():
-    from nlyap_opt.portfolio import seed_config
+    from nlyap_opt.workflow.portfolio import seed_config
 
     cfg = _fast_vdp()
     c3 = seed_config(cfg, 3)
@@ -607,7 +607,7 @@ def test_seed_config_sets_both_training_seeds():
 def test_two_seed_portfolio_keeps_the_largest_certified_area(client, tmp_path):
     """2 seeds of the fast Van der Pol preset (true f) on the 2-worker cluster, then the
     same seeds on 1 worker: the same candidates, bit for bit, and the same choice."""
-    from nlyap_opt.portfolio import run_portfolio
+    from nlyap_opt.workflow.portfolio import run_portfolio
 
     cfg = _fast_vdp()
     lines = []
@@ -647,7 +647,7 @@ def test_two_seed_portfolio_keeps_the_largest_certified_area(client, tmp_path):
 
 @pytest.mark.slow  # ~17 s idle on a 2-worker cluster
 def test_learned_dynamics_are_learned_once_and_shared(client, tmp_path):
-    from nlyap_opt.portfolio import run_portfolio
+    from nlyap_opt.workflow.portfolio import run_portfolio
 
     res = run_portfolio("van_der_pol", _fast_vdp(), tmp_path, seeds=[2, 0],
                         scheduler=client.scheduler.address, log=lambda m: None)

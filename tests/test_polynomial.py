@@ -9,9 +9,7 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt import walker
-from nlyap_opt.errors import UnsupportedOperationError
-from nlyap_opt.polynomial import (
+from nlyap_opt.design.polynomial import (
     CONDITIONAL_OPS,
     POLYNOMIAL_OPS,
     NotPolynomialError,
@@ -22,7 +20,9 @@ from nlyap_opt.polynomial import (
     monomials,
     polynomial_closed_loop,
 )
-from nlyap_opt.walker import op_name
+from nlyap_opt.kernel import walker
+from nlyap_opt.kernel.errors import UnsupportedOperationError
+from nlyap_opt.kernel.walker import op_name
 
 PTS = np.random.default_rng(7).uniform(-2.0, 2.0, (64, 2))
 
@@ -30,7 +30,8 @@ PTS = np.random.default_rng(7).uniform(-2.0, 2.0, (64, 2))
 def _op_table():
     table = getattr(walker, "OP_TABLE", None)
     if table is None:
-        pytest.skip("nlyap_opt.walker.OP_TABLE is not there yet (added by the op-table work)")
+        pytest.skip("nlyap_opt.kernel.walker.OP_TABLE is not there yet (added by the op-table "
+                    "work)")
     return table
 
 

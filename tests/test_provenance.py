@@ -9,8 +9,8 @@ import sys
 
 import pytest
 
-from nlyap_opt.cli import main
-from nlyap_opt.provenance import (
+from nlyap_opt.interface.cli import main
+from nlyap_opt.kernel.provenance import (
     describe,
     differences,
     fingerprint,
@@ -21,7 +21,7 @@ from nlyap_opt.provenance import (
 
 
 def _nlyap(*argv, env=None):
-    return subprocess.run([sys.executable, "-m", "nlyap_opt.cli", *argv], text=True,
+    return subprocess.run([sys.executable, "-m", "nlyap_opt.interface.cli", *argv], text=True,
                           capture_output=True, env=env, timeout=600)
 
 
@@ -37,7 +37,7 @@ def test_the_fingerprint_names_what_determines_the_numbers():
 
 
 def test_the_fingerprint_is_the_same_in_another_process_and_changes_with_a_kernel_pin():
-    code = "from nlyap_opt.provenance import fingerprint_id; print(fingerprint_id())"
+    code = "from nlyap_opt.kernel.provenance import fingerprint_id; print(fingerprint_id())"
     env = dict(os.environ)
     ids = {subprocess.run([sys.executable, "-c", code], text=True, capture_output=True,
                           env=env, check=True).stdout.strip() for _ in range(2)}

@@ -9,15 +9,15 @@ import pytest
 
 import systems
 from baselines.compare import RowStatus, quadratic_row
-from nlyap_opt.certificate import LevelPolicy, RoaProblem, recheck_certificate
-from nlyap_opt.configs import get_config, make_config
-from nlyap_opt.control import lqr, quadratic_lyapunov, saturated_controller
-from nlyap_opt.domain import Ball
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.network import Network
-from nlyap_opt.pipeline import run
-from nlyap_opt.quadratic import certify_quadratics, closed_loop_matrix, quadratic_policy
-from nlyap_opt.roa import certify_level, least_violation
+from nlyap_opt.candidates.quadratic import certify_quadratics, closed_loop_matrix, quadratic_policy
+from nlyap_opt.certification.certificate import LevelPolicy, RoaProblem, recheck_certificate
+from nlyap_opt.certification.roa import certify_level, least_violation
+from nlyap_opt.design.control import lqr, quadratic_lyapunov, saturated_controller
+from nlyap_opt.kernel.domain import Ball
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.kernel.network import Network
+from nlyap_opt.workflow.configs import get_config, make_config
+from nlyap_opt.workflow.pipeline import run
 
 
 # --------------------------------------------------------------------------- level search
@@ -61,7 +61,7 @@ def _pendulum_problem(controller_scale=20.0):
     cfg = get_config("inverted_pendulum", "fast")
     res = lqr(s, cfg["lqr"]["Q"], cfg["lqr"]["R"])
     ctrl = saturated_controller(s, res.K, controller_scale)
-    from nlyap_opt.control import quadratic_lyapunov
+    from nlyap_opt.design.control import quadratic_lyapunov
 
     return s, cfg, res, RoaProblem(s, quadratic_lyapunov(np.eye(2)), ctrl, None, inner=0.4,
                                    outer=4.0)
@@ -167,7 +167,7 @@ def test_the_winning_quadratic_rechecks_and_a_tampered_one_does_not(quad_run, tm
     (f / "certificate.json").write_text(json.dumps(cert))
     with pytest.raises(ConfigError, match=r"'batch' must be an integer >= 1, got 0; rerun"):
         recheck_certificate(f, log=lambda m: None)
-    from nlyap_opt.cli import main
+    from nlyap_opt.interface.cli import main
 
     assert main(["verify", "--certificate", str(f / "certificate.json")]) == 3
     # a resumed run recomputes the quadratic stage instead of trusting the file
@@ -222,7 +222,7 @@ def test_quadratic_start_is_the_quadratic_over_its_level_near_the_origin():
     """V = ‖N(x) − N(0)‖² + ε‖x‖² with a·Lx in its first neurons equals xᵀPx/level up to
     the tanh's cubic term: |V − q| ≤ a²‖Lx‖⁴/level-scale (checked at 2000 points of
     growing radius); V(0) = 0 exactly; the architecture is the configured one."""
-    from nlyap_opt.learning import QUADRATIC_START_SLOPE, TrainConfig, quadratic_start
+    from nlyap_opt.candidates.learning import QUADRATIC_START_SLOPE, TrainConfig, quadratic_start
 
     P = np.array([[2.0, 0.3, 0.0], [0.3, 1.0, 0.1], [0.0, 0.1, 0.5]])
     cfg = TrainConfig(hidden=[8], features=4, eps=1e-3, seed=3)
@@ -284,8 +284,8 @@ def test_closed_loop_matrix_without_a_controller(name):
     """An autonomous system (no input) and a controlled one at u_eq: the SX closed loop of
     the quadratic candidates (an MX input beside an SX state used to fail) gives the
     Jacobian of f(x, u_eq) at 0 (central differences of the system's own evaluator)."""
-    from nlyap_opt.control import quadratic_lyapunov
-    from nlyap_opt.symbolic import closed_loop
+    from nlyap_opt.design.control import quadratic_lyapunov
+    from nlyap_opt.kernel.symbolic import closed_loop
 
     s = systems.get(name)
     p = RoaProblem(s, quadratic_lyapunov(np.eye(s.nx)), None, inner=0.1, outer=1.0)
@@ -308,7 +308,7 @@ def _lmi_ok(A, P, alpha, tol=1e-6):
 def test_volume_matrix_of_a_symmetric_loop_is_the_ball():
     """``A_cl = −diag(1, 2, 3)``: every ``P ⪰ I`` with ``P = I`` satisfies the decay LMI, and
     ``det P ≥ 1`` on ``P ⪰ I`` with equality only at ``I``: the optimum is the unit ball."""
-    from nlyap_opt.control import volume_lyapunov_matrix
+    from nlyap_opt.design.control import volume_lyapunov_matrix
 
     P = volume_lyapunov_matrix(-np.diag([1.0, 2.0, 3.0]))
     np.testing.assert_allclose(P, np.eye(3), atol=1e-5)
@@ -320,7 +320,7 @@ def test_volume_matrix_is_feasible_larger_than_round_and_locally_optimal(seed):
     """On random Hurwitz matrices: ``P ⪰ I`` and the decay LMI hold, the ellipsoid
     ``{xᵀPx ≤ 1}`` is at least as large as the round matrix's (scaled into the unit ball),
     and no feasible perturbation of ``P`` found by sampling has a smaller ``log det``."""
-    from nlyap_opt.control import round_lyapunov_matrix, volume_lyapunov_matrix
+    from nlyap_opt.design.control import round_lyapunov_matrix, volume_lyapunov_matrix
 
     rng = np.random.default_rng(seed)
     n = 3

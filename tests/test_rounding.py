@@ -1,4 +1,4 @@
-"""The rounding model (nlyap_opt.rounding): every helper against exact arithmetic.
+"""The rounding model (nlyap_opt.kernel.rounding): every helper against exact arithmetic.
 
 Each helper's guarantee (see the module docstring) is checked with mpmath at a precision
 where the reference is exact (sums, products: 2200 bits cover every pair of doubles) or
@@ -17,7 +17,7 @@ import mpmath as mp
 import numpy as np
 import pytest
 
-from nlyap_opt import rounding as R
+from nlyap_opt.kernel import rounding as R
 
 # overflow to +-inf is the safe side of an upper/lower bound, and the helpers allow it
 pytestmark = pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")

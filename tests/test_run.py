@@ -7,13 +7,13 @@ import pytest
 from certcheck import assert_fast_certificate
 
 import systems
-from nlyap_opt.cli import main
-from nlyap_opt.configs import get_config, make_config
-from nlyap_opt.network import Network
-from nlyap_opt.pipeline import run
-from nlyap_opt.provenance import fingerprint, fingerprint_id
-from nlyap_opt.roa import grid_points
-from nlyap_opt.simulate import simulate_converges
+from nlyap_opt.certification.roa import grid_points
+from nlyap_opt.interface.cli import main
+from nlyap_opt.kernel.network import Network
+from nlyap_opt.kernel.provenance import fingerprint, fingerprint_id
+from nlyap_opt.kernel.simulate import simulate_converges
+from nlyap_opt.workflow.configs import get_config, make_config
+from nlyap_opt.workflow.pipeline import run
 
 CERT_KEYS = {"status", "level", "inner_radius", "outer_radius", "margin", "M",
              "certified_area", "true_roa_area", "assumptions", "true_dynamics_check",
@@ -154,7 +154,7 @@ def _copy_run(known_runs, tmp_path, name="van_der_pol"):
 
 
 def test_certificate_rechecks_from_its_artifacts(known_runs):
-    from nlyap_opt.certificate import recheck_certificate
+    from nlyap_opt.certification.certificate import recheck_certificate
 
     for name, (d, cert) in known_runs.items():
         again = recheck_certificate(d / "certificate.json", log=lambda m: None)
@@ -165,7 +165,7 @@ def test_certificate_rechecks_from_its_artifacts(known_runs):
 def test_tampered_V_is_never_certified_on_resume(known_runs, tmp_path):
     """Replace V.json in a finished run: the rerun recomputes CEGIS (saying so) and the
     final certificate is that of the V on disk, re-verified."""
-    from nlyap_opt.certificate import recheck_certificate
+    from nlyap_opt.certification.certificate import recheck_certificate
 
     d, cert = _copy_run(known_runs, tmp_path)
     V = Network.load(d / "V.json")
@@ -182,7 +182,7 @@ def test_tampered_V_is_never_certified_on_resume(known_runs, tmp_path):
 @pytest.mark.slow  # ~50 s idle: a second learned run; the default tier stays under 5 min on 2 cores
 def test_tampered_V_with_forged_stage_record_is_not_certified(known_runs, tmp_path):
     """Even with stages.json forged to match a false V, the certificate stage re-verifies."""
-    from nlyap_opt.certificate import sha256_file
+    from nlyap_opt.certification.certificate import sha256_file
 
     d, cert = _copy_run(known_runs, tmp_path)
     V = Network.load(d / "V.json")
@@ -195,7 +195,7 @@ def test_tampered_V_with_forged_stage_record_is_not_certified(known_runs, tmp_pa
     res = run("van_der_pol", get_config("van_der_pol", "fast"), d, known_dynamics=True,
               log=lambda m: None)
     if res.certified:  # only if the forged V happens to satisfy every condition itself
-        from nlyap_opt.certificate import recheck_certificate
+        from nlyap_opt.certification.certificate import recheck_certificate
 
         assert recheck_certificate(d, log=lambda m: None).certified
     else:
@@ -218,7 +218,7 @@ def test_second_run_into_a_locked_directory_is_refused(known_runs, tmp_path):
     import subprocess
     import sys
 
-    from nlyap_opt.pipeline import RunLockedError
+    from nlyap_opt.workflow.pipeline import RunLockedError
 
     d, _ = _copy_run(known_runs, tmp_path)
     holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
@@ -239,7 +239,7 @@ def test_second_run_into_a_locked_directory_is_refused(known_runs, tmp_path):
 
 
 def test_out_that_is_a_file_is_an_input_error(tmp_path):
-    from nlyap_opt.errors import ConfigError
+    from nlyap_opt.kernel.errors import ConfigError
 
     f = tmp_path / "file"
     f.write_text("x")
@@ -252,8 +252,8 @@ def test_out_that_is_a_file_is_an_input_error(tmp_path):
 def test_interrupted_run_resumes_to_a_certificate_that_reverifies(stage, tmp_path,
                                                                   monkeypatch):
     """SIGINT in a stage (KeyboardInterrupt): the rerun's certificate re-verifies."""
-    import nlyap_opt.pipeline as pl
-    from nlyap_opt.certificate import recheck_certificate
+    import nlyap_opt.workflow.pipeline as pl
+    from nlyap_opt.certification.certificate import recheck_certificate
 
     name = "inverted_pendulum"
     cfg = get_config(name, "fast")
@@ -293,8 +293,8 @@ def test_interrupt_after_the_dynamics_files_are_written(tmp_path, monkeypatch):
     learns φ again (deterministically: the same φ) and its certificate re-verifies."""
     import hashlib
 
-    from nlyap_opt.certificate import recheck_certificate
-    from nlyap_opt.dynamics_stage import DynamicsStage
+    from nlyap_opt.certification.certificate import recheck_certificate
+    from nlyap_opt.learned.dynamics_stage import DynamicsStage
 
     cfg = get_config("van_der_pol", "fast")
     save = DynamicsStage.save
@@ -320,7 +320,7 @@ def test_recheck_refuses_a_certificate_whose_eta_was_lowered(learned_runs, tmp_p
     refused against the hashed bounds.json of the run, not re-verified with the lower η."""
     import shutil
 
-    from nlyap_opt.certificate import recheck_certificate
+    from nlyap_opt.certification.certificate import recheck_certificate
 
     d, cert = learned_runs["van_der_pol"]
     shutil.copytree(d, tmp_path / "run")
@@ -335,7 +335,7 @@ def test_recheck_refuses_a_certificate_whose_eta_was_lowered(learned_runs, tmp_p
 def test_certificate_stage_verifies_with_the_cegis_verifier_options(tmp_path):
     """cegis.verify_options hold for the certificate stage too: the saved problem carries
     them, so the run's own re-verification and `nlyap verify --certificate` use them."""
-    from nlyap_opt.configs import make_config
+    from nlyap_opt.workflow.configs import make_config
 
     opts = {"second_order": True, "max_boxes": 300000}
     cfg = make_config("van_der_pol", "fast", overrides={"cegis": {"verify_options": opts}})

@@ -12,8 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from nlyap_opt import pipeline
-from nlyap_opt.configs import (
+from nlyap_opt.candidates.learning import TrainConfig
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.workflow import pipeline
+from nlyap_opt.workflow.configs import (
     PRESETS,
     RunConfig,
     Section,
@@ -22,8 +24,6 @@ from nlyap_opt.configs import (
     make_config,
     schema,
 )
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.learning import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 ALL_PRESETS = [(s, p) for s in PRESETS for p in PRESETS[s]]
@@ -149,7 +149,7 @@ def test_a_stage_that_reads_an_undeclared_key_fails(monkeypatch, tmp_path):
     """The controller stage reads controller_scale: without it declared, it cannot run
     (a stale stage is impossible, not merely unlikely)."""
     import systems
-    from nlyap_opt.configs import domain_of
+    from nlyap_opt.workflow.configs import domain_of
 
     cfg = make_config("inverted_pendulum", "fast")
     s = systems.get("inverted_pendulum")
@@ -185,7 +185,7 @@ def test_orchestration_functions_stay_small():
 def test_an_undeclared_read_is_an_internal_error_not_an_input_error(monkeypatch, tmp_path,
                                                                      capsys):
     """A stage that reads an undeclared key is a bug of the program: exit 4, not 3."""
-    from nlyap_opt.cli import main
+    from nlyap_opt.interface.cli import main
 
     monkeypatch.setitem(pipeline._STAGE_FIELDS, "controller", ("lqr",))
     code = main(["run", "inverted_pendulum", "--preset", "fast", "--known-dynamics",
@@ -211,7 +211,7 @@ def test_schema_and_declared_keys_are_read_only():
 def test_stage_records_round_trip_and_refuse_bad_content(tmp_path):
     """The CEGIS record writes the JSON it loads back (status as its enum's value); a
     record with an unknown status or a missing key is an input error naming the file."""
-    from nlyap_opt.certificate import CertStatus
+    from nlyap_opt.certification.certificate import CertStatus
 
     rec = pipeline._CegisRecord(CertStatus.CERTIFIED, "", 0.5, 0.01, 2.0, 0.1, 0.3,
                                 [{"it": 0}], 1.5)

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.dynamics import Grid
-from nlyap_opt.errors import ConfigError, DimensionError, EquilibriumError
+from nlyap_opt.kernel.errors import ConfigError, DimensionError, EquilibriumError
+from nlyap_opt.learned.dynamics import Grid
 from systems import Declarations, ModelUnavailableError, SampleSet, check_declarations
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"

@@ -15,9 +15,9 @@ import pytest
 from test_soundness_ops import INDICATORS, WIDTHS, _assert_not_verified, _strip_problem
 
 import systems
-from nlyap_opt.certificate import RoaProblem
-from nlyap_opt.configs import make_config
-from nlyap_opt.control import linear_controller, lqr, quadratic_lyapunov
+from nlyap_opt.certification.certificate import RoaProblem
+from nlyap_opt.design.control import linear_controller, lqr, quadratic_lyapunov
+from nlyap_opt.workflow.configs import make_config
 from verification import VerificationProblem, verify
 from verification.interval import Interval
 from verification.verify import _point_enclosure, _second_order_enclosure

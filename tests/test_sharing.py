@@ -15,16 +15,16 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.certificate import (
+from nlyap_opt.certification.certificate import (
     RoaProblem,
     certify_roa,
     recheck_certificate,
     save_certificate,
     system_fingerprint,
 )
-from nlyap_opt.cli import main
-from nlyap_opt.control import lqr, lyapunov_matrix, quadratic_lyapunov
-from nlyap_opt.errors import ConfigError
+from nlyap_opt.design.control import lqr, lyapunov_matrix, quadratic_lyapunov
+from nlyap_opt.interface.cli import main
+from nlyap_opt.kernel.errors import ConfigError
 
 QUIET = {"log": lambda m: None}
 
@@ -171,7 +171,7 @@ def test_certificate_without_binding_is_refused_with_the_fix(tmp_path):
 def test_fingerprint_is_deterministic_across_processes(tmp_path):
     spec = _spec(tmp_path, declared="[declared]\nlipschitz = 20.0\n")
     here = system_fingerprint(systems.load_spec(spec))
-    code = ("import systems; from nlyap_opt.certificate import system_fingerprint; "
+    code = ("import systems; from nlyap_opt.certification.certificate import system_fingerprint; "
             f"print(system_fingerprint(systems.load_spec({str(spec)!r})))")
     for seed in ("1", "12345"):
         env = dict(os.environ, PYTHONHASHSEED=seed)
@@ -279,7 +279,7 @@ def _closed_port() -> int:
 
 
 def test_silent_scheduler_times_out(silent_listener):
-    from nlyap_opt.parallel import DEFAULT_CONNECT_TIMEOUT, dask_client
+    from nlyap_opt.distributed.parallel import DEFAULT_CONNECT_TIMEOUT, dask_client
 
     assert DEFAULT_CONNECT_TIMEOUT <= 10
     t0 = time.monotonic()
@@ -306,7 +306,7 @@ def test_silent_scheduler_from_the_cli(silent_listener, tmp_path, capsys):
 
 
 def test_closed_port_fails_fast():
-    from nlyap_opt.parallel import dask_client
+    from nlyap_opt.distributed.parallel import dask_client
 
     t0 = time.monotonic()
     with pytest.raises(ConfigError, match="no Dask scheduler answered"):
@@ -328,7 +328,7 @@ def test_workers_and_timeout_are_bounded(tmp_path, capsys, argv):
 
 
 def test_workers_bound_in_the_api():
-    from nlyap_opt.parallel import MAX_LOCAL_WORKERS, dask_client
+    from nlyap_opt.distributed.parallel import MAX_LOCAL_WORKERS, dask_client
 
     with pytest.raises(ConfigError, match="at most"):
         with dask_client(workers=MAX_LOCAL_WORKERS + 1):
@@ -350,7 +350,7 @@ def test_status_line_names_the_declared_assumptions(tmp_path):
     _certify(systems.get("van_der_pol"), out2)
     assert recheck_certificate(out2, **QUIET).summary().startswith("certified: ")
     # the report's status line says the same
-    from nlyap_opt.report import status_line
+    from nlyap_opt.workflow.report import status_line
 
     d = json.loads(path.read_text())
     assert status_line(d).startswith("certified under the declared assumptions")

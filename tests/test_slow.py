@@ -3,8 +3,8 @@
 import pytest
 
 import systems
-from nlyap_opt.configs import get_config
-from nlyap_opt.pipeline import run
+from nlyap_opt.workflow.configs import get_config
+from nlyap_opt.workflow.pipeline import run
 
 pytestmark = pytest.mark.slow
 

@@ -16,15 +16,15 @@ from vdp_reference import (
 )
 
 import systems
-from nlyap_opt.certificate import (
+from nlyap_opt.candidates.sos import Polynomial, SOSResult, SOSStatus, sos_roa
+from nlyap_opt.certification.certificate import (
     CertStatus,
     RoaProblem,
     certify_roa,
     recheck_certificate,
     save_certificate,
 )
-from nlyap_opt.roa import grid_points
-from nlyap_opt.sos import Polynomial, SOSResult, SOSStatus, sos_roa
+from nlyap_opt.certification.roa import grid_points
 
 # V = xᵀPx with AᵀP + PA = -I for the linearisation of reversed Van der Pol (μ = 1), and the
 # supremum c* of the levels with V̇ < 0 on {V ≤ c} \ {0}: c* = 2.30448 (vdp_reference.py)
@@ -224,13 +224,14 @@ def test_public_names_kept_after_the_split():
     import baselines.polynomial as poly
     import baselines.sos as sos
     import baselines.sos_sdp as sdp
-    import nlyap_opt.polynomial
-    import nlyap_opt.sos
-    import nlyap_opt.sos_sdp
+    import nlyap_opt.candidates.sos
+    import nlyap_opt.design.polynomial
+    import nlyap_opt.design.sos_sdp
 
-    assert sos.sos_roa is nlyap_opt.sos.sos_roa and sos.SOSResult is nlyap_opt.sos.SOSResult
-    assert poly.Polynomial is nlyap_opt.polynomial.Polynomial
-    assert sdp.vs_iteration is nlyap_opt.sos_sdp.vs_iteration
+    assert sos.sos_roa is nlyap_opt.candidates.sos.sos_roa and sos.SOSResult is \
+        nlyap_opt.candidates.sos.SOSResult
+    assert poly.Polynomial is nlyap_opt.design.polynomial.Polynomial
+    assert sdp.vs_iteration is nlyap_opt.design.sos_sdp.vs_iteration
 
     assert sos.NotPolynomialError is poly.NotPolynomialError
     assert sos.Polynomial is poly.Polynomial

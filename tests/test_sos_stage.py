@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 import systems
-from nlyap_opt.certificate import RoaProblem, recheck_certificate
-from nlyap_opt.configs import make_config
-from nlyap_opt.control import lqr, quadratic_lyapunov, saturated_controller
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.network import Layer, Network
-from nlyap_opt.pipeline import run
-from nlyap_opt.polynomial import Polynomial
-from nlyap_opt.sos import SOSConfig, certify_sos
+from nlyap_opt.candidates.sos import SOSConfig, certify_sos
+from nlyap_opt.certification.certificate import RoaProblem, recheck_certificate
+from nlyap_opt.design.control import lqr, quadratic_lyapunov, saturated_controller
+from nlyap_opt.design.polynomial import Polynomial
+from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.kernel.network import Layer, Network
+from nlyap_opt.workflow.configs import make_config
+from nlyap_opt.workflow.pipeline import run
 
 
 # --------------------------------------------------------------------------- configuration
@@ -149,7 +149,7 @@ def test_the_sos_certificate_rechecks_and_a_tampered_one_does_not(sos_run, tmp_p
 def test_a_malformed_sos_file_with_a_matching_hash_is_a_one_line_error(sos_run, tmp_path):
     """A V_sos.json whose content was replaced together with the stage record (hash
     matching) is still parsed, not trusted: a ConfigError naming the file and the fix."""
-    from nlyap_opt.certificate import sha256_file
+    from nlyap_opt.certification.certificate import sha256_file
 
     d, cfg, _, _ = sos_run
     e = tmp_path / "copy2"
@@ -179,7 +179,7 @@ def test_a_solver_panic_message_is_held_back_other_output_is_not(capfd):
     """Clarabel's Rust panics print to file descriptor 2 (with a backtrace under
     RUST_BACKTRACE) although the failure is handled; what the solver writes otherwise
     passes through unchanged."""
-    from nlyap_opt.sos_sdp import _stderr_held
+    from nlyap_opt.design.sos_sdp import _stderr_held
 
     with _stderr_held() as drop:             # native code writes to fd 2, whatever
         os.write(2, b"thread '<unnamed>' panicked at solver.rs\n")   # sys.stderr is
@@ -204,7 +204,7 @@ def _random_sos(nx: int, degree: int, seed: int = 0) -> Polynomial:
     """V = Σ_k (a_k · z(x))², z the monomials of degree 1..degree/2 (expanded exactly)."""
     import casadi as ca
 
-    from nlyap_opt.polynomial import expand_polynomials, monomials
+    from nlyap_opt.design.polynomial import expand_polynomials, monomials
 
     z_exp = monomials(nx, 1, degree // 2)
     x = ca.SX.sym("x", nx)
@@ -219,7 +219,7 @@ def _random_sos(nx: int, degree: int, seed: int = 0) -> Polynomial:
 def test_sos_start_is_the_sos_polynomial_over_its_level(nx, degree, hidden, features):
     """V_net = V/level + ε‖x‖² at 2000 points (relative 1e-6: the Gram factor's rounding and
     the random neurons' 1e-3 read-out), V_net(0) = 0, the configured architecture."""
-    from nlyap_opt.learning import TrainConfig, sos_start
+    from nlyap_opt.candidates.learning import TrainConfig, sos_start
 
     V = _random_sos(nx, degree)
     assert V.degree == degree
@@ -300,7 +300,7 @@ def test_a_badly_scaled_v_s_iteration_is_repeated_in_scaled_units():
     one's (V(x) = V_y(x/R)). Its decrease on the SDP level set is checked by sampling."""
     from pathlib import Path
 
-    from nlyap_opt.sos import sos_roa
+    from nlyap_opt.candidates.sos import sos_roa
 
     s = systems.load_spec(Path(__file__).resolve().parents[1] / "examples" /
                           "fossil_nonpoly2.toml")
@@ -345,7 +345,7 @@ def test_a_recheck_always_proves_condition_c(sos_run, tmp_path):
 
 
 def test_an_unknown_artifact_kind_is_refused_not_an_internal_error(sos_run, tmp_path):
-    from nlyap_opt.cli import main
+    from nlyap_opt.interface.cli import main
 
     d, _, _, _ = sos_run
     e = tmp_path / "bogus_kind"
@@ -391,7 +391,7 @@ def test_cegis_settings_do_not_recompute_the_cheap_stages(sos_run, tmp_path):
 
 
 def test_no_gram_matrix_starts_v_at_random(monkeypatch, tmp_path):
-    import nlyap_opt.sos_sdp as sdp
+    import nlyap_opt.design.sos_sdp as sdp
 
     def fail(V, **kw):
         raise ValueError("no Gram matrix of V was found (solver status infeasible)")

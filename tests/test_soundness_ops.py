@@ -1,6 +1,6 @@
 """Soundness of the interval verifier on non-smooth and partial operations (P9, P10).
 
-- One op table (``nlyap_opt.walker.OP_TABLE``): the walker, the numpy/torch arithmetic and
+- One op table (``nlyap_opt.kernel.walker.OP_TABLE``): the walker, the numpy/torch arithmetic and
   the interval arithmetic implement every operation of it, with the same semantics as
   CasADi; every non-smooth operation has a kink/jump predicate and every partial one a
   domain predicate.
@@ -23,8 +23,8 @@ from certcheck import assert_no_sample_contradicts
 
 import systems
 from baselines.lqr import lqr, quadratic_lyapunov, saturated_controller
-from nlyap_opt.errors import UnsupportedOperationError
-from nlyap_opt.walker import (
+from nlyap_opt.kernel.errors import UnsupportedOperationError
+from nlyap_opt.kernel.walker import (
     BINARY_OPS,
     CHECKED_OPS,
     NUMPY,

@@ -12,7 +12,7 @@ import pytest
 import sympy
 
 import systems
-from nlyap_opt.errors import ConfigError
+from nlyap_opt.kernel.errors import ConfigError
 from systems.spec import parse_expression, to_casadi
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -63,7 +63,7 @@ def test_two_machine_spec_equals_hand_written_model(rng):
     assert s.params["delta"] == pytest.approx(d, rel=1e-15)
     assert len(s.describe_assumptions()) == 2
     # the declared constants hold on the data (and a grid check passes)
-    from nlyap_opt.dynamics import Grid
+    from nlyap_opt.learned.dynamics import Grid
 
     est = s.check_declarations(Grid(s.state_box, [31, 41]))
     assert est["slope"] <= 1.5 and est["second_difference"] <= 1.0
@@ -86,7 +86,7 @@ def test_factory_spec_and_csv_spec(tmp_path):
     (tmp_path / "p.toml").write_text(text)
     p = systems.load_spec(tmp_path / "p.toml")
     assert p.kind == "samples" and p.known_state_derivatives == (0,)
-    from nlyap_opt.dynamics import Grid
+    from nlyap_opt.learned.dynamics import Grid
 
     assert p.samples.delta == Grid(s.state_box, [41, 41]).delta
     assert systems.default_run_settings(p)["dynamics"] == {"model": "control_affine",
@@ -346,7 +346,7 @@ def test_docstring_example_spec_loads(tmp_path):
 def test_a_dependency_the_samples_agree_with_is_kept_and_listed(tmp_path):
     """``x1' = x2`` reads only x2: declared so, it passes the check on the samples and is
     listed with the assumptions; ``inputs: model`` gives φ's block that column alone."""
-    from nlyap_opt.dynamics import input_columns
+    from nlyap_opt.learned.dynamics import input_columns
 
     path = tmp_path / "sys.toml"
     path.write_text(SAMPLES + '[declared]\ndepends_on = { x1 = ["x2"], x2 = [0, "x2", "u"] }\n')

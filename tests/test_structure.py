@@ -3,7 +3,7 @@
 Run as a script (``python tests/test_structure.py``) to print the counts:
 
 - definitions of the unit roundoff ``u`` (a constant ``2**-53`` or ``2**-52``, or numpy's
-  ``finfo(...).eps``) and of every rounding helper: one each, in ``nlyap_opt/rounding.py``;
+  ``finfo(...).eps``) and of every rounding helper: one each, in ``nlyap_opt/kernel/rounding.py``;
 - private names (``_x``) imported from another module of the project: may not grow above
   :data:`PRIVATE_IMPORTS_MAX`;
 - string comparisons of statuses in the orchestration layer (``x.status == "..."``,
@@ -27,10 +27,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("nlyap_opt", "systems", "verification", "baselines")
-ROUNDING = "nlyap_opt/rounding.py"
+ROUNDING = "nlyap_opt/kernel/rounding.py"
 
 #: private names imported across modules (35 when the rounding model was unified, 11 before
-#: the argument types moved to nlyap_opt.cli_args): verification.affine uses 7 kernels of
+#: the argument types moved to nlyap_opt.interface.cli_args): verification.affine uses 7 kernels of
 #: verification.interval
 PRIVATE_IMPORTS_MAX = 7
 
@@ -41,10 +41,13 @@ LEGACY_HELPERS = ("_up", "_dn", "_up_s", "_dn_s", "_up_w", "_dn_w", "_down", "_u
 #: the orchestration layer (above the certificate kernel): no string status comparison, no
 #: ``-> dict`` return, no function above :data:`STATEMENTS_MAX` statements (ruff's C901 and
 #: PLR0915 hold for the same modules, pyproject.toml)
-ORCHESTRATION = ("nlyap_opt/pipeline.py", "nlyap_opt/cegis.py", "nlyap_opt/learning.py",
-                 "nlyap_opt/configs.py", "nlyap_opt/report.py", "nlyap_opt/portfolio.py",
-                 "nlyap_opt/quadratic.py", "nlyap_opt/sos.py", "nlyap_opt/cli.py",
-                 "nlyap_opt/cli_dynamics.py", "nlyap_opt/cli_deploy.py")
+ORCHESTRATION = ("nlyap_opt/workflow/pipeline.py", "nlyap_opt/candidates/cegis.py",
+                 "nlyap_opt/candidates/learning.py",
+                 "nlyap_opt/workflow/configs.py", "nlyap_opt/workflow/report.py",
+                 "nlyap_opt/workflow/portfolio.py",
+                 "nlyap_opt/candidates/quadratic.py", "nlyap_opt/candidates/sos.py",
+                 "nlyap_opt/interface/cli.py",
+                 "nlyap_opt/interface/cli_dynamics.py", "nlyap_opt/interface/cli_deploy.py")
 
 #: function-level imports package-wide
 LAZY_IMPORTS_MAX = 20
@@ -235,7 +238,7 @@ def long_functions(tree: ast.Module, limit: int) -> list[str]:
 
 
 def report() -> dict:
-    import nlyap_opt.rounding as rounding
+    import nlyap_opt.kernel.rounding as rounding
 
     sources = _sources()
     helpers = [n for n in rounding.__all__ if callable(getattr(rounding, n))]
@@ -269,7 +272,7 @@ def test_each_rounding_helper_is_defined_once(counts):
     for name, where in counts["helpers"].items():
         assert len(where) == 1 and where[0].startswith(ROUNDING + ":"), (name, where)
     stale = {n: w for n, w in counts["legacy"].items() if w}
-    assert not stale, f"local rounding helpers: {stale} (import nlyap_opt.rounding instead)"
+    assert not stale, f"local rounding helpers: {stale} (import nlyap_opt.kernel.rounding instead)"
 
 
 def test_no_function_shadows_the_rounding_names(counts):
@@ -294,7 +297,7 @@ def test_the_counters_see_what_they_count():
     assert status_string_comparisons(tree) == 4
     assert helper_definitions({"a.py": ast.parse("def up(y):\n    pass\n")}, ["up"]) == \
         {"up": ["a.py:1"]}
-    shadow = ast.parse("from nlyap_opt.rounding import U\ndef f(L, U):\n    return U\n")
+    shadow = ast.parse("from nlyap_opt.kernel.rounding import U\ndef f(L, U):\n    return U\n")
     assert rounding_shadows({"b.py": shadow}) == ["b.py:2 f binds U"]
     code = ("def a() -> dict:\n    import torch  # lazy: torch, heavy\n    return {}\n"
             "def b() -> dict[str, int] | None:\n    from . import x\n    return None\n"
@@ -340,11 +343,13 @@ def test_lazy_imports_are_few_and_say_why(counts):
 
 
 # --------------------------------------------------------------------------- public face
-PUBLIC = {"run": "nlyap_opt.pipeline", "make_config": "nlyap_opt.configs",
-          "RoaProblem": "nlyap_opt.certificate", "certify_roa": "nlyap_opt.certificate",
-          "recheck_certificate": "nlyap_opt.certificate", "CertStatus": "nlyap_opt.certificate",
-          "ConfigError": "nlyap_opt.errors", "NlyapError": "nlyap_opt.errors",
-          "Network": "nlyap_opt.network", "evaluate": "nlyap_opt.walker"}
+PUBLIC = {"run": "nlyap_opt.workflow.pipeline", "make_config": "nlyap_opt.workflow.configs",
+          "RoaProblem": "nlyap_opt.certification.certificate",
+          "certify_roa": "nlyap_opt.certification.certificate",
+          "recheck_certificate": "nlyap_opt.certification.certificate",
+          "CertStatus": "nlyap_opt.certification.certificate",
+          "ConfigError": "nlyap_opt.kernel.errors", "NlyapError": "nlyap_opt.kernel.errors",
+          "Network": "nlyap_opt.kernel.network", "evaluate": "nlyap_opt.kernel.walker"}
 
 
 @pytest.mark.parametrize("name", sorted(PUBLIC))
@@ -368,8 +373,9 @@ def test_unknown_attribute_is_an_attribute_error():
 
 def test_import_stays_light():
     """``import nlyap_opt`` loads neither the pipeline, the certificate kernel nor torch."""
-    code = ("import sys, nlyap_opt; heavy = ['nlyap_opt.pipeline', 'nlyap_opt.certificate', "
-            "'nlyap_opt.configs', 'torch', 'cvxpy', 'dask']; "
+    code = ("import sys, nlyap_opt; heavy = ['nlyap_opt.workflow.pipeline', "
+            "'nlyap_opt.certification.certificate', "
+            "'nlyap_opt.workflow.configs', 'torch', 'cvxpy', 'dask']; "
             "print([m for m in heavy if m in sys.modules])")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=ROOT, timeout=120)

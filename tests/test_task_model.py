@@ -1,8 +1,9 @@
 """How verification work is cut into tasks, and the task-level speed-up model (no Dask).
 
-:class:`~nlyap_opt.parallel.SimulatedCluster` runs :func:`~nlyap_opt.parallel.verify_distributed`'s
-task graph in this process and schedules it on virtual workers: the verdicts and box counts
-are those of a real cluster run, so they are checked against the serial verifier here.
+:class:`~nlyap_opt.distributed.parallel.SimulatedCluster` runs
+:func:`~nlyap_opt.distributed.parallel.verify_distributed`'s task graph in this process and
+schedules it on virtual workers: the verdicts and box counts are those of a real cluster run, so
+they are checked against the serial verifier here.
 """
 
 import numpy as np
@@ -10,14 +11,14 @@ import pytest
 
 import systems
 from baselines.lqr import quadratic_lyapunov
-from nlyap_opt.errors import ConfigError
-from nlyap_opt.parallel import (
+from nlyap_opt.distributed.parallel import (
     SimulatedCluster,
     _deal_boxes,
     model_speedups,
     task_defaults,
     verify_distributed,
 )
+from nlyap_opt.kernel.errors import ConfigError
 from verification import VerificationProblem, closed_loop_problem, verify
 from verification.verify import verify_interval
 
@@ -155,8 +156,8 @@ def test_a_certificate_modelled_on_a_simulated_cluster_is_the_serial_one():
     the model (no thread runs ahead), and the certificate is the serial one."""
     import threading
 
-    from nlyap_opt.certificate import RoaProblem, certify_roa
-    from nlyap_opt.parallel import verifying_on
+    from nlyap_opt.certification.certificate import RoaProblem, certify_roa
+    from nlyap_opt.distributed.parallel import verifying_on
 
     prob = RoaProblem(systems.get("van_der_pol"), quadratic_lyapunov(P_VDP), inner=0.3,
                       outer=1.5)

@@ -7,9 +7,9 @@ import torch
 
 import systems
 from baselines.lqr import lqr, saturated_controller
-from nlyap_opt.cegis import CegisConfig, _level_settled, cegis, cost_targets
-from nlyap_opt.learning import LyapunovLearner, TrainConfig, _body_jacobian_at_zero
-from nlyap_opt.simulate import simulate, simulate_converges
+from nlyap_opt.candidates.cegis import CegisConfig, _level_settled, cegis, cost_targets
+from nlyap_opt.candidates.learning import LyapunovLearner, TrainConfig, _body_jacobian_at_zero
+from nlyap_opt.kernel.simulate import simulate, simulate_converges
 
 
 def test_trajectory_cost_of_a_linear_system_is_its_lyapunov_quadratic():
@@ -123,7 +123,7 @@ def test_stop_rule_goes_on_while_decrease_violations_limit_a_growing_level():
 def test_falsifier_first_cegis_verifies_what_it_returns():
     """With verify_every = 2, only odd iterations (and the last) run the verifier; the
     returned level is one the verifier proved (re-checked here)."""
-    from nlyap_opt.symbolic import closed_loop, lie_derivative
+    from nlyap_opt.kernel.symbolic import closed_loop, lie_derivative
     from verification import lyapunov_problem, verify
 
     s = systems.get("van_der_pol")
@@ -156,7 +156,7 @@ def test_falsifier_first_cegis_verifies_what_it_returns():
 def test_tabulated_simulation_rhs_interpolates_the_model():
     """The table used for the training simulations of a learned φ agrees with the model to
     the multilinear interpolation error (here on Van der Pol's f, h = 0.02)."""
-    from nlyap_opt.cegis import _simulation_rhs
+    from nlyap_opt.candidates.cegis import _simulation_rhs
 
     s = systems.get("van_der_pol")
     L = LyapunovLearner(s, None, None, TrainConfig(hidden=[4], features=2))
@@ -177,8 +177,8 @@ def test_candidate_level_violations_are_sampled_decrease_failures():
     the candidate is no larger than V at any of them."""
     import casadi as ca
 
-    from nlyap_opt.roa import candidate_level
-    from nlyap_opt.symbolic import closed_loop, lie_derivative
+    from nlyap_opt.certification.roa import candidate_level
+    from nlyap_opt.kernel.symbolic import closed_loop, lie_derivative
 
     s = systems.get("van_der_pol")
     cl = closed_loop(s, None, None, strict=True)
@@ -201,7 +201,7 @@ def test_certify_level_steps_down_gently_after_unknown_verdicts():
     single 10 % step."""
     import casadi as ca
 
-    from nlyap_opt.roa import certify_level
+    from nlyap_opt.certification.roa import certify_level
 
     x = ca.MX.sym("x", 2)
     V = ca.sumsqr(x)

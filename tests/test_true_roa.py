@@ -2,15 +2,16 @@
 
 Reversed Van der Pol (μ = 1): its ROA is the inside of the unstable limit cycle. The toolbox
 estimates it by simulating a grid of initial states with its own fixed-step RK4
-(``nlyap_opt.roa.true_roa_mask``); ``vdp_reference.vdp_limit_cycle`` computes the cycle with
-SciPy's adaptive DOP853 on the forward-time system and the area with the shoelace formula.
+(``nlyap_opt.certification.roa.true_roa_mask``); ``vdp_reference.vdp_limit_cycle`` computes the
+cycle with SciPy's adaptive DOP853 on the forward-time system and the area with the shoelace
+formula.
 """
 
 import numpy as np
 from vdp_reference import vdp_limit_cycle, vdp_true_roa_area
 
 import systems
-from nlyap_opt.roa import true_roa_mask
+from nlyap_opt.certification.roa import true_roa_mask
 
 
 def test_the_limit_cycle_is_closed_and_has_the_known_amplitude():

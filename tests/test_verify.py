@@ -9,8 +9,8 @@ from certcheck import assert_confirmed, assert_no_sample_contradicts
 
 import systems
 from baselines.lqr import lqr, quadratic_lyapunov, saturated_controller
-from nlyap_opt.errors import BackendUnavailableError, UnknownNameError
-from nlyap_opt.network import Layer, Network
+from nlyap_opt.kernel.errors import BackendUnavailableError, UnknownNameError
+from nlyap_opt.kernel.network import Layer, Network
 from verification import (
     BACKENDS,
     VerificationProblem,
@@ -266,7 +266,7 @@ def test_single_thread_blas_is_scoped():
 def test_robust_lie_with_smoothing_bounds_every_perturbed_lie_derivative():
     """``∇V·φ + η·sqrt(‖∇V‖² + s²)`` ≥ ``∇V·(φ + e)`` for every ‖e‖ ≤ η (the worst e is
     ``η∇V/‖∇V‖``), and the smoothing costs at most ``η·s``."""
-    from nlyap_opt.symbolic import lie_derivative, robust_lie
+    from nlyap_opt.kernel.symbolic import lie_derivative, robust_lie
 
     x = ca.MX.sym("x", 2)
     V = ca.tanh(x[0] - 0.5 * x[1]) ** 2 + 0.3 * x[1] ** 2

@@ -49,7 +49,7 @@ from collections.abc import Callable
 import casadi as ca
 import numpy as np
 
-from nlyap_opt.rounding import ETA, U, dn, dn_sum, gamma, up, up_roundings, up_sum
+from nlyap_opt.kernel.rounding import ETA, U, dn, dn_sum, gamma, up, up_roundings, up_sum
 
 from .interval import (
     _PI,
@@ -611,7 +611,7 @@ class AffineArithmetic:
     Examples
     --------
     >>> import casadi as ca, numpy as np
-    >>> from nlyap_opt.walker import evaluate
+    >>> from nlyap_opt.kernel.walker import evaluate
     >>> x = ca.SX.sym("x", 2)
     >>> f = ca.Function("f", [x], [(x[0] + x[1]) - (x[1] + x[0])])
     >>> y = evaluate(f, [Affine.from_box(np.array([[0.0, 0.0]]), np.array([[1.0, 1.0]]))],

@@ -7,8 +7,12 @@ import time
 
 import numpy as np
 
-from nlyap_opt import deps
-from nlyap_opt.errors import BackendUnavailableError, UnknownNameError, UnsupportedOperationError
+from nlyap_opt.kernel import deps
+from nlyap_opt.kernel.errors import (
+    BackendUnavailableError,
+    UnknownNameError,
+    UnsupportedOperationError,
+)
 
 from .formula import Formula, build_formula, topological
 from .problem import VerificationProblem, VerificationResult

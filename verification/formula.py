@@ -1,6 +1,6 @@
 r"""One formula builder for the dReal backend and the SMT-LIB export.
 
-The SX expansion of a problem's CasADi Function is walked (``nlyap_opt.walker``) with
+The SX expansion of a problem's CasADi Function is walked (``nlyap_opt.kernel.walker``) with
 :class:`FormulaArithmetic`, whose values are :class:`Term` nodes of one hash-consed
 expression DAG (:class:`TermTable`). The result, a :class:`Formula`, is what both consumers
 read: :func:`verification.smtlib.to_smtlib` writes it as SMT-LIB text (``let`` bindings for
@@ -32,7 +32,7 @@ condition under which it is undefined, as an atom (``sqrt a``: ``a < 0``; ``log 
 ``|a| > 1``; ``log1p a``: ``a ≤ −1``; ``acosh a``: ``a < 1``; ``atanh a``: ``|a| ≥ 1``;
 ``atan2(a, b)``: ``a = b = 0``; ``a^e``: ``a = 0`` for a negative integer ``e``, ``a < 0``
 for a positive non-integer ``e``, ``a ≤ 0`` for a negative non-integer or non-constant
-``e``). Two of these are stricter than ``nlyap_opt.walker.OP_TABLE``'s domains, which is
+``e``). Two of these are stricter than ``nlyap_opt.kernel.walker.OP_TABLE``'s domains, which is
 conservative: ``atan2(0, 0)`` (0 by C's convention) and ``a^e`` with a non-constant ``e``
 (defined at ``a < 0`` for integer ``e``). These atoms are *violations*: the falsification formula is
 
@@ -46,7 +46,7 @@ recorded before any simplification (a ``0·log(x)`` that folds to ``0`` still as
 it becomes a counterexample only if a point is confirmed by rigorous evaluation.
 
 Operations with no real-arithmetic counterpart in dReal (``floor``, ``ceil``, ``fmod``,
-``erf``) raise :class:`~nlyap_opt.errors.UnsupportedOperationError` naming the operation.
+``erf``) raise :class:`~nlyap_opt.kernel.errors.UnsupportedOperationError` naming the operation.
 """
 
 from __future__ import annotations
@@ -58,8 +58,8 @@ from fractions import Fraction
 import casadi as ca
 import numpy as np
 
-from nlyap_opt.errors import UnsupportedOperationError
-from nlyap_opt.walker import compile_function, evaluate, op_name
+from nlyap_opt.kernel.errors import UnsupportedOperationError
+from nlyap_opt.kernel.walker import compile_function, evaluate, op_name
 
 from .terms import Term, TermTable, evaluate_terms, topological
 

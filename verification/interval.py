@@ -64,8 +64,8 @@ import casadi as ca
 import numpy as np
 from scipy.special import erf
 
-from nlyap_opt.errors import UnsupportedOperationError
-from nlyap_opt.rounding import (
+from nlyap_opt.kernel.errors import UnsupportedOperationError
+from nlyap_opt.kernel.rounding import (
     ETA,
     FLOAT_MAX,
     dn,
@@ -1139,7 +1139,7 @@ def _mm(a, b):
 # Per-operation predicates over interval arguments, vectorised over boxes. ``_JUMPS[op]``:
 # the argument may meet the operation's kink or jump set (the operation is not known to be
 # smooth on the box); ``_DOMAINS[op]``: (certainly inside the domain, certainly outside).
-# Every non-smooth / partial operation of ``nlyap_opt.walker.OP_TABLE`` has an entry (a
+# Every non-smooth / partial operation of ``nlyap_opt.kernel.walker.OP_TABLE`` has an entry (a
 # test checks it). Interval enclosures are outward, so "certainly" is rigorous.
 def _result_varies(args, res):
     """Piecewise-constant operations: constant on the box iff the enclosure is a point."""
@@ -1327,7 +1327,7 @@ class CheckedIntervalArithmetic(IntervalArithmetic):
 
     - kinks and jumps: evaluating a walker ``Program`` whose ``checked`` flag is set
       calls :meth:`check` after every non-smooth operation of
-      ``nlyap_opt.walker.CHECKED_OPS``, with the outputs of the Function that operation
+      ``nlyap_opt.kernel.walker.CHECKED_OPS``, with the outputs of the Function that operation
       feeds (static liveness); ``jump[b, j]``: some non-smooth operation feeding output
       ``j`` may meet its kink or jump set on box ``b`` (the mean-value form must not be
       used for that output);

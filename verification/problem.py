@@ -25,10 +25,10 @@ from enum import Enum
 import casadi as ca
 import numpy as np
 
-from nlyap_opt.domain import as_domain
-from nlyap_opt.errors import DimensionError, UnsupportedOperationError
-from nlyap_opt.symbolic import closed_loop, learned_components_of, lie_derivative, robust_lie
-from nlyap_opt.walker import compile_function
+from nlyap_opt.kernel.domain import as_domain
+from nlyap_opt.kernel.errors import DimensionError, UnsupportedOperationError
+from nlyap_opt.kernel.symbolic import closed_loop, learned_components_of, lie_derivative, robust_lie
+from nlyap_opt.kernel.walker import compile_function
 
 __all__ = [
     "VerificationProblem", "VerificationResult", "Counterexample", "lyapunov_problem",
@@ -75,7 +75,7 @@ class VerificationProblem:
     per constraint and property, carry the per-box kink/jump and domain checks).
 
     A constraint or property is defined at a point when every operation it depends on is
-    applied inside its domain there (``nlyap_opt.walker.OP_TABLE``; CasADi's ``if_else``
+    applied inside its domain there (``nlyap_opt.kernel.walker.OP_TABLE``; CasADi's ``if_else``
     evaluates both branches, and a branch that is not taken does not count). The
     properties must be defined on the region; a constraint that is undefined somewhere
     prunes nothing there.
@@ -120,7 +120,7 @@ class VerificationProblem:
     def _build_checked(self, exprs, J) -> None:
         """Functions with one output per constraint/property, where the graph needs checks.
 
-        When ``F`` holds a non-smooth or partial operation (``nlyap_opt.walker.CHECKED_OPS``,
+        When ``F`` holds a non-smooth or partial operation (``nlyap_opt.kernel.walker.CHECKED_OPS``,
         not made harmless by constant arguments), the interval verifier evaluates
         ``function_checked`` (outputs ``g_0, …, g_{m-1}, p_0, …, p_{k-1}``) and
         ``function_jacobian_checked`` (the same and ``J``) with
@@ -204,9 +204,10 @@ class VerificationProblem:
 def _deserialize(text: str) -> ca.Function:
     """``ca.Function.deserialize``, one Function object per serialised text in a process.
 
-    The walker compiles each Function object once (:func:`nlyap_opt.walker.compile_function`);
-    a worker that receives the same problem in many tasks (sub-boxes of one verification,
-    the level steps of a certificate) then compiles its graphs once, not once per task.
+    The walker compiles each Function object once
+    (:func:`nlyap_opt.kernel.walker.compile_function`); a worker that receives the same problem in
+    many tasks (sub-boxes of one verification, the level steps of a certificate) then compiles its
+    graphs once, not once per task.
     """
     return ca.Function.deserialize(text)
 
@@ -283,7 +284,7 @@ def lyapunov_problem(x, V, lie, *, inner: float, outer=None, level: float | None
 
     Properties: :math:`V(x) > 0` (as ``-V < 0``) and
     :math:`\nabla V \cdot g(x) < -\beta` (as ``lie + margin < 0``); region: the domain ``D``
-    (``domain``, a :class:`nlyap_opt.domain.Region`; default the ball ``‖x‖ ≤ outer``) minus
+    (``domain``, a :class:`nlyap_opt.kernel.domain.Region`; default the ball ``‖x‖ ≤ outer``) minus
     the open inner ball, intersected with :math:`V(x) \le c` when ``level`` is given.
     """
 
@@ -326,7 +327,7 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     Parameters
     ----------
     system : systems.System
-    V, controller, dynamics : nlyap_opt.network.Network
+    V, controller, dynamics : nlyap_opt.kernel.network.Network
         ``dynamics`` (learned φ) replaces the system's ``f`` in the Lie derivative.
     inner, outer : float      annulus ``inner ≤ ‖x‖₂ ≤ outer``
     domain : Region, optional ``D`` in place of the ball ``‖x‖ ≤ outer``
@@ -336,7 +337,7 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
                               (with ``g = φ`` this implies ``∇V·f < −β`` where ``‖f − φ‖ ≤ η``;
                               ``L``: φ's learned components, the others known exactly)
     smoothing : float         ``s``: use ``sqrt(‖∇V‖² + s²)`` for ``‖∇V‖`` (stronger, and
-                              cheaper to verify; see :func:`nlyap_opt.symbolic.robust_lie`)
+                              cheaper to verify; see :func:`nlyap_opt.kernel.symbolic.robust_lie`)
     strict : bool             raise (True) or warn (False) if 0 is not an equilibrium
     """
 

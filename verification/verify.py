@@ -23,7 +23,7 @@ Each round evaluates a whole batch of boxes in a few walker passes (numpy arrays
    and the remainder shared in proportion to the widths); boxes narrower than
    ``resolution`` are reported ``unknown``.
 
-Non-smooth and partial operations (``nlyap_opt.walker.OP_TABLE``; problems whose
+Non-smooth and partial operations (``nlyap_opt.kernel.walker.OP_TABLE``; problems whose
 ``checked`` flag is set) are walked with
 :class:`~verification.interval.CheckedIntervalArithmetic`, which reports per box and per
 constraint/property column:
@@ -63,8 +63,8 @@ from concurrent.futures import Executor
 import casadi as ca
 import numpy as np
 
-from nlyap_opt.errors import ConfigError, DimensionError
-from nlyap_opt.walker import NUMPY, compile_function, evaluate, op_name
+from nlyap_opt.kernel.errors import ConfigError, DimensionError
+from nlyap_opt.kernel.walker import NUMPY, compile_function, evaluate, op_name
 
 from .affine import Affine, AffineArithmetic
 from .interval import CheckedIntervalArithmetic, Interval, IntervalArithmetic
@@ -709,7 +709,7 @@ def verify_interval(
     smaller next to the inner ball and grows as ``(1/width)^n``; worth its cost from 3 or
     4 states on. ``boxes`` (``(k, n, 2)``, sub-boxes of the problem's box): start from them,
     all in one batch, instead of the root box's grid (the load-balanced tasks of
-    :func:`nlyap_opt.parallel.verify_distributed`; the verdict is about their union).
+    :func:`nlyap_opt.distributed.parallel.verify_distributed`; the verdict is about their union).
     ``hand_back``: once ``max_boxes`` are spent, a box still to bisect is bisected by the
     usual rule and its two halves come back *unevaluated* in ``result.open`` (not in
     ``undecided``), so that the task that takes them on evaluates no box twice.
@@ -764,7 +764,8 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
     m = problem.n_constraints
     if boxes is None:
         queue_lo, queue_hi = _initial_boxes(box, initial_boxes)
-    else:   # given sub-boxes of the root box (a task of nlyap_opt.parallel), all in one batch
+    else:   # given sub-boxes of the root box (a task of nlyap_opt.distributed.parallel), all in one
+            # batch
         queue_lo, queue_hi = boxes[:, :, 0].copy(), boxes[:, :, 1].copy()
     depth_q = np.zeros(len(queue_lo), dtype=int)
     undecided: list[np.ndarray] = []
@@ -930,8 +931,8 @@ def file_options() -> dict[str, tuple]:
     ``name -> (type hint, default, lowest value or None, lowest value excluded)``.
 
     The one definition behind the run configuration's ``cegis.verify_options`` keys
-    (:func:`nlyap_opt.configs.schema`) and the check of the options a certificate was proved
-    with (:func:`check_file_options`).
+    (:func:`nlyap_opt.workflow.configs.schema`) and the check of the options a certificate was
+    proved with (:func:`check_file_options`).
     """
 
     hints = typing.get_type_hints(verify_interval)
@@ -958,7 +959,7 @@ def _plain_type(hint):
 
 def check_file_options(opts, where: str, fix: str) -> dict:
     """Options read from a file, checked against :func:`file_options` (names, types,
-    ranges); a one-line :class:`~nlyap_opt.errors.ConfigError` naming ``where``, the first
+    ranges); a one-line :class:`~nlyap_opt.kernel.errors.ConfigError` naming ``where``, the first
     bad option and ``fix``."""
 
     if opts is None:

@@ -1,8 +1,8 @@
 """Pages generated from the code at build time: the configuration keys and the CLI.
 
-``docs/_generated/config_keys.md`` is :func:`nlyap_opt.configs.config_reference` (the
+``docs/_generated/config_keys.md`` is :func:`nlyap_opt.workflow.configs.config_reference` (the
 output of ``nlyap config --keys``); ``docs/_generated/cli.md`` walks the argument parser of
-:func:`nlyap_opt.cli.build_parser`: every command, every option with its help text, and
+:func:`nlyap_opt.interface.cli.build_parser`: every command, every option with its help text, and
 the exit codes. The pages ``configuration.md`` and ``cli.md`` include them, so the
 reference cannot drift from the code.
 """
@@ -42,7 +42,7 @@ def _option_rows(parser: argparse.ArgumentParser) -> list[str]:
 
 def cli_reference() -> str:
     """Markdown reference of every ``nlyap`` command, option and exit code."""
-    from nlyap_opt.cli import EXIT_CODES, build_parser
+    from nlyap_opt.interface.cli import EXIT_CODES, build_parser
 
     parser = build_parser()
     out = ["## Global options", "", f"`{_cell(parser.format_usage().strip())}`", ""]
@@ -66,7 +66,7 @@ def _write_if_changed(path: Path, text: str) -> None:
 
 
 def _generate(app) -> None:
-    from nlyap_opt.configs import config_reference
+    from nlyap_opt.workflow.configs import config_reference
 
     out = Path(app.srcdir) / "_generated"
     out.mkdir(exist_ok=True)

@@ -14,8 +14,8 @@ import numpy as np
 
 import systems
 from nlyap_opt import load_network
-from nlyap_opt.configs import make_config
-from nlyap_opt.pipeline import run
+from nlyap_opt.workflow.configs import make_config
+from nlyap_opt.workflow.pipeline import run
 
 out = tempfile.mkdtemp()
 cfg = make_config("van_der_pol", "fast")

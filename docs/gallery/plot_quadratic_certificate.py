@@ -13,8 +13,8 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 import systems
-from nlyap_opt.certificate import RoaProblem, certify_roa
-from nlyap_opt.control import lqr, quadratic_lyapunov, saturated_controller
+from nlyap_opt.certification.certificate import RoaProblem, certify_roa
+from nlyap_opt.design.control import lqr, quadratic_lyapunov, saturated_controller
 
 s = systems.get("inverted_pendulum")
 gain = lqr(s, Q=np.diag([1.0, 20.0]), R=1.0)

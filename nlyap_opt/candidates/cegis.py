@@ -1,0 +1,342 @@
+"""Counterexample-guided learning of ``V`` and ``κ`` with a certified level (CEGIS).
+
+Each iteration: train on the state samples plus the counterexamples found so far; export
+the float64 networks (the verified objects); if the dynamics are learned, recompute the
+margin ``β = M·η`` with ``M`` a rigorous bound of ``‖∇V‖`` on the ball; find a candidate
+level by NLP; certify conditions (a) and (b) at the largest level reachable from it.
+Confirmed counterexamples (and a few neighbours) go back into training. The best
+certificate (by certified area) is kept.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy.interpolate import RegularGridInterpolator
+
+from ..certification.certificate import CertStatus, RoaCertificate, RoaProblem, certify_roa
+from ..certification.roa import axis_count, candidate_level
+from ..kernel.determinism import deterministic_torch
+from ..kernel.domain import Ball, as_domain, parse_set
+from ..kernel.errors import InputRangeError
+from ..kernel.network import Network
+from ..kernel.simulate import simulate
+from .learning import LyapunovLearner, TrainConfig, sample_ball
+
+__all__ = ["CegisConfig", "CegisResult", "cegis"]
+
+
+@dataclass
+class CegisConfig:
+    inner: float
+    outer: float
+    iterations: int = 6
+    samples: int = 20000
+    sphere_samples: int = 2000
+    max_counterexamples: int = 5000
+    neighbours: int = 8
+    first_steps: int | None = None   # training steps of the first iteration (default: train.steps)
+    steps: int = 500                 # training steps of later iterations
+    verify_every: int = 1            # run the verifier every k-th iteration (and the last);
+    # in between, the sampled violations of the candidate level are the counterexamples
+    target_fraction: float = 0.99    # stop when certified level >= this fraction of candidate
+    min_iterations: int = 1          # ... but not before this many iterations (best area kept)
+    # ... and, when the candidate is limited by sampled decrease violations (source
+    # "decrease", which more training may remove), only once the certified area grew by less
+    # than this fraction over the best earlier one
+    plateau: float = 0.01
+    area_points: int = 40000         # grid of the certified areas (total points)
+    verify_options: dict = field(default_factory=dict)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    seed: int = 0
+    inner_samples: int = 0           # extra training states in ε ≤ ‖x‖ ≤ 3ε
+    boundary_samples: int = 0        # extra training states near the model's ROA boundary
+    sim_dt: float = 0.02             # RK4 step of those simulations
+    sim_points: int = 0              # learned φ: table of it for them, total nodes (0: none)
+    sim_time: float = 20.0           # simulated horizon of the training states (convergence, cost)
+    # a training state 'converges' once ‖x‖ < sim_tol within sim_time (raise it, up to the
+    # inner radius, for an origin that attracts slowly: x' = -x³ takes 5000 s to 0.01)
+    sim_tol: float = 1e-2
+    # a training state whose simulated trajectory leaves the domain D counts as not
+    # converging (target at its cap): a certified sublevel set lies in D and is forward
+    # invariant, so it holds only states that reach the origin without leaving D
+    sim_in_domain: bool = False
+    # learned dynamics: "pointwise" verifies ∇V·φ + η‖∇V(x)‖ < 0 (Cauchy–Schwarz: implies
+    # ∇V·f < 0 wherever ‖f − φ‖ ≤ η); "global" verifies the paper's ∇V·φ < −β, β = M·η
+    margin_mode: str = "pointwise"
+    # pointwise mode: verify with sqrt(‖∇V‖² + s²), s = norm_smoothing·M (costs at most
+    # norm_smoothing·β of slack; keeps the verifier's mean-value form near the inner ball)
+    norm_smoothing: float = 1e-3
+    # the verification domain D (None: the ball of radius outer) and the initial set X_I
+    # (given in the run config's top-level 'domain' and 'initial_set' keys)
+    domain: object = None
+    initial_set: object = None
+    initial_samples: int = 2000      # training states in X_I (pulled into V ≤ level)
+
+
+@dataclass
+class CegisResult:
+    """Result of :func:`cegis`: the best certified iterate (by area), one history entry per
+    iteration. ``status`` is :attr:`CertStatus.CERTIFIED` or ``NOT_CERTIFIED`` (``reason``)."""
+
+    status: CertStatus
+    V: Network | None
+    controller: Network | None
+    level: float
+    margin: float
+    M: float | None
+    area: float
+    history: list
+    seconds: float
+    smoothing: float = 0.0       # s of the pointwise condition (see robust_lie)
+    reason: str = ""
+
+    @property
+    def certified(self) -> bool:
+        return self.status is CertStatus.CERTIFIED
+
+
+def _simulation_rhs(learner, system, cfg, tabulate: bool):
+    """The closed-loop model as a numpy function for the training simulations.
+
+    A learned φ (a wide network) is tabulated once on a grid of ``sim_points`` nodes over the
+    ball's box and interpolated (multilinear, SciPy) when the state has at most 3
+    dimensions: the simulations only shape the training targets, and a table is an order of
+    magnitude faster than the network over ~10⁴ steps.
+    """
+
+    def rhs_np(x):
+        with torch.no_grad():
+            return learner.rhs(torch.as_tensor(x)).numpy()
+
+    if not tabulate or system.nx > 3 or not cfg.sim_points:
+        return rhs_np
+
+    m = axis_count(cfg.sim_points, system.nx)
+    box = _domain(cfg, system.nx).bounding_box()
+    axes = [np.linspace(lo, hi, m) for lo, hi in box]
+    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, system.nx)
+    table = rhs_np(nodes).reshape(*[m] * system.nx, system.nx)
+    return RegularGridInterpolator(axes, table, bounds_error=False, fill_value=None)
+
+
+def _domain(cfg: CegisConfig, nx: int):
+    """``D`` of the configuration: its ``domain``, else the ball of radius ``outer``."""
+    return Ball(cfg.outer, nx) if cfg.domain is None else as_domain(cfg.domain, nx)
+
+
+def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float,
+                 transform: str = "log") -> tuple[np.ndarray, np.ndarray]:
+    r"""Targets for ``V`` from simulated trajectory costs :math:`W` (:func:`simulate`).
+
+    ``W`` decreases along trajectories at rate :math:`\|x\|^2` and grows without bound
+    towards the boundary of the region of attraction, so its sublevel sets approach it.
+    The target is :math:`T = g(W) / g(W_c)` (``T = 1`` at cost ``w_c``), capped at ``cap``
+    (and ``cap`` for states that do not converge); ``g(W) = W`` (``"linear"``) or
+    :math:`\log(1 + W/a)`, ``a = w_c / 6`` (``"log"``: tames the steep rise near the
+    boundary). Returns ``(T, rates)`` with ``dT/dt = −rate·‖x‖²`` along trajectories
+    (rate 0 where ``T`` is capped).
+    """
+    W = np.where(converged, cost, np.inf)
+    if transform == "linear":
+        g, dg, gc = W, np.ones_like(W), w_c
+    elif transform == "log":
+        a = w_c / 6.0
+        with np.errstate(invalid="ignore"):
+            g, dg, gc = np.log1p(W / a), 1.0 / (a + W), np.log1p(w_c / a)
+    else:
+        raise ValueError(f"unknown fit_transform {transform!r}; expected 'linear' or 'log'")
+    T = g / gc
+    capped = ~(T < cap)
+    return np.where(capped, cap, T), np.where(capped, 0.0, dg / gc)
+
+
+#: exponent of the domain gauge in the lifted fit target (train.fit_domain): the lift only
+#: matters near the domain's boundary
+DOMAIN_TARGET_POWER = 8
+
+
+def _level_settled(source: str, area: float, prev_area: float, plateau: float) -> bool:
+    """Whether CEGIS may stop at a certified level that reaches its candidate.
+
+    A candidate on the domain's boundary (``"sphere"``) cannot grow inside the domain. A
+    candidate limited by sampled decrease violations (``"decrease"``) may grow when training
+    removes them, so CEGIS goes on until the certified area stops growing: by less than
+    ``plateau`` (a fraction) over the best earlier certified area.
+    """
+    return source != "decrease" or (prev_area > 0 and area <= (1 + plateau) * prev_area)
+
+
+def cegis(system, controller: Network | None, dynamics: Network | None, cfg: CegisConfig, *,
+          eta: float = 0.0, dynamics_box=None, input_box=None, log=print,
+          V0: Network | None = None) -> CegisResult:
+    """Learn ``V`` (and ``κ``) and certify a level; see the module docstring.
+
+    Parameters
+    ----------
+    system : systems.System
+    controller : Network or None     initial controller (LQR-initialised)
+    dynamics : Network or None       learned φ (``None``: the true f, known-dynamics setting)
+    cfg : CegisConfig
+    eta : float                      error bound ``‖f − φ‖ ≤ η`` on the box (learned case)
+    dynamics_box, input_box : (nx, 2), (nu, 2) array_like
+        Where ``‖f − φ‖ ≤ η`` holds (learned dynamics); each iterate is certified with
+        :func:`nlyap_opt.certification.certificate.certify_roa`, which checks ``κ ∈ U`` and the
+        ball.
+    """
+    with deterministic_torch(cfg.train.threads):   # fixed threads: bit-identical results
+        return _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0)
+
+
+def _samples(cfg: CegisConfig, D, XI, rng, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The training states (in ``D``, more next to the inner ball and in ``X_I``) and the
+    states on ``∂D``."""
+    X = D.sample(cfg.samples, rng)
+    if cfg.inner_samples:  # the decrease is hardest to learn next to the inner ball
+        near = sample_ball(cfg.inner_samples, n, 3 * cfg.inner, rng, cfg.inner)
+        X = np.vstack([X, near[D.contains(near)]])
+    S = D.sample_boundary(cfg.sphere_samples, rng)
+    if XI is not None and cfg.initial_samples:   # X_I must end inside V ≤ level
+        xi = XI.sample(cfg.initial_samples, rng)
+        X = np.vstack([X, xi[D.contains(xi)]])
+    return X, S
+
+
+def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
+    """Simulate the training states under the model: ``(X, weights, targets, rates)``, the
+    states (more around the model's ROA boundary when fitting), the pull of ``V ≤ 1`` on
+    each and the trajectory-cost targets (``None`` without ``w_fit``)."""
+    stay = D.contains if cfg.sim_in_domain else None
+    # fit_domain: the largest gauge of D along each simulated trajectory (see below)
+    track = D.gauge if cfg.train.w_fit and cfg.train.fit_domain else None
+    conv, cost, *peak = simulate(rhs_np, X, t_final=cfg.sim_time, dt=cfg.sim_dt,
+                                 tol=cfg.sim_tol, stay=stay, track=track)
+    log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model"
+        + (" without leaving the domain" if stay is not None else ""))
+    weights = conv.astype(float)
+    targets, rates = None, None
+    tc = cfg.train
+    if tc.w_fit and conv.any():
+        w_c = float(np.quantile(cost[conv], tc.fit_quantile))
+        if cfg.boundary_samples:
+            # more states where the target rises to its cap: around the model's ROA boundary
+            T = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)[0]
+            near = X[(T >= 0.8) & (T < tc.fit_cap)]
+            if len(near):
+                extra = near[rng.integers(0, len(near), cfg.boundary_samples)]
+                extra = extra + 0.03 * scale * rng.standard_normal(extra.shape)
+                extra = extra[D.contains(extra)]
+                c2, w2, *p2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=cfg.sim_dt,
+                                       tol=cfg.sim_tol, stay=stay, track=track)
+                X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
+                peak = [np.r_[peak[0], p2[0]]] if peak else peak
+        targets, rates = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)
+        if tc.fit_domain:
+            # containment (b): the target rises to 1 + s where the trajectory from x reaches
+            # ∂D. h(x), the largest gauge of D along it (1 on ∂D), is non-increasing along
+            # trajectories, so the lifted target keeps the decrease law's direction, and
+            # its sublevel sets below 1 + s hold only states whose trajectories stay in D
+            rim = np.minimum((1.0 + tc.level_slack) * peak[0] ** DOMAIN_TARGET_POWER,
+                             tc.fit_cap)
+            lift = rim > targets
+            targets, rates = np.where(lift, rim, targets), np.where(lift, 0.0, rates)
+        weights = (conv & (cost <= w_c)).astype(float)
+        log(f"  cegis: fitting V to the trajectory cost ({tc.fit_transform}; level 1 at cost "
+            f"{w_c:.4g}, {len(X)} states)")
+    return X, weights, targets, rates
+
+
+def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0):
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(cfg.seed)
+    n = system.nx
+    D = _domain(cfg, n)
+    XI = None if cfg.initial_set is None else \
+        parse_set(cfg.initial_set, n, "initial_set", domain=False)
+    scale = D.max_norm()    # the ball's radius; jitter of extra states is relative to it
+    X, S = _samples(cfg, D, XI, rng, n)
+    learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
+
+    rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
+    X, weights, targets, rates = _fit_targets(cfg, D, X, rhs_np, rng, scale, log)
+    box = D.bounding_box()
+    cex = np.zeros((0, n))
+    best: CegisResult | None = None
+    history = []
+    margin = 0.0
+    M = None
+    smoothing = 0.0
+    for it in range(cfg.iterations):
+        steps = (cfg.first_steps or cfg.train.steps) if it == 0 else cfg.steps
+        pointwise = eta if (eta > 0 and cfg.margin_mode == "pointwise") else 0.0
+        info = learner.train(X, S, 0.0 if pointwise else margin, cex if len(cex) else None,
+                             steps=steps, inside_weight=weights, eta_pointwise=pointwise,
+                             targets=targets, target_rates=rates)
+        V, ctrl = learner.export()
+        problem = RoaProblem(system, V, ctrl, dynamics, inner=cfg.inner, outer=cfg.outer,
+                             eta=eta, margin_mode=cfg.margin_mode,
+                             norm_smoothing=cfg.norm_smoothing, dynamics_box=dynamics_box,
+                             input_box=input_box, verify_options=cfg.verify_options,
+                             domain=D, initial_set=XI)
+        try:
+            dec = problem.decrease()
+        except InputRangeError as err:  # κ leaves U: no certificate for this iterate
+            log(f"  cegis iteration {it}: {err}")
+            history.append({"iteration": it, "loss": info.loss, "status": str(err),
+                            "level": 0.0, "area": 0.0})
+            continue
+        M, margin, smoothing = dec.M, dec.margin, dec.smoothing
+        cand = candidate_level(dec.x, dec.V, dec.lie, inner=cfg.inner, domain=D,
+                               margin=dec.margin, seed=cfg.seed + it)
+        last = it == cfg.iterations - 1
+        if last or (it + 1) % cfg.verify_every == 0:
+            cert = certify_roa(problem, cand.level, search=True, check_inner_ellipse=False,
+                               log=lambda m: log("  " + m)) if cand.level > 0 else None
+        else:
+            cert = None
+        if cert is None:  # falsifier only: the sampled violations that limit the candidate
+            cert = RoaCertificate(CertStatus.NOT_CERTIFIED, "not verified (candidate only)",
+                                  system.name, "known" if dynamics is None else "learned",
+                                  0.0, cfg.inner, problem.outer, counterexamples=cand.violations,
+                                  domain=D)
+        area = cert.area(box, axis_count(cfg.area_points, n)) if cert.certified else 0.0
+        entry = {"iteration": it, "loss": info.loss, "train_steps": info.steps,
+                 "margin_mode": cfg.margin_mode if eta > 0 else "none",
+                 "train_seconds": info.seconds, "candidate_level": cand.level,
+                 "candidate_source": cand.source, "status": cert.status.value,
+                 "reason": cert.reason,
+                 "level": cert.level, "margin": margin, "M": M, "smoothing": smoothing,
+                 "area": area,
+                 "verify_seconds": cert.seconds, "checks": cert.checks,
+                 "boxes": sum((h.get("boxes", 0) for h in cert.history), 0),
+                 "counterexamples": int(len(cert.counterexamples))}
+        history.append(entry)
+        log(f"  cegis iteration {it}: loss {info.loss:.4g}, candidate level "
+            f"{cand.level:.4g} ({cand.source}), "
+            f"{'certified' if cert.certified else cert.reason} level {cert.level:.4g}, "
+            f"area {area:.4g}, margin {margin:.3g}")
+        prev_area = best.area if best is not None else 0.0
+        if cert.certified and (best is None or area > best.area):
+            best = CegisResult(CertStatus.CERTIFIED, V, ctrl, cert.level, margin, M, area,
+                               history, 0.0, smoothing)
+        if cert.certified and cert.level >= cfg.target_fraction * cand.level \
+                and not len(cert.counterexamples) and it + 1 >= cfg.min_iterations \
+                and _level_settled(cand.source, area, prev_area, cfg.plateau):
+            break
+        new = cert.counterexamples
+        if len(new):
+            jitter = new[:, None, :] + 0.01 * scale * rng.standard_normal(
+                (len(new), cfg.neighbours, n))
+            new = np.vstack([new, jitter.reshape(-1, n)])
+            cex = np.vstack([cex, new])[-cfg.max_counterexamples:]
+    seconds = time.perf_counter() - t0
+    if best is None:
+        V, ctrl = learner.export()
+        return CegisResult(CertStatus.NOT_CERTIFIED, V, ctrl, 0.0, margin, M, 0.0, history,
+                           seconds, smoothing,
+                           reason="no certified level within the iteration budget")
+    best.history, best.seconds = history, seconds
+    return best

@@ -1,0 +1,358 @@
+r"""Using a certificate: a re-verified run, samples of its certified set, closed-loop runs.
+
+:func:`load_run` opens a finished run directory through
+:func:`nlyap_opt.certification.certificate.recheck_run` (the artifacts' sha256 checked, conditions
+(a), (b), (c) proved again at the saved level): nothing a run directory holds is used before
+that re-check has passed. :class:`CertifiedRun` then gives ``V``, ``κ``, the certified set
+``Ω_c ∪ E`` and the closed loop (true ``f`` or learned ``φ``);
+:func:`simulate_run` integrates trajectories from seeded samples of the certified set (and,
+for contrast, from outside it) and checks what the certificate promises: every trajectory
+started inside stays inside, ``V`` does not increase on ``Ω_c∖B_ε``, and it converges.
+
+Sampling. ``Ω_c`` is the connected component of ``{x ∈ D : V(x) ≤ c}`` that holds the
+origin. The points kept by rejection are those of the whole sublevel set; no other
+component exists when (a) and (b) hold: such a component ``K`` would be compact, miss
+``B_ε`` (which lies in the origin's component), and be forward invariant (a solution cannot
+raise ``V`` above ``c`` nor cross ``∂D``, where ``V > c``), so ``V`` would attain its
+minimum over ``K`` at a point where ``V̇ < 0`` — a contradiction.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from ..certification.certificate import RoaCertificate, RoaProblem, recheck_run, sha256_file
+from ..kernel import deps
+from ..kernel.errors import ConfigError
+from ..kernel.simulate import trajectories
+from ..kernel.symbolic import learned_rhs
+from ..kernel.walker import evaluate
+
+__all__ = ["CertifiedRun", "SimulationResult", "load_run", "simulate_run", "plot_simulation"]
+
+
+@dataclass
+class CertifiedRun:
+    """A run whose certificate was proved again from its hashed artifacts.
+
+    Attributes
+    ----------
+    directory : Path
+    certificate : RoaCertificate     the re-verified certificate (``CERTIFIED``)
+    problem : RoaProblem             ``V``, ``κ``, ``φ``, the system, the domain
+    sha256 : str                     of ``certificate.json`` (the file re-checked)
+    """
+
+    directory: Path
+    certificate: RoaCertificate
+    problem: RoaProblem
+    sha256: str
+
+    @property
+    def system(self):
+        return self.problem.system
+
+    @property
+    def level(self) -> float:
+        return self.certificate.level
+
+    def V(self, pts) -> np.ndarray:
+        """``V`` at ``(N, nx)`` points."""
+        return self.problem.V_numpy(np.atleast_2d(np.asarray(pts, dtype=float)))
+
+    def kappa(self, pts) -> np.ndarray:
+        """``κ`` at ``(N, nx)`` points, ``(N, nu)`` (``u_eq`` without a controller)."""
+        pts = np.atleast_2d(np.asarray(pts, dtype=float))
+        c = self.problem.controller
+        if c is None:
+            return np.broadcast_to(self.system.u_eq, (len(pts), self.system.nu)).copy()
+        return c.numpy(pts)
+
+    def contains(self, pts) -> np.ndarray:
+        """Membership of the certified set ``Ω_c ∪ E`` (the certificate's own test)."""
+        return self.certificate.contains(pts)
+
+    def in_omega(self, pts) -> np.ndarray:
+        """``x ∈ D`` and ``V(x) ≤ c`` (``Ω_c``, see the module docstring)."""
+        pts = np.atleast_2d(np.asarray(pts, dtype=float))
+        return self.problem.domain.contains(pts) & (self.V(pts) <= self.level)
+
+    def dynamics_available(self) -> list[str]:
+        """``"true"`` (the system can be evaluated anywhere) and/or ``"learned"`` (a φ)."""
+        out = ["true"] if getattr(self.system, "can_simulate", True) else []
+        if self.problem.dynamics is not None:
+            out.append("learned")
+        return out
+
+    def vector_field(self, which: str, feedback: Callable | None = None) -> Callable:
+        """``x ↦ f(x, u(x))`` on ``(N, nx)`` batches; ``which`` is ``"true"`` or ``"learned"``;
+        ``feedback`` (``(N, nx) -> (N, nu)``) defaults to ``κ``."""
+
+        sysm = self.system
+        if which not in self.dynamics_available():
+            have = " or ".join(f"--{w}" for w in self.dynamics_available()) or "nothing"
+            raise ConfigError(f"run {self.directory} has no {which} dynamics to simulate; "
+                              f"use {have}")
+        feedback = feedback or self.kappa
+        if which == "true" and not getattr(sysm, "has_model", True):
+            return lambda z: sysm.evaluate(z, feedback(z) if sysm.nu else None)
+
+        x, u = ca.SX.sym("x", sysm.nx), ca.SX.sym("u", sysm.nu)
+        rhs = sysm.f_fun(x, u) if which == "true" else learned_rhs(
+            sysm, self.problem.dynamics, x, u)
+        F = ca.Function("f", [x, u], [rhs])
+        return lambda z: evaluate(F, [z, np.asarray(feedback(z), dtype=float).reshape(
+            len(z), sysm.nu)])[0]
+
+    def sample_box(self) -> np.ndarray:
+        """A box holding ``D`` and ``E``: the rejection sampler's box."""
+        box = self.problem.domain.bounding_box().copy()
+        E = self.certificate.inner_ellipse
+        if E is not None and len(E.half_widths) == len(box):
+            box[:, 0] = np.minimum(box[:, 0], -E.half_widths)
+            box[:, 1] = np.maximum(box[:, 1], E.half_widths)
+        return box
+
+    def sample(self, n: int, rng: np.random.Generator, *, inside: bool = True,
+               max_draws: int | None = None) -> np.ndarray:
+        """``n`` uniform samples of the certified set (``inside``) or of ``D`` outside it,
+        by rejection in :meth:`sample_box` (at most ``max_draws``, default
+        ``max(10⁷, 10⁴·n)``, draws)."""
+        box = self.sample_box() if inside else self.problem.domain.bounding_box()
+        max_draws = max(10**7, 10**4 * n) if max_draws is None else max_draws
+        keep, drawn = [], 0
+        while sum(len(k) for k in keep) < n:
+            if drawn >= max_draws:
+                raise ConfigError(
+                    f"fewer than {n} of {drawn} uniform draws in {box.tolist()} fell "
+                    f"{'inside' if inside else 'outside'} the certified set of "
+                    f"{self.directory}; ask for fewer points")
+            m = max(4 * n, 4096)
+            pts = box[:, 0] + (box[:, 1] - box[:, 0]) * rng.random((m, len(box)))
+            drawn += m
+            ok = self.contains(pts)
+            if not inside:
+                ok = ~ok & self.problem.domain.contains(pts)
+            keep.append(pts[ok])
+        return np.vstack(keep)[:n]
+
+
+def load_run(path: str | Path, *, log=print) -> CertifiedRun:
+    """Open a run directory (or its ``certificate.json``) for use, after the re-check.
+
+    Raises
+    ------
+    ConfigError
+        No certificate there, or it does not re-verify (an artifact missing or changed, a
+        condition no longer proved, a run that was never certified): one line with the
+        reason and the fix.
+    """
+    path = Path(path)
+    cfile = path / "certificate.json" if path.is_dir() else path
+    if not cfile.is_file():
+        raise ConfigError(f"{path}: no certificate.json there; pass the directory of a "
+                          "finished `nlyap run`")
+    cert, problem = recheck_run(cfile, log=log)
+    if problem is None or not cert.certified:
+        raise ConfigError(f"run {cfile.parent} holds no certified set that re-verifies "
+                          f"({cert.status.value}: {cert.reason}); rerun `nlyap run` (see "
+                          f"`nlyap verify --certificate {cfile.parent}`)")
+    return CertifiedRun(cfile.parent, cert, problem, sha256_file(cfile))
+
+
+@dataclass
+class SimulationResult:
+    """Trajectories from inside and outside the certified set, and the checks.
+
+    ``t``: ``(T + 1,)`` times; ``inside``, ``outside``: ``(T + 1, N, nx)`` trajectories;
+    ``V_inside``: ``(T + 1, N)``; the per-trajectory checks of the inside ones are
+    ``stayed`` (in the certified set at every step), ``monotone`` (``V`` did not increase
+    by more than ``1e-6·c`` over a step that starts in ``Ω_c∖B_ε``) and ``converged``
+    (``‖x(T)‖ ≤ tol``; with learned φ: reached ``B_ε``, where the certificate stops
+    speaking about φ).
+    """
+
+    dynamics: str
+    t: np.ndarray
+    inside: np.ndarray
+    outside: np.ndarray
+    V_inside: np.ndarray
+    stayed: np.ndarray
+    monotone: np.ndarray
+    converged: np.ndarray
+    tol: float
+    failures: list[str] = field(default_factory=list)
+
+    @property
+    def violated(self) -> bool:
+        """A trajectory left the certified set or raised ``V`` (contradicts the proof)."""
+        return not (self.stayed.all() and self.monotone.all())
+
+    @property
+    def ok(self) -> bool:
+        return not self.violated and bool(self.converged.all())
+
+    def summary(self) -> str:
+        n = self.inside.shape[1]
+        return (f"{n} trajectories from inside the certified set ({self.dynamics} dynamics): "
+                f"{int(self.stayed.sum())} stayed inside, {int(self.monotone.sum())} with V "
+                f"non-increasing on Ω_c∖B_ε, {int(self.converged.sum())} converged; "
+                f"{self.outside.shape[1]} from outside (no claim)")
+
+    def save(self, path: str | Path, **extra) -> None:
+        """``trajectories.npz``: the arrays above (and ``extra`` ones)."""
+        np.savez_compressed(path, t=self.t, inside=self.inside, outside=self.outside,
+                            V_inside=self.V_inside, stayed=self.stayed,
+                            monotone=self.monotone, converged=self.converged, **extra)
+
+
+def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = None,
+                 horizon: float = 20.0, dt: float = 0.01, dynamics: str | None = None,
+                 seed: int = 0, feedback: Callable | None = None,
+                 tol: float | None = None) -> SimulationResult:
+    """Closed-loop trajectories from ``points`` seeded samples of the certified set.
+
+    Parameters
+    ----------
+    run : CertifiedRun
+    points : int
+        Starting points inside (``outside`` defaults to a quarter of it, outside, in ``D``).
+    horizon, dt : float
+        Simulated time and the RK4 step (:func:`nlyap_opt.kernel.simulate.trajectories`).
+    dynamics : {"true", "learned"}, optional
+        Default: the true ``f`` where the run has it, else ``φ``.
+    feedback : callable, optional
+        The input law (``(N, nx) -> (N, nu)``), default ``κ`` (the safety filter passes
+        its own).
+    tol : float, optional
+        Convergence radius (default ``10⁻²·`` the inner radius ε).
+    """
+
+    if points < 1 or not (horizon > 0 and dt > 0):
+        raise ConfigError(f"need points >= 1, horizon > 0 and dt > 0, got {points}, "
+                          f"{horizon}, {dt}; fix the values")
+    avail = run.dynamics_available()
+    if not avail:
+        raise ConfigError(f"the system of {run.directory} cannot be simulated (samples only, "
+                          "no learned φ saved)")
+    which = dynamics or avail[0]
+    f = run.vector_field(which, feedback)
+    rng = np.random.default_rng(seed)
+    x_in = run.sample(points, rng)
+    n_out = points // 4 if outside is None else outside
+    x_out = run.sample(n_out, rng, inside=False) if n_out else np.zeros((0, run.system.nx))
+    steps = int(np.ceil(horizon / dt))
+    X = trajectories(f, np.vstack([x_in, x_out]), horizon, steps)
+    Xi, Xo = X[:, :points], X[:, points:]
+    flat = Xi.reshape(-1, Xi.shape[-1])
+    finite = np.isfinite(flat).all(axis=1)
+    inside = np.zeros(len(flat), bool)
+    Vf = np.full(len(flat), np.inf)
+    inside[finite] = run.contains(flat[finite])
+    Vf[finite] = run.V(flat[finite])
+    inside = inside.reshape(Xi.shape[:2])
+    Vt = Vf.reshape(Xi.shape[:2])
+    c, eps = run.level, run.certificate.inner
+    norms = np.linalg.norm(Xi, axis=2)
+    in_omega = np.zeros(len(flat), bool)
+    in_omega[finite] = run.in_omega(flat[finite])
+    step_from = in_omega.reshape(Xi.shape[:2])[:-1] & (norms[:-1] >= eps)
+    rise = np.where(step_from, Vt[1:] - Vt[:-1], -np.inf)
+    monotone = ~(rise > 1e-6 * c).any(axis=0)
+    stayed = inside.all(axis=0)
+    tol = 1e-2 * eps if tol is None else tol
+    if which == "learned":
+        converged = (norms <= eps).any(axis=0)
+    else:
+        converged = norms[-1] <= tol
+    res = SimulationResult(which, np.linspace(0.0, steps * (horizon / steps), steps + 1), Xi,
+                           Xo, Vt, stayed, monotone, converged, tol)
+    for k in np.flatnonzero(~stayed)[:3]:
+        j = int(np.argmin(inside[:, k]))
+        res.failures.append(f"trajectory {k} from {x_in[k].tolist()} left the certified set at "
+                            f"t = {res.t[j]:.4g} (x = {Xi[j, k].tolist()})")
+    for k in np.flatnonzero(~monotone)[:3]:
+        res.failures.append(f"trajectory {k} from {x_in[k].tolist()}: V rose by "
+                            f"{np.max(rise[:, k]):.3g} over one step in Ω_c∖B_ε")
+    for k in np.flatnonzero(~converged)[:3]:
+        res.failures.append(f"trajectory {k} from {x_in[k].tolist()} has not converged by "
+                            f"t = {horizon:g} (‖x‖ = {norms[-1, k]:.3g})")
+    return res
+
+
+def plot_simulation(run: CertifiedRun, res: SimulationResult, out: str | Path,
+                    title: str = "", nominal: SimulationResult | None = None) -> Path:
+    """``simulate.png``: the trajectories over the certified set (n = 2: the phase plane;
+    n > 2: the projection on the two states that move most, over the slice of the set
+    through the origin), and ``V(x(t))/c`` below; ``nominal``: an unfiltered run drawn in
+    orange for contrast."""
+    plt = deps.pyplot()
+
+    n = run.system.nx
+    names = list(getattr(run.system, "state_names", [])) or [f"x{i}" for i in range(n)]
+    fig, axes = plt.subplots(2, 1, figsize=(7.5, 10), height_ratios=[3, 1.3])
+    ax = axes[0]
+    if n == 2:
+        i, j = 0, 1
+    else:
+        spread = np.nanmax(np.abs(res.inside), axis=(0, 1))
+        i, j = sorted(np.argsort(spread)[-2:].tolist())
+    box = run.sample_box()
+    pad = 0.15 * (box[:, 1] - box[:, 0])
+    lo, hi = box[:, 0] - pad, box[:, 1] + pad
+    g = 300 if n == 2 else 200
+    gx, gy = np.meshgrid(np.linspace(lo[i], hi[i], g), np.linspace(lo[j], hi[j], g))
+    pts = np.zeros((g * g, n))
+    pts[:, i], pts[:, j] = gx.ravel(), gy.ravel()
+    mask = run.contains(pts).reshape(g, g)
+    ax.contourf(gx, gy, mask.astype(float), levels=[0.5, 1.5], colors=["#c8e6c9"])
+    ax.contour(gx, gy, mask.astype(float), levels=[0.5], colors=["green"], linewidths=1.5)
+    dom = run.problem.domain
+    if hasattr(dom, "outline_2d"):
+        ol = dom.outline_2d(i, j)
+        ax.plot(ol[:, 0], ol[:, 1], "k--", lw=1, label="domain D" + (" (slice)" if n > 2 else ""))
+    for k in range(res.outside.shape[1]):
+        tr = res.outside[:, k]
+        ax.plot(tr[:, i], tr[:, j], color="0.6", lw=0.6, alpha=0.7,
+                label="from outside (no claim)" if k == 0 else None)
+    if nominal is not None:
+        for k in range(nominal.inside.shape[1]):
+            tr = nominal.inside[:, k]
+            ax.plot(tr[:, i], tr[:, j], color="tab:orange", lw=0.6, alpha=0.8,
+                    label="nominal, unfiltered (no claim)" if k == 0 else None)
+    for k in range(res.inside.shape[1]):
+        tr = res.inside[:, k]
+        ax.plot(tr[:, i], tr[:, j], color="tab:red" if not (res.stayed[k] and
+                res.converged[k]) else "tab:blue", lw=0.7,
+                label="from the certified set" if k == 0 else None)
+    ax.plot(res.inside[0, :, i], res.inside[0, :, j], "o", ms=2.5, color="tab:blue")
+    ax.plot(0, 0, "k+", ms=10)
+    ax.set_xlim(lo[i], hi[i])
+    ax.set_ylim(lo[j], hi[j])
+    ax.set_xlabel(names[i])
+    ax.set_ylabel(names[j])
+    where = "" if n == 2 else " (projection; green: slice of the certified set through 0)"
+    ax.set_title((title + "\n" if title else "") + f"certified set Ω_c ∪ E (green), "
+                 f"{res.dynamics} dynamics{where}", fontsize=9)
+    ax.legend(loc="upper right", fontsize=8)
+    ax = axes[1]
+    c = run.level
+    for k in range(res.V_inside.shape[1]):
+        ax.semilogy(res.t, np.maximum(res.V_inside[:, k] / c, 1e-12), color="tab:blue",
+                    lw=0.6, alpha=0.7)
+    ax.axhline(1.0, color="green", lw=1.5, label="level c")
+    ax.set_xlabel("t")
+    ax.set_ylabel("V(x(t)) / c")
+    ax.set_ylim(1e-8, 2.0)
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(res.summary(), fontsize=8, wrap=True)
+    fig.tight_layout()
+    out = Path(out)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out

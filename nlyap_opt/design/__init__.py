@@ -1,0 +1,3 @@
+"""Controller design and exact polynomials: the LQR start, quadratic Lyapunov matrices, and
+the semidefinite programs of the sum-of-squares candidates.
+"""

@@ -1,0 +1,362 @@
+r"""The LQR start of the method (the control layer): LQR on the CasADi linearisation,
+quadratic Lyapunov matrices, saturated controllers (``baselines.lqr`` re-exports them).
+
+Convention: :math:`u = u_{eq} - K x`, with :math:`K = R^{-1} B^\top S` from the
+continuous algebraic Riccati equation :math:`A^\top S + S A - S B R^{-1} B^\top S + Q = 0`.
+The Lyapunov matrix :math:`P` solves :math:`A_{cl}^\top P + P A_{cl} = -Q_V` for the
+closed loop :math:`A_{cl} = A - BK` (or :math:`A` for input-free systems).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+import casadi as ca
+import numpy as np
+from scipy.linalg import solve_continuous_are, solve_continuous_lyapunov
+
+from ..kernel import deps
+from ..kernel.errors import DimensionError, NotStabilizableError
+from ..kernel.network import Layer, Network
+from ..kernel.symbolic import learned_rhs
+
+__all__ = [
+    "InnerStatus", "LQRResult", "ellipse_candidates", "verdict_of", "lqr", "linearisation",
+    "lyapunov_matrix", "round_lyapunov_matrix", "saturated_controller", "volume_lyapunov_matrix",
+    "linear_controller",
+    "quadratic_lyapunov",
+]
+
+
+class InnerStatus(Enum):
+    """The verdict on condition (c), the inner ellipse ``E ⊇ B_ε`` (a result's ``"verdict"``;
+    its ``"status"`` says it in words)."""
+
+    CERTIFIED = "certified"
+    #: the verifier found a point of ``E`` where the claimed decrease fails
+    COUNTEREXAMPLE = "counterexample"
+    #: the closed loop's linearisation is not Hurwitz: no such ellipse exists
+    NOT_HURWITZ = "not Hurwitz"
+    #: undecided, or no form applies (no claim either way)
+    NOT_PROVED = "not proved"
+    #: no model to check it: the paper's assumption, unchecked
+    ASSUMED = "assumed"
+
+
+def verdict_of(query_status) -> InnerStatus:
+    """The inner ellipse's verdict from the verifier's status of its check."""
+    return {"verified": InnerStatus.CERTIFIED,
+            "counterexample": InnerStatus.COUNTEREXAMPLE}.get(query_status,
+                                                              InnerStatus.NOT_PROVED)
+
+
+@dataclass
+class LQRResult:
+    """Result of :func:`lqr`.
+
+    Attributes
+    ----------
+    K : (nu, nx) ndarray     gain, ``u = u_eq - K x`` (empty for input-free systems)
+    S : (nx, nx) ndarray     Riccati solution (zeros for input-free systems)
+    P : (nx, nx) ndarray     Lyapunov matrix of the closed loop, ``A_clᵀP + P A_cl = -I``
+    eigenvalues : (nx,) complex ndarray   closed-loop eigenvalues
+    A, B, Q, R : ndarray
+    """
+
+    K: np.ndarray
+    S: np.ndarray
+    P: np.ndarray
+    eigenvalues: np.ndarray
+    A: np.ndarray
+    B: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+
+    def riccati_residual(self) -> float:
+        """Max-abs residual of the Riccati equation (0 for input-free systems)."""
+        if self.B.shape[1] == 0:
+            return 0.0
+        A, B, S, Q, R = self.A, self.B, self.S, self.Q, self.R
+        res = A.T @ S + S @ A - S @ B @ np.linalg.solve(R, B.T @ S) + Q
+        return float(np.max(np.abs(res)))
+
+    def to_dict(self) -> dict:
+        ev = self.eigenvalues
+        return {"K": self.K.tolist(), "P": self.P.tolist(),
+                "eigenvalues": [[float(e.real), float(e.imag)] for e in ev]}
+
+
+def _matrix(M, n, what):
+    M = np.atleast_2d(np.asarray(M, dtype=float))
+    if M.shape == (1, 1) and n > 1:
+        M = M[0, 0] * np.eye(n)
+    if M.shape != (n, n):
+        raise DimensionError(f"{what} must be ({n}, {n}) (or a scalar), got {M.shape}")
+    if not np.allclose(M, M.T):
+        raise ValueError(f"{what} must be symmetric")
+    return M
+
+
+def _check_stabilisable(A, B):
+    n = A.shape[0]
+    for lam in np.linalg.eigvals(A):
+        if lam.real >= 0:
+            rank = np.linalg.matrix_rank(np.hstack([A - lam * np.eye(n), B.astype(complex)]),
+                                         tol=1e-9)
+            if rank < n:
+                raise NotStabilizableError(
+                    f"(A, B) is not stabilisable: the mode with eigenvalue {lam:.4g} cannot be "
+                    "moved by the inputs (PBH test). Change the inputs or the model."
+                )
+
+
+def lyapunov_matrix(A_cl, Q=None) -> np.ndarray:
+    """Solve ``A_clᵀ P + P A_cl = -Q`` (``Q = I`` by default) for a Hurwitz ``A_cl``.
+
+    SciPy's Bartels-Stewart solver, called as python-control's ``lyap`` calls it without
+    slycot (the same numbers; importing python-control costs about a CPU second per
+    process, paid by every ``nlyap verify`` and every portfolio worker).
+    """
+
+    A_cl = np.asarray(A_cl, dtype=float)
+    n = A_cl.shape[0]
+    if np.max(np.linalg.eigvals(A_cl).real) >= 0:
+        raise NotStabilizableError(
+            f"A_cl is not Hurwitz (eigenvalues {np.linalg.eigvals(A_cl)}); no quadratic "
+            "Lyapunov function exists"
+        )
+    Q = np.eye(n) if Q is None else _matrix(Q, n, "Q")
+    P = solve_continuous_lyapunov(np.array(A_cl.T, ndmin=2), -np.array(Q, ndmin=2))
+    return 0.5 * (P + P.T)
+
+
+def _lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(K, S, E)``: gain, Riccati solution and closed-loop eigenvalues of the LQR.
+
+    SciPy's Riccati solver and the gain ``R⁻¹BᵀS``, computed as python-control's ``lqr``
+    does without slycot (the same numbers, without importing python-control).
+    """
+    A, B, Q, R = (np.array(M, ndmin=2, dtype=float) for M in (A, B, Q, R))
+    S = solve_continuous_are(A, B, Q, R)
+    K = np.linalg.solve(R, B.T @ S)
+    E, _ = np.linalg.eig(A - B @ K)
+    return K, S, E
+
+
+def round_lyapunov_matrix(A_cl, decay_fraction: float = 0.1) -> np.ndarray | None:
+    r"""The Lyapunov matrix of ``A_cl`` with the smallest condition number (an SDP).
+
+    Solves :math:`\min t` subject to :math:`I \preceq P \preceq tI` and
+    :math:`A_{cl}^\top P + P A_{cl} \preceq -2\alpha P`, with :math:`\alpha` the fraction
+    ``decay_fraction`` of the closed loop's stability margin :math:`\min_i -\mathrm{Re}\,
+    \lambda_i`. The ellipse :math:`\{x^\top P x \le \lambda_{max} \varepsilon^2\}`
+    that must contain :math:`B_\varepsilon` reaches :math:`\varepsilon
+    \sqrt{\mathrm{cond}\,P}` from the origin, so a round ``P`` keeps condition (c)'s
+    region small in many dimensions (cartpole: condition number 328 for the Lyapunov
+    matrix of ``Q_V = I``, 60 here; planar quadrotor: 1194 and 71).
+
+    Only a candidate: whatever ``P`` is returned, condition (c) is then *verified* with it.
+    Returns ``None`` when ``A_cl`` is not Hurwitz or no SDP solver succeeds.
+    """
+    cp = deps.cvxpy()
+
+    A_cl = np.asarray(A_cl, dtype=float)
+    n = A_cl.shape[0]
+    margin = -float(np.max(np.linalg.eigvals(A_cl).real))
+    if not np.all(np.isfinite(A_cl)) or margin <= 0:
+        return None
+    P = cp.Variable((n, n), symmetric=True)
+    t = cp.Variable()
+    alpha = decay_fraction * margin
+    cons = [P >> np.eye(n), P << t * np.eye(n), A_cl.T @ P + P @ A_cl + 2 * alpha * P << 0]
+    installed = set(cp.installed_solvers())
+    for solver in [s for s in ("CLARABEL", "SCS") if s in installed]:
+        try:
+            cp.Problem(cp.Minimize(t), cons).solve(solver=solver)
+        except Exception:  # a failed solve only loses a candidate
+            continue
+        if P.value is None:
+            continue
+        Pv = 0.5 * (P.value + P.value.T)
+        if np.all(np.isfinite(Pv)) and np.linalg.eigvalsh(Pv)[0] > 0:
+            return Pv
+    return None
+
+
+def volume_lyapunov_matrix(A_cl, decay_fraction: float = 0.1, *, rounds: int = 40,
+                           tol: float = 1e-7) -> np.ndarray | None:
+    r"""The Lyapunov matrix of ``A_cl`` whose ellipsoid inside the unit ball is largest.
+
+    Among the ``P`` with :math:`P \succeq I` (the ellipsoid :math:`\{x^\top P x \le 1\}`
+    lies in the unit ball) and :math:`A_{cl}^\top P + P A_{cl} \preceq -2\alpha P` (the
+    decay rate ``α`` of :func:`round_lyapunov_matrix`), the one of least
+    :math:`\log\det P`, i.e. of largest volume :math:`\mathrm{vol}(B)/\sqrt{\det P}`.
+    :math:`\log\det` is concave, so each round minimises its tangent
+    :math:`\mathrm{tr}(P_k^{-1} P)` (majorisation-minimisation): :math:`\log\det P_k`
+    never increases, from the round matrix until it changes by less than ``tol``.
+
+    The round matrix makes the ellipsoid's *axes* alike; the whole ball is a better guide:
+    a quadratic V's certified set must lie in the domain, and only the directions the decay
+    LMI pins need be thin (cartpole LQR loop: ellipsoid volume 0.47 in the unit ball
+    against 0.155 for the round matrix; planar quadrotor 0.37 against 0.0022).
+
+    Only a candidate: the certificate proves the decrease of ``xᵀPx`` on the nonlinear loop
+    at a verified level. Returns ``None`` when ``A_cl`` is not Hurwitz or no SDP solver
+    succeeds.
+    """
+    cp = deps.cvxpy()
+
+    P = round_lyapunov_matrix(A_cl, decay_fraction)
+    if P is None:
+        return None
+    A_cl = np.asarray(A_cl, dtype=float)
+    n = A_cl.shape[0]
+    alpha = decay_fraction * -float(np.max(np.linalg.eigvals(A_cl).real))
+    P = P / np.linalg.eigvalsh(P)[0]
+    logdet = np.linalg.slogdet(P)[1]
+    installed = set(cp.installed_solvers())
+    for _ in range(rounds):
+        X = cp.Variable((n, n), symmetric=True)
+        cons = [X >> np.eye(n), A_cl.T @ X + X @ A_cl + 2 * alpha * X << 0]
+        prob = cp.Problem(cp.Minimize(cp.trace(np.linalg.inv(P) @ X)), cons)
+        new = None
+        for solver in [s for s in ("CLARABEL", "SCS") if s in installed]:
+            try:
+                prob.solve(solver=solver)
+            except Exception:  # a failed solve only ends the descent
+                continue
+            if X.value is not None and np.all(np.isfinite(X.value)):
+                new = 0.5 * (X.value + X.value.T)
+                break
+        if new is None or np.linalg.eigvalsh(new)[0] <= 0:
+            break
+        new_logdet = np.linalg.slogdet(new)[1]
+        if not new_logdet < logdet:
+            break
+        P, done = new, logdet - new_logdet < tol
+        logdet = new_logdet
+        if done:
+            break
+    return P
+
+
+def ellipse_candidates(A_cl):
+    """Candidate matrices ``P`` of condition (c)'s quadratic ``xᵀPx``, in the order tried.
+
+    The Lyapunov matrix of ``Q_V = I``; the round one (:func:`round_lyapunov_matrix`);
+    then those of ``Q_V = I`` with one diagonal entry scaled by 100 or 0.01. Each is only a
+    candidate: the caller verifies condition (c) with it. A generator: a caller that stops
+    at the first certified candidate solves no SDP when ``Q_V = I`` already certifies.
+    """
+    n = np.asarray(A_cl).shape[0]
+    yield lyapunov_matrix(A_cl)
+    P = round_lyapunov_matrix(A_cl)
+    if P is not None:
+        yield P
+    for i in range(n):
+        for f in (100.0, 0.01):
+            w = np.ones(n)
+            w[i] = f
+            yield lyapunov_matrix(A_cl, np.diag(w))
+
+
+def linearisation(system, dynamics: Network | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(A, B)`` at ``(0, u_eq)``: of the model, or of a learned ``φ`` (CasADi Jacobians).
+
+    Without a model (a black-box or sampled system) the learned ``φ`` is the only
+    linearisation the tool has: the LQR start then comes from φ's graph.
+    """
+    if dynamics is None:
+        return system.A, system.B
+
+
+    x, u = ca.MX.sym("x", system.nx), ca.MX.sym("u", system.nu)
+    rhs = learned_rhs(system, dynamics, x, u)
+    F = ca.Function("AB", [x, u], [ca.jacobian(rhs, x), ca.jacobian(rhs, u)])
+    A, B = F(np.zeros(system.nx), system.u_eq if system.nu else np.zeros(0))
+    return np.array(A, dtype=float).reshape(system.nx, system.nx), \
+        np.array(B, dtype=float).reshape(system.nx, system.nu)
+
+
+def lqr(system, Q=None, R=None, *, dynamics: Network | None = None) -> LQRResult:
+    """LQR gain and Lyapunov matrix for ``system`` linearised at the origin.
+
+    Parameters
+    ----------
+    system : systems.System
+    Q : (nx, nx) array_like or float, optional   state weight (identity by default)
+    R : (nu, nu) array_like or float, optional   input weight (identity by default)
+    dynamics : Network, optional
+        Linearise this learned ``φ`` instead of the model (required for systems without a
+        model; :func:`linearisation`).
+
+    Returns
+    -------
+    LQRResult
+
+    Examples
+    --------
+    >>> import systems
+    >>> lqr(systems.get("inverted_pendulum")).K.round(5).tolist()
+    [[1.97725, 0.97624]]
+    """
+    A, B = linearisation(system, dynamics)
+    nx, nu = system.nx, system.nu
+    Q = np.eye(nx) if Q is None else _matrix(Q, nx, "Q")
+    if nu == 0:
+        P = lyapunov_matrix(A)
+        return LQRResult(np.zeros((0, nx)), np.zeros((nx, nx)), P, np.linalg.eigvals(A),
+                         A, B, Q, np.zeros((0, 0)))
+    R = np.eye(nu) if R is None else _matrix(R, nu, "R")
+    if np.min(np.linalg.eigvalsh(R)) <= 0:
+        raise ValueError("R must be positive definite")
+    _check_stabilisable(A, B)
+    K, S, E = _lqr(A, B, Q, R)
+    P = lyapunov_matrix(A - B @ K)
+    return LQRResult(K, S, P, np.asarray(E), A, B, Q, R)
+
+
+def saturated_controller(system, K, scale) -> Network:
+    r"""The controller :math:`\kappa(x) = C \tanh(K' x + b)` that linearises to ``u_eq - K x``.
+
+    ``b`` solves :math:`C \tanh(b) = u_{eq}` (so that ``f(0, κ(0)) = 0``) and
+    :math:`K' = -\mathrm{diag}(C (1 - \tanh^2 b))^{-1} K`.
+
+    Parameters
+    ----------
+    system : systems.System
+    K : (nu, nx) array_like   LQR gain (``u = u_eq - K x``)
+    scale : float or (nu,) array_like   actuator limit ``C`` (``|u| < C``)
+    """
+    K = np.atleast_2d(np.asarray(K, dtype=float))
+    if K.shape != (system.nu, system.nx):
+        raise DimensionError(f"K must be ({system.nu}, {system.nx}), got {K.shape}")
+    C = np.broadcast_to(np.asarray(scale, dtype=float), (system.nu,)).copy()
+    if np.any(C <= 0) or np.any(np.abs(system.u_eq) >= C):
+        raise ValueError(
+            f"the actuator limit C={C} must exceed |u_eq|={np.abs(system.u_eq)} so that "
+            "C·tanh(b) = u_eq has a solution"
+        )
+    b = np.arctanh(system.u_eq / C)
+    slope = C * (1.0 - np.tanh(b) ** 2)
+    Kp = -K / slope[:, None]
+    return Network([Layer(Kp, b, "tanh")], C if system.nu > 1 else float(C[0]),
+                   {"kind": "controller", "form": "C*tanh(Kx+b)"})
+
+
+def linear_controller(system, K) -> Network:
+    """The unsaturated LQR feedback ``u = u_eq − K x`` as a one-layer linear network."""
+    K = np.atleast_2d(np.asarray(K, dtype=float))
+    if K.shape != (system.nu, system.nx):
+        raise DimensionError(f"K must be ({system.nu}, {system.nx}), got {K.shape}")
+    return Network([Layer(-K, system.u_eq.copy(), "linear")], 1.0,
+                   {"kind": "controller", "form": "u_eq - Kx"})
+
+
+def quadratic_lyapunov(P) -> Network:
+    """``V(x) = xᵀPx`` as a network: ``‖Lᵀx‖²`` with ``P = L Lᵀ`` (sum-of-squares head)."""
+    P = np.asarray(P, dtype=float)
+    L = np.linalg.cholesky(0.5 * (P + P.T))
+    return Network([Layer(L.T, np.zeros(len(P)), "linear")], head={"type": "sum_of_squares"},
+                   meta={"kind": "lyapunov", "form": "x'Px"})

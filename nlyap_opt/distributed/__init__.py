@@ -1,0 +1,2 @@
+"""Parallel and distributed work: the Dask client helper and load-balanced verification.
+"""

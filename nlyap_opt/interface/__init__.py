@@ -1,0 +1,3 @@
+"""The ``nlyap`` command line: the commands, their argument types and exit codes (the top
+layer; it may import every other layer).
+"""

@@ -1,0 +1,86 @@
+"""Argument types of the ``nlyap`` commands (argparse ``type=`` callables), shared by
+:mod:`nlyap_opt.interface.cli` and the commands it registers: each refuses a bad value with one line
+that names what is expected."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+__all__ = ["RADIUS_MAX", "connect_timeout_arg", "inner_radius", "nonneg", "number",
+           "outer_radius", "positive", "seed", "seeds", "time_limit_arg", "workers"]
+
+
+def number(check, want: str):
+    """An argparse type: a finite float for which ``check`` holds, else ``want`` in the
+    message."""
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}") from None
+        if not math.isfinite(v) or not check(v):
+            raise argparse.ArgumentTypeError(f"must be {want}, got {text}")
+        return v
+
+    parse.__name__ = want
+    return parse
+
+
+nonneg = number(lambda v: v >= 0, "a finite number >= 0")
+positive = number(lambda v: v > 0, "a finite number > 0")
+#: the largest radius ``verify`` takes (its square, summed over the states, stays finite)
+RADIUS_MAX = 1e100
+inner_radius = number(lambda v: 0 <= v <= RADIUS_MAX,
+                      f"a finite number >= 0 and <= {RADIUS_MAX:g}")
+outer_radius = number(lambda v: 0 < v <= RADIUS_MAX,
+                      f"a finite number > 0 and <= {RADIUS_MAX:g}")
+connect_timeout_arg = number(lambda v: 0 < v <= 3600, "a finite number of seconds in (0, 3600]")
+
+
+def seed(text: str) -> int:
+    """An integer >= 0."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {v}")
+    return v
+
+
+def seeds(text: str) -> int | list[int]:
+    """``--seeds K`` (seeds 0..K-1) or ``--seeds 0,3,7``."""
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        vals = [int(p) for p in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a count K >= 1 or seeds like 0,3,7, got {text!r}") from None
+    if len(vals) == 1 and "," not in text:
+        if vals[0] < 1:
+            raise argparse.ArgumentTypeError(f"the number of seeds must be >= 1, got {vals[0]}")
+        return vals[0]
+    if any(v < 0 for v in vals) or len(set(vals)) != len(vals):
+        raise argparse.ArgumentTypeError(f"seeds must be distinct integers >= 0, got {text!r}")
+    return vals
+
+
+def workers(text: str) -> int:
+    """An integer >= 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {v}")
+    return v
+
+
+def time_limit_arg(sp) -> None:
+    """Add ``--time-limit SECONDS`` (a guard that stops the command, exit 5) to ``sp``."""
+    sp.add_argument("--time-limit", type=positive, metavar="SECONDS", dest="time_limit",
+                    help="stop after SECONDS of wall time with exit code 5, keeping the "
+                         "finished stages (the same command resumes); results never depend "
+                         "on it: every training budget is a count of steps")

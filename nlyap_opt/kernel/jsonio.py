@@ -1,0 +1,132 @@
+"""Reading configuration files, and keeping wall-clock timings out of hashed artifacts.
+
+A core module (it imports only :mod:`nlyap_opt.kernel.errors`), so that every layer that reads a
+configuration file (the run configuration, the dynamics configuration) shares one reader.
+
+A run's stage files (``bounds.json``, ``cegis.json``, ...) are hashed: the hashes key the
+stages built on them and bind the certificate to its artifacts. Wall-clock timings would make
+those hashes differ between two runs of the same input, so :func:`split_timings` takes every
+``seconds`` / ``*_seconds`` entry out before such a file is written and
+:func:`save_timings` keeps them, for the report, in ``timings.json`` beside it (never
+hashed, never trusted for anything but display); :func:`load_with_timings` puts them back.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .errors import ConfigError
+
+__all__ = ["TIMINGS_FILE", "load_with_timings", "read_json_object", "save_timings",
+           "split_timings"]
+
+#: the file beside a run's stage files that holds their wall-clock timings
+TIMINGS_FILE = "timings.json"
+
+
+def _is_timing(key) -> bool:
+    return isinstance(key, str) and (key == "seconds" or key.endswith("_seconds"))
+
+
+def split_timings(obj, _path: tuple = ()) -> tuple[object, list]:
+    """``(obj without its timings, [[path, value], ...])``: every dict entry named
+    ``seconds`` or ``*_seconds``, at any depth, is taken out with its path (keys and list
+    indices) so that :func:`load_with_timings` can put it back.
+
+    Examples
+    --------
+    >>> split_timings({"level": 1.0, "history": [{"it": 0, "verify_seconds": 0.3}]})
+    ({'level': 1.0, 'history': [{'it': 0}]}, [[['history', 0, 'verify_seconds'], 0.3]])
+    """
+    if isinstance(obj, dict):
+        clean, found = {}, []
+        for k, v in obj.items():
+            if _is_timing(k):
+                found.append([[*_path, k], v])
+            else:
+                clean[k], sub = split_timings(v, (*_path, k))
+                found += sub
+        return clean, found
+    if isinstance(obj, (list, tuple)):
+        clean, found = [], []
+        for i, v in enumerate(obj):
+            c, sub = split_timings(v, (*_path, i))
+            clean.append(c)
+            found += sub
+        return clean, found
+    return obj, []
+
+
+def save_timings(path: str | Path, timings: list) -> None:
+    """Keep the timings :func:`split_timings` took out of the file ``path`` in
+    ``timings.json`` beside it (written through a temporary file and a rename)."""
+    path = Path(path)
+    tfile = path.parent / TIMINGS_FILE
+    try:
+        store = json.loads(tfile.read_text())
+        if not isinstance(store, dict):
+            store = {}
+    except (OSError, ValueError):
+        store = {}
+    store[path.name] = timings
+    tmp = tfile.with_name(f".{tfile.name}.tmp")
+    tmp.write_text(json.dumps(store, indent=1))
+    tmp.replace(tfile)
+
+
+def load_with_timings(path: str | Path) -> dict:
+    """The JSON file ``path`` with its timings from ``timings.json`` put back where they
+    were (timings that are missing or do not fit are left out: they are only displayed)."""
+    path = Path(path)
+    obj = json.loads(path.read_text())
+    try:
+        timings = json.loads((path.parent / TIMINGS_FILE).read_text()).get(path.name, [])
+    except (OSError, ValueError, AttributeError):
+        return obj
+    for entry in timings if isinstance(timings, list) else []:
+        try:
+            keys, value = entry
+            node = obj
+            for k in keys[:-1]:
+                node = node[k]
+            if isinstance(node, dict) and isinstance(keys[-1], str):
+                node[keys[-1]] = value
+        except (KeyError, IndexError, TypeError, ValueError):
+            continue
+    return obj
+
+
+def read_json_object(path: str | Path) -> dict:
+    """A configuration file: a JSON object (else :class:`ConfigError` saying why).
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    dict
+
+    Raises
+    ------
+    ConfigError
+        The file is missing, a directory, unreadable, not text, not valid JSON, or not an
+        object.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"config {path} is a directory; pass the JSON file inside it")
+    try:
+        obj = json.loads(p.read_text())
+    except OSError as err:
+        raise ConfigError(f"cannot read config {path}: {err.strerror or err}; "
+                          "check the path") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"config {path} is not a text file; pass a JSON file") from None
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"config {path} is not valid JSON ({err}); fix the file") from None
+    if not isinstance(obj, dict):
+        raise ConfigError(f"config {path} must hold a JSON object {{...}}, "
+                          f"got a {type(obj).__name__}")
+    return obj

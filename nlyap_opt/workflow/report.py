@@ -1,0 +1,240 @@
+"""``report.md`` and ``roa.png`` of a run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..certification.certificate import CertStatus, load_artifact, status_text
+from ..certification.roa import InnerForm, InnerFormKind, grid_points
+from ..kernel import deps
+from ..kernel.domain import Ball, parse_set
+from ..kernel.network import Network
+from ..kernel.provenance import describe
+
+__all__ = ["write_report", "plot_roa", "status_line"]
+
+
+def _fmt(v, digits=4):
+    if v is None:
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def _sets(cert: dict, nx: int):
+    """``(D, X_I, is_plain_ball)`` of a certificate dict (version 2: the ball of outer_radius)."""
+    D = Ball(cert["outer_radius"], nx) if cert.get("domain") is None else \
+        parse_set(cert["domain"], nx)
+    XI = None if cert.get("initial_set") is None else \
+        parse_set(cert["initial_set"], nx, "initial_set", domain=False)
+    return D, XI, D.plain_ball
+
+
+def _is_blowup(text) -> bool:
+    """Whether a stored inner-ellipse form is the weighted blow-up."""
+    try:
+        return InnerForm.parse(str(text)).kind is InnerFormKind.BLOWUP
+    except ValueError:
+        return False
+
+
+def status_line(cert: dict) -> str:
+    """The status of a certificate dict in words: ``"certified under the declared
+    assumptions: …"`` when it rests on declarations about ``f``
+    (:func:`nlyap_opt.certification.certificate.status_text`)."""
+    return status_text(cert["status"], cert.get("assumptions_declared_by_user") or [])
+
+
+def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, cg: dict):
+    """Write ``report.md`` (parameters, what is certified under which assumptions, times)
+    and ``roa.png``."""
+    lines = [f"# {system.name}: certified region of attraction", ""]
+    lines += [f"**Status: {status_line(cert)}** ({cert['dynamics']})", ""]
+    if cert["status"] != CertStatus.CERTIFIED:
+        lines += [f"Reason: {cert.get('reason', '')}", ""]
+    lines += ["## Parameters (paper's Table layout)", "",
+              "| K_f | K_φ | δ | α | η | M = sup‖∇V‖ | β (margin) | ε | r | level |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    b = bounds or {}
+    lines.append("| " + " | ".join(_fmt(v) for v in (
+        b.get("K_f"), b.get("K_phi"), b.get("delta"), b.get("alpha"), b.get("eta"),
+        cert.get("M"), cert["margin"], cert["inner_radius"], cert["outer_radius"],
+        cert["level"])) + " |")
+    lines += ["", "## What is certified", ""]
+    r, eps = cert["outer_radius"], cert["inner_radius"]
+    D, XI, ball = _sets(cert, system.nx)
+    if not ball:
+        lines += [f"Verification domain D = {D.describe()} (r above: max ‖x‖ over D).", ""]
+    region = f"{eps:g} ≤ ‖x‖ ≤ {r:g}" if ball else f"x ∈ D, ‖x‖ ≥ {eps:g}"
+    lines += [
+        f"- (a) decrease {cert.get('decrease_condition', '')} on "
+        f"{{{region}, V(x) ≤ {cert['level']:.6g}}} — interval verifier "
+        "(outward rounding);",
+        f"- (b) containment: V(x) > {cert['level']:.6g} on "
+        + (f"‖x‖ = {r:g};" if ball else "the boundary of D (every face of a box);"),
+    ]
+    ie = cert.get("inner_ellipse")
+    if ie:
+        blowup = _is_blowup(ie.get("form", ""))
+        lines.append(
+            f"- (c) inner ball: E = {{xᵀPx ≤ {ie['level']:.4g}}} ⊇ B_ε; "
+            + (f"V̇_q < 0 on E∖{{0}} by a weighted blow-up of the origin ({ie['form']}: "
+               "∂ᵐ/∂rᵐ of V̇_q(r^w·u) < 0 for r ∈ [0, R] on the faces of the unit cube; "
+               "the linearisation is not exponentially stable) (true f): "
+               f"{ie['status']}" if ie.get("proved") and blowup else
+               "P·J(y) + J(y)ᵀ·P ≺ 0 verified on a box containing E (true f): "
+               f"{ie['status']}" if ie.get("proved") else
+               "assumed (paper's Assumption 3) for the unknown f; the tool's check on the "
+               f"true f: {ie['status']}"))
+    if XI is not None:
+        lines.append(f"- (d) initial set X_I = {XI.describe()} ⊆ Ω_c (X_I ⊆ D and V < level "
+                     f"on X_I): {cert.get('checks', {}).get('(d) X_I ⊆ Ω_c', 'not run')}")
+    lines += ["", "Certified set: Ω_c ∪ E with Ω_c = {x ∈ " + ("B_r" if ball else "D")
+              + " : V(x) ≤ level}.", "",
+              "### Checks (interval verifier)", ""]
+    lines += [f"- {k}: {v}" for k, v in cert.get("checks", {}).items()]
+    lines += ["", "### Assumptions", ""] + [f"- {a}" for a in cert["assumptions"]]
+    if cert.get("assumptions_declared_by_user"):
+        lines += ["", "### Assumptions (declared by the user)", ""] + [
+            f"- {a}" for a in cert["assumptions_declared_by_user"]]
+    if cert.get("not_available"):
+        lines += ["", "### Not available", ""] + [
+            f"- {a}" for a in cert["not_available"]]
+    n_x = len(cert["eval_box"])
+    if cert.get("true_roa_area") is None:
+        lines += ["", "## Areas", "", f"Certified area: {cert['certified_area']:.4g} (grid count, "
+                  f"{cert['eval_grid']}^{n_x} over {np.asarray(cert['eval_box']).tolist()}); "
+                  "the true ROA is not available (see 'Not available').", ""]
+    else:
+        lines += ["", "## Areas", "",
+                  "| certified area | true ROA area | certified ÷ true |", "|---|---|---|",
+                  f"| {cert['certified_area']:.4g} | {cert['true_roa_area']:.4g} | "
+                  f"{100 * cert['fraction_of_true_roa']:.1f}% |", "",
+                  f"True ROA: simulated closed loop (true f) from a {cert['eval_grid']}^{n_x} "
+                  f"grid over {np.asarray(cert['eval_box']).tolist()}"
+                  + (", intersected with D" if cert.get("domain") is not None else
+                     ", intersected with the ball ‖x‖ ≤ r" if system.nu else "")
+                  + f". Every certified grid point converges in simulation: "
+                  f"{cert['certified_points_converge_in_simulation']}."
+                  + (f" {100 * cert['true_roa_undecided']:.1f}% of the grid neither converged "
+                     "nor diverged within the simulated horizon and counts outside the true "
+                     "ROA: the share above may be an overestimate."
+                     if cert.get("true_roa_undecided") else ""), ""]
+    tc = cert.get("true_dynamics_check")
+    if tc:
+        lines += ["## Check against the true dynamics (benchmark, not part of the certificate)",
+                  "", f"- decrease of the same V under the true f at the same level: "
+                  f"{tc['decrease_true_f']}",
+                  f"- inner ellipse under the true f: {tc['inner_ball_true_f']}", ""]
+    if cert.get("candidates"):
+        lines += ["## Best certificate (the larger certified volume wins)", "",
+                  "| V | κ | status | level | ε | certified volume | winner |",
+                  "|---|---|---|---|---|---|---|"]
+        lines += [f"| {c['V']} | {c['controller'] or '—'} | {c['status']} | "
+                  f"{c['level']:.6g} | {c['inner']:g} | {c['certified_volume']:.4g} | "
+                  f"{'**yes**' if c['winner'] else 'no'} |" for c in cert["candidates"]]
+        lines.append("")
+    lines += ["## CEGIS history", "", "| it | loss | candidate level | status | level | area "
+              f"in {'ball' if ball else 'D'} | margin | verify s |",
+              "|---|---|---|---|---|---|---|---|"]
+    for h in cg.get("history", []):
+        lines.append(f"| {h['iteration']} | {h['loss']:.3g} | {h['candidate_level']:.4g} | "
+                     f"{h['status']} | {h['level']:.4g} | {h['area']:.4g} | "
+                     f"{h['margin']:.3g} | {h['verify_seconds']:.2f} |")
+    if cert.get("provenance"):
+        lines += ["", "## Numeric environment (what determined these numbers)", "",
+                  "The same input gives the same certificate bit for bit on the same "
+                  "fingerprint; re-checking the certificate gives the same verdict anywhere.",
+                  ""] + describe(cert["provenance"])
+    lines += ["", "## Times (s)", ""] + [f"- {k}: {v:.1f}" for k, v in
+                                         cert.get("seconds", {}).items()]
+    lines += ["", "![ROA](roa.png)", ""]
+    (out / "report.md").write_text("\n".join(lines))
+    try:
+        plot_roa(out / "roa.png", system, cert, out)
+    except Exception as err:  # a plot must never lose a certificate
+        print(f"warning: roa.png not written: {err}")
+
+
+def plot_roa(path, system, cert: dict, out: Path):
+    """V level curves, certified set, domain, phase portrait, true ROA boundary.
+
+    States beyond the first two are shown as the slice through the origin (the other
+    states 0), so a run of any dimension gets its picture.
+    """
+    plt = deps.pyplot()
+
+    arts = cert.get("artifacts", {})   # the certified V and κ (the neural or a cheap one)
+    V = load_artifact(out / arts.get("V", {}).get("file", "V.json"),
+                      arts.get("V", {}).get("kind", "network"))
+    D, XI, _ = _sets(cert, system.nx)
+    cfile = out / arts.get("controller", {}).get("file", "controller.json")
+    ctrl = Network.load(cfile) if system.nu and cfile.exists() else None
+    box = np.asarray(cert["eval_box"], dtype=float)
+    nx = len(box)
+    n = 300
+
+    def lift(p2):  # 2-D points of the slice -> states (others 0)
+        z = np.zeros((len(p2), nx))
+        z[:, :2] = p2
+        return z
+
+    pts2, shape = grid_points(box[:2], n)
+    pts = lift(pts2)
+    xs = [np.linspace(lo, hi, n) for lo, hi in box[:2]]
+    v = V.numpy(pts)[:, 0].reshape(shape)
+    fig, ax = plt.subplots(figsize=(7, 6))
+    X1, X2 = np.meshgrid(xs[0], xs[1], indexing="ij")
+    lv = cert["level"]
+    if lv > 0 and cert["status"] == CertStatus.CERTIFIED:
+        ax.contour(X1, X2, v, levels=np.linspace(lv / 8, 2 * lv, 9), colors="0.75",
+                   linewidths=0.6)
+        inside = (v <= lv) & D.contains(pts).reshape(shape)
+        ax.contourf(X1, X2, inside.astype(float), levels=[0.5, 1.5], colors=["tab:blue"],
+                    alpha=0.35)
+        ax.contour(X1, X2, v, levels=[lv], colors="tab:blue", linewidths=2)
+    ie = cert.get("inner_ellipse")
+    if ie:
+        q = np.einsum("ij,jk,ik->i", pts, np.asarray(ie["P"]), pts).reshape(shape)
+        ax.contour(X1, X2, q, levels=[ie["level"]], colors="tab:green", linewidths=1.2)
+    npz = out / "true_roa.npz"
+    if npz.exists() and nx == 2 and cert.get("true_roa_area") is not None:
+        m = np.load(npz)["mask"]
+        xt = [lo + (hi - lo) * (np.arange(m.shape[0]) + 0.5) / m.shape[0] for lo, hi in box]
+        T1, T2 = np.meshgrid(xt[0], xt[1], indexing="ij")
+        ax.contour(T1, T2, m.astype(float), levels=[0.5], colors="k", linewidths=1.5)
+    th = np.linspace(0, 2 * np.pi, 400)
+    ax.plot(*D.outline_2d(0, 1).T, "r--", lw=1)
+    rad = cert["inner_radius"]
+    ax.plot(rad * np.cos(th), rad * np.sin(th), "r:", lw=1)
+    if XI is not None:
+        ax.plot(*XI.outline_2d(0, 1).T, color="tab:orange", lw=1.5)
+    if getattr(system, "can_simulate", True):
+        g = 25
+        gp2, gs = grid_points(box[:2], g)
+        gp = lift(gp2)
+        u = None if ctrl is None else ctrl.numpy(gp)
+        with np.errstate(all="ignore"):
+            F = system.evaluate(gp, u)
+        ax.streamplot(np.linspace(box[0, 0], box[0, 1], g),
+                      np.linspace(box[1, 0], box[1, 1], g), F[:, 0].reshape(gs).T,
+                      F[:, 1].reshape(gs).T, color="0.6", density=0.8, linewidth=0.5,
+                      arrowsize=0.6)
+    ax.set_xlim(box[0])
+    ax.set_ylim(box[1])
+    ax.set_xlabel(system.state_names[0])
+    ax.set_ylabel(system.state_names[1])
+    frac = cert.get("fraction_of_true_roa")
+    share = "true ROA not available" if frac is None else \
+        f"certified {100 * frac:.1f}% of the true ROA"
+    where = "" if nx == 2 else f" (slice {', '.join(system.state_names[2:])} = 0)"
+    ax.set_title(f"{system.name}: {cert['status']} — {share}{where}\n"
+                 "blue: Ω_c (V ≤ level in D), green: E, black: true ROA, red: D, B_ε"
+                 + (", orange: X_I" if XI is not None else ""),
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -71,7 +71,8 @@ __all__ = [
     "CertStatus", "Decrease", "RoaProblem", "RoaCertificate", "InnerEllipse", "certify_roa",
     "recheck_certificate", "recheck_run", "certify_with_inner_search", "load_artifact",
     "sha256_file", "FORMAT", "VERSION", "system_fingerprint", "system_binding", "spec_factory",
-    "status_text", "bound_system", "LevelPolicy", "NEURAL_POLICY", "certify_candidate",
+    "status_text", "bound_system", "read_certificate_file", "LevelPolicy", "NEURAL_POLICY",
+    "certify_candidate",
     "INNER_FACTORS",
 ]
 
@@ -941,6 +942,24 @@ def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
     return certify_candidate(problem, policy, level=level, log=log)
 
 
+def read_certificate_file(path: str | Path) -> tuple[Path, object]:
+    """``(the certificate.json path, its parsed JSON)`` of a run directory or a certificate
+    file; a missing, unreadable or non-JSON file raises :class:`ConfigError` naming it and
+    the fix (the content is checked by the caller)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "certificate.json"
+    try:
+        d = json.loads(path.read_text())
+    except OSError as err:
+        raise ConfigError(f"cannot read certificate {path}: {err.strerror or err}; pass the "
+                          "certificate.json of a finished run") from None
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"certificate {path} is not valid JSON ({err.msg}, line "
+                          f"{err.lineno}); rerun the command that wrote it") from None
+    return path, d
+
+
 def recheck_certificate(path: str | Path, *, system=None, allow_factory: bool = False,
                         log=print) -> RoaCertificate:
     """Re-verify a saved ``certificate.json`` from its hashed artifacts, as written.
@@ -989,17 +1008,7 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
     :func:`recheck_certificate`.
     """
 
-    path = Path(path)
-    if path.is_dir():
-        path = path / "certificate.json"
-    try:
-        d = json.loads(path.read_text())
-    except OSError as err:
-        raise ConfigError(f"cannot read certificate {path}: {err.strerror or err}; pass the "
-                          "certificate.json of a finished run") from None
-    except json.JSONDecodeError as err:
-        raise ConfigError(f"certificate {path} is not valid JSON ({err.msg}, line "
-                          f"{err.lineno}); rerun the command that wrote it") from None
+    path, d = read_certificate_file(path)
     saved = RoaCertificate.from_dict(d)
     problem_d = d.get("problem")
     if not isinstance(problem_d, dict):

@@ -59,7 +59,13 @@ from ..kernel.jsonio import save_timings, split_timings
 from ..kernel.provenance import fingerprint
 from ..kernel.walker import compile_function, evaluate
 from ..learned.interval_sup import interval_arithmetic
-from .certificate import CertStatus, bound_system, system_binding, write_json_atomic
+from .certificate import (
+    CertStatus,
+    bound_system,
+    read_certificate_file,
+    system_binding,
+    write_json_atomic,
+)
 
 __all__ = ["FORMAT", "VERSION", "Piece", "CompositionalCertificate", "certify_compositional",
            "check_compositional", "recheck_compositional", "save_compositional",
@@ -651,17 +657,7 @@ def recheck_compositional(path: str | Path, *, system=None,
     ConfigError
         Not a compositional certificate of a version this nlyap reads, or malformed.
     """
-    path = Path(path)
-    if path.is_dir():
-        path = path / "certificate.json"
-    try:
-        d = json.loads(path.read_text())
-    except OSError as err:
-        raise ConfigError(f"cannot read certificate {path}: {err.strerror or err}; pass the "
-                          "certificate.json of a finished run") from None
-    except json.JSONDecodeError as err:
-        raise ConfigError(f"certificate {path} is not valid JSON ({err.msg}, line "
-                          f"{err.lineno}); rerun the command that wrote it") from None
+    path, d = read_certificate_file(path)
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise ConfigError(f"{path} is not a compositional certificate (format {FORMAT!r}); "
                           "pass the certificate.json written by `nlyap run`")

@@ -26,6 +26,9 @@ NON_POLYNOMIAL_OPS = {
     "unicycle_path_following": ["sin (OP_SIN)", "cos (OP_COS)", "division (OP_DIV)"],
 }
 
+#: three compare runs (20 s idle) behind every test here: the slow tier
+pytestmark = pytest.mark.slow
+
 
 def _rows(rows, prefix):
     return [r for r in rows if r["method"].startswith(prefix)]

@@ -46,7 +46,12 @@ def _blocks(lang: str) -> list:
                     j += 1
                 skip = i > 0 and lines[i - 1].strip() == SKIP_MARK
                 if not skip:
-                    out.append(pytest.param(page, i + 1, "\n".join(lines[i + 1:j]),
+                    code = "\n".join(lines[i + 1:j])
+                    # a whole pipeline run (seconds) stays in the default tier on the README
+                    # only; the pages' runs go to the slow tier
+                    slow = page.name != "README.md" and "run(" in code and "tempfile" in code
+                    out.append(pytest.param(page, i + 1, code,
+                                            marks=[pytest.mark.slow] if slow else [],
                                             id=f"{page.relative_to(ROOT)}:{i + 1}"))
                 i = j
             i += 1

@@ -37,11 +37,11 @@ def _config(tmp_path, cfg: dict) -> Path:
     return p
 
 
-_SLOW = pytest.mark.slow  # 6-10 s idle each; two examples stay in the default tier
+_SLOW = pytest.mark.slow  # 5-10 s idle each; one example stays in the default tier
 
 
 @pytest.mark.parametrize("name", [pytest.param("two_machine_power", marks=_SLOW),
-                                  "lorenz_controlled", "fossil_nonpoly2",
+                                  pytest.param("lorenz_controlled", marks=_SLOW), "fossil_nonpoly2",
                                   pytest.param("fossil_nonpoly3", marks=_SLOW),
                                   pytest.param("fossil_poly1", marks=_SLOW)])
 def test_model_examples_certify_and_recheck(name, tmp_path, capsys):

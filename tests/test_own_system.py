@@ -110,6 +110,7 @@ def test_known_dynamics_needs_a_model(tmp_path, capsys):
     assert code == 3 and "no model" in err, err
 
 
+@pytest.mark.slow  # 12 s idle: a run and a re-check in fresh processes
 def test_spec_system_certificate_rechecks_in_a_new_process(tmp_path):
     """The certificate of a spec-file system names its file, so a fresh process (where the
     system is not registered) re-checks it."""

@@ -470,6 +470,7 @@ def test_ahead_when_false_starts_nothing_on_a_cluster(client):
         assert job.result() is None and calls == [1]
 
 
+@pytest.mark.slow  # 5 s idle: a run on a 2-worker cluster
 def test_run_with_dask_certificate_stage_gives_the_serial_certificate(client, tmp_path,
                                                                       monkeypatch):
     """``nlyap run NAME --scheduler ADDR`` (no ``--seeds``): the certificate stage's checks

@@ -44,7 +44,7 @@ def _spec(tmp_path, name="own_cubic", rhs_extra="x1**3 / 3"):
     return p
 
 
-@pytest.mark.slow  # 10 s idle; a spec file through the CLI stays in the default tier with examples/fossil_nonpoly2.toml
+@pytest.mark.slow  # 10 s idle; examples/fossil_nonpoly2.toml keeps a spec file via the CLI
 def test_spec_system_runs_end_to_end_from_the_cli(tmp_path, capsys):
     spec = _spec(tmp_path)
     out = tmp_path / "run"

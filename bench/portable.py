@@ -5,8 +5,10 @@ Usage: python bench/portable.py [--systems a,b] [--repeat 2] [--known]
 Runs ``nlyap run NAME --preset fast [--known-dynamics] [--portable]`` as a fresh process for
 each system (learned f unless --known), alternating the two modes, and prints the best wall
 time of each with the machine's numeric-environment fingerprint, plus whether the networks
-(V.json, dynamics.json) of the portable runs are identical whatever the shell's
-OPENBLAS_CORETYPE (the portable pins override it).
+(V.json, dynamics.json, controller.json) of the portable runs are identical whatever the
+shell's OPENBLAS_CORETYPE (the portable pins override it), with their joint sha256 (first 16
+hex digits): run it on two machines and compare that column to see whether portable mode
+gives the same networks on both CPU models.
 
 Measured (2-core AMD EPYC with AVX-512, load about 1.5, ``--repeat 2``): Van der Pol 7.9 s
 plain / 8.5 s portable (1.08x), path following 12.9 / 13.3 s (1.03x), pendulum 12.1 / 14.9 s
@@ -73,8 +75,9 @@ def main() -> None:
                 d = tmp / f"{name}_core_{core}"
                 _run(name, d, True, args.known, env=dict(os.environ, OPENBLAS_CORETYPE=core))
                 digests.add(_digest(d))
+            same = f"yes, sha256 {next(iter(digests))}" if len(digests) == 1 else "NO"
             print(f"{name:<26} {best[False]:8.1f} {best[True]:11.1f} "
-                  f"{best[True] / best[False]:6.2f}  {'yes' if len(digests) == 1 else 'NO'}")
+                  f"{best[True] / best[False]:6.2f}  {same}")
 
 
 if __name__ == "__main__":

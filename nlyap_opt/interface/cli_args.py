@@ -39,15 +39,20 @@ outer_radius = number(lambda v: 0 < v <= RADIUS_MAX,
 connect_timeout_arg = number(lambda v: 0 < v <= 3600, "a finite number of seconds in (0, 3600]")
 
 
-def seed(text: str) -> int:
-    """An integer >= 0."""
+def _int_at_least(text: str, low: int) -> int:
+    """``text`` as an integer ``>= low``; otherwise the argparse error naming the bound."""
     try:
         v = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {v}")
+        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
+    if v < low:
+        raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {v}")
     return v
+
+
+def seed(text: str) -> int:
+    """An integer >= 0."""
+    return _int_at_least(text, 0)
 
 
 def seeds(text: str) -> int | list[int]:
@@ -69,13 +74,7 @@ def seeds(text: str) -> int | list[int]:
 
 def workers(text: str) -> int:
     """An integer >= 1."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {v}")
-    return v
+    return _int_at_least(text, 1)
 
 
 def time_limit_arg(sp) -> None:

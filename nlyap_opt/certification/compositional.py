@@ -57,6 +57,7 @@ from scipy.linalg import eigh, solve_continuous_lyapunov
 from ..kernel.errors import ConfigError, UnsupportedOperationError
 from ..kernel.jsonio import save_timings, split_timings
 from ..kernel.provenance import fingerprint
+from ..kernel.rounding import FOLD
 from ..kernel.walker import compile_function, evaluate
 from ..learned.interval_sup import interval_arithmetic
 from .certificate import (
@@ -74,9 +75,9 @@ __all__ = ["FORMAT", "VERSION", "Piece", "CompositionalCertificate", "certify_co
 FORMAT = "nlyap-compositional-certificate"
 VERSION = 1
 
-#: relative allowance on interval enclosures of derivative graphs (CasADi folds products of
-#: constants in float64), as for every interval supremum of the toolbox
-_FOLD = Fraction(1, 2 ** 30)
+#: the toolbox's allowance for CasADi's constant folding, exactly
+#: (:data:`nlyap_opt.kernel.rounding.FOLD`)
+_FOLD = Fraction(FOLD)
 #: decay fractions θ tried: α_i = θ·α_i*, α_i* the subsystem's own rate on its box
 _THETAS = (0.9, 0.75, 0.5, 0.3, 0.15)
 #: pieces of [0, 1] in the integral form of Taylor's remainder (:func:`_hessian_bound`)

@@ -67,13 +67,19 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
-    "U", "EPS", "ETA", "FLOAT_MAX", "gamma", "gamma_rn", "up", "dn", "up_sum", "dn_sum",
+    "U", "EPS", "ETA", "FLOAT_MAX", "FOLD", "gamma", "gamma_rn", "up", "dn", "up_sum", "dn_sum",
     "up_fn", "dn_fn", "next_up", "next_down", "up_rel", "dn_rel", "up_roundings", "add_up",
     "mul_up",
 ]
 
 #: unit roundoff of float64 round-to-nearest
 U = 2.0**-53
+
+#: relative allowance added to interval enclosures of derivative graphs: CasADi folds
+#: products of constants in float64 when it builds a graph (a relative error of a few units
+#: of ``U`` per fold), so an enclosure of the folded graph is widened by this fraction of its
+#: magnitude (a power of two: exact in float64 and as a ``Fraction``)
+FOLD = 2.0**-30
 #: machine epsilon (the spacing of floats at 1), ``2 u``
 EPS = 2.0 * U
 #: smallest positive (subnormal) float64

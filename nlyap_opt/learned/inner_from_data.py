@@ -93,7 +93,7 @@ from ..design.control import InnerStatus, ellipse_candidates
 from ..distributed import parallel
 from ..kernel.errors import DimensionError, InputRangeError
 from ..kernel.network import Network
-from ..kernel.rounding import U, dn_rel, gamma, up_rel
+from ..kernel.rounding import FOLD, U, dn_rel, gamma, up_rel
 from ..kernel.symbolic import closed_loop, learned_components_of, robust_lie
 from ..kernel.walker import CHECKED_OPS, evaluate
 from .bounds import check_input_range
@@ -102,7 +102,6 @@ __all__ = ["prove_inner_ellipse_from_data", "SAFETY"]
 
 #: relative safety factor of the final strict inequality λ > ‖P‖·H_g·ρ
 SAFETY = 1e-9
-_FOLD = 2.0**-30     # relative widening of interval enclosures of derivative graphs
 _EIG = 1e-12         # relative (to ‖S‖_F) allowance on eigvalsh
 _SMOOTH = ("tanh", "linear", "sigmoid")
 
@@ -192,8 +191,8 @@ def _enclose(fun: ca.Function, lo, hi) -> list[tuple[np.ndarray, np.ndarray]]:
         oh = np.broadcast_to(np.asarray(o.hi, dtype=float), (1, nnz))[0]
         ol = np.where(np.isnan(ol), -np.inf, ol)
         oh = np.where(np.isnan(oh), np.inf, oh)
-        L[r, c] = np.nextafter(ol - np.abs(ol) * _FOLD, -np.inf)
-        Ub[r, c] = np.nextafter(oh + np.abs(oh) * _FOLD, np.inf)
+        L[r, c] = np.nextafter(ol - np.abs(ol) * FOLD, -np.inf)
+        Ub[r, c] = np.nextafter(oh + np.abs(oh) * FOLD, np.inf)
         res.append((L, Ub))
     return res
 

@@ -22,14 +22,13 @@ from verification.interval import Interval, IntervalArithmetic
 
 from ..kernel.errors import ConfigError
 from ..kernel.grid import norm2_up
-from ..kernel.rounding import U, next_up
+from ..kernel.rounding import FOLD, U, next_up
 from ..kernel.walker import evaluate
 
 __all__ = ["subboxes", "interval_sup", "matrix_norm_up", "counts_for", "interval_arithmetic"]
 
-#: relative allowance on interval sups: CasADi folds products of constants in derivative graphs
-#: in float64 (a relative error of a few units in 2**-53 per fold)
-_FOLD = 1.0 + 2.0 ** -30
+#: factor on interval sups for CasADi's constant folding (``FOLD`` of the rounding model)
+_FOLD = 1.0 + FOLD
 
 
 def counts_for(box: np.ndarray, total: int, counts=None) -> list[int]:

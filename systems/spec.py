@@ -70,7 +70,8 @@ from .base import System
 from .declarations import Declarations, check_declarations
 from .samples import load_samples, sample_function
 
-__all__ = ["load_spec", "parse_expression", "to_casadi", "default_run_settings", "FUNCTIONS",
+__all__ = ["load_spec", "parse_expression", "to_casadi", "default_run_settings", "centre_dimension",
+           "FUNCTIONS",
            "SYMPY_TO_CASADI", "SPEC_KEYS"]
 
 #: allowed function names -> (SymPy function, number of arguments; None: two or more)
@@ -922,4 +923,72 @@ def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
         n = int(2 * max(1, math.floor((grid_budget ** (1.0 / d) - 1) / 2)) + 1)
         dyn = {"grid_counts": [n] * d}
     out["dynamics"] = dyn
+    if centre_dimension(system):
+        _merge_centre_settings(out, system, inradius)
     return out
+
+
+#: relative tolerance of :func:`centre_dimension` on the real parts (a multiple of ``‖A‖``)
+CENTRE_TOL = 1e-9
+#: the inner radius of a system with a centre, as a fraction of the domain's inradius (the
+#: decrease along a centre direction is only ~‖x‖⁴: Fossil's Poly1 certifies with ε = 0.5 on
+#: the ball r = 3)
+CENTRE_INNER_FRACTION = 1.0 / 6.0
+
+
+def centre_dimension(system: System) -> int:
+    r"""The number of eigenvalues of the linearisation ``A = ∂f/∂x(0, u_eq)`` on the
+    imaginary axis that no input can move (0 for a system without a model).
+
+    An eigenvalue :math:`\lambda` with :math:`|\mathrm{Re}\,\lambda| \le` :data:`CENTRE_TOL`
+    ``·max(1, ‖A‖)`` counts (with its algebraic multiplicity) when it is uncontrollable,
+    :math:`\mathrm{rank}[A - \lambda I,\ B] < n` (Hautus); every eigenvalue of an autonomous
+    system is. Such a closed-loop linearisation has no quadratic Lyapunov function with
+    :math:`PA + A^\top P \prec 0`: its origin is at best asymptotically, not exponentially,
+    stable.
+
+    Examples
+    --------
+    >>> import systems
+    >>> centre_dimension(systems.load_spec("examples/fossil_poly1.toml"))  # doctest: +SKIP
+    1
+    """
+    if not getattr(system, "has_model", False):
+        return 0
+    A = np.asarray(system.A, dtype=float)
+    n = A.shape[0]
+    B = np.asarray(system.B, dtype=float).reshape(n, -1) if system.nu else np.zeros((n, 0))
+    if not np.all(np.isfinite(A)) or not np.all(np.isfinite(B)):
+        return 0
+    tol = CENTRE_TOL * max(1.0, float(np.linalg.norm(A, 2)))
+    count = 0
+    for lam in np.linalg.eigvals(A):
+        if abs(lam.real) > tol:
+            continue
+        M = np.hstack([A - lam * np.eye(n), B])
+        if np.linalg.matrix_rank(M, tol=1e3 * tol) < n:
+            count += 1
+    return count
+
+
+def _merge_centre_settings(out: dict, system: System, inradius: float) -> None:
+    """The defaults of a system with a centre (:func:`centre_dimension`), into ``out``.
+
+    The default method's Zubov-type fit needs trajectories that reach 0 within the simulated
+    horizon; along a centre (``x' = -x³``) they take ~1/‖x‖² time units and count as
+    diverging. Instead: V is a polynomial (one ``square`` hidden layer of ``2n`` units: V
+    of degree 4, able to decrease like ‖x‖⁴) trained on the Lyapunov risk alone; ε is
+    :data:`CENTRE_INNER_FRACTION` of the inradius (condition (c) on the ball is then proved by
+    the weighted blow-up of ``nlyap_opt.certification.roa``); training states count as
+    converging once they reach ``B_ε``.
+    """
+    n = system.nx
+    eps = inradius * CENTRE_INNER_FRACTION
+    out["inner"] = eps
+    out["quadratic"] = ["centre"]
+    out["train"] = {"activation": "square", "hidden": [2 * n], "features": n, "steps": 1000,
+                    "lr_schedule": "constant", "decay": 0.1, "level_slack": 0.1,
+                    "relative_decrease": False, "w_fit": 0.0, "w_pde": 0.0, "w_local": 0.0}
+    out["cegis"] = {"iterations": 6, "steps": 500, "verify_every": 1, "sim_time": 20.0,
+                    "sim_dt": 0.02, "inner_samples": 0, "boundary_samples": 0,
+                    "sim_tol": eps}

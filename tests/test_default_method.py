@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from nlyap_opt.candidates.cegis import cost_targets
+from nlyap_opt.kernel.errors import ConfigError
 from nlyap_opt.kernel.simulate import simulate
 
 
@@ -140,8 +141,14 @@ def test_inner_radius_follows_from_eta_and_the_linearisation():
     assert eps == pytest.approx(INNER_MARGIN_FACTOR * 0.1, rel=1e-9)
     assert "chosen by the tool" in said[-1]
     assert _inner_for_margin(s, None, None, 0.01, 0.05, D, True, said.append) == 0.05
-    assert _inner_for_margin(s, None, None, 0.1, 0.05, D, False, said.append) == 0.05
-    assert f"set inner to {INNER_MARGIN_FACTOR * 0.1:.3g} or more" in said[-1]
+    # a fixed ε: a warning where the margin is thin, one line naming the ε that would work
+    # where the linear decrease is already lost at ε itself
+    assert _inner_for_margin(s, None, None, 0.03, 0.05, D, False, said.append) == 0.05
+    assert f"set inner to {INNER_MARGIN_FACTOR * 0.03:.3g} or more" in said[-1]
+    with pytest.raises(ConfigError, match=f"inner = 0.05 cannot work.*set inner to "
+                                          f"{INNER_MARGIN_FACTOR * 0.1:.3g} or more") as exc:
+        _inner_for_margin(s, None, None, 0.1, 0.05, D, False, said.append)
+    assert "\n" not in str(exc.value)
     # an η that no ε inside the domain affords: the configured ε stays, the message says why
     assert _inner_for_margin(s, None, None, 1.0, 0.05, D, True, said.append) == 0.05
     assert "lower η" in said[-1]

@@ -22,7 +22,13 @@ Candidates (:data:`QUADRATIC_CANDIDATES`, a registry of ``(A_cl, known) -> P or 
   :data:`VOLUME_DECAY_FRACTION`, with learned dynamics :data:`LEARNED_VOLUME_DECAY_FRACTION`):
   only the directions the linearisation pins stay thin (cartpole: certified volume 0.52
   with the true f, 3.5 times the round ``P``'s, and 0.235 with learned dynamics, 4.9 times;
-  in 6-D the verifier is the limit, see ``docs/topics/high_dimension.md``).
+  in 6-D the verifier is the limit, see ``docs/topics/high_dimension.md``);
+- ``"centre"``: for a linearisation with eigenvalues on the imaginary axis (a centre along
+  coordinate axes, no other candidate applies), the identity on the centre coordinates and
+  the Lyapunov matrix of the Hurwitz block
+  (:func:`nlyap_opt.certification.roa.centre_lyapunov_matrix`): ``V̇`` decreases like
+  ``f``'s leading terms along the centre (``-‖x‖⁴`` for ``x' = -x³``), and condition (c)
+  is proved by the weighted blow-up.
 
 The quadratic's inner radius is ``inner_fraction`` times the run's ``ε``. With the true f
 the default is 1/4, as the ``nlyap compare`` LQR rows: a quadratic ``V`` needs no large
@@ -55,6 +61,7 @@ import casadi as ca
 import numpy as np
 
 from ..certification.certificate import INNER_FACTORS, LevelPolicy, certify_candidate
+from ..certification.roa import centre_lyapunov_matrix
 from ..design.control import (
     lyapunov_matrix,
     quadratic_lyapunov,
@@ -90,9 +97,15 @@ VOLUME_DECAY_FRACTION = 0.05
 #: smallest level holding the ball; 0.2 certifies there, volume 0.235 on the grid)
 LEARNED_VOLUME_DECAY_FRACTION = 0.2
 
+def _centre(A_cl, known: bool = True):
+    return centre_lyapunov_matrix(A_cl)
+
+
 #: name -> ``(A_cl, known) -> P`` (``None``: no candidate); the names a configuration may list
 QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": _lyapunov, "round": _round,
-                                             "volume": _volume}
+                                             "volume": _volume, "centre": _centre}
+#: the candidates for a linearisation that is not Hurwitz (the others need one)
+_NOT_HURWITZ = ("centre",)
 
 #: the ε of the quadratic certificates, as a fraction of the run's ``inner``: true f, learned φ
 INNER_FRACTION = 0.25
@@ -189,10 +202,11 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
     out = []
     for name in names:
         t0 = time.perf_counter()
-        P = QUADRATIC_CANDIDATES[name](A_cl, problem.known) if hurwitz else None
+        fits = hurwitz != (name in _NOT_HURWITZ)
+        P = QUADRATIC_CANDIDATES[name](A_cl, problem.known) if fits else None
         if P is None:
-            log(f"  quadratic {name}: no matrix (closed-loop linearisation "
-                f"{'not Hurwitz' if not hurwitz else 'gave no solution'})")
+            why = "gave no solution" if fits else "Hurwitz" if hurwitz else "not Hurwitz"
+            log(f"  quadratic {name}: no matrix (closed-loop linearisation {why})")
             out.append(QuadraticCandidate(name, None, seconds=time.perf_counter() - t0))
             continue
         cert = certify_candidate(replace(problem, V=quadratic_lyapunov(P)), policy,

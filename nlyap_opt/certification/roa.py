@@ -54,6 +54,7 @@ from ..kernel.walker import compile_function, evaluate
 
 __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
+    "centre_lyapunov_matrix",
     "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "InnerForm",
     "InnerFormKind",
 ]
@@ -698,6 +699,31 @@ def _blowup_candidates(A_cl: np.ndarray):
     weights = [(1,) * n] if not hyp else [
         tuple(1 if i in centre else k for i in range(n)) for k in BLOWUP_WEIGHTS]
     return [(P, w) for P in Ps for w in weights]
+
+
+def centre_lyapunov_matrix(A_cl) -> np.ndarray | None:
+    r"""The ``P`` of :func:`certify_inner_blowup`'s first candidate for a linearisation with
+    a centre: the identity on the centre coordinates, the Lyapunov matrix of the Hurwitz
+    block on the others (``None`` when there is no centre on the coordinate axes, or the
+    rest is not Hurwitz).
+
+    :math:`V = x^\top P x` is then a candidate Lyapunov function of the whole closed loop
+    whose derivative is :math:`-\|x_h\|^2` plus higher-order terms: along the centre it
+    decreases like the leading terms of ``f`` (``x' = -x³``: like :math:`-\|x\|^4`).
+
+    Examples
+    --------
+    >>> centre_lyapunov_matrix(np.diag([0.0, -1.0]))
+    array([[1. , 0. ],
+           [0. , 0.5]])
+    >>> centre_lyapunov_matrix(-np.eye(2)) is None
+    True
+    """
+    A = np.asarray(A_cl, dtype=float)
+    if A.ndim != 2 or A.shape[0] != A.shape[1] or not np.all(np.isfinite(A)):
+        return None
+    found = _blowup_candidates(A)
+    return found[0][0] if found else None
 
 
 def _leading_term(h_sub, r, max_order: int):

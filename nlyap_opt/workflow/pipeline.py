@@ -741,6 +741,17 @@ def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, a
     (:func:`nlyap_opt.learned.dynamics_stage.eta_limit_linear`); ε needs
     :data:`INNER_MARGIN_FACTOR` times that. Only the radius changes: every condition is
     verified as configured, at the radius used (and recorded in the certificate).
+
+    Without ``auto`` (the user fixed ε) an ε at which the linearisation's robust decrease
+    is already lost (``ε < need / INNER_MARGIN_FACTOR``) cannot work: a
+    :class:`~nlyap_opt.kernel.errors.ConfigError` names the ε that would; between that and
+    ``need`` a warning does.
+
+    Raises
+    ------
+    ConfigError
+        ``auto`` is off and ε is below the radius where the robust term beats the linear
+        decrease.
     """
     try:
         A = closed_loop_matrix(SimpleNamespace(system=system, controller=controller,
@@ -761,6 +772,11 @@ def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, a
             f"{eta:.3g} the robust margin η‖∇V‖ beats the linear decrease inside "
             f"‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}")
         return need
+    if eps < need / INNER_MARGIN_FACTOR:
+        raise ConfigError(
+            f"inner = {eps:g} cannot work with η = {eta:.3g}: the robust margin η‖∇V‖ beats the "
+            f"linear decrease inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; set inner to "
+            f"{need:.3g} or more, or auto_inner = true to let the tool choose")
     log(f"[inner] warning: with η = {eta:.3g} the robust margin η‖∇V‖ beats the linear "
         f"decrease inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; inner = {eps:g} is unlikely "
         f"to certify: set inner to {need:.3g} or more (or auto_inner = true)")

@@ -941,9 +941,11 @@ def centre_dimension(system: System) -> int:
     imaginary axis that no input can move (0 for a system without a model).
 
     An eigenvalue :math:`\lambda` with :math:`|\mathrm{Re}\,\lambda| \le` :data:`CENTRE_TOL`
-    ``·max(1, ‖A‖)`` counts (with its algebraic multiplicity) when it is uncontrollable,
-    :math:`\mathrm{rank}[A - \lambda I,\ B] < n` (Hautus); every eigenvalue of an autonomous
-    system is. Such a closed-loop linearisation has no quadratic Lyapunov function with
+    ``·max(1, ‖A‖)`` counts when no input moves it (Hautus): each distinct such
+    :math:`\lambda` adds its algebraic multiplicity, at most
+    :math:`n - \mathrm{rank}[A - \lambda I,\ B]`; for an autonomous system, every eigenvalue
+    on the axis with its algebraic multiplicity. Such a closed-loop linearisation has no
+    quadratic Lyapunov function with
     :math:`PA + A^\top P \prec 0`: its origin is at best asymptotically, not exponentially,
     stable.
 
@@ -961,13 +963,17 @@ def centre_dimension(system: System) -> int:
     if not np.all(np.isfinite(A)) or not np.all(np.isfinite(B)):
         return 0
     tol = CENTRE_TOL * max(1.0, float(np.linalg.norm(A, 2)))
-    count = 0
-    for lam in np.linalg.eigvals(A):
-        if abs(lam.real) > tol:
+    axis = [lam for lam in np.linalg.eigvals(A) if abs(lam.real) <= tol]
+    if not system.nu:
+        return len(axis)
+    count, seen = 0, []
+    for lam in axis:       # each distinct λ: min(algebraic multiplicity, n − rank[A − λI, B])
+        if any(abs(lam - mu) <= 1e3 * tol for mu in seen):
             continue
-        M = np.hstack([A - lam * np.eye(n), B])
-        if np.linalg.matrix_rank(M, tol=1e3 * tol) < n:
-            count += 1
+        seen.append(lam)
+        alg = sum(abs(lam - mu) <= 1e3 * tol for mu in axis)
+        rank = np.linalg.matrix_rank(np.hstack([A - lam * np.eye(n), B]), tol=1e3 * tol)
+        count += min(alg, n - rank)
     return count
 
 

@@ -449,6 +449,7 @@ def _run(system, cfg: RunConfig, out: Path, known_dynamics: bool, log,
     """The stages in order (each loads its finished files or computes them), then the
     certificate stage."""
     _check_setting(system, cfg, known_dynamics)
+    _log_centre(system, cfg, log)
     region = cfg.view(_REGION)
     D, XI = domain_of(region, system.nx)
     ctx = _Context(system, out, _Stages(out, system.name, known_dynamics, cfg, log), log,
@@ -479,6 +480,18 @@ def _check_setting(system, cfg: RunConfig, known_dynamics: bool) -> None:
             "train.init 'sos' starts V at the run's SOS certificate, which exists only with the "
             "true f (--known-dynamics) and a closed loop without inputs (the controller "
             "C·tanh(Kx + b) is not polynomial); use init 'random' or 'quadratic'")
+
+
+def _log_centre(system, cfg: RunConfig, log) -> None:
+    """Say so when the linearisation has a centre (:func:`systems.spec.centre_dimension`):
+    the defaults of such a system (:func:`systems.default_run_settings`) differ."""
+    k = _systems.spec.centre_dimension(system)
+    if k:
+        log(f"[centre] the linearisation at 0 has {k} eigenvalue(s) on the imaginary axis that "
+            "no input moves: the origin is not exponentially stable; condition (c) by the "
+            f"weighted blow-up (inner = {float(cfg.inner):.4g}"
+            + (f", V: {cfg.train.activation} activation" if cfg.preset is None else "")
+            + ")")
 
 
 @dataclass

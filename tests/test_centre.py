@@ -1,0 +1,189 @@
+"""Systems whose origin is not exponentially stable: the linearisation has a centre.
+
+The defaults detect the centre (``systems.spec.centre_dimension``), choose a V family that
+can decrease like ‖x‖⁴, an ε and condition (c)'s blow-up; the tests check the detection
+against the spectrum, the chosen ``P``, weights and ε against the mathematics (V̇_q < 0 at
+sampled points of the certified ellipse, the leading term of the blow-up), that a centre
+made unstable (``x' = +x³``) is never certified, and that the examples certify with the
+default settings.
+"""
+
+import json
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import systems
+from nlyap_opt.candidates.quadratic import certify_quadratics
+from nlyap_opt.certification.certificate import RoaProblem
+from nlyap_opt.certification.roa import centre_lyapunov_matrix, certify_inner_ellipse
+from nlyap_opt.design.control import quadratic_lyapunov
+from nlyap_opt.interface.cli import main
+from nlyap_opt.workflow.configs import make_config
+from systems.spec import CENTRE_INNER_FRACTION, centre_dimension
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+def _model(f, n: int, nu: int = 0, box: float = 1.0):
+    x, u = ca.SX.sym("x", n), ca.SX.sym("u", nu)
+    return systems.System("t_centre", x, u if nu else None, ca.vertcat(*f(x, u)),
+                          state_box=[[-box, box]] * n,
+                          input_box=[[-1.0, 1.0]] * nu if nu else None)
+
+
+def _centre_4d(sign: float = -1.0):
+    """centre_4d.toml's system, x1' = sign·x1³ + x2 y1 (sign = +1: the centre unstable)."""
+    def f(x, u):
+        x1, x2, y1, y2 = (x[i] for i in range(4))
+        return [sign * x1**3 + x2 * y1, -x2**3 - x1 * y1, -y1 + y2 + x1**2 / 2,
+                -y1 - 2 * y2 + x2**2 / 2]
+    return _model(f, 4)
+
+
+def test_the_example_is_the_system_of_these_tests():
+    s, t = systems.load_spec(EXAMPLES / "centre_4d.toml"), _centre_4d()
+    pts = np.random.default_rng(0).uniform(-1, 1, (500, 4))
+    np.testing.assert_allclose(s.evaluate(pts), t.evaluate(pts), rtol=1e-14, atol=1e-15)
+
+
+@pytest.mark.parametrize("f, nu, want", [
+    (lambda x, u: [-x[0] ** 3, -x[1]], 0, 1),                    # diag(0, -1)
+    (lambda x, u: [x[1], -x[0] - x[1] ** 3], 0, 2),              # ±i: a centre, not 0
+    (lambda x, u: [-x[0] + x[1] ** 2, -2 * x[1]], 0, 0),         # Hurwitz
+    (lambda x, u: [x[0] ** 2, u[0]], 1, 1),                      # 0 that u cannot move
+    (lambda x, u: [x[1], u[0]], 1, 0),                           # double 0, controllable
+    (lambda x, u: [x[0], -x[1]], 0, 0),                          # unstable, no centre
+])
+def test_centre_dimension_counts_the_imaginary_axis_eigenvalues_no_input_moves(f, nu, want):
+    s = _model(f, 2, nu)
+    assert centre_dimension(s) == want
+    lam = np.linalg.eigvals(s.A)
+    if not nu:      # an autonomous system: exactly the spectrum on the axis
+        assert want == int(np.sum(np.abs(lam.real) <= 1e-12))
+
+
+def test_defaults_of_a_centre_choose_a_quartic_v_and_the_centre_quadratic():
+    s = systems.load_spec(EXAMPLES / "centre_4d.toml")
+    d = systems.default_run_settings(s)
+    assert centre_dimension(s) == 2
+    assert d["inner"] == pytest.approx(CENTRE_INNER_FRACTION * 1.0)
+    assert d["train"]["activation"] == "square" and d["quadratic"] == ["centre"]
+    assert d["cegis"]["sim_tol"] == d["inner"]
+    cfg = make_config(s.name if s.name in systems.names() else _register(s), preset=None)
+    assert cfg.train.activation == "square" and cfg.outer == 1.0   # the file's [run] on top
+    # a system without a centre keeps the default method
+    e = systems.default_run_settings(systems.load_spec(EXAMPLES / "small_eps_2d.toml"))
+    assert "train" not in e and "quadratic" not in e and e["inner"] == pytest.approx(0.3)
+
+
+def _register(s):
+    systems.register(s.name, lambda: s)
+    return s.name
+
+
+def _vdot(system, P, pts):
+    return 2 * np.einsum("ij,jk,ik->i", pts, P, system.evaluate(pts))
+
+
+def _in_ellipse(P, level, n, rng, k=40000):
+    d = rng.standard_normal((k, n))
+    q = np.einsum("ij,jk,ik->i", d, P, d)
+    return d * np.sqrt(level / q)[:, None] * rng.uniform(1e-3, 1, (k, 1))
+
+
+def test_the_chosen_p_weights_and_eps_are_consistent():
+    """For the default ε of centre_4d, condition (c)'s blow-up certifies with the centre P,
+    weights 1 on the centre and 2 on the stable states, order 4; and the mathematics agrees:
+    V̇_q < 0 at sampled points of E, and V̇_q(r^w ⊙ u) / r⁴ tends to a negative limit."""
+    s = _centre_4d()
+    eps = systems.default_run_settings(systems.load_spec(EXAMPLES / "centre_4d.toml"))["inner"]
+    out = certify_inner_ellipse(s, None, eps)
+    assert out["status"] == "certified" and out["form"] == "blow-up w=[1, 1, 2, 2], m=4"
+    P = np.asarray(out["P"])
+    np.testing.assert_array_equal(P, centre_lyapunov_matrix(s.A))
+    # P: identity on the centre, A_hhᵀP_h + P_h A_hh = −I on the stable block
+    A_hh = s.A[2:, 2:]
+    np.testing.assert_allclose(A_hh.T @ P[2:, 2:] + P[2:, 2:] @ A_hh, -np.eye(2), atol=1e-12)
+    assert out["level"] >= np.linalg.eigvalsh(P)[-1] * eps**2          # B_ε ⊆ E
+    rng = np.random.default_rng(3)
+    assert np.all(_vdot(s, P, _in_ellipse(P, out["level"], 4, rng)) < 0)
+    u = rng.uniform(-1, 1, (2000, 4))
+    u[np.arange(2000), rng.integers(0, 4, 2000)] = rng.choice([-1.0, 1.0], 2000)
+    w = np.array([1, 1, 2, 2])
+    ratio = [_vdot(s, P, r**w * u) / r**4 for r in (1e-2, 1e-3)]
+    assert np.all(ratio[1] < 0)
+    np.testing.assert_allclose(ratio[0], ratio[1], rtol=0.05, atol=1e-3)   # the r⁴ term
+
+
+def _quadratic(sign: float):
+    s = _centre_4d(sign)
+    p = RoaProblem(s, quadratic_lyapunov(np.eye(4)), None, inner=0.2, outer=1.0)
+    cen, lyap = certify_quadratics(p, ["centre", "lyapunov"], box=np.array([[-1, 1]] * 4),
+                                   n=9, log=lambda m: None)
+    assert lyap.P is None                   # no Hurwitz linearisation: no Lyapunov P
+    return s, cen
+
+
+def test_centre_quadratic_certifies_the_example():
+    """V = xᵀPx with the centre P: certified on the ball r = 1 (10 s); (a) sampled on the
+    certified set."""
+    s, cen = _quadratic(-1.0)
+    assert cen.certified
+    c, P = cen.certificate.level, cen.P
+    x = np.random.default_rng(4).uniform(-1, 1, (200000, 4))
+    r = np.linalg.norm(x, axis=1)
+    x = x[(np.einsum("ij,jk,ik->i", x, P, x) <= c) & (r >= cen.certificate.inner)]
+    assert len(x) > 1000 and np.all(_vdot(s, P, x) < 0)
+
+
+def test_an_unstable_centre_has_no_inner_ellipse():
+    """x1' = +x1³: the origin is unstable (V̇_q > 0 along x1); condition (c) is refused."""
+    s = _centre_4d(1.0)
+    x = np.zeros((5, 4))
+    x[:, 0] = np.linspace(0.05, 0.2, 5)
+    assert np.all(_vdot(s, centre_lyapunov_matrix(s.A), x) > 0)
+    for eps in (0.05, 0.2):
+        assert certify_inner_ellipse(s, None, eps)["status"] != "certified"
+
+
+@pytest.mark.slow   # 60 s: every radius and level is refuted
+def test_centre_quadratic_does_not_certify_the_unstable_mutation():
+    _, cen = _quadratic(1.0)
+    assert cen.P is not None and not cen.certified
+
+
+@pytest.mark.slow   # about 4 minutes on the 2-core machine with other runs beside it
+def test_centre_example_certifies_with_default_settings(tmp_path):
+    out = tmp_path / "c4"
+    assert main(["run", str(EXAMPLES / "centre_4d.toml"), "--known-dynamics",
+                 "--out", str(out)]) == 0
+    cert = json.loads((out / "certificate.json").read_text())
+    assert cert["status"] == "certified"
+    assert cert["inner_ellipse"]["form"].startswith("blow-up w=[1, 1, 2, 2]")
+    assert cert["certified_area"] > 0 and cert["certified_points_converge_in_simulation"]
+
+
+@pytest.mark.slow   # about 9 minutes (φ is learned first)
+def test_small_eps_example_certifies_with_learned_dynamics(tmp_path):
+    out = tmp_path / "s2"
+    assert main(["run", str(EXAMPLES / "small_eps_2d.toml"), "--out", str(out)]) == 0
+    cert = json.loads((out / "certificate.json").read_text())
+    assert cert["status"] == "certified" and cert["setting"] == "learned"
+    assert cert["inner_radius"] == pytest.approx(0.01)
+    assert cert["certified_points_converge_in_simulation"]
+
+
+@pytest.mark.slow   # minutes: the whole default run
+def test_unstable_mutation_is_not_certified_with_default_settings(tmp_path):
+    """centre_4d.toml with x1' = +x1³: the run ends without a certificate (exit 2)."""
+    text = (EXAMPLES / "centre_4d.toml").read_text()
+    assert 'x1 = "-x1^3 + x2*y1"' in text
+    spec = tmp_path / "centre_4d_unstable.toml"
+    spec.write_text(text.replace('x1 = "-x1^3 + x2*y1"', 'x1 = "x1^3 + x2*y1"')
+                    .replace('name = "centre_4d"', 'name = "centre_4d_unstable"'))
+    out = tmp_path / "bad"
+    assert main(["run", str(spec), "--known-dynamics", "--out", str(out)]) == 2
+    cert = json.loads((out / "certificate.json").read_text())
+    assert cert["status"] != "certified"

@@ -56,6 +56,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from types import SimpleNamespace
 
 import casadi as ca
 import numpy as np
@@ -203,7 +204,16 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
     for name in names:
         t0 = time.perf_counter()
         fits = hurwitz != (name in _NOT_HURWITZ)
-        P = QUADRATIC_CANDIDATES[name](A_cl, problem.known) if fits else None
+        A = A_cl
+        if name in _NOT_HURWITZ and not problem.known and \
+                getattr(problem.system, "has_model", False):
+            # φ's linearisation only nearly has the centre: the model's closed loop picks
+            # the matrix (a candidate only, certified with φ and η like any other)
+            A = closed_loop_matrix(SimpleNamespace(system=problem.system,
+                                                   controller=problem.controller,
+                                                   dynamics=None))
+            fits = True
+        P = QUADRATIC_CANDIDATES[name](A, problem.known) if fits else None
         if P is None:
             why = "gave no solution" if fits else "Hurwitz" if hurwitz else "not Hurwitz"
             log(f"  quadratic {name}: no matrix (closed-loop linearisation {why})")

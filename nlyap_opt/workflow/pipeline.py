@@ -42,6 +42,7 @@ from pathlib import Path
 from types import MappingProxyType, SimpleNamespace
 from typing import Any
 
+import casadi as ca
 import numpy as np
 
 import systems as _systems
@@ -61,7 +62,14 @@ from ..certification.certificate import (
     sha256_file,
     write_json_atomic,
 )
-from ..certification.roa import TRUE_ROA_TIME, axis_count, grid_area, grid_points, true_roa_mask
+from ..certification.roa import (
+    TRUE_ROA_TIME,
+    axis_count,
+    centre_lyapunov_matrix,
+    grid_area,
+    grid_points,
+    true_roa_mask,
+)
 from ..design.control import lqr, quadratic_lyapunov, saturated_controller
 from ..design.polynomial import Polynomial
 from ..distributed.parallel import (
@@ -75,6 +83,7 @@ from ..kernel.errors import ConfigError, NlyapError
 from ..kernel.jsonio import load_with_timings, save_timings, split_timings
 from ..kernel.network import Network
 from ..kernel.provenance import fingerprint
+from ..kernel.symbolic import closed_loop
 from ..learned.dynamics_stage import GateStatus, dynamics_stage, eta_limit_linear
 from .configs import RunConfig, check_dynamics_box, domain_of, validate_config
 from .report import status_line, write_report
@@ -766,34 +775,80 @@ def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, a
         ``auto`` is off and ε is below the radius where the robust term beats the linear
         decrease.
     """
-    try:
-        A = closed_loop_matrix(SimpleNamespace(system=system, controller=controller,
-                                               dynamics=dynamics))
-        need = INNER_MARGIN_FACTOR * eps * eta / eta_limit_linear(A, eps)
-    except ConfigError:   # not Hurwitz: no linear estimate; the certificate stage says why
-        return eps
+    if _systems.spec.centre_dimension(system):
+        need = _centre_inner(system, controller, dynamics, eta, eps, D)
+        what = "the centre quadratic's decrease (sampled)"
+    else:
+        try:
+            A = closed_loop_matrix(SimpleNamespace(system=system, controller=controller,
+                                                   dynamics=dynamics))
+            need = INNER_MARGIN_FACTOR * eps * eta / eta_limit_linear(A, eps)
+        except ConfigError:   # not Hurwitz: no linear estimate; the certificate stage says why
+            return eps
+        what = "the linear decrease"
     if need <= eps:
         return eps
     room = 0.5 * D.inradius()
     if need >= room:
-        log(f"[inner] with η = {eta:.3g} the robust margin needs ε ≥ {need:.3g} (from the "
-            f"linearisation), more than half the domain's inradius {D.inradius():.3g}: lower "
+        log(f"[inner] with η = {eta:.3g} the robust margin needs ε ≥ {need:.3g} (from "
+            f"{what}), more than half the domain's inradius {D.inradius():.3g}: lower "
             "η (dynamics.grid_counts, dynamics.steps) or enlarge the domain")
         return eps
     if auto:
         log(f"[inner] ε = {need:.4g} chosen by the tool (configured {eps:g}): with η = "
-            f"{eta:.3g} the robust margin η‖∇V‖ beats the linear decrease inside "
+            f"{eta:.3g} the robust margin η‖∇V‖ beats {what} inside "
             f"‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}")
         return need
     if eps < need / INNER_MARGIN_FACTOR:
         raise ConfigError(
-            f"inner = {eps:g} cannot work with η = {eta:.3g}: the robust margin η‖∇V‖ beats the "
-            f"linear decrease inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; set inner to "
+            f"inner = {eps:g} cannot work with η = {eta:.3g}: the robust margin η‖∇V‖ beats "
+            f"{what} inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; set inner to "
             f"{need:.3g} or more, or auto_inner = true to let the tool choose")
-    log(f"[inner] warning: with η = {eta:.3g} the robust margin η‖∇V‖ beats the linear "
-        f"decrease inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; inner = {eps:g} is unlikely "
+    log(f"[inner] warning: with η = {eta:.3g} the robust margin η‖∇V‖ beats {what} "
+        f"inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; inner = {eps:g} is unlikely "
         f"to certify: set inner to {need:.3g} or more (or auto_inner = true)")
     return eps
+
+
+#: the radii :func:`_centre_inner` samples, from ε up to half the domain's inradius
+CENTRE_RADII = 40
+
+
+def _centre_inner(system, controller, dynamics, eta: float, eps: float, D) -> float:
+    r"""The inner radius learned dynamics afford for a system with a centre
+    (:func:`systems.spec.centre_dimension`): :data:`INNER_MARGIN_FACTOR` times the largest
+    sampled radius where the robust decrease of the centre quadratic
+    (:func:`nlyap_opt.certification.roa.centre_lyapunov_matrix` of the model's ``A``) fails.
+
+    Along a centre (``x' = -x³``) ``V̇_q`` is only :math:`\sim -\|x\|^4` against the robust
+    term :math:`\eta\|\nabla V_q\| \sim \eta\|x\|`: ε grows like :math:`\eta^{1/3}`, and the
+    linearisation of φ (nearly singular) gives no estimate. On :data:`CENTRE_RADII` spheres
+    :math:`\rho_k` (geometric, from ``eps`` to half the inradius; 2000 points each)
+    :math:`2x^\top P\varphi(x) + \eta\|2Px\| < 0` is checked; ``need`` is the factor times the
+    largest :math:`\rho_k` that fails (0 when none does, ``inf`` when the largest does).
+    A choice of radius only: every condition is verified at the radius used.
+    """
+    P = centre_lyapunov_matrix(np.asarray(system.A, dtype=float))
+    if P is None:
+        return eps
+    x = ca.SX.sym("x", system.nx)
+    rhs = closed_loop(system, controller, dynamics, x=x, strict=False).rhs
+    F = ca.Function("g", [x], [2 * ca.dot(x, ca.mtimes(ca.DM(P), rhs))])
+    rng = np.random.default_rng(0)
+    d = rng.standard_normal((2000, system.nx))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    radii = np.geomspace(eps, max(eps, 0.5 * D.inradius()), CENTRE_RADII)
+    good = []
+    for rho in radii:
+        pts = rho * d
+        v = np.array(F(pts.T), dtype=float).ravel()
+        good.append(bool(np.all(v + 2 * eta * np.linalg.norm(pts @ P, axis=1) < 0)))
+    k = len(good)
+    while k and good[k - 1]:
+        k -= 1
+    if k == len(good):
+        return np.inf
+    return 0.0 if k == 0 else INNER_MARGIN_FACTOR * float(radii[k - 1])
 
 
 def _eval_grid(system, cfg: RunConfig) -> tuple[np.ndarray, int]:

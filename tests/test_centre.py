@@ -187,3 +187,47 @@ def test_unstable_mutation_is_not_certified_with_default_settings(tmp_path):
     assert main(["run", str(spec), "--known-dynamics", "--out", str(out)]) == 2
     cert = json.loads((out / "certificate.json").read_text())
     assert cert["status"] != "certified"
+
+
+@pytest.mark.parametrize("name, f, n, eps, certified", [
+    # a centre that rotates: x1' = x2 - x1³, x2' = -x1 - x2³ (eigenvalues ±i)
+    ("rotation", lambda x, u: [x[1] - x[0] ** 3, -x[0] - x[1] ** 3], 2, 0.3, True),
+    ("rotation, unstable", lambda x, u: [x[1] + x[0] ** 3, -x[0] + x[1] ** 3], 2, 0.3, False),
+    # a centre that drives a stable state linearly: the centre subspace is (1, 1)
+    ("shear", lambda x, u: [-x[0] ** 3, -x[1] + x[0]], 2, 0.1, True),
+    ("shear, unstable", lambda x, u: [x[0] ** 3, -x[1] + x[0]], 2, 0.1, False),
+    ("rotation + shear", lambda x, u: [x[1] - x[0] ** 3, -x[0] - x[1] ** 3,
+                                       -x[2] + x[0] ** 2 + x[1]], 3, 0.2, True),
+])
+def test_centres_off_the_axes_are_proved_exactly_when_true(name, f, n, eps, certified):
+    """Rotating or sheared centres: the blow-up's order comes from exact rationals, the
+    sheared box is verified to cover E. A certified E has V̇_q < 0 at sampled points; an
+    unstable centre (V̇_q > 0 somewhere near 0) is never certified, and a saved claim is
+    checked again without a search."""
+    s = _model(f, n, box=3.0)
+    out = certify_inner_ellipse(s, None, eps)
+    assert (out["status"] == "certified") is certified, out["status"]
+    P = np.asarray(out["P"])
+    pts = _in_ellipse(P, max(out["level"], np.linalg.eigvalsh(P)[-1] * eps**2), n,
+                      np.random.default_rng(5))
+    vdot = _vdot(s, P, pts)
+    assert bool(np.all(vdot < 0)) is certified
+    if certified:
+        assert out["form"].startswith("blow-up") and out["form"].endswith("m=4")
+        again = certify_inner_ellipse(s, None, eps, P=P, form=out["form"])
+        assert again["status"] == "certified" and again["level"] == out["level"]
+
+
+def test_exact_polynomials_see_cancellations_that_floats_do_not():
+    """0.1·x − x/10 is not 0 in the graph (0.1 is not 1/10) and x/3 − x/3 is: the exact
+    expansion keeps the first (a tiny rational) and drops the second."""
+    from fractions import Fraction
+
+    from nlyap_opt.design.polynomial import exact_polynomials
+
+    x = ca.SX.sym("x", 1)
+    p, q = exact_polynomials(ca.Function("f", [x], [ca.vertcat(0.1 * x - x / 10,
+                                                              x / 3 - x / 3 + x**2)]))
+    assert list(p) == [(1,)] and p[(1,)] == Fraction(0.1) - Fraction(1, 10) != 0
+    assert q == {(2,): Fraction(1)}
+    assert exact_polynomials(ca.Function("g", [x], [ca.sin(x)])) is None

@@ -33,18 +33,22 @@ Every trajectory from :math:`\Omega_c` decreases ``V`` until it enters
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 import time
 from dataclasses import dataclass, field
 from enum import Enum
+from fractions import Fraction
 
 import casadi as ca
 import numpy as np
+from scipy.linalg import solve_sylvester
 
 from verification import VerificationProblem, lyapunov_problem
 
 from ..design.control import InnerStatus, ellipse_candidates, lyapunov_matrix, verdict_of
+from ..design.polynomial import exact_polynomials
 from ..distributed import parallel
 from ..kernel.domain import as_domain
 from ..kernel.rounding import EPS
@@ -670,32 +674,80 @@ BLOWUP_WEIGHTS = (2, 3, 4)
 BLOWUP_MAX_ORDER = 8
 
 
+def _centre_split(A_cl: np.ndarray):
+    """``(centre, hyp, T)`` for a linearisation with a centre, or ``None``.
+
+    The centre coordinates ``c`` are the largest set whose rows of ``A_cl`` vanish outside
+    their own columns, with ``A_cc`` skew-symmetric (0, or a rotation ``x1' = x2``,
+    ``x2' = -x1``: ``V = ‖x_c‖²`` is constant under it); the others' block ``A_hh`` must be
+    Hurwitz. A linear drive of the others by the centre (``y' = -y + x``) tilts the
+    centre subspace off the axes, to ``x_h = M x_c`` with ``A_hh M - M A_cc = -A_hc``; ``T``
+    is the shear ``x = T z``: the identity with ``T[h, c] = M`` (its inverse negates that
+    block, exactly in floating point), so that ``z_h = x_h - M x_c`` and the centre is the
+    ``z_c`` axes. ``T`` is the identity when nothing is driven.
+    """
+    n = A_cl.shape[0]
+    scale = max(1.0, float(np.max(np.abs(A_cl))))
+    A = np.where(np.abs(A_cl) <= 1e-12 * scale, 0.0, A_cl)
+    centre = [i for i in range(n) if A[i, i] == 0.0]
+    while True:
+        keep = [i for i in centre if not np.any(np.delete(A[i], centre))]
+        if keep == centre:
+            break
+        centre = keep
+    if not centre:
+        return None
+    A_cc = A[np.ix_(centre, centre)]
+    if np.any(A_cc + A_cc.T != 0.0):
+        return None
+    hyp = [i for i in range(n) if i not in centre]
+    T = np.eye(n)
+    if hyp:
+        A_hh = A[np.ix_(hyp, hyp)]
+        if np.max(np.linalg.eigvals(A_hh).real) >= 0:
+            return None
+        A_hc = A[np.ix_(hyp, centre)]
+        if np.any(A_hc):
+            M = solve_sylvester(A_hh, -A_cc, -A_hc)
+            if not np.all(np.isfinite(M)):
+                return None
+            T[np.ix_(hyp, centre)] = M
+    return centre, hyp, T
+
+
+def _shear_inverse(T: np.ndarray) -> np.ndarray:
+    """``T⁻¹`` of a shear of :func:`_centre_split` (exact: the off-diagonal block negated)."""
+    S = -T
+    np.fill_diagonal(S, 1.0)
+    return S
+
+
 def _blowup_candidates(A_cl: np.ndarray):
     """``(P, w)`` pairs for a linearisation with eigenvalues on the imaginary axis.
 
-    The centre coordinates are those whose row and column of ``A_cl`` vanish (the centre
-    subspace must be spanned by coordinate axes); the others' block ``A_hh`` must be
-    Hurwitz. ``P`` is the identity on the centre block and the Lyapunov matrix of ``A_hh``
-    (then the identity) on the rest; the centre coordinates get weight 1, the others
-    :data:`BLOWUP_WEIGHTS` (a centre decaying like ``x' = -x^{2k+1}`` balances a hyperbolic
-    ``y' = -y`` under the weights ``(1, k + 1)``).
+    In the coordinates ``z = T⁻¹x`` of :func:`_centre_split` (``z_c = x_c`` the centre,
+    ``z_h = x_h - M x_c`` the rest), ``P_z`` is the identity on the centre block and the
+    Lyapunov matrix of ``A_hh`` (then the identity) on the rest, and ``P = T⁻ᵀ P_z T⁻¹``
+    (``P_z`` itself when ``T`` is the identity); the centre coordinates get weight 1, the
+    others :data:`BLOWUP_WEIGHTS` (a centre decaying like ``x' = -x^{2k+1}`` balances a
+    hyperbolic ``y' = -y`` under the weights ``(1, k + 1)``). A candidate is only tried:
+    :func:`certify_inner_blowup` proves it or not.
     """
 
     n = A_cl.shape[0]
-    scale = max(1.0, float(np.max(np.abs(A_cl))))
-    zero = np.abs(A_cl) <= 1e-12 * scale
-    centre = [i for i in range(n) if zero[i, :].all() and zero[:, i].all()]
-    if not centre:
+    split = _centre_split(A_cl)
+    if split is None:
         return []
-    hyp = [i for i in range(n) if i not in centre]
+    centre, hyp, T = split
     Ps = [np.eye(n)]
     if hyp:
-        A_hh = A_cl[np.ix_(hyp, hyp)]
-        if np.max(np.linalg.eigvals(A_hh).real) >= 0:
-            return []
         P = np.eye(n)
-        P[np.ix_(hyp, hyp)] = lyapunov_matrix(A_hh)
+        P[np.ix_(hyp, hyp)] = lyapunov_matrix(A_cl[np.ix_(hyp, hyp)])
         Ps.insert(0, P)
+    if np.any(T != np.eye(n)):
+        S = _shear_inverse(T)
+        Ps = [S.T @ Pz @ S for Pz in Ps]
+        Ps = [0.5 * (P + P.T) for P in Ps]
     weights = [(1,) * n] if not hyp else [
         tuple(1 if i in centre else k for i in range(n)) for k in BLOWUP_WEIGHTS]
     return [(P, w) for P in Ps for w in weights]
@@ -726,15 +778,51 @@ def centre_lyapunov_matrix(A_cl) -> np.ndarray | None:
     return found[0][0] if found else None
 
 
-def _leading_term(h_sub, r, max_order: int):
-    """``(m, D_m)``: the least ``m`` whose ``∂ᵐh/∂rᵐ`` at ``r = 0`` is not structurally zero,
-    and that derivative as a function of ``r`` (``None`` past ``max_order``)."""
+def _leading_term(h_sub, r, max_order: int, order: int | None = None):
+    """``(m, D_m)``: the least ``m`` whose ``∂ᵐh/∂rᵐ`` at ``r = 0`` is not structurally zero
+    (or ``order``, when the exact expansion gave it), and that derivative as a function of
+    ``r`` (``None`` past ``max_order``)."""
     D = h_sub
     for m in range(max_order + 1):
-        if not ca.substitute(D, r, ca.SX(0)).is_zero():
+        if (m == order) if order is not None else \
+                not ca.substitute(D, r, ca.SX(0)).is_zero():
             return m, D
         D = ca.jacobian(D, r)
     return None, None
+
+
+def _exact_order(F, P, T, w) -> int | None:
+    """The least power of ``r`` in ``h(r, u) = 2xᵀP f(x)``, ``x = T(r^w ⊙ u)``, computed in
+    exact rational arithmetic (``None``: ``f`` is not an exact polynomial, or ``h ≡ 0``).
+
+    Its coefficients below that power vanish identically in ``u``, exactly: the condition
+    of Taylor's remainder in :func:`certify_inner_blowup` where cancellations (a shear, a
+    rotation in the centre) are numeric and no symbolic zero shows them."""
+    n = len(w)
+    q = [[Fraction(float(v)) for v in row] for row in np.asarray(T)]
+    xs = []
+    for j in range(n):
+        p = {}
+        for k in range(n):
+            if q[j][k] != 0:
+                e = [0] * (n + 1)
+                e[0], e[k + 1] = int(w[k]), 1
+                p[tuple(e)] = q[j][k]
+        xs.append(p)
+    fx = exact_polynomials(F, xs, n + 1)
+    if fx is None:
+        return None
+    h: dict = {}
+    Pq = [[Fraction(float(v)) for v in row] for row in np.asarray(P)]
+    for i in range(n):
+        for j in range(n):
+            if Pq[i][j] == 0:
+                continue
+            for (e1, c1), (e2, c2) in itertools.product(xs[i].items(), fx[j].items()):
+                e = tuple(a + b for a, b in zip(e1, e2))
+                h[e] = h.get(e, Fraction(0)) + 2 * Pq[i][j] * c1 * c2
+    orders = [e[0] for e, c in h.items() if c != 0]
+    return min(orders) if orders else None
 
 
 def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None = None,
@@ -757,8 +845,18 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
     operation of the walker's op table; constant arguments excepted), so that ``h`` is
     :math:`C^m` along every segment.
 
-    Returns ``None`` when no candidate applies (unstable or non-smooth closed loop, centre
-    directions off the axes), else the dict of :func:`certify_inner_ellipse` with
+    Where the centre rotates (``A_cc ≠ 0``) or drives the other states linearly
+    (``y' = -y + x``: the centre subspace leaves the axes), the lower orders of ``h``
+    cancel only numerically: ``m`` is then the least power of ``r`` in ``h`` expanded in
+    exact rational arithmetic (:func:`_exact_order`; a polynomial closed loop only), and
+    the blow-up is taken in the sheared coordinates ``z = T⁻¹x`` of :func:`_centre_split`,
+    ``h(r, u) = ∇V_q·f(T(r^w ⊙ u))``, after the interval verifier has proved
+    :math:`|(T^{-1}x)_i| < R^{w_i}` on ``E`` (every ``x ∈ E∖{0}`` is such a point). The
+    claim stays about :math:`V_q = x^\top P x`; ``T`` is recomputed from the linearisation
+    on a re-check (any ``T`` proves the same claim).
+
+    Returns ``None`` when no candidate applies (unstable or non-smooth closed loop, no
+    centre of :func:`_centre_split`), else the dict of :func:`certify_inner_ellipse` with
     ``form = "blow-up w=…, m=…"``: the first ``(P, w)`` of :func:`_blowup_candidates`
     whose leading term is negative on sampled face points and then verifies, or the last
     verified failure. ``candidates``: these ``(P, w)`` pairs instead (a saved claim).
@@ -777,16 +875,31 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
     r = ca.SX.sym("r")
     u = ca.SX.sym("u", n)
     rng = np.random.default_rng(0)
+    split = _centre_split(A_cl)
+    T = np.eye(n) if split is None else split[2]
+    sheared = bool(np.any(T != np.eye(n)))
+    rotating = split is not None and bool(np.any(A_cl[np.ix_(split[0], split[0])]))
+    S = _shear_inverse(T)
+    Fx = ca.Function("f", [x], [rhs])
     first = None
     for P, w in (_blowup_candidates(A_cl) if candidates is None else candidates):
         h = 2 * ca.dot(x, ca.mtimes(ca.DM(P), rhs))
-        h_sub = ca.substitute(h, x, ca.vertcat(*[r**wi * u[i] for i, wi in enumerate(w)]))
-        m, D = _leading_term(h_sub, r, BLOWUP_MAX_ORDER)
+        zw = ca.vertcat(*[r**wi * u[i] for i, wi in enumerate(w)])
+        h_sub = ca.substitute(h, x, ca.mtimes(ca.DM(T), zw) if sheared else zw)
+        order = None
+        if sheared or rotating:     # numeric cancellations: the order from exact rationals
+            order = _exact_order(Fx, P, T, w)
+            if order is None:
+                continue
+        m, D = _leading_term(h_sub, r, BLOWUP_MAX_ORDER, order)
         if m is None:
             continue
         form = InnerForm(InnerFormKind.BLOWUP, weights=tuple(w), order=m).to_str()
         c_q, a = ellipse_around_ball(P, inner)
-        R = float(np.max(a ** (1.0 / np.asarray(w, dtype=float)))) * (1 + 1e-9)
+        bz = a
+        if sheared:     # half-widths of E in z = T⁻¹x (the cover is verified below)
+            bz = np.sqrt(c_q * np.diag(S @ np.linalg.inv(P) @ S.T)) * (1 + 1e-6)
+        R = float(np.max(bz ** (1.0 / np.asarray(w, dtype=float)))) * (1 + 1e-9)
         # the leading term at r = 0 must be negative on the faces: a cheap sampled screen
         U = rng.uniform(-1, 1, size=(4000, n))
         U[np.arange(len(U)), rng.integers(0, n, len(U))] = rng.choice([-1.0, 1.0], len(U))
@@ -799,6 +912,20 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
                               "box": a, "result": None, "form": form}
             continue
         res = None
+        if sheared:
+            # every x ∈ E is T(r^w ⊙ u) with r ≤ R: |(T⁻¹x)_i| < R^{w_i} on E (verified)
+            zx = ca.mtimes(ca.DM(S), x)
+            res = parallel.check(VerificationProblem(
+                x, np.stack([-a, a], axis=1), [ca.bilin(ca.DM(P), x, x) - c_q],
+                [zx[i] ** 2 - R ** (2 * wi) for i, wi in enumerate(w)], ["ellipse"],
+                [f"|z{i + 1}| < R^{wi} on E" for i, wi in enumerate(w)]),
+                **(verify_options or {}))
+            if res.status != "verified":   # R too small: no counterexample of V̇_q < 0
+                first = first or {"status": f"inner ellipse not proved ({form}: the blow-up's "
+                                            f"box does not cover E: {res.status})",
+                                  "verdict": InnerStatus.NOT_PROVED, "P": P, "level": c_q,
+                                  "box": a, "result": res, "form": form}
+                continue
         for i in range(n):
             for sign in (-1.0, 1.0):
                 free = [j for j in range(n) if j != i]

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from fractions import Fraction
 
 import casadi as ca
 import numpy as np
@@ -33,9 +34,9 @@ from ..kernel.symbolic import closed_loop
 from ..kernel.walker import NUMPY, evaluate, op_name
 
 __all__ = [
-    "CONDITIONAL_OPS", "NotPolynomialError", "POLYNOMIAL_OPS", "Polynomial",
-    "PolynomialArithmetic", "expand_polynomials", "monomial_matrix", "monomials",
-    "polynomial_closed_loop",
+    "CONDITIONAL_OPS", "ExactPolynomialArithmetic", "NotPolynomialError", "POLYNOMIAL_OPS",
+    "Polynomial", "PolynomialArithmetic", "exact_polynomials", "expand_polynomials",
+    "monomial_matrix", "monomials", "polynomial_closed_loop",
 ]
 
 #: CasADi operations that map polynomials to polynomials for any arguments.
@@ -477,3 +478,109 @@ def polynomial_closed_loop(system, controller=None) -> list[Polynomial]:
     """
     cl = closed_loop(system, controller, strict=True)
     return expand_polynomials(ca.Function("cl", [cl.x], [cl.rhs]).expand())
+
+
+# --------------------------------------------------------------------------- exact rationals
+def _qadd(p: dict, q: dict, sign: int = 1) -> dict:
+    out = dict(p)
+    for e, c in q.items():
+        out[e] = out.get(e, Fraction(0)) + sign * c
+    return {e: c for e, c in out.items() if c != 0}
+
+
+def _qmul(p: dict, q: dict) -> dict:
+    out: dict = {}
+    for (e1, c1), (e2, c2) in itertools.product(p.items(), q.items()):
+        e = _add_exponents(e1, e2)
+        out[e] = out.get(e, Fraction(0)) + c1 * c2
+    return {e: c for e, c in out.items() if c != 0}
+
+
+class ExactPolynomialArithmetic(PolynomialArithmetic):
+    """:class:`PolynomialArithmetic` in exact rational arithmetic (``fractions.Fraction``
+    coefficients): every float constant of the graph is the rational it denotes, and
+    every operation, constant ones included, is exact (``add``, ``sub``, ``mul``, ``neg``,
+    ``sq``, ``twice``, ``assign``, ``div`` by a nonzero constant, integer ``pow``).
+    Anything else -- a ``sin`` even of a constant -- is refused (``collect``: the value
+    ``None``), so that a coefficient found zero is zero, not rounded to it.
+
+    Examples
+    --------
+    >>> ar = ExactPolynomialArithmetic(1)
+    >>> (x,) = ar.variables()
+    >>> third = ar.binary(ca.OP_DIV, ar.constant(1.0), ar.constant(3.0))
+    >>> ar.binary(ca.OP_SUB, ar.binary(ca.OP_MUL, x, third), ar.binary(ca.OP_MUL, third, x))
+    {}
+    """
+
+    name = "exact polynomial"
+
+    def variables(self) -> np.ndarray:
+        xs = np.empty(self.nx, dtype=object)
+        for i in range(self.nx):
+            xs[i] = {_unit(self.nx, i): Fraction(1)}
+        return xs
+
+    def constant(self, value) -> dict:
+        c = Fraction(float(value))
+        return {self.zero: c} if c != 0 else {}
+
+    def unary(self, op: int, a):
+        if a is None:
+            return None if op in POLYNOMIAL_OPS else self._refuse(op, "a non-polynomial")
+        if op == ca.OP_NEG:
+            return {e: -c for e, c in a.items()}
+        if op == ca.OP_SQ:
+            return _qmul(a, a)
+        if op == ca.OP_TWICE:
+            return {e: 2 * c for e, c in a.items()}
+        if op == ca.OP_ASSIGN:
+            return a
+        return self._refuse(op, "an exact polynomial")
+
+    def binary(self, op: int, a, b):
+        ka = None if a is None else _constant_of(a)
+        kb = None if b is None else _constant_of(b)
+        if op == ca.OP_IF_ELSE_ZERO and ka is not None:
+            return b if ka != 0 else {}
+        allowed = (op in POLYNOMIAL_OPS
+                   or (op == ca.OP_DIV and kb is not None and kb != 0)
+                   or (op in (ca.OP_POW, ca.OP_CONSTPOW) and kb is not None
+                       and kb.denominator == 1 and 0 <= kb <= _MAX_POWER))
+        if a is None or b is None or not allowed:
+            return None if allowed else self._refuse(op, "an exact polynomial")
+        if op == ca.OP_ADD:
+            return _qadd(a, b)
+        if op == ca.OP_SUB:
+            return _qadd(a, b, -1)
+        if op == ca.OP_MUL:
+            return _qmul(a, b)
+        if op == ca.OP_DIV:
+            return {e: v / kb for e, v in a.items()}
+        p = {self.zero: Fraction(1)}
+        for _ in range(int(kb)):
+            p = _qmul(p, a)
+        return p
+
+
+def exact_polynomials(fun: ca.Function, args=None, nvars: int | None = None
+                      ) -> list[dict] | None:
+    """The outputs of an SX Function as exact polynomials (``{exponent: Fraction}``), or
+    ``None`` when an operation is not exact-polynomial (:class:`ExactPolynomialArithmetic`).
+
+    ``args``: the input as exact polynomials in ``nvars`` other variables (a sequence of
+    dicts), substituted for it; default: the input's own variables.
+
+    Examples
+    --------
+    >>> x = ca.SX.sym("x", 2)
+    >>> exact_polynomials(ca.Function("f", [x], [x[0] * x[1] / 4 - x[1] * x[0] / 4]))
+    [{}]
+    """
+    ar = ExactPolynomialArithmetic(fun.nnz_in(0) if args is None else int(nvars))
+    xs = ar.variables() if args is None else np.array(list(args) + [None], dtype=object)[:-1]
+    ar.collect = True
+    outs = evaluate(fun, [xs], ar)[0]
+    if any(p is None for p in outs):
+        return None
+    return [dict(p) for p in outs]

@@ -510,7 +510,9 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     if P is not None:
         candidates = [P]
     else:
-        if np.max(np.linalg.eigvals(A_cl).real) >= 0:
+        # a centre of _centre_split is on the imaginary axis exactly, whatever the rounding
+        # of the eigenvalues says
+        if np.max(np.linalg.eigvals(A_cl).real) >= 0 or _centre_split(A_cl) is not None:
             out = certify_inner_blowup(cl, A_cl, inner, verify_options=verify_options)
             if out is not None:
                 return out

@@ -415,8 +415,9 @@ _TOP_DOCS = {
     "eval_points": "total point budget of that grid (per axis: the largest n with n^nx <= it)",
     "dynamics": "learned-dynamics stage (nlyap_opt.learned.dynamics_config.DynamicsConfig)",
     "quadratic": "quadratic V = xᵀPx certified before the neural stage, under the initial "
-                 "controller ('lyapunov': A_clᵀP + PA_cl = -I, 'round': min cond P); the "
-                 "larger certified volume wins ([]: off; nlyap_opt.candidates.quadratic)",
+                 "controller ('lyapunov': A_clᵀP + PA_cl = -I, 'round': min cond P, "
+                 "'volume', 'centre': a linearisation with a centre); the larger certified "
+                 "volume wins ([]: off; nlyap_opt.candidates.quadratic)",
     "sos": "an SOS V certified before the neural stage where f is known and the closed loop "
            "polynomial (nlyap_opt.candidates.sos.SOSConfig: degree, 0 off; iterations); the "
            "largest "
@@ -425,9 +426,11 @@ _TOP_DOCS = {
     "preset": "informational; must name the preset the file is merged over",
     "comment": "free text",
     "auto_inner": "learned f: raise inner to the smallest ε whose robust margin η‖∇V‖ the "
-                  "linearisation affords, 4ηλ_max(P) with A_clᵀP + PA_cl = −I, when the "
-                  "configured one is smaller (the default method sets it; false: keep inner "
-                  "and say which ε would work)",
+                  "linearisation affords, 4ηλ_max(P) with A_clᵀP + PA_cl = −I (with a "
+                  "centre: from the centre quadratic's sampled decrease), when the "
+                  "configured one is smaller (the default method sets it; false: keep inner, "
+                  "and stop with exit code 3 naming the ε that would work where inner "
+                  "cannot)",
 }
 
 

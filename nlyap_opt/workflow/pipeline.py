@@ -712,6 +712,11 @@ def _certificate_stage(ctx: _Context, cfg: RunConfig, cg: _CegisRecord,
     if ctx.bounds is not None:
         extra["dynamics_bound"] = {k: ctx.bounds.get(k) for k in
                                    ("eta", "alpha", "delta", "K_f", "K_phi", "bound_model")}
+    configured = float(cfg.view(_REGION).inner)
+    if ctx.eps != configured:      # raised by auto_inner from η: the certificate says so
+        cert.assumptions.append(
+            f"inner radius ε = {ctx.eps:.6g} chosen by the tool (configured {configured:g}): "
+            f"with η = {ctx.eta:.3g} the robust margin η‖∇V‖ needs it")
     path = save_certificate(cert, problem, out, extra, files=files)
     summary = json.loads(path.read_text())
     write_report(out, system, cfg, summary, ctx.bounds, cg.to_json())

@@ -9,6 +9,8 @@ default settings.
 """
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import casadi as ca
@@ -231,3 +233,23 @@ def test_exact_polynomials_see_cancellations_that_floats_do_not():
     assert list(p) == [(1,)] and p[(1,)] == Fraction(0.1) - Fraction(1, 10) != 0
     assert q == {(2,): Fraction(1)}
     assert exact_polynomials(ca.Function("g", [x], [ca.sin(x)])) is None
+
+
+def test_an_input_that_cannot_reach_the_centre_is_one_line_naming_the_fix(tmp_path):
+    """centre_4d.toml with an input on y1 only: no LQR start; exit 3, one line."""
+    text = (EXAMPLES / "centre_4d.toml").read_text()
+    spec = tmp_path / "centre_input.toml"
+    spec.write_text(text.replace('states = ["x1", "x2", "y1", "y2"]',
+                                 'states = ["x1", "x2", "y1", "y2"]\ninputs = ["u"]\n'
+                                 'input_box = [[-2.0, 2.0]]')
+                    .replace('y1 = "-y1 + y2 + x1^2/2"', 'y1 = "-y1 + y2 + x1^2/2 + u"')
+                    .replace('name = "centre_4d"', 'name = "centre_4d_input"'))
+    s = systems.load_spec(spec)
+    assert s.nu == 1 and centre_dimension(s) == 2
+    res = subprocess.run([sys.executable, "-m", "nlyap_opt.interface.cli", "run", str(spec),
+                          "--known-dynamics", "--out", str(tmp_path / "o")],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 3
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "2 eigenvalue(s) on the imaginary axis" in lines[0]
+    assert "drop the inputs" in lines[0] and "Traceback" not in res.stderr

@@ -1000,6 +1000,14 @@ def _check_controller(rc: RunConfig, s, where: str) -> None:
                 warnings.simplefilter("ignore", RuntimeWarning)
                 lqr(s, Q, R)
         except ValueError as err:  # NotStabilizableError, LinAlgError of the Riccati solver
+            k = systems.spec.centre_dimension(s)
+            if k:
+                raise ConfigError(
+                    f"{where}: {s.name} has {k} eigenvalue(s) on the imaginary axis that no "
+                    "input moves (a centre): the LQR start of a run with inputs cannot "
+                    "stabilise it; drop the inputs if the other states are stable without "
+                    "them (an autonomous system with a centre is supported), or let an input "
+                    "reach the centre") from None
             raise ConfigError(f"{where}: no LQR start for {s.name} with these lqr weights "
                               f"({' '.join(str(err).split())}); use moderate weights") from None
 

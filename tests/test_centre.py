@@ -253,3 +253,33 @@ def test_an_input_that_cannot_reach_the_centre_is_one_line_naming_the_fix(tmp_pa
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "2 eigenvalue(s) on the imaginary axis" in lines[0]
     assert "drop the inputs" in lines[0] and "Traceback" not in res.stderr
+
+
+def test_learned_f_eps_along_a_centre_grows_like_the_cube_root_of_eta():
+    """The ε that η affords along the centre (the true f stands in for φ here): raised
+    only when η needs it, by about η^{1/3} (V̇_q ~ −‖x‖⁴ against η‖∇V_q‖ ~ η‖x‖); a fixed
+    ε below it is one line naming the ε that would work."""
+    from nlyap_opt.kernel.domain import Ball
+    from nlyap_opt.kernel.errors import ConfigError
+    from nlyap_opt.workflow.pipeline import _inner_for_margin
+
+    s, D, said = _centre_4d(), Ball(1.0, 4), []
+    assert _inner_for_margin(s, None, None, 1e-4, 1 / 6, D, True, said.append) == 1 / 6
+    e1 = _inner_for_margin(s, None, None, 1e-3, 0.05, D, True, said.append)
+    e8 = _inner_for_margin(s, None, None, 8e-3, 0.05, D, True, said.append)
+    assert "chosen by the tool" in said[-1]
+    assert 0.05 < e1 < e8 < 0.5
+    assert 1.5 < e8 / e1 < 2.5          # (8)^{1/3} = 2, up to the radii's grid
+    # the robust decrease fails (sampled) just inside e8 / 2 and holds beyond e8 / 2
+    P = centre_lyapunov_matrix(s.A)
+    d = np.random.default_rng(6).standard_normal((4000, 4))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+
+    def worst(rho):
+        x = rho * d
+        return np.max(_vdot(s, P, x) + 8e-3 * np.linalg.norm(2 * x @ P, axis=1))
+
+    assert worst(0.9 * e8 / 2) >= 0 > worst(1.2 * e8 / 2)
+    with pytest.raises(ConfigError, match="inner = 0.05 cannot work") as exc:
+        _inner_for_margin(s, None, None, 8e-3, 0.05, D, False, said.append)
+    assert f"set inner to {e8:.3g} or more" in str(exc.value)

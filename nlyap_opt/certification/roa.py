@@ -507,26 +507,30 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
                              "closed loop)", "verdict": InnerStatus.NOT_PROVED, "P": P,
                    "level": c_q, "box": a, "result": None, "form": form}
         return out
+    blowup = None
     if P is not None:
         candidates = [P]
     else:
         # a centre of _centre_split is on the imaginary axis exactly, whatever the rounding
         # of the eigenvalues says
-        if np.max(np.linalg.eigvals(A_cl).real) >= 0 or _centre_split(A_cl) is not None:
-            out = certify_inner_blowup(cl, A_cl, inner, verify_options=verify_options)
-            if out is not None:
-                return out
-            return {"status": "closed-loop linearisation not Hurwitz",
-                    "verdict": InnerStatus.NOT_HURWITZ, "P": np.eye(system.nx),
-                    "level": 0.0, "box": np.zeros(system.nx), "result": None}
-        candidates = ellipse_candidates(A_cl)
+        hurwitz = np.max(np.linalg.eigvals(A_cl).real) < 0
+        if not hurwitz or _centre_split(A_cl) is not None:
+            blowup = certify_inner_blowup(cl, A_cl, inner, verify_options=verify_options)
+            if blowup is not None and (not hurwitz or
+                                       blowup["verdict"] is InnerStatus.CERTIFIED):
+                return blowup
+            if not hurwitz:
+                return {"status": "closed-loop linearisation not Hurwitz",
+                        "verdict": InnerStatus.NOT_HURWITZ, "P": np.eye(system.nx),
+                        "level": 0.0, "box": np.zeros(system.nx), "result": None}
+        candidates = ellipse_candidates(A_cl)   # Hurwitz as rounded: the Jacobian forms too
     first = None
     for Pc in candidates:
         out = _inner_ellipse(cl, J, Pc, inner, verify_options, only=spec)
         if out["verdict"] is InnerStatus.CERTIFIED:
             return out
         first = first or out
-    return first
+    return first if first is not None else blowup
 
 
 def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = None, *,

@@ -52,6 +52,7 @@ from nlyap_opt.distributed.parallel import (
     _starts_from_boxes,
     dask_client,
     model_speedups,
+    pass_boxes,
     verify_distributed,
 )
 from nlyap_opt.kernel.network import Network
@@ -152,11 +153,14 @@ def certificate_rows(workers, repeat, model=()):
         if model:
             cpu_total = {}
 
-            def run(sim, cpu_total=cpu_total):
+            per_check: dict = {}
+
+            def run(sim, cpu_total=cpu_total, per_check=per_check):
                 t = time.process_time()
                 with verifying_on(sim):
                     once()
                 cpu_total[sim.workers] = time.process_time() - t
+                per_check[(sim.cost, sim.workers)] = list(sim.calls)
 
             for cost in ("boxes", "cpu"):
                 m = model_speedups(run, model, cost=cost)
@@ -179,6 +183,16 @@ def certificate_rows(workers, repeat, model=()):
         print(f"| {w} | measured | {t:.2f} | {f'{up:.2f}' if up else '–'} | {eff} | "
               f"{c.status.value} |")
     _print_model(modelled)
+    if modelled:
+        top = max(modelled["cpu"])
+        one, many = per_check[("cpu", 1)], per_check[("cpu", top)]
+        print(f"MODELLED per check, in the order run (CPU s): on 1 worker | on {top} workers "
+              "(tasks)")
+        print("| check | 1 worker | " f"{top} workers | tasks | speed-up |")
+        print("|---|---|---|---|---|")
+        for i, (a, b) in enumerate(zip(one, many)):
+            print(f"| {i + 1} | {a['makespan']:.2f} | {b['makespan']:.2f} | {b['tasks']} | "
+                  f"{a['makespan'] / max(b['makespan'], 1e-12):.2f} |")
     print()
 
 
@@ -205,7 +219,8 @@ def _best(fn, repeat):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--workers", type=int, nargs="*", default=[1, 2],
+                    help="worker counts to measure on a LocalCluster (none: model only)")
     ap.add_argument("--n-tasks", type=int, default=8, help="sub-boxes of the executor hook")
     ap.add_argument("--cartpole-r", type=float, default=0.5,
                     help="ball radius of query (C)")
@@ -266,6 +281,7 @@ def main(argv=None):
         for label, prob, opt in queries:
             mb, mc = (model_speedups(lambda c, prob=prob, opt=opt: verify_distributed(
                 prob, c, **opt), args.model, cost=cost) for cost in ("boxes", "cpu"))
+            print(f"| {label} (pass_boxes {pass_boxes(prob)}) | | | | | | |")
             for w in sorted(mb):
                 print(f"| {label} | {w} | {mb[w]['tasks']} | {mb[w]['speedup']:.2f} | "
                       f"{mb[w]['efficiency']:.2f} | {mc[w]['speedup']:.2f} | "

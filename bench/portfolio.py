@@ -29,7 +29,6 @@ from pathlib import Path
 from nlyap_opt.workflow.configs import get_config
 from nlyap_opt.workflow.portfolio import run_portfolio
 
-
 _FRESH = """
 import resource, sys, tempfile, time
 from nlyap_opt.workflow.configs import get_config

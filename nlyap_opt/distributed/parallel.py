@@ -489,8 +489,9 @@ def task_defaults(workers: int, batch: int = 8192, pass_size: int | None = None)
         The verifier's boxes per walker pass (the grain everything is measured in).
     pass_size : int, optional
         The problem's :func:`pass_boxes` (boxes at which a pass costs as much per box as
-        fixed). On more than two workers no task starts from fewer (up to ``batch``), and
-        a task's budget is at least four times its least start: a task whose passes are
+        fixed). On more than two workers no task starts from fewer (up to ``batch``; a
+        quarter during the ramp-up, see :func:`verify_distributed`), and a task's
+        budget is at least four times its least start: a task whose passes are
         thinner than that spends most of its time on the passes' fixed cost (on the
         cartpole certificate's decrease check, tasks started from a median of 458 boxes
         cost 3.2 times the serial CPU seconds in all).
@@ -895,7 +896,9 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         Least number of open boxes a new task starts from. A task whose queue thins below
         half of it hands the queue back; while every worker is busy, open sets smaller than
         this wait to be merged with the next ones (a walker pass costs a fixed time per
-        instruction of the graphs: thin passes are mostly that).
+        instruction of the graphs: thin passes are mostly that). On more than two workers,
+        until every worker has been busy once (the ramp-up), a quarter of it: workers
+        that would otherwise wait pay the thinner passes, and the open set widens sooner.
     stats : dict, optional
         Filled with ``tasks`` (count), ``root_cpu`` (CPU seconds of step 1),
         ``cpu_by_worker`` (CPU seconds of the other tasks per worker process: the load
@@ -965,7 +968,7 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     root_boxes = grains["root_boxes"]
 
     found, unknown, leaves = [], [], []
-    state = {"boxes": 0, "depth": 0, "running": 0}
+    state = {"boxes": 0, "depth": 0, "running": 0, "ramped": False}
     tally = {"tasks": 0, "root_cpu": None, "cpu_by_worker": {}, "starts": [],
              "task_boxes": [], "grains": dict(grains)}
 
@@ -1005,7 +1008,14 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         parts = max(1, parts, -(-k // max(1, grain // 4)))
         parts = min(parts, k)
         if batched:  # no task starts from fewer than min_task boxes (but one from all)
-            parts = max(1, min(parts, k // min_task))
+            least = min_task
+            if n_workers > 2 and not state["ramped"] and \
+                    state["running"] + k // min_task < n_workers:
+                # ramp-up on many workers (until every one has been busy once): workers
+                # would idle even so; thinner starts (a quarter) widen the open set sooner,
+                # their extra fixed costs paid by workers that would wait
+                least = max(1, min_task // 4)
+            parts = max(1, min(parts, k // least))
         share = max(1, left // parts)  # of the global budget, per new task
         budget = min(grain, share) if batched else share
         if batched and state["running"] + parts < n_workers:
@@ -1020,6 +1030,7 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
             key = runner.submit(_box_task, chunk, budget, options, batched, tail)
             offsets[key] = _depth(chunk, root_w)
             state["running"] += 1
+        state["ramped"] = state["ramped"] or state["running"] >= n_workers
 
     pool: list = []  # open boxes held back until there are enough to start a task
 

@@ -278,3 +278,20 @@ def test_portfolio_runs_its_seeds_on_a_given_client(tmp_path, monkeypatch, cpu_c
     with pytest.raises(ConfigError, match="not both"):
         pf.run_portfolio("van_der_pol", cfg, tmp_path / "q", seeds=2, client=sim, workers=2,
                          known_dynamics=True, log=lambda m: None)
+
+
+@pytest.mark.parametrize("workers", [4, 16])
+def test_default_grains_of_many_workers_decide_as_serially(workers):
+    """With the counted pass size and the ramp-up (more than two workers, no grain given),
+    every box is still decided once by the serial rules: the serial verdict and boxes."""
+    problem = closed_loop_problem(systems.get("van_der_pol"), quadratic_lyapunov(P_VDP),
+                                  inner=0.05, outer=1.1)
+    serial = verify(problem, presearch=0)
+    st: dict = {}
+    res = verify_distributed(problem, SimulatedCluster(workers), presearch=0, batch=32,
+                             stats=st)
+    assert res.status == serial.status == "verified" and res.boxes == serial.boxes
+    assert st["tasks"] >= 4
+    # the pass size (2048 for this scalar graph) coarsens the least start up to the grain
+    assert pass_boxes(problem) >= 1024
+    assert st["grains"]["min_task_boxes"] == 32 > task_defaults(workers, 32)["min_task_boxes"]

@@ -29,9 +29,12 @@ worker counts this machine has. *Modelled* rows (``--model 4 8 16``) come from
 ``verify_distributed`` builds for W workers, run task by task in this process and list-scheduled on
 W virtual workers; the cost of a task is the boxes it processed (deterministic) or its CPU seconds
 here (which include each walker pass's fixed cost). For (D) the CPU model adds the recheck's
-CPU seconds outside the tasks (loading, building the checks) to every worker count. The
-model leaves out the scheduler's latency per task (a few ms) and runs the checks of (D) one
-after another (a cluster runs condition (c) beside (a) and (b)).
+CPU seconds outside the tasks (loading, building the checks) to every worker count and
+prints, per check, its modelled seconds on one and on the most workers. The model leaves
+out the scheduler's latency per task (a few ms) and runs the checks of (D) one after another
+(a cluster runs condition (c) beside (a) and (b)). Each query's
+:func:`nlyap_opt.distributed.parallel.pass_boxes` (the least start of a task on more than two
+workers) is printed with its modelled rows. ``--workers`` with no count: the model only.
 
     python bench/distributed_verify.py [--repeat 3] [--workers 1 2] [--cartpole-r 0.5]
                                        [--no-certificate] [--model 4 8 16]

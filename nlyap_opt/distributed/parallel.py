@@ -64,6 +64,7 @@ from verification.verify import split_box, verify_interval
 
 from ..kernel import deps
 from ..kernel.errors import BackendUnavailableError, ConfigError
+from ..kernel.walker import NUMPY, evaluate
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
            "SimulatedCluster", "model_speedups", "task_defaults", "pass_boxes",
@@ -400,8 +401,6 @@ class _CountingArithmetic:
     name = "numpy"
 
     def __init__(self):
-        from nlyap_opt.kernel.walker import NUMPY
-
         self._np = NUMPY
         self.calls = 0
         self.elements = 0
@@ -457,10 +456,8 @@ def pass_boxes(problem) -> int:
     >>> from verification import closed_loop_problem
     >>> V = quadratic_lyapunov(np.eye(2))
     >>> pass_boxes(closed_loop_problem(systems.get("van_der_pol"), V, inner=0.1, outer=1.0))
-    1024
+    2048
     """
-    from nlyap_opt.kernel.walker import evaluate
-
     fun = problem.function_jacobian_checked if problem.checked else problem.function_jacobian
     ar = _CountingArithmetic()
     point = np.mean(np.asarray(problem.box, dtype=float), axis=1)[None, :]

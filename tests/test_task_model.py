@@ -188,7 +188,8 @@ def test_pass_boxes_is_deterministic_and_follows_calls_per_scalar():
                                [ca.sumsqr(ca.tanh(ca.mtimes(ca.DM(W), x))) - 100])
     a, b = pass_boxes(scalar), pass_boxes(wide)
     assert a == pass_boxes(scalar) and b == pass_boxes(wide)    # no timing involved
-    for v in (a, b):
+    c = pass_boxes(scalar, second_order=True)   # the gradient and Hessian graphs counted too
+    for v in (a, b, c):
         assert 1 <= v <= 8192 and v & (v - 1) == 0               # a power of two
     assert a >= 4 * b
 

@@ -437,15 +437,17 @@ class _CountingArithmetic:
 _BOXES_PER_CALL_RATIO = 2000
 
 
-def pass_boxes(problem) -> int:
+def pass_boxes(problem, second_order: bool = False) -> int:
     """Boxes at which a walker pass over ``problem``'s graphs costs as much per box as it
     costs fixed: the least start of a task that is not mostly fixed cost.
 
     A pass costs a fixed time per arithmetic call (one per graph instruction, the
     instructions of called Functions included) and a time per scalar result per box. Both
     are counted, deterministically, by one float walk of the fused ``(F, J)`` graph at one
-    point; the estimate is :data:`_BOXES_PER_CALL_RATIO` times calls per scalar result,
-    rounded up to a power of two (in ``[1, 8192]``). Scalar graphs (a system's ``f`` as
+    point (with ``second_order``, the verifier's option, also of the properties' gradient
+    and Hessian graphs, which its rounds walk too); the estimate is
+    :data:`_BOXES_PER_CALL_RATIO` times calls per scalar result, rounded up to a power of
+    two (in ``[1, 8192]``). Scalar graphs (a system's ``f`` as
     SX, called from the networks' MX graph: every operation one call per box batch) give
     about 1024; networks of matrix products about 128.
 
@@ -461,8 +463,10 @@ def pass_boxes(problem) -> int:
     fun = problem.function_jacobian_checked if problem.checked else problem.function_jacobian
     ar = _CountingArithmetic()
     point = np.mean(np.asarray(problem.box, dtype=float), axis=1)[None, :]
+    funs = [fun, *(problem.second_order_functions if second_order else ())]
     with np.errstate(all="ignore"):
-        evaluate(fun, [point], ar)
+        for f in funs:
+            evaluate(f, [point], ar)
     ratio = ar.calls / max(1, ar.elements)
     boxes = max(1.0, min(8192.0, _BOXES_PER_CALL_RATIO * ratio))
     return 1 << int(math.ceil(math.log2(boxes)))
@@ -954,7 +958,8 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     if task_boxes is not None:  # a finer task grain given: the other grains follow it
         grain = min(grain, int(task_boxes))
     # a task grain given: the grains follow it; else no task starts from thin passes
-    size = pass_boxes(problem) if n_workers > 2 and batched and task_boxes is None else None
+    size = pass_boxes(problem, bool(options.get("second_order"))) \
+        if n_workers > 2 and batched and task_boxes is None else None
     grains = task_defaults(n_workers, grain, size)
     given = {"task_boxes": task_boxes, "tasks_per_worker": tasks_per_worker,
              "root_boxes": root_boxes, "min_task_boxes": min_task_boxes}

@@ -447,9 +447,9 @@ def pass_boxes(problem, second_order: bool = False) -> int:
     point (with ``second_order``, the verifier's option, also of the properties' gradient
     and Hessian graphs, which its rounds walk too); the estimate is
     :data:`_BOXES_PER_CALL_RATIO` times calls per scalar result, rounded up to a power of
-    two (in ``[1, 8192]``). Scalar graphs (a system's ``f`` as
-    SX, called from the networks' MX graph: every operation one call per box batch) give
-    about 1024; networks of matrix products about 128.
+    two (in ``[1, 8192]``). Scalar graphs (a system's ``f`` as SX, called from the
+    networks' MX graph: every operation one call per box batch) give about 1024; networks
+    of matrix products about 128.
 
     Examples
     --------

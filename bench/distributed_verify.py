@@ -29,9 +29,12 @@ worker counts this machine has. *Modelled* rows (``--model 4 8 16``) come from
 ``verify_distributed`` builds for W workers, run task by task in this process and list-scheduled on
 W virtual workers; the cost of a task is the boxes it processed (deterministic) or its CPU seconds
 here (which include each walker pass's fixed cost). For (D) the CPU model adds the recheck's
-CPU seconds outside the tasks (loading, building the checks) to every worker count. The
-model leaves out the scheduler's latency per task (a few ms) and runs the checks of (D) one
-after another (a cluster runs condition (c) beside (a) and (b)).
+CPU seconds outside the tasks (loading, building the checks) to every worker count and
+prints, per check, its modelled seconds on one and on the most workers. The model leaves
+out the scheduler's latency per task (a few ms) and runs the checks of (D) one after another
+(a cluster runs condition (c) beside (a) and (b)). Each query's
+:func:`nlyap_opt.distributed.parallel.pass_boxes` (the least start of a task on more than two
+workers) is printed with its modelled rows. ``--workers`` with no count: the model only.
 
     python bench/distributed_verify.py [--repeat 3] [--workers 1 2] [--cartpole-r 0.5]
                                        [--no-certificate] [--model 4 8 16]
@@ -52,6 +55,7 @@ from nlyap_opt.distributed.parallel import (
     _starts_from_boxes,
     dask_client,
     model_speedups,
+    pass_boxes,
     verify_distributed,
 )
 from nlyap_opt.kernel.network import Network
@@ -152,11 +156,14 @@ def certificate_rows(workers, repeat, model=()):
         if model:
             cpu_total = {}
 
-            def run(sim, cpu_total=cpu_total):
+            per_check: dict = {}
+
+            def run(sim, cpu_total=cpu_total, per_check=per_check):
                 t = time.process_time()
                 with verifying_on(sim):
                     once()
                 cpu_total[sim.workers] = time.process_time() - t
+                per_check[(sim.cost, sim.workers)] = list(sim.calls)
 
             for cost in ("boxes", "cpu"):
                 m = model_speedups(run, model, cost=cost)
@@ -179,6 +186,16 @@ def certificate_rows(workers, repeat, model=()):
         print(f"| {w} | measured | {t:.2f} | {f'{up:.2f}' if up else '–'} | {eff} | "
               f"{c.status.value} |")
     _print_model(modelled)
+    if modelled:
+        top = max(modelled["cpu"])
+        one, many = per_check[("cpu", 1)], per_check[("cpu", top)]
+        print(f"MODELLED per check, in the order run (CPU s): on 1 worker | on {top} workers "
+              "(tasks)")
+        print("| check | 1 worker | " f"{top} workers | tasks | speed-up |")
+        print("|---|---|---|---|---|")
+        for i, (a, b) in enumerate(zip(one, many)):
+            print(f"| {i + 1} | {a['makespan']:.2f} | {b['makespan']:.2f} | {b['tasks']} | "
+                  f"{a['makespan'] / max(b['makespan'], 1e-12):.2f} |")
     print()
 
 
@@ -205,7 +222,8 @@ def _best(fn, repeat):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--workers", type=int, nargs="*", default=[1, 2],
+                    help="worker counts to measure on a LocalCluster (none: model only)")
     ap.add_argument("--n-tasks", type=int, default=8, help="sub-boxes of the executor hook")
     ap.add_argument("--cartpole-r", type=float, default=0.5,
                     help="ball radius of query (C)")
@@ -266,6 +284,7 @@ def main(argv=None):
         for label, prob, opt in queries:
             mb, mc = (model_speedups(lambda c, prob=prob, opt=opt: verify_distributed(
                 prob, c, **opt), args.model, cost=cost) for cost in ("boxes", "cpu"))
+            print(f"| {label} (pass_boxes {pass_boxes(prob)}) | | | | | | |")
             for w in sorted(mb):
                 print(f"| {label} | {w} | {mb[w]['tasks']} | {mb[w]['speedup']:.2f} | "
                       f"{mb[w]['efficiency']:.2f} | {mc[w]['speedup']:.2f} | "

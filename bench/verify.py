@@ -6,6 +6,15 @@
 (iv)  query (ii) with the pointwise robust decrease ∇V·φ + η·sqrt(‖∇V‖² + s²) < 0 of the
       learned-dynamics runs, η = 0.005, for s = 0 and s = 10⁻³·max‖∇V‖ (sampled).
 
+Small queries first: the seed paper's three systems with networks of its published size
+(2-6 tanh V: bench/data/vdp_V6.json for Van der Pol, no input; path following and pendulum:
+V and the saturated controller of ``nlyap run NAME --preset fast --known-dynamics``, seed 0,
+saved as bench/data/NAME_fast_V.json and NAME_fast_K.json), the true f, one query each: V > 0
+and the decrease on the preset's annulus, as the paper hands it to dReal (dReal takes
+0.06-0.15 s per such query). Printed per system: building the problem, the first verification
+(its graphs compiled in this process), the warm verification (best of runs, wall and CPU), the
+verdict and boxes.
+
 Networks are made once (seeded) and cached in bench/data/; delete them to rebuild.
 Targets on 2 cores: (i) ≤ 0.03 s, (ii) ≤ 0.04 s (≤ 0.1 s and ≥ 5× fewer boxes
 than intervals with the mean-value form), (iii) ≤ 30 s.
@@ -132,6 +141,52 @@ def per_query(repeat: int) -> None:
     print()
 
 
+#: the seed paper's systems: (name, annulus inner, outer) of the fast presets (Van der Pol:
+#: bench/verify.py's query (i))
+SEED_SYSTEMS = (("van_der_pol", 0.2, 1.2), ("unicycle_path_following", 0.1, 0.8),
+                ("inverted_pendulum", 0.4, 4.0))
+
+
+def _seed_networks(name: str):
+    """(V, κ or None) of published size for a seed-paper system (made once, cached)."""
+    if name == "van_der_pol":
+        return _train_V("vdp_V6", [6], 3, 1.4, 1500), None
+    v_path, k_path = DATA / f"{name}_fast_V.json", DATA / f"{name}_fast_K.json"
+    if not (v_path.exists() and k_path.exists()):
+        import shutil
+        import tempfile
+
+        from nlyap_opt import make_config, run
+
+        with tempfile.TemporaryDirectory() as tmp:
+            res = run(systems.get(name), make_config(name, "fast"), tmp, known_dynamics=True,
+                      log=lambda m: None)
+            if not res.certified:
+                raise SystemExit(f"{name}: the fast preset did not certify ({res.reason})")
+            shutil.copyfile(Path(tmp) / "V.json", v_path)
+            shutil.copyfile(Path(tmp) / "controller.json", k_path)
+    return Network.load(v_path), Network.load(k_path)
+
+
+def seed_queries(repeat: int) -> None:
+    """One small query per seed-paper system (see the module's text)."""
+    print("Small queries: the seed paper's systems, published-size networks, true f, "
+          "V > 0 and decrease on the annulus (seconds; CPU s in brackets):")
+    print("| system | annulus | build the problem | first verify | warm verify (best) | "
+          "verdict | boxes |")
+    print("|---|---|---|---|---|---|---|")
+    for name, inner, outer in SEED_SYSTEMS:
+        s = systems.get(name)
+        V, K = _seed_networks(name)
+        (tb, cb), p = _timed(lambda s=s, V=V, K=K, inner=inner, outer=outer:
+                             closed_loop_problem(s, V, K, inner=inner, outer=outer), 1)
+        (tf, cf), _ = _timed(lambda p=p: verify(p), 1)
+        (tw, cw), r = _timed(lambda p=p: verify(p), max(3, repeat))
+        print(f"| {name} | {inner:g} ≤ ‖x‖ ≤ {outer:g} | {tb:.4f} ({cb:.4f}) | {tf:.4f} "
+              f"({cf:.4f}) | {tw:.4f} ({cw:.4f}) | {r.status} | {r.boxes} |")
+    print()
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=5)
@@ -143,6 +198,7 @@ def main(argv=None):
     V6 = _train_V("vdp_V6", [6], 3, 1.4, 1500)
     phi = _dynamics_200()
     V30 = _train_V("vdp_V30x30", [30, 30], 4, 2.5, 2500)
+    seed_queries(args.repeat)
     per_query(max(1, args.repeat // 2))
     rows = []
 

@@ -15,6 +15,7 @@ from nlyap_opt.distributed.parallel import (
     SimulatedCluster,
     _deal_boxes,
     model_speedups,
+    pass_boxes,
     task_defaults,
     verify_distributed,
 )
@@ -171,3 +172,127 @@ def test_a_certificate_modelled_on_a_simulated_cluster_is_the_serial_one():
     assert (modelled.level, modelled.checks) == (serial.level, serial.checks)
     np.testing.assert_array_equal(modelled.inner_ellipse.P, serial.inner_ellipse.P)
     assert len(sim.calls) >= 2 and sim.work() > 0 and 1.0 <= sim.speedup() <= 4
+
+
+# ------------------------------------------------------------- the fixed cost of a pass
+def test_pass_boxes_is_deterministic_and_follows_calls_per_scalar():
+    """Scalar graphs (every operation a call per batch) need fuller passes than graphs of
+    matrix products, whose calls each do many scalars' work."""
+    import casadi as ca
+
+    x = ca.MX.sym("x", 2)
+    scalar = VerificationProblem(x, [[-1, 1], [-1, 1]], [],
+                                 [ca.sin(x[0]) * ca.cos(x[1]) + x[0] * x[1] - 5])
+    W = np.random.default_rng(0).normal(size=(64, 2))
+    wide = VerificationProblem(x, [[-1, 1], [-1, 1]], [],
+                               [ca.sumsqr(ca.tanh(ca.mtimes(ca.DM(W), x))) - 100])
+    a, b = pass_boxes(scalar), pass_boxes(wide)
+    assert a == pass_boxes(scalar) and b == pass_boxes(wide)    # no timing involved
+    c = pass_boxes(scalar, second_order=True)   # the gradient and Hessian graphs counted too
+    for v in (a, b, c):
+        assert 1 <= v <= 8192 and v & (v - 1) == 0               # a power of two
+    assert a >= 4 * b
+
+
+def test_pass_size_coarsens_the_grains_of_many_workers_only():
+    assert task_defaults(2, pass_size=4096) == task_defaults(2)      # measured on 2 cores
+    fine, coarse = task_defaults(16), task_defaults(16, pass_size=1024)
+    assert coarse["min_task_boxes"] == 1024 and coarse["task_boxes"] >= 4 * 1024
+    assert coarse["root_boxes"] == fine["root_boxes"]
+    assert task_defaults(16, pass_size=16) == fine                   # never finer
+    assert task_defaults(16, batch=64, pass_size=1024)["min_task_boxes"] <= 64
+
+
+# ------------------------------------------------------------- plain tasks (portfolio)
+@pytest.fixture
+def cpu_clock(monkeypatch):
+    """A thread-CPU clock that advances only by what a task declares it spent."""
+    import nlyap_opt.distributed.parallel as par
+
+    clock = [0.0]
+    monkeypatch.setattr(par.time, "thread_time", lambda: clock[0])
+
+    def spend(seconds, value=None):
+        clock[0] += seconds
+        return value
+    return spend
+
+
+def test_plain_tasks_are_list_scheduled_with_a_start_per_worker(cpu_clock):
+    """Costs 3, 3, 2 on two workers with a start of 1 each: 4, 4, then 6; one worker
+    pays the start once: 9."""
+    sim = SimulatedCluster(2, cost="cpu", startup=1.0)
+    futs = [sim.submit(cpu_clock, c, value=c) for c in (3.0, 3.0, 2.0)]
+    assert [f.result() for f in futs] == [3.0, 3.0, 2.0]
+    assert sim.replay(2) == {"makespan": 6.0, "work": 9.0, "tasks": 3}
+    assert sim.replay(1)["makespan"] == 9.0 == sim.work()
+    assert sim.replay(3)["makespan"] == 4.0
+    assert sim.calls[-1]["makespan"] == 6.0          # the schedule as it ran (2 workers)
+
+
+def test_a_task_submitted_after_a_wait_starts_after_that_task(cpu_clock):
+    """The portfolio with learned φ waits for the first seed before it submits the rest:
+    on any number of workers they start after it, never beside it."""
+    sim = SimulatedCluster(4, cost="cpu")
+    first = sim.submit(cpu_clock, 5.0)
+    assert first.done()
+    rest = [sim.submit(cpu_clock, 1.0) for _ in range(3)]
+    assert all(f.done() for f in rest)
+    assert sim.replay(4)["makespan"] == 6.0 and sim.replay(1)["makespan"] == 8.0
+
+
+def test_a_plain_task_error_is_raised_by_result(cpu_clock):
+    sim = SimulatedCluster(2, cost="cpu")
+
+    def boom():
+        raise RuntimeError("seed failed")
+    fut = sim.submit(boom)
+    with pytest.raises(RuntimeError, match="seed failed"):
+        fut.result()
+
+
+def test_plain_tasks_need_cpu_cost_and_a_valid_start():
+    with pytest.raises(ConfigError, match="CPU seconds"):
+        SimulatedCluster(2).submit(sum, [1])
+    for bad in (-1.0, float("nan"), True, "1"):
+        with pytest.raises(ConfigError, match="startup must be"):
+            SimulatedCluster(2, cost="cpu", startup=bad)
+
+
+def test_portfolio_runs_its_seeds_on_a_given_client(tmp_path, monkeypatch, cpu_clock):
+    """``run_portfolio(client=...)``: every seed one task on that client, the best kept as
+    on a cluster; a client and workers together are refused."""
+    import nlyap_opt.workflow.portfolio as pf
+    from nlyap_opt.workflow.configs import get_config
+
+    def fake(system, cfg, out, known, spec, seed):
+        area = {0: 1.0, 1: 3.0, 2: 2.0}[seed]
+        return cpu_clock(1.0 + seed, pf.SeedRun(seed, "certified", True, 0.5, area, 0.9,
+                                                 1.0, f"seed_{seed}"))
+    monkeypatch.setattr(pf, "_run_seed", fake)
+    cfg = get_config("van_der_pol", "fast")
+    sim = SimulatedCluster(3, cost="cpu", startup=0.5)
+    res = pf.run_portfolio("van_der_pol", cfg, tmp_path / "p", seeds=3, client=sim,
+                           known_dynamics=True, log=lambda m: None)
+    assert res.best.seed == 1 and res.workers == 3
+    assert sim.replay(3)["makespan"] == 3.5 and sim.replay(1)["makespan"] == 6.5
+    with pytest.raises(ConfigError, match="not both"):
+        pf.run_portfolio("van_der_pol", cfg, tmp_path / "q", seeds=2, client=sim, workers=2,
+                         known_dynamics=True, log=lambda m: None)
+
+
+@pytest.mark.parametrize("workers", [4, 16])
+def test_default_grains_of_many_workers_decide_as_serially(workers):
+    """With the counted pass size and the ramp-up (more than two workers, no grain given),
+    every box is still decided once by the serial rules: the serial verdict and boxes."""
+    problem = closed_loop_problem(systems.get("van_der_pol"), quadratic_lyapunov(P_VDP),
+                                  inner=0.05, outer=1.1)
+    serial = verify(problem, presearch=0)
+    st: dict = {}
+    res = verify_distributed(problem, SimulatedCluster(workers), presearch=0, batch=32,
+                             stats=st)
+    assert res.status == serial.status == "verified" and res.boxes == serial.boxes
+    assert st["tasks"] >= 4
+    # the pass size (2048 for this scalar graph) coarsens the least start up to the grain
+    assert pass_boxes(problem) >= 1024
+    assert st["grains"]["min_task_boxes"] == 32 > task_defaults(workers, 32)["min_task_boxes"]

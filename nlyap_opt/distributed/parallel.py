@@ -64,9 +64,10 @@ from verification.verify import split_box, verify_interval
 
 from ..kernel import deps
 from ..kernel.errors import BackendUnavailableError, ConfigError
+from ..kernel.walker import NUMPY, evaluate
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
-           "SimulatedCluster", "model_speedups", "task_defaults",
+           "SimulatedCluster", "model_speedups", "task_defaults", "pass_boxes",
            "parse_scheduler", "client_workers", "cpu_cores", "check_connect_timeout",
            "MAX_LOCAL_WORKERS", "DEFAULT_CONNECT_TIMEOUT"]
 
@@ -394,7 +395,84 @@ def _root_task(problem, options: dict, presearch: int, initial_boxes: int,
                 pid=os.getpid())
 
 
-def task_defaults(workers: int, batch: int = 8192) -> dict:
+class _CountingArithmetic:
+    """Float arithmetic (numpy) that counts its calls and the scalar results they make."""
+
+    name = "numpy"
+
+    def __init__(self):
+        self._np = NUMPY
+        self.calls = 0
+        self.elements = 0
+
+    def _tally(self, y, per: int = 1):
+        self.calls += 1
+        self.elements += int(np.size(y)) * per
+        return y
+
+    def constant(self, value):
+        return self._np.constant(value)
+
+    def unary(self, op, a):
+        return self._tally(self._np.unary(op, a))
+
+    def binary(self, op, a, b):
+        return self._tally(self._np.binary(op, a, b))
+
+    def matmul(self, a, b):
+        return self._tally(self._np.matmul(a, b), per=int(np.shape(a)[-1]))
+
+    def sum(self, a, axis):
+        self._tally(a)
+        return self._np.sum(a, axis)
+
+    def structural(self, fn, *args):
+        return self._np.structural(fn, *args)
+
+
+#: boxes per unit of (arithmetic calls / scalar results) of a pass: an interval operation
+#: costs about this many times more as a call than per box it encloses (measured on 2
+#: cores for the cartpole certificate's checks, query (A) and Van der Pol 2-6, all within
+#: a factor of 2 of it)
+_BOXES_PER_CALL_RATIO = 2000
+
+
+def pass_boxes(problem, second_order: bool = False) -> int:
+    """Boxes at which a walker pass over ``problem``'s graphs costs as much per box as it
+    costs fixed: the least start of a task that is not mostly fixed cost.
+
+    A pass costs a fixed time per arithmetic call (one per graph instruction, the
+    instructions of called Functions included) and a time per scalar result per box. Both
+    are counted, deterministically, by one float walk of the fused ``(F, J)`` graph at one
+    point (with ``second_order``, the verifier's option, also of the properties' gradient
+    and Hessian graphs, which its rounds walk too); the estimate is
+    :data:`_BOXES_PER_CALL_RATIO` times calls per scalar result, rounded up to a power of
+    two (in ``[1, 8192]``). Scalar graphs (a system's ``f`` as SX, called from the
+    networks' MX graph: every operation one call per box batch) give about 1024; networks
+    of matrix products about 128.
+
+    Examples
+    --------
+    >>> import numpy as np, systems
+    >>> from baselines.lqr import quadratic_lyapunov
+    >>> from verification import closed_loop_problem
+    >>> V = quadratic_lyapunov(np.eye(2))
+    >>> pass_boxes(closed_loop_problem(systems.get("van_der_pol"), V, inner=0.1, outer=1.0))
+    2048
+    """
+    fun = problem.function_jacobian_checked if problem.checked else problem.function_jacobian
+    ar = _CountingArithmetic()
+    point = np.mean(np.asarray(problem.box, dtype=float), axis=1)[None, :]
+    funs = [fun, *(problem.second_order_functions if second_order else ())]
+    with np.errstate(all="ignore"):
+        for f in funs:
+            evaluate(f, [point], ar)
+    ratio = ar.calls / max(1, ar.elements)
+    boxes = max(1.0, min(8192.0, _BOXES_PER_CALL_RATIO * ratio))
+    return 1 << int(math.ceil(math.log2(boxes)))
+
+
+def task_defaults(workers: int, batch: int = 8192, pass_size: int | None = None) -> dict:
     """The task sizes :func:`verify_distributed` uses on ``workers`` workers by default.
 
     The work is over-decomposed in proportion to the workers: the root task stops sooner,
@@ -410,6 +488,14 @@ def task_defaults(workers: int, batch: int = 8192) -> dict:
         Worker threads of the cluster.
     batch : int
         The verifier's boxes per walker pass (the grain everything is measured in).
+    pass_size : int, optional
+        The problem's :func:`pass_boxes` (boxes at which a pass costs as much per box as
+        fixed). On more than two workers no task starts from fewer (up to ``batch``; a
+        quarter during the ramp-up, see :func:`verify_distributed`), and a task's
+        budget is at least four times its least start: a task whose passes are
+        thinner than that spends most of its time on the passes' fixed cost (on the
+        cartpole certificate's decrease check, tasks started from a median of 458 boxes
+        cost 3.2 times the serial CPU seconds in all).
 
     Returns
     -------
@@ -422,14 +508,20 @@ def task_defaults(workers: int, batch: int = 8192) -> dict:
     {'task_boxes': 16384, 'tasks_per_worker': 1, 'root_boxes': 2048, 'min_task_boxes': 1024}
     >>> task_defaults(16)
     {'task_boxes': 2048, 'tasks_per_worker': 2, 'root_boxes': 128, 'min_task_boxes': 128}
+    >>> task_defaults(16, pass_size=1024)
+    {'task_boxes': 4096, 'tasks_per_worker': 2, 'root_boxes': 128, 'min_task_boxes': 1024}
     """
     w = max(1, int(workers))
     w = 1 if w <= 2 else w  # up to two workers: the grains measured best on two cores
     grain = max(1, int(batch))
-    return {"task_boxes": min(grain, 2048) if grain < 2048 else max(2048, 2 * grain // w),
-            "tasks_per_worker": 1 if w <= 2 else 2,
-            "root_boxes": max(1, grain // (4 * w)),
-            "min_task_boxes": max(min(128, grain // 8), grain // (8 * w), 1)}
+    out = {"task_boxes": min(grain, 2048) if grain < 2048 else max(2048, 2 * grain // w),
+           "tasks_per_worker": 1 if w <= 2 else 2,
+           "root_boxes": max(1, grain // (4 * w)),
+           "min_task_boxes": max(min(128, grain // 8), grain // (8 * w), 1)}
+    if w > 2 and pass_size is not None:
+        out["min_task_boxes"] = max(out["min_task_boxes"], min(int(pass_size), grain))
+        out["task_boxes"] = max(out["task_boxes"], 4 * out["min_task_boxes"])
+    return out
 
 
 def _deal_boxes(boxes: np.ndarray, parts: int) -> list[np.ndarray]:
@@ -494,14 +586,24 @@ class SimulatedCluster:
     (deterministic: the same run gives the same model on any machine and load);
     ``cost="cpu"``: its CPU seconds here (which include each walker pass's fixed cost).
 
+    Other jobs (the seeds of :func:`nlyap_opt.workflow.portfolio.run_portfolio`) submit
+    plain tasks: :meth:`submit` runs ``fn`` at once and returns a finished future; its cost
+    is its CPU seconds here (``cost="cpu"``), and each virtual worker pays ``startup``
+    seconds before its first such task (a worker process's start: imports, first use of
+    torch), which the caller measures in a fresh process. Waiting for a future
+    (``result()``, ``done()``) moves the modelled clock to its finish, so that tasks
+    submitted after it start no sooner.
+
     Attributes
     ----------
     workers : int
     cost : str
+    startup : float
     calls : list of dict
-        Per :func:`verify_distributed` call: ``makespan`` (modelled time from the root
-        task's start to the last completion), ``work`` (the sum of the task costs, which is
-        the time on one worker) and ``tasks`` (count).
+        Per :func:`verify_distributed` call (and one for all plain tasks): ``makespan``
+        (modelled time from the first task's start to the last completion), ``work`` (the
+        sum of the task costs, one ``startup`` included, which is the time on one worker)
+        and ``tasks`` (count).
 
     Examples
     --------
@@ -514,15 +616,94 @@ class SimulatedCluster:
 
     simulated = True
 
-    def __init__(self, workers: int, cost: str = "boxes"):
+    def __init__(self, workers: int, cost: str = "boxes", startup: float = 0.0):
         self.workers = _check_workers(workers, local=False)
         if cost not in ("boxes", "cpu"):
             raise ConfigError(f"cost must be 'boxes' or 'cpu', got {cost!r}")
+        if isinstance(startup, bool) or not isinstance(startup, (int, float)) or \
+                not math.isfinite(startup) or startup < 0:
+            raise ConfigError(f"startup must be a finite number of seconds >= 0, got "
+                              f"{startup!r}")
         self.cost = cost
+        self.startup = float(startup)
         self.calls: list[dict] = []
+        self._plain: dict | None = None  # the schedule of plain tasks (submit)
 
     def _runner(self, problem) -> _SimRun:
         return _SimRun(self, problem)
+
+    def submit(self, fn, *args, pure: bool | None = None, **kwargs) -> _SimFuture:
+        """Run ``fn(*args, **kwargs)`` now; schedule it on the first free virtual worker.
+
+        Its cost is its CPU seconds (thread time) here; a worker's first task also pays
+        :attr:`startup`. ``pure`` is accepted for Dask's signature and ignored.
+        """
+        if self.cost != "cpu":
+            raise ConfigError("plain tasks are modelled by their CPU seconds: use "
+                              "SimulatedCluster(workers, cost='cpu')")
+        st = self._plain
+        if st is None:
+            st = self._plain = {"free": [(0.0, w) for w in range(self.workers)],
+                                "started": set(), "now": 0.0, "after": -1, "log": [],
+                                "call": {"makespan": 0.0, "work": self.startup, "tasks": 0}}
+            heapq.heapify(st["free"])
+            self.calls.append(st["call"])
+        free_at, w = heapq.heappop(st["free"])
+        start = max(st["now"], free_at)
+        if w not in st["started"]:
+            st["started"].add(w)
+            start += self.startup
+        t = time.thread_time()
+        try:
+            value, error = fn(*args, **kwargs), None
+        except Exception as err:  # noqa: BLE001 - handed to the caller by result()
+            value, error = None, err
+        cost = time.thread_time() - t
+        finish = start + cost
+        heapq.heappush(st["free"], (finish, w))
+        st["log"].append((st["after"], cost))
+        call = st["call"]
+        call["work"] += cost
+        call["tasks"] += 1
+        call["makespan"] = max(call["makespan"], finish)
+        return _SimFuture(self, len(st["log"]) - 1, finish, value, error)
+
+    def _waited(self, index: int, finish: float) -> None:
+        """The caller waited for plain task ``index`` (finishing at ``finish``)."""
+        if finish > self._plain["now"]:
+            self._plain["now"], self._plain["after"] = finish, index
+
+    def replay(self, workers: int) -> dict:
+        """The plain tasks run so far, list-scheduled again on ``workers`` workers.
+
+        Each task keeps its measured cost and its order, and starts no sooner than the
+        finish of the task the caller had waited for when it was submitted (on that
+        schedule); each worker pays :attr:`startup` before its first task. One run of the
+        tasks thus models every worker count.
+
+        Returns
+        -------
+        dict
+            ``makespan``, ``work`` (the sum of the costs and one ``startup``), ``tasks``.
+        """
+        workers = _check_workers(workers, local=False)
+        log = self._plain["log"] if self._plain else []
+        free = [(0.0, w) for w in range(workers)]
+        started: set = set()
+        finish: list[float] = []
+        for after, cost in log:
+            free_at, w = heapq.heappop(free)
+            start = max(free_at, finish[after] if after >= 0 else 0.0)
+            if w not in started:
+                started.add(w)
+                start += self.startup
+            finish.append(start + cost)
+            heapq.heappush(free, (finish[-1], w))
+        return {"makespan": max(finish, default=0.0),
+                "work": self.startup + sum(c for _, c in log), "tasks": len(log)}
+
+    def cancel(self, futures) -> None:
+        """Nothing to cancel: every task ran when it was submitted."""
 
     def work(self) -> float:
         """Sum of all task costs over every call (the modelled time on one worker)."""
@@ -536,6 +717,28 @@ class SimulatedCluster:
         """Modelled speed-up over one worker: :meth:`work` / :meth:`makespan`."""
         span = self.makespan()
         return self.work() / span if span > 0 else 1.0
+
+
+class _SimFuture:
+    """A plain task of a :class:`SimulatedCluster`: finished when submitted."""
+
+    __slots__ = ("_sim", "_index", "_finish", "_value", "_error")
+
+    def __init__(self, sim: SimulatedCluster, index: int, finish: float, value, error):
+        self._sim, self._index, self._finish = sim, index, finish
+        self._value, self._error = value, error
+
+    def done(self) -> bool:
+        """True (the caller has waited for it: the modelled clock moves to its finish)."""
+        self._sim._waited(self._index, self._finish)
+        return True
+
+    def result(self):
+        """The task's value (its exception is raised here)."""
+        self._sim._waited(self._index, self._finish)
+        if self._error is not None:
+            raise self._error
+        return self._value
 
 
 class _SimRun:
@@ -673,7 +876,9 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     task_boxes, tasks_per_worker, root_boxes, min_task_boxes : int, optional
         The grains; by default :func:`task_defaults` for the cluster's worker count and
         ``batch`` (finer on more workers; a ``task_boxes`` below ``batch`` takes its place
-        as the grain the other defaults follow).
+        as the grain the other defaults follow) and, on more than two workers without a
+        ``task_boxes``, the problem's :func:`pass_boxes` (no task starts from passes
+        thinner than that).
     task_boxes : int
         Boxes one task processes before it hands its open boxes back (the load-balancing
         grain; one walker pass evaluates up to ``batch`` boxes), or, once more boxes are
@@ -692,7 +897,9 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         Least number of open boxes a new task starts from. A task whose queue thins below
         half of it hands the queue back; while every worker is busy, open sets smaller than
         this wait to be merged with the next ones (a walker pass costs a fixed time per
-        instruction of the graphs: thin passes are mostly that).
+        instruction of the graphs: thin passes are mostly that). On more than two workers,
+        until every worker has been busy once (the ramp-up), a quarter of it: workers
+        that would otherwise wait pay the thinner passes, and the open set widens sooner.
     stats : dict, optional
         Filled with ``tasks`` (count), ``root_cpu`` (CPU seconds of step 1),
         ``cpu_by_worker`` (CPU seconds of the other tasks per worker process: the load
@@ -750,7 +957,10 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     grain = int(batch) if ok_batch else 1
     if task_boxes is not None:  # a finer task grain given: the other grains follow it
         grain = min(grain, int(task_boxes))
-    grains = task_defaults(n_workers, grain)
+    # a task grain given: the grains follow it; else no task starts from thin passes
+    size = pass_boxes(problem, bool(options.get("second_order"))) \
+        if n_workers > 2 and batched and task_boxes is None else None
+    grains = task_defaults(n_workers, grain, size)
     given = {"task_boxes": task_boxes, "tasks_per_worker": tasks_per_worker,
              "root_boxes": root_boxes, "min_task_boxes": min_task_boxes}
     grains.update({k: int(v) for k, v in given.items() if v is not None})
@@ -760,7 +970,7 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     root_boxes = grains["root_boxes"]
 
     found, unknown, leaves = [], [], []
-    state = {"boxes": 0, "depth": 0, "running": 0}
+    state = {"boxes": 0, "depth": 0, "running": 0, "ramped": False}
     tally = {"tasks": 0, "root_cpu": None, "cpu_by_worker": {}, "starts": [],
              "task_boxes": [], "grains": dict(grains)}
 
@@ -800,7 +1010,14 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         parts = max(1, parts, -(-k // max(1, grain // 4)))
         parts = min(parts, k)
         if batched:  # no task starts from fewer than min_task boxes (but one from all)
-            parts = max(1, min(parts, k // min_task))
+            least = min_task
+            if n_workers > 2 and not state["ramped"] and \
+                    state["running"] + k // min_task < n_workers:
+                # ramp-up on many workers (until every one has been busy once): workers
+                # would idle even so; thinner starts (a quarter) widen the open set sooner,
+                # their extra fixed costs paid by workers that would wait
+                least = max(1, min_task // 4)
+            parts = max(1, min(parts, k // least))
         share = max(1, left // parts)  # of the global budget, per new task
         budget = min(grain, share) if batched else share
         if batched and state["running"] + parts < n_workers:
@@ -815,6 +1032,7 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
             key = runner.submit(_box_task, chunk, budget, options, batched, tail)
             offsets[key] = _depth(chunk, root_w)
             state["running"] += 1
+        state["ramped"] = state["ramped"] or state["running"] >= n_workers
 
     pool: list = []  # open boxes held back until there are enough to start a task
 

@@ -24,6 +24,7 @@ share (the runs write there) and the workers must have this package installed.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import os
@@ -242,7 +243,7 @@ def _best(runs: list[SeedRun]) -> SeedRun | None:
 def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
                   workers: int | None = None, scheduler: str | None = None,
                   known_dynamics: bool = False, log=print,
-                  connect_timeout: float | None = None) -> PortfolioResult:
+                  connect_timeout: float | None = None, client=None) -> PortfolioResult:
     """Train and certify one candidate per seed in parallel; keep the best certified one.
 
     Parameters
@@ -269,6 +270,12 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
         Use the true f instead of learned φ (then there is no dynamics stage to share).
     log : callable
         Progress lines of the portfolio (each run's own log goes to ``seed_k/run.log``).
+    client : distributed.Client or SimulatedCluster, optional
+        Run the seeds on this client (kept open) instead of a cluster started here; not
+        with ``workers`` or ``scheduler``. A
+        :class:`nlyap_opt.distributed.parallel.SimulatedCluster` (``cost="cpu"``) runs the
+        seeds one after another in this process and models their schedule on its workers
+        (the portfolio's speed-up model, ``bench/portfolio.py``).
 
     Returns
     -------
@@ -302,13 +309,19 @@ def run_portfolio(system, cfg: dict, out: str | Path, *, seeds: int | list[int],
     if out.exists() and not out.is_dir():
         raise ConfigError(f"out {out} is a file; pass a directory (new or of a portfolio)")
     out.mkdir(parents=True, exist_ok=True)
+    if client is not None and (workers is not None or scheduler is not None):
+        raise ConfigError("give a client, or workers/scheduler for a cluster started here, "
+                          "not both")
     if workers is None and scheduler is None:
         workers = max(1, min(len(seed_list), cpu_cores()))
     dirs = {s: out / f"seed_{s}" for s in seed_list}
     t0 = time.perf_counter()
-    with dask_client(workers=workers, scheduler=scheduler,
-                     connect_timeout=connect_timeout or DEFAULT_CONNECT_TIMEOUT) as client:
-        n_workers = client_workers(client)
+    given = contextlib.nullcontext(client) if client is not None else dask_client(
+        workers=workers, scheduler=scheduler,
+        connect_timeout=connect_timeout or DEFAULT_CONNECT_TIMEOUT)
+    with given as client:
+        n_workers = client.workers if getattr(client, "simulated", False) else \
+            client_workers(client)
         log(f"[portfolio] {name}: seeds {seed_list} on {n_workers} worker(s)")
         runs, shared = _run_seeds(client, name, spec, cfg, dirs, known_dynamics, log)
     res = PortfolioResult(runs, _best(runs), out, n_workers, time.perf_counter() - t0,

@@ -210,14 +210,14 @@ def _radius_levels(problem, P: np.ndarray, policy: LevelPolicy) -> list[tuple[fl
     ``V`` on the sphere, at most ``λ_max(P)ε²``."""
     D = problem.domain
     c_b = _boundary_level(P, D) * (1 + BOUND_SLACK)
-    lam = float(np.linalg.eigvalsh(P)[-1]) * (1 + BOUND_SLACK)
+    lam = float(np.linalg.eigvalsh(P)[-1])
     out = []
     for f in policy.factors:
         eps = problem.inner * policy.inner_fraction * f
-        if not 0 < eps < D.inradius() or lam * eps**2 >= c_b:
+        if not 0 < eps < D.inradius() or lam * (1 - BOUND_SLACK) * eps**2 >= c_b:
             continue
-        c = min(c_b, lam * eps**2 * (1 + INNER_LEVEL_MARGIN)) if policy.smallest_level \
-            else c_b
+        c = min(c_b, lam * (1 + BOUND_SLACK) * eps**2 * (1 + INNER_LEVEL_MARGIN)) \
+            if policy.smallest_level else c_b
         out.append((eps, c * (1 + BOUND_SLACK)))
     return out
 

@@ -127,3 +127,43 @@ def test_the_ellipse_cache_serves_one_closed_loop_only():
     other, _ = _pendulum(controller_scale=10.0)
     with pytest.raises(ValueError, match="one closed loop"):
         cache.get(other)
+
+
+def _learned_toy():
+    """A 2-D loop with learned dynamics: φ its linearisation, η = 0.01 (the policy with the
+    smallest level at ε, 2ε, 3ε), condition (c) checked on the true f."""
+    import casadi as ca
+
+    from nlyap_opt.kernel.network import Layer, Network
+
+    A = np.array([[-1.0, 3.0], [0.0, -2.0]])
+    x = ca.SX.sym("x", 2)
+    f = ca.mtimes(ca.DM(A), x) + ca.vertcat(0.5 * x[0] ** 2 * x[1], -0.5 * x[0] ** 3)
+    s = systems.System("learned_toy", x, None, f, state_box=[[-2, 2], [-2, 2]])
+    phi = Network([Layer(A.copy(), np.zeros(2), "linear")],
+                  meta={"kind": "dynamics", "model": "full"})
+    problem = RoaProblem(s, quadratic_lyapunov(np.eye(2)), None, phi, inner=0.1, outer=1.5,
+                         eta=0.01, dynamics_box=[[-2, 2], [-2, 2]])
+    return problem, np.array([[-1.5, 1.5], [-1.5, 1.5]])
+
+
+def test_learned_dynamics_prune_by_default_and_the_bound_bounds_every_radius():
+    problem, box = _learned_toy()
+    names = ["lyapunov", "round", "volume"]
+    full = certify_quadratics(problem, names, box=box, n=61, prune=False, log=lambda m: None)
+    pruned = certify_quadratics(problem, names, box=box, n=61, log=lambda m: None)
+    assert [c.name for c in pruned] == names
+    assert all(c.certified for c in full)
+    # "round" is certified at 2ε only: the bound covers that radius's level and ellipse
+    assert {c.certificate.inner for c in full} == {0.1, 0.2}
+    policy = quadratic_policy(False)
+    assert policy.smallest_level
+    for c in full:
+        b = volume_bound(problem, c.P, policy, box=box, n=61, ellipses=InnerEllipseCache())
+        assert c.volume <= b
+    # the same winner, at the same level and volume, with or without skipping
+    win = max(full, key=lambda c: c.volume)
+    same = [c for c in pruned if c.name == win.name][0]
+    assert same.certified and same.volume == win.volume
+    assert same.certificate.level == win.certificate.level
+    assert max(c.volume for c in pruned) == win.volume

@@ -48,8 +48,9 @@ With learned dynamics each verification costs minutes, so the candidates are ver
 order of a cheap estimate and one that cannot win is not verified (:func:`volume_bound`: the
 grid points of its sublevel set at an upper bound of any level it can be certified at, and of
 condition (c)'s ellipse; the learned-f cartpole's ``round`` candidate is bounded by 0.0477,
-the volume it certifies, against the ``volume`` candidate's certified 0.2348). The best candidate is the same as
-without skipping. Condition (c) does not depend on ``V``: it is computed once per radius.
+the volume it certifies, against the ``volume`` candidate's certified 0.2348). The best
+candidate is the same as without skipping. Condition (c) does not depend on ``V``: it is
+computed once per radius.
 """
 
 from __future__ import annotations

@@ -72,7 +72,7 @@ __all__ = [
     "recheck_certificate", "recheck_run", "certify_with_inner_search", "load_artifact",
     "sha256_file", "FORMAT", "VERSION", "system_fingerprint", "system_binding", "spec_factory",
     "status_text", "bound_system", "read_certificate_file", "LevelPolicy", "NEURAL_POLICY",
-    "certify_candidate",
+    "certify_candidate", "InnerEllipseCache",
     "INNER_FACTORS",
 ]
 
@@ -572,7 +572,8 @@ def _decrease_text(problem: RoaProblem, margin: float, smoothing: float) -> str:
 
 def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
                 check_inner_ellipse: bool = True, follow_violations: bool = False,
-                inner_ellipse: InnerEllipse | None = None, log=print) -> RoaCertificate:
+                inner_ellipse: InnerEllipse | None = None,
+                ellipses: InnerEllipseCache | None = None, log=print) -> RoaCertificate:
     r"""Prove conditions (a), (b), (c) at ``level`` (or, with ``search``, at the largest level
     reachable from it downwards; see :func:`nlyap_opt.certification.roa.certify_level`).
 
@@ -593,6 +594,9 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
         A saved certificate's proved ellipse: condition (c) checks exactly its ``P`` in its
         ``form`` instead of searching the candidates (:func:`recheck_certificate`). Used
         where (c) is checked on the true closed loop; ignored otherwise.
+    ellipses : InnerEllipseCache, optional
+        Condition (c)'s results shared with other candidates ``V`` of the same closed loop
+        (without ``inner_ellipse``): computed once per inner radius.
 
     Returns
     -------
@@ -604,8 +608,8 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     # narrow checks leave workers idle, when the level is expected to hold (a re-check);
     # in a search, which may end without a level, and serially, it runs after (a) and (b)
     # and only if they hold
-    job = ahead(_inner_ellipse, problem, inner_ellipse, when=not search) \
-        if check_inner_ellipse else None
+    fn = ellipses.get if ellipses is not None and inner_ellipse is None else _inner_ellipse
+    job = ahead(fn, problem, inner_ellipse, when=not search) if check_inner_ellipse else None
     with job or contextlib.nullcontext():
         return _certify_roa(problem, level, search, follow_violations, job, log)
 
@@ -786,6 +790,48 @@ def _learned_closed_loop(problem: RoaProblem):
                        strict=True).rhs
 
 
+class InnerEllipseCache:
+    """Condition (c)'s results by inner radius, for candidates that differ only in ``V``.
+
+    Condition (c) (the ellipse ``E ⊇ B_ε`` and its check) reads the system, the controller,
+    the learned dynamics and its bound, the inner radius and the verifier options, never
+    ``V``: the quadratic candidates of one run compute it once per radius
+    (:func:`nlyap_opt.candidates.quadratic.certify_quadratics`). A problem that differs in
+    anything (c) reads from the first one given is refused (``ValueError``).
+    """
+
+    def __init__(self):
+        self._of: tuple | None = None
+        self._by_inner: dict[float, tuple[dict, str | None]] = {}
+
+    @staticmethod
+    def _reads(problem: RoaProblem) -> tuple:
+        """What condition (c) reads of ``problem`` except ε (objects by identity)."""
+        arrays = tuple(None if a is None else np.asarray(a, dtype=float).tobytes()
+                       for a in (problem.dynamics_box, problem.input_box))
+        return ((problem.system, problem.controller, problem.dynamics),
+                (float(problem.eta), arrays,
+                 json.dumps(problem.verify_options, sort_keys=True, default=str)))
+
+    def get(self, problem: RoaProblem, saved: InnerEllipse | None = None
+            ) -> tuple[dict, str | None]:
+        """``(result, proved_from)`` of condition (c) at ``problem.inner`` (computed on the
+        first call for that radius)."""
+        if saved is not None:
+            raise ValueError("a saved ellipse is checked as saved, not shared")
+        reads = self._reads(problem)
+        if self._of is None:
+            self._of = reads
+        elif reads[1] != self._of[1] or any(
+                a is not b for a, b in zip(reads[0], self._of[0], strict=True)):
+            raise ValueError("InnerEllipseCache serves one closed loop: this problem differs "
+                             "in the system, controller, dynamics or verifier options")
+        eps = float(problem.inner)
+        if eps not in self._by_inner:
+            self._by_inner[eps] = _inner_ellipse(problem)
+        return self._by_inner[eps]
+
+
 #: the inner radii of a :class:`LevelPolicy` search, as multiples of the policy's radius
 INNER_FACTORS = (1.0, 0.5, 0.25, 2.0, 0.125, 3.0)
 
@@ -839,6 +885,7 @@ NEURAL_POLICY = LevelPolicy()
 
 def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, *,
                       level: float | None = None, cap: float | None = None,
+                      ellipses: InnerEllipseCache | None = None,
                       log=print) -> RoaCertificate:
     r"""Certify ``problem.V`` by ``policy``: conditions (a), (b), (c) by :func:`certify_roa`.
 
@@ -859,6 +906,8 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
     cap : float, optional
         An upper bound of the candidate level (a candidate's own level, e.g. an SOS
         program's); ignored with ``level``.
+    ellipses : InnerEllipseCache, optional
+        Condition (c) shared with the other candidates of the same closed loop.
     log : callable
 
     Returns
@@ -908,7 +957,8 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
                 continue
             lv = m * (1.0 + INNER_LEVEL_MARGIN)
         cert = certify_roa(p, lv, search=(f != 1.0 or level is None) and not smallest,
-                           follow_violations=policy.follow_violations, log=log)
+                           follow_violations=policy.follow_violations, ellipses=ellipses,
+                           log=log)
         tried.append({"inner": eps, "status": cert.status.value, "reason": cert.reason,
                       "level": cert.level})
         first = first or cert

@@ -1,0 +1,169 @@
+"""The quadratic stage skips a candidate that cannot win: its volume bound really bounds what
+it certifies, a skipped candidate's bound is at most the winner's volume, and the winner is
+the one found without skipping. Condition (c) is computed once per radius and shared."""
+
+import numpy as np
+import pytest
+from scipy.linalg import solve_continuous_lyapunov
+
+import systems
+from nlyap_opt.candidates import quadratic
+from nlyap_opt.candidates.quadratic import (
+    certify_quadratics,
+    closed_loop_matrix,
+    quadratic_policy,
+    volume_bound,
+)
+from nlyap_opt.certification.certificate import InnerEllipseCache, LevelPolicy, RoaProblem
+from nlyap_opt.design.control import lqr, lyapunov_matrix, quadratic_lyapunov, saturated_controller
+from nlyap_opt.kernel.domain import Ball, as_domain
+from nlyap_opt.workflow.configs import get_config
+
+
+def _pendulum(controller_scale=20.0):
+    s = systems.get("inverted_pendulum")
+    cfg = get_config("inverted_pendulum", "fast")
+    res = lqr(s, cfg["lqr"]["Q"], cfg["lqr"]["R"])
+    ctrl = saturated_controller(s, res.K, controller_scale)
+    problem = RoaProblem(s, quadratic_lyapunov(np.eye(2)), ctrl, None, inner=0.4, outer=4.0)
+    return problem, np.asarray(cfg["eval_box"], dtype=float)
+
+
+def _wide(A_cl, known=True):
+    """The Lyapunov matrix of ``A_clᵀP + PA_cl = −diag(1, 30)``: on the pendulum its
+    certified set is about three times that of the ``"lyapunov"`` candidate."""
+    return solve_continuous_lyapunov(A_cl.T, -np.diag([1.0, 30.0]))
+
+
+def test_the_boundary_level_bounds_the_least_v_on_the_boundary_from_above():
+    rng = np.random.default_rng(3)
+    box = {"type": "box", "box": [[-1.0, 2.0], [-0.5, 0.5], [-3.0, 1.0]]}
+    for D in (Ball(2.0, 3), as_domain(box, 3)):
+        A = rng.standard_normal((3, 3))
+        P = A @ A.T + 0.1 * np.eye(3)
+        c = quadratic._boundary_level(P, D)
+        # never below the true minimum on ∂D, and close to the least of dense samples of ∂D
+        assert c >= _min_on_boundary_from_below(P, D) * (1 - 1e-9)
+        b = D.sample_boundary(200000, rng)
+        assert c <= float(np.einsum("ij,jk,ik->i", b, P, b).min()) * 1.05
+
+
+def _min_on_boundary_from_below(P, D):
+    """A lower bound of ``min xᵀPx`` on ``∂D``: ``λ_min r²`` on the ball (exact); on a box the
+    least minimum over the hyperplanes of its faces."""
+    if isinstance(D, Ball):
+        return float(np.linalg.eigvalsh(P)[0]) * D.radius**2
+    box = D.bounding_box()
+    best = np.inf
+    for i in range(len(box)):
+        for b in box[i]:
+            keep = [j for j in range(len(box)) if j != i]
+            Pkk = P[np.ix_(keep, keep)]
+            Pki = P[keep, i]
+            plane = b * b * (P[i, i] - Pki @ np.linalg.solve(Pkk, Pki))
+            best = min(best, plane)
+    return best
+
+
+def test_a_candidate_that_cannot_win_is_skipped_and_the_winner_is_unchanged(monkeypatch):
+    problem, box = _pendulum()
+    monkeypatch.setitem(quadratic.QUADRATIC_CANDIDATES, "wide", _wide)
+    names = ["lyapunov", "wide"]
+    full = certify_quadratics(problem, names, box=box, n=101, prune=False, log=lambda m: None)
+    pruned = certify_quadratics(problem, names, box=box, n=101, prune=True, log=lambda m: None)
+    assert [c.name for c in full] == [c.name for c in pruned] == names
+    assert all(c.certified for c in full)
+    assert full[0].volume < full[1].volume
+    # the bound bounds: each candidate's certified volume is at most its volume bound
+    policy = quadratic_policy(True)
+    for c in full:
+        b = volume_bound(problem, c.P, policy, box=box, n=101, ellipses=InnerEllipseCache())
+        assert c.volume <= b
+    # "wide" goes first (the larger estimate); "lyapunov" is skipped: its bound is below the
+    # winner's certified volume, and the winner is the one found without skipping
+    lyap, wide = pruned
+    assert lyap.skipped and not lyap.certified and lyap.volume == 0.0
+    assert full[0].volume <= lyap.bound < wide.volume
+    assert wide.certified and wide.volume == full[1].volume
+    assert wide.certificate.level == full[1].certificate.level
+    rec = lyap.to_json()
+    assert rec["status"] == "skipped" and rec["volume_bound"] == lyap.bound
+    assert "cannot beat quadratic wide" in rec["reason"]
+
+
+def test_a_tie_keeps_the_earlier_name(monkeypatch):
+    """The same matrix twice: the second one's bound equals the first one's volume (the
+    level reaches the domain), and the earlier name wins a tie, so it is skipped."""
+    problem, box = _pendulum()
+    monkeypatch.setitem(quadratic.QUADRATIC_CANDIDATES, "again",
+                        quadratic.QUADRATIC_CANDIDATES["lyapunov"])
+    first, again = certify_quadratics(problem, ["lyapunov", "again"], box=box, n=101,
+                                      prune=True, log=lambda m: None)
+    assert first.certified and again.skipped
+    assert again.bound >= first.volume
+
+
+def test_the_level_bound_follows_the_policy():
+    """With ``smallest_level`` the level is at most ``(1 + margin)·λ_max ε²``; a radius whose
+    ball needs a level above the boundary's is dropped."""
+    problem, box = _pendulum()
+    P = lyapunov_matrix(closed_loop_matrix(problem))
+    lam_min, lam_max = np.linalg.eigvalsh(P)[[0, -1]]
+    smallest = LevelPolicy(1.0, (1.0, 2.0, 100.0), smallest_level=True)
+    levels = quadratic._radius_levels(problem, P, smallest)
+    edge = lam_min * 16.0       # the least V on ‖x‖ = 4
+    assert [e for e, _ in levels] == [e for e in (0.4, 0.8) if lam_max * e * e < edge]
+    for eps, c in levels:
+        assert c == pytest.approx(min(edge, 1.02 * lam_max * eps * eps), rel=1e-6)
+    plain = quadratic._radius_levels(problem, P, LevelPolicy(1.0, (1.0,)))
+    assert plain == [] or plain[0][1] == pytest.approx(edge, rel=1e-6)
+
+
+def test_the_ellipse_cache_serves_one_closed_loop_only():
+    problem, _ = _pendulum()
+    cache = InnerEllipseCache()
+    first = cache.get(problem)
+    assert cache.get(problem) is first                         # computed once
+    other, _ = _pendulum(controller_scale=10.0)
+    with pytest.raises(ValueError, match="one closed loop"):
+        cache.get(other)
+
+
+def _learned_toy():
+    """A 2-D loop with learned dynamics: φ its linearisation, η = 0.01 (the policy with the
+    smallest level at ε, 2ε, 3ε), condition (c) checked on the true f."""
+    import casadi as ca
+
+    from nlyap_opt.kernel.network import Layer, Network
+
+    A = np.array([[-1.0, 3.0], [0.0, -2.0]])
+    x = ca.SX.sym("x", 2)
+    f = ca.mtimes(ca.DM(A), x) + ca.vertcat(0.5 * x[0] ** 2 * x[1], -0.5 * x[0] ** 3)
+    s = systems.System("learned_toy", x, None, f, state_box=[[-2, 2], [-2, 2]])
+    phi = Network([Layer(A.copy(), np.zeros(2), "linear")],
+                  meta={"kind": "dynamics", "model": "full"})
+    problem = RoaProblem(s, quadratic_lyapunov(np.eye(2)), None, phi, inner=0.1, outer=1.5,
+                         eta=0.01, dynamics_box=[[-2, 2], [-2, 2]])
+    return problem, np.array([[-1.5, 1.5], [-1.5, 1.5]])
+
+
+def test_learned_dynamics_prune_by_default_and_the_bound_bounds_every_radius():
+    problem, box = _learned_toy()
+    names = ["lyapunov", "round", "volume"]
+    full = certify_quadratics(problem, names, box=box, n=61, prune=False, log=lambda m: None)
+    pruned = certify_quadratics(problem, names, box=box, n=61, log=lambda m: None)
+    assert [c.name for c in pruned] == names
+    assert all(c.certified for c in full)
+    # "round" is certified at 2ε only: the bound covers that radius's level and ellipse
+    assert {c.certificate.inner for c in full} == {0.1, 0.2}
+    policy = quadratic_policy(False)
+    assert policy.smallest_level
+    for c in full:
+        b = volume_bound(problem, c.P, policy, box=box, n=61, ellipses=InnerEllipseCache())
+        assert c.volume <= b
+    # the same winner, at the same level and volume, with or without skipping
+    win = max(full, key=lambda c: c.volume)
+    same = [c for c in pruned if c.name == win.name][0]
+    assert same.certified and same.volume == win.volume
+    assert same.certificate.level == win.certificate.level
+    assert max(c.volume for c in pruned) == win.volume

@@ -66,8 +66,9 @@ import numpy as np
 from nlyap_opt.kernel.errors import ConfigError, DimensionError
 from nlyap_opt.kernel.walker import NUMPY, compile_function, evaluate, op_name
 
-from .affine import Affine, AffineArithmetic
+from .affine import Affine, AffineArithmetic, tight_ranges
 from .interval import CheckedIntervalArithmetic, Interval, IntervalArithmetic
+from .precondition import hessian_coordinates, solve_preconditioned
 from .problem import Counterexample, VerificationProblem, VerificationResult
 
 __all__ = ["verify_interval", "split_box", "confirm_points"]
@@ -502,9 +503,9 @@ def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interva
     k = problem.n_properties
     G = _rows(evaluate(fG, [Interval(c, c.copy())], _IA)[0], B)
     G = _IA.structural(lambda a: np.swapaxes(a.reshape(B, n, k), 1, 2), G)  # (B, k, n)
-    Hs = evaluate(fH, [Interval(lo, hi)], _IA)
+    Hs = tight_ranges(fH, lo, hi)  # intervals ∩ affine forms
     Hs = [_IA.structural(lambda a: np.swapaxes(a.reshape(B, n, n), 1, 2), _rows(h, B))
-          for h in (Hs if isinstance(Hs, (list, tuple)) else [Hs])]
+          for h in Hs]
     H = Interval(np.stack([h.lo for h in Hs], 1), np.stack([h.hi for h in Hs], 1))  # (B,k,n,n)
 
     def widen(a: Interval) -> Interval:
@@ -691,6 +692,7 @@ def verify_interval(
     boxes: np.ndarray | None = None,
     hand_back: bool = False,
     hand_back_below: int = 0,
+    precondition: bool = False,
 ) -> VerificationResult:
     """Decide ``problem`` with interval branch-and-prune; see :func:`verification.verify`.
 
@@ -717,7 +719,23 @@ def verify_interval(
     queue that has shrunk below this many boxes (a pass costs a fixed time per graph
     instruction besides its time per box: the caller merges such tails of several tasks
     into one task's passes).
+    ``precondition``: verify in the coordinates ``z = |H|^{1/2} x`` of the last property's
+    Hessian ``H`` at the root box's centre, where it is definite
+    (:mod:`verification.precondition`: for a stiff loop, the decrease becomes about ``±|z|²``;
+    the result is stated about ``problem``; ``resolution`` then applies to widths in ``z``).
     """
+    if precondition:
+        if boxes is not None or hand_back or keep_leaves:
+            raise ValueError("precondition excludes boxes, hand_back and keep_leaves")
+        return solve_preconditioned(
+            problem, hessian_coordinates(problem),
+            lambda p: verify_interval(
+                p, resolution=resolution, max_boxes=max_boxes, batch=batch,
+                mean_value=mean_value, affine=affine, presearch=presearch,
+                stop_at_first=stop_at_first, seed=seed, initial_boxes=initial_boxes,
+                executor=executor, n_tasks=n_tasks, progress=progress,
+                second_order=second_order),
+            confirm_points)
     t0 = time.perf_counter()
     if mean_value is None:  # with affine forms: the mean-value form on undecided boxes
         mean_value = "undecided" if affine else True

@@ -60,7 +60,8 @@ import numpy as np
 
 import verification
 from verification.problem import VerificationResult
-from verification.verify import split_box, verify_interval
+from verification.precondition import hessian_coordinates, solve_preconditioned
+from verification.verify import confirm_points, split_box, verify_interval
 
 from ..kernel import deps
 from ..kernel.errors import BackendUnavailableError, ConfigError
@@ -719,7 +720,8 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     """
 
     known = set(inspect.signature(verify_interval).parameters) - {
-        "problem", "executor", "n_tasks", "progress", "boxes", "hand_back", "hand_back_below"}
+        "problem", "executor", "n_tasks", "progress", "boxes", "hand_back", "hand_back_below",
+        "precondition"}  # tasks start from boxes: coordinates are changed before (check)
     for name in options:
         if name not in known:
             raise TypeError(f"verify_distributed() got an unknown option {name!r}; options: "
@@ -916,6 +918,10 @@ def check(problem, **options):
     client = _CLUSTER.get()
     if client is None:
         return verification.verify(problem, **options)
+    if options.get("precondition"):  # coordinates z = Mx first, then the cluster on them
+        return solve_preconditioned(problem, hessian_coordinates(problem),
+                                    lambda p: check(p, **dict(options, precondition=False)),
+                                    confirm_points)
     opts = {k: v for k, v in options.items() if k not in ("n_tasks", "executor", "progress")}
     st: dict = {}
     res = verify_distributed(problem, client, stats=st, **opts)

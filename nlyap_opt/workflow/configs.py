@@ -581,6 +581,8 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "n_tasks": "sub-box tasks of a distributed check (null: 8)",
         "second_order": "also the second-order centred form on undecided boxes (pays off "
                         "from 3–4 states on)",
+        "precondition": "verify in the coordinates z = |H|^½ x of the decrease's Hessian at "
+                        "the centre, where it is definite (stiff loops in 4 and more states)",
     },
 }
 

@@ -152,3 +152,54 @@ def test_tight_ranges_hold_every_sample_and_are_never_looser_than_intervals():
         vals = [np.array(o) for o in Hf.map(len(pts))(pts.T)]
         for t, val in zip(tight, vals):
             assert np.all(val.T <= t.hi[b]) and np.all(val.T >= t.lo[b])
+
+
+def test_on_a_cluster_coordinates_change_before_the_tasks():
+    from nlyap_opt.distributed.parallel import (check, dask_client, verify_distributed,
+                                                verifying_on)
+    problem, _ = _stiff(level=0.5)
+    serial = verify(problem, second_order=True, precondition=True)
+    with dask_client(workers=2) as client:
+        with verifying_on(client):
+            res = check(problem, second_order=True, precondition=True)
+        with pytest.raises(TypeError, match="precondition"):
+            verify_distributed(problem, client, precondition=True)
+    assert res.status == serial.status == "verified"
+
+
+@pytest.mark.slow
+def test_planar_quadrotor_volume_P_at_ten_times_the_lqr_volume():
+    """The ``volume`` P of the quadrotor's large preset at level 0.08 (ellipsoid volume
+    2.0e-4, 10.8 times the LQR P's certified 1.85e-5): verified only in the Hessian's
+    coordinates (measured: 1.6e5 boxes, 31 s; axis-aligned boxes: unknown after 2e5)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from high_dimension import loop
+
+    from nlyap_opt.candidates.quadratic import QUADRATIC_CANDIDATES
+    from nlyap_opt.design.control import quadratic_lyapunov
+    from verification import closed_loop_problem
+
+    s, ctrl, A, _ = loop("planar_quadrotor")
+    P = QUADRATIC_CANDIDATES["volume"](A, True)
+    problem = closed_loop_problem(s, quadratic_lyapunov(P), ctrl, inner=0.025, outer=1.0,
+                                  level=0.08, check_positive=False)
+    res = verify(problem, second_order=True, precondition=True, max_boxes=1_000_000)
+    assert res.status == "verified", res
+    # dense samples of the ellipsoid V <= 0.08 (the root box is almost all outside it)
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(200_000, 6))
+    u *= rng.random((len(u), 1)) ** (1 / 6) / np.linalg.norm(u, axis=1, keepdims=True)
+    X = np.linalg.solve(np.linalg.cholesky(P).T, u.T).T * np.sqrt(0.08)
+    F = np.array(problem.function(X.T)).T
+    region = np.all(F[:, :problem.n_constraints] <= 0, axis=1)
+    assert region.sum() > 100_000
+    assert np.all(F[region, problem.n_constraints:] < 0)
+    # the certificate mutated to a level past the least violation (V = 0.287): refuted, in x
+    bad = closed_loop_problem(s, quadratic_lyapunov(P), ctrl, inner=0.025, outer=1.0,
+                              level=0.3, check_positive=False)
+    r = verify(bad, second_order=True, precondition=True, max_boxes=1_000_000)
+    assert r.status == "counterexample"
+    assert_confirmed(bad, r.counterexample)

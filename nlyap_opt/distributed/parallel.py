@@ -59,8 +59,8 @@ from collections.abc import Iterator
 import numpy as np
 
 import verification
-from verification.problem import VerificationResult
 from verification.precondition import hessian_coordinates, solve_preconditioned
+from verification.problem import VerificationResult
 from verification.verify import confirm_points, split_box, verify_interval
 
 from ..kernel import deps
@@ -920,7 +920,8 @@ def check(problem, **options):
         return verification.verify(problem, **options)
     if options.get("precondition"):  # coordinates z = Mx first, then the cluster on them
         return solve_preconditioned(problem, hessian_coordinates(problem),
-                                    lambda p: check(p, **dict(options, precondition=False)),
+                                    lambda p: check(p, **{k: v for k, v in options.items()
+                                                          if k != "precondition"}),
                                     confirm_points)
     opts = {k: v for k, v in options.items() if k not in ("n_tasks", "executor", "progress")}
     st: dict = {}

@@ -155,8 +155,7 @@ def test_tight_ranges_hold_every_sample_and_are_never_looser_than_intervals():
 
 
 def test_on_a_cluster_coordinates_change_before_the_tasks():
-    from nlyap_opt.distributed.parallel import (check, dask_client, verify_distributed,
-                                                verifying_on)
+    from nlyap_opt.distributed.parallel import check, dask_client, verify_distributed, verifying_on
     problem, _ = _stiff(level=0.5)
     serial = verify(problem, second_order=True, precondition=True)
     with dask_client(workers=2) as client:

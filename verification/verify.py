@@ -473,7 +473,8 @@ def _mean_value_where_undecided(problem, lo, hi, enc: Interval, Fc: Interval, ch
     return Interval(lo_new, hi_new), Interval(J_lo, J_hi)
 
 
-def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interval) -> Interval:
+def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interval,
+                            affine_hessian: bool = False) -> Interval:
     r"""Second-order centred form of the properties on boxes ``[lo, hi]`` (``(B, n)``).
 
     With ``c`` the centre, ``d = x − c`` (``|d_i| ≤ h_i``), Taylor's theorem with the
@@ -494,6 +495,10 @@ def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interva
     enters only through ``∇²p`` on the box, so the interval dependency between ``Px`` and
     ``f(x)`` no longer grows with the box's width relative to ``|x|``.
 
+    ``affine_hessian``: enclose the Hessian by the interval extension intersected with the
+    range of its affine forms (:func:`verification.affine.tight_ranges`; tighter where the
+    Hessian graph combines correlated terms, at the cost of an affine pass over it).
+
     Returns the ``(B, k)`` enclosure of the properties (``Fp``: their rigorous values at the
     centres); columns whose graphs give non-finite bounds come back as ``(−inf, inf)``.
     """
@@ -503,9 +508,10 @@ def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interva
     k = problem.n_properties
     G = _rows(evaluate(fG, [Interval(c, c.copy())], _IA)[0], B)
     G = _IA.structural(lambda a: np.swapaxes(a.reshape(B, n, k), 1, 2), G)  # (B, k, n)
-    Hs = tight_ranges(fH, lo, hi)  # intervals ∩ affine forms
+    # affine_hessian: the Hessian graph's interval extension ∩ its affine forms' range
+    Hs = tight_ranges(fH, lo, hi) if affine_hessian else evaluate(fH, [Interval(lo, hi)], _IA)
     Hs = [_IA.structural(lambda a: np.swapaxes(a.reshape(B, n, n), 1, 2), _rows(h, B))
-          for h in Hs]
+          for h in (Hs if isinstance(Hs, (list, tuple)) else [Hs])]
     H = Interval(np.stack([h.lo for h in Hs], 1), np.stack([h.hi for h in Hs], 1))  # (B,k,n,n)
 
     def widen(a: Interval) -> Interval:
@@ -556,10 +562,12 @@ def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interva
     return Interval(np.where(ok, lo_b, -np.inf), np.where(ok, hi_b, np.inf))
 
 
-def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=None
-                       ) -> Interval:
+def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=None,
+                       affine_hessian: bool = False) -> Interval:
     """``enc`` intersected with :func:`_second_order_enclosure` on the property columns of
-    the boxes that are neither outside the region nor decided.
+    the boxes that are neither outside the region nor decided; then, on the boxes that
+    this still leaves undecided, with the form whose Hessian is also enclosed by affine
+    forms (``affine_hessian``: the second pass only, where the costlier pass can decide).
 
     For a ``checked`` problem (``chk``: the per box and column flags), a column keeps
     ``enc`` where its box may hold a kink or jump, or an operation not proved inside its
@@ -579,7 +587,7 @@ def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=No
     if not len(rows):
         return enc
     Fp = Interval(Fc.lo[rows, m:], Fc.hi[rows, m:])
-    so = _second_order_enclosure(problem, lo[rows], hi[rows], Fp)
+    so = _second_order_enclosure(problem, lo[rows], hi[rows], Fp, affine_hessian)
     old = Interval(enc.lo[rows, m:], enc.hi[rows, m:])
     new = _IA.intersect(old, so)
     bad = ~(new.lo <= new.hi)  # cannot happen for sound enclosures: keep the old one
@@ -588,6 +596,8 @@ def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=No
     lo_new, hi_new = enc.lo.copy(), enc.hi.copy()
     lo_new[rows, m:] = np.where(bad, old.lo, new.lo)
     hi_new[rows, m:] = np.where(bad, old.hi, new.hi)
+    if not affine_hessian:
+        return _with_second_order(problem, lo, hi, Interval(lo_new, hi_new), Fc, lag, chk, True)
     return Interval(lo_new, hi_new)
 
 

@@ -367,7 +367,8 @@ def _enclose_all(problem, lo, hi, mean_value: bool, affine: bool = False,
         enc, Fc, _, chk, chk_c, aux = _enclose_all(problem, lo, hi, False, affine)
         enc, J = _mean_value_where_undecided(problem, lo, hi, enc, Fc, chk, aux)
         if second_order:
-            enc = _with_second_order(problem, lo, hi, enc, Fc, aux[1] if aux else None, chk)
+            enc = _with_second_order(problem, lo, hi, enc, Fc, aux[1] if aux else None, chk,
+                                     second_order == "affine")
         return enc, Fc, J, chk, chk_c, aux
     if not mean_value:
         if checked:
@@ -413,7 +414,8 @@ def _enclose_all(problem, lo, hi, mean_value: bool, affine: bool = False,
     if affine:
         enc, aux = _with_affine(problem, lo, hi, enc, chk)
     if second_order:
-        enc = _with_second_order(problem, lo, hi, enc, Fc, aux[1] if aux else None, chk)
+        enc = _with_second_order(problem, lo, hi, enc, Fc, aux[1] if aux else None, chk,
+                                 second_order == "affine")
     return enc, Fc, J, chk, chk_c, aux
 
 
@@ -563,11 +565,12 @@ def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interva
 
 
 def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=None,
-                       affine_hessian: bool = False) -> Interval:
+                       affine_hessian: bool = False, _pass: int = 0) -> Interval:
     """``enc`` intersected with :func:`_second_order_enclosure` on the property columns of
-    the boxes that are neither outside the region nor decided; then, on the boxes that
-    this still leaves undecided, with the form whose Hessian is also enclosed by affine
-    forms (``affine_hessian``: the second pass only, where the costlier pass can decide).
+    the boxes that are neither outside the region nor decided; with ``affine_hessian``
+    (``second_order="affine"``, set by ``precondition``), then also, on the boxes that this
+    still leaves undecided, with the form whose Hessian is enclosed by affine forms too
+    (a second pass only where the costlier one is needed).
 
     For a ``checked`` problem (``chk``: the per box and column flags), a column keeps
     ``enc`` where its box may hold a kink or jump, or an operation not proved inside its
@@ -587,7 +590,7 @@ def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=No
     if not len(rows):
         return enc
     Fp = Interval(Fc.lo[rows, m:], Fc.hi[rows, m:])
-    so = _second_order_enclosure(problem, lo[rows], hi[rows], Fp, affine_hessian)
+    so = _second_order_enclosure(problem, lo[rows], hi[rows], Fp, _pass == 1)
     old = Interval(enc.lo[rows, m:], enc.hi[rows, m:])
     new = _IA.intersect(old, so)
     bad = ~(new.lo <= new.hi)  # cannot happen for sound enclosures: keep the old one
@@ -596,8 +599,9 @@ def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=No
     lo_new, hi_new = enc.lo.copy(), enc.hi.copy()
     lo_new[rows, m:] = np.where(bad, old.lo, new.lo)
     hi_new[rows, m:] = np.where(bad, old.hi, new.hi)
-    if not affine_hessian:
-        return _with_second_order(problem, lo, hi, Interval(lo_new, hi_new), Fc, lag, chk, True)
+    if affine_hessian and _pass == 0:
+        return _with_second_order(problem, lo, hi, Interval(lo_new, hi_new), Fc, lag, chk,
+                                  True, 1)
     return Interval(lo_new, hi_new)
 
 
@@ -719,7 +723,9 @@ def verify_interval(
     of kinks and jumps; ignored without ``mean_value``). It removes the interval
     dependency of Lie derivatives such as ``2(Px)·f(x)``, which otherwise needs boxes ever
     smaller next to the inner ball and grows as ``(1/width)^n``; worth its cost from 3 or
-    4 states on. ``boxes`` (``(k, n, 2)``, sub-boxes of the problem's box): start from them,
+    4 states on. ``second_order="affine"`` (what ``precondition`` passes on): on the boxes
+    the form still leaves undecided, once more with the Hessian also enclosed by affine
+    forms (:func:`verification.affine.tight_ranges`). ``boxes`` (``(k, n, 2)``, sub-boxes of the problem's box): start from them,
     all in one batch, instead of the root box's grid (the load-balanced tasks of
     :func:`nlyap_opt.distributed.parallel.verify_distributed`; the verdict is about their union).
     ``hand_back``: once ``max_boxes`` are spent, a box still to bisect is bisected by the
@@ -744,7 +750,7 @@ def verify_interval(
                 mean_value=mean_value, affine=affine, presearch=presearch,
                 stop_at_first=stop_at_first, seed=seed, initial_boxes=initial_boxes,
                 executor=executor, n_tasks=n_tasks, progress=progress,
-                second_order=second_order),
+                second_order="affine" if second_order else False),
             confirm_points)
     t0 = time.perf_counter()
     if mean_value is None:  # with affine forms: the mean-value form on undecided boxes
@@ -753,7 +759,9 @@ def verify_interval(
     width = box[:, 1] - box[:, 0]
     if resolution is None:
         resolution = 1e-4 * float(np.max(width))
-    second_order = bool(second_order) and bool(mean_value)
+    # "affine" (passed on by precondition): with the affine Hessian pass; else a bool
+    second_order = (second_order if second_order == "affine" else bool(second_order)) \
+        if mean_value else False
     if second_order:
         problem.second_order_functions  # built here, so that they travel to workers
     if boxes is not None:

@@ -898,6 +898,15 @@ def verifying_on(client) -> Iterator:
         _CLUSTER.reset(token)
 
 
+def _preconditioned_options(options: dict) -> dict:
+    """The options of a check in changed coordinates: without ``precondition``, and with the
+    second-order form's affine Hessian pass (``second_order="affine"``) if it is on."""
+    out = {k: v for k, v in options.items() if k != "precondition"}
+    if out.get("second_order"):
+        out["second_order"] = "affine"
+    return out
+
+
 def check(problem, **options):
     """:func:`verification.verify` (interval backend), on the cluster of :func:`verifying_on`.
 
@@ -920,8 +929,7 @@ def check(problem, **options):
         return verification.verify(problem, **options)
     if options.get("precondition"):  # coordinates z = Mx first, then the cluster on them
         return solve_preconditioned(problem, hessian_coordinates(problem),
-                                    lambda p: check(p, **{k: v for k, v in options.items()
-                                                          if k != "precondition"}),
+                                    lambda p: check(p, **_preconditioned_options(options)),
                                     confirm_points)
     opts = {k: v for k, v in options.items() if k not in ("n_tasks", "executor", "progress")}
     st: dict = {}

@@ -15,8 +15,8 @@ result about the original one.
 
 Soundness
 ---------
-``T`` is a float matrix, the float inverse of ``M``; the ``z`` problem's graphs are the
-original ones of ``x = T z`` (a constant matrix product, evaluated by the verifier in
+``T`` is a float matrix, the float inverse of ``M`` rounded to 24 significant bits; the
+``z`` problem's graphs are the original ones of ``x = T z`` (a constant matrix product, evaluated by the verifier in
 outward-rounded arithmetic), its constraints are the original ones and an ellipsoid
 ``Σ_i ((Tz)_i − c_i)²/r_i² ≤ n`` that contains the original root box ``B`` (centre ``c``,
 half widths ``r`` rounded up; a superset of ``B``: proving the properties on a larger
@@ -64,7 +64,7 @@ class Preconditioned:
         the original root box ``B`` as one more constraint, and a root box covering ``T⁻¹B``.
     original : VerificationProblem
     M, T : (n, n) ndarray
-        ``z ≈ M x`` and the exact substitution ``x = T z`` (``T`` the float inverse of ``M``).
+        ``z ≈ M x`` and the exact substitution ``x = T z`` (``T`` about the inverse of ``M``).
     """
 
     problem: VerificationProblem
@@ -108,7 +108,8 @@ def hessian_coordinates(problem: VerificationProblem, point=None) -> np.ndarray 
     -------
     (n, n) ndarray or None
         Rows: the eigenvectors of ``H`` (each with its largest entry positive, so that the
-        same ``H`` gives the same ``M``) scaled by ``|λ|^{1/2}``; ``None`` when ``H`` is not
+        same ``H`` gives the same ``M``) scaled by ``|λ|^{1/2}``, rounded to 24 significant
+        bits; ``None`` when ``H`` is not
         finite, not definite, or its eigenvalues' magnitudes span more than
         :data:`_MAX_SPREAD`, or the root box is flat in some dimension (then the problem
         is verified as it is).
@@ -128,7 +129,15 @@ def hessian_coordinates(problem: VerificationProblem, point=None) -> np.ndarray 
     if not (np.all(w < 0) or np.all(w > 0)) or a.min() * _MAX_SPREAD < a.max():
         return None
     sign = np.sign(U[np.argmax(np.abs(U), axis=0), np.arange(n)])
-    return (U * sign * np.sqrt(a)).T
+    return _coarse((U * sign * np.sqrt(a)).T)
+
+
+def _coarse(a: np.ndarray, bits: int = 24) -> np.ndarray:
+    """``a`` rounded to ``bits`` significant bits: the last bits of an eigen-decomposition
+    or an inverse differ between LAPACK builds; rounded, the same ``M`` and ``T`` (so the
+    same graphs, boxes and verdicts) come out on other machines too."""
+    m, e = np.frexp(np.asarray(a, dtype=float))
+    return np.ldexp(np.round(np.ldexp(m, bits)), e - bits)
 
 
 def _cover(M: np.ndarray, T: np.ndarray, box: np.ndarray) -> np.ndarray:
@@ -179,7 +188,7 @@ def precondition(problem: VerificationProblem, M: np.ndarray) -> Preconditioned:
     if not np.all(problem.box[:, 1] > problem.box[:, 0]):
         raise ValueError("precondition needs a root box of positive width in every dimension")
     try:
-        T = np.linalg.inv(M)
+        T = _coarse(np.linalg.inv(M))   # any T with ‖I − MT‖ < ½ will do (see _cover)
     except np.linalg.LinAlgError:
         raise ValueError("M must be invertible") from None
     box = problem.box

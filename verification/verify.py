@@ -726,7 +726,8 @@ def verify_interval(
     4 states on. ``second_order="affine"`` (what ``precondition`` passes on): on the boxes
     the form still leaves undecided, once more with the Hessian also enclosed by affine
     forms (:func:`verification.affine.tight_ranges`). ``boxes`` (``(k, n, 2)``, sub-boxes
-    of the problem's box): start from them, all in one batch, instead of the root box's grid (the load-balanced tasks of
+    of the problem's box): start from them, all in one batch, instead of the root box's
+    grid (the load-balanced tasks of
     :func:`nlyap_opt.distributed.parallel.verify_distributed`; the verdict is about their union).
     ``hand_back``: once ``max_boxes`` are spent, a box still to bisect is bisected by the
     usual rule and its two halves come back *unevaluated* in ``result.open`` (not in

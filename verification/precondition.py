@@ -19,8 +19,8 @@ Soundness
 ``z`` problem's graphs are the original ones of ``x = T z`` (a constant matrix product,
 evaluated by the verifier in outward-rounded arithmetic), its constraints are the
 original ones and an ellipsoid ``Σ_i ((Tz)_i − c_i)²/r_i² ≤ n`` that contains the
-original root box ``B`` (centre ``c``, half widths ``r`` rounded up; a superset of ``B``: proving the properties on a larger
-region proves them on ``B``), and its root box ``Z`` covers ``T⁻¹B``: with
+original root box ``B`` (centre ``c``, half widths ``r`` rounded up; a superset of
+``B``: proving the properties on a larger region proves them on ``B``), and its root box ``Z`` covers ``T⁻¹B``: with
 ``Δ = I − MT`` enclosed in interval arithmetic and ``δ ≥ ‖Δ‖_∞`` (``δ < ½`` required),
 ``T⁻¹ = (I − Δ)⁻¹M``, so ``z = T⁻¹x`` lies within ``δ/(1 − δ)·‖Mx‖_∞`` of ``Mx``, and ``Mx``
 over ``B`` is an interval matrix product. Every point ``x`` of the original region is

@@ -17,19 +17,19 @@ Soundness
 ---------
 ``T`` is a float matrix, the float inverse of ``M`` rounded to 24 significant bits; the
 ``z`` problem's graphs are the original ones of ``x = T z`` (a constant matrix product,
-evaluated by the verifier in outward-rounded arithmetic), its constraints are the
-original ones and an ellipsoid ``Σ_i ((Tz)_i − c_i)²/r_i² ≤ n`` that contains the
-original root box ``B`` (centre ``c``, half widths ``r`` rounded up; a superset of
-``B``: proving the properties on a larger region proves them on ``B``), and its root box ``Z`` covers ``T⁻¹B``: with
-``Δ = I − MT`` enclosed in interval arithmetic and ``δ ≥ ‖Δ‖_∞`` (``δ < ½`` required),
+evaluated by the verifier in outward-rounded arithmetic), its constraints are the original
+ones and an ellipsoid ``Σ_i ((Tz)_i − c_i)²/r_i² ≤ n`` that contains the original root box
+``B`` (centre ``c``, half widths ``r`` rounded up; a superset of ``B``: proving the
+properties on a larger region proves them on ``B``), and its root box ``Z`` covers ``T⁻¹B``:
+with ``Δ = I − MT`` enclosed in interval arithmetic and ``δ ≥ ‖Δ‖_∞`` (``δ < ½`` required),
 ``T⁻¹ = (I − Δ)⁻¹M``, so ``z = T⁻¹x`` lies within ``δ/(1 − δ)·‖Mx‖_∞`` of ``Mx``, and ``Mx``
 over ``B`` is an interval matrix product. Every point ``x`` of the original region is
-``T z`` for a ``z ∈ Z`` that satisfies the ``z`` problem's constraints, so ``verified`` in
-``z`` proves the original properties on the original region. A ``z`` counterexample is
-mapped to ``x = fl(T z)`` and confirmed again on the original problem (rigorous point
-evaluation); one that does not confirm there makes the answer ``unknown``, never a
-counterexample. Undecided ``z`` boxes come back as boxes of ``x`` that cover their image
-(outward-rounded interval product, intersected with ``B``).
+``T z`` for a ``z ∈ Z`` that satisfies the ``z`` problem's constraints, so ``verified`` in ``z``
+proves the original properties on the original region. A ``z`` counterexample is mapped to
+``x = fl(T z)`` and confirmed again on the original problem (rigorous point evaluation); one
+that does not confirm there makes the answer ``unknown``, never a counterexample. Undecided
+``z`` boxes come back as boxes of ``x`` that cover their image (outward-rounded interval
+product, intersected with ``B``).
 """
 
 from __future__ import annotations

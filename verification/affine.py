@@ -50,6 +50,7 @@ import casadi as ca
 import numpy as np
 
 from nlyap_opt.kernel.rounding import ETA, U, dn, dn_sum, gamma, up, up_roundings, up_sum
+from nlyap_opt.kernel.walker import evaluate
 
 from .interval import (
     _PI,
@@ -63,7 +64,7 @@ from .interval import (
     _sub,
 )
 
-__all__ = ["Affine", "AffineArithmetic"]
+__all__ = ["Affine", "AffineArithmetic", "tight_ranges"]
 
 _INF = np.inf
 _IA = IntervalArithmetic()
@@ -793,3 +794,51 @@ def _transpose(x: Affine) -> Affine:
     e = np.broadcast_to(x.e, x.c.shape)
     return Affine(np.swapaxes(x.c, -1, -2), None if x.g is None else np.swapaxes(x.g, -1, -2),
                   np.swapaxes(e, -1, -2))
+
+
+def tight_ranges(fn: ca.Function, lo: np.ndarray, hi: np.ndarray) -> list[Interval]:
+    """Ranges of ``fn``'s outputs on boxes: the natural interval extension intersected with
+    the range of the affine forms (the tighter bound wins per box and entry).
+
+    For graphs built by differentiation (gradients, Hessians of Lie derivatives) the two
+    differ most: the derivative graph combines many correlated terms (products of a
+    network's weights with its activations' derivatives, a coordinate change's matrix),
+    whose dependency interval arithmetic cannot see. The Hessian of the planar
+    quadrotor's decrease on the boxes the verifier left undecided: entries at most 2300
+    wide by intervals, 11 by affine forms, 3.3 by dense sampling.
+
+    Parameters
+    ----------
+    fn : casadi.Function
+        One input, ``n`` wide.
+    lo, hi : (B, n) ndarray
+        The boxes.
+
+    Returns
+    -------
+    list of Interval
+        One per output of ``fn``, each of shape ``(B, numel)`` (column-major entries, as
+        the walker gives them). Both enclosures are sound; where they do not overlap
+        (impossible for sound enclosures) the interval one is kept.
+    """
+    B = len(lo)
+    nat = evaluate(fn, [Interval(lo, hi)], _IA)
+    aff = evaluate(fn, [Affine.from_box(lo, hi)], AffineArithmetic())
+    out = []
+    for a, b in zip(nat, aff):
+        a = _as_rows(_IA.constant(np.asarray(a)) if not isinstance(a, Interval) else a, B)
+        b = _as_rows(_aff(b).to_interval(), B)
+        nlo, nhi = np.maximum(a.lo, b.lo), np.minimum(a.hi, b.hi)
+        bad = ~(nlo <= nhi)
+        out.append(Interval(np.where(bad, a.lo, nlo), np.where(bad, a.hi, nhi)))
+    return out
+
+
+def _as_rows(x: Interval, B: int) -> Interval:
+    """A walker output as ``(B, k)`` rows (constant outputs come without the batch axis)."""
+    lo, hi = np.asarray(x.lo), np.asarray(x.hi)
+    if lo.ndim == 2 and lo.shape[0] == B:
+        return Interval(lo, hi)
+    k = lo.shape[-1] if lo.ndim else 1
+    return Interval(np.broadcast_to(lo.reshape(-1)[-k:] if lo.ndim else lo, (B, k)),
+                    np.broadcast_to(hi.reshape(-1)[-k:] if hi.ndim else hi, (B, k)))

@@ -66,8 +66,9 @@ import numpy as np
 from nlyap_opt.kernel.errors import ConfigError, DimensionError
 from nlyap_opt.kernel.walker import NUMPY, compile_function, evaluate, op_name
 
-from .affine import Affine, AffineArithmetic
+from .affine import Affine, AffineArithmetic, tight_ranges
 from .interval import CheckedIntervalArithmetic, Interval, IntervalArithmetic
+from .precondition import hessian_coordinates, solve_preconditioned
 from .problem import Counterexample, VerificationProblem, VerificationResult
 
 __all__ = ["verify_interval", "split_box", "confirm_points"]
@@ -366,7 +367,8 @@ def _enclose_all(problem, lo, hi, mean_value: bool, affine: bool = False,
         enc, Fc, _, chk, chk_c, aux = _enclose_all(problem, lo, hi, False, affine)
         enc, J = _mean_value_where_undecided(problem, lo, hi, enc, Fc, chk, aux)
         if second_order:
-            enc = _with_second_order(problem, lo, hi, enc, Fc, aux[1] if aux else None, chk)
+            enc = _with_second_order(problem, lo, hi, enc, Fc, aux[1] if aux else None, chk,
+                                     second_order == "affine")
         return enc, Fc, J, chk, chk_c, aux
     if not mean_value:
         if checked:
@@ -412,7 +414,8 @@ def _enclose_all(problem, lo, hi, mean_value: bool, affine: bool = False,
     if affine:
         enc, aux = _with_affine(problem, lo, hi, enc, chk)
     if second_order:
-        enc = _with_second_order(problem, lo, hi, enc, Fc, aux[1] if aux else None, chk)
+        enc = _with_second_order(problem, lo, hi, enc, Fc, aux[1] if aux else None, chk,
+                                 second_order == "affine")
     return enc, Fc, J, chk, chk_c, aux
 
 
@@ -472,7 +475,8 @@ def _mean_value_where_undecided(problem, lo, hi, enc: Interval, Fc: Interval, ch
     return Interval(lo_new, hi_new), Interval(J_lo, J_hi)
 
 
-def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interval) -> Interval:
+def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interval,
+                            affine_hessian: bool = False) -> Interval:
     r"""Second-order centred form of the properties on boxes ``[lo, hi]`` (``(B, n)``).
 
     With ``c`` the centre, ``d = x − c`` (``|d_i| ≤ h_i``), Taylor's theorem with the
@@ -493,6 +497,10 @@ def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interva
     enters only through ``∇²p`` on the box, so the interval dependency between ``Px`` and
     ``f(x)`` no longer grows with the box's width relative to ``|x|``.
 
+    ``affine_hessian``: enclose the Hessian by the interval extension intersected with the
+    range of its affine forms (:func:`verification.affine.tight_ranges`; tighter where the
+    Hessian graph combines correlated terms, at the cost of an affine pass over it).
+
     Returns the ``(B, k)`` enclosure of the properties (``Fp``: their rigorous values at the
     centres); columns whose graphs give non-finite bounds come back as ``(−inf, inf)``.
     """
@@ -502,7 +510,8 @@ def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interva
     k = problem.n_properties
     G = _rows(evaluate(fG, [Interval(c, c.copy())], _IA)[0], B)
     G = _IA.structural(lambda a: np.swapaxes(a.reshape(B, n, k), 1, 2), G)  # (B, k, n)
-    Hs = evaluate(fH, [Interval(lo, hi)], _IA)
+    # affine_hessian: the Hessian graph's interval extension ∩ its affine forms' range
+    Hs = tight_ranges(fH, lo, hi) if affine_hessian else evaluate(fH, [Interval(lo, hi)], _IA)
     Hs = [_IA.structural(lambda a: np.swapaxes(a.reshape(B, n, n), 1, 2), _rows(h, B))
           for h in (Hs if isinstance(Hs, (list, tuple)) else [Hs])]
     H = Interval(np.stack([h.lo for h in Hs], 1), np.stack([h.hi for h in Hs], 1))  # (B,k,n,n)
@@ -555,10 +564,13 @@ def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interva
     return Interval(np.where(ok, lo_b, -np.inf), np.where(ok, hi_b, np.inf))
 
 
-def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=None
-                       ) -> Interval:
+def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=None,
+                       affine_hessian: bool = False, _pass: int = 0) -> Interval:
     """``enc`` intersected with :func:`_second_order_enclosure` on the property columns of
-    the boxes that are neither outside the region nor decided.
+    the boxes that are neither outside the region nor decided; with ``affine_hessian``
+    (``second_order="affine"``, set by ``precondition``), then also, on the boxes that this
+    still leaves undecided, with the form whose Hessian is enclosed by affine forms too
+    (a second pass only where the costlier one is needed).
 
     For a ``checked`` problem (``chk``: the per box and column flags), a column keeps
     ``enc`` where its box may hold a kink or jump, or an operation not proved inside its
@@ -578,7 +590,7 @@ def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=No
     if not len(rows):
         return enc
     Fp = Interval(Fc.lo[rows, m:], Fc.hi[rows, m:])
-    so = _second_order_enclosure(problem, lo[rows], hi[rows], Fp)
+    so = _second_order_enclosure(problem, lo[rows], hi[rows], Fp, _pass == 1)
     old = Interval(enc.lo[rows, m:], enc.hi[rows, m:])
     new = _IA.intersect(old, so)
     bad = ~(new.lo <= new.hi)  # cannot happen for sound enclosures: keep the old one
@@ -587,6 +599,9 @@ def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=No
     lo_new, hi_new = enc.lo.copy(), enc.hi.copy()
     lo_new[rows, m:] = np.where(bad, old.lo, new.lo)
     hi_new[rows, m:] = np.where(bad, old.hi, new.hi)
+    if affine_hessian and _pass == 0:
+        return _with_second_order(problem, lo, hi, Interval(lo_new, hi_new), Fc, lag, chk,
+                                  True, 1)
     return Interval(lo_new, hi_new)
 
 
@@ -691,6 +706,7 @@ def verify_interval(
     boxes: np.ndarray | None = None,
     hand_back: bool = False,
     hand_back_below: int = 0,
+    precondition: bool = False,
 ) -> VerificationResult:
     """Decide ``problem`` with interval branch-and-prune; see :func:`verification.verify`.
 
@@ -707,8 +723,11 @@ def verify_interval(
     of kinks and jumps; ignored without ``mean_value``). It removes the interval
     dependency of Lie derivatives such as ``2(Px)·f(x)``, which otherwise needs boxes ever
     smaller next to the inner ball and grows as ``(1/width)^n``; worth its cost from 3 or
-    4 states on. ``boxes`` (``(k, n, 2)``, sub-boxes of the problem's box): start from them,
-    all in one batch, instead of the root box's grid (the load-balanced tasks of
+    4 states on. ``second_order="affine"`` (what ``precondition`` passes on): on the boxes
+    the form still leaves undecided, once more with the Hessian also enclosed by affine
+    forms (:func:`verification.affine.tight_ranges`). ``boxes`` (``(k, n, 2)``, sub-boxes
+    of the problem's box): start from them, all in one batch, instead of the root box's
+    grid (the load-balanced tasks of
     :func:`nlyap_opt.distributed.parallel.verify_distributed`; the verdict is about their union).
     ``hand_back``: once ``max_boxes`` are spent, a box still to bisect is bisected by the
     usual rule and its two halves come back *unevaluated* in ``result.open`` (not in
@@ -717,7 +736,23 @@ def verify_interval(
     queue that has shrunk below this many boxes (a pass costs a fixed time per graph
     instruction besides its time per box: the caller merges such tails of several tasks
     into one task's passes).
+    ``precondition``: verify in the coordinates ``z = |H|^{1/2} x`` of the last property's
+    Hessian ``H`` at the root box's centre, where it is definite
+    (:mod:`verification.precondition`: for a stiff loop, the decrease becomes about ``±|z|²``;
+    the result is stated about ``problem``; ``resolution`` then applies to widths in ``z``).
     """
+    if precondition:
+        if boxes is not None or hand_back or keep_leaves:
+            raise ValueError("precondition excludes boxes, hand_back and keep_leaves")
+        return solve_preconditioned(
+            problem, hessian_coordinates(problem),
+            lambda p: verify_interval(
+                p, resolution=resolution, max_boxes=max_boxes, batch=batch,
+                mean_value=mean_value, affine=affine, presearch=presearch,
+                stop_at_first=stop_at_first, seed=seed, initial_boxes=initial_boxes,
+                executor=executor, n_tasks=n_tasks, progress=progress,
+                second_order="affine" if second_order else False),
+            confirm_points)
     t0 = time.perf_counter()
     if mean_value is None:  # with affine forms: the mean-value form on undecided boxes
         mean_value = "undecided" if affine else True
@@ -725,7 +760,9 @@ def verify_interval(
     width = box[:, 1] - box[:, 0]
     if resolution is None:
         resolution = 1e-4 * float(np.max(width))
-    second_order = bool(second_order) and bool(mean_value)
+    # "affine" (passed on by precondition): with the affine Hessian pass; else a bool
+    second_order = (second_order if second_order == "affine" else bool(second_order)) \
+        if mean_value else False
     if second_order:
         problem.second_order_functions  # built here, so that they travel to workers
     if boxes is not None:

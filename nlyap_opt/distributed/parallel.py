@@ -59,8 +59,9 @@ from collections.abc import Iterator
 import numpy as np
 
 import verification
+from verification.precondition import hessian_coordinates, solve_preconditioned
 from verification.problem import VerificationResult
-from verification.verify import split_box, verify_interval
+from verification.verify import confirm_points, split_box, verify_interval
 
 from ..kernel import deps
 from ..kernel.errors import BackendUnavailableError, ConfigError
@@ -926,7 +927,8 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     """
 
     known = set(inspect.signature(verify_interval).parameters) - {
-        "problem", "executor", "n_tasks", "progress", "boxes", "hand_back", "hand_back_below"}
+        "problem", "executor", "n_tasks", "progress", "boxes", "hand_back", "hand_back_below",
+        "precondition"}  # tasks start from boxes: coordinates are changed before (check)
     for name in options:
         if name not in known:
             raise TypeError(f"verify_distributed() got an unknown option {name!r}; options: "
@@ -1114,6 +1116,15 @@ def verifying_on(client) -> Iterator:
         _CLUSTER.reset(token)
 
 
+def _preconditioned_options(options: dict) -> dict:
+    """The options of a check in changed coordinates: without ``precondition``, and with the
+    second-order form's affine Hessian pass (``second_order="affine"``) if it is on."""
+    out = {k: v for k, v in options.items() if k != "precondition"}
+    if out.get("second_order"):
+        out["second_order"] = "affine"
+    return out
+
+
 def check(problem, **options):
     """:func:`verification.verify` (interval backend), on the cluster of :func:`verifying_on`.
 
@@ -1134,6 +1145,10 @@ def check(problem, **options):
     client = _CLUSTER.get()
     if client is None:
         return verification.verify(problem, **options)
+    if options.get("precondition"):  # coordinates z = Mx first, then the cluster on them
+        return solve_preconditioned(problem, hessian_coordinates(problem),
+                                    lambda p: check(p, **_preconditioned_options(options)),
+                                    confirm_points)
     opts = {k: v for k, v in options.items() if k not in ("n_tasks", "executor", "progress")}
     st: dict = {}
     res = verify_distributed(problem, client, stats=st, **opts)

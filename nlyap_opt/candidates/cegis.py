@@ -162,6 +162,14 @@ def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float
     return np.where(capped, cap, T), np.where(capped, 0.0, dg / gc)
 
 
+#: fewer converging training states than this share of them: the run says to raise
+#: cegis.sim_time (the trajectory-cost fit rests on too few states)
+MIN_CONVERGED = 0.01
+
+#: width (in D's gauge) of the band next to ∂D where extra training states are drawn
+#: when the target is lifted by the domain (train.fit_domain)
+RIM_BAND = 0.1
+
 #: exponent of the domain gauge in the lifted fit target (train.fit_domain): the lift only
 #: matters near the domain's boundary
 DOMAIN_TARGET_POWER = 8
@@ -236,10 +244,12 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
                                  tol=cfg.sim_tol, stay=stay, track=track)
     log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model"
         + (" without leaving the domain" if stay is not None else ""))
-    if cfg.train.w_fit and not conv.any():
-        log(f"  cegis: no training state reaches ‖x‖ < {cfg.sim_tol:g} within "
-            f"cegis.sim_time = {cfg.sim_time:g} s under the model, so V is not fitted to "
-            "trajectory costs; raise cegis.sim_time (or cegis.sim_tol, up to the inner radius)")
+    if cfg.train.w_fit and conv.sum() < max(MIN_CONVERGED * len(X), 1):
+        log(f"  cegis: {'no' if not conv.any() else 'too few'} training states reach "
+            f"‖x‖ < {cfg.sim_tol:g} within cegis.sim_time = {cfg.sim_time:g} s under the "
+            "model for a fit of V to trajectory costs"
+            + ("" if conv.any() else " (none is made)")
+            + "; raise cegis.sim_time (or cegis.sim_tol, up to the inner radius)")
     weights = conv.astype(float)
     targets, rates = None, None
     tc = cfg.train
@@ -257,6 +267,17 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
                                        tol=cfg.sim_tol, stay=stay, track=track)
                 X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
                 peak = [np.r_[peak[0], p2[0]]] if peak else peak
+        if tc.fit_domain and cfg.boundary_samples:
+            # and in the band next to ∂D (gauge ≥ 1 − RIM_BAND), where the lifted target
+            # below rises steeply to 1 + s: D holds 0 and is convex, so the states of ∂D
+            # scaled towards 0 lie in D
+            band = D.sample_boundary(cfg.boundary_samples // 2, rng)
+            band = band * (1.0 - RIM_BAND * rng.random((len(band), 1)))
+            band = band[D.contains(band)]
+            c2, w2, *p2 = simulate(rhs_np, band, t_final=cfg.sim_time, dt=cfg.sim_dt,
+                                   tol=cfg.sim_tol, stay=stay, track=track)
+            X, conv, cost = np.vstack([X, band]), np.r_[conv, c2], np.r_[cost, w2]
+            peak = [np.r_[peak[0], p2[0]]]
         targets, rates = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)
         if tc.fit_domain:
             # containment (b): the target rises to 1 + s where the trajectory from x reaches

@@ -306,6 +306,9 @@ def test_report_gives_no_true_roa_share_when_too_few_states_converge(tmp_path):
     assert "certified ÷ true" not in text and "true ROA area" not in text
     line = winner_line(cert.get("candidates") or [])
     assert line is not None and line in text          # the quadratic ran beside the neural V
+    # the CEGIS history says what limited each candidate level (here ∂D: x' = Ax decreases
+    # every positive definite quadratic-like V it is trained on)
+    assert "| limited by |" in text
     # a longer horizon decides every state (the same run's stages are reused)
     res = run(sys_, make_config(name, preset=None, overrides={**small, "eval_time": 200.0}),
               out, known_dynamics=True, log=lambda m: None)

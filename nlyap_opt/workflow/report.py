@@ -170,13 +170,19 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   f"{c['level']:.6g} | {c['inner']:g} | {c['certified_volume']:.4g} | "
                   f"{'**yes**' if c['winner'] else 'no'} |" for c in cert["candidates"]]
         lines.append("")
-    lines += ["## CEGIS history", "", "| it | loss | candidate level | status | level | area "
+    lines += ["## CEGIS history", "",
+              "The candidate level is limited by the decrease (a state where V does not "
+              "decrease) or by ∂D (containment: V is smallest on the boundary there; the "
+              "states of ∂D with the smallest V are then trained on).", "",
+              "| it | loss | candidate level | limited by | status | level | area "
               f"in {'ball' if ball else 'D'} | margin | verify s |",
-              "|---|---|---|---|---|---|---|---|"]
+              "|---|---|---|---|---|---|---|---|---|"]
     for h in cg.get("history", []):
-        lines.append(f"| {h['iteration']} | {h['loss']:.3g} | {h['candidate_level']:.4g} | "
+        src = {"sphere": "∂D", "decrease": "decrease"}.get(h.get("candidate_source"), "–")
+        lines.append(f"| {h['iteration']} | {h['loss']:.3g} | "
+                     f"{h.get('candidate_level', 0.0):.4g} | {src} | "
                      f"{h['status']} | {h['level']:.4g} | {h['area']:.4g} | "
-                     f"{h['margin']:.3g} | {h['verify_seconds']:.2f} |")
+                     f"{h.get('margin', 0.0):.3g} | {h.get('verify_seconds', 0.0):.2f} |")
     if cert.get("provenance"):
         lines += ["", "## Numeric environment (what determined these numbers)", "",
                   "The same input gives the same certificate bit for bit on the same "

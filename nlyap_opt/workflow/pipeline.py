@@ -727,6 +727,11 @@ def _log_done(log, cert: RoaCertificate, summary: dict, out: Path) -> None:
         log(f"[done] status: {cert.status.value}: {cert.reason}; see {out / 'report.md'}")
 
 
+#: the simulated true ROA is not available when fewer grid states in D reach the origin
+#: within eval_time than this share of those that neither converge nor diverge
+TOO_FEW_CONVERGED = 0.1
+
+
 #: the inner radius that learned dynamics afford is this multiple of the radius at which the
 #: linearised quadratic certificate loses its robust decrease (the presets' margin)
 INNER_MARGIN_FACTOR = 2.0
@@ -1006,9 +1011,11 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         float(np.count_nonzero(undecided & in_d)) / max(int(np.count_nonzero(in_d)), 1)
     open_count = 0 if undecided is None else int(np.count_nonzero(undecided & in_d))
     reached = int(np.count_nonzero(true_mask))
-    if undecided is not None and (not reached or open_count >= reached):
-        # no state, or fewer states than remain undecided, reached the origin: an area of
-        # 0 (or of a fraction of the ROA) would be a wrong figure
+    if undecided is not None and (not reached or reached < TOO_FEW_CONVERGED * open_count):
+        # no state, or far fewer states than remain undecided, reached the origin: an area
+        # of 0 (or of a sliver of the ROA) would be a wrong figure. (States that go to
+        # another attractor also stay undecided, so a ratio closer to 1 would refuse
+        # estimates that are right.)
         not_available.append(
             f"true ROA by simulation (only {reached} states of the "
             f"evaluation grid in D reached the origin within eval_time = {horizon:g} s of "
@@ -1017,7 +1024,8 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     elif open_share > 0:
         log(f"[certificate] {100 * open_share:.1f}% of the evaluation grid neither converged "
             f"nor diverged within eval_time = {horizon:g} s of simulated time: counted outside "
-            "the true ROA (the share may be an overestimate; raise eval_time)")
+            "the true ROA (the share may be an overestimate; raise eval_time if they converge "
+            "slowly)")
     true_check = None
     if not getattr(system, "has_model", True):
         not_available.append("check of the same V and κ against the true f (no model of f)")

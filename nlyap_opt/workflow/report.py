@@ -154,7 +154,8 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   + (f" {100 * cert['true_roa_undecided']:.1f}% of the grid neither converged "
                      f"nor diverged within the simulated horizon (eval_time = {horizon:g} s) "
                      "and counts outside the true ROA: the share above may be an "
-                     "overestimate; raise eval_time for a closer estimate."
+                     "overestimate; raise eval_time if they converge slowly (states that go "
+                     "to another equilibrium or cycle stay undecided at any horizon)."
                      if cert.get("true_roa_undecided") else ""), ""]
     tc = cert.get("true_dynamics_check")
     if tc:

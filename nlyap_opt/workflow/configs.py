@@ -376,6 +376,7 @@ _RULES: dict[str, dict[str, dict]] = {
         "steps": _COUNT, "verify_every": _COUNT, "target_fraction": _UNIT,
         "min_iterations": _COUNT, "plateau": _NONNEG, "area_points": {"lo": 4}, "seed": _NONNEG,
         "inner_samples": _NONNEG, "boundary_samples": _NONNEG, "sim_dt": _POS,
+        "boundary_feedback": _NONNEG,
         "sim_points": _NONNEG, "sim_time": _POS, "sim_tol": _POS,
         "margin_mode": {"choices": ("pointwise", "global")}, "norm_smoothing": _NONNEG,
         "initial_samples": _NONNEG,

@@ -337,3 +337,22 @@ def test_winner_line_says_plainly_when_a_cheap_v_wins():
     won = winner_line([row("neural (V.json)", "certified", 4.0, True),
                        row("quadratic lyapunov (V_quadratic.json)", "certified", 3.0, False)])
     assert won.startswith("The neural V certifies a larger volume (4)")
+
+
+@pytest.mark.parametrize("name", ["van_der_pol", "unicycle_path_following", "inverted_pendulum"])
+def test_catalogue_default_dynamics_grid_matches_its_model(name):
+    """--preset default on a catalogue system: the generic (x, u) grid comes with the full
+    model, not the catalogue's learned-dynamics model of another grid (the pendulum's
+    control-affine preset samples x only, and the learned run stopped at φ's stage)."""
+    from dataclasses import asdict
+
+    import systems
+    from nlyap_opt.learned.dynamics import make_grid
+    from nlyap_opt.learned.dynamics_config import dynamics_config
+    from nlyap_opt.workflow.configs import make_config
+
+    s = systems.get(name)
+    dyn = make_config(name, preset=None).dynamics.to_json()
+    assert dyn["model"] == "full" and len(dyn["grid_counts"]) == s.nx + s.nu
+    # the dynamics stage's own checks of the merged settings: grid against model
+    make_grid(s, asdict(dynamics_config(name, dyn)))

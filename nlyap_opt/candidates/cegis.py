@@ -198,6 +198,19 @@ def _boundary_minima(V: Network, D, n: int, count: int, rng) -> np.ndarray:
     return pool[order[:count]]
 
 
+def _feed_boundary(cfg: CegisConfig, V: Network, D, cand, rim: np.ndarray, cap: int, rng,
+                   entry: dict, log) -> np.ndarray:
+    """Containment on ``∂D`` limits the level: the level-limiting point and the states of
+    ``∂D`` where ``V`` is smallest join ``rim`` (the fed-back containment states, at most
+    ``cap``, the newest kept); records their number in the history ``entry``."""
+    low = _boundary_minima(V, D, 4 * cfg.sphere_samples, cfg.boundary_feedback, rng)
+    rim = np.vstack([rim, cand.argmin.reshape(1, -1), low])[-cap:]
+    entry["boundary_feedback"] = len(low) + 1
+    log(f"  cegis: the level is limited by ∂D; {len(low) + 1} states of ∂D with the "
+        f"smallest V join the containment training ({len(rim)} in all)")
+    return rim
+
+
 def cegis(system, controller: Network | None, dynamics: Network | None, cfg: CegisConfig, *,
           eta: float = 0.0, dynamics_box=None, input_box=None, log=print,
           V0: Network | None = None) -> CegisResult:
@@ -378,12 +391,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                                    cfg.boundary_feedback > 0):
             break
         if cand.source == "sphere" and cfg.boundary_feedback and not last:
-            # containment on ∂D limits the level: raise V where it is smallest there
-            low = _boundary_minima(V, D, 4 * cfg.sphere_samples, cfg.boundary_feedback, rng)
-            rim = np.vstack([rim, cand.argmin.reshape(1, n), low])[-len(S):]
-            entry["boundary_feedback"] = len(low) + 1
-            log(f"  cegis: the level is limited by ∂D; {len(low) + 1} states of ∂D with the "
-                f"smallest V join the containment training ({len(rim)} in all)")
+            rim = _feed_boundary(cfg, V, D, cand, rim, len(S), rng, entry, log)
         new = cert.counterexamples
         if len(new):
             jitter = new[:, None, :] + 0.01 * scale * rng.standard_normal(

@@ -354,5 +354,8 @@ def test_catalogue_default_dynamics_grid_matches_its_model(name):
     s = systems.get(name)
     dyn = make_config(name, preset=None).dynamics.to_json()
     assert dyn["model"] == "full" and len(dyn["grid_counts"]) == s.nx + s.nu
+    # and no η gate of the catalogue's finer grid (path following's 0.015 refused the
+    # generic grid's η = 0.023)
+    assert dynamics_config(name, dyn).eta_target is None
     # the dynamics stage's own checks of the merged settings: grid against model
     make_grid(s, asdict(dynamics_config(name, dyn)))

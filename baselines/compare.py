@@ -249,13 +249,16 @@ def _write(out, system, rows: list[CompareRow], true_area, true_mask, box, cfg, 
              f"True ROA area (simulation, {len(true_mask)}² grid over {box.tolist()}"
              + (f", within D = {D.describe()}"
                 if cfg.get("domain") is not None else ", within the disc" if system.nu else "")
-             + f"): {true_area:.4g}", "",
+             + (f"): {true_area:.4g}" if true_area else
+                "): not available (no grid state reached the origin within the simulated "
+                "horizon; the shares below are not given)"), "",
              "| method | certified | level | area | % of true ROA | seconds | status |",
              "|---|---|---|---|---|---|---|"]
     for r in public:
         lines.append(f"| {r['method']} | {'yes' if r['certified'] else 'no'} | "
                      f"{r['level']:.5g} | {r['area']:.4g} | "
-                     f"{100 * r['fraction_of_true_roa']:.1f} | {r['seconds']:.1f} | "
+                     + (f"{100 * r['fraction_of_true_roa']:.1f}" if true_area else "–")
+                     + f" | {r['seconds']:.1f} | "
                      f"{r['status']} |")
     notes = [r for r in public if r.get("notes")]
     if notes:

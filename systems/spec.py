@@ -919,9 +919,12 @@ def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
         n = int(2 * max(1, math.floor((grid_budget ** (1.0 / d) - 1) / 2)) + 1)
         dyn = {"model": "control_affine", "grid_counts": [n] * d}
     else:
+        # a grid over (x, u): the full model, also where a catalogue system's learned-
+        # dynamics preset names another one (its grid has other axes), and no η gate (a
+        # catalogue preset's eta_target belongs to its own, finer grid)
         d = system.nx + system.nu
         n = int(2 * max(1, math.floor((grid_budget ** (1.0 / d) - 1) / 2)) + 1)
-        dyn = {"grid_counts": [n] * d}
+        dyn = {"model": "full", "grid_counts": [n] * d, "eta_target": None}
     out["dynamics"] = dyn
     if centre_dimension(system):
         _merge_centre_settings(out, system, inradius)

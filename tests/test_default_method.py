@@ -276,3 +276,93 @@ def test_simulation_inside_the_domain_counts_only_states_that_never_leave_it():
     h = np.maximum(np.abs(x1), 2.0 * np.abs(x2)).max(axis=1)
     np.testing.assert_allclose(peak, h, atol=1e-3)
     assert np.all((h > 1.0 + 1e-3) <= (excess > 0))
+
+
+def test_report_gives_no_true_roa_share_when_too_few_states_converge(tmp_path):
+    """x' = Ax, A = [[−1, 1], [−1, −1]]/50: ‖x(t)‖ = e^{−t/50}‖x₀‖. The simulation stops
+    a state once it enters the certified inner ellipse E ⊇ B_ε (ε = 0.05): within the
+    default 60 s horizon (a factor 0.3) only the states next to the origin get there and
+    the rest stay undecided, so the report and certificate.json give no share of the true
+    ROA (never an area of 0 or a share of a sliver) and name eval_time; with eval_time =
+    200 s (a factor 0.018) every state of the box converges and the true ROA is the box."""
+    import casadi as ca
+
+    import systems
+    from nlyap_opt import make_config, run
+    from nlyap_opt.workflow.report import winner_line
+
+    x = ca.SX.sym("x", 2)
+    f = ca.vertcat(-0.02 * x[0] + 0.02 * x[1], -0.02 * x[0] - 0.02 * x[1])
+    name = "test_slow_linear_report"
+    sys_ = systems.System(name, x, None, f, state_box=[[-1.0, 1.0], [-1.0, 1.0]])
+    if name not in systems.names():
+        systems.register(name, lambda: sys_)
+    small = {"outer": 1.0, "inner": 0.2, "eval_points": 400, "quadratic": ["lyapunov"],
+             "train": {"hidden": [6], "features": 3, "steps": 200},
+             "cegis": {"iterations": 1, "steps": 50, "samples": 2000, "sim_time": 5.0,
+                       "boundary_samples": 0, "sphere_samples": 400, "area_points": 400}}
+    out = tmp_path / "run"
+    res = run(sys_, make_config(name, preset=None, overrides=small), out,
+              known_dynamics=True, log=lambda m: None)
+    cert = res.summary
+    assert cert["true_roa_area"] is None and cert["fraction_of_true_roa"] is None
+    why = [a for a in cert["not_available"] if a.startswith("true ROA")]
+    assert len(why) == 1 and "raise eval_time" in why[0] and "60 s" in why[0], why
+    text = (out / "report.md").read_text()
+    assert "no share of the true ROA is given" in text and "raise eval_time" in text
+    assert "certified ÷ true" not in text and "true ROA area" not in text
+    line = winner_line(cert.get("candidates") or [])
+    assert line is not None and line in text          # the quadratic ran beside the neural V
+    # the CEGIS history says what limited each candidate level (here ∂D: x' = Ax decreases
+    # every positive definite quadratic-like V it is trained on)
+    assert "| limited by |" in text
+    # a longer horizon decides every state (the same run's stages are reused)
+    res = run(sys_, make_config(name, preset=None, overrides={**small, "eval_time": 200.0}),
+              out, known_dynamics=True, log=lambda m: None)
+    cert = res.summary
+    assert cert["true_roa_time"] == 200.0 and cert["true_roa_undecided"] == 0.0
+    assert cert["true_roa_area"] == pytest.approx(4.0)    # no inputs: the box [−1, 1]²
+    text = (out / "report.md").read_text()
+    assert "certified ÷ true" in text and "no share of the true ROA" not in text
+
+
+def test_winner_line_says_plainly_when_a_cheap_v_wins():
+    from nlyap_opt.workflow.report import winner_line
+
+    def row(V, status, vol, winner):
+        return {"V": V, "controller": None, "status": status, "reason": "", "level": 1.0,
+                "inner": 0.1, "certified_volume": vol, "winner": winner}
+
+    assert winner_line([]) is None
+    lost = winner_line([row("neural (V.json)", "certified", 2.0, False),
+                        row("quadratic lyapunov (V_quadratic.json)", "certified", 3.0, True)])
+    assert lost.startswith("**The neural V did not beat the cheap candidate**")
+    assert "2" in lost and "3" in lost and "quadratic lyapunov" in lost
+    failed = winner_line([row("neural (V.json)", "not certified", 0.0, False),
+                          row("SOS (V_sos.json)", "certified", 1.5, True)])
+    assert "certifies no level" in failed and "SOS (V_sos.json)" in failed
+    won = winner_line([row("neural (V.json)", "certified", 4.0, True),
+                       row("quadratic lyapunov (V_quadratic.json)", "certified", 3.0, False)])
+    assert won.startswith("The neural V certifies a larger volume (4)")
+
+
+@pytest.mark.parametrize("name", ["van_der_pol", "unicycle_path_following", "inverted_pendulum"])
+def test_catalogue_default_dynamics_grid_matches_its_model(name):
+    """--preset default on a catalogue system: the generic (x, u) grid comes with the full
+    model, not the catalogue's learned-dynamics model of another grid (the pendulum's
+    control-affine preset samples x only, and the learned run stopped at φ's stage)."""
+    from dataclasses import asdict
+
+    import systems
+    from nlyap_opt.learned.dynamics import make_grid
+    from nlyap_opt.learned.dynamics_config import dynamics_config
+    from nlyap_opt.workflow.configs import make_config
+
+    s = systems.get(name)
+    dyn = make_config(name, preset=None).dynamics.to_json()
+    assert dyn["model"] == "full" and len(dyn["grid_counts"]) == s.nx + s.nu
+    # and no η gate of the catalogue's finer grid (path following's 0.015 refused the
+    # generic grid's η = 0.023)
+    assert dynamics_config(name, dyn).eta_target is None
+    # the dynamics stage's own checks of the merged settings: grid against model
+    make_grid(s, asdict(dynamics_config(name, dyn)))

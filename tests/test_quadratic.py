@@ -140,6 +140,9 @@ def test_the_larger_certified_volume_wins_and_is_saved_with_its_artifacts(quad_r
     assert "certificate to beat" in "\n".join(logs)
     report = (d / "report.md").read_text()
     assert "## Best certificate" in report and "V_quadratic.json" in report
+    # and the report says so plainly, before the details
+    assert report.index("**The neural V did not beat the cheap candidate**") < \
+        report.index("## Parameters")
 
 
 def test_the_winning_quadratic_rechecks_and_a_tampered_one_does_not(quad_run, tmp_path):

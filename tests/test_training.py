@@ -100,7 +100,7 @@ def _assert_stop_rule(history, cfg):
         stop = (h["status"] == "certified" and h["counterexamples"] == 0
                 and h["level"] >= cfg.target_fraction * h["candidate_level"]
                 and i + 1 >= cfg.min_iterations
-                and (h["candidate_source"] != "decrease"
+                and ((h["candidate_source"] == "sphere" and not cfg.boundary_feedback)
                      or (best > 0 and h["area"] <= (1 + cfg.plateau) * best)))
         if i < len(history) - 1:
             assert not stop, (i, h)
@@ -110,9 +110,13 @@ def _assert_stop_rule(history, cfg):
 
 
 def test_stop_rule_goes_on_while_decrease_violations_limit_a_growing_level():
-    """A candidate on the domain's boundary is final; one limited by sampled decrease
-    violations is final only once the certified area stops growing (plateau fraction)."""
-    assert _level_settled("sphere", 1.0, 0.0, 0.01)
+    """A candidate on the domain's boundary is final only without boundary feedback; one
+    limited by sampled decrease violations (or by ∂D with feedback) is final only once the
+    certified area stops growing (plateau fraction)."""
+    assert _level_settled("sphere", 1.0, 0.0, 0.01, boundary_feedback=False)
+    assert not _level_settled("sphere", 1.0, 0.0, 0.01)       # first certified level
+    assert not _level_settled("sphere", 1.02, 1.0, 0.01)      # grew by 2 %
+    assert _level_settled("sphere", 1.01, 1.0, 0.01)
     assert not _level_settled("decrease", 1.0, 0.0, 0.01)     # first certified level
     assert not _level_settled("decrease", 1.02, 1.0, 0.01)    # grew by 2 %
     assert _level_settled("decrease", 1.01, 1.0, 0.01)        # grew by 1 %: settled
@@ -227,3 +231,43 @@ def test_simulate_counts_entering_a_known_roa_set_as_converged():
     # stopped on entering the disc at t = 10 ln 2: cost ∫ e^(−0.2t) dt = 5 (1 − 1/4)
     assert conv[0] and cost[0] == pytest.approx(3.75, rel=0.02)
     assert not simulate_converges(lambda z: 0.1 * z, x0[:2], t_final=10.0, target=disc).any()
+
+
+def _stable_focus():
+    """x' = −x + (x₂, −x₁)·2: a stable focus, decreasing ‖x‖² everywhere, so a learned V's
+    level in the box D is limited by containment on ∂D, never by the decrease."""
+    import casadi as ca
+
+    x = ca.SX.sym("x", 2)
+    f = ca.vertcat(-x[0] + 2 * x[1], -2 * x[0] - x[1])
+    return systems.System("stable_focus", x, ca.SX.sym("u", 0), f,
+                          state_box=[[-1.0, 1.0], [-1.0, 1.0]])
+
+
+@pytest.mark.parametrize("feedback", [0, 100])
+def test_boundary_limited_level_keeps_training_on_the_boundary_minima(feedback):
+    """A level limited by ∂D: with boundary feedback CEGIS goes on after the first
+    certified level (the states of ∂D with the smallest V join the containment training)
+    and returns the largest certified area; without it, it stops there."""
+    from nlyap_opt.kernel.domain import Box
+
+    s = _stable_focus()
+    train = TrainConfig(hidden=[6], features=3, steps=150, lr=0.02, level_slack=0.5,
+                        relative_decrease=True, w_local=10.0)
+    D = Box([[-1.0, 1.0], [-1.0, 1.0]])
+    cfg = CegisConfig(inner=0.1, outer=D.max_norm(), domain=D, iterations=3, steps=100,
+                      samples=2000, sphere_samples=400, train=train, area_points=6400,
+                      boundary_feedback=feedback, plateau=0.0)
+    res = cegis(s, None, None, cfg, log=lambda m: None)
+    first = res.history[0]
+    assert first["candidate_source"] == "sphere" and first["status"] == "certified", first
+    _assert_stop_rule(res.history, cfg)
+    if not feedback:
+        assert len(res.history) == 1 and "boundary_feedback" not in first
+    else:
+        assert len(res.history) >= 2 and first["boundary_feedback"] == feedback + 1
+    # the returned certificate is the best certified one: the area never goes down
+    assert res.certified and res.area == max(h["area"] for h in res.history) >= first["area"]
+    # the returned V's minimum over ∂D is the level it certifies (containment-limited)
+    pts = D.sample_boundary(20000, np.random.default_rng(1))
+    assert res.V.numpy(pts)[:, 0].min() >= res.level

@@ -4,8 +4,11 @@ Each iteration: train on the state samples plus the counterexamples found so far
 the float64 networks (the verified objects); if the dynamics are learned, recompute the
 margin ``β = M·η`` with ``M`` a rigorous bound of ``‖∇V‖`` on the ball; find a candidate
 level by NLP; certify conditions (a) and (b) at the largest level reachable from it.
-Confirmed counterexamples (and a few neighbours) go back into training. The best
-certificate (by certified area) is kept.
+Confirmed counterexamples (and a few neighbours) go back into training. When the level is
+limited by containment on the domain's boundary ``∂D`` rather than by the decrease, the
+states of ``∂D`` where ``V`` is smallest (and the level-limiting point) join the
+containment training states instead, and the loop goes on until the certified area stops
+growing. The best certificate (by certified area) is kept.
 """
 
 from __future__ import annotations
@@ -48,6 +51,11 @@ class CegisConfig:
     # "decrease", which more training may remove), only once the certified area grew by less
     # than this fraction over the best earlier one
     plateau: float = 0.01
+    # a candidate level limited by ∂D (source "sphere"): this many states of ∂D with the
+    # smallest V (from a fresh sample of 4·sphere_samples) and the level-limiting point
+    # join the containment training states, and CEGIS goes on until the certified area
+    # grows by less than ``plateau``; 0: stop at the first such certified level
+    boundary_feedback: int = 200
     area_points: int = 40000         # grid of the certified areas (total points)
     verify_options: dict = field(default_factory=dict)
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -154,20 +162,53 @@ def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float
     return np.where(capped, cap, T), np.where(capped, 0.0, dg / gc)
 
 
+#: fewer converging training states than this share of them: the run says to raise
+#: cegis.sim_time (the trajectory-cost fit rests on too few states)
+MIN_CONVERGED = 0.01
+
+#: width (in D's gauge) of the band next to ∂D where extra training states are drawn
+#: when the target is lifted by the domain (train.fit_domain)
+RIM_BAND = 0.1
+
 #: exponent of the domain gauge in the lifted fit target (train.fit_domain): the lift only
 #: matters near the domain's boundary
 DOMAIN_TARGET_POWER = 8
 
 
-def _level_settled(source: str, area: float, prev_area: float, plateau: float) -> bool:
+def _level_settled(source: str, area: float, prev_area: float, plateau: float,
+                   boundary_feedback: bool = True) -> bool:
     """Whether CEGIS may stop at a certified level that reaches its candidate.
 
-    A candidate on the domain's boundary (``"sphere"``) cannot grow inside the domain. A
-    candidate limited by sampled decrease violations (``"decrease"``) may grow when training
-    removes them, so CEGIS goes on until the certified area stops growing: by less than
-    ``plateau`` (a fraction) over the best earlier certified area.
+    A candidate limited by sampled decrease violations (``"decrease"``) may grow when training
+    removes them; one limited by the domain's boundary (``"sphere"``) may grow when training
+    raises ``V`` where it is smallest on ``∂D`` (``boundary_feedback``; without it, it cannot
+    grow and CEGIS stops). Otherwise CEGIS goes on until the certified area stops growing: by
+    less than ``plateau`` (a fraction) over the best earlier certified area.
     """
-    return source != "decrease" or (prev_area > 0 and area <= (1 + plateau) * prev_area)
+    if source == "sphere" and not boundary_feedback:
+        return True
+    return prev_area > 0 and area <= (1 + plateau) * prev_area
+
+
+def _boundary_minima(V: Network, D, n: int, count: int, rng) -> np.ndarray:
+    """The ``count`` states of ``n`` fresh samples of ``∂D`` where ``V`` is smallest,
+    smallest first (ties in sample order: deterministic for a seeded ``rng``)."""
+    pool = D.sample_boundary(n, rng)
+    order = np.argsort(V.numpy(pool)[:, 0], kind="stable")
+    return pool[order[:count]]
+
+
+def _feed_boundary(cfg: CegisConfig, V: Network, D, cand, rim: np.ndarray, cap: int, rng,
+                   entry: dict, log) -> np.ndarray:
+    """Containment on ``∂D`` limits the level: the level-limiting point and the states of
+    ``∂D`` where ``V`` is smallest join ``rim`` (the fed-back containment states, at most
+    ``cap``, the newest kept); records their number in the history ``entry``."""
+    low = _boundary_minima(V, D, 4 * cfg.sphere_samples, cfg.boundary_feedback, rng)
+    rim = np.vstack([rim, cand.argmin.reshape(1, -1), low])[-cap:]
+    entry["boundary_feedback"] = len(low) + 1
+    log(f"  cegis: the level is limited by ∂D; {len(low) + 1} states of ∂D with the "
+        f"smallest V join the containment training ({len(rim)} in all)")
+    return rim
 
 
 def cegis(system, controller: Network | None, dynamics: Network | None, cfg: CegisConfig, *,
@@ -216,6 +257,12 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
                                  tol=cfg.sim_tol, stay=stay, track=track)
     log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model"
         + (" without leaving the domain" if stay is not None else ""))
+    if cfg.train.w_fit and conv.sum() < max(MIN_CONVERGED * len(X), 1):
+        log(f"  cegis: {'no' if not conv.any() else 'too few'} training states reach "
+            f"‖x‖ < {cfg.sim_tol:g} within cegis.sim_time = {cfg.sim_time:g} s under the "
+            "model for a fit of V to trajectory costs"
+            + ("" if conv.any() else " (none is made)")
+            + "; raise cegis.sim_time (or cegis.sim_tol, up to the inner radius)")
     weights = conv.astype(float)
     targets, rates = None, None
     tc = cfg.train
@@ -233,6 +280,17 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
                                        tol=cfg.sim_tol, stay=stay, track=track)
                 X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
                 peak = [np.r_[peak[0], p2[0]]] if peak else peak
+        if tc.fit_domain and cfg.boundary_samples:
+            # and in the band next to ∂D (gauge ≥ 1 − RIM_BAND), where the lifted target
+            # below rises steeply to 1 + s: D holds 0 and is convex, so the states of ∂D
+            # scaled towards 0 lie in D
+            band = D.sample_boundary(cfg.boundary_samples // 2, rng)
+            band = band * (1.0 - RIM_BAND * rng.random((len(band), 1)))
+            band = band[D.contains(band)]
+            c2, w2, *p2 = simulate(rhs_np, band, t_final=cfg.sim_time, dt=cfg.sim_dt,
+                                   tol=cfg.sim_tol, stay=stay, track=track)
+            X, conv, cost = np.vstack([X, band]), np.r_[conv, c2], np.r_[cost, w2]
+            peak = [np.r_[peak[0], p2[0]]]
         targets, rates = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)
         if tc.fit_domain:
             # containment (b): the target rises to 1 + s where the trajectory from x reaches
@@ -243,7 +301,10 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
                              tc.fit_cap)
             lift = rim > targets
             targets, rates = np.where(lift, rim, targets), np.where(lift, 0.0, rates)
-        weights = (conv & (cost <= w_c)).astype(float)
+        # the pull of V ≤ 1 on the states whose target is at most 1: those with cost ≤ w_c,
+        # less those whose target the domain lifted (their trajectories come close to ∂D:
+        # pulling them inside would fight containment there)
+        weights = (conv & (cost <= w_c) & (targets <= 1.0)).astype(float)
         log(f"  cegis: fitting V to the trajectory cost ({tc.fit_transform}; level 1 at cost "
             f"{w_c:.4g}, {len(X)} states)")
     return X, weights, targets, rates
@@ -258,6 +319,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         parse_set(cfg.initial_set, n, "initial_set", domain=False)
     scale = D.max_norm()    # the ball's radius; jitter of extra states is relative to it
     X, S = _samples(cfg, D, XI, rng, n)
+    rim = np.zeros((0, n))   # boundary states fed back when ∂D limits the level
     learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
 
     rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
@@ -272,7 +334,8 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     for it in range(cfg.iterations):
         steps = (cfg.first_steps or cfg.train.steps) if it == 0 else cfg.steps
         pointwise = eta if (eta > 0 and cfg.margin_mode == "pointwise") else 0.0
-        info = learner.train(X, S, 0.0 if pointwise else margin, cex if len(cex) else None,
+        info = learner.train(X, np.vstack([S, rim]), 0.0 if pointwise else margin,
+                             cex if len(cex) else None,
                              steps=steps, inside_weight=weights, eta_pointwise=pointwise,
                              targets=targets, target_rates=rates)
         V, ctrl = learner.export()
@@ -324,8 +387,11 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                                history, 0.0, smoothing)
         if cert.certified and cert.level >= cfg.target_fraction * cand.level \
                 and not len(cert.counterexamples) and it + 1 >= cfg.min_iterations \
-                and _level_settled(cand.source, area, prev_area, cfg.plateau):
+                and _level_settled(cand.source, area, prev_area, cfg.plateau,
+                                   cfg.boundary_feedback > 0):
             break
+        if cand.source == "sphere" and cfg.boundary_feedback and not last:
+            rim = _feed_boundary(cfg, V, D, cand, rim, len(S), rng, entry, log)
         new = cert.counterexamples
         if len(new):
             jitter = new[:, None, :] + 0.01 * scale * rng.standard_normal(

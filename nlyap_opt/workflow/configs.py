@@ -20,7 +20,7 @@ any stage runs. Sections and keys:
 - ``cegis``: the fields of :class:`nlyap_opt.candidates.cegis.CegisConfig` except ``inner``,
   ``outer`` and ``train`` (given above);
 - ``eval_box`` (one ``[lo, hi]`` row per state), ``eval_points`` (total point budget): box and
-  grid of the areas and of the simulated true ROA;
+  grid of the areas and of the simulated true ROA; ``eval_time``: its simulated horizon;
 - ``dynamics``: the learned-dynamics stage, keys of
   :class:`nlyap_opt.learned.dynamics_config.DynamicsConfig` (``preset``: ``"default"`` or
   ``"fast"``);
@@ -376,6 +376,7 @@ _RULES: dict[str, dict[str, dict]] = {
         "steps": _COUNT, "verify_every": _COUNT, "target_fraction": _UNIT,
         "min_iterations": _COUNT, "plateau": _NONNEG, "area_points": {"lo": 4}, "seed": _NONNEG,
         "inner_samples": _NONNEG, "boundary_samples": _NONNEG, "sim_dt": _POS,
+        "boundary_feedback": _NONNEG,
         "sim_points": _NONNEG, "sim_time": _POS, "sim_tol": _POS,
         "margin_mode": {"choices": ("pointwise", "global")}, "norm_smoothing": _NONNEG,
         "initial_samples": _NONNEG,
@@ -413,6 +414,9 @@ _TOP_DOCS = {
     "cegis": "CEGIS loop (nlyap_opt.candidates.cegis.CegisConfig)",
     "eval_box": "box of the area grid and of the simulated true ROA",
     "eval_points": "total point budget of that grid (per axis: the largest n with n^nx <= it)",
+    "eval_time": "simulated horizon (s) of the true ROA on that grid: a state counts in it "
+                 "once it reaches the origin within this time (raise it for a closed loop "
+                 "that converges slowly)",
     "dynamics": "learned-dynamics stage (nlyap_opt.learned.dynamics_config.DynamicsConfig)",
     "quadratic": "quadratic V = xᵀPx certified before the neural stage, under the initial "
                  "controller ('lyapunov': A_clᵀP + PA_cl = -I, 'round': min cond P, "
@@ -493,8 +497,12 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "target_fraction": "stop once the certified level reaches this fraction of the "
                            "candidate level",
         "min_iterations": "... but not before this many iterations (the best area is kept)",
-        "plateau": "a level limited by sampled decrease violations stops CEGIS only once "
-                   "the certified area grows by less than this fraction",
+        "plateau": "a level limited by sampled decrease violations (or by ∂D, with "
+                   "boundary_feedback) stops CEGIS only once the certified area grows by "
+                   "less than this fraction",
+        "boundary_feedback": "a level limited by containment on ∂D: this many states of ∂D "
+                             "with the smallest V (and the level-limiting point) join the "
+                             "containment training and CEGIS goes on (0: it stops there)",
         "area_points": "total point budget of the grid on which certified areas are "
                        "compared",
         "verify_options": "options of the interval verifier (the cegis.verify_options.* "
@@ -683,6 +691,7 @@ def schema() -> Mapping[str, Mapping[str, Key]]:
         "cegis": Key("cegis", "section", {}, doc=d["cegis"]),
         "eval_box": Key("eval_box", "box", None, doc=d["eval_box"]),
         "eval_points": Key("eval_points", "int", 40000, lo=4, doc=d["eval_points"]),
+        "eval_time": Key("eval_time", "float", 60.0, **_POS, doc=d["eval_time"]),
         "dynamics": Key("dynamics", "section", {}, doc=d["dynamics"]),
         "quadratic": Key("quadratic", "str_list", [], choices=_quadratic_names(),
                          doc=d["quadratic"]),

@@ -741,8 +741,10 @@ def _save_seconds(out: Path, seconds: Mapping[str, float]) -> Mapping[str, float
 
 def _log_done(log, cert: RoaCertificate, summary: dict, out: Path) -> None:
     if cert.certified and summary["true_roa_area"] is None:
+        why = [a for a in summary.get("not_available") or [] if a.startswith("true ROA")]
         log(f"[done] status: {status_line(summary)}; certified area "
-            f"{summary['certified_area']:.4g} (true ROA not available); see {out / 'report.md'}")
+            f"{summary['certified_area']:.4g}; not available: "
+            f"{why[0] if why else 'true ROA'}; see {out / 'report.md'}")
     elif cert.certified:
         log(f"[done] status: {status_line(summary)}; certified area "
             f"{summary['certified_area']:.4g} = "
@@ -750,6 +752,11 @@ def _log_done(log, cert: RoaCertificate, summary: dict, out: Path) -> None:
             f"({summary['true_roa_area']:.4g}); see {out / 'report.md'}")
     else:
         log(f"[done] status: {cert.status.value}: {cert.reason}; see {out / 'report.md'}")
+
+
+#: the simulated true ROA is not available when fewer grid states in D reach the origin
+#: within eval_time than this share of those that neither converge nor diverge
+TOO_FEW_CONVERGED = 0.1
 
 
 #: the inner radius that learned dynamics afford is this multiple of the radius at which the
@@ -1031,6 +1038,7 @@ class _Areas:
     certified_area: float
     true_roa_area: float | None
     true_roa_undecided: float | None
+    true_roa_time: float
     fraction_of_true_roa: float | None
     certified_points_converge_in_simulation: bool | None
     not_available: list[str]
@@ -1054,8 +1062,10 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     controller = problem.controller
     cache = out / "true_roa.npz"
     feedback = None if controller is None else (lambda z: controller.numpy(z))
+    horizon = float(cfg.eval_time)
     ckey = _hash([system.name, cfg.eval_box, n, None if controller is None
-                  else controller.to_dict(), "undecided"])
+                  else controller.to_dict(), "undecided"]
+                 + ([] if horizon == TRUE_ROA_TIME else [horizon]))
     not_available = []
     true_mask = undecided = None
     if not getattr(system, "can_simulate", True):
@@ -1073,8 +1083,8 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
             + ("" if getattr(system, "has_model", True) else " (simulating the black box)"))
         ie = cert.inner_ellipse
         ell = (ie.P, ie.level) if ie is not None and ie.certified else None
-        true_mask, undecided = true_roa_mask(system, feedback, box, n, ellipse=ell,
-                                             undecided=True)
+        true_mask, undecided = true_roa_mask(system, feedback, box, n, t_final=horizon,
+                                             ellipse=ell, undecided=True)
         tmp = out / ".true_roa.tmp.npz"
         np.savez_compressed(tmp, mask=true_mask, undecided=undecided, key=ckey)
         tmp.replace(cache)
@@ -1088,17 +1098,23 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     true_area = grid_area(true_mask, box)
     open_share = 0.0 if undecided is None else \
         float(np.count_nonzero(undecided & in_d)) / max(int(np.count_nonzero(in_d)), 1)
-    if undecided is not None and not true_mask.any():
-        # nothing reached the origin: an estimate of area 0 would be a wrong figure
+    open_count = 0 if undecided is None else int(np.count_nonzero(undecided & in_d))
+    reached = int(np.count_nonzero(true_mask))
+    if undecided is not None and (not reached or reached < TOO_FEW_CONVERGED * open_count):
+        # no state, or far fewer states than remain undecided, reached the origin: an area
+        # of 0 (or of a sliver of the ROA) would be a wrong figure. (States that go to
+        # another attractor also stay undecided, so a ratio closer to 1 would refuse
+        # estimates that are right.)
         not_available.append(
-            f"true ROA by simulation (no state of the evaluation grid reached the origin "
-            f"within {TRUE_ROA_TIME:g} s of simulated time; {100 * open_share:.1f}% neither "
-            "converged nor diverged: the closed loop converges too slowly, or not at all, "
-            "for this estimate)")
+            f"true ROA by simulation (only {reached} states of the "
+            f"evaluation grid in D reached the origin within eval_time = {horizon:g} s of "
+            f"simulated time, and {100 * open_share:.1f}% neither converged nor diverged: "
+            "the closed loop converges too slowly for this estimate; raise eval_time)")
     elif open_share > 0:
         log(f"[certificate] {100 * open_share:.1f}% of the evaluation grid neither converged "
-            f"nor diverged within {TRUE_ROA_TIME:g} s of simulated time: counted outside the "
-            "true ROA (the share may be an overestimate)")
+            f"nor diverged within eval_time = {horizon:g} s of simulated time: counted outside "
+            "the true ROA (the share may be an overestimate; raise eval_time if they converge "
+            "slowly)")
     true_check = None
     if not getattr(system, "has_model", True):
         not_available.append("check of the same V and κ against the true f (no model of f)")
@@ -1116,6 +1132,7 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         certified_area=cert_area,
         true_roa_area=true_area if simulated else None,
         true_roa_undecided=open_share if simulated else None,
+        true_roa_time=horizon,
         fraction_of_true_roa=(cert_area / true_area if true_area else 0.0) if simulated
         else None,
         certified_points_converge_in_simulation=bool(np.all(true_mask[omega])

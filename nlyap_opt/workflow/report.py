@@ -13,7 +13,7 @@ from ..kernel.domain import Ball, parse_set
 from ..kernel.network import Network
 from ..kernel.provenance import describe
 
-__all__ = ["write_report", "plot_roa", "status_line"]
+__all__ = ["write_report", "plot_roa", "status_line", "winner_line"]
 
 
 def _fmt(v, digits=4):
@@ -48,6 +48,32 @@ def status_line(cert: dict) -> str:
     return status_text(cert["status"], cert.get("assumptions_declared_by_user") or [])
 
 
+def winner_line(candidates: list) -> str | None:
+    """One sentence on which ``V`` won the comparison of certified volumes (``certificate.json``'s
+    ``candidates``): said plainly when a cheap ``V`` (quadratic, SOS) beats the neural one;
+    ``None`` without a comparison."""
+    if not candidates:
+        return None
+    neural = candidates[0]
+    win = next((c for c in candidates if c["winner"]), None)
+    if win is None:
+        return None
+    others = [c for c in candidates[1:] if c["status"] == CertStatus.CERTIFIED]
+    if win is neural:
+        if not others:
+            return None
+        best = max(others, key=lambda c: c["certified_volume"])
+        return (f"The neural V certifies a larger volume ({neural['certified_volume']:.4g}) than "
+                f"the best cheap V, {best['V']} ({best['certified_volume']:.4g}).")
+    n_vol = (f"a smaller volume ({neural['certified_volume']:.4g})"
+             if neural["status"] == CertStatus.CERTIFIED else
+             f"no level ({neural.get('reason') or neural['status']})")
+    return (f"**The neural V did not beat the cheap candidate**: it certifies {n_vol}, "
+            f"{win['V']} certifies {win['certified_volume']:.4g}; the certificate below is "
+            f"that of {win['V']}. More training (train.steps, cegis.iterations) or a "
+            "larger network (train.hidden) may change this.")
+
+
 def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, cg: dict):
     """Write ``report.md`` (parameters, what is certified under which assumptions, times)
     and ``roa.png``."""
@@ -55,6 +81,9 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
     lines += [f"**Status: {status_line(cert)}** ({cert['dynamics']})", ""]
     if cert["status"] != CertStatus.CERTIFIED:
         lines += [f"Reason: {cert.get('reason', '')}", ""]
+    won = winner_line(cert.get("candidates") or [])
+    if won:
+        lines += [won, ""]
     lines += ["## Parameters (paper's Table layout)", "",
               "| K_f | K_φ | δ | α | η | M = sup‖∇V‖ | β (margin) | ε | r | level |",
               "|---|---|---|---|---|---|---|---|---|---|"]
@@ -104,10 +133,13 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
         lines += ["", "### Not available", ""] + [
             f"- {a}" for a in cert["not_available"]]
     n_x = len(cert["eval_box"])
+    horizon = cert.get("true_roa_time", 60.0)
     if cert.get("true_roa_area") is None:
+        why = [a for a in cert.get("not_available") or [] if a.startswith("true ROA")]
         lines += ["", "## Areas", "", f"Certified area: {cert['certified_area']:.4g} (grid count, "
                   f"{cert['eval_grid']}^{n_x} over {np.asarray(cert['eval_box']).tolist()}); "
-                  "the true ROA is not available (see 'Not available').", ""]
+                  "no share of the true ROA is given: "
+                  + (why[0] if why else "the true ROA is not available") + ".", ""]
     else:
         lines += ["", "## Areas", "",
                   "| certified area | true ROA area | certified ÷ true |", "|---|---|---|",
@@ -120,8 +152,10 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   + f". Every certified grid point converges in simulation: "
                   f"{cert['certified_points_converge_in_simulation']}."
                   + (f" {100 * cert['true_roa_undecided']:.1f}% of the grid neither converged "
-                     "nor diverged within the simulated horizon and counts outside the true "
-                     "ROA: the share above may be an overestimate."
+                     f"nor diverged within the simulated horizon (eval_time = {horizon:g} s) "
+                     "and counts outside the true ROA: the share above may be an "
+                     "overestimate; raise eval_time if they converge slowly (states that go "
+                     "to another equilibrium or cycle stay undecided at any horizon)."
                      if cert.get("true_roa_undecided") else ""), ""]
     tc = cert.get("true_dynamics_check")
     if tc:
@@ -137,13 +171,19 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   f"{c['level']:.6g} | {c['inner']:g} | {c['certified_volume']:.4g} | "
                   f"{'**yes**' if c['winner'] else 'no'} |" for c in cert["candidates"]]
         lines.append("")
-    lines += ["## CEGIS history", "", "| it | loss | candidate level | status | level | area "
+    lines += ["## CEGIS history", "",
+              "The candidate level is limited by the decrease (a state where V does not "
+              "decrease) or by ∂D (containment: V is smallest on the boundary there; the "
+              "states of ∂D with the smallest V are then trained on).", "",
+              "| it | loss | candidate level | limited by | status | level | area "
               f"in {'ball' if ball else 'D'} | margin | verify s |",
-              "|---|---|---|---|---|---|---|---|"]
+              "|---|---|---|---|---|---|---|---|---|"]
     for h in cg.get("history", []):
-        lines.append(f"| {h['iteration']} | {h['loss']:.3g} | {h['candidate_level']:.4g} | "
+        src = {"sphere": "∂D", "decrease": "decrease"}.get(h.get("candidate_source"), "–")
+        lines.append(f"| {h['iteration']} | {h['loss']:.3g} | "
+                     f"{h.get('candidate_level', 0.0):.4g} | {src} | "
                      f"{h['status']} | {h['level']:.4g} | {h['area']:.4g} | "
-                     f"{h['margin']:.3g} | {h['verify_seconds']:.2f} |")
+                     f"{h.get('margin', 0.0):.3g} | {h.get('verify_seconds', 0.0):.2f} |")
     if cert.get("provenance"):
         lines += ["", "## Numeric environment (what determined these numbers)", "",
                   "The same input gives the same certificate bit for bit on the same "

@@ -54,13 +54,16 @@ def main() -> None:
                     t = time.perf_counter()
                     res = run(name, cfg, Path(tmp), known_dynamics=known, log=lambda m: None)
                     dt = time.perf_counter() - t
-                share = 100 * res.summary.get("fraction_of_true_roa", 0.0) \
-                    if res.certified else 0.0
-                shares.append(share)
+                frac = res.summary.get("fraction_of_true_roa") if res.certified else 0.0
+                # None: the true ROA could not be estimated (the report says why)
+                if frac is not None:
+                    shares.append(100 * frac)
                 times.append(dt)
                 print(f"| {name} | {setting} | {seed} | {res.status.value} | "
-                      f"{res.summary.get('level', 0.0):.5g} | {share:.1f} | {dt:.0f} |",
+                      f"{res.summary.get('level', 0.0):.5g} | "
+                      f"{'n/a' if frac is None else f'{100 * frac:.1f}'} | {dt:.0f} |",
                       flush=True)
+            shares = shares or [float("nan")]
             summary.append((name, setting, statistics.median(shares), min(shares),
                             statistics.median(times), sum(s > 0 for s in shares)))
     print("\n| system | f | median share % | min share % | certified seeds | median s |")

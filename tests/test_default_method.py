@@ -10,6 +10,7 @@ deterministic.
 
 import numpy as np
 import pytest
+import torch
 
 from nlyap_opt.candidates.cegis import cost_targets
 from nlyap_opt.kernel.simulate import simulate
@@ -269,3 +270,57 @@ def test_simulation_inside_the_domain_counts_only_states_that_never_leave_it():
     h = np.maximum(np.abs(x1), 2.0 * np.abs(x2)).max(axis=1)
     np.testing.assert_allclose(peak, h, atol=1e-3)
     assert np.all((h > 1.0 + 1e-3) <= (excess > 0))
+
+
+def test_label_boundary_states_lie_across_the_boundary_between_labels():
+    """States labelled by the unit disc (inside) in the square [−2, 2]²: every drawn state
+    lies on a segment between an inside and an outside neighbour, so within one neighbour
+    distance of the circle; they surround it; same rng, same states; none without both
+    labels."""
+    from scipy.spatial import cKDTree
+
+    from nlyap_opt.candidates.learning import BOUNDARY_NEIGHBOURS, label_boundary_states
+
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-2.0, 2.0, (4000, 2))
+    inside = np.linalg.norm(X, axis=1) < 1.0
+    Y = label_boundary_states(X, inside, 3000, np.random.default_rng(7))
+    assert Y.shape == (3000, 2)
+    reach = cKDTree(X).query(X, k=BOUNDARY_NEIGHBOURS + 1)[0][:, -1].max()
+    r = np.linalg.norm(Y, axis=1)
+    assert np.all(np.abs(r - 1.0) <= reach)
+    # much closer to the circle than uniform draws in the square, and all the way round
+    far = np.median(np.abs(np.linalg.norm(X, axis=1) - 1.0))
+    assert np.median(np.abs(r - 1.0)) < 0.25 * far
+    angles = np.arctan2(Y[:, 1], Y[:, 0])
+    assert np.histogram(angles, bins=8, range=(-np.pi, np.pi))[0].min() > 3000 / 8 / 4
+    np.testing.assert_array_equal(Y, label_boundary_states(X, inside, 3000,
+                                                           np.random.default_rng(7)))
+    for labels in (np.ones(len(X), bool), np.zeros(len(X), bool)):
+        assert label_boundary_states(X, labels, 100, rng).shape == (0, 2)
+
+
+def test_escape_term_lifts_v_above_the_level_on_states_at_the_cap():
+    """train.w_escape alone: relu(1 + s − V) on the states whose target is the cap drives V
+    above 1 + s there and leaves the other states' V untouched by it."""
+    import systems
+    from nlyap_opt.candidates.learning import LyapunovLearner, TrainConfig
+
+    s = systems.get("van_der_pol")
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-1.5, 1.5, (600, 2))
+    cap, slack = 2.0, 0.5
+    escape = np.linalg.norm(X, axis=1) > 1.2
+    T = np.where(escape, cap, 0.0)
+    cfg = TrainConfig(hidden=[8], features=3, steps=400, lr=0.02, w_decrease=0.0,
+                      w_inside=0.0, w_outside=0.0, fit_cap=cap,
+                      w_fit=1e-12,  # targets are used only with w_fit > 0
+                      level_slack=slack, w_escape=1.0, train_controller=False, seed=1)
+    learner = LyapunovLearner(s, None, None, cfg)
+    with torch.no_grad():
+        before = learner.V(torch.as_tensor(X))[:, 0].numpy()
+    assert np.mean(before[escape] < 1 + slack) > 0.5       # a real task at the start
+    learner.train(X, X[:1], 0.0, targets=T)
+    with torch.no_grad():
+        after = learner.V(torch.as_tensor(X))[:, 0].numpy()
+    assert np.mean(after[escape] >= 1 + slack) > 0.97

@@ -19,6 +19,9 @@ target level ``1``)::
                                                                    (H = ∇²V(0), A = ∂g/∂x(0))
   + C_fit · mean (V(x) − T(x))²                                    fit a target whose level
   + C_pde · mean (∇V·g / (−R(x)‖x‖²) − 1)²                         sets approach the ROA
+  + C_esc · mean[ relu(1 + s − V(x)) · 1{T(x) = cap} ]            V above the level on the
+                                                                   states the model does not
+                                                                   take to the origin
 
 ``T`` is the simulated trajectory cost ``W(x) = ∫‖x(t)‖² dt`` of the model's closed loop,
 rescaled so that ``T = 1`` at a high quantile of the converging states and capped
@@ -47,7 +50,8 @@ from ..kernel.network import Layer, Network, dense_network, from_torch
 from ..kernel.sampling import sample_ball, sample_sphere
 from ..kernel.walker import ArrayArithmetic, evaluate
 
-__all__ = ["TrainConfig", "TrainInfo", "LyapunovLearner", "sample_ball", "sample_sphere"]
+__all__ = ["TrainConfig", "TrainInfo", "LyapunovLearner", "label_boundary_states",
+           "sample_ball", "sample_sphere"]
 
 
 @dataclass
@@ -106,6 +110,10 @@ class TrainConfig:
     fit_cap: float = 2.0       # target of states that do not converge (and cap of the rest)
     fit_transform: str = "log"  # "log" or "linear" (see nlyap_opt.candidates.cegis.cost_targets)
     w_pde: float = 0.0         # relative residual of the target's decrease law (0: off)
+    # containment of the model's ROA: relu(1 + s − V) on the training states whose target
+    # is the cap (they do not reach the origin without leaving D under the model), as
+    # w_outside asks it on ∂D (0: off)
+    w_escape: float = 0.0
     # raise the fit target to (1 + level_slack)·g(x)^8 (g the domain's gauge, 1 on ∂D) where
     # that is larger: level sets inside D, as containment (b) needs, where the ROA leaves D
     fit_domain: bool = False
@@ -254,6 +262,47 @@ def sos_start(V, level: float, config: TrainConfig) -> Network:
                   head={"type": "sum_of_squares", "eps": config.eps})
     net.__post_init__()
     return net
+
+
+#: neighbours of each training state searched for the other label (label_boundary_states)
+BOUNDARY_NEIGHBOURS = 8
+
+
+def label_boundary_states(X: np.ndarray, inside: np.ndarray, n: int,
+                          rng: np.random.Generator) -> np.ndarray:
+    r"""``n`` states on segments that cross the boundary between two labels of ``X``.
+
+    ``X`` (``(N, d)``) are simulated training states and ``inside`` marks those the model
+    takes to the origin (the others get the target's cap). Each state is paired with those
+    of its :data:`BOUNDARY_NEIGHBOURS` nearest neighbours (in ``X``) that carry the other
+    label; a segment between such a pair crosses the model's ROA boundary (or the boundary
+    of the states whose trajectories stay in the domain). Returns ``x_i + u (x_j − x_i)``,
+    ``u`` uniform in ``[0, 1]``, for ``n`` pairs drawn uniformly with ``rng`` (empty when no
+    pair exists).
+
+    Where the boundary repels strongly (a limit cycle of a stiff oscillator, the stable
+    manifold of a fast saddle), the trajectory cost rises to its cap only in a layer much
+    thinner than the sample spacing: seen from the samples, the target jumps there. States
+    drawn where the *cost* is high miss that layer; these segments do not, and more
+    training states across the jump let ``V`` rise steeply where the target does.
+    """
+    X = np.asarray(X, dtype=float)
+    inside = np.asarray(inside, dtype=bool)
+    if n <= 0 or len(X) < 2 or inside.all() or not inside.any():
+        return np.zeros((0, X.shape[1]))
+    from scipy.spatial import cKDTree
+
+    k = min(BOUNDARY_NEIGHBOURS + 1, len(X))
+    _, nb = cKDTree(X).query(X, k=k)
+    i = np.repeat(np.arange(len(X)), k - 1)
+    j = nb[:, 1:].ravel()
+    cross = inside[i] != inside[j]
+    i, j = i[cross], j[cross]
+    if not len(i):
+        return np.zeros((0, X.shape[1]))
+    pick = rng.integers(0, len(i), n)
+    u = rng.random((n, 1))
+    return X[i[pick]] + u * (X[j[pick]] - X[i[pick]])
 
 
 def _body_jacobian_at_zero(body, n: int):
@@ -497,6 +546,10 @@ class LyapunovLearner:
             if T is not None:
                 fit = ((v[:nb] - T[idx]) ** 2).mean()
                 loss = loss + cfg.w_fit * fit
+                if cfg.w_escape:
+                    escape = (T[idx] >= cfg.fit_cap).to(v.dtype)
+                    beyond = (torch.relu(1.0 + cfg.level_slack - v[:nb]) * escape).mean()
+                    loss = loss + cfg.w_escape * beyond
                 if R is not None:
                     # the target decreases at rate R(x)·‖x‖² along trajectories
                     want = R[idx] * (xb[:nb] ** 2).sum(1)

@@ -19,9 +19,6 @@ target level ``1``)::
                                                                    (H = ∇²V(0), A = ∂g/∂x(0))
   + C_fit · mean (V(x) − T(x))²                                    fit a target whose level
   + C_pde · mean (∇V·g / (−R(x)‖x‖²) − 1)²                         sets approach the ROA
-  + C_esc · mean[ relu(1 + s − V(x)) · 1{T(x) = cap} ]            V above the level on the
-                                                                   states the model does not
-                                                                   take to the origin
 
 ``T`` is the simulated trajectory cost ``W(x) = ∫‖x(t)‖² dt`` of the model's closed loop,
 rescaled so that ``T = 1`` at a high quantile of the converging states and capped
@@ -110,10 +107,6 @@ class TrainConfig:
     fit_cap: float = 2.0       # target of states that do not converge (and cap of the rest)
     fit_transform: str = "log"  # "log" or "linear" (see nlyap_opt.candidates.cegis.cost_targets)
     w_pde: float = 0.0         # relative residual of the target's decrease law (0: off)
-    # containment of the model's ROA: relu(1 + s − V) on the training states whose target
-    # is the cap (they do not reach the origin without leaving D under the model), as
-    # w_outside asks it on ∂D (0: off)
-    w_escape: float = 0.0
     # raise the fit target to (1 + level_slack)·g(x)^8 (g the domain's gauge, 1 on ∂D) where
     # that is larger: level sets inside D, as containment (b) needs, where the ROA leaves D
     fit_domain: bool = False
@@ -546,10 +539,6 @@ class LyapunovLearner:
             if T is not None:
                 fit = ((v[:nb] - T[idx]) ** 2).mean()
                 loss = loss + cfg.w_fit * fit
-                if cfg.w_escape:
-                    escape = (T[idx] >= cfg.fit_cap).to(v.dtype)
-                    beyond = (torch.relu(1.0 + cfg.level_slack - v[:nb]) * escape).mean()
-                    loss = loss + cfg.w_escape * beyond
                 if R is not None:
                     # the target decreases at rate R(x)·‖x‖² along trajectories
                     want = R[idx] * (xb[:nb] ** 2).sum(1)

@@ -365,7 +365,6 @@ _RULES: dict[str, dict[str, dict]] = {
         "w_inside": _NONNEG, "w_outside": _NONNEG, "w_grad": _NONNEG, "w_anchor": _NONNEG,
         "w_fit": _NONNEG, "fit_quantile": _UNIT, "fit_cap": _POS,
         "fit_transform": {"choices": ("log", "linear")}, "w_pde": _NONNEG,
-        "w_escape": _NONNEG,
         "w_local": _NONNEG, "lr_schedule": {"choices": ("constant", "cosine")},
         "activation": {"choices": ("tanh", "square", "linear")},
         "init": {"choices": ("random", "quadratic", "sos")},
@@ -463,9 +462,6 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "fit_transform": "g of the target g(W)/g(W_c): log (tames the rise near the ROA "
                          "boundary) or linear",
         "w_pde": "weight of the relative residual of the target's decrease law (0: off)",
-        "w_escape": "weight of relu(1 + s − V) on the training states that the model does "
-                    "not take to the origin without leaving the domain (target at fit_cap): "
-                    "containment of the model's ROA (0: off)",
         "fit_domain": "raise the fit target to (1 + level_slack)·g(x)^8 where larger (g the "
                       "domain's gauge, 1 on its boundary): the target's level sets stay "
                       "inside D where the ROA leaves it",

@@ -498,8 +498,9 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
                           "keys)",
         "seed": "seed of the training states, counterexample jitter and level search",
         "inner_samples": "extra training states in ε ≤ ‖x‖ ≤ 3ε (0: none)",
-        "boundary_samples": "extra training states near the model's ROA boundary (with "
-                            "train.w_fit; 0: none)",
+        "boundary_samples": "extra training states near the model's ROA boundary, half "
+                            "where the target is high, half on segments between converging "
+                            "and non-converging neighbours (with train.w_fit; 0: none)",
         "sim_dt": "RK4 step of the training simulations",
         "sim_points": "learned φ: total nodes of a table of φ for the training simulations "
                       "(0: evaluate the network)",

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from ..design import sos_sdp
 from ..kernel.determinism import deterministic_torch
@@ -283,8 +284,6 @@ def label_boundary_states(X: np.ndarray, inside: np.ndarray, n: int,
     inside = np.asarray(inside, dtype=bool)
     if n <= 0 or len(X) < 2 or inside.all() or not inside.any():
         return np.zeros((0, X.shape[1]))
-    from scipy.spatial import cKDTree
-
     k = min(BOUNDARY_NEIGHBOURS + 1, len(X))
     _, nb = cKDTree(X).query(X, k=k)
     i = np.repeat(np.arange(len(X)), k - 1)

@@ -366,3 +366,32 @@ def test_catalogue_default_dynamics_grid_matches_its_model(name):
     assert dynamics_config(name, dyn).eta_target is None
     # the dynamics stage's own checks of the merged settings: grid against model
     make_grid(s, asdict(dynamics_config(name, dyn)))
+
+
+def test_label_boundary_states_lie_across_the_boundary_between_labels():
+    """States labelled by the unit disc (inside) in the square [−2, 2]²: every drawn state
+    lies on a segment between an inside and an outside neighbour, so within one neighbour
+    distance of the circle; they surround it; same rng, same states; none without both
+    labels."""
+    from scipy.spatial import cKDTree
+
+    from nlyap_opt.candidates.learning import BOUNDARY_NEIGHBOURS, label_boundary_states
+
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-2.0, 2.0, (4000, 2))
+    inside = np.linalg.norm(X, axis=1) < 1.0
+    Y = label_boundary_states(X, inside, 3000, np.random.default_rng(7))
+    assert Y.shape == (3000, 2)
+    reach = cKDTree(X).query(X, k=BOUNDARY_NEIGHBOURS + 1)[0][:, -1].max()
+    r = np.linalg.norm(Y, axis=1)
+    assert np.all(np.abs(r - 1.0) <= reach)
+    # much closer to the circle than uniform draws in the square, and all the way round
+    far = np.median(np.abs(np.linalg.norm(X, axis=1) - 1.0))
+    assert np.median(np.abs(r - 1.0)) < 0.25 * far
+    angles = np.arctan2(Y[:, 1], Y[:, 0])
+    assert np.histogram(angles, bins=8, range=(-np.pi, np.pi))[0].min() > 3000 / 8 / 4
+    np.testing.assert_array_equal(Y, label_boundary_states(X, inside, 3000,
+                                                           np.random.default_rng(7)))
+    for labels in (np.ones(len(X), bool), np.zeros(len(X), bool)):
+        assert label_boundary_states(X, labels, 100, rng).shape == (0, 2)
+

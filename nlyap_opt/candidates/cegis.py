@@ -27,7 +27,7 @@ from ..kernel.domain import Ball, as_domain, parse_set
 from ..kernel.errors import InputRangeError
 from ..kernel.network import Network
 from ..kernel.simulate import simulate
-from .learning import LyapunovLearner, TrainConfig, sample_ball
+from .learning import LyapunovLearner, TrainConfig, label_boundary_states, sample_ball
 
 __all__ = ["CegisConfig", "CegisResult", "cegis"]
 
@@ -269,12 +269,16 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
     if tc.w_fit and conv.any():
         w_c = float(np.quantile(cost[conv], tc.fit_quantile))
         if cfg.boundary_samples:
-            # more states where the target rises to its cap: around the model's ROA boundary
+            # more states around the model's ROA boundary: half where the cost is high, half
+            # on segments across the jump of the target to its cap
             T = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)[0]
             near = X[(T >= 0.8) & (T < tc.fit_cap)]
+            half = cfg.boundary_samples // 2
+            extra = label_boundary_states(X, T < tc.fit_cap, cfg.boundary_samples - half, rng)
             if len(near):
-                extra = near[rng.integers(0, len(near), cfg.boundary_samples)]
-                extra = extra + 0.03 * scale * rng.standard_normal(extra.shape)
+                jit = near[rng.integers(0, len(near), half)]
+                extra = np.vstack([extra, jit + 0.03 * scale * rng.standard_normal(jit.shape)])
+            if len(extra):
                 extra = extra[D.contains(extra)]
                 c2, w2, *p2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=cfg.sim_dt,
                                        tol=cfg.sim_tol, stay=stay, track=track)

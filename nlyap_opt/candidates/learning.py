@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from ..design import sos_sdp
 from ..kernel.determinism import deterministic_torch
@@ -47,7 +48,8 @@ from ..kernel.network import Layer, Network, dense_network, from_torch
 from ..kernel.sampling import sample_ball, sample_sphere
 from ..kernel.walker import ArrayArithmetic, evaluate
 
-__all__ = ["TrainConfig", "TrainInfo", "LyapunovLearner", "sample_ball", "sample_sphere"]
+__all__ = ["TrainConfig", "TrainInfo", "LyapunovLearner", "label_boundary_states",
+           "sample_ball", "sample_sphere"]
 
 
 @dataclass
@@ -254,6 +256,45 @@ def sos_start(V, level: float, config: TrainConfig) -> Network:
                   head={"type": "sum_of_squares", "eps": config.eps})
     net.__post_init__()
     return net
+
+
+#: neighbours of each training state searched for the other label (label_boundary_states)
+BOUNDARY_NEIGHBOURS = 8
+
+
+def label_boundary_states(X: np.ndarray, inside: np.ndarray, n: int,
+                          rng: np.random.Generator) -> np.ndarray:
+    r"""``n`` states on segments that cross the boundary between two labels of ``X``.
+
+    ``X`` (``(N, d)``) are simulated training states and ``inside`` marks those the model
+    takes to the origin (the others get the target's cap). Each state is paired with those
+    of its :data:`BOUNDARY_NEIGHBOURS` nearest neighbours (in ``X``) that carry the other
+    label; a segment between such a pair crosses the model's ROA boundary (or the boundary
+    of the states whose trajectories stay in the domain). Returns ``x_i + u (x_j − x_i)``,
+    ``u`` uniform in ``[0, 1]``, for ``n`` pairs drawn uniformly with ``rng`` (empty when no
+    pair exists).
+
+    Where the boundary repels strongly (a limit cycle of a stiff oscillator, the stable
+    manifold of a fast saddle), the trajectory cost rises to its cap only in a layer much
+    thinner than the sample spacing: seen from the samples, the target jumps there. States
+    drawn where the *cost* is high miss that layer; these segments do not, and more
+    training states across the jump let ``V`` rise steeply where the target does.
+    """
+    X = np.asarray(X, dtype=float)
+    inside = np.asarray(inside, dtype=bool)
+    if n <= 0 or len(X) < 2 or inside.all() or not inside.any():
+        return np.zeros((0, X.shape[1]))
+    k = min(BOUNDARY_NEIGHBOURS + 1, len(X))
+    _, nb = cKDTree(X).query(X, k=k)
+    i = np.repeat(np.arange(len(X)), k - 1)
+    j = nb[:, 1:].ravel()
+    cross = inside[i] != inside[j]
+    i, j = i[cross], j[cross]
+    if not len(i):
+        return np.zeros((0, X.shape[1]))
+    pick = rng.integers(0, len(i), n)
+    u = rng.random((n, 1))
+    return X[i[pick]] + u * (X[j[pick]] - X[i[pick]])
 
 
 def _body_jacobian_at_zero(body, n: int):

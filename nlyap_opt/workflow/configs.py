@@ -268,14 +268,14 @@ PRESETS["inverted_pendulum"]["large"]["cegis"]["iterations"] = 8
 #: counts. The domain, inner radius and controller scale come from the system's boxes
 #: (:func:`systems.default_run_settings`: the domain is the state box).
 DEFAULT_TRAIN: dict = {
-    "hidden": [20, 20], "features": 6, "steps": 3000, "lr": 0.01, "lr_schedule": "cosine",
+    "hidden": [32, 32], "features": 6, "steps": 3000, "lr": 0.01, "lr_schedule": "cosine",
     "decay": 0.0, "level_slack": 0.5, "relative_decrease": True, "w_fit": 10.0,
-    "w_pde": 2.5, "w_local": 10.0, "fit_domain": True, "w_outside": 10.0,
+    "w_pde": 1.5, "w_local": 10.0, "fit_domain": True, "w_outside": 10.0,
 }
 #: CEGIS of the default method: the verifier every third iteration and the last; training
 #: states near the model's ROA boundary; simulations on a table of φ (learned f, <= 3-D)
 DEFAULT_CEGIS: dict = {
-    "iterations": 6, "steps": 1000, "verify_every": 3, "sim_time": 30.0, "sim_dt": 0.04,
+    "iterations": 8, "steps": 1000, "verify_every": 3, "sim_time": 30.0, "sim_dt": 0.04,
     "sim_points": 90601, "inner_samples": 2000, "boundary_samples": 20000,
     "sim_in_domain": True,
 }
@@ -509,8 +509,9 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
                           "keys)",
         "seed": "seed of the training states, counterexample jitter and level search",
         "inner_samples": "extra training states in ε ≤ ‖x‖ ≤ 3ε (0: none)",
-        "boundary_samples": "extra training states near the model's ROA boundary (with "
-                            "train.w_fit; 0: none)",
+        "boundary_samples": "extra training states near the model's ROA boundary, half "
+                            "where the target is high, half on segments between converging "
+                            "and non-converging neighbours (with train.w_fit; 0: none)",
         "sim_dt": "RK4 step of the training simulations",
         "sim_points": "learned φ: total nodes of a table of φ for the training simulations "
                       "(0: evaluate the network)",

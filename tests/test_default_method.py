@@ -395,3 +395,32 @@ def test_label_boundary_states_lie_across_the_boundary_between_labels():
     for labels in (np.ones(len(X), bool), np.zeros(len(X), bool)):
         assert label_boundary_states(X, labels, 100, rng).shape == (0, 2)
 
+
+
+def test_a_fixed_inner_radius_is_refused_only_where_no_v_can_decrease():
+    """x' = Ax, A = [[−1, 10], [0, −1]] (non-normal): the Lyapunov-equation quadratic loses
+    its robust decrease inside ‖x‖ ≈ 0.15 at η = 0.003, but every point of the sphere
+    ‖x‖ = 0.05 moves at ≥ σ_min(A)·0.05 ≈ 0.005 > η, so another V may still work: a warning,
+    not a refusal. At η = 0.01 a point moves slower than η, where ∇V·φ + η‖∇V‖ ≥ 0 for
+    every V: the run stops with one line naming the ε that would."""
+    import casadi as ca
+
+    import systems
+    from nlyap_opt.kernel.domain import Ball
+    from nlyap_opt.workflow.pipeline import _inner_for_margin, _slow_on_sphere
+
+    x = ca.SX.sym("x", 2)
+    A = np.array([[-1.0, 10.0], [0.0, -1.0]])
+    s = systems.System("test_nonnormal", x, None, ca.mtimes(ca.DM(A), x),
+                       state_box=[[-4, 4], [-4, 4]])
+    smin = np.linalg.svd(A, compute_uv=False).min()
+    said = []
+    assert _inner_for_margin(s, None, None, 0.003, 0.05, Ball(4.0, 2), False,
+                             said.append) == 0.05
+    assert "unlikely to certify" in said[-1]
+    assert _slow_on_sphere(s, None, None, 0.003, 0.05) is None
+    slow = _slow_on_sphere(s, None, None, 0.01, 0.05)
+    assert slow is not None and np.linalg.norm(slow) == pytest.approx(0.05)
+    assert smin * 0.05 <= np.linalg.norm(A @ slow) < 0.01
+    with pytest.raises(ConfigError, match="inner = 0.05 cannot work.*moves slower than η"):
+        _inner_for_margin(s, None, None, 0.01, 0.05, Ball(4.0, 2), False, said.append)

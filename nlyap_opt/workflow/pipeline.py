@@ -776,16 +776,17 @@ def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, a
     :data:`INNER_MARGIN_FACTOR` times that. Only the radius changes: every condition is
     verified as configured, at the radius used (and recorded in the certificate).
 
-    Without ``auto`` (the user fixed ε) an ε at which the linearisation's robust decrease
-    is already lost (``ε < need / INNER_MARGIN_FACTOR``) cannot work: a
-    :class:`~nlyap_opt.kernel.errors.ConfigError` names the ε that would; between that and
-    ``need`` a warning does.
+    Without ``auto`` (the user fixed ε) an ε below ``need`` gets a warning naming the ε
+    that would work (the estimate rests on one quadratic; another V may do better). Only
+    an ε that provably cannot work stops the run: a point of the sphere ``‖x‖ = ε`` (where
+    the decrease must hold) with ``‖φ(x, κ(x))‖ < η`` defeats every V, since there
+    :math:`\nabla V\cdot\varphi + \eta\|\nabla V\| \ge \|\nabla V\|(\eta - \|\varphi\|)
+    \ge 0` (:func:`_slow_on_sphere`).
 
     Raises
     ------
     ConfigError
-        ``auto`` is off and ε is below the radius where the robust term beats the linear
-        decrease.
+        ``auto`` is off and a sampled point of the sphere ``‖x‖ = ε`` moves slower than η.
     """
     if _systems.spec.centre_dimension(system):
         need = _centre_inner(system, controller, dynamics, eta, eps, D)
@@ -811,15 +812,31 @@ def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, a
             f"{eta:.3g} the robust margin η‖∇V‖ beats {what} inside "
             f"‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}")
         return need
-    if eps < need / INNER_MARGIN_FACTOR:
+    slow = _slow_on_sphere(system, controller, dynamics, eta, eps)
+    if slow is not None:
         raise ConfigError(
-            f"inner = {eps:g} cannot work with η = {eta:.3g}: the robust margin η‖∇V‖ beats "
-            f"{what} inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; set inner to "
-            f"{need:.3g} or more, or auto_inner = true to let the tool choose")
+            f"inner = {eps:g} cannot work with η = {eta:.3g}: at x = {np.round(slow, 4)} "
+            f"(‖x‖ = ε) the model's closed loop moves slower than η, so no V decreases "
+            f"robustly there; set inner to {need:.3g} or more, or auto_inner = true to let "
+            "the tool choose")
     log(f"[inner] warning: with η = {eta:.3g} the robust margin η‖∇V‖ beats {what} "
         f"inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; inner = {eps:g} is unlikely "
         f"to certify: set inner to {need:.3g} or more (or auto_inner = true)")
     return eps
+
+
+def _slow_on_sphere(system, controller, dynamics, eta: float, eps: float,
+                    samples: int = 2000) -> np.ndarray | None:
+    """A sampled point of the sphere ``‖x‖ = eps`` where the model's closed loop has
+    ``‖φ(x, κ(x))‖ < η`` (no V can decrease robustly there), or ``None``."""
+    x = ca.SX.sym("x", system.nx)
+    rhs = closed_loop(system, controller, dynamics, x=x, strict=False).rhs
+    F = ca.Function("g", [x], [ca.norm_2(rhs)])
+    d = np.random.default_rng(0).standard_normal((samples, system.nx))
+    pts = eps * d / np.linalg.norm(d, axis=1, keepdims=True)
+    speed = np.array(F(pts.T), dtype=float).ravel()
+    k = int(np.argmin(speed))
+    return pts[k] if speed[k] < eta else None
 
 
 #: the radii :func:`_centre_inner` samples, from ε up to half the domain's inradius

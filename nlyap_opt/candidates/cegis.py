@@ -166,10 +166,6 @@ def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float
 #: cegis.sim_time (the trajectory-cost fit rests on too few states)
 MIN_CONVERGED = 0.01
 
-#: width (in D's gauge) of the band next to ∂D where extra training states are drawn
-#: when the target is lifted by the domain (train.fit_domain)
-RIM_BAND = 0.1
-
 #: exponent of the domain gauge in the lifted fit target (train.fit_domain): the lift only
 #: matters near the domain's boundary
 DOMAIN_TARGET_POWER = 8
@@ -284,17 +280,6 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
                                        tol=cfg.sim_tol, stay=stay, track=track)
                 X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
                 peak = [np.r_[peak[0], p2[0]]] if peak else peak
-        if tc.fit_domain and cfg.boundary_samples:
-            # and in the band next to ∂D (gauge ≥ 1 − RIM_BAND), where the lifted target
-            # below rises steeply to 1 + s: D holds 0 and is convex, so the states of ∂D
-            # scaled towards 0 lie in D
-            band = D.sample_boundary(cfg.boundary_samples // 2, rng)
-            band = band * (1.0 - RIM_BAND * rng.random((len(band), 1)))
-            band = band[D.contains(band)]
-            c2, w2, *p2 = simulate(rhs_np, band, t_final=cfg.sim_time, dt=cfg.sim_dt,
-                                   tol=cfg.sim_tol, stay=stay, track=track)
-            X, conv, cost = np.vstack([X, band]), np.r_[conv, c2], np.r_[cost, w2]
-            peak = [np.r_[peak[0], p2[0]]]
         targets, rates = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)
         if tc.fit_domain:
             # containment (b): the target rises to 1 + s where the trajectory from x reaches
@@ -308,7 +293,7 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
         # the pull of V ≤ 1 on the states whose target is at most 1: those with cost ≤ w_c,
         # less those whose target the domain lifted (their trajectories come close to ∂D:
         # pulling them inside would fight containment there)
-        weights = (conv & (cost <= w_c) & (targets <= 1.0)).astype(float)
+        weights = (conv & (cost <= w_c)).astype(float)
         log(f"  cegis: fitting V to the trajectory cost ({tc.fit_transform}; level 1 at cost "
             f"{w_c:.4g}, {len(X)} states)")
     return X, weights, targets, rates

@@ -145,6 +145,24 @@ def _pmul(p: dict, q: dict) -> dict:
     return {e: c for e, c in out.items() if c != 0.0}
 
 
+def _polynomial_op(op: int, a: dict, b: dict, kb, add, mul, one: dict) -> dict:
+    """``a op b`` for the polynomial operations (+, −, ×, ÷ by the constant ``kb``, an
+    integer power ``kb``) in one coefficient arithmetic: ``add``/``mul`` and the unit
+    polynomial ``one`` (float or exact)."""
+    if op == ca.OP_ADD:
+        return add(a, b)
+    if op == ca.OP_SUB:
+        return add(a, b, -1)
+    if op == ca.OP_MUL:
+        return mul(a, b)
+    if op == ca.OP_DIV:
+        return {e: v / kb for e, v in a.items()}
+    p = one  # pow / constpow with an integer exponent
+    for _ in range(int(kb)):
+        p = mul(p, a)
+    return p
+
+
 def _pscale(p: dict, factor: float) -> dict:
     return {e: factor * c for e, c in p.items() if factor * c != 0.0}
 
@@ -373,18 +391,7 @@ class PolynomialArithmetic:
                 return self._refuse(op, "a function of the state (polynomial only with "
                                         f"{CONDITIONAL_OPS[op]})")
             return self._refuse(op, "functions of the state")
-        if op == ca.OP_ADD:
-            return _padd(a, b)
-        if op == ca.OP_SUB:
-            return _padd(a, b, -1.0)
-        if op == ca.OP_MUL:
-            return _pmul(a, b)
-        if op == ca.OP_DIV:
-            return {e: v / kb for e, v in a.items()}
-        p = {self.zero: 1.0}  # pow / constpow with an integer exponent
-        for _ in range(int(kb)):
-            p = _pmul(p, a)
-        return p
+        return _polynomial_op(op, a, b, kb, _padd, _pmul, {self.zero: 1.0})
 
     def structural(self, fn, *args):
         """Apply an exact rearrangement (indexing, stacking)."""
@@ -549,18 +556,7 @@ class ExactPolynomialArithmetic(PolynomialArithmetic):
                        and kb.denominator == 1 and 0 <= kb <= _MAX_POWER))
         if a is None or b is None or not allowed:
             return None if allowed else self._refuse(op, "an exact polynomial")
-        if op == ca.OP_ADD:
-            return _qadd(a, b)
-        if op == ca.OP_SUB:
-            return _qadd(a, b, -1)
-        if op == ca.OP_MUL:
-            return _qmul(a, b)
-        if op == ca.OP_DIV:
-            return {e: v / kb for e, v in a.items()}
-        p = {self.zero: Fraction(1)}
-        for _ in range(int(kb)):
-            p = _qmul(p, a)
-        return p
+        return _polynomial_op(op, a, b, kb, _qadd, _qmul, {self.zero: Fraction(1)})
 
 
 def exact_polynomials(fun: ca.Function, args=None, nvars: int | None = None

@@ -278,6 +278,7 @@ def test_simulation_inside_the_domain_counts_only_states_that_never_leave_it():
     assert np.all((h > 1.0 + 1e-3) <= (excess > 0))
 
 
+@pytest.mark.slow  # two small pipeline runs (about 7 s idle)
 def test_report_gives_no_true_roa_share_when_too_few_states_converge(tmp_path):
     """x' = Ax, A = [[−1, 1], [−1, −1]]/50: ‖x(t)‖ = e^{−t/50}‖x₀‖. The simulation stops
     a state once it enters the certified inner ellipse E ⊇ B_ε (ε = 0.05): within the

@@ -154,6 +154,7 @@ def test_tight_ranges_hold_every_sample_and_are_never_looser_than_intervals():
             assert np.all(val.T <= t.hi[b]) and np.all(val.T >= t.lo[b])
 
 
+@pytest.mark.slow  # a Dask cluster start (several seconds)
 def test_on_a_cluster_coordinates_change_before_the_tasks():
     from nlyap_opt.distributed.parallel import check, dask_client, verify_distributed, verifying_on
     problem, _ = _stiff(level=0.5)

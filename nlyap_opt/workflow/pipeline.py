@@ -820,8 +820,9 @@ def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, a
             f"robustly there; set inner to {need:.3g} or more, or auto_inner = true to let "
             "the tool choose")
     log(f"[inner] warning: with η = {eta:.3g} the robust margin η‖∇V‖ beats {what} "
-        f"inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; inner = {eps:g} is unlikely "
-        f"to certify: set inner to {need:.3g} or more (or auto_inner = true)")
+        f"inside ‖x‖ < {need / INNER_MARGIN_FACTOR:.3g}; other V may still certify at "
+        f"inner = {eps:g}; if none does, set inner to {need:.3g} or more (or auto_inner = "
+        "true)")
     return eps
 
 

@@ -83,6 +83,7 @@ from ..kernel.errors import ConfigError, NlyapError
 from ..kernel.jsonio import load_with_timings, save_timings, split_timings
 from ..kernel.network import Network
 from ..kernel.provenance import fingerprint
+from ..kernel.sampling import sample_sphere
 from ..kernel.symbolic import closed_loop
 from ..learned.dynamics_stage import GateStatus, dynamics_stage, eta_limit_linear
 from .configs import RunConfig, check_dynamics_box, domain_of, validate_config
@@ -833,8 +834,7 @@ def _slow_on_sphere(system, controller, dynamics, eta: float, eps: float,
     x = ca.SX.sym("x", system.nx)
     rhs = closed_loop(system, controller, dynamics, x=x, strict=False).rhs
     F = ca.Function("g", [x], [ca.norm_2(rhs)])
-    d = np.random.default_rng(0).standard_normal((samples, system.nx))
-    pts = eps * d / np.linalg.norm(d, axis=1, keepdims=True)
+    pts = sample_sphere(samples, system.nx, eps, np.random.default_rng(0))
     speed = np.array(F(pts.T), dtype=float).ravel()
     k = int(np.argmin(speed))
     return pts[k] if speed[k] < eta else None
@@ -864,9 +864,7 @@ def _centre_inner(system, controller, dynamics, eta: float, eps: float, D) -> fl
     x = ca.SX.sym("x", system.nx)
     rhs = closed_loop(system, controller, dynamics, x=x, strict=False).rhs
     F = ca.Function("g", [x], [2 * ca.dot(x, ca.mtimes(ca.DM(P), rhs))])
-    rng = np.random.default_rng(0)
-    d = rng.standard_normal((2000, system.nx))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = sample_sphere(2000, system.nx, 1.0, np.random.default_rng(0))
     radii = np.geomspace(eps, max(eps, 0.5 * D.inradius()), CENTRE_RADII)
     good = []
     for rho in radii:

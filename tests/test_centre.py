@@ -235,6 +235,7 @@ def test_exact_polynomials_see_cancellations_that_floats_do_not():
     assert exact_polynomials(ca.Function("g", [x], [ca.sin(x)])) is None
 
 
+@pytest.mark.slow  # a run through the CLI up to its refusal (about 3 s)
 def test_an_input_that_cannot_reach_the_centre_is_one_line_naming_the_fix(tmp_path):
     """centre_4d.toml with an input on y1 only: no LQR start; exit 3, one line."""
     text = (EXAMPLES / "centre_4d.toml").read_text()

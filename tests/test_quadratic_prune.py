@@ -147,6 +147,7 @@ def _learned_toy():
     return problem, np.array([[-1.5, 1.5], [-1.5, 1.5]])
 
 
+@pytest.mark.slow  # a learned-dynamics loop, six radii (about 3 s)
 def test_learned_dynamics_prune_by_default_and_the_bound_bounds_every_radius():
     problem, box = _learned_toy()
     names = ["lyapunov", "round", "volume"]

@@ -9,7 +9,8 @@ import pytest
 from certcheck import assert_confirmed, assert_no_sample_contradicts
 
 from nlyap_opt.kernel.walker import evaluate
-from verification import Interval, IntervalArithmetic, lyapunov_problem, verify
+from verification import (Interval, IntervalArithmetic, VerificationProblem, lyapunov_problem,
+                          verify)
 from verification.affine import tight_ranges
 from verification.precondition import hessian_coordinates, precondition, solve_preconditioned
 from verification.verify import confirm_points, verify_interval
@@ -203,3 +204,110 @@ def test_planar_quadrotor_volume_P_at_ten_times_the_lqr_volume():
     r = verify(bad, second_order=True, precondition=True, max_boxes=1_000_000)
     assert r.status == "counterexample"
     assert_confirmed(bad, r.counterexample)
+
+
+def _fold_problem():
+    """A problem whose graph constant ``c = fl(1/t)`` meets the entry ``t`` of ``T = M⁻¹``
+    (``M = diag(3, 3)``, ``T`` rounded to 24 bits): ``c·t`` rounds to exactly 1 but is not 1.
+    Substituting ``x = T z`` folds ``c·(t·z₀)`` into ``z₀`` and drops the constant's widening."""
+    t = float(np.ldexp(np.round(np.ldexp(1 / 3, 25)), -25))     # fl(1/3) to 24 bits
+    c = 1.0 / t
+    assert c * t == 1.0 and Fraction(c) * Fraction(t) != 1    # the premise of the test
+    x = ca.SX.sym("x", 2)
+    g = c * x[0]                                                 # region: x₀ ≤ 0
+    p = c * x[1] - 3 * x[0] ** 2 - 3 * x[1] ** 2 - 1
+    problem = VerificationProblem(x, [[-1.0, 1.0], [-1.0, 1.0]], [g], [p])
+
+    def exact(z):  # g, p, their gradients and p's Hessian in z, in rationals
+        T = [[Fraction(v) for v in row] for row in pre.T]
+        zq = [Fraction(float(v)) for v in z]
+        xq = [sum(T[i][j] * zq[j] for j in range(2)) for i in range(2)]
+        cq = Fraction(c)
+        gx = [cq, Fraction(0)]
+        px = [-6 * xq[0], cq - 6 * xq[1]]
+        Hx = [[Fraction(-6), Fraction(0)], [Fraction(0), Fraction(-6)]]
+
+        def chain(v):  # vᵀ T
+            return [sum(v[i] * T[i][j] for i in range(2)) for j in range(2)]
+        Hz = [[sum(T[i][a] * Hx[i][k] * T[k][b] for i in range(2) for k in range(2))
+               for b in range(2)] for a in range(2)]
+        return (cq * xq[0], cq * xq[1] - 3 * xq[0] ** 2 - 3 * xq[1] ** 2 - 1,
+                chain(gx), chain(px), Hz)
+
+    pre = precondition(problem, np.diag([3.0, 3.0]))
+    assert pre.T[0, 0] == pre.T[1, 1] == t
+    return pre, exact
+
+
+def _inside(iv, k, value) -> bool:
+    return Fraction(float(iv.lo[k])) <= value <= Fraction(float(iv.hi[k]))
+
+
+def test_z_graphs_enclose_the_exact_values_where_a_fold_with_T_lands_on_an_integer():
+    """The graphs in ``z`` are the original ones evaluated at ``x = T z`` in outward-rounded
+    arithmetic: at points and on boxes of ``z`` their interval and affine enclosures hold the
+    exact rational values of ``g(Tz)``, ``p(Tz)``, ``∇g(Tz)ᵀT``, ``∇p(Tz)ᵀT`` and
+    ``Tᵀ∇²p T`` (a substituted graph gives the point enclosure ``[z₀, z₀]`` of ``c·t·z₀``)."""
+    from verification.affine import Affine, AffineArithmetic
+    pre, exact = _fold_problem()
+    zp = pre.problem
+    fG, fH = zp.second_order_functions
+    rng = np.random.default_rng(0)
+    zb = zp.box
+    pts = rng.uniform(zb[:, 0], zb[:, 1], (40, 2))
+    half = rng.uniform(0, 0.05, (40, 2))
+    for lo, hi in ((pts, pts.copy()), (pts - half, pts + half)):
+        F, J = evaluate(zp.function_jacobian, [Interval(lo, hi)], IntervalArithmetic())
+        G = evaluate(fG, [Interval(lo, hi)], IntervalArithmetic())[0]
+        H = evaluate(fH, [Interval(lo, hi)], IntervalArithmetic())[0]
+        A = evaluate(zp.function, [Affine.from_box(lo, hi)], AffineArithmetic())[0]
+        A = A.to_interval()
+        for b in range(len(lo)):
+            for z in (lo[b], hi[b], 0.5 * (lo[b] + hi[b])):
+                g, p, dg, dp, Hz = exact(z)
+                Fb, Jb, Gb, Hb, Ab = (Interval(iv.lo[b].ravel(), iv.hi[b].ravel())
+                                      for iv in (F, J, G, H, A))
+                # rows: g, the root-box ellipsoid, p; J column-major (3 x 2)
+                assert _inside(Fb, 0, g) and _inside(Fb, 2, p), (z, g, Fb)
+                assert _inside(Ab, 0, g) and _inside(Ab, 2, p)
+                assert all(_inside(Jb, 3 * j, dg[j]) and _inside(Jb, 3 * j + 2, dp[j])
+                           for j in range(2)), (z, dg, dp, Jb)
+                assert all(_inside(Gb, j, dp[j]) for j in range(2))
+                assert all(_inside(Hb, a + 2 * c, Hz[a][c]) for a in range(2) for c in range(2))
+
+
+def test_symmetric_root_is_the_same_for_every_eigenbasis_of_a_repeated_eigenvalue():
+    """``M = U|Λ|^{1/2}Uᵀ`` does not depend on the basis a LAPACK build picks inside an
+    eigenspace (rows of scaled eigenvectors do); and ``MᵀM = |H|``."""
+    from verification.precondition import _coarse, _symmetric_root
+    Q = _rotation(4, 7)
+    H = Q @ np.diag([-2.0, -2.0, -2.0, -9.0]) @ Q.T
+    w, U = np.linalg.eigh(H)                              # ascending: -9, then the -2's
+    roots, rows = [], []
+    for seed in range(4):                                 # rotate within the eigenspace
+        R = np.eye(4)
+        R[1:, 1:] = _rotation(3, 100 + seed)
+        V = U @ R
+        np.testing.assert_allclose(V @ np.diag(w) @ V.T, H, atol=1e-12)
+        roots.append(_symmetric_root(w, V))
+        rows.append(_coarse((V * np.sqrt(np.abs(w))).T))
+    for M in roots[1:]:
+        np.testing.assert_array_equal(M, roots[0])
+    assert any(not np.array_equal(r, rows[0]) for r in rows[1:])  # eigenvector rows differ
+    M = roots[0]
+    np.testing.assert_array_equal(M, M.T)
+    np.testing.assert_allclose(M.T @ M, -H, rtol=1e-6, atol=1e-6)   # |H| = -H here
+
+
+def test_an_unpickled_problem_is_preconditioned_from_its_graphs():
+    """A problem restored from a pickle holds graphs, not expressions: ``precondition``
+    (and the choice of ``M``) works from the graphs alone, with the original's verdict."""
+    import pickle
+    problem, _ = _stiff(level=0.5)
+    clone = pickle.loads(pickle.dumps(problem))
+    assert clone.properties is None
+    np.testing.assert_array_equal(hessian_coordinates(clone), hessian_coordinates(problem))
+    a = verify(problem, second_order=True, precondition=True)
+    b = verify(clone, second_order=True, precondition=True)
+    assert a.status == b.status == "verified"
+    assert (a.boxes, a.depth) == (b.boxes, b.depth)

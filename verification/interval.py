@@ -1484,17 +1484,39 @@ class CheckedIntervalArithmetic(IntervalArithmetic):
                 return np.broadcast_to(m, (B,))
         return np.full(B, bool(mask.any()))
 
-    def enter_call(self, feeds) -> bool:
-        """Attribute checks inside a called Function to the caller's ``feeds``."""
-        if self._override is None:
-            self._override = feeds
-            return True
-        return False
+    def enter_call(self, feeds) -> object:
+        """Attribute checks inside a called Function through the call's ``feeds``.
 
-    def exit_call(self, token: bool) -> None:
+        Parameters
+        ----------
+        feeds : list of ndarray of int
+            Per output ``j`` of the callee, the outputs of the calling Function that it
+            feeds. Within the call, a check that feeds the callee's outputs ``J`` is recorded
+            for the union of ``feeds[j]``, ``j ∈ J`` (composed through nested calls down to
+            the outputs of the Function evaluated at the top).
+
+        Returns
+        -------
+        object
+            The token for :meth:`exit_call`.
+        """
+        token = self._override
+        if token is not None:  # a call inside a call: through the outer call's attribution
+            feeds = [self._through(token, f) for f in feeds]
+        self._override = feeds
+        return token
+
+    def exit_call(self, token: object) -> None:
         """Undo :meth:`enter_call` (``token``: its return value)."""
-        if token:
-            self._override = None
+        self._override = token
+
+    @staticmethod
+    def _through(override: list, feeds) -> np.ndarray:
+        """The top-level outputs that the current callee's outputs ``feeds`` feed."""
+        parts = [override[j] for j in feeds]
+        if not parts:
+            return np.zeros(0, dtype=np.intp)
+        return np.unique(np.concatenate(parts)).astype(np.intp)
 
     def check(self, op: int, feeds, base: int, args, res: Interval) -> None:
         """Record whether a non-smooth operation may meet its kink or jump set, per box.
@@ -1514,7 +1536,7 @@ class CheckedIntervalArithmetic(IntervalArithmetic):
             Its result.
         """
         if self._override is not None:
-            feeds = self._override
+            feeds = self._through(self._override, feeds)
         if not len(feeds):
             return
         bounds = [(a.lo, a.hi) for a in map(_as_interval, args)]

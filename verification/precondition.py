@@ -34,12 +34,14 @@ product, intersected with ``B``).
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
+from nlyap_opt.kernel.errors import DimensionError
 from nlyap_opt.kernel.rounding import up
 
 from .interval import Interval, IntervalArithmetic
@@ -99,6 +101,7 @@ def hessian_coordinates(problem: VerificationProblem, point=None) -> np.ndarray 
     Parameters
     ----------
     problem : VerificationProblem
+        Its ``function`` is differentiated (a problem restored from a pickle works too).
     point : (n,) array_like, optional
         Where ``H`` is taken (default: the root box's centre; for a Lyapunov problem on a
         domain centred at the equilibrium, the equilibrium, where the decrease is
@@ -107,19 +110,17 @@ def hessian_coordinates(problem: VerificationProblem, point=None) -> np.ndarray 
     Returns
     -------
     (n, n) ndarray or None
-        Rows: the eigenvectors of ``H`` (each with its largest entry positive, so that the
-        same ``H`` gives the same ``M``) scaled by ``|λ|^{1/2}``, rounded to 24 significant
-        bits; ``None`` when ``H`` is not
-        finite, not definite, or its eigenvalues' magnitudes span more than
-        :data:`_MAX_SPREAD`, or the root box is flat in some dimension (then the problem
-        is verified as it is).
+        The symmetric root ``U|Λ|^{1/2}Uᵀ`` of ``|H|`` (``H = UΛUᵀ``), rounded to 24
+        significant bits (:func:`_symmetric_root`); ``None`` when ``H`` is not finite, not
+        definite, or its eigenvalues' magnitudes span more than :data:`_MAX_SPREAD`, or
+        the root box is flat in some dimension (then the problem is verified as it is).
     """
     n = problem.n
     if not np.all(problem.box[:, 1] > problem.box[:, 0]):
         return None
     p = problem.box.mean(axis=1) if point is None else np.asarray(point, dtype=float)
-    _, fH = problem.second_order_functions
-    outs = fH(p)
+    _, fH = _second_order(problem.function, problem.n_constraints, n)
+    outs = fH(p, np.eye(n))
     H = np.array(outs[-1] if isinstance(outs, (list, tuple)) else outs, dtype=float)
     H = H.reshape(n, n)
     if not np.all(np.isfinite(H)):
@@ -128,8 +129,32 @@ def hessian_coordinates(problem: VerificationProblem, point=None) -> np.ndarray 
     a = np.abs(w)
     if not (np.all(w < 0) or np.all(w > 0)) or a.min() * _MAX_SPREAD < a.max():
         return None
-    sign = np.sign(U[np.argmax(np.abs(U), axis=0), np.arange(n)])
-    return _coarse((U * sign * np.sqrt(a)).T)
+    return _symmetric_root(w, U)
+
+
+def _symmetric_root(w: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """``|H|^{1/2} = U|Λ|^{1/2}Uᵀ`` from an eigen-decomposition ``H = U diag(w) Uᵀ``,
+    symmetrised and rounded to 24 significant bits.
+
+    The symmetric root does not depend on which orthonormal eigenbasis ``U`` a LAPACK build
+    returns (within an eigenspace of a repeated eigenvalue any rotation of it is one):
+    ``U|Λ|^{1/2}Uᵀ`` is the same matrix for all of them, and the rounding to 24 bits
+    removes the last bits in which their float products differ (unless an entry lies within
+    about ``2⁻⁴⁵`` of a rounding boundary).
+
+    Parameters
+    ----------
+    w : (n,) ndarray
+        Eigenvalues.
+    U : (n, n) ndarray
+        Orthonormal eigenvectors (columns).
+
+    Returns
+    -------
+    (n, n) ndarray
+    """
+    R = (U * np.sqrt(np.abs(w))) @ U.T
+    return _coarse(0.5 * R + 0.5 * R.T)
 
 
 def _coarse(a: np.ndarray, bits: int = 24) -> np.ndarray:
@@ -163,12 +188,122 @@ def _cover(M: np.ndarray, T: np.ndarray, box: np.ndarray) -> np.ndarray:
     return np.stack([z.lo, z.hi], axis=1)
 
 
+def _directional(fn: ca.Function, n: int) -> tuple[ca.MX, ca.MX, list]:
+    """``(x, S, outs)``: ``fn``'s outputs at a symbol ``x`` and their derivatives along the
+    columns of a symbolic seed matrix ``S`` (``(n, n)``): each output ``y`` (a column)
+    followed by ``J_y(x) S`` (forward mode, CasADi's derivative of ``fn``'s own graph).
+
+    ``S`` is a symbol while the graphs are built, so no number of it meets a constant of
+    ``fn`` before a verifier's arithmetic evaluates them.
+    """
+    x = ca.MX.sym("x", n)
+    S = ca.MX.sym("S", n, n)
+    outs = fn.call([x])
+    return x, S, outs
+
+
+def _second_order(fn: ca.Function, m: int, n: int) -> tuple[ca.Function, ca.Function]:
+    """``(x, S) -> ∇pᵀ S`` and ``(x, S) -> (Sᵀ∇²p_1 S, …, Sᵀ∇²p_k S)`` for the properties
+    ``p`` (outputs ``m:`` of ``fn``'s single column output): gradients and Hessians along
+    the columns of ``S``, by forward mode (twice for the Hessians)."""
+    x, S, outs = _directional(fn, n)
+    P = outs[0][m:, :]
+    k = P.shape[0]
+    G = ca.jtimes(P, x, S)                                # (k, n): G[j, a] = ∇p_jᵀ S_a
+    D = ca.jtimes(ca.vec(G), x, S)                        # (k n, n): D[j + k a, b] = S_aᵀ H_j S_b
+    Hs = [D[j::k, :] for j in range(k)]                   # (n, n): [a, b]
+    return ca.Function("PG_S", [x, S], [G]), ca.Function("PH_S", [x, S], Hs)
+
+
+class _Composed(VerificationProblem):
+    """The problem in ``z``: graphs that call the original problem's graphs at ``x = T z``.
+
+    Nothing of the original graphs is rebuilt with ``T`` inside: ``x = T z`` is a matrix
+    product node, the original Function is a called node, and its derivatives along the
+    columns of ``T`` are CasADi's forward-mode graphs of that Function with a symbolic seed
+    matrix, called with ``T`` (see the module's Soundness section). Built from the original
+    ``function`` (and ``function_checked``) alone, so a problem restored from a pickle (its
+    expressions dropped) works too; like such a problem it holds no expressions
+    (``constraints`` and ``properties`` are ``None``).
+    """
+
+    def __init__(self, original: VerificationProblem, T: np.ndarray, zbox: np.ndarray,
+                 c: np.ndarray, r: np.ndarray):
+        n, m = original.n, original.n_constraints
+        z = ca.MX.sym("z", n)
+        Tm = ca.DM(T)
+        xz = ca.mtimes(Tm, z)
+        # the ellipsoid Σ ((x_i - c_i) / r_i)² ≤ n around the root box B and its gradient
+        # (2 (x - c) / r²)ᵀ T, written out (not differentiated: no constant is combined)
+        d = (xz - ca.DM(c)) / ca.DM(r)
+        ell = ca.sum1(d ** 2) - n
+        dell = ca.mtimes((2 * d / ca.DM(r)).T, Tm)
+
+        def rows(F, e):  # the original rows with the ellipsoid's after the constraints
+            return ca.vertcat(F[:m, :], e, F[m:, :])
+
+        x, S, outs = _directional(original.function, n)
+        FJ = ca.Function("FJ_S", [x, S], [outs[0], ca.jtimes(outs[0], x, S)])
+        F, J = FJ.call([xz, Tm])
+        self.x = z
+        self.box = np.asarray(zbox, dtype=float)
+        self.n_constraints = m + 1
+        self.n_properties = original.n_properties
+        self.constraint_names = list(original.constraint_names) + ["root box"]
+        self.property_names = list(original.property_names)
+        self.function = ca.Function("F", [z], [rows(original.function.call([xz])[0], ell)])
+        self.jacobian = ca.Function("J", [z], [rows(J, dell)])
+        self.function_jacobian = ca.Function("FJ", [z], [rows(F, ell), rows(J, dell)])
+        self.constraints = self.properties = None
+        self.checked = original.checked
+        self.function_checked = self.function_jacobian_checked = None
+        if self.checked:  # one output per constraint and property, as the original's
+            x, S, outs = _directional(original.function_checked, n)
+            FJc = ca.Function("FJ_checked_S", [x, S],
+                              outs + [ca.jtimes(ca.vertcat(*outs), x, S)])
+            outs = original.function_checked.call([xz])
+            self.function_checked = ca.Function("F_checked", [z], outs[:m] + [ell] + outs[m:])
+            outs = FJc.call([xz, Tm])
+            self.function_jacobian_checked = ca.Function(
+                "FJ_checked", [z], outs[:m] + [ell] + outs[m:-1] + [rows(outs[-1], dell)])
+        self._T = np.array(T, dtype=float)
+        self._original_function = original.function
+        self._second_order = None
+
+    @property
+    def second_order_functions(self) -> tuple[ca.Function, ca.Function]:
+        """``(G, H)`` in ``z``: ``∇p(Tz)ᵀT`` and ``Tᵀ∇²p(Tz)T``, as directional derivatives of
+        the original ``function`` along the columns of ``T``."""
+        if self._second_order is None:
+            fn = getattr(self, "_original_function", None)
+            if fn is None:  # restored from a pickle before they were built
+                return super().second_order_functions   # the error that says what to do
+            z = self.x
+            Tm = ca.DM(self._T)
+            fG, fH = _second_order(fn, self.n_constraints - 1, self.n)
+            xz = ca.mtimes(Tm, z)
+            self._second_order = (ca.Function("PG", [z], fG.call([xz, Tm])),
+                                  ca.Function("PH", [z], fH.call([xz, Tm])))
+        return self._second_order
+
+    def restricted(self, box) -> VerificationProblem:
+        """The same problem on a sub-box (same graphs)."""
+        box = np.asarray(box, dtype=float)
+        if box.shape != self.box.shape or np.any(box[:, 0] > box[:, 1]):
+            raise DimensionError(f"box must have shape {self.box.shape} with lower <= upper, "
+                                 f"got {box.shape}")
+        out = copy.copy(self)
+        out.box = box
+        return out
+
+
 def precondition(problem: VerificationProblem, M: np.ndarray) -> Preconditioned:
-    """The problem in the coordinates ``z = M x`` (substituting ``x = T z``, ``T = fl(M⁻¹)``).
+    """The problem in the coordinates ``z = M x`` (``x = T z``, ``T = fl(M⁻¹)``).
 
     Parameters
     ----------
     problem : VerificationProblem
+        Its graphs are used, not its expressions: a problem restored from a pickle works.
     M : (n, n) array_like
         Invertible, well enough conditioned that ``‖I − M·fl(M⁻¹)‖_∞ < ½`` is proved.
 
@@ -193,21 +328,12 @@ def precondition(problem: VerificationProblem, M: np.ndarray) -> Preconditioned:
         raise ValueError("M must be invertible") from None
     box = problem.box
     zbox = _cover(M, T, box)
-    z = (ca.MX if isinstance(problem.x, ca.MX) else ca.SX).sym("z", n)
-    xz = ca.mtimes(ca.DM(T), z)
-    exprs = ca.substitute(list(problem.constraints) + list(problem.properties),
-                          [problem.x], [xz])
-    m = problem.n_constraints
     # the ellipsoid Σ ((x_i - c_i) / r_i)² ≤ n around the root box B (one constraint, not 2n:
     # each costs a column of every pass); a superset of B, enough: a larger region only
     # asks for more, and a counterexample outside B is not confirmed on the original problem
     c = 0.5 * box[:, 0] + 0.5 * box[:, 1]
     r = up(np.maximum(box[:, 1] - c, c - box[:, 0]))  # >= the exact half widths about c
-    ell = ca.sumsqr((xz - ca.DM(c)) / ca.DM(r)) - n
-    cons = list(exprs[:m]) + [ell]
-    names = list(problem.constraint_names) + ["root box"]
-    zp = VerificationProblem(z, zbox, cons, list(exprs[m:]), names, problem.property_names)
-    return Preconditioned(zp, problem, M, T)
+    return Preconditioned(_Composed(problem, T, zbox, c, r), problem, M, T)
 
 
 def solve_preconditioned(problem: VerificationProblem, M: np.ndarray | None,

@@ -367,6 +367,8 @@ class Program:
             return None
         live: dict[int, int] = {}
         feeds = [0] * n
+        #: per call instruction, per output of the callee: the outputs that output feeds
+        self._call_feeds: dict[int, list[int]] = {}
         for k in range(n - 1, -1, -1):
             op = ops[k]
             i = f.instruction_input(k)
@@ -374,11 +376,13 @@ class Program:
             if op == ca.OP_OUTPUT:
                 live[i[0]] = live.get(i[0], 0) | (1 << o[0])
                 continue
+            per = [live.pop(reg, 0) if reg >= 0 else 0 for reg in o]
             m = 0
-            for reg in o:
-                if reg >= 0:
-                    m |= live.pop(reg, 0)
+            for b in per:
+                m |= b
             feeds[k] = m
+            if op == ca.OP_CALL:
+                self._call_feeds[k] = per
             if op in (ca.OP_INPUT, ca.OP_CONST):
                 continue
             for reg in i:
@@ -505,8 +509,9 @@ class Program:
                 callee = node.which_function()
                 prog = compile_function(callee)
                 self.checked = self.checked or prog.checked
-                m = self._feeds[k] if self._feeds is not None else -1
-                feeds = np.array([j for j in range(self.n_out) if (m >> j) & 1], dtype=np.intp)
+                per = self._call_feeds.get(k) if self._feeds is not None else None
+                feeds = [np.array([j for j in range(self.n_out) if (m >> j) & 1], dtype=np.intp)
+                         for m in (per or [-1] * prog.n_out)]
                 steps.append(_mx_call(prog, i, o, feeds))
             else:
                 raise UnsupportedOperationError(
@@ -764,13 +769,14 @@ def _mx_setnz(o, y, x, nz, add, sp_out, sp_x):
 
 
 def _mx_call(prog: Program, ins, outs, feeds):
+    """A call step; ``feeds[j]``: the caller's outputs that the callee's output ``j`` feeds."""
     def step(r, ctx):
         ar = ctx[0]
         args = [prog.sp_in[j].to_nz(ar, r[ins[j]]) for j in range(prog.n_in)]
         enter = getattr(ar, "enter_call", None) if prog.checked else None
         if enter is None:
             res = prog(args, ar)
-        else:  # checks inside the callee are attributed to this call's outputs
+        else:  # checks inside the callee: to the caller's outputs its outputs feed
             token = enter(feeds)
             try:
                 res = prog(args, ar)

@@ -276,27 +276,31 @@ def test_z_graphs_enclose_the_exact_values_where_a_fold_with_T_lands_on_an_integ
                 assert all(_inside(Hb, a + 2 * c, Hz[a][c]) for a in range(2) for c in range(2))
 
 
-def test_symmetric_root_is_the_same_for_every_eigenbasis_of_a_repeated_eigenvalue():
-    """``M = U|Λ|^{1/2}Uᵀ`` does not depend on the basis a LAPACK build picks inside an
-    eigenspace (rows of scaled eigenvectors do); and ``MᵀM = |H|``."""
-    from verification.precondition import _coarse, _symmetric_root
+def test_coordinates_are_the_same_for_every_eigenbasis_of_a_repeated_eigenvalue():
+    """A LAPACK build may return any rotation of the basis of a repeated eigenvalue's
+    eigenspace: ``M`` is the same for all of them (the plain scaled eigenvector rows are
+    not); ``MᵀM = |H|``; and for simple eigenvalues ``M`` is the sign-fixed scaled rows."""
+    from verification.precondition import _coarse, _eigen_rows
     Q = _rotation(4, 7)
     H = Q @ np.diag([-2.0, -2.0, -2.0, -9.0]) @ Q.T
     w, U = np.linalg.eigh(H)                              # ascending: -9, then the -2's
-    roots, rows = [], []
+    Ms, rows = [], []
     for seed in range(4):                                 # rotate within the eigenspace
         R = np.eye(4)
         R[1:, 1:] = _rotation(3, 100 + seed)
         V = U @ R
         np.testing.assert_allclose(V @ np.diag(w) @ V.T, H, atol=1e-12)
-        roots.append(_symmetric_root(w, V))
+        Ms.append(_eigen_rows(w, V))
         rows.append(_coarse((V * np.sqrt(np.abs(w))).T))
-    for M in roots[1:]:
-        np.testing.assert_array_equal(M, roots[0])
+    for M in Ms[1:]:
+        np.testing.assert_array_equal(M, Ms[0])
     assert any(not np.array_equal(r, rows[0]) for r in rows[1:])  # eigenvector rows differ
-    M = roots[0]
-    np.testing.assert_array_equal(M, M.T)
-    np.testing.assert_allclose(M.T @ M, -H, rtol=1e-6, atol=1e-6)   # |H| = -H here
+    np.testing.assert_allclose(Ms[0].T @ Ms[0], -H, rtol=1e-6, atol=1e-6)   # |H| = -H here
+    # simple eigenvalues: the rows of the eigenvectors, each with its largest entry positive
+    w, U = np.linalg.eigh(Q @ np.diag([-1.0, -2.0, -3.0, -9.0]) @ Q.T)
+    sign = np.sign(U[np.argmax(np.abs(U), axis=0), np.arange(4)])
+    np.testing.assert_array_equal(_eigen_rows(w, U), _coarse((U * sign * np.sqrt(-w)).T))
+    np.testing.assert_array_equal(_eigen_rows(w, -U), _eigen_rows(w, U))
 
 
 def test_an_unpickled_problem_is_preconditioned_from_its_graphs():

@@ -53,6 +53,10 @@ _IA = IntervalArithmetic()
 #: ``hessian_coordinates`` declines Hessians whose eigenvalues' magnitudes span more than
 #: this ratio (or of mixed sign): ``M`` would be near singular or the form not ``±|z|²``
 _MAX_SPREAD = 1e8
+#: eigenvalues closer than this times the largest magnitude form one cluster, whose basis
+#: :func:`_eigen_rows` chooses from the eigenspace (an eigenvector's float error grows as
+#: ``u‖H‖/gap``: beyond this gap it stays far below the 24-bit rounding of ``M``)
+_CLUSTER = 1e-6
 
 
 @dataclass
@@ -110,9 +114,10 @@ def hessian_coordinates(problem: VerificationProblem, point=None) -> np.ndarray 
     Returns
     -------
     (n, n) ndarray or None
-        The symmetric root ``U|Λ|^{1/2}Uᵀ`` of ``|H|`` (``H = UΛUᵀ``), rounded to 24
-        significant bits (:func:`_symmetric_root`); ``None`` when ``H`` is not finite, not
-        definite, or its eigenvalues' magnitudes span more than :data:`_MAX_SPREAD`, or
+        Rows: the eigenvectors of ``H`` scaled by ``|λ|^{1/2}``, a basis of each cluster of
+        (nearly) repeated eigenvalues chosen from its eigenspace alone, rounded to 24
+        significant bits (:func:`_eigen_rows`: the same ``M`` for every eigenbasis a
+        LAPACK build returns); ``None`` when ``H`` is not finite, not definite, or its eigenvalues' magnitudes span more than :data:`_MAX_SPREAD`, or
         the root box is flat in some dimension (then the problem is verified as it is).
     """
     n = problem.n
@@ -120,7 +125,7 @@ def hessian_coordinates(problem: VerificationProblem, point=None) -> np.ndarray 
         return None
     p = problem.box.mean(axis=1) if point is None else np.asarray(point, dtype=float)
     _, fH = _second_order(problem.function, problem.n_constraints, n)
-    outs = fH(p, np.eye(n))
+    outs = fH(p, np.eye(n))   # z = x
     H = np.array(outs[-1] if isinstance(outs, (list, tuple)) else outs, dtype=float)
     H = H.reshape(n, n)
     if not np.all(np.isfinite(H)):
@@ -129,32 +134,52 @@ def hessian_coordinates(problem: VerificationProblem, point=None) -> np.ndarray 
     a = np.abs(w)
     if not (np.all(w < 0) or np.all(w > 0)) or a.min() * _MAX_SPREAD < a.max():
         return None
-    return _symmetric_root(w, U)
+    return _eigen_rows(w, U)
 
 
-def _symmetric_root(w: np.ndarray, U: np.ndarray) -> np.ndarray:
-    """``|H|^{1/2} = U|Λ|^{1/2}Uᵀ`` from an eigen-decomposition ``H = U diag(w) Uᵀ``,
-    symmetrised and rounded to 24 significant bits.
+def _eigen_rows(w: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """Rows ``|λ|^{1/2} uᵀ`` from an eigen-decomposition ``H = U diag(w) Uᵀ``, the same for
+    every orthonormal eigenbasis ``U`` (so for every LAPACK build), rounded to 24 bits.
 
-    The symmetric root does not depend on which orthonormal eigenbasis ``U`` a LAPACK build
-    returns (within an eigenspace of a repeated eigenvalue any rotation of it is one):
-    ``U|Λ|^{1/2}Uᵀ`` is the same matrix for all of them, and the rounding to 24 bits
-    removes the last bits in which their float products differ (unless an entry lies within
-    about ``2⁻⁴⁵`` of a rounding boundary).
+    An eigenvector of a simple eigenvalue is unique up to sign (fixed: its largest entry
+    positive). Within a cluster of eigenvalues closer than :data:`_CLUSTER` times the
+    largest magnitude, where a LAPACK build may return any rotation of the basis, the rows
+    are instead the eigenvectors of a fixed diagonal matrix ``D`` compressed to the
+    cluster's invariant subspace (``B = U_c V`` with ``V`` the eigenvectors of
+    ``U_cᵀ D U_c``: for ``U_c R`` in place of ``U_c`` the same ``B``), each scaled by
+    ``(bᵀ|H|b)^{1/2}``. Rounded to 24 bits, the last bits in which float products differ
+    are removed too (unless an entry lies within about ``2⁻⁴⁵`` of a rounding boundary).
 
     Parameters
     ----------
     w : (n,) ndarray
-        Eigenvalues.
+        Eigenvalues, ascending (as ``numpy.linalg.eigh`` gives them).
     U : (n, n) ndarray
         Orthonormal eigenvectors (columns).
 
     Returns
     -------
     (n, n) ndarray
+        ``M`` with ``MᵀM ≈ |H|``.
     """
-    R = (U * np.sqrt(np.abs(w))) @ U.T
-    return _coarse(0.5 * R + 0.5 * R.T)
+    n = len(w)
+    a = np.abs(w)
+    B = np.array(U, dtype=float)
+    scale = np.sqrt(a)
+    D = np.exp(0.7390851 * np.arange(n))  # distinct, and not in simple ratios
+    start = 0
+    for i in range(1, n + 1):
+        if i < n and w[i] - w[i - 1] <= _CLUSTER * a.max():
+            continue
+        if i - start > 1:  # the cluster start..i-1
+            Uc = U[:, start:i]
+            C = Uc.T @ (D[:, None] * Uc)
+            _, V = np.linalg.eigh(0.5 * C + 0.5 * C.T)
+            B[:, start:i] = Uc @ V
+            scale[start:i] = np.sqrt((V ** 2).T @ a[start:i])    # (bᵀ|H|b)^{1/2}
+        start = i
+    sign = np.sign(B[np.argmax(np.abs(B), axis=0), np.arange(n)])
+    return _coarse((B * sign * scale).T)
 
 
 def _coarse(a: np.ndarray, bits: int = 24) -> np.ndarray:
@@ -189,30 +214,29 @@ def _cover(M: np.ndarray, T: np.ndarray, box: np.ndarray) -> np.ndarray:
 
 
 def _directional(fn: ca.Function, n: int) -> tuple[ca.MX, ca.MX, list]:
-    """``(x, S, outs)``: ``fn``'s outputs at a symbol ``x`` and their derivatives along the
-    columns of a symbolic seed matrix ``S`` (``(n, n)``): each output ``y`` (a column)
-    followed by ``J_y(x) S`` (forward mode, CasADi's derivative of ``fn``'s own graph).
+    """``(x, S, outs)``: symbols ``x`` (``n``) and ``S`` (``(n, n)``) and ``fn``'s outputs
+    at ``x``; derivatives along the columns of ``S`` are then CasADi's forward mode of
+    ``fn``'s own graph.
 
     ``S`` is a symbol while the graphs are built, so no number of it meets a constant of
     ``fn`` before a verifier's arithmetic evaluates them.
     """
     x = ca.MX.sym("x", n)
     S = ca.MX.sym("S", n, n)
-    outs = fn.call([x])
-    return x, S, outs
+    return x, S, fn.call([x])
 
 
 def _second_order(fn: ca.Function, m: int, n: int) -> tuple[ca.Function, ca.Function]:
-    """``(x, S) -> ∇pᵀ S`` and ``(x, S) -> (Sᵀ∇²p_1 S, …, Sᵀ∇²p_k S)`` for the properties
-    ``p`` (outputs ``m:`` of ``fn``'s single column output): gradients and Hessians along
-    the columns of ``S``, by forward mode (twice for the Hessians)."""
-    x, S, outs = _directional(fn, n)
-    P = outs[0][m:, :]
-    k = P.shape[0]
-    G = ca.jtimes(P, x, S)                                # (k, n): G[j, a] = ∇p_jᵀ S_a
-    D = ca.jtimes(ca.vec(G), x, S)                        # (k n, n): D[j + k a, b] = S_aᵀ H_j S_b
-    Hs = [D[j::k, :] for j in range(k)]                   # (n, n): [a, b]
-    return ca.Function("PG_S", [x, S], [G]), ca.Function("PH_S", [x, S], Hs)
+    """``(z, S) -> ∇_z p(Sz)`` and ``(z, S) -> (∇²_z p_1(Sz), …, ∇²_z p_k(Sz))`` for the
+    properties ``p`` (outputs ``m:`` of ``fn``'s single column output): the gradients
+    ``∇p(x)ᵀS`` and Hessians ``Sᵀ∇²p(x)S`` at ``x = Sz`` (CasADi's derivatives of ``fn``'s
+    graph composed with the symbolic ``S``)."""
+    z = ca.MX.sym("z", n)
+    S = ca.MX.sym("S", n, n)
+    P = fn.call([ca.mtimes(S, z)])[0][m:, :]
+    G = ca.densify(ca.jacobian(P, z))
+    Hs = [ca.densify(ca.hessian(P[j], z)[0]) for j in range(P.shape[0])]
+    return ca.Function("PG_S", [z, S], [G]), ca.Function("PH_S", [z, S], Hs)
 
 
 class _Composed(VerificationProblem):
@@ -281,9 +305,8 @@ class _Composed(VerificationProblem):
             z = self.x
             Tm = ca.DM(self._T)
             fG, fH = _second_order(fn, self.n_constraints - 1, self.n)
-            xz = ca.mtimes(Tm, z)
-            self._second_order = (ca.Function("PG", [z], fG.call([xz, Tm])),
-                                  ca.Function("PH", [z], fH.call([xz, Tm])))
+            self._second_order = (ca.Function("PG", [z], fG.call([z, Tm])),
+                                  ca.Function("PH", [z], fH.call([z, Tm])))
         return self._second_order
 
     def restricted(self, box) -> VerificationProblem:

@@ -795,6 +795,30 @@ def test_checked_arithmetic_through_mx_calls_and_constants():
     assert ar.jump[:, 1].tolist() == [True, False, False]
 
 
+def test_checks_inside_calls_go_to_the_outputs_the_callee_outputs_feed():
+    """A kink inside a called Function is recorded for the caller's outputs that the callee's
+    output it feeds flows into (through nested calls), not for every output of the call."""
+    from nlyap_opt.kernel.walker import evaluate
+    from verification.interval import CheckedIntervalArithmetic
+
+    xs = ca.SX.sym("x", 2)
+    inner = ca.Function("inner", [xs], [ca.fmax(xs[0], 0), xs[1]])     # kink: output 0
+    xm = ca.MX.sym("x", 2)
+    a, b = inner(xm)
+    mid = ca.Function("mid", [xm], [b * 3, a + b, b - 1])              # kink: output 1
+    ym = ca.MX.sym("y", 2)
+    p, q, r = mid(ym)
+    f = ca.Function("f", [ym], [r, p, q * 2, p + r])                   # kink: output 2
+    lo = np.array([[-1.0, 0.0], [0.5, 0.0]])
+    hi = np.array([[1.0, 1.0], [1.0, 1.0]])                           # x0 crosses 0: box 0
+    for fn, col in ((inner, 0), (mid, 1), (f, 2)):
+        ar = CheckedIntervalArithmetic(2, fn.n_out())
+        ar.collect(evaluate(fn, [Interval(lo, hi)], ar))
+        expect = np.zeros((2, fn.n_out()), bool)
+        expect[0, col] = True
+        assert (ar.jump == expect).all(), (fn.name(), ar.jump)
+
+
 def test_statically_safe_operations_are_not_checked():
     from nlyap_opt.kernel.walker import compile_function
 

@@ -9,8 +9,7 @@ import pytest
 from certcheck import assert_confirmed, assert_no_sample_contradicts
 
 from nlyap_opt.kernel.walker import evaluate
-from verification import (Interval, IntervalArithmetic, VerificationProblem, lyapunov_problem,
-                          verify)
+from verification import Interval, IntervalArithmetic, VerificationProblem, lyapunov_problem, verify
 from verification.affine import tight_ranges
 from verification.precondition import hessian_coordinates, precondition, solve_preconditioned
 from verification.verify import confirm_points, verify_interval
@@ -315,3 +314,27 @@ def test_an_unpickled_problem_is_preconditioned_from_its_graphs():
     b = verify(clone, second_order=True, precondition=True)
     assert a.status == b.status == "verified"
     assert (a.boxes, a.depth) == (b.boxes, b.depth)
+
+
+def test_checked_problem_keeps_per_output_checks_in_z():
+    """With a saturation (``fmin``/``fmax``: checked for kinks per box and output) in the
+    decrease only, the ``z`` problem flags kinks for the decrease and never for the
+    constraints (the calls attribute each check to the outputs it feeds), and verifies."""
+    from verification.interval import CheckedIntervalArithmetic
+    x = ca.SX.sym("x", 2)
+    A = np.array([[-1.0, 0.4], [0.0, -30.0]])
+    u = ca.fmin(ca.fmax(3 * x[0] - x[1], -0.5), 0.5)
+    f = ca.mtimes(ca.DM(A), x) + ca.vertcat(0.3 * u * x[1], 0)
+    problem = lyapunov_problem(x, ca.sumsqr(x), ca.dot(2 * x, f), inner=0.05, outer=1.0,
+                               check_positive=False)
+    zp = precondition(problem, hessian_coordinates(problem)).problem
+    assert problem.checked and zp.checked
+    rng = np.random.default_rng(2)
+    lo = rng.uniform(zp.box[:, 0], zp.box[:, 1], (300, 2))
+    hi = lo + 0.1
+    ar = CheckedIntervalArithmetic(len(lo), zp.n_constraints + zp.n_properties + 1)
+    ar.collect(evaluate(zp.function_jacobian_checked, [Interval(lo, hi)], ar))
+    assert ar.jump[:, -2].any()                              # the decrease: some boxes
+    assert not ar.jump[:, :zp.n_constraints].any()           # the constraints: none
+    res = verify(problem, second_order=True, precondition=True)
+    assert res.status == verify(problem, second_order=True).status == "verified"

@@ -5,8 +5,8 @@ tight when the functions vary about as much along every axis of a box. A Lie der
 ``p = ∇V·f`` of a stiff closed loop does not: near the equilibrium ``p ≈ ½ xᵀHx`` with a
 Hessian ``H`` whose eigenvalues span orders of magnitude, and whose off-diagonal terms the
 second-order centred form can only bound by ``|H_ij| h_i h_j``. In the coordinates
-``z = Mx`` with ``M = |H|^{1/2}`` (``|H| = U|Λ|Uᵀ``, the eigenvectors of ``H`` as axes,
-scaled by ``|λ|^{1/2}``) the same function is ``p ≈ ±|z|²``: no off-diagonal terms, the
+``z = Mx`` with ``MᵀM = |H| = U|Λ|Uᵀ`` (rows: the eigenvectors of ``H`` as axes, scaled by
+``|λ|^{1/2}``) the same function is ``p ≈ ±|z|²``: no off-diagonal terms, the
 same sensitivity along every axis, and boxes aligned with the level sets.
 
 :func:`precondition` builds the problem in ``z``; :func:`hessian_coordinates` proposes
@@ -15,21 +15,43 @@ result about the original one.
 
 Soundness
 ---------
-``T`` is a float matrix, the float inverse of ``M`` rounded to 24 significant bits; the
-``z`` problem's graphs are the original ones of ``x = T z`` (a constant matrix product,
-evaluated by the verifier in outward-rounded arithmetic), its constraints are the original
-ones and an ellipsoid ``Σ_i ((Tz)_i − c_i)²/r_i² ≤ n`` that contains the original root box
-``B`` (centre ``c``, half widths ``r`` rounded up; a superset of ``B``: proving the
-properties on a larger region proves them on ``B``), and its root box ``Z`` covers ``T⁻¹B``:
-with ``Δ = I − MT`` enclosed in interval arithmetic and ``δ ≥ ‖Δ‖_∞`` (``δ < ½`` required),
-``T⁻¹ = (I − Δ)⁻¹M``, so ``z = T⁻¹x`` lies within ``δ/(1 − δ)·‖Mx‖_∞`` of ``Mx``, and ``Mx``
-over ``B`` is an interval matrix product. Every point ``x`` of the original region is
-``T z`` for a ``z ∈ Z`` that satisfies the ``z`` problem's constraints, so ``verified`` in ``z``
-proves the original properties on the original region. A ``z`` counterexample is mapped to
-``x = fl(T z)`` and confirmed again on the original problem (rigorous point evaluation); one
-that does not confirm there makes the answer ``unknown``, never a counterexample. Undecided
-``z`` boxes come back as boxes of ``x`` that cover their image (outward-rounded interval
-product, intersected with ``B``).
+``T`` is a float matrix, the float inverse of ``M`` rounded to 24 significant bits. The
+``z`` problem's graphs are built so that no number of ``T`` meets a constant of the original
+graphs before the verifier evaluates them:
+
+- values: the original ``function`` is a called node, evaluated at ``x = T z``, a matrix
+  product node of the constant ``T`` and ``z`` (intervals: an outward-rounded product;
+  affine forms: the form of ``x`` in ``z`` has the float entries of ``T`` as coefficients
+  plus a bound of the product's rounding errors). Inside the call every constant of the
+  original graph is evaluated as in the original problem (non-integer constants keep their
+  widening), so the enclosures in ``z`` hold the exact values of ``g(Tz)`` and ``p(Tz)``
+  exactly where the original enclosures hold those of ``g`` and ``p``;
+- derivatives: the Jacobian ``J(Tz)·T`` is CasADi's forward mode of the original
+  ``function`` along the columns of a seed matrix, and the gradients and Hessians of the
+  second-order form are CasADi's derivatives in ``z`` of ``p(Sz)``; in both, the seed ``S``
+  is a symbol while the graphs are built (CasADi can fold only numbers it knows), and the
+  ``z`` graphs call them with ``T``. Their own constants are those of derivative graphs of
+  the original (the verifier widens derivative enclosures for the folds CasADi makes among
+  a graph's own constants);
+- the region: the original constraints, and an ellipsoid ``Σ_i ((Tz)_i − c_i)²/r_i² ≤ n``
+  (and its gradient ``(2(Tz − c)/r²)ᵀT``, written out) that contains the original root box
+  ``B`` (centre ``c``, half widths ``r`` rounded up; a superset of ``B``: proving the
+  properties on a larger region proves them on ``B``);
+- the root box ``Z`` covers ``T⁻¹B``: with ``Δ = I − MT`` enclosed in interval arithmetic
+  and ``δ ≥ ‖Δ‖_∞`` (``δ < ½`` required), ``T⁻¹ = (I − Δ)⁻¹M``, so ``z = T⁻¹x`` lies within
+  ``δ/(1 − δ)·‖Mx‖_∞`` of ``Mx``, and ``Mx`` over ``B`` is an interval matrix product.
+
+Every point ``x`` of the original region is ``T z`` for a ``z ∈ Z`` that satisfies the ``z``
+problem's constraints, so ``verified`` in ``z`` proves the original properties on the
+original region, under the same rounding model as a verification in ``x``. A ``z``
+counterexample is mapped to ``x = fl(T z)`` and confirmed again on the original problem
+(rigorous point evaluation); one that does not confirm there makes the answer ``unknown``,
+never a counterexample. Undecided ``z`` boxes come back as boxes of ``x`` that cover their
+image (outward-rounded interval product, intersected with ``B``).
+
+Only the graphs (``function``, ``function_checked``) of the original problem are used, not
+its expressions, so a problem restored from a pickle is preconditioned as the problem itself.
+``M`` does not depend on which eigenbasis a LAPACK build returns (:func:`_eigen_rows`).
 """
 
 from __future__ import annotations
@@ -66,11 +88,12 @@ class Preconditioned:
     Attributes
     ----------
     problem : VerificationProblem
-        In ``z``: the original constraints and properties of ``T z``, an ellipsoid around
-        the original root box ``B`` as one more constraint, and a root box covering ``T⁻¹B``.
+        In ``z``: the original constraints and properties at ``T z`` (graphs that call the
+        original ones), an ellipsoid around the original root box ``B`` as one more
+        constraint, and a root box covering ``T⁻¹B``.
     original : VerificationProblem
     M, T : (n, n) ndarray
-        ``z ≈ M x`` and the exact substitution ``x = T z`` (``T`` about the inverse of ``M``).
+        ``z ≈ M x`` and the exact change ``x = T z`` (``T`` about the inverse of ``M``).
     """
 
     problem: VerificationProblem
@@ -117,8 +140,9 @@ def hessian_coordinates(problem: VerificationProblem, point=None) -> np.ndarray 
         Rows: the eigenvectors of ``H`` scaled by ``|λ|^{1/2}``, a basis of each cluster of
         (nearly) repeated eigenvalues chosen from its eigenspace alone, rounded to 24
         significant bits (:func:`_eigen_rows`: the same ``M`` for every eigenbasis a
-        LAPACK build returns); ``None`` when ``H`` is not finite, not definite, or its eigenvalues' magnitudes span more than :data:`_MAX_SPREAD`, or
-        the root box is flat in some dimension (then the problem is verified as it is).
+        LAPACK build returns); ``None`` when ``H`` is not finite, not definite, or its
+        eigenvalues' magnitudes span more than :data:`_MAX_SPREAD`, or the root box is
+        flat in some dimension (then the problem is verified as it is).
     """
     n = problem.n
     if not np.all(problem.box[:, 1] > problem.box[:, 0]):
@@ -243,9 +267,9 @@ class _Composed(VerificationProblem):
     """The problem in ``z``: graphs that call the original problem's graphs at ``x = T z``.
 
     Nothing of the original graphs is rebuilt with ``T`` inside: ``x = T z`` is a matrix
-    product node, the original Function is a called node, and its derivatives along the
-    columns of ``T`` are CasADi's forward-mode graphs of that Function with a symbolic seed
-    matrix, called with ``T`` (see the module's Soundness section). Built from the original
+    product node, the original Function is a called node, and its derivatives are CasADi's
+    derivative graphs of that Function composed with a symbolic matrix ``S``, called with
+    ``S = T`` (see the module's Soundness section). Built from the original
     ``function`` (and ``function_checked``) alone, so a problem restored from a pickle (its
     expressions dropped) works too; like such a problem it holds no expressions
     (``constraints`` and ``properties`` are ``None``).
@@ -296,8 +320,8 @@ class _Composed(VerificationProblem):
 
     @property
     def second_order_functions(self) -> tuple[ca.Function, ca.Function]:
-        """``(G, H)`` in ``z``: ``∇p(Tz)ᵀT`` and ``Tᵀ∇²p(Tz)T``, as directional derivatives of
-        the original ``function`` along the columns of ``T``."""
+        """``(G, H)`` in ``z``: ``∇p(Tz)ᵀT`` and ``Tᵀ∇²p(Tz)T``, CasADi's derivatives in ``z``
+        of the original ``function`` at ``x = Sz`` (``S`` a symbol), called with ``T``."""
         if self._second_order is None:
             fn = getattr(self, "_original_function", None)
             if fn is None:  # restored from a pickle before they were built

@@ -171,7 +171,8 @@ def test_on_a_cluster_coordinates_change_before_the_tasks():
 def test_planar_quadrotor_volume_P_at_ten_times_the_lqr_volume():
     """The ``volume`` P of the quadrotor's large preset at level 0.08 (ellipsoid volume
     2.0e-4, 10.8 times the LQR P's certified 1.85e-5): verified only in the Hessian's
-    coordinates (measured: 1.6e5 boxes, 31 s; axis-aligned boxes: unknown after 2e5)."""
+    coordinates (measured: 1.6e5 boxes, 48 s at load 7; axis-aligned boxes: unknown after
+    2e5)."""
     import sys
     from pathlib import Path
 

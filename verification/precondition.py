@@ -171,8 +171,10 @@ def _eigen_rows(w: np.ndarray, U: np.ndarray) -> np.ndarray:
     are instead the eigenvectors of a fixed diagonal matrix ``D`` compressed to the
     cluster's invariant subspace (``B = U_c V`` with ``V`` the eigenvectors of
     ``U_cᵀ D U_c``: for ``U_c R`` in place of ``U_c`` the same ``B``), each scaled by
-    ``(bᵀ|H|b)^{1/2}``. Rounded to 24 bits, the last bits in which float products differ
-    are removed too (unless an entry lies within about ``2⁻⁴⁵`` of a rounding boundary).
+    ``(bᵀ|H|b)^{1/2}``. Rounded to 24 bits, the last bits in which two builds' results
+    differ (about ``u‖H‖/gap`` relative for an eigenvector, below ``2⁻³³`` for the gaps
+    outside a cluster) are removed too, unless an entry lies that close to a rounding
+    boundary.
 
     Parameters
     ----------

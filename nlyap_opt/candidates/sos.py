@@ -71,13 +71,21 @@ from ..certification.certificate import (
 from ..certification.roa import grid_area, grid_points
 from ..design.control import lqr
 from ..design.polynomial import NotPolynomialError, Polynomial, polynomial_closed_loop
-from ..design.sos_sdp import SOSLevel, boundary_points, sos_level, star_area, vs_iteration
+from ..design.sos_sdp import (
+    SOSLevel,
+    boundary_points,
+    gram_size,
+    sos_level,
+    star_area,
+    vs_iteration,
+)
 from ..kernel.errors import NotStabilizableError
 from .quadratic import INNER_FRACTION
 
 __all__ = [
-    "NotPolynomialError", "Polynomial", "SOSConfig", "SOSLevel", "SOSResult", "SOSStatus",
-    "certify_sos", "polynomial_closed_loop", "sos_level", "sos_policy", "sos_roa",
+    "AUTO", "AUTO_DEGREES", "AUTO_GRAM_LIMIT", "NotPolynomialError", "Polynomial", "SOSChoice",
+    "SOSConfig", "SOSLevel", "SOSResult", "SOSStatus", "certify_sos", "choose_degree",
+    "polynomial_closed_loop", "sos_level", "sos_policy", "sos_roa",
 ]
 
 
@@ -370,24 +378,130 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
 
 
 # --------------------------------------------------------------------------- the pipeline's
+#: ``sos.degree = "auto"``: the degree is chosen from the size of the SDPs
+#: (:func:`choose_degree`)
+AUTO = "auto"
+#: the degrees the automatic choice tries, largest first; degree 2 (a quadratic V) is left to
+#: the quadratic candidates, which the default method runs anyway
+AUTO_DEGREES: tuple[int, ...] = (6, 4)
+#: the automatic choice's budget: the largest order of a Gram matrix its SOS programs may set
+#: up (:func:`nlyap_opt.design.sos_sdp.gram_size`; a size, never a time)
+AUTO_GRAM_LIMIT = 40
+
+
 @dataclass
 class SOSConfig:
     """The ``sos`` section of a run configuration: an SOS certificate before the neural stage.
 
     Attributes
     ----------
-    degree : {0, 2, 4, 6}
-        Degree of the SOS ``V`` (0: no SOS stage).
+    degree : {"auto", 0, 2, 4, 6}
+        Degree of the SOS ``V`` (0: no SOS stage; ``"auto"``: chosen by
+        :func:`choose_degree`, off where SOS does not apply).
     iterations : int
         Budget of the V–s iteration, in rounds per degree (``degree > 2``).
     """
 
-    degree: int = field(default=0, metadata={
-        "choices": (0, 2, 4, 6),
+    degree: int | str = field(default=0, metadata={
+        "choices": (AUTO, 0, 2, 4, 6),
         "doc": "degree of an SOS V certified before the neural stage where the closed loop "
-               "is polynomial and f is known (0: off; nlyap_opt.candidates.sos)"})
+               "is polynomial and f is known (0: off; 'auto': the largest of 6, 4 whose "
+               f"SDPs have Gram matrices of order <= {AUTO_GRAM_LIMIT}, off with learned f, a "
+               "non-polynomial closed loop or larger SDPs; nlyap_opt.candidates.sos)"})
     iterations: int = field(default=20, metadata={
         "lo": 1, "doc": "V-s iteration rounds per degree (a count, never a time)"})
+
+
+@dataclass(frozen=True)
+class SOSChoice:
+    """The SOS degree a run uses (:func:`choose_degree`) and why.
+
+    Attributes
+    ----------
+    degree : int
+        0: no SOS stage.
+    reason : str
+        One line: why this degree (or why off).
+    configured : int or str
+        The configured ``sos.degree`` (``"auto"`` or a number).
+    gram : int
+        Order of the largest Gram matrix of its SDPs (0 when off).
+    """
+
+    degree: int
+    reason: str
+    configured: int | str
+    gram: int = 0
+
+    @property
+    def automatic(self) -> bool:
+        """True when the degree was chosen by the rule (``sos.degree = "auto"``)."""
+        return self.configured == AUTO
+
+    def describe(self) -> str:
+        """``sos.degree 'auto' -> degree 6: why`` (one line for the log and ``nlyap config``)."""
+        what = f"degree {self.degree}" if self.degree else "off"
+        return f"sos.degree {self.configured!r} -> {what}: {self.reason}"
+
+
+def choose_degree(system, degree: int | str = AUTO, *, known: bool = True,
+                  controller=None) -> SOSChoice:
+    r"""The degree of the SOS candidate of a run: ``degree`` when it is a number, else chosen.
+
+    The automatic choice (``degree = "auto"``) runs SOS only where it applies and is cheap:
+
+    1. the model of ``f`` is used (``known``; a learned ``φ`` is a tanh network and an
+       unknown system has no polynomial model);
+    2. the closed loop is polynomial: no inputs, or a polynomial ``controller`` (the pipeline's
+       ``C·tanh(Kx + b)`` is not), and ``f`` expands exactly
+       (:func:`nlyap_opt.design.polynomial.polynomial_closed_loop`);
+    3. the largest degree of :data:`AUTO_DEGREES` whose SDPs have Gram matrices of order at
+       most :data:`AUTO_GRAM_LIMIT` (:func:`nlyap_opt.design.sos_sdp.gram_size` of the state
+       dimension, the degree and the degree of ``f``): 6 for a cubic ``f`` in 2-D (order 20),
+       4 for a cubic in 3-D (34); off for a quartic in 3-D (55 at degree 4) or any cubic
+       in 4-D (69). The budget is a size of the programs, never a time: the same system
+       gets the same degree on any machine.
+
+    Parameters
+    ----------
+    system : systems.System
+    degree : {"auto", 0, 2, 4, 6}
+        The configured ``sos.degree``.
+    known : bool
+        The run uses the model of ``f`` (``--known-dynamics``).
+    controller : nlyap_opt.kernel.network.Network, optional
+        The run's initial controller (``None`` for a system without inputs).
+
+    Returns
+    -------
+    SOSChoice
+        The degree (0: off) and the reason in one line.
+    """
+    if degree != AUTO:
+        why = "off as configured" if not degree else "as configured"
+        return SOSChoice(int(degree), why, degree)
+    if not known or not getattr(system, "has_model", True):
+        return SOSChoice(0, "learned dynamics: the SOS programs need the polynomial model of f",
+                         degree)
+    if system.nu and controller is None:
+        return SOSChoice(0, "the closed loop under the controller C·tanh(Kx + b) is not "
+                            "polynomial", degree)
+    try:
+        f = polynomial_closed_loop(system, controller)
+    except NotPolynomialError as err:
+        ops = ", ".join(err.operations) or "a non-polynomial operation"
+        return SOSChoice(0, f"the closed loop is not polynomial: it applies {ops}", degree)
+    deg_f = max(1, max(p.degree for p in f))
+    for d in AUTO_DEGREES:
+        m = gram_size(system.nx, d, deg_f)
+        if m <= AUTO_GRAM_LIMIT:
+            return SOSChoice(d, f"n = {system.nx}, deg f = {deg_f}: Gram matrices of order "
+                                f"{m} <= {AUTO_GRAM_LIMIT}", degree, m)
+    d = AUTO_DEGREES[-1]
+    m = gram_size(system.nx, d, deg_f)
+    return SOSChoice(0, f"n = {system.nx}, deg f = {deg_f}: degree {d} needs Gram matrices of "
+                        f"order {m} > {AUTO_GRAM_LIMIT}; the quadratic candidates cover degree "
+                        f"2, and sos.degree {d} runs it anyway", degree)
 
 
 def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = None,
@@ -411,7 +525,8 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
     problem : RoaProblem
         The run's problem; its ``V`` is ignored.
     config : SOSConfig
-        ``degree`` (> 0) and ``iterations``.
+        ``degree`` (> 0; ``"auto"`` is resolved by :func:`choose_degree` first) and
+        ``iterations``.
     inner_fraction : float, optional
         The SOS certificate's ``ε`` as a fraction of ``problem.inner`` (default
         :data:`nlyap_opt.candidates.quadratic.INNER_FRACTION`, as the quadratic candidates with the
@@ -424,8 +539,9 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
         With :attr:`~SOSResult.certificate` and :attr:`~SOSResult.problem` set when the
         verifier ran.
     """
-    if not config.degree:
-        raise ValueError("SOSConfig.degree is 0: the SOS stage is off")
+    if not isinstance(config.degree, int) or not config.degree:
+        raise ValueError(f"SOSConfig.degree is {config.degree!r}: the SOS stage is off (0) or "
+                         "not resolved ('auto': choose_degree gives the degree)")
     policy = sos_policy(inner_fraction)
     eps = problem.inner * policy.inner_fraction
     t0 = time.perf_counter()

@@ -11,7 +11,9 @@ coefficients of every monomial (no SOS toolbox: cvxpy directly).
 - :func:`v_step`: the ``V`` step of the V–s iteration (``s`` and ``c`` fixed, linear in ``V``);
 - :func:`vs_iteration`: the V–s iteration with degree continuation 4, 6, ...;
 - :func:`boundary_points`, :func:`star_area`: ray sampling of :math:`\{V \le c\}` (search
-  heuristics of the iteration, no part of any claim).
+  heuristics of the iteration, no part of any claim);
+- :func:`gram_size`: the order of the largest Gram matrix of these programs for a ``V`` of
+  a given degree (the size of the SDPs, known before any is solved).
 """
 
 from __future__ import annotations
@@ -33,8 +35,8 @@ from scipy.sparse import coo_matrix
 from ..kernel import deps
 from .polynomial import Polynomial, monomial_matrix, monomials
 
-__all__ = ["SOSLevel", "boundary_points", "gram_factor", "sos_level", "star_area", "v_step",
-           "vs_iteration"]
+__all__ = ["SOSLevel", "boundary_points", "gram_factor", "gram_size", "sos_level", "star_area",
+           "v_step", "vs_iteration"]
 
 
 # --------------------------------------------------------------------------- coefficient space
@@ -137,6 +139,44 @@ def _vec(Q):
 
 def _even_up(d: int) -> int:
     return d + (d % 2)
+
+
+def _level_multiplier_degree(deg_f: int) -> int:
+    """Default degree of the multiplier ``s`` of :func:`sos_level` (the least that matches
+    the degree of :math:`\\dot V` of a quadratic ``V``)."""
+    return max(2, _even_up(deg_f - 1))
+
+
+def _vs_multiplier_degree(deg_f: int) -> int:
+    """Default degree of ``s`` in :func:`vs_iteration` (two more: the V step needs room)."""
+    return _level_multiplier_degree(deg_f) + 2
+
+
+def gram_size(nx: int, degree: int, deg_f: int) -> int:
+    r"""Order of the largest Gram matrix that :func:`sos_level` and :func:`vs_iteration`
+    set up, with their default multiplier degrees, for a ``V`` of ``degree`` and a closed
+    loop of degree ``deg_f`` in ``nx`` states.
+
+    The decrease constraint :math:`-\dot V - \epsilon\|x\|^2 - s\,(c - V) \in \Sigma`
+    has degree :math:`D = \max(\deg V + \deg f - 1, \deg V + \deg s)` (rounded up to
+    even); its Gram matrix is indexed by the monomials of degree ``1..D/2``:
+    :math:`\binom{nx + D/2}{nx} - 1` of them. ``degree = 2`` is the level bisection of the
+    quadratic ``V`` only; a larger degree adds the V–s iteration up to it. The cost of each
+    SDP grows with this order (the PSD cone has :math:`m(m+1)/2` entries), so it measures
+    what a degree costs before anything is solved.
+
+    Examples
+    --------
+    >>> gram_size(2, 6, 3), gram_size(3, 4, 3), gram_size(3, 4, 4), gram_size(4, 4, 3)
+    (20, 34, 55, 69)
+    """
+    if degree < 2 or degree % 2 or nx < 1 or deg_f < 1:
+        raise ValueError(f"need nx >= 1, an even degree >= 2 and deg_f >= 1, got nx = {nx}, "
+                         f"degree = {degree}, deg_f = {deg_f}")
+    D = _even_up(max(2 + deg_f - 1, 2 + _level_multiplier_degree(deg_f)))
+    if degree > 2:
+        D = max(D, _even_up(max(degree + deg_f - 1, degree + _vs_multiplier_degree(deg_f))))
+    return math.comb(nx + D // 2, nx) - 1
 
 
 @contextlib.contextmanager
@@ -260,7 +300,7 @@ def sos_level(V: Polynomial, f: list[Polynomial], *, multiplier_degree: int | No
 
     dV = V.degree
     df = max(p.degree for p in f)
-    ds = multiplier_degree or max(2, _even_up(dV + df - 1 - dV))
+    ds = multiplier_degree or _level_multiplier_degree(df)
     sp = _Space.for_decrease(V.nx, dV, df, ds)
     vpoly = V.to_dict()
     lieV = sp.lie([p.to_dict() for p in f], dV) @ sp.vec(vpoly)
@@ -351,7 +391,7 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
     ``history`` and ``notes`` are appended to (areas times ``area_scale``: the data may be
     in scaled units).
     """
-    md = multiplier_degree or max(2, _even_up(max(p.degree for p in f) - 1)) + 2
+    md = multiplier_degree or _vs_multiplier_degree(max(p.degree for p in f))
     lev = 1.0 - backoff
 
     def level_of(V, **kw):

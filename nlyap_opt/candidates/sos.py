@@ -458,9 +458,10 @@ def choose_degree(system, degree: int | str = AUTO, *, known: bool = True,
     3. the largest degree of :data:`AUTO_DEGREES` whose SDPs have Gram matrices of order at
        most :data:`AUTO_GRAM_LIMIT` (:func:`nlyap_opt.design.sos_sdp.gram_size` of the state
        dimension, the degree and the degree of ``f``): 6 for a cubic ``f`` in 2-D (order 20),
-       4 for a cubic in 3-D (34); off for a quartic in 3-D (55 at degree 4) or any cubic
-       in 4-D (69). The budget is a size of the programs, never a time: the same system
-       gets the same degree on any machine.
+       4 for a cubic in 3-D (34); off for a quartic in 3-D (55 at degree 4) and in 4 or
+       more states whatever ``f`` (at least 69; ``f`` is then not expanded). The budget is a
+       size of the programs, never a time: the same system gets the same degree on any
+       machine.
 
     Parameters
     ----------
@@ -486,6 +487,10 @@ def choose_degree(system, degree: int | str = AUTO, *, known: bool = True,
     if system.nu and controller is None:
         return SOSChoice(0, "the closed loop under the controller C·tanh(Kx + b) is not "
                             "polynomial", degree)
+    low = AUTO_DEGREES[-1]
+    least = gram_size(system.nx, low, 1)   # whatever f: no expansion where nothing would fit
+    if least > AUTO_GRAM_LIMIT:
+        return SOSChoice(0, f"n = {system.nx}: {_too_large(low, f'>= {least}')}", degree)
     try:
         f = polynomial_closed_loop(system, controller)
     except NotPolynomialError as err:
@@ -497,11 +502,14 @@ def choose_degree(system, degree: int | str = AUTO, *, known: bool = True,
         if m <= AUTO_GRAM_LIMIT:
             return SOSChoice(d, f"n = {system.nx}, deg f = {deg_f}: Gram matrices of order "
                                 f"{m} <= {AUTO_GRAM_LIMIT}", degree, m)
-    d = AUTO_DEGREES[-1]
-    m = gram_size(system.nx, d, deg_f)
-    return SOSChoice(0, f"n = {system.nx}, deg f = {deg_f}: degree {d} needs Gram matrices of "
-                        f"order {m} > {AUTO_GRAM_LIMIT}; the quadratic candidates cover degree "
-                        f"2, and sos.degree {d} runs it anyway", degree)
+    m = gram_size(system.nx, low, deg_f)
+    return SOSChoice(0, f"n = {system.nx}, deg f = {deg_f}: {_too_large(low, m)}", degree)
+
+
+def _too_large(degree: int, order) -> str:
+    """Why the automatic choice is off: the least degree's SDPs exceed the budget."""
+    return (f"degree {degree} needs Gram matrices of order {order} > {AUTO_GRAM_LIMIT}; the "
+            f"quadratic candidates cover degree 2, and sos.degree {degree} runs it anyway")
 
 
 def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = None,

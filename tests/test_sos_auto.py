@@ -214,6 +214,7 @@ def test_an_automatic_sos_winner_is_the_certificate_and_the_report_says_so(auto_
     assert "The neural V did not beat the cheap candidate" in (d / "report.md").read_text()
 
 
+@pytest.mark.slow  # 10 s idle, 30 s on the shared machine: two more runs of the pipeline
 def test_a_finished_auto_stage_is_loaded_and_a_changed_degree_recomputes_it(auto_run,
                                                                               tmp_path):
     import shutil
@@ -239,6 +240,29 @@ def test_a_finished_auto_stage_is_loaded_and_a_changed_degree_recomputes_it(auto
         "\n".join(logs)
     assert json.loads((e / "V_sos.json").read_text()) == \
         json.loads((d / "V_sos.json").read_text())
+
+
+# --------------------------------------------------------------------------- the domain
+def test_a_set_across_the_domain_boundary_is_searched_again_inside_it():
+    """Van der Pol's SOS set grows across the box [-1.5, 1.5]² (its ROA does not fit in
+    it): the iteration runs again with its sets kept inside, and the V kept has the larger
+    set inside the box (star areas of {V <= min(level, least V on the boundary)})."""
+    from nlyap_opt.design.sos_sdp import star_area
+    from nlyap_opt.kernel.domain import parse_set
+
+    vdp = systems.get("van_der_pol")
+    box = parse_set({"type": "box", "box": [[-1.5, 1.5], [-1.5, 1.5]]}, 2)
+    edge = box.sample_boundary(2000, np.random.default_rng(1))
+
+    def inside(r):
+        return star_area(r.V, min(r.sdp_level, float(r.V(edge).min())))
+
+    plain = sos_roa(vdp, degree=4, iterations=2, certify=False)
+    kept = sos_roa(vdp, degree=4, iterations=2, certify=False, keep_in=box)
+    assert float(plain.V(edge).min()) < plain.sdp_level           # crosses ∂D
+    assert any("repeated inside the domain" in n for n in kept.notes)
+    assert inside(kept) > 1.2 * inside(plain)
+    assert kept.V.degree == 4 and float(kept.V(edge).min()) >= 0.99 * kept.sdp_level
 
 
 # --------------------------------------------------------------------------- determinism

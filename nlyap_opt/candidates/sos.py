@@ -218,7 +218,7 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
             iterations: int = 20, backoff: float = 0.01,
             push: float = 1.05, solver: str = "CLARABEL",
             outer_margin: float = 0.05, certify: bool = True,
-            verify_options: dict | None = None, domain=None,
+            verify_options: dict | None = None, domain=None, keep_in=None,
             log: Callable[[str], None] | None = None) -> SOSResult:
     r"""SOS estimate of the region of attraction, certified by the interval verifier.
 
@@ -246,6 +246,12 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     domain : nlyap_opt.kernel.domain.Region, optional
         Certify on this verification domain ``D`` (a declared domain: the same set as the
         other rows of a comparison) instead of the ball around the SOS level set.
+    keep_in : nlyap_opt.kernel.domain.Region, optional
+        Where the V–s iteration's set crosses the boundary of this region (on seeded
+        samples of it), the iteration runs again with its sets kept inside
+        (:func:`nlyap_opt.design.sos_sdp.vs_iteration`'s ``outside``) and the ``V`` whose
+        set inside the region is larger is kept (a search heuristic: a set across the
+        boundary of the run's domain would be cut down by containment (b) when certified).
     multiplier_degree : int, optional
         Degree of the S-procedure multiplier ``s`` (default: the least that matches for the
         level of the quadratic ``V``; two more in the V–s iteration, which needs the room).
@@ -330,23 +336,24 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     elif degree > 2:
         kw = dict(t0=t0, multiplier_degree=multiplier_degree, epsilon=epsilon,
                   iterations=iterations, backoff=backoff, push=push, solver=solver, say=say)
-        V, level = vs_iteration(Vq, ls.level, f, degree, history, notes, radius=radius, **kw)
-        if V.degree == 2:
-            # no V step succeeded: again in units of the quadratic set's extent R (x = R·y).
-            # With monomials of degree 6 and more at |x| ~ 8 the SDPs are too badly scaled
-            # for the solvers (Fossil's NonPoly2: the first V step fails unscaled and
-            # succeeds scaled); where the unscaled iteration works it is kept (Van der Pol:
-            # areas 11.7 / 13.5 unscaled, 9.4 / 12.4 scaled, degree 4 / 6). Levels are the
-            # same in both units, areas scale with R^nx.
-            R = float(np.linalg.norm(boundary_points(Vq, ls.level), axis=1).max())
-            say(f"[sos] no V step succeeded; the V-s iteration again with x = {R:.4g}·y")
-            notes.append(f"the V-s iteration was repeated in units x = {R:.4g}·y (the SDPs "
-                         "in x failed)")
-            Vy, level = vs_iteration(Vq.substituted(R), ls.level,
-                                     [p.substituted(R).scaled(1.0 / R) for p in f], degree,
-                                     history, notes, radius=radius / R, area_scale=R ** nx,
-                                     **kw)
-            V = Vy.substituted(1.0 / R) if Vy.degree > 2 else Vq.scaled(1.0 / ls.level)
+        V, level = _vs_search(Vq, ls.level, f, degree, history, notes, radius, None, kw)
+        if keep_in is not None and V.degree > 2:
+            # a set across ∂D would be cut down by containment (b) when certified: the
+            # iteration again with its sets kept inside D, the larger set inside D kept
+            # (Van der Pol on its box [-1.5, 1.5]²: certified area 4.10 -> 6.97)
+            out = keep_in.sample_boundary(_KEEP_IN_SAMPLES * nx, np.random.default_rng(0))
+            edge = float(V(out).min())
+            if edge < level:
+                say(f"[sos] the set crosses the domain's boundary (least V there {edge:.4g} < "
+                    f"level {level:.4g}): the V-s iteration again inside the domain")
+                V2, level2 = _vs_search(Vq, ls.level, f, degree, history, notes, radius,
+                                        out, kw)
+                inside = star_area(V, min(level, edge))
+                inside2 = star_area(V2, min(level2, float(V2(out).min())))
+                notes.append(f"the V-s iteration was repeated inside the domain: area in it "
+                             f"{inside2:.4g} against {inside:.4g}")
+                if inside2 > inside:
+                    V, level = V2, level2
     sdp_seconds = time.perf_counter() - t0
     res = SOSResult(SOSStatus.NOT_CERTIFIED, V.degree, V, level, 0.0, 0.0, notes, inner,
                     history=history, sdp_seconds=sdp_seconds)
@@ -377,7 +384,39 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     return res
 
 
+def _vs_search(Vq: Polynomial, level_q: float, f, degree: int, history: list, notes: list,
+               radius: float, outside, kw: dict) -> tuple[Polynomial, float]:
+    """The V–s iteration from the quadratic ``Vq`` at its SDP level ``level_q``; where no V
+    step succeeds, again in scaled units. ``outside``: boundary samples of a domain the
+    sets are kept in (``None``: none)."""
+    nx = Vq.nx
+    V, level = vs_iteration(Vq, level_q, f, degree, history, notes, radius=radius,
+                            outside=outside, **kw)
+    if V.degree == 2:
+        # no V step succeeded: again in units of the quadratic set's extent R (x = R·y).
+        # With monomials of degree 6 and more at |x| ~ 8 the SDPs are too badly scaled
+        # for the solvers (Fossil's NonPoly2: the first V step fails unscaled and
+        # succeeds scaled); where the unscaled iteration works it is kept (Van der Pol:
+        # areas 11.7 / 13.5 unscaled, 9.4 / 12.4 scaled, degree 4 / 6). Levels are the
+        # same in both units, areas scale with R^nx.
+        R = float(np.linalg.norm(boundary_points(Vq, level_q) if outside is None
+                                 else boundary_points(V, level), axis=1).max())
+        kw["say"](f"[sos] no V step succeeded; the V-s iteration again with x = {R:.4g}·y")
+        notes.append(f"the V-s iteration was repeated in units x = {R:.4g}·y (the SDPs "
+                     "in x failed)")
+        Vy, level_y = vs_iteration(Vq.substituted(R), level_q,
+                                   [p.substituted(R).scaled(1.0 / R) for p in f], degree,
+                                   history, notes, radius=radius / R, area_scale=R ** nx,
+                                   outside=None if outside is None else outside / R, **kw)
+        if Vy.degree > 2:
+            V, level = Vy.substituted(1.0 / R), level_y
+    return V, level
+
+
 # --------------------------------------------------------------------------- the pipeline's
+#: boundary samples per state of the region the V–s iteration keeps its sets in (``keep_in``)
+_KEEP_IN_SAMPLES = 200
+
 #: ``sos.degree = "auto"``: the degree is chosen from the size of the SDPs
 #: (:func:`choose_degree`)
 AUTO = "auto"
@@ -561,7 +600,7 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
                          inner=eps, non_polynomial={"learned dynamics": "φ"}, reason=reason)
     res = sos_roa(problem.system, degree=config.degree, inner=eps,
                   controller=problem.controller, iterations=config.iterations,
-                  certify=False, log=log)
+                  certify=False, keep_in=problem.domain, log=log)
     if not res.applicable or res.V is None or not res.sdp_level > 0:
         return res
     res.problem = replace(problem, V=res.V, inner=eps)

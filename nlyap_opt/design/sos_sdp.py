@@ -346,7 +346,7 @@ def sos_level(V: Polynomial, f: list[Polynomial], *, multiplier_degree: int | No
 # --------------------------------------------------------------------------- V–s iteration
 def v_step(V: Polynomial, inside: np.ndarray, level: float, s: dict, f: list[Polynomial],
            degree: int, targets: np.ndarray, *, epsilon: float,
-           solver: str) -> Polynomial | None:
+           solver: str, outside: np.ndarray | None = None) -> Polynomial | None:
     r"""The ``V`` step of the V–s iteration (``s`` and ``level`` fixed); ``None`` if it fails.
 
     .. math::
@@ -356,7 +356,9 @@ def v_step(V: Polynomial, inside: np.ndarray, level: float, s: dict, f: list[Pol
 
     minimising the mean of ``V`` over ``targets``. ``inside``: boundary points of the
     previous set (kept with ``V ≤ level``: a heuristic for monotone growth, no part of any
-    claim); ``targets``: points just outside it.
+    claim); ``targets``: points just outside it; ``outside`` (optional): points where
+    ``V ≥ level`` is asked (samples of the boundary of a domain the set should stay in;
+    also a heuristic, the certificate checks containment itself).
     """
     cp = deps.cvxpy()
 
@@ -369,6 +371,8 @@ def v_step(V: Polynomial, inside: np.ndarray, level: float, s: dict, f: list[Pol
     dec = (-sp.lie([p.to_dict() for p in f], degree) @ v - epsilon * r2 - level * sp.vec(s)
            + sp.mul(s, degree) @ v)
     cons = [sp.is_sos(dec), monomial_matrix(inside, sp.monos) @ v <= level]
+    if outside is not None and len(outside):
+        cons.append(monomial_matrix(outside, sp.monos) @ v >= level)
     Zout = monomial_matrix(targets, sp.monos)
     prob = cp.Problem(cp.Minimize(cp.sum(Zout @ v) / len(targets)), cons)
     if not _solve(prob, solver):
@@ -382,14 +386,22 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
                  epsilon: float, iterations: int, backoff: float,
                  push: float, radius: float, solver: str,
                  say: Callable[[str], None],
-                 area_scale: float = 1.0) -> tuple[Polynomial, float]:
+                 area_scale: float = 1.0,
+                 outside: np.ndarray | None = None,
+                 keep_margin: float = 0.2) -> tuple[Polynomial, float]:
     """V–s iteration with degree continuation 4, 6, ..., ``degree``; the best ``(V, level)``.
 
     ``V`` is kept scaled so that its SDP level is 1. Each round: the multiplier ``s`` at
     level ``1 - backoff`` (interior), the ``V`` step, the level of the new ``V`` by bisection.
     The best iterate by area is returned; a stage ends when the area stops growing.
     ``history`` and ``notes`` are appended to (areas times ``area_scale``: the data may be
-    in scaled units).
+    in scaled units). With ``outside`` (samples of the boundary of a domain ``D``), the
+    sets grow inside ``D`` instead of across its boundary: each level (the quadratic's
+    too) is capped at ``1 - keep_margin`` times the least ``V`` on them (the margin leaves
+    the next V step room between the previous set and ``∂D``) and each V step asks
+    ``V ≥ level`` there; the level returned is the uncapped one, the lesser of the SDP
+    level and the least ``V`` on ``outside`` (an S-procedure multiplier of a level also
+    serves every lower level).
     """
     md = multiplier_degree or _vs_multiplier_degree(max(p.degree for p in f))
     lev = 1.0 - backoff
@@ -398,8 +410,23 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
         return sos_level(V, f, multiplier_degree=md, epsilon=epsilon, solver=solver,
                          upper=lev, rtol=1e-3, backoff=backoff, **kw)
 
-    V = Vq.scaled(1.0 / level_q)
-    best = (V, 1.0, star_area(V, 1.0))
+    def capped(V: Polynomial, level: float) -> tuple[float, float]:
+        """The level V is scaled by, and the full level in the scaled V's units."""
+        if outside is None:
+            return level, 1.0
+        edge = float(V(outside).min())
+        scale = min(level, (1.0 - keep_margin) * edge)
+        return scale, min(level, edge) / scale
+
+    scale, full = capped(Vq, level_q)
+    if not scale > 0:
+        notes.append("the quadratic V is not positive on the domain's boundary")
+        return Vq.scaled(1.0 / level_q), 1.0
+    if scale < level_q:
+        say(f"[sos] the quadratic's level {level_q:.6g} capped at {scale:.6g} inside the "
+            "domain")
+    V = Vq.scaled(1.0 / scale)
+    best = (V, full, star_area(V, 1.0))
     s = level_of(V).backoff_multiplier
     for stage in range(4, degree + 1, 2):
         V = best[0]
@@ -408,7 +435,8 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
         stalled = 0
         for it in range(iterations):
             bnd = boundary_points(V, lev)
-            Vn = v_step(V, bnd, lev, s, f, stage, push * bnd, epsilon=epsilon, solver=solver)
+            Vn = v_step(V, bnd, lev, s, f, stage, push * bnd, epsilon=epsilon, solver=solver,
+                        outside=outside)
             if Vn is None:
                 notes.append(f"degree {stage}, round {it + 1}: V step infeasible or "
                              "inaccurate; stage ended")
@@ -418,13 +446,18 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
                 notes.append(f"degree {stage}, round {it + 1}: no level for the new V; "
                              "stage ended")
                 break
-            V, s = Vn.scaled(1.0 / ls.level), ls.backoff_multiplier
+            scale, full = capped(Vn, ls.level)
+            if not scale > 0:
+                notes.append(f"degree {stage}, round {it + 1}: the new V is not positive on "
+                             "the domain's boundary; stage ended")
+                break
+            V, s = Vn.scaled(1.0 / scale), ls.backoff_multiplier
             area = star_area(V, 1.0)
             history.append({"degree": stage, "round": it + 1, "sdp_level": ls.level,
                             "seconds": time.perf_counter() - t0, "area": area * area_scale})
             say(f"[sos] degree {stage}, round {it + 1}: area ≈ {area * area_scale:.4g}")
             if area > best[2] * (1 + 1e-3):
-                best, stalled = (V, 1.0, area), 0
+                best, stalled = (V, full, area), 0
             else:
                 stalled += 1
                 if stalled >= 2:

@@ -338,22 +338,8 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
                   iterations=iterations, backoff=backoff, push=push, solver=solver, say=say)
         V, level = _vs_search(Vq, ls.level, f, degree, history, notes, radius, None, kw)
         if keep_in is not None and V.degree > 2:
-            # a set across ∂D would be cut down by containment (b) when certified: the
-            # iteration again with its sets kept inside D, the larger set inside D kept
-            # (Van der Pol on its box [-1.5, 1.5]²: certified area 4.10 -> 6.97)
-            out = keep_in.sample_boundary(_KEEP_IN_SAMPLES * nx, np.random.default_rng(0))
-            edge = float(V(out).min())
-            if edge < level:
-                say(f"[sos] the set crosses the domain's boundary (least V there {edge:.4g} < "
-                    f"level {level:.4g}): the V-s iteration again inside the domain")
-                V2, level2 = _vs_search(Vq, ls.level, f, degree, history, notes, radius,
-                                        out, kw)
-                inside = star_area(V, min(level, edge))
-                inside2 = star_area(V2, min(level2, float(V2(out).min())))
-                notes.append(f"the V-s iteration was repeated inside the domain: area in it "
-                             f"{inside2:.4g} against {inside:.4g}")
-                if inside2 > inside:
-                    V, level = V2, level2
+            V, level = _keep_inside(keep_in, V, level, Vq, ls.level, f, degree, history,
+                                    notes, radius, kw)
     sdp_seconds = time.perf_counter() - t0
     res = SOSResult(SOSStatus.NOT_CERTIFIED, V.degree, V, level, 0.0, 0.0, notes, inner,
                     history=history, sdp_seconds=sdp_seconds)
@@ -411,6 +397,27 @@ def _vs_search(Vq: Polynomial, level_q: float, f, degree: int, history: list, no
         if Vy.degree > 2:
             V, level = Vy.substituted(1.0 / R), level_y
     return V, level
+
+
+def _keep_inside(region, V: Polynomial, level: float, Vq: Polynomial, level_q: float, f,
+                 degree: int, history: list, notes: list, radius: float,
+                 kw: dict) -> tuple[Polynomial, float]:
+    """``(V, level)``, or where its set crosses the boundary of ``region`` (on seeded
+    samples), the V–s iteration's result with its sets kept inside when that one's set
+    inside ``region`` is larger. A set across ∂D would be cut down by containment (b) when
+    certified (Van der Pol on its box [-1.5, 1.5]²: certified area 4.10 -> 6.97)."""
+    out = region.sample_boundary(_KEEP_IN_SAMPLES * Vq.nx, np.random.default_rng(0))
+    edge = float(V(out).min())
+    if edge >= level:
+        return V, level
+    kw["say"](f"[sos] the set crosses the domain's boundary (least V there {edge:.4g} < "
+              f"level {level:.4g}): the V-s iteration again inside the domain")
+    V2, level2 = _vs_search(Vq, level_q, f, degree, history, notes, radius, out, kw)
+    inside = star_area(V, min(level, edge))
+    inside2 = star_area(V2, min(level2, float(V2(out).min())))
+    notes.append(f"the V-s iteration was repeated inside the domain: area in it "
+                 f"{inside2:.4g} against {inside:.4g}")
+    return (V2, level2) if inside2 > inside else (V, level)
 
 
 # --------------------------------------------------------------------------- the pipeline's

@@ -265,6 +265,26 @@ def test_a_set_across_the_domain_boundary_is_searched_again_inside_it():
     assert kept.V.degree == 4 and float(kept.V(edge).min()) >= 0.99 * kept.sdp_level
 
 
+def test_the_search_inside_the_domain_keeps_to_half_the_budget():
+    """Larger programs (a cubic in 3-D at degree 4: order 34 > 20) are not searched again
+    inside the domain: the set is kept as it is (certification cuts it down) and a note says
+    why, before any SDP."""
+    from nlyap_opt.candidates import sos as sos_mod
+    from nlyap_opt.design.polynomial import Polynomial
+    from nlyap_opt.kernel.domain import parse_set
+
+    s = _poly_system(3)
+    f = polynomial_closed_loop(s)
+    V = Polynomial.quadratic(np.eye(3))
+    ball = parse_set({"type": "ball", "radius": 1.0}, 3)
+    notes = []
+    out = sos_mod._keep_inside(ball, V, 4.0, V, 4.0, f, 4, [], notes, 3.0,
+                               {"say": lambda m: None})
+    assert out == (V, 4.0)
+    assert notes == ["the set crosses the domain's boundary; not searched again inside it "
+                     "(Gram matrices of order 34 > 20)"]
+
+
 # --------------------------------------------------------------------------- determinism
 _DET = ("import json, systems; from nlyap_opt.candidates.sos import sos_roa; "
         "r = sos_roa(systems.get('van_der_pol'), degree=4, iterations=1, certify=False); "

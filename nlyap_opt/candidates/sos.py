@@ -248,7 +248,8 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
         other rows of a comparison) instead of the ball around the SOS level set.
     keep_in : nlyap_opt.kernel.domain.Region, optional
         Where the V–s iteration's set crosses the boundary of this region (on seeded
-        samples of it), the iteration runs again with its sets kept inside
+        samples of it) and its SDPs are small (Gram matrices of order at most
+        20, half the automatic budget), the iteration runs again with its sets kept inside
         (:func:`nlyap_opt.design.sos_sdp.vs_iteration`'s ``outside``) and the ``V`` whose
         set inside the region is larger is kept (a search heuristic: a set across the
         boundary of the run's domain would be cut down by containment (b) when certified).
@@ -410,6 +411,11 @@ def _keep_inside(region, V: Polynomial, level: float, Vq: Polynomial, level_q: f
     edge = float(V(out).min())
     if edge >= level:
         return V, level
+    order = gram_size(Vq.nx, degree, max(1, max(p.degree for p in f)))
+    if order > _KEEP_IN_GRAM_LIMIT:
+        notes.append(f"the set crosses the domain's boundary; not searched again inside it "
+                     f"(Gram matrices of order {order} > {_KEEP_IN_GRAM_LIMIT})")
+        return V, level
     kw["say"](f"[sos] the set crosses the domain's boundary (least V there {edge:.4g} < "
               f"level {level:.4g}): the V-s iteration again inside the domain")
     V2, level2 = _vs_search(Vq, level_q, f, degree, history, notes, radius, out, kw)
@@ -423,6 +429,10 @@ def _keep_inside(region, V: Polynomial, level: float, Vq: Polynomial, level_q: f
 # --------------------------------------------------------------------------- the pipeline's
 #: boundary samples per state of the region the V–s iteration keeps its sets in (``keep_in``)
 _KEEP_IN_SAMPLES = 200
+#: the second search inside the domain (``keep_in``) repeats the SOS programs: it runs only
+#: where their Gram matrices have order at most this (half the automatic budget; a 2-D cubic
+#: at degree 6: 20; Fossil's NonPoly2 at degree 4, 34, doubled its SOS time to ~80 CPU s)
+_KEEP_IN_GRAM_LIMIT = 20
 
 #: ``sos.degree = "auto"``: the degree is chosen from the size of the SDPs
 #: (:func:`choose_degree`)

@@ -243,6 +243,7 @@ def test_a_finished_auto_stage_is_loaded_and_a_changed_degree_recomputes_it(auto
 
 
 # --------------------------------------------------------------------------- the domain
+@pytest.mark.slow  # 4 s idle, 11 s shared; tests/test_domain.py's Khalil box runs this search
 def test_a_set_across_the_domain_boundary_is_searched_again_inside_it():
     """Van der Pol's SOS set grows across the box [-1.5, 1.5]² (its ROA does not fit in
     it): the iteration runs again with its sets kept inside, and the V kept has the larger

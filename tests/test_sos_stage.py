@@ -21,7 +21,7 @@ from nlyap_opt.workflow.pipeline import run
 
 # --------------------------------------------------------------------------- configuration
 @pytest.mark.parametrize("sos, msg", [
-    ({"degree": 3}, r"sos\.degree must be one of 0, 2, 4, 6, got 3"),
+    ({"degree": 3}, r"sos\.degree must be one of 'auto', 0, 2, 4, 6, got 3"),
     ({"degree": 2.0}, r"sos\.degree must be one of"),
     ({"degre": 2}, r"unknown key 'sos\.degre'; did you mean 'sos\.degree'"),
     ({"iterations": 0}, r"sos\.iterations must be an integer >= 1, got 0"),

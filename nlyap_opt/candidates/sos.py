@@ -71,13 +71,21 @@ from ..certification.certificate import (
 from ..certification.roa import grid_area, grid_points
 from ..design.control import lqr
 from ..design.polynomial import NotPolynomialError, Polynomial, polynomial_closed_loop
-from ..design.sos_sdp import SOSLevel, boundary_points, sos_level, star_area, vs_iteration
+from ..design.sos_sdp import (
+    SOSLevel,
+    boundary_points,
+    gram_size,
+    sos_level,
+    star_area,
+    vs_iteration,
+)
 from ..kernel.errors import NotStabilizableError
 from .quadratic import INNER_FRACTION
 
 __all__ = [
-    "NotPolynomialError", "Polynomial", "SOSConfig", "SOSLevel", "SOSResult", "SOSStatus",
-    "certify_sos", "polynomial_closed_loop", "sos_level", "sos_policy", "sos_roa",
+    "AUTO", "AUTO_DEGREES", "AUTO_GRAM_LIMIT", "NotPolynomialError", "Polynomial", "SOSChoice",
+    "SOSConfig", "SOSLevel", "SOSResult", "SOSStatus", "certify_sos", "choose_degree",
+    "polynomial_closed_loop", "sos_level", "sos_policy", "sos_roa",
 ]
 
 
@@ -210,7 +218,7 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
             iterations: int = 20, backoff: float = 0.01,
             push: float = 1.05, solver: str = "CLARABEL",
             outer_margin: float = 0.05, certify: bool = True,
-            verify_options: dict | None = None, domain=None,
+            verify_options: dict | None = None, domain=None, keep_in=None,
             log: Callable[[str], None] | None = None) -> SOSResult:
     r"""SOS estimate of the region of attraction, certified by the interval verifier.
 
@@ -238,6 +246,13 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     domain : nlyap_opt.kernel.domain.Region, optional
         Certify on this verification domain ``D`` (a declared domain: the same set as the
         other rows of a comparison) instead of the ball around the SOS level set.
+    keep_in : nlyap_opt.kernel.domain.Region, optional
+        Where the V–s iteration's set crosses the boundary of this region (on seeded
+        samples of it) and its SDPs are small (Gram matrices of order at most
+        20, half the automatic budget), the iteration runs again with its sets kept inside
+        (:func:`nlyap_opt.design.sos_sdp.vs_iteration`'s ``outside``) and the ``V`` whose
+        set inside the region is larger is kept (a search heuristic: a set across the
+        boundary of the run's domain would be cut down by containment (b) when certified).
     multiplier_degree : int, optional
         Degree of the S-procedure multiplier ``s`` (default: the least that matches for the
         level of the quadratic ``V``; two more in the V–s iteration, which needs the room).
@@ -322,23 +337,10 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     elif degree > 2:
         kw = dict(t0=t0, multiplier_degree=multiplier_degree, epsilon=epsilon,
                   iterations=iterations, backoff=backoff, push=push, solver=solver, say=say)
-        V, level = vs_iteration(Vq, ls.level, f, degree, history, notes, radius=radius, **kw)
-        if V.degree == 2:
-            # no V step succeeded: again in units of the quadratic set's extent R (x = R·y).
-            # With monomials of degree 6 and more at |x| ~ 8 the SDPs are too badly scaled
-            # for the solvers (Fossil's NonPoly2: the first V step fails unscaled and
-            # succeeds scaled); where the unscaled iteration works it is kept (Van der Pol:
-            # areas 11.7 / 13.5 unscaled, 9.4 / 12.4 scaled, degree 4 / 6). Levels are the
-            # same in both units, areas scale with R^nx.
-            R = float(np.linalg.norm(boundary_points(Vq, ls.level), axis=1).max())
-            say(f"[sos] no V step succeeded; the V-s iteration again with x = {R:.4g}·y")
-            notes.append(f"the V-s iteration was repeated in units x = {R:.4g}·y (the SDPs "
-                         "in x failed)")
-            Vy, level = vs_iteration(Vq.substituted(R), ls.level,
-                                     [p.substituted(R).scaled(1.0 / R) for p in f], degree,
-                                     history, notes, radius=radius / R, area_scale=R ** nx,
-                                     **kw)
-            V = Vy.substituted(1.0 / R) if Vy.degree > 2 else Vq.scaled(1.0 / ls.level)
+        V, level = _vs_search(Vq, ls.level, f, degree, history, notes, radius, None, kw)
+        if keep_in is not None and V.degree > 2:
+            V, level = _keep_inside(keep_in, V, level, Vq, ls.level, f, degree, history,
+                                    notes, radius, kw)
     sdp_seconds = time.perf_counter() - t0
     res = SOSResult(SOSStatus.NOT_CERTIFIED, V.degree, V, level, 0.0, 0.0, notes, inner,
                     history=history, sdp_seconds=sdp_seconds)
@@ -369,25 +371,201 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     return res
 
 
+def _vs_search(Vq: Polynomial, level_q: float, f, degree: int, history: list, notes: list,
+               radius: float, outside, kw: dict) -> tuple[Polynomial, float]:
+    """The V–s iteration from the quadratic ``Vq`` at its SDP level ``level_q``; where no V
+    step succeeds, again in scaled units. ``outside``: boundary samples of a domain the
+    sets are kept in (``None``: none)."""
+    nx = Vq.nx
+    V, level = vs_iteration(Vq, level_q, f, degree, history, notes, radius=radius,
+                            outside=outside, **kw)
+    if V.degree == 2:
+        # no V step succeeded: again in units of the quadratic set's extent R (x = R·y).
+        # With monomials of degree 6 and more at |x| ~ 8 the SDPs are too badly scaled
+        # for the solvers (Fossil's NonPoly2: the first V step fails unscaled and
+        # succeeds scaled); where the unscaled iteration works it is kept (Van der Pol:
+        # areas 11.7 / 13.5 unscaled, 9.4 / 12.4 scaled, degree 4 / 6). Levels are the
+        # same in both units, areas scale with R^nx.
+        R = float(np.linalg.norm(boundary_points(Vq, level_q) if outside is None
+                                 else boundary_points(V, level), axis=1).max())
+        kw["say"](f"[sos] no V step succeeded; the V-s iteration again with x = {R:.4g}·y")
+        notes.append(f"the V-s iteration was repeated in units x = {R:.4g}·y (the SDPs "
+                     "in x failed)")
+        Vy, level_y = vs_iteration(Vq.substituted(R), level_q,
+                                   [p.substituted(R).scaled(1.0 / R) for p in f], degree,
+                                   history, notes, radius=radius / R, area_scale=R ** nx,
+                                   outside=None if outside is None else outside / R, **kw)
+        if Vy.degree > 2:
+            V, level = Vy.substituted(1.0 / R), level_y
+    return V, level
+
+
+def _keep_inside(region, V: Polynomial, level: float, Vq: Polynomial, level_q: float, f,
+                 degree: int, history: list, notes: list, radius: float,
+                 kw: dict) -> tuple[Polynomial, float]:
+    """``(V, level)``, or where its set crosses the boundary of ``region`` (on seeded
+    samples), the V–s iteration's result with its sets kept inside when that one's set
+    inside ``region`` is larger. A set across ∂D would be cut down by containment (b) when
+    certified (Van der Pol on its box [-1.5, 1.5]²: certified area 4.10 -> 6.97)."""
+    out = region.sample_boundary(_KEEP_IN_SAMPLES * Vq.nx, np.random.default_rng(0))
+    edge = float(V(out).min())
+    if edge >= level:
+        return V, level
+    order = gram_size(Vq.nx, degree, max(1, max(p.degree for p in f)))
+    if order > _KEEP_IN_GRAM_LIMIT:
+        notes.append(f"the set crosses the domain's boundary; not searched again inside it "
+                     f"(Gram matrices of order {order} > {_KEEP_IN_GRAM_LIMIT})")
+        return V, level
+    kw["say"](f"[sos] the set crosses the domain's boundary (least V there {edge:.4g} < "
+              f"level {level:.4g}): the V-s iteration again inside the domain")
+    V2, level2 = _vs_search(Vq, level_q, f, degree, history, notes, radius, out, kw)
+    inside = star_area(V, min(level, edge))
+    inside2 = star_area(V2, min(level2, float(V2(out).min())))
+    notes.append(f"the V-s iteration was repeated inside the domain: area in it "
+                 f"{inside2:.4g} against {inside:.4g}")
+    return (V2, level2) if inside2 > inside else (V, level)
+
+
 # --------------------------------------------------------------------------- the pipeline's
+#: boundary samples per state of the region the V–s iteration keeps its sets in (``keep_in``)
+_KEEP_IN_SAMPLES = 200
+#: the second search inside the domain (``keep_in``) repeats the SOS programs: it runs only
+#: where their Gram matrices have order at most this (half the automatic budget; a 2-D cubic
+#: at degree 6: 20; Fossil's NonPoly2 at degree 4, 34, doubled its SOS time to ~80 CPU s)
+_KEEP_IN_GRAM_LIMIT = 20
+
+#: ``sos.degree = "auto"``: the degree is chosen from the size of the SDPs
+#: (:func:`choose_degree`)
+AUTO = "auto"
+#: the degrees the automatic choice tries, largest first; degree 2 (a quadratic V) is left to
+#: the quadratic candidates, which the default method runs anyway
+AUTO_DEGREES: tuple[int, ...] = (6, 4)
+#: the automatic choice's budget: the largest order of a Gram matrix its SOS programs may set
+#: up (:func:`nlyap_opt.design.sos_sdp.gram_size`; a size, never a time)
+AUTO_GRAM_LIMIT = 40
+
+
 @dataclass
 class SOSConfig:
     """The ``sos`` section of a run configuration: an SOS certificate before the neural stage.
 
     Attributes
     ----------
-    degree : {0, 2, 4, 6}
-        Degree of the SOS ``V`` (0: no SOS stage).
+    degree : {"auto", 0, 2, 4, 6}
+        Degree of the SOS ``V`` (0: no SOS stage; ``"auto"``: chosen by
+        :func:`choose_degree`, off where SOS does not apply).
     iterations : int
         Budget of the V–s iteration, in rounds per degree (``degree > 2``).
     """
 
-    degree: int = field(default=0, metadata={
-        "choices": (0, 2, 4, 6),
+    degree: int | str = field(default=0, metadata={
+        "choices": (AUTO, 0, 2, 4, 6),
         "doc": "degree of an SOS V certified before the neural stage where the closed loop "
-               "is polynomial and f is known (0: off; nlyap_opt.candidates.sos)"})
+               "is polynomial and f is known (0: off; 'auto': the largest of 6, 4 whose "
+               f"SDPs have Gram matrices of order <= {AUTO_GRAM_LIMIT}, off with learned f, a "
+               "non-polynomial closed loop or larger SDPs; nlyap_opt.candidates.sos)"})
     iterations: int = field(default=20, metadata={
         "lo": 1, "doc": "V-s iteration rounds per degree (a count, never a time)"})
+
+
+@dataclass(frozen=True)
+class SOSChoice:
+    """The SOS degree a run uses (:func:`choose_degree`) and why.
+
+    Attributes
+    ----------
+    degree : int
+        0: no SOS stage.
+    reason : str
+        One line: why this degree (or why off).
+    configured : int or str
+        The configured ``sos.degree`` (``"auto"`` or a number).
+    gram : int
+        Order of the largest Gram matrix of its SDPs (0 when off).
+    """
+
+    degree: int
+    reason: str
+    configured: int | str
+    gram: int = 0
+
+    @property
+    def automatic(self) -> bool:
+        """True when the degree was chosen by the rule (``sos.degree = "auto"``)."""
+        return self.configured == AUTO
+
+    def describe(self) -> str:
+        """``sos.degree 'auto' -> degree 6: why`` (one line for the log and ``nlyap config``)."""
+        what = f"degree {self.degree}" if self.degree else "off"
+        return f"sos.degree {self.configured!r} -> {what}: {self.reason}"
+
+
+def choose_degree(system, degree: int | str = AUTO, *, known: bool = True,
+                  controller=None) -> SOSChoice:
+    r"""The degree of the SOS candidate of a run: ``degree`` when it is a number, else chosen.
+
+    The automatic choice (``degree = "auto"``) runs SOS only where it applies and is cheap:
+
+    1. the model of ``f`` is used (``known``; a learned ``φ`` is a tanh network and an
+       unknown system has no polynomial model);
+    2. the closed loop is polynomial: no inputs, or a polynomial ``controller`` (the pipeline's
+       ``C·tanh(Kx + b)`` is not), and ``f`` expands exactly
+       (:func:`nlyap_opt.design.polynomial.polynomial_closed_loop`);
+    3. the largest degree of :data:`AUTO_DEGREES` whose SDPs have Gram matrices of order at
+       most :data:`AUTO_GRAM_LIMIT` (:func:`nlyap_opt.design.sos_sdp.gram_size` of the state
+       dimension, the degree and the degree of ``f``): 6 for a cubic ``f`` in 2-D (order 20),
+       4 for a cubic in 3-D (34); off for a quartic in 3-D (55 at degree 4) and in 4 or
+       more states whatever ``f`` (at least 69; ``f`` is then not expanded). The budget is a
+       size of the programs, never a time: the same system gets the same degree on any
+       machine.
+
+    Parameters
+    ----------
+    system : systems.System
+    degree : {"auto", 0, 2, 4, 6}
+        The configured ``sos.degree``.
+    known : bool
+        The run uses the model of ``f`` (``--known-dynamics``).
+    controller : nlyap_opt.kernel.network.Network, optional
+        The run's initial controller (``None`` for a system without inputs).
+
+    Returns
+    -------
+    SOSChoice
+        The degree (0: off) and the reason in one line.
+    """
+    if degree != AUTO:
+        why = "off as configured" if not degree else "as configured"
+        return SOSChoice(int(degree), why, degree)
+    if not known or not getattr(system, "has_model", True):
+        return SOSChoice(0, "learned dynamics: the SOS programs need the polynomial model of f",
+                         degree)
+    if system.nu and controller is None:
+        return SOSChoice(0, "the closed loop under the controller C·tanh(Kx + b) is not "
+                            "polynomial", degree)
+    low = AUTO_DEGREES[-1]
+    least = gram_size(system.nx, low, 1)   # whatever f: no expansion where nothing would fit
+    if least > AUTO_GRAM_LIMIT:
+        return SOSChoice(0, f"n = {system.nx}: {_too_large(low, f'>= {least}')}", degree)
+    try:
+        f = polynomial_closed_loop(system, controller)
+    except NotPolynomialError as err:
+        ops = ", ".join(err.operations) or "a non-polynomial operation"
+        return SOSChoice(0, f"the closed loop is not polynomial: it applies {ops}", degree)
+    deg_f = max(1, max(p.degree for p in f))
+    for d in AUTO_DEGREES:
+        m = gram_size(system.nx, d, deg_f)
+        if m <= AUTO_GRAM_LIMIT:
+            return SOSChoice(d, f"n = {system.nx}, deg f = {deg_f}: Gram matrices of order "
+                                f"{m} <= {AUTO_GRAM_LIMIT}", degree, m)
+    m = gram_size(system.nx, low, deg_f)
+    return SOSChoice(0, f"n = {system.nx}, deg f = {deg_f}: {_too_large(low, m)}", degree)
+
+
+def _too_large(degree: int, order) -> str:
+    """Why the automatic choice is off: the least degree's SDPs exceed the budget."""
+    return (f"degree {degree} needs Gram matrices of order {order} > {AUTO_GRAM_LIMIT}; the "
+            f"quadratic candidates cover degree 2, and sos.degree {degree} runs it anyway")
 
 
 def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = None,
@@ -411,7 +589,8 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
     problem : RoaProblem
         The run's problem; its ``V`` is ignored.
     config : SOSConfig
-        ``degree`` (> 0) and ``iterations``.
+        ``degree`` (> 0; ``"auto"`` is resolved by :func:`choose_degree` first) and
+        ``iterations``.
     inner_fraction : float, optional
         The SOS certificate's ``ε`` as a fraction of ``problem.inner`` (default
         :data:`nlyap_opt.candidates.quadratic.INNER_FRACTION`, as the quadratic candidates with the
@@ -424,8 +603,9 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
         With :attr:`~SOSResult.certificate` and :attr:`~SOSResult.problem` set when the
         verifier ran.
     """
-    if not config.degree:
-        raise ValueError("SOSConfig.degree is 0: the SOS stage is off")
+    if not isinstance(config.degree, int) or not config.degree:
+        raise ValueError(f"SOSConfig.degree is {config.degree!r}: the SOS stage is off (0) or "
+                         "not resolved ('auto': choose_degree gives the degree)")
     policy = sos_policy(inner_fraction)
     eps = problem.inner * policy.inner_fraction
     t0 = time.perf_counter()
@@ -437,7 +617,7 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
                          inner=eps, non_polynomial={"learned dynamics": "φ"}, reason=reason)
     res = sos_roa(problem.system, degree=config.degree, inner=eps,
                   controller=problem.controller, iterations=config.iterations,
-                  certify=False, log=log)
+                  certify=False, keep_in=problem.domain, log=log)
     if not res.applicable or res.V is None or not res.sdp_level > 0:
         return res
     res.problem = replace(problem, V=res.V, inner=eps)

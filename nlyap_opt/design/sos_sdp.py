@@ -11,7 +11,9 @@ coefficients of every monomial (no SOS toolbox: cvxpy directly).
 - :func:`v_step`: the ``V`` step of the V–s iteration (``s`` and ``c`` fixed, linear in ``V``);
 - :func:`vs_iteration`: the V–s iteration with degree continuation 4, 6, ...;
 - :func:`boundary_points`, :func:`star_area`: ray sampling of :math:`\{V \le c\}` (search
-  heuristics of the iteration, no part of any claim).
+  heuristics of the iteration, no part of any claim);
+- :func:`gram_size`: the order of the largest Gram matrix of these programs for a ``V`` of
+  a given degree (the size of the SDPs, known before any is solved).
 """
 
 from __future__ import annotations
@@ -33,8 +35,8 @@ from scipy.sparse import coo_matrix
 from ..kernel import deps
 from .polynomial import Polynomial, monomial_matrix, monomials
 
-__all__ = ["SOSLevel", "boundary_points", "gram_factor", "sos_level", "star_area", "v_step",
-           "vs_iteration"]
+__all__ = ["SOSLevel", "boundary_points", "gram_factor", "gram_size", "sos_level", "star_area",
+           "v_step", "vs_iteration"]
 
 
 # --------------------------------------------------------------------------- coefficient space
@@ -137,6 +139,44 @@ def _vec(Q):
 
 def _even_up(d: int) -> int:
     return d + (d % 2)
+
+
+def _level_multiplier_degree(deg_f: int) -> int:
+    """Default degree of the multiplier ``s`` of :func:`sos_level` (the least that matches
+    the degree of :math:`\\dot V` of a quadratic ``V``)."""
+    return max(2, _even_up(deg_f - 1))
+
+
+def _vs_multiplier_degree(deg_f: int) -> int:
+    """Default degree of ``s`` in :func:`vs_iteration` (two more: the V step needs room)."""
+    return _level_multiplier_degree(deg_f) + 2
+
+
+def gram_size(nx: int, degree: int, deg_f: int) -> int:
+    r"""Order of the largest Gram matrix that :func:`sos_level` and :func:`vs_iteration`
+    set up, with their default multiplier degrees, for a ``V`` of ``degree`` and a closed
+    loop of degree ``deg_f`` in ``nx`` states.
+
+    The decrease constraint :math:`-\dot V - \epsilon\|x\|^2 - s\,(c - V) \in \Sigma`
+    has degree :math:`D = \max(\deg V + \deg f - 1, \deg V + \deg s)` (rounded up to
+    even); its Gram matrix is indexed by the monomials of degree ``1..D/2``:
+    :math:`\binom{nx + D/2}{nx} - 1` of them. ``degree = 2`` is the level bisection of the
+    quadratic ``V`` only; a larger degree adds the V–s iteration up to it. The cost of each
+    SDP grows with this order (the PSD cone has :math:`m(m+1)/2` entries), so it measures
+    what a degree costs before anything is solved.
+
+    Examples
+    --------
+    >>> gram_size(2, 6, 3), gram_size(3, 4, 3), gram_size(3, 4, 4), gram_size(4, 4, 3)
+    (20, 34, 55, 69)
+    """
+    if degree < 2 or degree % 2 or nx < 1 or deg_f < 1:
+        raise ValueError(f"need nx >= 1, an even degree >= 2 and deg_f >= 1, got nx = {nx}, "
+                         f"degree = {degree}, deg_f = {deg_f}")
+    D = _even_up(max(2 + deg_f - 1, 2 + _level_multiplier_degree(deg_f)))
+    if degree > 2:
+        D = max(D, _even_up(max(degree + deg_f - 1, degree + _vs_multiplier_degree(deg_f))))
+    return math.comb(nx + D // 2, nx) - 1
 
 
 @contextlib.contextmanager
@@ -260,7 +300,7 @@ def sos_level(V: Polynomial, f: list[Polynomial], *, multiplier_degree: int | No
 
     dV = V.degree
     df = max(p.degree for p in f)
-    ds = multiplier_degree or max(2, _even_up(dV + df - 1 - dV))
+    ds = multiplier_degree or _level_multiplier_degree(df)
     sp = _Space.for_decrease(V.nx, dV, df, ds)
     vpoly = V.to_dict()
     lieV = sp.lie([p.to_dict() for p in f], dV) @ sp.vec(vpoly)
@@ -306,7 +346,7 @@ def sos_level(V: Polynomial, f: list[Polynomial], *, multiplier_degree: int | No
 # --------------------------------------------------------------------------- V–s iteration
 def v_step(V: Polynomial, inside: np.ndarray, level: float, s: dict, f: list[Polynomial],
            degree: int, targets: np.ndarray, *, epsilon: float,
-           solver: str) -> Polynomial | None:
+           solver: str, outside: np.ndarray | None = None) -> Polynomial | None:
     r"""The ``V`` step of the V–s iteration (``s`` and ``level`` fixed); ``None`` if it fails.
 
     .. math::
@@ -316,7 +356,9 @@ def v_step(V: Polynomial, inside: np.ndarray, level: float, s: dict, f: list[Pol
 
     minimising the mean of ``V`` over ``targets``. ``inside``: boundary points of the
     previous set (kept with ``V ≤ level``: a heuristic for monotone growth, no part of any
-    claim); ``targets``: points just outside it.
+    claim); ``targets``: points just outside it; ``outside`` (optional): points where
+    ``V ≥ level`` is asked (samples of the boundary of a domain the set should stay in;
+    also a heuristic, the certificate checks containment itself).
     """
     cp = deps.cvxpy()
 
@@ -329,6 +371,8 @@ def v_step(V: Polynomial, inside: np.ndarray, level: float, s: dict, f: list[Pol
     dec = (-sp.lie([p.to_dict() for p in f], degree) @ v - epsilon * r2 - level * sp.vec(s)
            + sp.mul(s, degree) @ v)
     cons = [sp.is_sos(dec), monomial_matrix(inside, sp.monos) @ v <= level]
+    if outside is not None and len(outside):
+        cons.append(monomial_matrix(outside, sp.monos) @ v >= level)
     Zout = monomial_matrix(targets, sp.monos)
     prob = cp.Problem(cp.Minimize(cp.sum(Zout @ v) / len(targets)), cons)
     if not _solve(prob, solver):
@@ -342,24 +386,47 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
                  epsilon: float, iterations: int, backoff: float,
                  push: float, radius: float, solver: str,
                  say: Callable[[str], None],
-                 area_scale: float = 1.0) -> tuple[Polynomial, float]:
+                 area_scale: float = 1.0,
+                 outside: np.ndarray | None = None,
+                 keep_margin: float = 0.2) -> tuple[Polynomial, float]:
     """V–s iteration with degree continuation 4, 6, ..., ``degree``; the best ``(V, level)``.
 
     ``V`` is kept scaled so that its SDP level is 1. Each round: the multiplier ``s`` at
     level ``1 - backoff`` (interior), the ``V`` step, the level of the new ``V`` by bisection.
     The best iterate by area is returned; a stage ends when the area stops growing.
     ``history`` and ``notes`` are appended to (areas times ``area_scale``: the data may be
-    in scaled units).
+    in scaled units). With ``outside`` (samples of the boundary of a domain ``D``), the
+    sets grow inside ``D`` instead of across its boundary: each level (the quadratic's
+    too) is capped at ``1 - keep_margin`` times the least ``V`` on them (the margin leaves
+    the next V step room between the previous set and ``∂D``) and each V step asks
+    ``V ≥ level`` there; the level returned is the uncapped one, the lesser of the SDP
+    level and the least ``V`` on ``outside`` (an S-procedure multiplier of a level also
+    serves every lower level).
     """
-    md = multiplier_degree or max(2, _even_up(max(p.degree for p in f) - 1)) + 2
+    md = multiplier_degree or _vs_multiplier_degree(max(p.degree for p in f))
     lev = 1.0 - backoff
 
     def level_of(V, **kw):
         return sos_level(V, f, multiplier_degree=md, epsilon=epsilon, solver=solver,
                          upper=lev, rtol=1e-3, backoff=backoff, **kw)
 
-    V = Vq.scaled(1.0 / level_q)
-    best = (V, 1.0, star_area(V, 1.0))
+    def capped(V: Polynomial, level: float) -> tuple[float, float]:
+        """The level V is scaled by, and the full level in the scaled V's units."""
+        if outside is None:
+            return level, 1.0
+        edge = float(V(outside).min())
+        scale = min(level, (1.0 - keep_margin) * edge)
+        return scale, min(level, edge) / scale
+
+    scale, full = capped(Vq, level_q)
+    if not scale > 0:
+        notes.append("the quadratic V is not positive on the domain's boundary")
+        return Vq.scaled(1.0 / level_q), 1.0
+    if scale < level_q:
+        say(f"[sos] the quadratic's level {level_q:.6g} capped at {scale:.6g} inside the "
+            "domain")
+    V = Vq.scaled(1.0 / scale)
+    best = (V, full, star_area(V, 1.0))
     s = level_of(V).backoff_multiplier
     for stage in range(4, degree + 1, 2):
         V = best[0]
@@ -368,7 +435,8 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
         stalled = 0
         for it in range(iterations):
             bnd = boundary_points(V, lev)
-            Vn = v_step(V, bnd, lev, s, f, stage, push * bnd, epsilon=epsilon, solver=solver)
+            Vn = v_step(V, bnd, lev, s, f, stage, push * bnd, epsilon=epsilon, solver=solver,
+                        outside=outside)
             if Vn is None:
                 notes.append(f"degree {stage}, round {it + 1}: V step infeasible or "
                              "inaccurate; stage ended")
@@ -378,13 +446,18 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
                 notes.append(f"degree {stage}, round {it + 1}: no level for the new V; "
                              "stage ended")
                 break
-            V, s = Vn.scaled(1.0 / ls.level), ls.backoff_multiplier
+            scale, full = capped(Vn, ls.level)
+            if not scale > 0:
+                notes.append(f"degree {stage}, round {it + 1}: the new V is not positive on "
+                             "the domain's boundary; stage ended")
+                break
+            V, s = Vn.scaled(1.0 / scale), ls.backoff_multiplier
             area = star_area(V, 1.0)
             history.append({"degree": stage, "round": it + 1, "sdp_level": ls.level,
                             "seconds": time.perf_counter() - t0, "area": area * area_scale})
             say(f"[sos] degree {stage}, round {it + 1}: area ≈ {area * area_scale:.4g}")
             if area > best[2] * (1 + 1e-3):
-                best, stalled = (V, 1.0, area), 0
+                best, stalled = (V, full, area), 0
             else:
                 stalled += 1
                 if stalled >= 2:

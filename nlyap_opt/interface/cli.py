@@ -28,6 +28,7 @@ import numpy as np
 import systems
 from verification import QueryStatus, closed_loop_problem, verify
 
+from ..candidates.sos import AUTO, choose_degree
 from ..certification.certificate import CertStatus, recheck_certificate, spec_factory
 from ..certification.compositional import (
     certify_compositional,
@@ -556,6 +557,10 @@ def cmd_config(args) -> int:
         raise UsageError("config needs a system name (or --keys); see 'nlyap config --help'")
     cfg = _run_config(args, learned=False)
     print(json.dumps(cfg.to_json(), indent=1, allow_nan=False))
+    if cfg.sos.degree == AUTO:   # what the automatic SOS degree resolves to (not JSON: stderr)
+        choice = choose_degree(systems.get(args.system), AUTO, known=True)
+        print(f"with --known-dynamics, {choice.describe()}; with learned dynamics, off",
+              file=sys.stderr)
     return 0
 
 

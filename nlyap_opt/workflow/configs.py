@@ -67,7 +67,7 @@ import systems
 from verification.verify import file_options
 
 from ..candidates.quadratic import QUADRATIC_CANDIDATES
-from ..candidates.sos import SOSConfig
+from ..candidates.sos import SOSConfig, choose_degree
 from ..design.control import lqr
 from ..kernel.domain import Ball, parse_set
 from ..kernel.errors import ConfigError, UnknownNameError
@@ -283,12 +283,14 @@ DEFAULT_CEGIS: dict = {
 #: the base of ``make_config(name, preset=None, ...)`` for a system without a preset; the
 #: system's boxes then give the domain, ``inner`` (and ``controller_scale`` for a system
 #: with inputs), a spec file's ``[run]`` table and the caller's overrides come last
-#: The cheap quadratic certificates run first by default: where the neural V does not beat
-#: them (e.g. a domain lying wholly in the ROA, where the Zubov-type target has no shape),
-#: the run still certifies their sets, and says which certificate won.
+#: The cheap certificates run first by default: the quadratic ones, and an SOS V where it
+#: applies (``sos.degree = "auto"``: the true f, a polynomial closed loop, small SDPs;
+#: :func:`nlyap_opt.candidates.sos.choose_degree`). Where the neural V does not beat them
+#: (e.g. a domain lying wholly in the ROA, where the Zubov-type target has no shape), the
+#: run still certifies their sets, and says which certificate won.
 _GENERIC: dict = {"controller_scale": None, "train": DEFAULT_TRAIN, "cegis": DEFAULT_CEGIS,
                   "eval_points": 40000, "dynamics": {"preset": "default"},
-                  "quadratic": ["lyapunov", "round"]}
+                  "quadratic": ["lyapunov", "round"], "sos": {"degree": "auto"}}
 
 
 # ============================================================================ schema
@@ -423,9 +425,8 @@ _TOP_DOCS = {
                  "'volume', 'centre': a linearisation with a centre); the larger certified "
                  "volume wins ([]: off; nlyap_opt.candidates.quadratic)",
     "sos": "an SOS V certified before the neural stage where f is known and the closed loop "
-           "polynomial (nlyap_opt.candidates.sos.SOSConfig: degree, 0 off; iterations); the "
-           "largest "
-           "certified volume wins",
+           "polynomial (nlyap_opt.candidates.sos.SOSConfig: degree, 0 off, 'auto' chosen from "
+           "the SDP sizes; iterations); the largest certified volume wins",
     "system": "informational; must name the system being run",
     "preset": "informational; must name the preset the file is merged over",
     "comment": "free text",
@@ -816,6 +817,9 @@ _KIND_CHECKS = {
     "float": _ok_float, "scale": _ok_scale, "str_list": _ok_str_list,
     "int_list": _ok_int_list, "box": _ok_box, "matrix": _ok_matrix,
     **dict.fromkeys(("dict", "section", "set"), lambda key, v, where: isinstance(v, dict)),
+    # a key of several types (sos.degree: "auto" or a number) lists what it accepts
+    "any": lambda key, v, where: not key.choices or (
+        (isinstance(v, str) or _is_int(v)) and v in key.choices),
 }
 
 
@@ -964,16 +968,21 @@ def _check_start(rc: RunConfig, s, where: str) -> None:
         raise ConfigError(f"{where}: train.init 'quadratic' starts V at the best certified "
                           "quadratic, but no quadratic candidates are listed; set e.g. "
                           "quadratic: [\"lyapunov\", \"round\"] or init 'random'")
-    if init == "sos" and not rc.sos.degree:
-        raise ConfigError(f"{where}: train.init 'sos' starts V at the certified SOS V, but the "
-                          "SOS stage is off; set sos: {\"degree\": 4} (or 2) or init 'random'")
+    degree = rc.sos.degree
+    if init == "sos":   # the start needs the true f (checked by the run): resolve for it
+        choice = choose_degree(s, degree, known=True)
+        if not choice.degree:
+            raise ConfigError(f"{where}: train.init 'sos' starts V at the certified SOS V, but "
+                              f"the SOS stage is off ({choice.describe()}); set "
+                              "sos: {\"degree\": 4} (or 2) or init 'random'")
+        degree = choice.degree
     if init != "random":
         from ..candidates.learning import check_start_architecture  # lazy: torch, heavy (the
                                                                     # learner)
 
         try:
             check_start_architecture(init, s.nx, rc.train.activation, rc.train.hidden,
-                                     rc.train.features, rc.sos.degree)
+                                     rc.train.features, degree)
         except ConfigError as err:
             raise ConfigError(f"{where}: {err}") from None
 

@@ -9,8 +9,10 @@ configuration loads finished stages instead of recomputing them):
 3. ``quadratic`` — only when the configuration lists ``quadratic`` candidates: the cheap
    certificates ``V = xᵀPx`` under the initial controller (:mod:`nlyap_opt.candidates.quadratic`);
    the best one is saved as ``V_quadratic.json``;
-   ``sos`` — only when ``sos.degree`` > 0: an SOS ``V`` (:mod:`nlyap_opt.candidates.sos`) where f is
-   known and the closed loop polynomial, saved as ``V_sos.json`` when certified;
+   ``sos`` — only when ``sos.degree`` > 0, or ``"auto"`` and
+   :func:`~nlyap_opt.candidates.sos.choose_degree` picks a degree (f known, the closed loop
+   polynomial, SDPs small enough): an SOS ``V`` (:mod:`nlyap_opt.candidates.sos`), saved as
+   ``V_sos.json`` when certified;
 4. ``cegis`` — learn V and κ, certify conditions (a) and (b) at a level;
 5. ``certificate`` — always rerun: the saved V, κ, φ are verified again at the saved level
    with conditions (a), (b), (c) (:func:`nlyap_opt.certification.certificate.certify_roa`) before
@@ -51,7 +53,7 @@ from verification import closed_loop_problem
 from ..candidates.cegis import CegisConfig, cegis
 from ..candidates.learning import TrainConfig, quadratic_start, sos_start
 from ..candidates.quadratic import certify_quadratics, closed_loop_matrix
-from ..candidates.sos import SOSConfig, certify_sos
+from ..candidates.sos import SOSConfig, certify_sos, choose_degree
 from ..certification.certificate import (
     CertStatus,
     RoaCertificate,
@@ -926,16 +928,36 @@ def _quadratic_stage(ctx: _Context) -> _CheapRecord | None:
 
 
 def _sos_stage(ctx: _Context) -> _CheapRecord | None:
-    """Stage 3b: the SOS candidate of ``sos`` (:func:`nlyap_opt.candidates.sos.certify_sos`);
-    returns its record (``sos.json``'s ``best``) when certified, else ``None``."""
+    """Stage 3b: the SOS candidate of ``sos`` (:func:`nlyap_opt.candidates.sos.certify_sos`) at
+    the degree :func:`~nlyap_opt.candidates.sos.choose_degree` gives (``"auto"``: said in one
+    line); returns its record (``sos.json``'s ``best``) when certified, else ``None``."""
     view = ctx.stages.view("sos")
     sc = SOSConfig(**view.sos.to_json())
-    if not sc.degree:
+    choice = choose_degree(ctx.system, sc.degree, known=ctx.stages.known,
+                           controller=ctx.controller)
+    if choice.automatic:
+        ctx.log(f"[sos] {choice.describe()}")
+    if not choice.degree:
         return None
+    sc = replace(sc, degree=choice.degree)
     deps = ("dynamics", "controller")
+    path = ctx.out / "sos.json"
     if ctx.stages.finished("sos", *deps):
-        return _CheapRecord.load("sos", ctx.out / "sos.json")
+        saved = _saved_sos_degree(path)
+        if saved == choice.degree:
+            return _CheapRecord.load("sos", path)
+        ctx.log(f"[sos] {path.name} holds degree {saved!r}, the run's degree is "
+                f"{choice.degree}: the SOS stage is recomputed")
     return _sos_compute(ctx, view, sc, deps)
+
+
+def _saved_sos_degree(path: Path):
+    """The degree a finished SOS stage recorded in ``path`` (``None`` when unreadable)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data.get("degree") if isinstance(data, dict) else None
 
 
 def _sos_compute(ctx: _Context, view: RunConfig, sc, deps: tuple) -> _CheapRecord | None:

@@ -22,3 +22,23 @@ def trained():
         cfg = default_config(name, fast=True) | {"progress": False}
         out[name] = learn_dynamics(systems.get(name), cfg)
     return out
+
+
+@pytest.fixture(scope="session")
+def fast_learned_run(tmp_path_factory):
+    """``fast_learned_run(name)``: the directory and summary of ``nlyap run NAME --preset
+    fast`` with learned f (run from Python, no log), once per session for every module that
+    needs it. Tests read the directory; a test that changes files copies it first."""
+    from nlyap_opt.workflow.configs import get_config
+    from nlyap_opt.workflow.pipeline import run
+
+    runs = {}
+
+    def get(name):
+        if name not in runs:
+            d = tmp_path_factory.mktemp(name + "_learned")
+            runs[name] = d, run(name, get_config(name, "fast"), d, known_dynamics=False,
+                                log=lambda m: None).summary
+        return runs[name]
+
+    return get

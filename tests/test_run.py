@@ -112,14 +112,8 @@ def test_changed_training_settings_rerun_the_cegis_stage(known_runs, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def learned_runs(tmp_path_factory):
-    out = {}
-    for name in systems.SEED_SYSTEMS:
-        d = tmp_path_factory.mktemp(name + "_learned")
-        cert = run(name, get_config(name, "fast"), d, known_dynamics=False,
-                   log=lambda m: None).summary
-        out[name] = (d, cert)
-    return out
+def learned_runs(fast_learned_run):
+    return {name: fast_learned_run(name) for name in systems.SEED_SYSTEMS}
 
 
 @pytest.mark.parametrize("name", systems.SEED_SYSTEMS)

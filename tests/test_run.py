@@ -242,6 +242,40 @@ def test_out_that_is_a_file_is_an_input_error(tmp_path):
             log=lambda m: None)
 
 
+_INTERRUPT_AT = {"controller": "saturated_controller", "cegis": "cegis",
+                 "certificate": "_areas_and_checks"}   # the names the pipeline calls
+
+
+def test_a_run_interrupted_in_each_stage_in_turn_resumes_to_a_certificate_that_reverifies(
+        tmp_path, monkeypatch):
+    """SIGINT (KeyboardInterrupt) in the controller stage, then in the CEGIS stage of the
+    rerun, then in the certificate stage of the next: each rerun gets past the stage the
+    last one was stopped in, no lock is left behind, and the final rerun's certificate
+    re-verifies. (One fresh run per stage: the slow test below.)"""
+    import nlyap_opt.workflow.pipeline as pl
+    from nlyap_opt.certification.certificate import recheck_certificate
+
+    name = "inverted_pendulum"
+    cfg = get_config(name, "fast")
+    for target in _INTERRUPT_AT.values():
+        reached = []
+
+        def boom(*a, target=target, **k):
+            reached.append(target)
+            raise KeyboardInterrupt
+
+        with monkeypatch.context() as m:
+            m.setattr(pl, target, boom)
+            with pytest.raises(KeyboardInterrupt):
+                run(name, cfg, tmp_path, known_dynamics=True, log=lambda m: None)
+        assert reached == [target]
+        assert not (tmp_path / ".nlyap.lock").exists()
+    res = run(name, cfg, tmp_path, known_dynamics=True, log=lambda m: None)
+    assert res.certified
+    assert recheck_certificate(tmp_path, log=lambda m: None).certified
+
+
+@pytest.mark.slow  # three runs: the default tier interrupts the stages of one run in turn (above)
 @pytest.mark.parametrize("stage", ["controller", "cegis", "certificate"])
 def test_interrupted_run_resumes_to_a_certificate_that_reverifies(stage, tmp_path,
                                                                   monkeypatch):
@@ -251,13 +285,12 @@ def test_interrupted_run_resumes_to_a_certificate_that_reverifies(stage, tmp_pat
 
     name = "inverted_pendulum"
     cfg = get_config(name, "fast")
-    target = {"controller": "saturated_controller", "cegis": "cegis",
-              "certificate": "_areas_and_checks"}[stage]
+    target = _INTERRUPT_AT[stage]
 
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pl, target, boom)   # the names the pipeline calls
+    monkeypatch.setattr(pl, target, boom)
     with pytest.raises(KeyboardInterrupt):
         run(name, cfg, tmp_path, known_dynamics=True, log=lambda m: None)
     monkeypatch.undo()

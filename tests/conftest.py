@@ -25,20 +25,22 @@ def trained():
 
 
 @pytest.fixture(scope="session")
-def fast_learned_run(tmp_path_factory):
-    """``fast_learned_run(name)``: the directory and summary of ``nlyap run NAME --preset
-    fast`` with learned f (run from Python, no log), once per session for every module that
-    needs it. Tests read the directory; a test that changes files copies it first."""
+def fast_run(tmp_path_factory):
+    """``fast_run(name, known=False)``: the directory and summary of ``nlyap run NAME
+    --preset fast`` (``--known-dynamics`` with ``known``), run from Python without a log,
+    once per session for every module that needs it. Tests read the directory; a test that
+    changes files copies it first (a rerun of the same configuration in place writes the same
+    artifacts)."""
     from nlyap_opt.workflow.configs import get_config
     from nlyap_opt.workflow.pipeline import run
 
     runs = {}
 
-    def get(name):
-        if name not in runs:
-            d = tmp_path_factory.mktemp(name + "_learned")
-            runs[name] = d, run(name, get_config(name, "fast"), d, known_dynamics=False,
-                                log=lambda m: None).summary
-        return runs[name]
+    def get(name, known=False):
+        if (name, known) not in runs:
+            d = tmp_path_factory.mktemp(name + ("_known" if known else "_learned"))
+            runs[name, known] = d, run(name, get_config(name, "fast"), d, known_dynamics=known,
+                                       log=lambda m: None).summary
+        return runs[name, known]
 
     return get

@@ -154,7 +154,7 @@ def _run_files(d):
 
 
 def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_bytes(
-        tmp_path, fast_learned_run):
+        tmp_path, fast_run):
     """The fast learned Van der Pol run three times at once, each run the others' load (a
     busy machine): from the command line with one BLAS/OpenMP thread and with two threads,
     and from Python in this process (the session's shared run, no progress bars). Every
@@ -175,7 +175,7 @@ def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_by
 
     procs = [nlyap(tmp_path / "a", 1), nlyap(tmp_path / "b", 2)]
     try:
-        c, _ = fast_learned_run("van_der_pol")   # meanwhile (or already run)
+        c, _ = fast_run("van_der_pol")   # meanwhile (or already run)
         codes = [p.wait(timeout=600) for p, _ in procs]
     finally:
         for p, log in procs:

@@ -32,14 +32,8 @@ def _certified_points(out, cert, n=60):
 
 
 @pytest.fixture(scope="module")
-def known_runs(tmp_path_factory):
-    out = {}
-    for name in systems.SEED_SYSTEMS:
-        d = tmp_path_factory.mktemp(name)
-        cert = run(name, get_config(name, "fast"), d, known_dynamics=True,
-                   log=lambda m: None).summary
-        out[name] = (d, cert)
-    return out
+def known_runs(fast_run):
+    return {name: fast_run(name, known=True) for name in systems.SEED_SYSTEMS}
 
 
 @pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
@@ -112,8 +106,8 @@ def test_changed_training_settings_rerun_the_cegis_stage(known_runs, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def learned_runs(fast_learned_run):
-    return {name: fast_learned_run(name) for name in systems.SEED_SYSTEMS}
+def learned_runs(fast_run):
+    return {name: fast_run(name) for name in systems.SEED_SYSTEMS}
 
 
 @pytest.mark.parametrize("name", systems.SEED_SYSTEMS)

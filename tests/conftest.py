@@ -44,3 +44,22 @@ def fast_run(tmp_path_factory):
         return runs[name, known]
 
     return get
+
+
+@pytest.fixture
+def log_until():
+    """``log_until(marker)``: a run's ``log`` callback that keeps every message (``.lines``)
+    and stops the run right after the first one holding ``marker``, with the pipeline's
+    interrupt (KeyboardInterrupt: the lock is released, finished stages stay). For tests of
+    what a rerun loads or recomputes, decided and logged as each stage starts."""
+
+    def make(marker):
+        def log(message):
+            log.lines.append(message)
+            if marker in message:
+                raise KeyboardInterrupt
+
+        log.lines = []
+        return log
+
+    return make

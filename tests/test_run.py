@@ -92,17 +92,18 @@ def test_run_resumes_from_saved_stages(known_runs):
     assert again["level"] == cert["level"]
 
 
-def test_changed_training_settings_rerun_the_cegis_stage(known_runs, tmp_path):
+def test_changed_training_settings_rerun_the_cegis_stage(known_runs, tmp_path, log_until):
     import shutil
 
     d, _ = known_runs["van_der_pol"]
     shutil.copytree(d, tmp_path / "run")
     steps = get_config("van_der_pol", "fast").train.steps
     cfg = make_config("van_der_pol", "fast", overrides={"train": {"steps": steps + 1}})
-    logs = []
-    run("van_der_pol", cfg, tmp_path / "run", known_dynamics=True, log=logs.append)
-    assert not any("[cegis] loaded" in m for m in logs)
-    assert any("cegis iteration 0" in m for m in logs)
+    log = log_until("cegis iteration 0")     # CEGIS trains again: stop there
+    with pytest.raises(KeyboardInterrupt):
+        run("van_der_pol", cfg, tmp_path / "run", known_dynamics=True, log=log)
+    assert not any("[cegis] loaded" in m for m in log.lines)
+    assert any("cegis iteration 0" in m for m in log.lines)
 
 
 @pytest.fixture(scope="module")

@@ -42,10 +42,8 @@ QUIET = dict(log=lambda m: None)
 
 
 @pytest.fixture(scope="module")
-def vdp_run(tmp_path_factory):
-    d = tmp_path_factory.mktemp("vdp")
-    cert = run_pipeline("van_der_pol", get_config("van_der_pol", "fast"), d,
-                        known_dynamics=True, **QUIET).summary
+def vdp_run(fast_run):
+    d, cert = fast_run("van_der_pol", known=True)   # the session's run (test_run's too)
     assert cert["status"] == "certified"
     return d
 

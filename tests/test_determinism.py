@@ -153,11 +153,14 @@ def _run_files(d):
     return digests, split_timings(cert)[0]
 
 
-def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_bytes(tmp_path):
-    """The fast learned Van der Pol run, once with one BLAS/OpenMP thread on an idle
-    machine, once with two threads and a busy process beside it: every hashed artifact
-    (φ, bounds, V, CEGIS record) has the same sha256, and the certificate the same content;
-    only wall-clock timings (kept in timings.json and seconds.json) differ."""
+def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_bytes(
+        tmp_path, fast_run):
+    """The fast learned Van der Pol run three times at once, each run the others' load (a
+    busy machine): from the command line with one BLAS/OpenMP thread and with two threads,
+    and from Python in this process (the session's shared run, no progress bars). Every
+    hashed artifact (φ, bounds, V, CEGIS record) has the same sha256, and the two
+    command-line certificates the same content; only wall-clock timings (kept in
+    timings.json and seconds.json) differ."""
     import os
     import subprocess
     import sys
@@ -165,27 +168,26 @@ def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_by
     def nlyap(out, threads):
         env = dict(os.environ, OPENBLAS_NUM_THREADS=str(threads), OMP_NUM_THREADS=str(threads),
                    MKL_NUM_THREADS=str(threads))
-        p = subprocess.run([sys.executable, "-m", "nlyap_opt.interface.cli", "run", "van_der_pol",
-                            "--preset", "fast", "--out", str(out)], env=env, text=True,
-                           capture_output=True, timeout=600)
-        assert p.returncode == 0, p.stderr
+        log = open(tmp_path / f"{out.name}.log", "w")   # closed below
+        return subprocess.Popen([sys.executable, "-m", "nlyap_opt.interface.cli", "run",
+                                 "van_der_pol", "--preset", "fast", "--out", str(out)],
+                                env=env, text=True, stdout=log, stderr=subprocess.STDOUT), log
 
-    nlyap(tmp_path / "a", 1)
-    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    procs = [nlyap(tmp_path / "a", 1), nlyap(tmp_path / "b", 2)]
     try:
-        nlyap(tmp_path / "b", 2)
+        c, _ = fast_run("van_der_pol")   # meanwhile (or already run)
+        codes = [p.wait(timeout=600) for p, _ in procs]
     finally:
-        busy.kill()
-        busy.wait()
-    # the same run from Python (no progress bars: a display choice must not reach a file)
-    from nlyap_opt.workflow.configs import get_config
-    from nlyap_opt.workflow.pipeline import run
-
-    run("van_der_pol", get_config("van_der_pol", "fast"), tmp_path / "c",
-        known_dynamics=False, log=lambda m: None)
+        for p, log in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+            log.close()
+    for code, name in zip(codes, "ab"):
+        assert code == 0, (tmp_path / f"{name}.log").read_text()[-3000:]
     files_a, cert_a = _run_files(tmp_path / "a")
     files_b, cert_b = _run_files(tmp_path / "b")
-    files_c, _ = _run_files(tmp_path / "c")
+    files_c, _ = _run_files(c)
     assert {"dynamics.json", "bounds.json", "V.json", "cegis.json"} <= set(files_a)
     assert files_a == files_b == files_c
     assert cert_a == cert_b

@@ -218,8 +218,8 @@ def test_box_domain_example_certifies_its_initial_set_and_rechecks(tmp_path, cap
     spec = tmp_path / "box_domain.toml"
     shutil.copy(EXAMPLES / "box_domain.toml", spec)
     out = tmp_path / "run"
-    cfg = tmp_path / "fast.json"   # a fast variant: fewer states and steps
-    cfg.write_text(json.dumps({"train": {"steps": 600}, "cegis": {"iterations": 2,
+    cfg = tmp_path / "fast.json"   # a fast variant: fewer states, steps and iterations
+    cfg.write_text(json.dumps({"train": {"steps": 600}, "cegis": {"iterations": 1,
                                                                     "samples": 6000},
                                "eval_points": 10000}))
     assert main(["run", str(spec), "--known-dynamics", "--config", str(cfg),

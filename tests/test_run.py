@@ -32,14 +32,8 @@ def _certified_points(out, cert, n=60):
 
 
 @pytest.fixture(scope="module")
-def known_runs(tmp_path_factory):
-    out = {}
-    for name in systems.SEED_SYSTEMS:
-        d = tmp_path_factory.mktemp(name)
-        cert = run(name, get_config(name, "fast"), d, known_dynamics=True,
-                   log=lambda m: None).summary
-        out[name] = (d, cert)
-    return out
+def known_runs(fast_run):
+    return {name: fast_run(name, known=True) for name in systems.SEED_SYSTEMS}
 
 
 @pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
@@ -98,28 +92,23 @@ def test_run_resumes_from_saved_stages(known_runs):
     assert again["level"] == cert["level"]
 
 
-def test_changed_training_settings_rerun_the_cegis_stage(known_runs, tmp_path):
+def test_changed_training_settings_rerun_the_cegis_stage(known_runs, tmp_path, log_until):
     import shutil
 
     d, _ = known_runs["van_der_pol"]
     shutil.copytree(d, tmp_path / "run")
     steps = get_config("van_der_pol", "fast").train.steps
     cfg = make_config("van_der_pol", "fast", overrides={"train": {"steps": steps + 1}})
-    logs = []
-    run("van_der_pol", cfg, tmp_path / "run", known_dynamics=True, log=logs.append)
-    assert not any("[cegis] loaded" in m for m in logs)
-    assert any("cegis iteration 0" in m for m in logs)
+    log = log_until("cegis iteration 0")     # CEGIS trains again: stop there
+    with pytest.raises(KeyboardInterrupt):
+        run("van_der_pol", cfg, tmp_path / "run", known_dynamics=True, log=log)
+    assert not any("[cegis] loaded" in m for m in log.lines)
+    assert any("cegis iteration 0" in m for m in log.lines)
 
 
 @pytest.fixture(scope="module")
-def learned_runs(tmp_path_factory):
-    out = {}
-    for name in systems.SEED_SYSTEMS:
-        d = tmp_path_factory.mktemp(name + "_learned")
-        cert = run(name, get_config(name, "fast"), d, known_dynamics=False,
-                   log=lambda m: None).summary
-        out[name] = (d, cert)
-    return out
+def learned_runs(fast_run):
+    return fast_run.many(systems.SEED_SYSTEMS)    # two at a time
 
 
 @pytest.mark.parametrize("name", systems.SEED_SYSTEMS)
@@ -248,6 +237,40 @@ def test_out_that_is_a_file_is_an_input_error(tmp_path):
             log=lambda m: None)
 
 
+_INTERRUPT_AT = {"controller": "saturated_controller", "cegis": "cegis",
+                 "certificate": "_areas_and_checks"}   # the names the pipeline calls
+
+
+def test_a_run_interrupted_in_each_stage_in_turn_resumes_to_a_certificate_that_reverifies(
+        tmp_path, monkeypatch):
+    """SIGINT (KeyboardInterrupt) in the controller stage, then in the CEGIS stage of the
+    rerun, then in the certificate stage of the next: each rerun gets past the stage the
+    last one was stopped in, no lock is left behind, and the final rerun's certificate
+    re-verifies. (One fresh run per stage: the slow test below.)"""
+    import nlyap_opt.workflow.pipeline as pl
+    from nlyap_opt.certification.certificate import recheck_certificate
+
+    name = "inverted_pendulum"
+    cfg = get_config(name, "fast")
+    for target in _INTERRUPT_AT.values():
+        reached = []
+
+        def boom(*a, target=target, **k):
+            reached.append(target)
+            raise KeyboardInterrupt
+
+        with monkeypatch.context() as m:
+            m.setattr(pl, target, boom)
+            with pytest.raises(KeyboardInterrupt):
+                run(name, cfg, tmp_path, known_dynamics=True, log=lambda m: None)
+        assert reached == [target]
+        assert not (tmp_path / ".nlyap.lock").exists()
+    res = run(name, cfg, tmp_path, known_dynamics=True, log=lambda m: None)
+    assert res.certified
+    assert recheck_certificate(tmp_path, log=lambda m: None).certified
+
+
+@pytest.mark.slow  # three runs: the default tier interrupts the stages of one run in turn (above)
 @pytest.mark.parametrize("stage", ["controller", "cegis", "certificate"])
 def test_interrupted_run_resumes_to_a_certificate_that_reverifies(stage, tmp_path,
                                                                   monkeypatch):
@@ -257,13 +280,12 @@ def test_interrupted_run_resumes_to_a_certificate_that_reverifies(stage, tmp_pat
 
     name = "inverted_pendulum"
     cfg = get_config(name, "fast")
-    target = {"controller": "saturated_controller", "cegis": "cegis",
-              "certificate": "_areas_and_checks"}[stage]
+    target = _INTERRUPT_AT[stage]
 
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pl, target, boom)   # the names the pipeline calls
+    monkeypatch.setattr(pl, target, boom)
     with pytest.raises(KeyboardInterrupt):
         run(name, cfg, tmp_path, known_dynamics=True, log=lambda m: None)
     monkeypatch.undo()

@@ -173,11 +173,12 @@ def test_fingerprint_is_deterministic_across_processes(tmp_path):
     here = system_fingerprint(systems.load_spec(spec))
     code = ("import systems; from nlyap_opt.certification.certificate import system_fingerprint; "
             f"print(system_fingerprint(systems.load_spec({str(spec)!r})))")
-    for seed in ("1", "12345"):
-        env = dict(os.environ, PYTHONHASHSEED=seed)
-        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                              env=env, timeout=120, check=True)
-        assert proc.stdout.strip() == here
+    procs = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env=dict(os.environ, PYTHONHASHSEED=seed))
+             for seed in ("1", "12345")]                  # the two processes at once
+    for proc in procs:
+        assert proc.communicate(timeout=120)[0].strip() == here
+        assert proc.returncode == 0
     # and it sees every part: f, the box, the declarations
     for kw in ({"rhs1": "1.0000001*x2"}, {"declared": "[declared]\nlipschitz = 21.0\n"}):
         kw.setdefault("declared", "[declared]\nlipschitz = 20.0\n")

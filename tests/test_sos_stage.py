@@ -256,7 +256,7 @@ def test_sos_start_config_errors_before_any_stage(train, sos, msg):
         make_config("van_der_pol", "fast", overrides={"train": train, "sos": sos})
 
 
-def test_a_run_starts_v_at_the_sos_certificate_and_builds_on_its_stage(tmp_path):
+def test_a_run_starts_v_at_the_sos_certificate_and_builds_on_its_stage(tmp_path, log_until):
     """train.init 'sos': CEGIS starts from the saved SOS V (logged); a changed V_sos.json
     reruns the SOS stage, which writes the same bytes again (stage files hold no timings),
     so the CEGIS stage built on them is kept."""
@@ -273,9 +273,10 @@ def test_a_run_starts_v_at_the_sos_certificate_and_builds_on_its_stage(tmp_path)
     saved = (tmp_path / "V_sos.json").read_bytes()
     V = Polynomial.from_json(json.loads(saved))
     (tmp_path / "V_sos.json").write_text(json.dumps(V.scaled(2.0).as_json()))
-    logs.clear()
-    run("van_der_pol", cfg, tmp_path, known_dynamics=True, log=logs.append)
-    text = "\n".join(logs)
+    log = log_until("[cegis] ")               # the rerun, until CEGIS loads or recomputes
+    with pytest.raises(KeyboardInterrupt):
+        run("van_der_pol", cfg, tmp_path, known_dynamics=True, log=log)
+    text = "\n".join(log.lines)
     assert "[sos] V_sos.json changed" in text
     assert (tmp_path / "V_sos.json").read_bytes() == saved
     assert "[cegis] loaded from" in text
@@ -371,26 +372,29 @@ def test_init_sos_where_sos_cannot_apply_is_refused_before_any_stage(name, known
     assert not (tmp_path / "stages.json").exists()
 
 
-def test_cegis_settings_do_not_recompute_the_cheap_stages(sos_run, tmp_path):
-    """The SOS stage reads cegis.verify_options and cegis.margin_mode only."""
+def test_cegis_settings_do_not_recompute_the_cheap_stages(sos_run, tmp_path, log_until):
+    """The SOS stage reads cegis.verify_options and cegis.margin_mode only. (Each rerun
+    stops once the stage in question has said whether it loads or recomputes.)"""
     d, cfg, _, _ = sos_run
     e = tmp_path / "steps"
     shutil.copytree(d, e)
-    logs = []
     cfg2 = make_config("van_der_pol", "fast", overrides={
         "sos": {"degree": 2}, "train": {"steps": 1}, "cegis": {"iterations": 1, "steps": 2}})
-    run("van_der_pol", cfg2, e, known_dynamics=True, log=logs.append)
-    text = "\n".join(logs)
+    log = log_until("[cegis] ")
+    with pytest.raises(KeyboardInterrupt):
+        run("van_der_pol", cfg2, e, known_dynamics=True, log=log)
+    text = "\n".join(log.lines)
     assert "[sos] loaded from" in text and "[cegis] configuration or earlier stage changed" in text
     cfg3 = make_config("van_der_pol", "fast", overrides={
         "sos": {"degree": 2}, "train": {"steps": 1},
         "cegis": {"iterations": 1, "steps": 2, "verify_options": {"batch": 512}}})
-    logs.clear()
-    run("van_der_pol", cfg3, e, known_dynamics=True, log=logs.append)
-    assert "[sos] configuration or earlier stage changed: recomputing" in "\n".join(logs)
+    log = log_until("[sos] ")
+    with pytest.raises(KeyboardInterrupt):
+        run("van_der_pol", cfg3, e, known_dynamics=True, log=log)
+    assert "[sos] configuration or earlier stage changed: recomputing" in "\n".join(log.lines)
 
 
-def test_no_gram_matrix_starts_v_at_random(monkeypatch, tmp_path):
+def test_no_gram_matrix_starts_v_at_random(monkeypatch, tmp_path, log_until):
     import nlyap_opt.design.sos_sdp as sdp
 
     def fail(V, **kw):
@@ -402,8 +406,9 @@ def test_no_gram_matrix_starts_v_at_random(monkeypatch, tmp_path):
         "train": {"init": "sos", "activation": "square", "hidden": [6], "features": 5,
                   "steps": 20},
         "cegis": {"iterations": 1, "steps": 5}})
-    logs = []
-    run("van_der_pol", cfg, tmp_path, known_dynamics=True, log=logs.append)
-    text = "\n".join(logs)
+    log = log_until("cegis iteration 0")     # CEGIS went on from a random V: stop there
+    with pytest.raises(KeyboardInterrupt):
+        run("van_der_pol", cfg, tmp_path, known_dynamics=True, log=log)
+    text = "\n".join(log.lines)
     assert "[cegis] V cannot start at the SOS degree 2 (no Gram matrix" in text
     assert "V starts at the SOS" not in text

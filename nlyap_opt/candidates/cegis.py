@@ -8,7 +8,10 @@ Confirmed counterexamples (and a few neighbours) go back into training. When the
 limited by containment on the domain's boundary ``∂D`` rather than by the decrease, the
 states of ``∂D`` where ``V`` is smallest (and the level-limiting point) join the
 containment training states instead, and the loop goes on until the certified area stops
-growing. The best certificate (by certified area) is kept.
+growing. The best certificate (by certified area) is kept. With ``best_iterate`` the
+verifier proves the most promising iterate since its last call (the largest candidate set)
+and training resumes from the best certified iterate when the current one can no longer
+certify as much (its candidate set is smaller than the best certified area).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import torch
 from scipy.interpolate import RegularGridInterpolator
 
 from ..certification.certificate import CertStatus, RoaCertificate, RoaProblem, certify_roa
-from ..certification.roa import axis_count, candidate_level
+from ..certification.roa import axis_count, candidate_level, grid_area, grid_points
 from ..kernel.determinism import deterministic_torch
 from ..kernel.domain import Ball, as_domain, parse_set
 from ..kernel.errors import InputRangeError
@@ -56,6 +59,11 @@ class CegisConfig:
     # join the containment training states, and CEGIS goes on until the certified area
     # grows by less than ``plateau``; 0: stop at the first such certified level
     boundary_feedback: int = 200
+    # the verifier (every verify_every-th iteration) proves the iterate with the largest
+    # candidate set D ∩ {V ≤ candidate level} since its last call, not only the last one; an
+    # iterate whose candidate set is smaller than the best certified area hands training
+    # back to the best certified iterate's weights (it cannot certify more than that)
+    best_iterate: bool = False
     area_points: int = 40000         # grid of the certified areas (total points)
     verify_options: dict = field(default_factory=dict)
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -299,6 +307,52 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
     return X, weights, targets, rates
 
 
+
+@dataclass
+class _Iterate:
+    """One CEGIS iterate awaiting (or after) its verification."""
+
+    V: Network
+    ctrl: Network | None
+    problem: RoaProblem
+    cand: object                 # its LevelCandidate
+    entry: dict                  # its history entry (completed by _record)
+    margins: tuple               # (margin, M, smoothing) of its decrease condition
+    state: dict | None           # the learner's state after it (best_iterate)
+
+
+def candidate_area(V: Network, level: float, grid: np.ndarray, in_d: np.ndarray, shape,
+                   box) -> float:
+    """Area of ``D ∩ {V ≤ level}`` on the area grid (``in_d``: which grid points lie in D).
+
+    For the candidate level this bounds what the iterate can certify: the verifier's search
+    only lowers a level, so its certified set lies in this one (up to the inner ellipse,
+    which lies in every certified set alike).
+    """
+    if not level > 0:
+        return 0.0
+    inside = in_d & (V.numpy(grid)[:, 0] <= level)
+    return grid_area(inside.reshape(shape), np.asarray(box, dtype=float))
+
+
+def _most_promising(pending: list) -> _Iterate:
+    """The iterate with the largest candidate set (``candidate_area``), the latest among
+    equals; the only one without ``best_iterate``."""
+    if len(pending) == 1:
+        return pending[0]
+    return max(reversed(pending), key=lambda x: x.entry["candidate_area"])
+
+
+def _record(x: _Iterate, cert: RoaCertificate, area: float) -> None:
+    """Complete the history entry of iterate ``x`` with its verification ``cert``."""
+    margin, M, smoothing = x.margins
+    x.entry.update({"status": cert.status.value, "reason": cert.reason, "level": cert.level,
+                    "margin": margin, "M": M, "smoothing": smoothing, "area": area,
+                    "verify_seconds": cert.seconds, "checks": cert.checks,
+                    "boxes": sum((h.get("boxes", 0) for h in cert.history), 0),
+                    "counterexamples": int(len(cert.counterexamples))})
+
+
 def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0):
     t0 = time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
@@ -314,8 +368,19 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
     X, weights, targets, rates = _fit_targets(cfg, D, X, rhs_np, rng, scale, log)
     box = D.bounding_box()
+    grid, shape = grid_points(box, axis_count(cfg.area_points, n))
+    in_d = D.contains(grid)
     cex = np.zeros((0, n))
     best: CegisResult | None = None
+    best_state = None        # the learner's state at the best certified iterate
+    pending: list[_Iterate] = []   # iterates since the last verifier call
+
+    def unverified(x: _Iterate) -> RoaCertificate:
+        return RoaCertificate(CertStatus.NOT_CERTIFIED, "not verified (candidate only)",
+                              system.name, "known" if dynamics is None else "learned", 0.0,
+                              cfg.inner, x.problem.outer, counterexamples=x.cand.violations,
+                              domain=D)
+
     history = []
     margin = 0.0
     M = None
@@ -344,44 +409,64 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         cand = candidate_level(dec.x, dec.V, dec.lie, inner=cfg.inner, domain=D,
                                margin=dec.margin, seed=cfg.seed + it)
         last = it == cfg.iterations - 1
-        if last or (it + 1) % cfg.verify_every == 0:
-            cert = certify_roa(problem, cand.level, search=True, check_inner_ellipse=False,
-                               log=lambda m: log("  " + m)) if cand.level > 0 else None
-        else:
-            cert = None
-        if cert is None:  # falsifier only: the sampled violations that limit the candidate
-            cert = RoaCertificate(CertStatus.NOT_CERTIFIED, "not verified (candidate only)",
-                                  system.name, "known" if dynamics is None else "learned",
-                                  0.0, cfg.inner, problem.outer, counterexamples=cand.violations,
-                                  domain=D)
-        area = cert.area(box, axis_count(cfg.area_points, n)) if cert.certified else 0.0
         entry = {"iteration": it, "loss": info.loss, "train_steps": info.steps,
                  "margin_mode": cfg.margin_mode if eta > 0 else "none",
                  "train_seconds": info.seconds, "candidate_level": cand.level,
-                 "candidate_source": cand.source, "status": cert.status.value,
-                 "reason": cert.reason,
-                 "level": cert.level, "margin": margin, "M": M, "smoothing": smoothing,
-                 "area": area,
-                 "verify_seconds": cert.seconds, "checks": cert.checks,
-                 "boxes": sum((h.get("boxes", 0) for h in cert.history), 0),
-                 "counterexamples": int(len(cert.counterexamples))}
+                 "candidate_source": cand.source}
+        if cfg.best_iterate:
+            entry["candidate_area"] = candidate_area(V, cand.level, grid, in_d, shape, box)
         history.append(entry)
-        log(f"  cegis iteration {it}: loss {info.loss:.4g}, candidate level "
-            f"{cand.level:.4g} ({cand.source}), "
-            f"{'certified' if cert.certified else cert.reason} level {cert.level:.4g}, "
-            f"area {area:.4g}, margin {margin:.3g}")
+        here = _Iterate(V, ctrl, problem, cand, entry, (margin, M, smoothing),
+                        learner.state() if cfg.best_iterate else None)
+        pending = [*pending, here] if cfg.best_iterate else [here]
+        if last or (it + 1) % cfg.verify_every == 0:
+            chosen = _most_promising(pending)
+            pending = []
+            if chosen is not here:
+                log(f"  cegis: iteration {chosen.entry['iteration']} has the largest candidate "
+                    f"set since the last verification ({chosen.entry['candidate_area']:.4g} "
+                    f"against {entry['candidate_area']:.4g}); it is the one verified")
+            cert = certify_roa(chosen.problem, chosen.cand.level, search=True,
+                               check_inner_ellipse=False, log=lambda m: log("  " + m)) \
+                if chosen.cand.level > 0 else None
+        else:
+            chosen, cert = here, None
+        if cert is None:  # falsifier only: the sampled violations that limit the candidate
+            cert = unverified(chosen)
+        area = cert.area(box, axis_count(cfg.area_points, n)) if cert.certified else 0.0
+        _record(chosen, cert, area)
+        if chosen is not here:
+            _record(here, unverified(here), 0.0)
+        for x in ([chosen] if chosen is here else [chosen, here]):
+            e = x.entry
+            log(f"  cegis iteration {e['iteration']}: loss {e['loss']:.4g}, candidate level "
+                f"{e['candidate_level']:.4g} ({e['candidate_source']}), "
+                f"{'certified' if e['status'] == 'certified' else e['reason']} level "
+                f"{e['level']:.4g}, area {e['area']:.4g}, margin {e['margin']:.3g}")
         prev_area = best.area if best is not None else 0.0
         if cert.certified and (best is None or area > best.area):
-            best = CegisResult(CertStatus.CERTIFIED, V, ctrl, cert.level, margin, M, area,
-                               history, 0.0, smoothing)
-        if cert.certified and cert.level >= cfg.target_fraction * cand.level \
+            best = CegisResult(CertStatus.CERTIFIED, chosen.V, chosen.ctrl, cert.level,
+                               *chosen.margins[:2], area, history, 0.0, chosen.margins[2])
+            best_state = (chosen.entry["iteration"], chosen.state)
+        if cert.certified and cert.level >= cfg.target_fraction * chosen.cand.level \
                 and not len(cert.counterexamples) and it + 1 >= cfg.min_iterations \
-                and _level_settled(cand.source, area, prev_area, cfg.plateau,
+                and _level_settled(chosen.cand.source, area, prev_area, cfg.plateau,
                                    cfg.boundary_feedback > 0):
             break
-        if cand.source == "sphere" and cfg.boundary_feedback and not last:
+        if cfg.best_iterate and best is not None and not last \
+                and entry["candidate_area"] < best.area:
+            # the current V cannot certify as much as the best one did (its candidate set is
+            # smaller): training goes on from the best certified iterate
+            entry["resumed_from"] = best_state[0]
+            learner.load_state(best_state[1])
+            log(f"  cegis: the candidate set of iteration {it} ({entry['candidate_area']:.4g}) "
+                f"is smaller than the best certified area ({best.area:.4g}); training goes "
+                f"on from iteration {entry['resumed_from']}")
+        elif cand.source == "sphere" and cfg.boundary_feedback and not last:
             rim = _feed_boundary(cfg, V, D, cand, rim, len(S), rng, entry, log)
         new = cert.counterexamples
+        if chosen is not here and len(cand.violations):
+            new = np.vstack([np.reshape(new, (-1, n)), cand.violations])
         if len(new):
             jitter = new[:, None, :] + 0.01 * scale * rng.standard_normal(
                 (len(new), cfg.neighbours, n))

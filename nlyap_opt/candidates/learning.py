@@ -34,6 +34,7 @@ to the boundary of the region of attraction. ``relative_decrease`` divides the h
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 
@@ -558,6 +559,22 @@ class LyapunovLearner:
                 progress(it, info)
         info.steps, info.seconds = it + 1, time.perf_counter() - t0
         return info
+
+    # ------------------------------------------------------------------ state
+    def state(self) -> dict:
+        """A copy of everything training changes (``V``'s weights, the controller gain and
+        Adam's moments), for :meth:`load_state`."""
+        return copy.deepcopy({"V": self.V.state_dict(), "opt": self.opt.state_dict(),
+                              "G": None if self.controller is None
+                              else self.G.detach()})
+
+    def load_state(self, state: dict) -> None:
+        """Continue from a :meth:`state`: training afterwards is as if from that point."""
+        self.V.load_state_dict(copy.deepcopy(state["V"]))
+        if state["G"] is not None:
+            with torch.no_grad():
+                self.G.copy_(state["G"])
+        self.opt.load_state_dict(copy.deepcopy(state["opt"]))
 
     # ------------------------------------------------------------------ export
     def export(self) -> tuple[Network, Network | None]:

@@ -10,8 +10,8 @@ states of ``∂D`` where ``V`` is smallest (and the level-limiting point) join t
 containment training states instead, and the loop goes on until the certified area stops
 growing. The best certificate (by certified area) is kept. With ``best_iterate`` the
 verifier proves the most promising iterate since its last call (the largest candidate set)
-and training resumes from the best certified iterate when the current one can no longer
-certify as much (its candidate set is smaller than the best certified area).
+and, after the call, training resumes from the best certified iterate when the current one
+can no longer certify as much (its candidate set is smaller than the best certified area).
 """
 
 from __future__ import annotations
@@ -60,9 +60,9 @@ class CegisConfig:
     # grows by less than ``plateau``; 0: stop at the first such certified level
     boundary_feedback: int = 200
     # the verifier (every verify_every-th iteration) proves the iterate with the largest
-    # candidate set D ∩ {V ≤ candidate level} since its last call, not only the last one; an
-    # iterate whose candidate set is smaller than the best certified area hands training
-    # back to the best certified iterate's weights (it cannot certify more than that)
+    # candidate set D ∩ {V ≤ candidate level} since its last call, not only the last one;
+    # after the call, an iterate whose candidate set is smaller than the best certified area
+    # hands training back to the best certified iterate's weights (it cannot beat it)
     best_iterate: bool = False
     area_points: int = 40000         # grid of the certified areas (total points)
     verify_options: dict = field(default_factory=dict)
@@ -453,10 +453,11 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                 and _level_settled(chosen.cand.source, area, prev_area, cfg.plateau,
                                    cfg.boundary_feedback > 0):
             break
-        if cfg.best_iterate and best is not None and not last \
+        if cfg.best_iterate and best is not None and not last and not pending \
                 and entry["candidate_area"] < best.area:
-            # the current V cannot certify as much as the best one did (its candidate set is
-            # smaller): training goes on from the best certified iterate
+            # after a verifier call (the window's most promising iterate proved): the current
+            # V cannot certify as much as the best one did (its candidate set is smaller),
+            # so training goes on from the best certified iterate
             entry["resumed_from"] = best_state[0]
             learner.load_state(best_state[1])
             log(f"  cegis: the candidate set of iteration {it} ({entry['candidate_area']:.4g}) "

@@ -179,6 +179,14 @@ MIN_CONVERGED = 0.01
 DOMAIN_TARGET_POWER = 8
 
 
+#: best_iterate: training resumes from the best certified iterate when the current
+#: iterate's candidate set is below this share of the best certified area. Smaller dips are
+#: trained through: a level often grows again after a round of counterexamples or ∂D states
+#: lowered it (power system, true f: 8.3 → 8.0 → 9.2), and resuming at every dip keeps
+#: returning to an early iterate
+RESUME_BELOW = 0.9
+
+
 def _level_settled(source: str, area: float, prev_area: float, plateau: float,
                    boundary_feedback: bool = True) -> bool:
     """Whether CEGIS may stop at a certified level that reaches its candidate.
@@ -454,10 +462,10 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                                    cfg.boundary_feedback > 0):
             break
         if cfg.best_iterate and best is not None and not last and not pending \
-                and entry["candidate_area"] < best.area:
+                and entry["candidate_area"] < RESUME_BELOW * best.area:
             # after a verifier call (the window's most promising iterate proved): the current
-            # V cannot certify as much as the best one did (its candidate set is smaller),
-            # so training goes on from the best certified iterate
+            # V has collapsed (its candidate set, which bounds what it can certify, is well
+            # below the best certified area), so training goes on from the best iterate
             entry["resumed_from"] = best_state[0]
             learner.load_state(best_state[1])
             log(f"  cegis: the candidate set of iteration {it} ({entry['candidate_area']:.4g}) "

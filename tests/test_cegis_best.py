@@ -37,16 +37,17 @@ def test_learner_state_resumes_training_exactly():
     # the saved state is a copy: training after it did not change it
     learner.load_state(saved)
     again = learner.state()
-    assert all(torch.equal(a, b) for a, b in zip(saved["V"].values(), again["V"].values()))
+    assert all(torch.equal(a, b) for a, b in zip(saved.V.values(), again.V.values()))
 
 
 @pytest.mark.slow
 def test_best_iterate_never_loses_area_and_resumes_after_a_bad_round(monkeypatch):
     """A training round that wrecks V (iteration 3, weights perturbed after training) does
     not lose the certified area: its candidate set collapses below the best certified area,
-    so after the verifier call training resumes from the best certified iterate; each verifier call proves the
-    iterate with the largest candidate set of its window; a certified area never exceeds
-    its iterate's candidate set; the returned V re-verifies at the returned level."""
+    so after the verifier call training resumes from the best certified iterate; each
+    verifier call proves the iterate with the largest candidate set of its window; a
+    certified area never exceeds its iterate's candidate set; the returned V re-verifies at
+    the returned level."""
     from nlyap_opt.kernel.symbolic import closed_loop, lie_derivative
     from verification import lyapunov_problem, verify
 

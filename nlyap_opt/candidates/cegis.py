@@ -11,7 +11,8 @@ containment training states instead, and the loop goes on until the certified ar
 growing. The best certificate (by certified area) is kept. With ``best_iterate`` the
 verifier proves the most promising iterate since its last call (the largest candidate set)
 and, after the call, training resumes from the best certified iterate when the current one
-can no longer certify as much (its candidate set is smaller than the best certified area).
+collapsed (its candidate set, which bounds what it can certify, fell below
+``RESUME_BELOW`` of the best certified area).
 """
 
 from __future__ import annotations
@@ -61,8 +62,8 @@ class CegisConfig:
     boundary_feedback: int = 200
     # the verifier (every verify_every-th iteration) proves the iterate with the largest
     # candidate set D ∩ {V ≤ candidate level} since its last call, not only the last one;
-    # after the call, an iterate whose candidate set is smaller than the best certified area
-    # hands training back to the best certified iterate's weights (it cannot beat it)
+    # after the call, an iterate whose candidate set collapsed below RESUME_BELOW of the best
+    # certified area hands training back to the best certified iterate's weights
     best_iterate: bool = False
     area_points: int = 40000         # grid of the certified areas (total points)
     verify_options: dict = field(default_factory=dict)
@@ -410,8 +411,8 @@ def _resume(learner: LyapunovLearner, best: tuple, area: float, x: _Iterate, log
     x.entry["resumed_from"] = best[0]
     learner.load_state(best[1])
     log(f"  cegis: the candidate set of iteration {x.entry['iteration']} "
-        f"({x.entry['candidate_area']:.4g}) is smaller than the best certified area "
-        f"({area:.4g}); training goes on from iteration {best[0]}")
+        f"({x.entry['candidate_area']:.4g}) is below {RESUME_BELOW:g} of the best certified "
+        f"area ({area:.4g}); training goes on from iteration {best[0]}")
 
 
 class _AreaGrid:

@@ -274,7 +274,7 @@ DEFAULT_TRAIN: dict = {
 }
 #: CEGIS of the default method: the verifier every third iteration and the last, on the
 #: most promising iterate since its last call, training resumed from the best certified
-#: iterate when the current one cannot beat it; training states near the model's ROA
+#: iterate when the current one collapsed; training states near the model's ROA
 #: boundary; simulations on a table of φ (learned f, <= 3-D)
 DEFAULT_CEGIS: dict = {
     "iterations": 8, "steps": 1000, "verify_every": 3, "sim_time": 30.0, "sim_dt": 0.04,
@@ -506,8 +506,8 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
                              "with the smallest V (and the level-limiting point) join the "
                              "containment training and CEGIS goes on (0: it stops there)",
         "best_iterate": "verify the iterate with the largest candidate set since the last "
-                        "verification, and train on from the best certified iterate when "
-                        "the current one's candidate set is smaller than its area",
+                        "verification; after it, train on from the best certified iterate "
+                        "when the current one's candidate set is below 0.9 of its area",
         "area_points": "total point budget of the grid on which certified areas are "
                        "compared",
         "verify_options": "options of the interval verifier (the cegis.verify_options.* "

@@ -502,7 +502,10 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
             best = CegisResult(CertStatus.CERTIFIED, chosen.V, chosen.ctrl, cert.level,
                                *chosen.margins[:2], area, history, 0.0, chosen.margins[2])
             best_state = (chosen.entry["iteration"], chosen.state)
-        if cert.certified and cert.level >= cfg.target_fraction * chosen.cand.level \
+        # the stop rule judges the current V: an earlier iterate verified in its place says
+        # nothing about where training stands now
+        if chosen is here and cert.certified \
+                and cert.level >= cfg.target_fraction * chosen.cand.level \
                 and not len(cert.counterexamples) and it + 1 >= cfg.min_iterations \
                 and _level_settled(chosen.cand.source, area, prev_area, cfg.plateau,
                                    cfg.boundary_feedback > 0):

@@ -1,11 +1,16 @@
 """The default method on systems without a preset: certified share of the true ROA and time.
 
 Usage: python bench/default_training.py [--cases vdp3,power,...] [--settings known,learned]
-       [--out DIR]
+       [--seed K] [--out DIR]
 
 Each case is run as a user would, with default settings: ``nlyap run SPEC
 [--known-dynamics] --out DIR`` for a spec file, ``nlyap run NAME --preset default`` for a
-catalogue system (its preset is not used). Prints one Markdown row per run (status, the
+catalogue system (its preset is not used). A case ``NAME@large`` runs the catalogue system
+with default settings on its ``large`` preset's sets: ``--config`` with that preset's
+``domain`` (the ball of radius ``outer`` when it has none), ``inner`` and ``eval_box``, the
+sets on which the ``large`` presets' shares were measured; nothing else of the preset.
+``--seed K`` sets ``train.seed`` (a ``--config`` override): the spread over seeds says
+whether a change of the training is real. Prints one Markdown row per run (status, the
 certified share of the simulated true ROA within the domain; the share of that true ROA
 whose trajectories never leave the domain, which bounds every certificate in it; wall
 seconds and the run's CPU seconds) with the command, the machine and its load average.
@@ -39,6 +44,29 @@ CASES = {
     "unicycle_path_following": ("unicycle_path_following", None),
     "inverted_pendulum": ("inverted_pendulum", None),
 }
+#: the ``large`` presets' shares (of the true ROA in their own sets), for NAME@large
+LARGE_SHARES = {"van_der_pol": 95.8, "unicycle_path_following": 91.5,
+                "inverted_pendulum": 93.3}
+
+
+def large_sets(name: str) -> dict:
+    """The config overrides that put the default method on the ``large`` preset's sets of
+    catalogue system ``name``: its ``domain`` (or the ball of radius ``outer``), ``inner``
+    and ``eval_box``."""
+    from nlyap_opt.workflow.configs import get_config
+
+    large = get_config(name, "large").to_json()
+    domain = large.get("domain") or {"type": "ball", "radius": large["outer"]}
+    return {"domain": domain, "inner": large["inner"], "eval_box": large["eval_box"]}
+
+
+def case(name: str) -> tuple[str, float | None, dict]:
+    """What ``nlyap`` runs for case ``name``, the share to compare with and the overrides."""
+    if name.endswith("@large"):
+        system = name[:-len("@large")]
+        return system, LARGE_SHARES.get(system), large_sets(system)
+    target, peer = CASES[name]
+    return target, peer, {}
 
 
 def _machine() -> str:
@@ -46,14 +74,21 @@ def _machine() -> str:
             f"{os.cpu_count()} CPUs, Python {platform.python_version()}")
 
 
-def run_case(target: str, known: bool, out: Path) -> tuple[list[str], dict, float, float]:
-    """``nlyap run`` of one case; returns the command, certificate.json, wall seconds and
-    the CPU seconds (user + system) of the run."""
+def run_case(target: str, known: bool, out: Path, overrides: dict | None = None
+             ) -> tuple[list[str], dict, float, float]:
+    """``nlyap run`` of one case (``overrides``: a ``--config`` file written next to
+    ``out``); returns the command, certificate.json, wall seconds and the CPU seconds (user
+    + system) of the run."""
     cmd = [sys.executable, "-m", "nlyap_opt.interface.cli", "run", target, "--out", str(out)]
     if not target.endswith(".toml"):
         cmd += ["--preset", "default"]
     if known:
         cmd.append("--known-dynamics")
+    if overrides:
+        path = out.with_suffix(".config.json")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(overrides))
+        cmd += ["--config", str(path)]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     subprocess.run(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
@@ -99,6 +134,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default="vdp3,power")
     ap.add_argument("--settings", default="known,learned")
+    ap.add_argument("--seed", type=int, default=None, help="train.seed of every run")
     ap.add_argument("--out", default=None, help="keep the runs here (default: a temp dir)")
     args = ap.parse_args()
     base = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="nlyap_default_"))
@@ -107,17 +143,21 @@ def main() -> None:
           "command |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for name in args.cases.split(","):
-        target, peer = CASES[name]
+        target, peer, overrides = case(name)
+        if args.seed is not None:
+            overrides = {**overrides, "train": {"seed": args.seed}}
         for setting in args.settings.split(","):
             known = setting == "known"
-            cmd, cert, sec, cpu = run_case(target, known, base / f"{name}_{setting}")
+            cmd, cert, sec, cpu = run_case(target, known, base / f"{name}_{setting}",
+                                           overrides)
             bound = stay_share(target, base / f"{name}_{setting}", cert)
             share = cert.get("fraction_of_true_roa")
             shown = "–" if share is None or cert["status"] != "certified" else \
                 f"{100 * share:.1f}"
             command = "nlyap " + " ".join(cmd[3:5]) + (" --preset default" if "--preset"
                                                         in cmd else "") + \
-                (" --known-dynamics" if known else "")
+                (" --known-dynamics" if known else "") + \
+                (f" --config {json.dumps(overrides)}" if overrides else "")
             print(f"| {name} | {'true' if known else 'learned'} | {cert['status']} | "
                   f"{shown} | {'–' if bound is None else f'{100 * bound:.1f}'} | "
                   f"{'' if peer is None else peer} | {sec:.0f} | {cpu:.0f} | "

@@ -8,7 +8,11 @@ Confirmed counterexamples (and a few neighbours) go back into training. When the
 limited by containment on the domain's boundary ``∂D`` rather than by the decrease, the
 states of ``∂D`` where ``V`` is smallest (and the level-limiting point) join the
 containment training states instead, and the loop goes on until the certified area stops
-growing. The best certificate (by certified area) is kept.
+growing. The best certificate (by certified area) is kept. With ``best_iterate`` the
+verifier proves the most promising iterate since its last call (the largest candidate set)
+and, after the call, training resumes from the best certified iterate when the current one
+collapsed (its candidate set, which bounds what it can certify, fell below
+``RESUME_BELOW`` of the best certified area).
 """
 
 from __future__ import annotations
@@ -21,13 +25,13 @@ import torch
 from scipy.interpolate import RegularGridInterpolator
 
 from ..certification.certificate import CertStatus, RoaCertificate, RoaProblem, certify_roa
-from ..certification.roa import axis_count, candidate_level
+from ..certification.roa import axis_count, candidate_level, grid_area, grid_points
 from ..kernel.determinism import deterministic_torch
 from ..kernel.domain import Ball, as_domain, parse_set
 from ..kernel.errors import InputRangeError
 from ..kernel.network import Network
 from ..kernel.simulate import simulate
-from .learning import LyapunovLearner, TrainConfig, label_boundary_states, sample_ball
+from .learning import LearnerState, LyapunovLearner, TrainConfig, label_boundary_states, sample_ball
 
 __all__ = ["CegisConfig", "CegisResult", "cegis"]
 
@@ -56,6 +60,11 @@ class CegisConfig:
     # join the containment training states, and CEGIS goes on until the certified area
     # grows by less than ``plateau``; 0: stop at the first such certified level
     boundary_feedback: int = 200
+    # the verifier (every verify_every-th iteration) proves the iterate with the largest
+    # candidate set D ∩ {V ≤ candidate level} since its last call, not only the last one;
+    # after the call, an iterate whose candidate set collapsed below RESUME_BELOW of the best
+    # certified area hands training back to the best certified iterate's weights
+    best_iterate: bool = False
     area_points: int = 40000         # grid of the certified areas (total points)
     verify_options: dict = field(default_factory=dict)
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -169,6 +178,14 @@ MIN_CONVERGED = 0.01
 #: exponent of the domain gauge in the lifted fit target (train.fit_domain): the lift only
 #: matters near the domain's boundary
 DOMAIN_TARGET_POWER = 8
+
+
+#: best_iterate: training resumes from the best certified iterate when the current
+#: iterate's candidate set is below this share of the best certified area. Smaller dips are
+#: trained through: a level often grows again after a round of counterexamples or ∂D states
+#: lowered it (power system, true f: 8.3 → 8.0 → 9.2), and resuming at every dip keeps
+#: returning to an early iterate
+RESUME_BELOW = 0.9
 
 
 def _level_settled(source: str, area: float, prev_area: float, plateau: float,
@@ -299,6 +316,128 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
     return X, weights, targets, rates
 
 
+
+@dataclass
+class _Iterate:
+    """One CEGIS iterate awaiting (or after) its verification."""
+
+    V: Network
+    ctrl: Network | None
+    problem: RoaProblem
+    cand: object                 # its LevelCandidate
+    entry: dict                  # its history entry (completed by _record)
+    margins: tuple               # (margin, M, smoothing) of its decrease condition
+    state: LearnerState | None   # the learner's state after it (best_iterate)
+
+
+def candidate_area(V: Network, level: float, grid: np.ndarray, in_d: np.ndarray, shape,
+                   box) -> float:
+    """Area of ``D ∩ {V ≤ level}`` on the area grid (``in_d``: which grid points lie in D).
+
+    For the candidate level this bounds what the iterate can certify: the verifier's search
+    only lowers a level, so its certified set lies in this one (up to the inner ellipse,
+    which lies in every certified set alike).
+    """
+    if not level > 0:
+        return 0.0
+    inside = in_d & (V.numpy(grid)[:, 0] <= level)
+    return grid_area(inside.reshape(shape), np.asarray(box, dtype=float))
+
+
+def _most_promising(pending: list) -> _Iterate:
+    """The iterate with the largest candidate set (``candidate_area``), the latest among
+    equals; the only one without ``best_iterate``."""
+    if len(pending) == 1:
+        return pending[0]
+    return max(reversed(pending), key=lambda x: x.entry["candidate_area"])
+
+
+def _record(x: _Iterate, cert: RoaCertificate, area: float) -> None:
+    """Complete the history entry of iterate ``x`` with its verification ``cert``."""
+    margin, M, smoothing = x.margins
+    x.entry.update({"status": cert.status.value, "reason": cert.reason, "level": cert.level,
+                    "margin": margin, "M": M, "smoothing": smoothing, "area": area,
+                    "verify_seconds": cert.seconds, "checks": cert.checks,
+                    "boxes": sum((h.get("boxes", 0) for h in cert.history), 0),
+                    "counterexamples": int(len(cert.counterexamples))})
+
+
+def _unverified(x: _Iterate, system, dynamics, cfg: CegisConfig, D) -> RoaCertificate:
+    """The record of an iterate the verifier did not run on: its sampled violations."""
+    return RoaCertificate(CertStatus.NOT_CERTIFIED, "not verified (candidate only)",
+                          system.name, "known" if dynamics is None else "learned", 0.0,
+                          cfg.inner, x.problem.outer, counterexamples=x.cand.violations,
+                          domain=D)
+
+
+def _verify_window(pending: list, here: _Iterate, log) -> tuple[_Iterate, RoaCertificate | None]:
+    """Verify the most promising iterate of ``pending`` (the iterates since the last call);
+    ``None`` when its candidate level is not positive."""
+    chosen = _most_promising(pending)
+    if chosen is not here:
+        log(f"  cegis: iteration {chosen.entry['iteration']} has the largest candidate "
+            f"set since the last verification ({chosen.entry['candidate_area']:.4g} "
+            f"against {here.entry['candidate_area']:.4g}); it is the one verified")
+    if not chosen.cand.level > 0:
+        return chosen, None
+    return chosen, certify_roa(chosen.problem, chosen.cand.level, search=True,
+                               check_inner_ellipse=False, log=lambda m: log("  " + m))
+
+
+def _log_iterate(log, x: _Iterate, certified: bool) -> None:
+    e = x.entry
+    log(f"  cegis iteration {e['iteration']}: loss {e['loss']:.4g}, candidate level "
+        f"{e['candidate_level']:.4g} ({e['candidate_source']}), "
+        f"{'certified' if certified else e['reason']} level "
+        f"{e['level']:.4g}, area {e['area']:.4g}, margin {e['margin']:.3g}")
+
+
+def _add_counterexamples(cex: np.ndarray, new: np.ndarray, cfg: CegisConfig, scale: float,
+                         rng, extra: np.ndarray | None = None) -> np.ndarray:
+    """``new`` counterexamples (and ``extra`` states) and ``cfg.neighbours`` jittered copies
+    of each join ``cex`` (the newest ``cfg.max_counterexamples`` kept)."""
+    n = cex.shape[1]
+    if extra is not None and len(extra):
+        new = np.vstack([np.reshape(new, (-1, n)), extra])
+    if not len(new):
+        return cex
+    jitter = new[:, None, :] + 0.01 * scale * rng.standard_normal((len(new), cfg.neighbours, n))
+    new = np.vstack([new, jitter.reshape(-1, n)])
+    return np.vstack([cex, new])[-cfg.max_counterexamples:]
+
+
+def _resume(learner: LyapunovLearner, best: tuple, area: float, x: _Iterate, log) -> None:
+    """Training goes on from the best certified iterate ``best`` = (iteration, state)."""
+    x.entry["resumed_from"] = best[0]
+    learner.load_state(best[1])
+    log(f"  cegis: the candidate set of iteration {x.entry['iteration']} "
+        f"({x.entry['candidate_area']:.4g}) is below {RESUME_BELOW:g} of the best certified "
+        f"area ({area:.4g}); training goes on from iteration {best[0]}")
+
+
+class _AreaGrid:
+    """The grid of the certified areas over ``D``'s bounding box."""
+
+    def __init__(self, D, points: int):
+        self.box = D.bounding_box()
+        self.count = axis_count(points, D.n)
+        self.grid, self.shape = grid_points(self.box, self.count)
+        self.in_d = D.contains(self.grid)
+
+    def candidate(self, V: Network, level: float) -> float:
+        return candidate_area(V, level, self.grid, self.in_d, self.shape, self.box)
+
+
+def _train_round(learner, cfg: CegisConfig, it: int, eta: float, margin: float, X, S, cex,
+                 weights, targets, rates):
+    """One round of training (``first_steps`` in the first iteration)."""
+    steps = (cfg.first_steps or cfg.train.steps) if it == 0 else cfg.steps
+    pointwise = eta if (eta > 0 and cfg.margin_mode == "pointwise") else 0.0
+    return learner.train(X, S, 0.0 if pointwise else margin, cex if len(cex) else None,
+                         steps=steps, inside_weight=weights, eta_pointwise=pointwise,
+                         targets=targets, target_rates=rates)
+
+
 def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0):
     t0 = time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
@@ -313,20 +452,16 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
 
     rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
     X, weights, targets, rates = _fit_targets(cfg, D, X, rhs_np, rng, scale, log)
-    box = D.bounding_box()
+    areas = _AreaGrid(D, cfg.area_points)
     cex = np.zeros((0, n))
     best: CegisResult | None = None
+    best_state = None        # (iteration, the learner's state) of the best certified iterate
+    pending: list[_Iterate] = []   # iterates since the last verifier call
     history = []
-    margin = 0.0
-    M = None
-    smoothing = 0.0
+    margin, M, smoothing = 0.0, None, 0.0
     for it in range(cfg.iterations):
-        steps = (cfg.first_steps or cfg.train.steps) if it == 0 else cfg.steps
-        pointwise = eta if (eta > 0 and cfg.margin_mode == "pointwise") else 0.0
-        info = learner.train(X, np.vstack([S, rim]), 0.0 if pointwise else margin,
-                             cex if len(cex) else None,
-                             steps=steps, inside_weight=weights, eta_pointwise=pointwise,
-                             targets=targets, target_rates=rates)
+        info = _train_round(learner, cfg, it, eta, margin, X, np.vstack([S, rim]), cex,
+                            weights, targets, rates)
         V, ctrl = learner.export()
         problem = RoaProblem(system, V, ctrl, dynamics, inner=cfg.inner, outer=cfg.outer,
                              eta=eta, margin_mode=cfg.margin_mode,
@@ -344,52 +479,69 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         cand = candidate_level(dec.x, dec.V, dec.lie, inner=cfg.inner, domain=D,
                                margin=dec.margin, seed=cfg.seed + it)
         last = it == cfg.iterations - 1
-        if last or (it + 1) % cfg.verify_every == 0:
-            cert = certify_roa(problem, cand.level, search=True, check_inner_ellipse=False,
-                               log=lambda m: log("  " + m)) if cand.level > 0 else None
-        else:
-            cert = None
-        if cert is None:  # falsifier only: the sampled violations that limit the candidate
-            cert = RoaCertificate(CertStatus.NOT_CERTIFIED, "not verified (candidate only)",
-                                  system.name, "known" if dynamics is None else "learned",
-                                  0.0, cfg.inner, problem.outer, counterexamples=cand.violations,
-                                  domain=D)
-        area = cert.area(box, axis_count(cfg.area_points, n)) if cert.certified else 0.0
-        entry = {"iteration": it, "loss": info.loss, "train_steps": info.steps,
-                 "margin_mode": cfg.margin_mode if eta > 0 else "none",
-                 "train_seconds": info.seconds, "candidate_level": cand.level,
-                 "candidate_source": cand.source, "status": cert.status.value,
-                 "reason": cert.reason,
-                 "level": cert.level, "margin": margin, "M": M, "smoothing": smoothing,
-                 "area": area,
-                 "verify_seconds": cert.seconds, "checks": cert.checks,
-                 "boxes": sum((h.get("boxes", 0) for h in cert.history), 0),
-                 "counterexamples": int(len(cert.counterexamples))}
+        here = _new_iterate(it, info, problem, cand, (margin, M, smoothing), cfg, eta, areas,
+                            learner)
+        entry = here.entry
         history.append(entry)
-        log(f"  cegis iteration {it}: loss {info.loss:.4g}, candidate level "
-            f"{cand.level:.4g} ({cand.source}), "
-            f"{'certified' if cert.certified else cert.reason} level {cert.level:.4g}, "
-            f"area {area:.4g}, margin {margin:.3g}")
+        pending = [*pending, here] if cfg.best_iterate else [here]
+        chosen, cert = here, None
+        if last or (it + 1) % cfg.verify_every == 0:
+            chosen, cert = _verify_window(pending, here, log)
+            pending = []
+        # falsifier only: the sampled violations that limit the candidate
+        cert = cert or _unverified(chosen, system, dynamics, cfg, D)
+        area = cert.area(areas.box, areas.count) if cert.certified else 0.0
+        _record(chosen, cert, area)
+        if chosen is not here:
+            _record(here, _unverified(here, system, dynamics, cfg, D), 0.0)
+        _log_iterate(log, chosen, cert.certified)
+        if chosen is not here:
+            _log_iterate(log, here, False)
         prev_area = best.area if best is not None else 0.0
         if cert.certified and (best is None or area > best.area):
-            best = CegisResult(CertStatus.CERTIFIED, V, ctrl, cert.level, margin, M, area,
-                               history, 0.0, smoothing)
-        if cert.certified and cert.level >= cfg.target_fraction * cand.level \
+            best = CegisResult(CertStatus.CERTIFIED, chosen.V, chosen.ctrl, cert.level,
+                               *chosen.margins[:2], area, history, 0.0, chosen.margins[2])
+            best_state = (chosen.entry["iteration"], chosen.state)
+        # the stop rule judges the current V: an earlier iterate verified in its place says
+        # nothing about where training stands now
+        if chosen is here and cert.certified \
+                and cert.level >= cfg.target_fraction * chosen.cand.level \
                 and not len(cert.counterexamples) and it + 1 >= cfg.min_iterations \
-                and _level_settled(cand.source, area, prev_area, cfg.plateau,
+                and _level_settled(chosen.cand.source, area, prev_area, cfg.plateau,
                                    cfg.boundary_feedback > 0):
             break
-        if cand.source == "sphere" and cfg.boundary_feedback and not last:
+        if cfg.best_iterate and best is not None and not last and not pending \
+                and entry["candidate_area"] < RESUME_BELOW * best.area:
+            # after a verifier call (the window's most promising iterate proved): the current
+            # V has collapsed (its candidate set, which bounds what it can certify, is well
+            # below the best certified area), so training goes on from the best iterate
+            _resume(learner, best_state, best.area, here, log)
+        elif cand.source == "sphere" and cfg.boundary_feedback and not last:
             rim = _feed_boundary(cfg, V, D, cand, rim, len(S), rng, entry, log)
-        new = cert.counterexamples
-        if len(new):
-            jitter = new[:, None, :] + 0.01 * scale * rng.standard_normal(
-                (len(new), cfg.neighbours, n))
-            new = np.vstack([new, jitter.reshape(-1, n)])
-            cex = np.vstack([cex, new])[-cfg.max_counterexamples:]
-    seconds = time.perf_counter() - t0
+        cex = _add_counterexamples(cex, cert.counterexamples, cfg, scale, rng,
+                                   None if chosen is here else cand.violations)
+    return _result(best, learner, history, time.perf_counter() - t0, (margin, M, smoothing))
+
+
+def _new_iterate(it: int, info, problem: RoaProblem, cand, margins: tuple, cfg: CegisConfig,
+                 eta: float, areas: _AreaGrid, learner: LyapunovLearner) -> _Iterate:
+    """The iterate just trained, with its history entry (completed by :func:`_record`)."""
+    entry = {"iteration": it, "loss": info.loss, "train_steps": info.steps,
+             "margin_mode": cfg.margin_mode if eta > 0 else "none",
+             "train_seconds": info.seconds, "candidate_level": cand.level,
+             "candidate_source": cand.source}
+    if cfg.best_iterate:
+        entry["candidate_area"] = areas.candidate(problem.V, cand.level)
+    return _Iterate(problem.V, problem.controller, problem, cand, entry, margins,
+                    learner.state() if cfg.best_iterate else None)
+
+
+def _result(best: CegisResult | None, learner: LyapunovLearner, history: list,
+            seconds: float, margins: tuple) -> CegisResult:
+    """The best certified iterate, or the last networks with NOT_CERTIFIED."""
     if best is None:
         V, ctrl = learner.export()
+        margin, M, smoothing = margins
         return CegisResult(CertStatus.NOT_CERTIFIED, V, ctrl, 0.0, margin, M, 0.0, history,
                            seconds, smoothing,
                            reason="no certified level within the iteration budget")

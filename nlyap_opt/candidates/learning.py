@@ -34,6 +34,7 @@ to the boundary of the region of attraction. ``relative_decrease`` divides the h
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 
@@ -48,7 +49,7 @@ from ..kernel.network import Layer, Network, dense_network, from_torch
 from ..kernel.sampling import sample_ball, sample_sphere
 from ..kernel.walker import ArrayArithmetic, evaluate
 
-__all__ = ["TrainConfig", "TrainInfo", "LyapunovLearner", "label_boundary_states",
+__all__ = ["TrainConfig", "TrainInfo", "LearnerState", "LyapunovLearner", "label_boundary_states",
            "sample_ball", "sample_sphere"]
 
 
@@ -318,6 +319,16 @@ def _body_jacobian_at_zero(body, n: int):
     return J
 
 
+@dataclass
+class LearnerState:
+    """What :meth:`LyapunovLearner.state` saves: ``V``'s and Adam's state dicts and the
+    controller gain (``None`` without a controller)."""
+
+    V: dict
+    opt: dict
+    G: torch.Tensor | None
+
+
 class LyapunovLearner:
     """Trains ``V`` (and ``κ``) on a vector field ``g(x, u)`` given in torch.
 
@@ -558,6 +569,22 @@ class LyapunovLearner:
                 progress(it, info)
         info.steps, info.seconds = it + 1, time.perf_counter() - t0
         return info
+
+    # ------------------------------------------------------------------ state
+    def state(self) -> LearnerState:
+        """A copy of everything training changes (``V``'s weights, the controller gain and
+        Adam's moments), for :meth:`load_state`."""
+        return LearnerState(copy.deepcopy(self.V.state_dict()),
+                            copy.deepcopy(self.opt.state_dict()),
+                            None if self.controller is None else self.G.detach().clone())
+
+    def load_state(self, state: LearnerState) -> None:
+        """Continue from a :meth:`state`: training afterwards is as if from that point."""
+        self.V.load_state_dict(copy.deepcopy(state.V))
+        if state.G is not None:
+            with torch.no_grad():
+                self.G.copy_(state.G)
+        self.opt.load_state_dict(copy.deepcopy(state.opt))
 
     # ------------------------------------------------------------------ export
     def export(self) -> tuple[Network, Network | None]:

@@ -272,12 +272,14 @@ DEFAULT_TRAIN: dict = {
     "decay": 0.0, "level_slack": 0.5, "relative_decrease": True, "w_fit": 10.0,
     "w_pde": 1.5, "w_local": 10.0, "fit_domain": True, "w_outside": 10.0,
 }
-#: CEGIS of the default method: the verifier every third iteration and the last; training
-#: states near the model's ROA boundary; simulations on a table of φ (learned f, <= 3-D)
+#: CEGIS of the default method: the verifier every third iteration and the last, on the
+#: most promising iterate since its last call, training resumed from the best certified
+#: iterate when the current one collapsed; training states near the model's ROA
+#: boundary; simulations on a table of φ (learned f, <= 3-D)
 DEFAULT_CEGIS: dict = {
     "iterations": 8, "steps": 1000, "verify_every": 3, "sim_time": 30.0, "sim_dt": 0.04,
     "sim_points": 90601, "inner_samples": 2000, "boundary_samples": 20000,
-    "sim_in_domain": True,
+    "sim_in_domain": True, "best_iterate": True,
 }
 
 #: the base of ``make_config(name, preset=None, ...)`` for a system without a preset; the
@@ -504,6 +506,9 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "boundary_feedback": "a level limited by containment on ∂D: this many states of ∂D "
                              "with the smallest V (and the level-limiting point) join the "
                              "containment training and CEGIS goes on (0: it stops there)",
+        "best_iterate": "verify the iterate with the largest candidate set since the last "
+                        "verification; after it, train on from the best certified iterate "
+                        "when the current one's candidate set is below 0.9 of its area",
         "area_points": "total point budget of the grid on which certified areas are "
                        "compared",
         "verify_options": "options of the interval verifier (the cegis.verify_options.* "

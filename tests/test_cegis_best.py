@@ -1,0 +1,129 @@
+"""CEGIS with ``best_iterate``: the verifier proves the most promising iterate of its window,
+training resumes from the best certified iterate, and no certified area is ever lost."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import systems
+from nlyap_opt.candidates import cegis as cegis_module
+from nlyap_opt.candidates.cegis import RESUME_BELOW, CegisConfig, cegis
+from nlyap_opt.candidates.learning import LyapunovLearner, TrainConfig
+
+
+def _train_config() -> TrainConfig:
+    return TrainConfig(hidden=[8], features=3, steps=300, lr=0.02, w_fit=10.0, w_pde=1.0,
+                       w_local=10.0, relative_decrease=True, level_slack=0.5, decay=0.05,
+                       lr_schedule="cosine")
+
+
+def test_learner_state_resumes_training_exactly():
+    """Training k steps after load_state(s) gives the same weights as training k steps
+    right after s was taken (weights, gain and Adam's moments are all restored)."""
+    s = systems.get("van_der_pol")
+    learner = LyapunovLearner(s, None, None, _train_config())
+    rng = np.random.default_rng(0)
+    X, S = rng.uniform(-1.5, 1.5, (500, 2)), rng.uniform(-1.5, 1.5, (100, 2))
+    learner.train(X, S, 0.0, steps=20)
+    saved = learner.state()
+    learner.train(X, S, 0.0, steps=20)
+    first = learner.export()[0].numpy(X)
+    learner.train(X, S, 0.0, steps=20)          # move away, then come back
+    learner.load_state(saved)
+    learner.train(X, S, 0.0, steps=20)
+    assert np.array_equal(learner.export()[0].numpy(X), first)
+    # the saved state is a copy: training after it did not change it
+    learner.load_state(saved)
+    again = learner.state()
+    assert all(torch.equal(a, b) for a, b in zip(saved.V.values(), again.V.values()))
+
+
+@pytest.mark.slow
+def test_best_iterate_never_loses_area_and_resumes_after_a_bad_round(monkeypatch):
+    """A training round that wrecks V (iteration 3, weights perturbed after training) does
+    not lose the certified area: its candidate set collapses below the best certified area,
+    so after the verifier call training resumes from the best certified iterate; each
+    verifier call proves the iterate with the largest candidate set of its window; a
+    certified area never exceeds its iterate's candidate set; the returned V re-verifies at
+    the returned level."""
+    from nlyap_opt.kernel.symbolic import closed_loop, lie_derivative
+    from verification import lyapunov_problem, verify
+
+    calls = []
+    train = LyapunovLearner.train
+
+    def wrecking_train(self, *args, **kwargs):
+        info = train(self, *args, **kwargs)
+        calls.append(len(calls))
+        if len(calls) == 4:        # iteration 3, the last of the second window
+            gen = torch.Generator().manual_seed(0)
+            with torch.no_grad():
+                for p in self.V.parameters():
+                    p.add_(2.0 * torch.randn(p.shape, generator=gen, dtype=p.dtype))
+        return info
+
+    monkeypatch.setattr(LyapunovLearner, "train", wrecking_train)
+    s = systems.get("van_der_pol")
+    cfg = CegisConfig(inner=0.3, outer=1.5, iterations=6, min_iterations=6, steps=100,
+                      verify_every=2, samples=3000, sphere_samples=500, inner_samples=300,
+                      boundary_samples=1000, sim_dt=0.05, train=_train_config(),
+                      area_points=6400, best_iterate=True)
+    res = cegis(s, None, None, cfg, log=lambda m: None)
+    h = res.history
+    assert len(h) == 6 and res.certified
+    # windows {0, 1}, {2, 3}, {4, 5}: exactly one verified iterate each, the one with the
+    # largest candidate set (the latest among equals)
+    for window in (h[0:2], h[2:4], h[4:6]):
+        verified = [e for e in window if e["boxes"] > 0]
+        assert len(verified) == 1
+        top = max(e["candidate_area"] for e in window)
+        assert verified[0]["candidate_area"] == top
+        assert all(e["candidate_area"] < top for e in window
+                   if e["iteration"] > verified[0]["iteration"])
+    # the wrecked iterate, after the verifier call of its window, hands training back to
+    # the best certified one; the next iterate trains on from there
+    best_before = max(range(4), key=lambda i: h[i]["area"])
+    assert h[3]["candidate_area"] < RESUME_BELOW * h[best_before]["area"]
+    assert h[3]["resumed_from"] == best_before
+    assert h[4]["candidate_area"] > h[3]["candidate_area"]
+    # bookkeeping: resumed only after a verifier call, where the candidate set collapsed
+    # below RESUME_BELOW of the best certified area
+    best = 0.0
+    for e in h:
+        assert e["area"] <= e["candidate_area"]
+        best = max(best, e["area"])
+        if "resumed_from" in e:
+            assert (e["iteration"] + 1) % cfg.verify_every == 0
+            assert e["candidate_area"] < RESUME_BELOW * best
+            assert best == h[e["resumed_from"]]["area"]
+        elif (e["iteration"] + 1) % cfg.verify_every == 0 and e["iteration"] < 5:
+            assert e["candidate_area"] >= RESUME_BELOW * best
+    assert res.area == best == max(e["area"] for e in h) > 0
+    cl = closed_loop(s, None, None, strict=True)
+    Vx = res.V.casadi(cl.x)
+    prob = lyapunov_problem(cl.x, Vx, lie_derivative(Vx, cl.x, cl.rhs), inner=0.3,
+                            outer=1.5, level=res.level, margin=0.0,
+                            box=np.tile([-1.5, 1.5], (2, 1)), check_positive=False)
+    assert verify(prob).status == "verified"
+
+
+def test_candidate_area_is_the_grid_area_of_the_sublevel_set_in_the_domain():
+    """D ∩ {V ≤ c} for V = ‖x‖² on a box: the disc of radius √c, cut by the box."""
+    from nlyap_opt.certification.roa import grid_points
+    from nlyap_opt.kernel.domain import Box
+    from nlyap_opt.kernel.network import Layer, Network
+
+    V = Network([Layer(np.eye(2), np.zeros(2), "linear")], 1.0,
+                head={"type": "sum_of_squares", "eps": 0.0})
+    D = Box([[-1.0, 1.0], [-0.5, 0.5]])
+    box = D.bounding_box()
+    grid, shape = grid_points(box, 401)
+    in_d = D.contains(grid)
+    # the disc of radius 0.4 lies in D; the unit disc is cut by |x2| <= 0.5
+    assert abs(cegis_module.candidate_area(V, 0.16, grid, in_d, shape, box)
+               - np.pi * 0.16) < 0.02
+    cut = 2 * (0.5 * np.sqrt(0.75) + np.arcsin(0.5))      # ∫_{-1/2}^{1/2} 2√(1−t²) dt
+    assert abs(cegis_module.candidate_area(V, 1.0, grid, in_d, shape, box) - cut) < 0.02
+    assert cegis_module.candidate_area(V, 0.0, grid, in_d, shape, box) == 0.0

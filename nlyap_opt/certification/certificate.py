@@ -65,6 +65,7 @@ from .roa import (
     grid_area,
     grid_points,
     inner_ball_level,
+    quadratic_form,
 )
 
 __all__ = [
@@ -640,7 +641,8 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
     lc = certify_level(dec.x, dec.V, dec.lie, level=level, inner=problem.inner,
                        domain=problem.domain, margin=margin, max_tries=8 if search else 1,
                        shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
-                       log=log, follow_violations=follow_violations)
+                       log=log, follow_violations=follow_violations,
+                       quadratic=quadratic_form(problem.V))
     last = lc.history[-1] if lc.history else {}
     checks = {"(a) decrease": last.get("decrease") or "not run",
               "(b) V > level on ‖x‖ = r" if problem.domain.plain_ball else "(b) V > level on ∂D":

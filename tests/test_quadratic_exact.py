@@ -1,6 +1,6 @@
 """Condition (b) of a quadratic ``V = xᵀPx`` decided exactly (rational ``LDLᵀ``): no
-disagreement with the interval verifier away from the threshold, the threshold itself, and the level search and
-its re-check through the certificate."""
+disagreement with the interval verifier away from the threshold, the threshold itself, and
+the level search and its re-check through the certificate."""
 
 from fractions import Fraction
 

@@ -20,7 +20,13 @@ import numpy as np
 import torch
 from scipy.interpolate import RegularGridInterpolator
 
-from ..certification.certificate import CertStatus, RoaCertificate, RoaProblem, certify_roa
+from ..certification.certificate import (
+    CertStatus,
+    RoaCertificate,
+    RoaProblem,
+    VolumeToBeat,
+    certify_roa,
+)
 from ..certification.roa import axis_count, candidate_level
 from ..kernel.determinism import deterministic_torch
 from ..kernel.domain import Ball, as_domain, parse_set
@@ -209,7 +215,7 @@ def _feed_boundary(cfg: CegisConfig, V: Network, D, cand, rim: np.ndarray, cap: 
 
 def cegis(system, controller: Network | None, dynamics: Network | None, cfg: CegisConfig, *,
           eta: float = 0.0, dynamics_box=None, input_box=None, log=print,
-          V0: Network | None = None) -> CegisResult:
+          V0: Network | None = None, beat: VolumeToBeat | None = None) -> CegisResult:
     """Learn ``V`` (and ``κ``) and certify a level; see the module docstring.
 
     Parameters
@@ -223,9 +229,15 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
         Where ``‖f − φ‖ ≤ η`` holds (learned dynamics); each iterate is certified with
         :func:`nlyap_opt.certification.certificate.certify_roa`, which checks ``κ ∈ U`` and the
         ball.
+    beat : VolumeToBeat, optional
+        The run's best cheap certificate: an iterate whose candidate level's volume bound
+        (:meth:`~nlyap_opt.certification.certificate.VolumeToBeat.bound`) cannot exceed it is
+        not verified (its sampled violations are its counterexamples, as between
+        ``verify_every`` iterations); the history entry says why (``skipped``).
     """
     with deterministic_torch(cfg.train.threads):   # fixed threads: bit-identical results
-        return _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0)
+        return _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0,
+                      beat)
 
 
 def _samples(cfg: CegisConfig, D, XI, rng, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -299,7 +311,21 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
     return X, weights, targets, rates
 
 
-def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0):
+def _verify_iterate(problem: RoaProblem, level: float, beat: VolumeToBeat | None, due: bool,
+                    it: int, log) -> tuple[RoaCertificate | None, str]:
+    """``(certificate, "")`` of an iterate searched down from its candidate ``level`` when a
+    verification is ``due``; ``(None, why)`` when it cannot beat ``beat`` (not verified);
+    ``(None, "")`` when not due or without a positive level."""
+    skip = beat.cannot_beat(problem, level) if beat is not None and level > 0 else ""
+    if skip:
+        log(f"  cegis iteration {it}: not verified, {skip}")
+    if skip or not due or not level > 0:
+        return None, skip
+    return certify_roa(problem, level, search=True, check_inner_ellipse=False,
+                       log=lambda m: log("  " + m)), ""
+
+
+def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0, beat):
     t0 = time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
     n = system.nx
@@ -344,13 +370,11 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         cand = candidate_level(dec.x, dec.V, dec.lie, inner=cfg.inner, domain=D,
                                margin=dec.margin, seed=cfg.seed + it)
         last = it == cfg.iterations - 1
-        if last or (it + 1) % cfg.verify_every == 0:
-            cert = certify_roa(problem, cand.level, search=True, check_inner_ellipse=False,
-                               log=lambda m: log("  " + m)) if cand.level > 0 else None
-        else:
-            cert = None
+        cert, skip = _verify_iterate(problem, cand.level, beat,
+                                     last or (it + 1) % cfg.verify_every == 0, it, log)
         if cert is None:  # falsifier only: the sampled violations that limit the candidate
-            cert = RoaCertificate(CertStatus.NOT_CERTIFIED, "not verified (candidate only)",
+            cert = RoaCertificate(CertStatus.NOT_CERTIFIED,
+                                  f"not verified ({skip or 'candidate only'})",
                                   system.name, "known" if dynamics is None else "learned",
                                   0.0, cfg.inner, problem.outer, counterexamples=cand.violations,
                                   domain=D)
@@ -364,7 +388,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                  "area": area,
                  "verify_seconds": cert.seconds, "checks": cert.checks,
                  "boxes": sum((h.get("boxes", 0) for h in cert.history), 0),
-                 "counterexamples": int(len(cert.counterexamples))}
+                 "counterexamples": int(len(cert.counterexamples)), "skipped": skip}
         history.append(entry)
         log(f"  cegis iteration {it}: loss {info.loss:.4g}, candidate level "
             f"{cand.level:.4g} ({cand.source}), "

@@ -60,13 +60,14 @@ from ..kernel.domain import Ball, Box, Ellipsoid, as_domain
 from ..kernel.exact import inverse, positive_definite, rational, rational_matrix
 from ..kernel.network import Network
 from ..kernel.rounding import EPS
+from ..kernel.sampling import sample_ball, sample_sphere
 from ..kernel.simulate import simulate
 from ..kernel.symbolic import closed_loop
 from ..kernel.walker import compile_function, evaluate
 
 __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
-    "quadratic_form", "quadratic_containment",
+    "quadratic_form", "quadratic_containment", "quadratic_inner_ball", "inner_ellipse_bound",
     "centre_lyapunov_matrix",
     "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "InnerForm",
     "InnerFormKind",
@@ -673,6 +674,51 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
             return out
         first = first or out
     return first if first is not None else blowup
+
+
+#: a sampled ``V̇_q`` above this fraction of the sum of its terms' magnitudes is positive
+#: beyond any rounding of its float evaluation (about ``1e-15`` of that sum)
+_VDOT_SLACK = 1e-9
+
+
+def inner_ellipse_bound(system, controller, inner: float, pts: np.ndarray, *,
+                        samples: int = 4000, seed: int = 0) -> np.ndarray | None:
+    r"""Which ``pts`` may lie in condition (c)'s ellipse ``E`` at radius ``inner`` (the true
+    closed loop with ``controller``), without verifying (c): an over-approximation, to bound
+    the volume a certificate can reach before its (expensive) verification is attempted.
+
+    Without a saved form, :func:`certify_inner_ellipse` proves (c) with one of the
+    candidates ``P`` of :func:`nlyap_opt.design.control.ellipse_candidates` on
+    ``E = {xᵀPx ≤ c_q}`` (:func:`ellipse_around_ball`), and every form it proves implies
+    :math:`\dot V_q = 2x^\top P f(x) < 0` on :math:`E \setminus \{0\}`. A candidate whose
+    ellipse holds a sampled point (``samples`` seeded points inside and on ``E``) with
+    :math:`\dot V_q` clearly positive (beyond :data:`_VDOT_SLACK` of its terms) can
+    therefore not be proved; the mask is the union of the other candidates' ellipses.
+    ``None`` (no bound) where (c) would take another route: a linearisation that is not
+    Hurwitz or has a centre (the weighted blow-up).
+    """
+    cl = closed_loop(system, controller, strict=True)
+    n = system.nx
+    A_cl = np.array(_fun(cl.x, ca.jacobian(cl.rhs, cl.x))(np.zeros(n)), dtype=float)
+    if not np.all(np.isfinite(A_cl)) or np.max(np.linalg.eigvals(A_cl).real) >= 0 \
+            or _centre_split(A_cl) is not None:
+        return None
+    F = _fun(cl.x, cl.rhs)
+    rng = np.random.default_rng(seed)
+    u = np.vstack([sample_ball(samples // 2, n, 1.0, rng),
+                   sample_sphere(samples - samples // 2, n, 1.0, rng)])
+    mask = np.zeros(len(pts), dtype=bool)
+    for P in ellipse_candidates(A_cl):
+        if P is None or not np.all(np.isfinite(P)):
+            continue
+        c_q, _ = ellipse_around_ball(P, inner)
+        # x = sqrt(c_q)·L⁻ᵀu maps the unit ball onto E (P = L Lᵀ)
+        x = math.sqrt(c_q) * np.linalg.solve(np.linalg.cholesky(P).T, u.T).T
+        terms = 2.0 * (x @ P) * evaluate(F, [x])[0]
+        if np.any(terms.sum(axis=1) > _VDOT_SLACK * np.abs(terms).sum(axis=1)):
+            continue
+        mask |= np.einsum("ij,jk,ik->i", pts, P, pts) <= c_q * (1 + 1e-9)
+    return mask
 
 
 def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = None, *,

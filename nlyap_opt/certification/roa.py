@@ -712,11 +712,14 @@ def inner_ellipse_bound(system, controller, inner: float, pts: np.ndarray, *,
         if P is None or not np.all(np.isfinite(P)):
             continue
         c_q, _ = ellipse_around_ball(P, inner)
-        # x = sqrt(c_q)·L⁻ᵀu maps the unit ball onto E (P = L Lᵀ)
-        x = math.sqrt(c_q) * np.linalg.solve(np.linalg.cholesky(P).T, u.T).T
-        terms = 2.0 * (x @ P) * evaluate(F, [x])[0]
-        if np.any(terms.sum(axis=1) > _VDOT_SLACK * np.abs(terms).sum(axis=1)):
-            continue
+        try:    # x = sqrt(c_q)·L⁻ᵀu maps the unit ball onto E (P = L Lᵀ)
+            x = math.sqrt(c_q) * np.linalg.solve(np.linalg.cholesky(P).T, u.T).T
+        except (np.linalg.LinAlgError, ValueError):
+            x = None                       # no samples: the ellipse stays in the bound
+        if x is not None:
+            terms = 2.0 * (x @ P) * evaluate(F, [x])[0]
+            if np.any(terms.sum(axis=1) > _VDOT_SLACK * np.abs(terms).sum(axis=1)):
+                continue
         mask |= np.einsum("ij,jk,ik->i", pts, P, pts) <= c_q * (1 + 1e-9)
     return mask
 

@@ -18,8 +18,6 @@ import systems
 from nlyap_opt.certification.certificate import CertStatus
 from nlyap_opt.certification.compositional import (
     FORMAT,
-    _inverse_diagonal,
-    _positive_definite,
     certify_compositional,
     check_compositional,
     recheck_compositional,
@@ -27,6 +25,7 @@ from nlyap_opt.certification.compositional import (
 )
 from nlyap_opt.interface.cli import main
 from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.kernel.exact import inverse_diagonal, positive_definite
 
 QUIET = {"log": lambda m: None}
 
@@ -64,13 +63,13 @@ def test_exact_positive_definiteness_and_inverse_diagonal_agree_with_numpy(rng):
         Q = [[Fraction(v) for v in row] for row in S]
         lam = np.linalg.eigvalsh(S)
         if abs(lam).min() > 1e-9:   # away from the boundary float64 decides the same
-            assert _positive_definite(Q) == (lam.min() > 0)
+            assert positive_definite(Q) == (lam.min() > 0)
         if lam.min() > 1e-6:
-            inv = _inverse_diagonal(Q)
+            inv = inverse_diagonal(Q)
             np.testing.assert_allclose([float(v) for v in inv], np.diag(np.linalg.inv(S)),
                                        rtol=1e-9)
     # a singular PSD matrix is not positive definite (exact, no tolerance)
-    assert not _positive_definite([[Fraction(1), Fraction(1)], [Fraction(1), Fraction(1)]])
+    assert not positive_definite([[Fraction(1), Fraction(1)], [Fraction(1), Fraction(1)]])
 
 
 # ============================================================================ known answers

@@ -24,7 +24,13 @@ import numpy as np
 import torch
 from scipy.interpolate import RegularGridInterpolator
 
-from ..certification.certificate import CertStatus, RoaCertificate, RoaProblem, certify_roa
+from ..certification.certificate import (
+    CertStatus,
+    RoaCertificate,
+    RoaProblem,
+    VolumeToBeat,
+    certify_roa,
+)
 from ..certification.roa import axis_count, candidate_level, grid_area, grid_points
 from ..kernel.determinism import deterministic_torch
 from ..kernel.domain import Ball, as_domain, parse_set
@@ -226,7 +232,7 @@ def _feed_boundary(cfg: CegisConfig, V: Network, D, cand, rim: np.ndarray, cap: 
 
 def cegis(system, controller: Network | None, dynamics: Network | None, cfg: CegisConfig, *,
           eta: float = 0.0, dynamics_box=None, input_box=None, log=print,
-          V0: Network | None = None) -> CegisResult:
+          V0: Network | None = None, beat: VolumeToBeat | None = None) -> CegisResult:
     """Learn ``V`` (and ``κ``) and certify a level; see the module docstring.
 
     Parameters
@@ -240,9 +246,15 @@ def cegis(system, controller: Network | None, dynamics: Network | None, cfg: Ceg
         Where ``‖f − φ‖ ≤ η`` holds (learned dynamics); each iterate is certified with
         :func:`nlyap_opt.certification.certificate.certify_roa`, which checks ``κ ∈ U`` and the
         ball.
+    beat : VolumeToBeat, optional
+        The run's best cheap certificate: an iterate whose candidate level's volume bound
+        (:meth:`~nlyap_opt.certification.certificate.VolumeToBeat.bound`) cannot exceed it is
+        not verified (its sampled violations are its counterexamples, as between
+        ``verify_every`` iterations); the history entry says why (``skipped``).
     """
     with deterministic_torch(cfg.train.threads):   # fixed threads: bit-identical results
-        return _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0)
+        return _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0,
+                      beat)
 
 
 def _samples(cfg: CegisConfig, D, XI, rng, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -346,10 +358,12 @@ def candidate_area(V: Network, level: float, grid: np.ndarray, in_d: np.ndarray,
 
 def _most_promising(pending: list) -> _Iterate:
     """The iterate with the largest candidate set (``candidate_area``), the latest among
-    equals; the only one without ``best_iterate``."""
+    equals, preferring one that can beat the cheap certificate (not ``skipped``); the only
+    one without ``best_iterate``."""
     if len(pending) == 1:
         return pending[0]
-    return max(reversed(pending), key=lambda x: x.entry["candidate_area"])
+    return max(reversed(pending),
+               key=lambda x: (not x.entry["skipped"], x.entry["candidate_area"]))
 
 
 def _record(x: _Iterate, cert: RoaCertificate, area: float) -> None:
@@ -364,7 +378,8 @@ def _record(x: _Iterate, cert: RoaCertificate, area: float) -> None:
 
 def _unverified(x: _Iterate, system, dynamics, cfg: CegisConfig, D) -> RoaCertificate:
     """The record of an iterate the verifier did not run on: its sampled violations."""
-    return RoaCertificate(CertStatus.NOT_CERTIFIED, "not verified (candidate only)",
+    why = x.entry.get("skipped") or "candidate only"
+    return RoaCertificate(CertStatus.NOT_CERTIFIED, f"not verified ({why})",
                           system.name, "known" if dynamics is None else "learned", 0.0,
                           cfg.inner, x.problem.outer, counterexamples=x.cand.violations,
                           domain=D)
@@ -372,13 +387,14 @@ def _unverified(x: _Iterate, system, dynamics, cfg: CegisConfig, D) -> RoaCertif
 
 def _verify_window(pending: list, here: _Iterate, log) -> tuple[_Iterate, RoaCertificate | None]:
     """Verify the most promising iterate of ``pending`` (the iterates since the last call);
-    ``None`` when its candidate level is not positive."""
+    ``None`` when its candidate level is not positive or it cannot beat the cheap
+    certificate (``skipped``)."""
     chosen = _most_promising(pending)
     if chosen is not here:
         log(f"  cegis: iteration {chosen.entry['iteration']} has the largest candidate "
             f"set since the last verification ({chosen.entry['candidate_area']:.4g} "
             f"against {here.entry['candidate_area']:.4g}); it is the one verified")
-    if not chosen.cand.level > 0:
+    if not chosen.cand.level > 0 or chosen.entry["skipped"]:
         return chosen, None
     return chosen, certify_roa(chosen.problem, chosen.cand.level, search=True,
                                check_inner_ellipse=False, log=lambda m: log("  " + m))
@@ -438,7 +454,7 @@ def _train_round(learner, cfg: CegisConfig, it: int, eta: float, margin: float, 
                          targets=targets, target_rates=rates)
 
 
-def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0):
+def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0, beat):
     t0 = time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
     n = system.nx
@@ -480,7 +496,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                                margin=dec.margin, seed=cfg.seed + it)
         last = it == cfg.iterations - 1
         here = _new_iterate(it, info, problem, cand, (margin, M, smoothing), cfg, eta, areas,
-                            learner)
+                            learner, beat, log)
         entry = here.entry
         history.append(entry)
         pending = [*pending, here] if cfg.best_iterate else [here]
@@ -524,12 +540,18 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
 
 
 def _new_iterate(it: int, info, problem: RoaProblem, cand, margins: tuple, cfg: CegisConfig,
-                 eta: float, areas: _AreaGrid, learner: LyapunovLearner) -> _Iterate:
-    """The iterate just trained, with its history entry (completed by :func:`_record`)."""
+                 eta: float, areas: _AreaGrid, learner: LyapunovLearner,
+                 beat: VolumeToBeat | None, log) -> _Iterate:
+    """The iterate just trained, with its history entry (completed by :func:`_record`);
+    ``skipped`` says why it is never verified when its candidate level's volume bound
+    cannot beat ``beat``."""
+    skip = beat.cannot_beat(problem, cand.level) if beat is not None and cand.level > 0 else ""
+    if skip:
+        log(f"  cegis iteration {it}: not verified, {skip}")
     entry = {"iteration": it, "loss": info.loss, "train_steps": info.steps,
              "margin_mode": cfg.margin_mode if eta > 0 else "none",
              "train_seconds": info.seconds, "candidate_level": cand.level,
-             "candidate_source": cand.source}
+             "candidate_source": cand.source, "skipped": skip}
     if cfg.best_iterate:
         entry["candidate_area"] = areas.candidate(problem.V, cand.level)
     return _Iterate(problem.V, problem.controller, problem, cand, entry, margins,

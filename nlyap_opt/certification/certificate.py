@@ -65,6 +65,8 @@ from .roa import (
     grid_area,
     grid_points,
     inner_ball_level,
+    inner_ellipse_bound,
+    quadratic_form,
 )
 
 __all__ = [
@@ -72,7 +74,7 @@ __all__ = [
     "recheck_certificate", "recheck_run", "certify_with_inner_search", "load_artifact",
     "sha256_file", "FORMAT", "VERSION", "system_fingerprint", "system_binding", "spec_factory",
     "status_text", "bound_system", "read_certificate_file", "LevelPolicy", "NEURAL_POLICY",
-    "certify_candidate", "InnerEllipseCache",
+    "certify_candidate", "InnerEllipseCache", "VolumeToBeat",
     "INNER_FACTORS",
 ]
 
@@ -640,7 +642,8 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
     lc = certify_level(dec.x, dec.V, dec.lie, level=level, inner=problem.inner,
                        domain=problem.domain, margin=margin, max_tries=8 if search else 1,
                        shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
-                       log=log, follow_violations=follow_violations)
+                       log=log, follow_violations=follow_violations,
+                       quadratic=quadratic_form(problem.V))
     last = lc.history[-1] if lc.history else {}
     checks = {"(a) decrease": last.get("decrease") or "not run",
               "(b) V > level on ‖x‖ = r" if problem.domain.plain_ball else "(b) V > level on ∂D":
@@ -883,10 +886,54 @@ class LevelPolicy:
 NEURAL_POLICY = LevelPolicy()
 
 
+@dataclass(frozen=True)
+class VolumeToBeat:
+    """A certified volume on the evaluation grid that another candidate must exceed to win
+    (the run's best cheap certificate): a search whose result cannot exceed it is not
+    attempted (:func:`certify_candidate`, the CEGIS iterations).
+
+    Attributes
+    ----------
+    volume : float      the certified volume on the grid
+    box : (nx, 2) ndarray, n : int   the evaluation grid (``n`` nodes per axis)
+    label : str         how messages name the certificate (``"quadratic volume"``)
+    """
+
+    volume: float
+    box: np.ndarray
+    n: int
+    label: str
+
+    def bound(self, problem: RoaProblem, level: float) -> float:
+        """An upper bound of the grid volume of a certificate of ``problem`` at any level up to
+        ``level``: the grid points of ``{x ∈ D: V(x) ≤ level}`` and of every ellipse that
+        condition (c) may prove (:func:`nlyap_opt.certification.roa.inner_ellipse_bound`).
+        ``inf`` where no such bound is available (learned dynamics, whose (c) is not proved
+        on the true f by this route; a linearisation that is not Hurwitz or has a centre)."""
+        if not problem.known:
+            return math.inf
+        pts, shape = grid_points(np.asarray(self.box, dtype=float), self.n)
+        ell = inner_ellipse_bound(problem.system, problem.controller, problem.inner, pts)
+        if ell is None:
+            return math.inf
+        m = problem.domain.contains(pts) & (problem.V_numpy(pts) <= level * (1 + 1e-9))
+        return grid_area((m | ell).reshape(shape), self.box)
+
+    def cannot_beat(self, problem: RoaProblem, level: float) -> str:
+        """Why a certificate of ``problem`` at a level up to ``level`` cannot win (its
+        :meth:`bound` is below :attr:`volume`; a tie wins for the other candidate), or
+        ``""``."""
+        b = self.bound(problem, level)
+        if b < self.volume:
+            return (f"cannot beat the {self.label}: volume bound {b:.4g} below its certified "
+                    f"{self.volume:.4g}")
+        return ""
+
+
 def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, *,
                       level: float | None = None, cap: float | None = None,
                       ellipses: InnerEllipseCache | None = None,
-                      log=print) -> RoaCertificate:
+                      beat: VolumeToBeat | None = None, log=print) -> RoaCertificate:
     r"""Certify ``problem.V`` by ``policy``: conditions (a), (b), (c) by :func:`certify_roa`.
 
     The inner radius is a trade-off the user should not have to tune: a small ε makes
@@ -908,6 +955,10 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
         program's); ignored with ``level``.
     ellipses : InnerEllipseCache, optional
         Condition (c) shared with the other candidates of the same closed loop.
+    beat : VolumeToBeat, optional
+        A radius whose certificate cannot exceed this volume (its
+        :meth:`VolumeToBeat.bound` at the level it would check or search from) is not
+        checked; the history lists it as skipped, with the reason.
     log : callable
 
     Returns
@@ -956,6 +1007,11 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
                     f"ball's level {m:.4g}; skipped")
                 continue
             lv = m * (1.0 + INNER_LEVEL_MARGIN)
+        why = "" if beat is None else beat.cannot_beat(p, lv)
+        if why:
+            tried.append({"inner": eps, "status": "skipped", "reason": why})
+            log(f"inner radius {eps:g}: not verified, {why}")
+            continue
         cert = certify_roa(p, lv, search=(f != 1.0 or level is None) and not smallest,
                            follow_violations=policy.follow_violations, ellipses=ellipses,
                            log=log)
@@ -977,7 +1033,9 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
     if first is None:       # every radius skipped before any check: a refusal, not an error
         first = RoaCertificate(
             CertStatus.NOT_CERTIFIED, "no inner radius left to check: "
-            + "; ".join(f"ε = {t['inner']:g}: {t['status']}" for t in tried), level=0.0,
+            + "; ".join(f"ε = {t['inner']:g}: {t['status']}"
+                        + (f" ({t['reason']})" if t["status"] == "skipped" else "")
+                        for t in tried), level=0.0,
             assumptions=[], **_identity(problem))
     if record:
         first.history = list(first.history) + [{"inner_radius_search": tried}]
@@ -986,10 +1044,11 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
 
 def certify_with_inner_search(problem: RoaProblem, level: float | None, *,
                               factors=INNER_FACTORS, follow_violations: bool = False,
-                              smallest_level: bool = False, log=print) -> RoaCertificate:
+                              smallest_level: bool = False, beat: VolumeToBeat | None = None,
+                              log=print) -> RoaCertificate:
     """:func:`certify_candidate` with the policy of these arguments at the problem's ε."""
     policy = LevelPolicy(1.0, tuple(factors), smallest_level, follow_violations)
-    return certify_candidate(problem, policy, level=level, log=log)
+    return certify_candidate(problem, policy, level=level, beat=beat, log=log)
 
 
 def read_certificate_file(path: str | Path) -> tuple[Path, object]:

@@ -55,6 +55,7 @@ import numpy as np
 from scipy.linalg import eigh, solve_continuous_lyapunov
 
 from ..kernel.errors import ConfigError, UnsupportedOperationError
+from ..kernel.exact import float_down, float_up, inverse_diagonal, positive_definite, rational
 from ..kernel.jsonio import save_timings, split_timings
 from ..kernel.provenance import fingerprint
 from ..kernel.rounding import FOLD
@@ -88,51 +89,6 @@ ASSUMPTIONS = [
     "f is twice continuously differentiable on the domain box D (its CasADi graph holds "
     "only smooth operations defined everywhere; checked)",
 ]
-
-
-# ============================================================================ exact algebra
-def _F(v) -> Fraction:
-    v = float(v)
-    if not math.isfinite(v):
-        raise ValueError("not finite")
-    return Fraction(v)
-
-
-def _positive_definite(M: list[list[Fraction]]) -> bool:
-    """Exact test of ``M ≻ 0`` (symmetric rational ``M``): every pivot of ``LDLᵀ`` > 0."""
-    A = [row[:] for row in M]
-    n = len(A)
-    for k in range(n):
-        if A[k][k] <= 0:
-            return False
-        for i in range(k + 1, n):
-            m = A[i][k] / A[k][k]
-            if m:
-                for j in range(k, n):
-                    A[i][j] -= m * A[k][j]
-    return True
-
-
-def _inverse_diagonal(P: list[list[Fraction]]) -> list[Fraction]:
-    """The exact diagonal of ``P⁻¹`` (Gauss–Jordan in rationals; ``P ≻ 0``)."""
-    n = len(P)
-    A = [row[:] + [Fraction(int(i == j)) for j in range(n)] for i, row in enumerate(P)]
-    for k in range(n):
-        p = A[k][k]
-        A[k] = [a / p for a in A[k]]
-        for i in range(n):
-            if i != k and A[i][k]:
-                m = A[i][k]
-                A[i] = [a - m * b for a, b in zip(A[i], A[k])]
-    return [A[k][n + k] for k in range(n)]
-
-
-def _float_down(q: Fraction) -> float:
-    """The largest float64 ``≤ q``."""
-    f = float(q)
-    while Fraction(f) > q:
-        f = math.nextafter(f, -math.inf)
-    return f
 
 
 # ============================================================================ the certificate
@@ -276,11 +232,6 @@ def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
     return N, ""
 
 
-def _float_up(q: Fraction) -> float:
-    """The smallest float64 ``≥ q``."""
-    return -_float_down(-q)
-
-
 def _hessian_bound(H: ca.Function, box: np.ndarray,
                    slices: int = _SLICES) -> list[list[Fraction]] | None:
     r"""``C_s + diag(R̄ 1)`` (exact rationals) with :math:`y^\top M y \le y^\top (C_s +
@@ -297,8 +248,8 @@ def _hessian_bound(H: ca.Function, box: np.ndarray,
     Interval, ia = interval_arithmetic()
     d = box.shape[0]
     ts = [Fraction(k, slices) for k in range(slices + 1)]
-    lo_b = np.array([[_float_down(t * _F(v)) for v in box[:, 0]] for t in ts[1:]])
-    hi_b = np.array([[_float_up(t * _F(v)) for v in box[:, 1]] for t in ts[1:]])
+    lo_b = np.array([[float_down(t * rational(v)) for v in box[:, 0]] for t in ts[1:]])
+    hi_b = np.array([[float_up(t * rational(v)) for v in box[:, 1]] for t in ts[1:]])
     res = evaluate(H, [Interval(lo_b, hi_b)], ia)[0]
     lo, hi = np.asarray(res.lo, dtype=float), np.asarray(res.hi, dtype=float)
     if lo.size not in (d * d, slices * d * d) or hi.size != lo.size:
@@ -330,11 +281,11 @@ def _local_matrix(N, sizes, P, alpha, beta) -> list[list[Fraction]]:
     """``-(N + blockdiag(α P_i, -β_j P_j))``: positive definite iff the local test holds."""
     M = [row[:] for row in N]
     off = 0
-    for s, (Pk, coef) in enumerate(zip(P, [_F(alpha)] + [-_F(b) for b in beta])):
+    for s, (Pk, coef) in enumerate(zip(P, [rational(alpha)] + [-rational(b) for b in beta])):
         n = sizes[s]
         for a in range(n):
             for b in range(n):
-                M[off + a][off + b] += coef * _F(Pk[a][b])
+                M[off + a][off + b] += coef * rational(Pk[a][b])
         off += n
     return [[-v for v in row] for row in M]
 
@@ -387,11 +338,11 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
         return False, {**checks, "equilibrium": why}, why
     checks["equilibrium"] = "proved (f(0) is structurally 0)"
     try:
-        w = [_F(v) for v in np.asarray(weights, dtype=float).ravel()]
-        c, g = _F(level), _F(decay)
-        Ps = [[[_F(v) for v in row] for row in np.asarray(p.P, dtype=float)] for p in pieces]
-        alphas = [_F(p.alpha) for p in pieces]
-        betas = [[_F(b) for b in p.beta] for p in pieces]
+        w = [rational(v) for v in np.asarray(weights, dtype=float).ravel()]
+        c, g = rational(level), rational(decay)
+        Ps = [[[rational(v) for v in row] for row in np.asarray(p.P, dtype=float)] for p in pieces]
+        alphas = [rational(p.alpha) for p in pieces]
+        betas = [[rational(b) for b in p.beta] for p in pieces]
     except (ValueError, TypeError):
         why = "a number of the certificate is not finite, or a matrix has the wrong shape"
         return False, {**checks, "numbers": why}, why
@@ -402,7 +353,7 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
         n = len(p.states)
         if len(P) != n or any(len(r) != n for r in P) or \
                 any(P[a][b] != P[b][a] for a in range(n) for b in range(n)) \
-                or not _positive_definite(P):
+                or not positive_definite(P):
             why = f"P of subsystem {i + 1} is not a symmetric positive definite {n}x{n} matrix"
             return False, {**checks, "positive definite": why}, why
     checks["positive definite"] = "proved (exact LDLᵀ of every P_i)"
@@ -415,7 +366,7 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
             return False, {**checks, "local": why}, why
         sizes = [len(p.states)] + [len(parts[j]) for j in p.neighbours]
         Ploc = [Ps[i]] + [Ps[j] for j in p.neighbours]
-        if not _positive_definite(_local_matrix(N, sizes, Ploc, p.alpha, p.beta)):
+        if not positive_definite(_local_matrix(N, sizes, Ploc, p.alpha, p.beta)):
             why = (f"subsystem {i + 1} (states {', '.join(system.state_names[k] for k in p.states)}"
                    f"): dV_i/dt ≤ -{p.alpha:.4g} V_i + Σ β_ij V_j is not proved on its box "
                    "(coupling too strong for this domain, or the domain too large)")
@@ -436,9 +387,9 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
     checks["comparison"] = "proved (wᵀ(-diag α + B) ≤ -γ wᵀ exactly)"
     box = system.state_box
     for i, (p, P) in enumerate(zip(pieces, Ps)):
-        inv = _inverse_diagonal(P)
+        inv = inverse_diagonal(P)
         for a, k in enumerate(p.states):
-            r = min(-_F(box[k, 0]), _F(box[k, 1]))
+            r = min(-rational(box[k, 0]), rational(box[k, 1]))
             if c <= 0 or c * inv[a] > w[i] * r * r:
                 why = (f"the level {level:g} is not proved: the set V ≤ level leaves the box D "
                        f"along {system.state_names[k]}")
@@ -563,11 +514,11 @@ def certify_compositional(system, *, log=print) -> CompositionalCertificate:
         gamma = _decay(pieces, w)
         if not gamma > 0:
             continue
-        cq = min(Fraction(float(w[i])) * min(-_F(box[k, 0]), _F(box[k, 1])) ** 2 / d
+        cq = min(Fraction(float(w[i])) * min(-rational(box[k, 0]), rational(box[k, 1])) ** 2 / d
                  for i, p in enumerate(pieces)
-                 for k, d in zip(p.states, _inverse_diagonal(
-                     [[_F(v) for v in row] for row in p.P])))
-        level = _float_down(cq)
+                 for k, d in zip(p.states, inverse_diagonal(
+                     [[rational(v) for v in row] for row in p.P])))
+        level = float_down(cq)
         if not level > 0:
             continue
         logvol = sum(0.5 * len(p.states) * math.log(level / w[i])
@@ -594,7 +545,7 @@ def _decay(pieces: list[Piece], w: np.ndarray) -> float:
         for j, b in zip(p.neighbours, p.beta):
             col[j] += wq[i] * Fraction(b)
     g = min(-c / v for c, v in zip(col, wq))
-    return _float_down(g) if g > 0 else 0.0
+    return float_down(g) if g > 0 else 0.0
 
 
 # ============================================================================ files

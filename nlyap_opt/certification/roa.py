@@ -43,21 +43,31 @@ from fractions import Fraction
 
 import casadi as ca
 import numpy as np
-from scipy.linalg import solve_sylvester
+from scipy.linalg import eigh, solve_sylvester
 
-from verification import VerificationProblem, lyapunov_problem
+from verification import (
+    Counterexample,
+    QueryStatus,
+    VerificationProblem,
+    VerificationResult,
+    lyapunov_problem,
+)
 
 from ..design.control import InnerStatus, ellipse_candidates, lyapunov_matrix, verdict_of
 from ..design.polynomial import exact_polynomials
 from ..distributed import parallel
-from ..kernel.domain import as_domain
+from ..kernel.domain import Ball, Box, Ellipsoid, as_domain
+from ..kernel.exact import inverse, positive_definite, rational, rational_matrix
+from ..kernel.network import Network
 from ..kernel.rounding import EPS
+from ..kernel.sampling import sample_ball, sample_sphere
 from ..kernel.simulate import simulate
 from ..kernel.symbolic import closed_loop
 from ..kernel.walker import compile_function, evaluate
 
 __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
+    "quadratic_form", "quadratic_containment", "quadratic_inner_ball", "inner_ellipse_bound",
     "centre_lyapunov_matrix",
     "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "InnerForm",
     "InnerFormKind",
@@ -314,6 +324,125 @@ def _domain(domain, outer, n: int):
     return as_domain(domain, n)
 
 
+# ============================================================================ exact quadratics
+def quadratic_form(V) -> list[list[Fraction]] | None:
+    r"""The exact matrix ``P`` of a ``V`` that is a quadratic form by construction, or ``None``.
+
+    A network with the ``sum_of_squares`` head and only ``linear`` layers (the quadratic
+    candidates, :func:`nlyap_opt.design.control.quadratic_lyapunov`) is, in real arithmetic,
+    :math:`V(x) = \|s \odot W x\|^2 + e\|x\|^2` with :math:`W = W_L \cdots W_1` (the biases
+    cancel in :math:`N(x) - N(0)`), ``s`` the output scale and ``e`` the head's ``eps``:
+    :math:`V(x) = x^\top P x` with :math:`P = W^\top \mathrm{diag}(s^2) W + e I`, computed
+    here from the stored float64 weights in rational arithmetic: exactly the function whose
+    graph the verifier encloses. Any other ``V`` gives ``None``.
+    """
+    if not isinstance(V, Network) or V.head is None \
+            or any(layer.activation != "linear" for layer in V.layers):
+        return None
+    W = rational_matrix(V.layers[0].weight)
+    for layer in V.layers[1:]:
+        A = rational_matrix(layer.weight)
+        W = [[sum((a * W[k][j] for k, a in enumerate(row)), Fraction(0))
+              for j in range(len(W[0]))] for row in A]
+    s2 = [rational(v) ** 2 for v in
+          np.broadcast_to(np.asarray(V.output_scale, dtype=float), (len(W),))]
+    e = rational(V.head["eps"])
+    n = len(W[0])
+    return [[sum((s2[k] * W[k][i] * W[k][j] for k in range(len(W))), Fraction(0))
+             + (e if i == j else 0) for j in range(n)] for i in range(n)]
+
+
+def _exact_result(t0: float, point=None, prop: str = "", value: float = 0.0
+                  ) -> VerificationResult:
+    """``verified`` (no ``point``), or the violation of ``prop`` that an exact test proved,
+    located at ``point`` (the float approximation of the exact minimiser; ``value`` is the
+    property's float value there, its recorded range ``[0, value]``: ``≥ 0`` is exact)."""
+    if point is None:
+        return VerificationResult(QueryStatus.VERIFIED, seconds=time.perf_counter() - t0,
+                                  backend="exact")
+    ce = Counterexample(np.asarray(point, dtype=float), prop, 0.0, max(0.0, float(value)))
+    return VerificationResult(QueryStatus.COUNTEREXAMPLE, ce, [ce],
+                              seconds=time.perf_counter() - t0, backend="exact")
+
+
+def _minus(A, c: Fraction, B) -> list[list[Fraction]]:
+    """``A − c·B`` (``B`` ``None``: the identity)."""
+    return [[a - c * (Fraction(int(i == j)) if B is None else B[i][j])
+             for j, a in enumerate(row)] for i, row in enumerate(A)]
+
+
+def quadratic_containment(P: list[list[Fraction]], level: float, domain,
+                          piece_box) -> VerificationResult | None:
+    r"""Condition (b)'s ``V > level`` on one piece of ``∂D`` for ``V = xᵀPx``, decided
+    exactly (``P`` from :func:`quadratic_form`), or ``None`` where this does not decide it
+    (the verifier then does).
+
+    - ``D`` the ball ``‖x‖ ≤ r``: :math:`\min_{\|x\| = r} V = \lambda_{\min}(P) r^2`, so
+      ``V > c`` on the sphere iff :math:`r^2 P - cI \succ 0`;
+    - ``D`` the centred ellipsoid :math:`x^\top Q x \le 1`: iff :math:`P - cQ \succ 0`
+      (the least generalised eigenvalue of ``(P, Q)`` exceeds ``c``);
+    - ``D`` a box, the face :math:`x_k = t` (``piece_box``): ``V`` on the hyperplane has the
+      minimum :math:`t^2 / (P^{-1})_{kk}` at :math:`x^* = t P^{-1} e_k / (P^{-1})_{kk}`, so
+      :math:`c\,(P^{-1})_{kk} < t^2` proves ``V > c`` on the face; otherwise a minimiser
+      on the face refutes it, and one outside the face leaves the question to the verifier.
+
+    Every test is an exact ``LDLᵀ`` (:func:`nlyap_opt.kernel.exact.positive_definite`) or
+    an exact inverse of rationals: the floats ``P``, ``c``, ``r``, ``Q``, ``t`` as they are,
+    no rounding. A refutation's point is the float approximation of the minimiser; the
+    violation itself (``V ≤ c`` somewhere on the piece) is what the exact test proves.
+    """
+    t0 = time.perf_counter()
+    c = rational(level)
+    Pf = _float_matrix(P)
+
+    def refuted(x):
+        return _exact_result(t0, x, "V>level on ∂D (exact)", level - x @ Pf @ x)
+
+    if isinstance(domain, Ball) and domain.plain_ball:
+        if positive_definite(_minus(P, c / rational(domain.radius) ** 2, None)):
+            return _exact_result(t0)
+        return refuted(domain.radius * np.linalg.eigh(Pf)[1][:, 0])
+    if isinstance(domain, Ellipsoid) and domain.centre is None:
+        if positive_definite(_minus(P, c, rational_matrix(domain.Q))):
+            return _exact_result(t0)
+        return refuted(eigh(Pf, domain.Q)[1][:, 0])    # vᵀQv = 1: on the surface
+    if not isinstance(domain, Box) or not positive_definite(P):
+        return None
+    box = np.asarray(piece_box, dtype=float)
+    k = np.flatnonzero(box[:, 0] == box[:, 1])
+    if len(k) != 1 or box[k[0], 0] == 0:
+        return None
+    k = int(k[0])
+    t = rational(box[k, 0])
+    Pinv = inverse(P)
+    d = Pinv[k][k]
+    if c * d < t * t:
+        return _exact_result(t0)
+    xs = [t * Pinv[j][k] / d for j in range(len(P))]
+    if all(rational(lo) <= v <= rational(hi) for v, (lo, hi) in zip(xs, box)):
+        return refuted(np.array([float(v) for v in xs]))
+    return None
+
+
+def quadratic_inner_ball(P: list[list[Fraction]], level: float,
+                         inner: float) -> VerificationResult:
+    r"""``V < level`` on the inner sphere ``‖x‖ = ε`` for ``V = xᵀPx``, decided exactly:
+    :math:`\max_{\|x\| = \varepsilon} V = \lambda_{\max}(P)\varepsilon^2`, so it holds iff
+    :math:`cI - \varepsilon^2 P \succ 0` (exact ``LDLᵀ``, as :func:`quadratic_containment`)."""
+    t0 = time.perf_counter()
+    e2 = rational(inner) ** 2
+    if positive_definite(_minus([[-e2 * v for v in row] for row in P], -rational(level), None)):
+        return _exact_result(t0)
+    Pf = _float_matrix(P)
+    x = inner * np.linalg.eigh(Pf)[1][:, -1]
+    return _exact_result(t0, x, "V<level on inner sphere (exact)", x @ Pf @ x - level)
+
+
+def _float_matrix(P: list[list[Fraction]]) -> np.ndarray:
+    """The rational matrix rounded to float64 (to locate a refutation's point only)."""
+    return np.array([[float(v) for v in row] for row in P])
+
+
 @dataclass
 class LevelCertificate:
     """Result of :func:`certify_level`."""
@@ -329,7 +458,8 @@ class LevelCertificate:
 
 def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: float,
                   max_tries: int = 8, shrink: float = 1e-3, verify_options: dict | None = None,
-                  log=print, domain=None, follow_violations: bool = False) -> LevelCertificate:
+                  log=print, domain=None, follow_violations: bool = False,
+                  quadratic: list[list[Fraction]] | None = None) -> LevelCertificate:
     """Prove (a) and (b) at the largest level we can reach from ``level`` downwards.
 
     The region is ``domain`` (a :class:`nlyap_opt.kernel.domain.Region`) or the ball
@@ -345,6 +475,12 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     would tries ``(1 +`` :data:`INNER_LEVEL_MARGIN` ``)`` times it instead, the smallest level
     that can hold the inner ball, and the search ends after that. Returns the certified
     level or why none was found.
+
+    ``quadratic``: the exact matrix of ``V`` when ``V = xᵀPx`` by construction
+    (:func:`quadratic_form`); condition (b) (``V > c`` on ``∂D``, ``V < c`` on the inner
+    sphere) is then decided exactly by :func:`quadratic_containment` and
+    :func:`quadratic_inner_ball` (the verifier only for a piece of ``∂D`` they leave open).
+    Each history entry records how (b) was decided (``containment_backend``).
     """
 
     t0 = time.perf_counter()
@@ -378,11 +514,14 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     for k in range(max_tries):
         if c is None or not c > 0:
             break
-        res_b = None
+        res_b, how = None, []
         for pbox, cons, label in pieces:   # V > c on each piece of the boundary
-            prob_b = VerificationProblem(x, pbox, [g for g, _ in cons], [c - V],
-                                         [nm for _, nm in cons], [f"V>level on {label}"])
-            r = parallel.check(prob_b, **opts)
+            r = None if quadratic is None else quadratic_containment(quadratic, c, D, pbox)
+            if r is None:
+                prob_b = VerificationProblem(x, pbox, [g for g, _ in cons], [c - V],
+                                             [nm for _, nm in cons], [f"V>level on {label}"])
+                r = parallel.check(prob_b, **opts)
+            how.append(r.backend)
             if res_b is not None:
                 r.seconds += res_b.seconds
                 r.boxes += res_b.boxes
@@ -395,15 +534,19 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
         hist.append({"level": c, "containment": res_b.status,
                      "decrease": None if res_a is None else res_a.status,
                      "seconds": res_b.seconds + (res_a.seconds if res_a else 0.0),
-                     "boxes": res_b.boxes + (res_a.boxes if res_a else 0)})
+                     "boxes": res_b.boxes + (res_a.boxes if res_a else 0),
+                     "containment_backend": "+".join(sorted(set(how)))})
         log(f"    level {c:.6g}: containment {res_b.status}, decrease "
             f"{hist[-1]['decrease']}")
         if res_a is not None and res_a.status == "verified":
             # B_ε ⊆ Ω_c: V < c on the inner sphere (else Ω_c may lie inside B_ε: a trivial
             # certificate resting on condition (c) alone)
-            prob_d = VerificationProblem(x, box, [r2 - inner**2, inner**2 - r2], [V - c],
-                                         ["inner", "sphere"], ["V<level on inner sphere"])
-            res_d = parallel.check(prob_d, **opts)
+            if quadratic is not None:
+                res_d = quadratic_inner_ball(quadratic, c, inner)
+            else:
+                prob_d = VerificationProblem(x, box, [r2 - inner**2, inner**2 - r2], [V - c],
+                                             ["inner", "sphere"], ["V<level on inner sphere"])
+                res_d = parallel.check(prob_d, **opts)
             status = "certified" if res_d.status == "verified" else \
                 f"level {c:.4g} does not contain the inner ball ({res_d.status})"
             hist[-1]["contains_inner_ball"] = res_d.status
@@ -531,6 +674,54 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
             return out
         first = first or out
     return first if first is not None else blowup
+
+
+#: a sampled ``V̇_q`` above this fraction of the sum of its terms' magnitudes is positive
+#: beyond any rounding of its float evaluation (about ``1e-15`` of that sum)
+_VDOT_SLACK = 1e-9
+
+
+def inner_ellipse_bound(system, controller, inner: float, pts: np.ndarray, *,
+                        samples: int = 4000, seed: int = 0) -> np.ndarray | None:
+    r"""Which ``pts`` may lie in condition (c)'s ellipse ``E`` at radius ``inner`` (the true
+    closed loop with ``controller``), without verifying (c): an over-approximation, to bound
+    the volume a certificate can reach before its (expensive) verification is attempted.
+
+    Without a saved form, :func:`certify_inner_ellipse` proves (c) with one of the
+    candidates ``P`` of :func:`nlyap_opt.design.control.ellipse_candidates` on
+    ``E = {xᵀPx ≤ c_q}`` (:func:`ellipse_around_ball`), and every form it proves implies
+    :math:`\dot V_q = 2x^\top P f(x) < 0` on :math:`E \setminus \{0\}`. A candidate whose
+    ellipse holds a sampled point (``samples`` seeded points inside and on ``E``) with
+    :math:`\dot V_q` clearly positive (beyond :data:`_VDOT_SLACK` of its terms) can
+    therefore not be proved; the mask is the union of the other candidates' ellipses.
+    ``None`` (no bound) where (c) would take another route: a linearisation that is not
+    Hurwitz or has a centre (the weighted blow-up).
+    """
+    cl = closed_loop(system, controller, strict=True)
+    n = system.nx
+    A_cl = np.array(_fun(cl.x, ca.jacobian(cl.rhs, cl.x))(np.zeros(n)), dtype=float)
+    if not np.all(np.isfinite(A_cl)) or np.max(np.linalg.eigvals(A_cl).real) >= 0 \
+            or _centre_split(A_cl) is not None:
+        return None
+    F = _fun(cl.x, cl.rhs)
+    rng = np.random.default_rng(seed)
+    u = np.vstack([sample_ball(samples // 2, n, 1.0, rng),
+                   sample_sphere(samples - samples // 2, n, 1.0, rng)])
+    mask = np.zeros(len(pts), dtype=bool)
+    for P in ellipse_candidates(A_cl):
+        if P is None or not np.all(np.isfinite(P)):
+            continue
+        c_q, _ = ellipse_around_ball(P, inner)
+        try:    # x = sqrt(c_q)·L⁻ᵀu maps the unit ball onto E (P = L Lᵀ)
+            x = math.sqrt(c_q) * np.linalg.solve(np.linalg.cholesky(P).T, u.T).T
+        except (np.linalg.LinAlgError, ValueError):
+            x = None                       # no samples: the ellipse stays in the bound
+        if x is not None:
+            terms = 2.0 * (x @ P) * evaluate(F, [x])[0]
+            if np.any(terms.sum(axis=1) > _VDOT_SLACK * np.abs(terms).sum(axis=1)):
+                continue
+        mask |= np.einsum("ij,jk,ik->i", pts, P, pts) <= c_q * (1 + 1e-9)
+    return mask
 
 
 def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = None, *,

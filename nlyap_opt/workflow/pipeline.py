@@ -58,6 +58,7 @@ from ..certification.certificate import (
     CertStatus,
     RoaCertificate,
     RoaProblem,
+    VolumeToBeat,
     certify_roa,
     certify_with_inner_search,
     save_certificate,
@@ -146,7 +147,7 @@ _STAGE_FIELDS: dict[str, tuple[str, ...]] = {
     "controller": ("lqr", "controller_scale"),
     "quadratic": _REGION + ("quadratic",) + _VERIFY + _EVAL,
     "sos": _REGION + ("sos",) + _VERIFY + _EVAL,
-    "cegis": _REGION + ("train", "cegis"),
+    "cegis": _REGION + ("train", "cegis") + _EVAL,
 }
 #: the files each stage writes (the sha256 of each is recorded)
 _STAGE_FILES = {
@@ -625,8 +626,11 @@ def _cegis_stage(ctx: _Context, starts: Mapping[str, _CheapRecord | None],
     """Stage 4: V and κ by CEGIS; returns the ``cegis.json`` record (fresh, or loaded)."""
     view = ctx.stages.view("cegis")
     train = TrainConfig(**view.train.to_json())
-    # train.init: V starts at a cheap certificate (the CEGIS stage then builds on its stage)
-    deps = ("dynamics", "controller") + ((train.init,) if train.init != "random" else ())
+    # train.init: V starts at a cheap certificate; with the true f an iterate that cannot
+    # beat the best one is not verified: the CEGIS stage builds on the cheap stages
+    cheap = [c for c in starts.values() if c is not None]
+    deps = ("dynamics", "controller") + tuple(
+        k for k, c in starts.items() if c is not None or k == train.init)
     out = ctx.out
     if ctx.stages.finished("cegis", *deps):
         return _CegisRecord.load(out / "cegis.json")
@@ -640,13 +644,15 @@ def _cegis_stage(ctx: _Context, starts: Mapping[str, _CheapRecord | None],
     ctx.log(f"[cegis] learning V{' and κ' if ctx.controller is not None else ''} on {where}"
             + (f", X_I = {XI.describe()}" if XI is not None else "")
             + (f" with η = {ctx.eta:.3g}" if ctx.eta else " (true f)"))
-    cheap = [c for c in starts.values() if c is not None]
+    beat = None
     if cheap:
         best = max(cheap, key=lambda c: c.volume)
         ctx.log(f"[cegis] the certificate to beat: {best.label}, volume "
                 f"{best.volume:.4g} on the evaluation grid")
+        beat = VolumeToBeat(best.volume, *_eval_grid(ctx.system, view), best.label)
     res = cegis(ctx.system, ctx.controller, ctx.dynamics, ccfg, eta=ctx.eta,
-                dynamics_box=ctx.dyn_box, input_box=ctx.input_box, log=ctx.log, V0=V0)
+                dynamics_box=ctx.dyn_box, input_box=ctx.input_box, log=ctx.log, V0=V0,
+                beat=beat)
     res.V.save(out / "V.json")
     if res.controller is not None:
         res.controller.save(out / "controller.json")
@@ -701,12 +707,18 @@ def _certificate_stage(ctx: _Context, cfg: RunConfig, cg: _CegisRecord,
         log(f"[certificate] CEGIS certified no level ({cg.reason or cg.status.value}); "
             "trying the last V with other inner radii")
     # the saved level at the configured ε first (exact re-verification); other radii only
-    # if that is refused (the same V and κ; no retraining)
+    # if that is refused (the same V and κ; no retraining). The cheap certificates are
+    # verified first: with the true f, a radius whose certificate cannot beat the best of
+    # them is not searched
     with verifying_on(client):   # client None: serial
+        checked = _verify_cheap(system, cfg, out, problem, cheap, log)
+        win = max((c for c in checked if c[1].certified), key=lambda c: c[3], default=None)
+        beat = None if win is None else VolumeToBeat(win[3], *_eval_grid(system, cfg),
+                                                     win[0].label)
         cert = certify_with_inner_search(problem, float(cg.level) if claimed else None,
-                                         log=lambda m: log("  " + m))
+                                         beat=beat, log=lambda m: log("  " + m))
         cert, problem, files, compared = _best_certificate(
-            system, cfg, out, cert, problem, cheap, log)
+            system, cfg, cert, problem, checked, log)
         extra = _areas_and_checks(system, cfg, cert, problem, out, log).to_json()
         if compared:
             extra["candidates"] = compared
@@ -1016,16 +1028,30 @@ def _cheap_problem(system, out: Path, problem: RoaProblem, rec: _CheapRecord) ->
                    verify_options=dict(rec.verify_options))
 
 
-def _best_certificate(system, cfg, out: Path, cert, problem, cheap: list, log):
-    """The best certificate wins: re-verify each saved cheap certificate (quadratic, SOS) at
-    its saved level and ε, keep the largest certified volume on the evaluation grid (the
-    neural V on a tie, then the earlier candidate).
+def _verify_cheap(system, cfg, out: Path, problem, cheap: list, log) -> list[tuple]:
+    """Re-verify each saved cheap certificate (quadratic, SOS) at its saved level and ε:
+    ``(record, certificate, problem, certified volume on the evaluation grid)`` each."""
+    box, n = _eval_grid(system, cfg)
+    checked = []
+    for rec in cheap:
+        pc = _cheap_problem(system, out, problem, rec)
+        log(f"[certificate] verifying the saved {rec.label} ({rec.file}) at its saved "
+            f"level {float(rec.level):.6g}, ε = {float(rec.inner):g}")
+        c = certify_roa(pc, float(rec.level), log=lambda m: log("  " + m))
+        checked.append((rec, c, pc, c.area(box, n) if c.certified else 0.0))
+    return checked
+
+
+def _best_certificate(system, cfg, cert, problem, checked: list, log):
+    """The best certificate wins: the largest certified volume on the evaluation grid among
+    the neural ``cert`` and the re-verified cheap ones (``checked``, of
+    :func:`_verify_cheap`); the neural V on a tie, then the earlier candidate.
 
     Returns ``(cert, problem, files, compared)``: the winner, its problem, the artifact file
     names of :func:`save_certificate` and the table of every candidate (``[]`` without a
     cheap certificate).
     """
-    if not cheap:
+    if not checked:
         return cert, problem, None, []
     box, n = _eval_grid(system, cfg)
     vol_n = cert.area(box, n) if cert.certified else 0.0
@@ -1035,12 +1061,7 @@ def _best_certificate(system, cfg, out: Path, cert, problem, cheap: list, log):
          "inner": cert.inner, "certified_volume": vol_n, "winner": False}]
     # (volume, certificate, problem, cheap record or None for the neural V, table row)
     best = (vol_n if cert.certified else -1.0, cert, problem, None, compared[0])
-    for rec in cheap:
-        pc = _cheap_problem(system, out, problem, rec)
-        log(f"[certificate] verifying the saved {rec.label} ({rec.file}) at its saved "
-            f"level {float(rec.level):.6g}, ε = {float(rec.inner):g}")
-        c = certify_roa(pc, float(rec.level), log=lambda m: log("  " + m))
-        vol = c.area(box, n) if c.certified else 0.0
+    for rec, c, pc, vol in checked:
         row = {"V": f"{rec.label} ({rec.file})",
                "controller": "controller_init.json" if system.nu else None,
                "status": c.status.value, "reason": c.reason, "level": c.level,

@@ -1,0 +1,93 @@
+"""A candidate whose certificate cannot beat the best certified volume is not verified: the
+volume bound bounds every certificate it stands for, and skipping changes only what is
+attempted (the same candidate levels, no claim without a verification)."""
+
+import numpy as np
+import pytest
+
+import systems
+from nlyap_opt.candidates.cegis import CegisConfig, cegis
+from nlyap_opt.candidates.learning import TrainConfig
+from nlyap_opt.certification.certificate import (
+    LevelPolicy,
+    RoaProblem,
+    VolumeToBeat,
+    certify_candidate,
+)
+from nlyap_opt.certification.roa import (
+    certify_inner_ellipse,
+    grid_points,
+    inner_ellipse_bound,
+)
+from nlyap_opt.design.control import lyapunov_matrix, quadratic_lyapunov
+
+BOX = np.array([[-2.5, 2.5], [-2.5, 2.5]])
+N = 61
+
+
+@pytest.fixture(scope="module")
+def vdp():
+    s = systems.get("van_der_pol")
+    P = lyapunov_matrix(np.asarray(s.A, dtype=float))
+    return s, RoaProblem(s, quadratic_lyapunov(P), None, None, inner=0.1, outer=2.0)
+
+
+def test_the_ellipse_bound_holds_the_proved_inner_ellipse(vdp):
+    s, _ = vdp
+    pts, _ = grid_points(BOX, N)
+    for eps in (0.1, 0.4):
+        res = certify_inner_ellipse(s, None, eps)
+        assert res["verdict"].value == "certified"
+        P, c = np.asarray(res["P"]), float(res["level"])
+        inside = np.einsum("ij,jk,ik->i", pts, P, pts) <= c
+        assert inside.sum() > 0
+        mask = inner_ellipse_bound(s, None, eps, pts)
+        assert mask is not None and np.all(mask[inside])
+
+
+def test_the_volume_bound_bounds_the_certified_volume(vdp):
+    s, problem = vdp
+    cert = certify_candidate(problem, LevelPolicy(1.0, (1.0,)), log=lambda m: None)
+    assert cert.certified
+    vol = cert.area(BOX, N)
+    b = VolumeToBeat(0.0, BOX, N, "nothing").bound(problem, cert.level)
+    assert vol <= b
+    # the bound grows with the level and stays below the whole domain's grid volume
+    assert b <= VolumeToBeat(0.0, BOX, N, "x").bound(problem, 10 * cert.level) <= 25.0
+
+
+def test_radii_that_cannot_beat_are_skipped_and_the_rest_is_unchanged(vdp):
+    s, problem = vdp
+    policy = LevelPolicy(1.0, (1.0, 2.0))
+    quiet = {"log": lambda m: None}
+    plain = certify_candidate(problem, policy, **quiet)
+    low = certify_candidate(problem, policy, beat=VolumeToBeat(0.0, BOX, N, "zero"), **quiet)
+    assert plain.certified and low.certified and low.level == plain.level
+    high = certify_candidate(problem, policy, beat=VolumeToBeat(1e3, BOX, N, "quadratic x"),
+                             **quiet)
+    assert not high.certified and "cannot beat the quadratic x" in high.reason
+    tried = high.history[-1]["inner_radius_search"]
+    assert [t["status"] for t in tried] == ["skipped", "skipped"]
+    assert [t["inner"] for t in tried] == [0.1, 0.2]
+
+
+def test_cegis_does_not_verify_an_iterate_that_cannot_beat():
+    s = systems.get("van_der_pol")
+    train = TrainConfig(hidden=[8], features=3, steps=100, lr=0.02, w_local=10.0,
+                        level_slack=0.5, relative_decrease=True)
+    cfg = CegisConfig(inner=0.3, outer=1.5, iterations=2, steps=30, samples=1000,
+                      sphere_samples=200, train=train, area_points=6400)
+    box = np.array([[-1.5, 1.5], [-1.5, 1.5]])
+    skipped = cegis(s, None, None, cfg, log=lambda m: None,
+                    beat=VolumeToBeat(1e3, box, 41, "quadratic x"))
+    assert not skipped.certified and skipped.level == 0.0
+    for h in skipped.history:
+        assert h["boxes"] == 0 and h["status"] == "not certified"
+        assert h["skipped"].startswith("cannot beat the quadratic x"), h
+        assert h["reason"].startswith("not verified (cannot beat"), h
+    # without the bound the same first iterate (same training, same candidate level) is
+    # verified
+    plain = cegis(s, None, None, CegisConfig(**{**cfg.__dict__, "iterations": 1}),
+                  log=lambda m: None)
+    assert plain.history[0]["candidate_level"] == skipped.history[0]["candidate_level"]
+    assert plain.history[0]["boxes"] > 0 and plain.history[0]["skipped"] == ""

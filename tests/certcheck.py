@@ -105,3 +105,19 @@ def assert_fast_certificate(key: str, cert: dict, run_dir=None) -> bool:
     if run_dir is not None:
         assert got["sha256"] == want["sha256"], (key, fid, got["sha256"], want["sha256"])
     return True
+
+
+def assert_reverifies(system, V, level: float, inner: float, outer: float, half: float):
+    """``V`` (a network of the true closed loop of ``system``, no controller) re-verifies
+    at ``level`` on ``inner ≤ ‖x‖ ≤ outer`` in the box ``[-half, half]^n``, independently
+    of the run that produced it."""
+    from nlyap_opt.kernel.symbolic import closed_loop, lie_derivative
+    from verification import lyapunov_problem, verify
+
+    cl = closed_loop(system, None, None, strict=True)
+    Vx = V.casadi(cl.x)
+    prob = lyapunov_problem(cl.x, Vx, lie_derivative(Vx, cl.x, cl.rhs), inner=inner,
+                            outer=outer, level=level, margin=0.0,
+                            box=np.tile([-half, half], (system.nx, 1)), check_positive=False)
+    assert verify(prob).status == "verified"
+

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from certcheck import assert_reverifies
 
 import systems
 from nlyap_opt.candidates import cegis as cegis_module
@@ -48,9 +49,6 @@ def test_best_iterate_never_loses_area_and_resumes_after_a_bad_round(monkeypatch
     verifier call proves the iterate with the largest candidate set of its window; a
     certified area never exceeds its iterate's candidate set; the returned V re-verifies at
     the returned level."""
-    from nlyap_opt.kernel.symbolic import closed_loop, lie_derivative
-    from verification import lyapunov_problem, verify
-
     calls = []
     train = LyapunovLearner.train
 
@@ -101,12 +99,7 @@ def test_best_iterate_never_loses_area_and_resumes_after_a_bad_round(monkeypatch
         elif (e["iteration"] + 1) % cfg.verify_every == 0 and e["iteration"] < 5:
             assert e["candidate_area"] >= RESUME_BELOW * best
     assert res.area == best == max(e["area"] for e in h) > 0
-    cl = closed_loop(s, None, None, strict=True)
-    Vx = res.V.casadi(cl.x)
-    prob = lyapunov_problem(cl.x, Vx, lie_derivative(Vx, cl.x, cl.rhs), inner=0.3,
-                            outer=1.5, level=res.level, margin=0.0,
-                            box=np.tile([-1.5, 1.5], (2, 1)), check_positive=False)
-    assert verify(prob).status == "verified"
+    assert_reverifies(s, res.V, res.level, inner=0.3, outer=1.5, half=1.5)
 
 
 def test_candidate_area_is_the_grid_area_of_the_sublevel_set_in_the_domain():

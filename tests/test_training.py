@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
+from certcheck import assert_reverifies
 
 import systems
 from baselines.lqr import lqr, saturated_controller
@@ -127,9 +128,6 @@ def test_stop_rule_goes_on_while_decrease_violations_limit_a_growing_level():
 def test_falsifier_first_cegis_verifies_what_it_returns():
     """With verify_every = 2, only odd iterations (and the last) run the verifier; the
     returned level is one the verifier proved (re-checked here)."""
-    from nlyap_opt.kernel.symbolic import closed_loop, lie_derivative
-    from verification import lyapunov_problem, verify
-
     s = systems.get("van_der_pol")
     train = TrainConfig(hidden=[8], features=3, steps=300, lr=0.02, w_fit=10.0, w_pde=1.0,
                         w_local=10.0, relative_decrease=True, level_slack=0.5, decay=0.05,
@@ -149,12 +147,7 @@ def test_falsifier_first_cegis_verifies_what_it_returns():
             assert h["boxes"] > 0, h
     assert res.status == "certified" and res.level > 0 and res.area > 0
     _assert_stop_rule(res.history, cfg)
-    cl = closed_loop(s, None, None, strict=True)
-    Vx = res.V.casadi(cl.x)
-    prob = lyapunov_problem(cl.x, Vx, lie_derivative(Vx, cl.x, cl.rhs), inner=0.3,
-                            outer=1.5, level=res.level, margin=0.0,
-                            box=np.tile([-1.5, 1.5], (2, 1)), check_positive=False)
-    assert verify(prob).status == "verified"
+    assert_reverifies(s, res.V, res.level, inner=0.3, outer=1.5, half=1.5)
 
 
 def test_tabulated_simulation_rhs_interpolates_the_model():

@@ -18,7 +18,10 @@ into ``n_tasks`` sub-boxes) for comparison:
     --certificate DIR [--workers W]`` does:
     :func:`nlyap_opt.certification.certificate.recheck_certificate` serially and inside
     :func:`nlyap_opt.distributed.parallel.verifying_on` (every check on the cluster).
-    ``--no-certificate`` skips it (about 3 minutes).
+    ``--no-certificate`` skips it (about 3 minutes). ``--save-certificate DIR`` keeps the
+    saved certificate in DIR; ``--certificate DIR`` re-checks the one saved there instead of
+    certifying it first (e.g. on another machine: a re-check is how a shared certificate is
+    trusted).
 
 Seconds are the best of ``--repeat`` runs (cluster start-up excluded). Figures are printed,
 not asserted; on a shared machine read them with the load average printed beside them.
@@ -38,6 +41,7 @@ workers) is printed with its modelled rows. ``--workers`` with no count: the mod
 
     python bench/distributed_verify.py [--repeat 3] [--workers 1 2] [--cartpole-r 0.5]
                                        [--no-certificate] [--model 4 8 16]
+                                       [--save-certificate DIR | --certificate DIR]
 """
 
 from __future__ import annotations
@@ -122,12 +126,14 @@ def cartpole_certificate():
     return replace(base, V=quadratic_lyapunov(cand.P), inner=cert.inner), cert.level
 
 
-def certificate_rows(workers, repeat, model=()):
+def certificate_rows(workers, repeat, model=(), saved=None, keep=None):
     """Seconds of ``nlyap verify --certificate`` on query (D): serial, then on clusters of
     ``workers`` (:func:`nlyap_opt.certification.certificate.recheck_certificate` of the saved
     certificate, inside :func:`nlyap_opt.distributed.parallel.verifying_on` as the CLI runs it); the
     model on
-    ``model`` workers."""
+    ``model`` workers; ``saved``: the directory of a saved certificate to re-check instead
+    (not certified here); ``keep``: a directory to save the certificate into."""
+    import contextlib
     import tempfile
 
     from nlyap_opt.certification.certificate import (
@@ -137,12 +143,20 @@ def certificate_rows(workers, repeat, model=()):
     )
     from nlyap_opt.distributed.parallel import verifying_on
 
-    problem, level = cartpole_certificate()
-    cert = certify_roa(problem, level, log=lambda m: None)
-    if not cert.certified:
-        raise SystemExit(f"query (D): not certified at level {level:g} ({cert.reason})")
-    with tempfile.TemporaryDirectory() as tmp:
-        path = save_certificate(cert, problem, tmp)
+    if saved is None:
+        problem, level = cartpole_certificate()
+        cert = certify_roa(problem, level, log=lambda m: None)
+        if not cert.certified:
+            raise SystemExit(f"query (D): not certified at level {level:g} ({cert.reason})")
+    where = contextlib.nullcontext(saved or keep) if (saved or keep) else \
+        tempfile.TemporaryDirectory()
+    with where as tmp:
+        path = Path(tmp) / "certificate.json" if saved else save_certificate(cert, problem, tmp)
+        if saved:
+            cert = recheck_certificate(path, log=lambda m: None)
+            if not cert.certified:
+                raise SystemExit(f"query (D): {path} does not re-check ({cert.reason})")
+            level = cert.level
 
         def once():  # reads the artifacts again: no compiled check is reused between timings
             return recheck_certificate(path, log=lambda m: None)
@@ -175,7 +189,7 @@ def certificate_rows(workers, repeat, model=()):
                         row["efficiency"] = row["speedup"] / w
                 modelled[cost] = m
     print(f"(D) cartpole certificate (round quadratic, level {level:.6g}, ε = "
-          f"{problem.inner:g}, (c) by the {cert.inner_ellipse.form} form): "
+          f"{cert.inner:g}, (c) by the {cert.inner_ellipse.form} form): "
           "nlyap verify --certificate, conditions (a), (b), (c) re-checked")
     print("| workers | how | seconds (best) | speed-up vs 1 worker | efficiency | status |")
     print("|---|---|---|---|---|---|")
@@ -232,9 +246,17 @@ def main(argv=None):
     ap.add_argument("--model", type=int, nargs="*", default=[],
                     help="worker counts to model (SimulatedCluster), e.g. 4 8 16; each "
                          "costs a serial run per cost measure")
+    where = ap.add_mutually_exclusive_group()
+    where.add_argument("--save-certificate", metavar="DIR",
+                       help="keep query (D)'s certificate in DIR")
+    where.add_argument("--certificate", metavar="DIR",
+                       help="re-check the certificate saved in DIR as query (D)")
     args = ap.parse_args(argv)
     if not args.no_certificate:
-        certificate_rows(args.workers, args.repeat, args.model)
+        if args.save_certificate:
+            Path(args.save_certificate).mkdir(parents=True, exist_ok=True)
+        certificate_rows(args.workers, args.repeat, args.model, saved=args.certificate,
+                         keep=args.save_certificate)
     queries = [("(A) 4-D, 64-neuron V factor", problem_4d(1.1, 64), {})]
     p = problem_vdp30()
     if p is not None:

@@ -33,17 +33,19 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import torch
 from threadpoolctl import threadpool_limits
 
 import systems as _systems
 
 from ..certification.certificate import sha256_file, write_json_atomic
 from ..distributed.parallel import DEFAULT_CONNECT_TIMEOUT, client_workers, cpu_cores, dask_client
+from ..kernel import deps
 from ..kernel.errors import ConfigError
 from .configs import RunConfig, Section, check_dynamics_box, validate_config
 from .pipeline import run
 
-__all__ = ["run_portfolio", "PortfolioResult", "SeedRun", "seed_config"]
+__all__ = ["run_portfolio", "PortfolioResult", "SeedRun", "seed_config", "warm_up", "warm_workers"]
 
 _POLL = 0.5  # seconds between looks for the first seed's finished dynamics stage
 
@@ -69,6 +71,10 @@ class SeedRun:
     dir : str
         The run's directory, relative to the portfolio's.
     reason : str
+    cpu_seconds : float
+        CPU seconds (user + system, every thread) of its worker process during the run:
+        above ``seconds`` when the run used several threads, well below when its worker
+        waited for a CPU.
     """
 
     seed: int
@@ -80,6 +86,7 @@ class SeedRun:
     seconds: float
     dir: str
     reason: str = ""
+    cpu_seconds: float = 0.0
 
 
 @dataclass
@@ -161,6 +168,43 @@ def _check_seeds(seeds) -> list[int]:
     return out
 
 
+def warm_up() -> float:
+    """Pay a fresh process's one-time costs of a run now: the imports of the pipeline,
+    torch's first optimiser step (its set-up loads modules lazily) and matplotlib's Agg
+    backend (the run's figures).
+
+    Run on every worker of a cluster that is kept for many runs (:func:`warm_workers`),
+    so that the first seed a worker runs costs what the later ones do. It changes no
+    result: it trains nothing that a run reads, and a run sets its own seeds and threads.
+
+    Returns
+    -------
+    float
+        The CPU seconds this process spent on it.
+    """
+    t = time.process_time()
+    p = torch.zeros(2, requires_grad=True)
+    opt = torch.optim.Adam([p], lr=1e-3)
+    (p * p).sum().backward()
+    opt.step()
+    deps.pyplot()
+    return time.process_time() - t
+
+
+def warm_workers(client) -> list[float]:
+    """:func:`warm_up` on every worker of ``client`` (a ``distributed.Client``); returns
+    each worker's CPU seconds for it, in the order of the workers' addresses.
+
+    Examples
+    --------
+    >>> with dask_client(workers=16) as client:                   # doctest: +SKIP
+    ...     warm_workers(client)
+    ...     run_portfolio("van_der_pol", cfg, "runs/pf", seeds=16, client=client)
+    """
+    done = client.run(warm_up)
+    return [float(done[a]) for a in sorted(done)]
+
+
 def _run_seed(system: str, cfg: RunConfig, out: str, known_dynamics: bool,
               spec: str | None, seed: int) -> SeedRun:
     """Worker side: one pipeline run, its log in ``out/run.log``; its summary back.
@@ -172,7 +216,7 @@ def _run_seed(system: str, cfg: RunConfig, out: str, known_dynamics: bool,
 
     if spec is not None:
         system = _systems.load_spec(spec)
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     Path(out).mkdir(parents=True, exist_ok=True)
     with open(Path(out) / "run.log", "a", encoding="utf-8") as fh:
         def log(msg):
@@ -188,7 +232,8 @@ def _run_seed(system: str, cfg: RunConfig, out: str, known_dynamics: bool,
                    else None,
                    float(s.get("certified_area") or 0.0) if res.certified else 0.0,
                    None if share is None or not res.certified else float(share),
-                   time.perf_counter() - t, Path(out).name, str(res.reason or ""))
+                   time.perf_counter() - t, Path(out).name, str(res.reason or ""),
+                   time.process_time() - cpu)
 
 
 @dataclass(frozen=True)

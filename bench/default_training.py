@@ -1,6 +1,7 @@
 """The default method on systems without a preset: certified share of the true ROA and time.
 
-Usage: python bench/default_training.py [--cases vdp3,power,...] [--settings known,learned]
+Usage: python bench/default_training.py [--cases vdp3,power,examples/X.toml,...]
+       [--settings known,learned]
        [--seed K] [--out DIR]
 
 Each case is run as a user would, with default settings: ``nlyap run SPEC
@@ -8,7 +9,9 @@ Each case is run as a user would, with default settings: ``nlyap run SPEC
 catalogue system (its preset is not used). A case ``NAME@large`` runs the catalogue system
 with default settings on its ``large`` preset's sets: ``--config`` with that preset's
 ``domain`` (the ball of radius ``outer`` when it has none), ``inner`` and ``eval_box``, the
-sets on which the ``large`` presets' shares were measured; nothing else of the preset.
+sets on which the ``large`` presets' shares were measured; nothing else of the preset. A
+case that is a spec file's path (``examples/X.toml``) runs that file as it is, its ``[run]``
+table included.
 ``--seed K`` sets ``train.seed`` (a ``--config`` override): the spread over seeds says
 whether a change of the training is real. Prints one Markdown row per run (status, the
 certified share of the simulated true ROA within the domain; the share of that true ROA
@@ -62,6 +65,8 @@ def large_sets(name: str) -> dict:
 
 def case(name: str) -> tuple[str, float | None, dict]:
     """What ``nlyap`` runs for case ``name``, the share to compare with and the overrides."""
+    if name.endswith(".toml"):
+        return name, None, {}
     if name.endswith("@large"):
         system = name[:-len("@large")]
         return system, LARGE_SHARES.get(system), large_sets(system)
@@ -146,11 +151,12 @@ def main() -> None:
         target, peer, overrides = case(name)
         if args.seed is not None:
             overrides = {**overrides, "train": {"seed": args.seed}}
+        label = Path(name).stem if name.endswith(".toml") else name
         for setting in args.settings.split(","):
             known = setting == "known"
-            cmd, cert, sec, cpu = run_case(target, known, base / f"{name}_{setting}",
+            cmd, cert, sec, cpu = run_case(target, known, base / f"{label}_{setting}",
                                            overrides)
-            bound = stay_share(target, base / f"{name}_{setting}", cert)
+            bound = stay_share(target, base / f"{label}_{setting}", cert)
             share = cert.get("fraction_of_true_roa")
             shown = "–" if share is None or cert["status"] != "certified" else \
                 f"{100 * share:.1f}"

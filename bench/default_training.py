@@ -109,7 +109,8 @@ def run_case(target: str, known: bool, out: Path, overrides: dict | None = None
 def stay_share(target: str, out: Path, cert: dict) -> float | None:
     """The share of the simulated true ROA within D whose trajectories never leave D, under
     the run's controller: no certificate in D can hold more (a certified set lies in D and
-    is forward invariant). ``None`` when the run wrote no certificate."""
+    is forward invariant). ``None`` when the run wrote no certificate or no grid point's
+    trajectory converges within the horizon."""
     import numpy as np
 
     import systems
@@ -132,7 +133,9 @@ def stay_share(target: str, out: Path, cert: dict) -> float | None:
     inside = D.contains(pts)
     conv = simulate(rhs, pts, 60.0, 0.02, 1e-3)[0] & inside
     stays = simulate(rhs, pts, 60.0, 0.02, 1e-3, stay=D.contains)[0] & inside
-    return float(stays.sum() / max(conv.sum(), 1))
+    if not conv.any():  # nothing converges within the horizon (a slow, non-exponential
+        return None      # origin): no bound to give
+    return float(stays.sum() / conv.sum())
 
 
 def main() -> None:

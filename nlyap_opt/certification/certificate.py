@@ -644,7 +644,11 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
                        shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
                        log=log, follow_violations=follow_violations,
                        quadratic=quadratic_form(problem.V))
+    # the checks of the certified level (a search's later tries may have failed above it)
     last = lc.history[-1] if lc.history else {}
+    if lc.status == "certified":
+        last = next(h for h in lc.history if h["level"] == lc.level
+                    and h.get("contains_inner_ball") == "verified")
     checks = {"(a) decrease": last.get("decrease") or "not run",
               "(b) V > level on ‖x‖ = r" if problem.domain.plain_ball else "(b) V > level on ∂D":
               last.get("containment") or "not run",

@@ -591,7 +591,8 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
         at the end through the pipeline's certificate stage).
     follow_violations : bool
         With ``search``: follow decrease counterexamples down to the least ``V`` of a
-        violation (:func:`nlyap_opt.certification.roa.certify_level`).
+        violation, and climb back from a proved level by bisection
+        (:func:`nlyap_opt.certification.roa.certify_level`).
     inner_ellipse : InnerEllipse, optional
         A saved certificate's proved ellipse: condition (c) checks exactly its ``P`` in its
         ``form`` instead of searching the candidates (:func:`recheck_certificate`). Used
@@ -867,7 +868,9 @@ class LevelPolicy:
         searching down from the candidate level (learned dynamics: there the robust margin
         has the most room).
     follow_violations : bool
-        Follow decrease counterexamples down to the least ``V`` of a violation.
+        Follow decrease counterexamples down to the least ``V`` of a violation, and climb
+        back from a proved level by bisection
+        (:func:`nlyap_opt.certification.roa.certify_level`).
     """
 
     inner_fraction: float = 1.0

@@ -14,7 +14,7 @@ matrices of :mod:`nlyap_opt.candidates.quadratic` -- ``lyapunov`` (``A_clᵀP + 
 Figures only (no assertions)::
 
     python bench/high_dimension.py [--systems cartpole planar_quadrotor] [--certify]
-                                   [--candidates lyapunov round volume]
+                                   [--candidates lyapunov round volume] [--verbose]
 
 Measured (2-core machine shared with other work, 2026-11-26; ``--certify`` on the cartpole
 only): see ``docs/topics/high_dimension.md``.
@@ -81,6 +81,7 @@ def main(argv=None) -> None:
     ap.add_argument("--candidates", nargs="+", default=list(QUADRATIC_CANDIDATES))
     ap.add_argument("--samples", type=int, default=200_000)
     ap.add_argument("--certify", action="store_true")
+    ap.add_argument("--verbose", action="store_true", help="print the level search's tries")
     a = ap.parse_args(argv)
     print("| system | P | cond P | sampled level | volume (sampled) | certified level | "
           "volume (certified, exact / grid) | seconds |")
@@ -100,7 +101,7 @@ def main(argv=None) -> None:
                                   verify_options=cfg["cegis"]["verify_options"])
                 q = certify_quadratics(prob, [cand], box=box,
                                        n=axis_count(cfg["eval_points"], s.nx),
-                                       log=lambda m: None)[0]
+                                       log=print if a.verbose else lambda m: None)[0]
                 lv = q.certificate.level if q.certified else 0.0
                 row += [f"{lv:.4g}" if q.certified else q.certificate.status.value,
                         f"{_volume(P, lv):.4g} / {q.volume:.4g}" if q.certified else "–",

@@ -5,12 +5,17 @@ On ``x' = −x(1 − ‖x‖²)`` (region of attraction: the open unit ball) wit
 levels end "unknown" (a spent box budget, simulated here by the first verdicts), the
 search's 30 % step lands below that: it must try ``1.02 · 0.9025`` instead, where (a), (b)
 and (c) hold, and stop when that fails too.
+
+With ``follow_violations`` the search climbs back from its first proved level by bisection:
+on ``V = ‖x‖²``, ``V̇ = 2V(V − T)`` with a band of "unknown" verdicts below ``T``, it ends
+within a few percent of the largest level the verifier proves, never above it.
 """
 
 import casadi as ca
 import numpy as np
 import pytest
 
+import nlyap_opt.certification.roa as roa
 import nlyap_opt.distributed.parallel as par
 import systems
 from nlyap_opt.certification.certificate import RoaProblem, certify_roa
@@ -111,3 +116,111 @@ def test_every_radius_skipped_is_a_refusal_not_an_error():
     assert not cert.certified and cert.status.value == "not certified"
     assert "ε = 0.6" in cert.reason and "below the inner ball's level" in cert.reason
     assert cert.history[-1]["inner_radius_search"][0]["inner"] == 0.6
+
+
+# ------------------------------------------------------------ the climb after a followed violation
+T = 0.25        # V̇ = 2V(V − T) < 0 exactly for V < T: the largest certifiable level
+
+
+def _shell():
+    """``V = ‖x‖²`` under ``f = x(‖x‖² − T)``."""
+    x = ca.MX.sym("x", 2)
+    V = ca.sumsqr(x)
+    return x, V, 2 * V * (V - T)
+
+
+def _unknown_band(monkeypatch, low: float, high: float):
+    """The decrease check at a level in ``(low, high]`` ends "unknown" (a verifier that cannot
+    separate those levels from the violation at ``V = T``); every other check is the real
+    verifier's. Returns the levels of the decrease checks, in order."""
+    real_check, real_problem = par.check, roa.lyapunov_problem
+    levels, asked = {}, []
+
+    def problem(*a, level=None, **kw):
+        p = real_problem(*a, level=level, **kw)
+        levels[id(p)] = level
+        return p
+
+    def check(p, **kw):
+        c = levels.get(id(p))
+        if c is not None:
+            asked.append(c)
+            if low < c <= high:
+                return VerificationResult("unknown", boxes=1)
+        return real_check(p, **kw)
+
+    monkeypatch.setattr(roa, "lyapunov_problem", problem)
+    monkeypatch.setattr(par, "check", check)
+    return asked
+
+
+@pytest.mark.parametrize("band", [0.03, 0.1, 0.25])
+def test_the_search_climbs_back_to_within_a_few_percent_of_the_verifiable_level(monkeypatch,
+                                                                               band):
+    """Above ``T`` the decrease is refuted (real counterexamples, followed down to ``T`` by
+    IPOPT); in ``((1 − band)·T, T]`` the verifier says "unknown"; below, it proves the level.
+    The search must end on a proved level, at most ``(1 − band)·T`` and within 3 % of it, in
+    at most ``max_tries`` tries, each recorded; the tries after the first proved level climb
+    (bisection), and every try above the certified level failed."""
+    x, V, lie = _shell()
+    top = (1 - band) * T                       # the largest level the verifier proves
+    asked = _unknown_band(monkeypatch, top, T)
+    lc = roa.certify_level(x, V, lie, level=0.8, inner=0.05, outer=1.0, margin=0.0,
+                           max_tries=8, log=lambda m: None, follow_violations=True)
+    assert lc.status == "certified", lc.history
+    assert 0.97 * top <= lc.level <= top < T
+    h = lc.history
+    assert 3 <= len(h) <= 8 and [e["level"] for e in h] == asked   # every try recorded
+    assert h[0]["decrease"] == "counterexample"
+    ok = [e["level"] for e in h if e.get("contains_inner_ball") == "verified"]
+    assert ok and max(ok) == lc.level
+    assert all(e["decrease"] in ("unknown", "counterexample") for e in h
+               if e["level"] > lc.level)
+    first = next(i for i, e in enumerate(h) if e.get("contains_inner_ball") == "verified")
+    assert len(h) > first + 1                                  # bisection tries were made
+    assert all(h[first]["level"] < e["level"] < h[first - 1]["level"] for e in h[first + 1:])
+    # the mathematics: V̇ < 0 on the certified annulus
+    r2 = np.linspace(0.05**2, lc.level, 1000)
+    assert np.all(2 * r2 * (r2 - T) < 0)
+
+
+def test_without_following_the_search_only_steps_down(monkeypatch):
+    """The climb is part of ``follow_violations``: without it the search returns the first
+    level it proves, every try below the one before (counterexamples creep down to ``T``,
+    then the small steps of the "unknown" schedule). In the same band the search that
+    follows and climbs ends higher, in fewer tries."""
+    x, V, lie = _shell()
+    _unknown_band(monkeypatch, 0.9 * T, T)
+    kw = dict(level=0.26, inner=0.05, outer=1.0, margin=0.0, log=lambda m: None)
+    lc = roa.certify_level(x, V, lie, max_tries=10, **kw)
+    h = lc.history
+    assert lc.status == "certified" and lc.level <= 0.9 * T, h
+    assert h[-1]["level"] == lc.level and h[-1]["contains_inner_ball"] == "verified"
+    assert all(a["level"] > b["level"] for a, b in zip(h, h[1:]))   # only downwards
+    assert all(e.get("contains_inner_ball") != "verified" for e in h[:-1])
+    climb = roa.certify_level(x, V, lie, max_tries=8, follow_violations=True, **kw)
+    assert climb.status == "certified" and lc.level < climb.level <= 0.9 * T
+    assert len(climb.history) < len(h)
+
+
+def test_a_failed_bisection_try_never_replaces_the_proved_level(monkeypatch):
+    """On the ring (decrease fails at ``V = 1``) with decrease checks above 0.7 "unknown" the
+    search proves a first level ``L`` and climbs; when every check above ``L`` is "unknown",
+    the certificate is ``L`` itself, with ``L``'s checks (verified), though every later try
+    recorded (the bisection) is "unknown"."""
+    s = _ring()
+    p = RoaProblem(s, quadratic_lyapunov(np.eye(2)), inner=0.1, outer=2.0)
+    with monkeypatch.context() as m:
+        _unknown_band(m, 0.7, 1.0)
+        cert = certify_roa(p, 1.5, search=True, follow_violations=True, log=lambda m: None)
+    assert cert.certified and 0.6 < cert.level <= 0.7, cert.reason
+    proved = [h["level"] for h in cert.history if h.get("contains_inner_ball") == "verified"]
+    first = proved[0]
+    _unknown_band(monkeypatch, first * (1 + 1e-12), 1.0)
+    again = certify_roa(p, 1.5, search=True, follow_violations=True, log=lambda m: None)
+    assert again.certified and again.level == first < cert.level
+    after = again.history[[h["level"] for h in again.history].index(first) + 1:]
+    assert after and all(h["decrease"] == "unknown" and h["level"] > first for h in after)
+    assert len(after) >= 2                              # the tries were spent climbing
+    assert again.checks["(a) decrease"] == again.checks["(b) B_ε ⊆ Ω_c"] == "verified"
+    assert again.checks["(b) V > level on ‖x‖ = r"] == "verified"

@@ -38,8 +38,12 @@ paper's assumption rather than a proof, and near the origin the robust margin
 ``η‖∇_L V‖ ~ η‖x‖`` outweighs a quadratic's decrease ``~ ‖x‖²`` (the cartpole's LQR ``P``
 with the large preset's η = 0.019 is refuted at every level with ε/4). The level search
 follows decrease counterexamples down to the least ``V`` of a violation
-(``follow_violations``): the LQR ``P`` of the cartpole is then certified at level 0.0193
-after two refuted levels, where the creeping search stopped at 0.025 after eight.
+(``follow_violations``), steps 13.5 % below an ``unknown`` there and climbs back by
+bisection from the first proved level (:func:`nlyap_opt.certification.roa.certify_level`):
+the LQR ``P`` of the cartpole is certified at level 0.0192 in seven tries (a refuted level,
+an ``unknown`` one at the least violation, 0.0168 proved, four bisection tries), where the
+creeping search stopped at 0.025 after eight; the ``volume`` ``P`` of the planar quadrotor
+at level 0.258 in eight.
 
 With learned dynamics each inner radius starts at the smallest level that holds its inner
 ball (``smallest_level`` of :func:`nlyap_opt.certification.certificate.certify_with_inner_search`),

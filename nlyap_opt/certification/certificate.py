@@ -591,7 +591,8 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
         at the end through the pipeline's certificate stage).
     follow_violations : bool
         With ``search``: follow decrease counterexamples down to the least ``V`` of a
-        violation (:func:`nlyap_opt.certification.roa.certify_level`).
+        violation, and climb back from a proved level by bisection
+        (:func:`nlyap_opt.certification.roa.certify_level`).
     inner_ellipse : InnerEllipse, optional
         A saved certificate's proved ellipse: condition (c) checks exactly its ``P`` in its
         ``form`` instead of searching the candidates (:func:`recheck_certificate`). Used
@@ -644,7 +645,11 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
                        shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
                        log=log, follow_violations=follow_violations,
                        quadratic=quadratic_form(problem.V))
+    # the checks of the certified level (a search's later tries may have failed above it)
     last = lc.history[-1] if lc.history else {}
+    if lc.status == "certified":
+        last = next(h for h in lc.history if h["level"] == lc.level
+                    and h.get("contains_inner_ball") == "verified")
     checks = {"(a) decrease": last.get("decrease") or "not run",
               "(b) V > level on ‖x‖ = r" if problem.domain.plain_ball else "(b) V > level on ∂D":
               last.get("containment") or "not run",
@@ -863,7 +868,9 @@ class LevelPolicy:
         searching down from the candidate level (learned dynamics: there the robust margin
         has the most room).
     follow_violations : bool
-        Follow decrease counterexamples down to the least ``V`` of a violation.
+        Follow decrease counterexamples down to the least ``V`` of a violation, and climb
+        back from a proved level by bisection
+        (:func:`nlyap_opt.certification.roa.certify_level`).
     """
 
     inner_fraction: float = 1.0

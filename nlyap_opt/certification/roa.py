@@ -443,6 +443,16 @@ def _float_matrix(P: list[list[Fraction]]) -> np.ndarray:
     return np.array([[float(v) for v in row] for row in P])
 
 
+#: With ``follow_violations``: the first step of :func:`certify_level` after an ``unknown``
+#: at a level set by a followed decrease violation (that least violation is a local minimum
+#: of ``V`` over the violation set; the verifier cannot separate the level from it, and the
+#: 0.5 % steps of a near-tangency waste the tries there). The climb back recovers the step.
+FOLLOWED_UNKNOWN_STEP = 0.135
+#: With ``follow_violations``: :func:`certify_level` climbs back from a verified level by
+#: bisection until the least failed level above it is within this fraction of it.
+CLIMB_GAP = 0.01
+
+
 @dataclass
 class LevelCertificate:
     """Result of :func:`certify_level`."""
@@ -466,15 +476,25 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     ``‖x‖ ≤ outer``; (b) is checked on every piece of its boundary (each face of a box).
     Counterexamples lower the level to just below ``V`` at the counterexample; ``unknown``
     verdicts lower it by 0.5 %, then 1.5 %, 4.5 %, 13.5 %, 30 %, ... (an ``unknown`` is
-    usually a near-tangency that a small step resolves). With ``follow_violations``, a
-    decrease counterexample is followed down by :func:`least_violation` (IPOPT from the
-    counterexamples) and the level drops to just below the least ``V`` found: in 4-D and up
-    the violation set is thin and the counterexamples' own ``V`` only creeps down (off by
-    default, so that existing certificates do not move). A search never goes to a level at
+    usually a near-tangency that a small step resolves). A search never goes to a level at
     or below :func:`inner_ball_level` (no such ``Ω_c`` holds ``B_ε``): the first step that
     would tries ``(1 +`` :data:`INNER_LEVEL_MARGIN` ``)`` times it instead, the smallest level
-    that can hold the inner ball, and the search ends after that. Returns the certified
-    level or why none was found.
+    that can hold the inner ball, and the search ends after that. Each try is one entry of
+    the ``history``. Returns the certified level or why none was found.
+
+    With ``follow_violations`` (off by default, so that existing certificates do not move):
+
+    - a decrease counterexample is followed down by :func:`least_violation` (IPOPT from the
+      counterexamples) and the level drops to just below the least ``V`` found: in 4-D and
+      up the violation set is thin and the counterexamples' own ``V`` only creeps down;
+    - an ``unknown`` at a level so set starts the steps at :data:`FOLLOWED_UNKNOWN_STEP`
+      (13.5 %, then 30 %) instead of 0.5 %: the least violation found is a local minimum
+      only, and the verifier's ``unknown`` next to it is rarely resolved by a small step;
+    - once a level is verified, the tries left bisect between it and the least level above
+      it that failed (``unknown``, or a counterexample: then at most the counterexample's
+      ``V``) until they are within :data:`CLIMB_GAP` of each other. The certificate is the
+      largest level whose (a), (b) and inner-ball checks were all verified; a bisection try
+      that fails only narrows the bracket.
 
     ``quadratic``: the exact matrix of ``V`` when ``V = xᵀPx`` by construction
     (:func:`quadratic_form`); condition (b) (``V > c`` on ``∂D``, ``V < c`` on the inner
@@ -495,6 +515,9 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     drop = 0.005
     hist, cexs = [], []
     floor = {}          # max V on the inner sphere, computed when a step first needs it
+    best = None         # (level, res_a, res_b) of the largest level verified so far
+    above = math.inf    # the least level above ``best`` that failed (or a violation's V)
+    followed = False    # ``c`` was set by a followed decrease violation
 
     def lower(c_old, c_new):
         """The next level: ``c_new``, the inner ball's level instead, or ``None`` (stop)."""
@@ -511,9 +534,10 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                 f"‖x‖ = {inner:g}): trying {target:.6g}, the smallest that can")
             return target
         return None
-    for k in range(max_tries):
-        if c is None or not c > 0:
-            break
+
+    def check(c):
+        """(b), then (a) if (b) holds, then ``V < c`` on the inner sphere if (a) holds too:
+        ``(res_b, res_a, res_d)``, the ones not run ``None``; one history entry."""
         res_b, how = None, []
         for pbox, cons, label in pieces:   # V > c on each piece of the boundary
             r = None if quadratic is None else quadratic_containment(quadratic, c, D, pbox)
@@ -538,6 +562,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                      "containment_backend": "+".join(sorted(set(how)))})
         log(f"    level {c:.6g}: containment {res_b.status}, decrease "
             f"{hist[-1]['decrease']}")
+        res_d = None
         if res_a is not None and res_a.status == "verified":
             # B_ε ⊆ Ω_c: V < c on the inner sphere (else Ω_c may lie inside B_ε: a trivial
             # certificate resting on condition (c) alone)
@@ -547,27 +572,65 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                 prob_d = VerificationProblem(x, box, [r2 - inner**2, inner**2 - r2], [V - c],
                                              ["inner", "sphere"], ["V<level on inner sphere"])
                 res_d = parallel.check(prob_d, **opts)
-            status = "certified" if res_d.status == "verified" else \
-                f"level {c:.4g} does not contain the inner ball ({res_d.status})"
             hist[-1]["contains_inner_ball"] = res_d.status
-            return LevelCertificate(status, c, res_a, res_b, hist,
+        return res_b, res_a, res_d
+
+    def result():
+        cx = np.array(cexs).reshape(-1, n)
+        lv, res_a, res_b = best
+        return LevelCertificate("certified", lv, res_a, res_b, hist, cx,
+                                time.perf_counter() - t0)
+
+    for k in range(max_tries):
+        if c is None or not c > 0:
+            break
+        res_b, res_a, res_d = check(c)
+        last_try = k + 1 == max_tries
+        if res_d is not None and res_d.status == "verified":
+            best = (c, res_a, res_b)
+            if not follow_violations or last_try or not above > c * (1.0 + CLIMB_GAP) \
+                    or not math.isfinite(above):
+                return result()
+            c = 0.5 * (c + above)           # climb back: bisect towards the failed level
+            log(f"    level {best[0]:.6g} verified: bisecting up to {c:.6g}")
+            continue
+        if res_d is not None and best is None:   # (a), (b) hold, Ω_c misses the inner ball
+            return LevelCertificate(f"level {c:.4g} does not contain the inner ball "
+                                    f"({res_d.status})", c, res_a, res_b, hist,
                                     np.array(cexs).reshape(-1, n), time.perf_counter() - t0)
-        bad = res_b if res_b.status != "verified" else res_a
-        if bad.status == "counterexample":
+        bad = res_b if res_b.status != "verified" else res_a if res_d is None else res_d
+        vmin = math.inf
+        if bad.status == "counterexample" and bad is not res_d:
             pts = np.array([ce.point for ce in bad.counterexamples])
             cexs += list(pts)
-            if k + 1 == max_tries:      # no try left: no next level to look for
-                break
             vmin = float(np.min(evaluate(Vf, [pts])[0]))
+        if best is not None:                # a failed bisection try: narrow the bracket
+            above = min(above, c, vmin)
+            if last_try or not above > best[0] * (1.0 + CLIMB_GAP):
+                return result()
+            c = 0.5 * (best[0] + above)
+            log(f"    bisecting up to {c:.6g}")
+            continue
+        above = min(above, c, vmin)
+        if last_try:                        # no try left: no next level to look for
+            break
+        if bad.status == "counterexample" and bad is not res_d:
+            followed = False
             if follow_violations and bad is res_a:   # the least V of a violation nearby
                 found = least_violation(x, V, lie, pts[:4], inner=inner, domain=D,
                                         margin=margin, tol=1e-7)
                 if found is not None:   # a level to try, not a counterexample (tol)
+                    followed = found[0] < vmin
                     vmin = min(vmin, found[0])
             c = lower(c, min(vmin * (1.0 - 1e-3), c * 0.995))
-        elif k + 1 < max_tries:
+        else:
+            if follow_violations and followed:
+                drop = max(drop, FOLLOWED_UNKNOWN_STEP)
+            followed = False
             c = lower(c, c * (1.0 - drop))
             drop = min(3.0 * drop, 0.3)
+    if best is not None:
+        return result()
     why = "no level certified"
     if c is None:
         why += (f" (none above the inner ball's level {floor['m']:.6g}, max V on ‖x‖ = "

@@ -177,46 +177,6 @@ def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float
     return np.where(capped, cap, T), np.where(capped, 0.0, dg / gc)
 
 
-#: RK4 is stable for ``h·λ`` in a region of the left half-plane that holds the half-disc of
-#: radius 2.61 (2.79 on the real axis, 2.83 on the imaginary one); the training
-#: simulations keep ``h·ρ(A)`` within this radius (:func:`simulation_step`)
-RK4_STABLE_RADIUS = 2.5
-
-
-def simulation_step(A: np.ndarray, dt: float) -> float:
-    r"""The RK4 step of the training simulations: ``dt``, or less where the closed loop's
-    linearisation ``A`` at the origin is stiff.
-
-    Near the origin the closed loop is ``x' ≈ Ax``; a fixed step ``h`` with
-    ``h·ρ(A)`` (``ρ`` the spectral radius) outside RK4's stability region makes the
-    simulated state oscillate around the origin instead of reaching it, so every training
-    state would count as not converging. A high-gain controller (a fast closed-loop mode)
-    gets ``h = RK4_STABLE_RADIUS / ρ(A)`` when that is below ``dt``.
-
-    Examples
-    --------
-    >>> simulation_step(np.diag([-1.0, -125.0]), 0.04)
-    0.02
-    >>> simulation_step(np.diag([-1.0, -2.0]), 0.04)
-    0.04
-    """
-    rho = float(np.max(np.abs(np.linalg.eigvals(np.asarray(A, dtype=float))))) if np.size(A) \
-        else 0.0
-    if not np.isfinite(rho) or rho * dt <= RK4_STABLE_RADIUS:
-        return float(dt)
-    return RK4_STABLE_RADIUS / rho
-
-
-def _training_step(learner: LyapunovLearner, cfg: CegisConfig, log) -> float:
-    """The RK4 step of the training simulations (:func:`simulation_step` of the learner's
-    closed loop at the origin); says so when it is shorter than ``cfg.sim_dt``."""
-    dt = simulation_step(learner.closed_loop_jacobian().detach().numpy(), cfg.sim_dt)
-    if dt < cfg.sim_dt:
-        log(f"  cegis: the closed loop's fastest mode at the origin needs an RK4 step of "
-            f"{dt:.3g} s (cegis.sim_dt {cfg.sim_dt:g}) in the training simulations")
-    return dt
-
-
 #: fewer converging training states than this share of them: the run says to raise
 #: cegis.sim_time (the trajectory-cost fit rests on too few states)
 MIN_CONVERGED = 0.01
@@ -311,14 +271,14 @@ def _samples(cfg: CegisConfig, D, XI, rng, n: int) -> tuple[np.ndarray, np.ndarr
     return X, S
 
 
-def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log, dt: float):
-    """Simulate the training states under the model (RK4 step ``dt``): ``(X, weights,
-    targets, rates)``, the states (more around the model's ROA boundary when fitting), the
-    pull of ``V ≤ 1`` on each and the trajectory-cost targets (``None`` without ``w_fit``)."""
+def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
+    """Simulate the training states under the model: ``(X, weights, targets, rates)``, the
+    states (more around the model's ROA boundary when fitting), the pull of ``V ≤ 1`` on
+    each and the trajectory-cost targets (``None`` without ``w_fit``)."""
     stay = D.contains if cfg.sim_in_domain else None
     # fit_domain: the largest gauge of D along each simulated trajectory (see below)
     track = D.gauge if cfg.train.w_fit and cfg.train.fit_domain else None
-    conv, cost, *peak = simulate(rhs_np, X, t_final=cfg.sim_time, dt=dt,
+    conv, cost, *peak = simulate(rhs_np, X, t_final=cfg.sim_time, dt=cfg.sim_dt,
                                  tol=cfg.sim_tol, stay=stay, track=track)
     log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model"
         + (" without leaving the domain" if stay is not None else ""))
@@ -345,7 +305,7 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log, dt: flo
                 extra = np.vstack([extra, jit + 0.03 * scale * rng.standard_normal(jit.shape)])
             if len(extra):
                 extra = extra[D.contains(extra)]
-                c2, w2, *p2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=dt,
+                c2, w2, *p2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=cfg.sim_dt,
                                        tol=cfg.sim_tol, stay=stay, track=track)
                 X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
                 peak = [np.r_[peak[0], p2[0]]] if peak else peak
@@ -518,8 +478,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
 
     rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
-    X, weights, targets, rates = _fit_targets(cfg, D, X, rhs_np, rng, scale, log,
-                                              _training_step(learner, cfg, log))
+    X, weights, targets, rates = _fit_targets(cfg, D, X, rhs_np, rng, scale, log)
     areas = _AreaGrid(D, cfg.area_points)
     cex = np.zeros((0, n))
     best: CegisResult | None = None

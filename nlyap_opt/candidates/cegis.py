@@ -444,14 +444,25 @@ class _AreaGrid:
         return candidate_area(V, level, self.grid, self.in_d, self.shape, self.box)
 
 
+def outward_normals(D, pts: np.ndarray) -> np.ndarray:
+    """Unit outward normals of ``∂D`` at ``pts``: the normalised gradient of ``D``'s gauge
+    (central differences; at a box's edge, the mean of its faces' normals)."""
+    pts = np.asarray(pts, dtype=float)
+    h = 1e-6 * max(D.max_norm(), 1e-12)
+    grad = np.stack([D.gauge(pts + h * e) - D.gauge(pts - h * e)
+                     for e in np.eye(pts.shape[1])], axis=1)
+    return grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-300)
+
+
 def _train_round(learner, cfg: CegisConfig, it: int, eta: float, margin: float, X, S, cex,
-                 weights, targets, rates):
+                 weights, targets, rates, D=None):
     """One round of training (``first_steps`` in the first iteration)."""
     steps = (cfg.first_steps or cfg.train.steps) if it == 0 else cfg.steps
     pointwise = eta if (eta > 0 and cfg.margin_mode == "pointwise") else 0.0
+    normals = outward_normals(D, S) if cfg.train.w_inward and D is not None else None
     return learner.train(X, S, 0.0 if pointwise else margin, cex if len(cex) else None,
                          steps=steps, inside_weight=weights, eta_pointwise=pointwise,
-                         targets=targets, target_rates=rates)
+                         targets=targets, target_rates=rates, sphere_normals=normals)
 
 
 def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0, beat):
@@ -477,7 +488,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     margin, M, smoothing = 0.0, None, 0.0
     for it in range(cfg.iterations):
         info = _train_round(learner, cfg, it, eta, margin, X, np.vstack([S, rim]), cex,
-                            weights, targets, rates)
+                            weights, targets, rates, D)
         V, ctrl = learner.export()
         problem = RoaProblem(system, V, ctrl, dynamics, inner=cfg.inner, outer=cfg.outer,
                              eta=eta, margin_mode=cfg.margin_mode,

@@ -15,6 +15,8 @@ target level ``1``)::
   + C_grad· mean ‖∇V‖                                              keep M (and β = M·η) small
   + C_anc · ‖G − G_lqr‖²                                           keep κ's linearisation
                                                                    near the LQR gain
+  + C_inw · mean[ relu(n·g(x) / ‖g(x)‖) ]  on ∂D (n outward)       κ turns the flow inward
+                                                                   on ∂D where it can
   + C_loc · relu(λ_max(AᵀH + HA + 2τH)) / tr H                     first-order decrease at 0
                                                                    (H = ∇²V(0), A = ∂g/∂x(0))
   + C_fit · mean (V(x) − T(x))²                                    fit a target whose level
@@ -27,6 +29,13 @@ trajectories and grows without bound towards the ROA boundary (a Zubov-type func
 so fitting it (value and decrease law ``Ṫ = −R‖x‖²``) puts the level sets of ``V`` close
 to the boundary of the region of attraction. ``relative_decrease`` divides the hinge by
 ``‖x‖²`` so that states near the inner ball weigh as much as the rest.
+
+The inward term acts on the controller only (the rest of the loss sees ``κ`` through ``g``):
+a certified set lies in ``D`` and is forward invariant, so it holds only states whose
+trajectories never leave ``D``; where a trajectory leaves ``D`` it crosses ``∂D`` with
+``n·g > 0``. The term is the share of the flow's direction pointing out of ``D`` on
+samples of ``∂D``; where the input cannot change ``n·g`` (``θ' = ω`` on the pendulum's
+faces ``θ = ±4``) its gradient is zero.
 
 ``V ≥ 0`` and ``V(0) = 0`` hold by construction, so the seed's hinge on ``−V`` and
 ``V(0)²`` terms are identically zero and left out.
@@ -104,6 +113,9 @@ class TrainConfig:
     w_grad: float = 0.0
     train_controller: bool = True
     w_anchor: float = 1.0      # penalty ‖G − G_lqr‖² keeping the gain near its LQR start
+    # κ: mean relu(n·g/‖g‖) on ∂D (n the outward normal): the closed loop turned inward on
+    # ∂D where the input can do it (0: off)
+    w_inward: float = 0.0
     w_fit: float = 0.0         # fit V to the trajectory-cost target (0: off)
     fit_quantile: float = 0.99  # target level 1 = this quantile of the converging states' cost
     fit_cap: float = 2.0       # target of states that do not converge (and cap of the rest)
@@ -482,7 +494,8 @@ class LyapunovLearner:
               counterexamples: np.ndarray | None = None, steps: int | None = None,
               inside_weight: np.ndarray | None = None, progress=None,
               eta_pointwise: float = 0.0, targets: np.ndarray | None = None,
-              target_rates: np.ndarray | None = None) -> TrainInfo:
+              target_rates: np.ndarray | None = None,
+              sphere_normals: np.ndarray | None = None) -> TrainInfo:
         """Run ``steps`` Adam steps; returns the last loss terms.
 
         Runs with ``config.threads`` torch threads and deterministic algorithms (restored on
@@ -491,7 +504,9 @@ class LyapunovLearner:
         ``inside_weight`` (per state, default 1) scales the pull of ``V ≤ 1`` (0 for
         states known not to converge). ``eta_pointwise`` adds ``η‖∇V(x)‖`` to the Lie
         derivative (the pointwise robust margin for learned dynamics). ``targets`` (per
-        state) adds ``w_fit · mean (V(x) − target)²``.
+        state) adds ``w_fit · mean (V(x) − target)²``. ``sphere_normals`` (outward unit
+        normals of ``∂D`` at ``sphere``) adds ``w_inward · mean relu(n·g/‖g‖)`` for a
+        trained controller.
         """
         cfg = self.config
         X = torch.as_tensor(states, dtype=torch.float64)
@@ -504,12 +519,14 @@ class LyapunovLearner:
             torch.as_tensor(target_rates, dtype=torch.float64)
         CE = (torch.as_tensor(counterexamples, dtype=torch.float64)
               if counterexamples is not None and len(counterexamples) else None)
+        NS = None if sphere_normals is None or not cfg.w_inward or self.controller is None \
+            or not cfg.train_controller else torch.as_tensor(sphere_normals, dtype=torch.float64)
         steps = cfg.steps if steps is None else steps
         with deterministic_torch(cfg.threads):
-            return self._train(X, W, S, T, R, CE, margin, steps, progress, eta_pointwise)
+            return self._train(X, W, S, T, R, CE, margin, steps, progress, eta_pointwise, NS)
 
     def _train(self, X, W, S, T, R, CE, margin, steps, progress,
-               eta_pointwise) -> TrainInfo:
+               eta_pointwise, NS=None) -> TrainInfo:
         cfg = self.config
         t0 = time.perf_counter()
         info = TrainInfo()
@@ -543,6 +560,10 @@ class LyapunovLearner:
             vs = self.V(S[sidx])[:, 0]
             outside = torch.relu(1.0 + cfg.level_slack - vs).mean()
             loss = cfg.w_decrease * dec + cfg.w_inside * inside + cfg.w_outside * outside
+            if NS is not None:   # the closed loop's direction on ∂D: inward where κ can
+                gs = self.rhs(S[sidx])
+                cos = (NS[sidx] * gs).sum(1) / gs.norm(dim=1).clamp_min(1e-12)
+                loss = loss + cfg.w_inward * torch.relu(cos).mean()
             if cfg.w_local:
                 local = self.local_violation()
                 loss = loss + cfg.w_local * local

@@ -271,7 +271,7 @@ PRESETS["inverted_pendulum"]["large"]["cegis"]["iterations"] = 8
 DEFAULT_TRAIN: dict = {
     "hidden": [32, 32], "features": 6, "steps": 3000, "lr": 0.01, "lr_schedule": "cosine",
     "decay": 0.0, "level_slack": 0.5, "relative_decrease": True, "w_fit": 10.0,
-    "w_pde": 1.5, "w_local": 10.0, "fit_domain": True, "w_outside": 10.0,
+    "w_pde": 1.5, "w_local": 10.0, "fit_domain": True, "w_outside": 10.0, "w_inward": 10.0,
 }
 #: CEGIS of the default method: the verifier every third iteration and the last, on the
 #: most promising iterate since its last call, training resumed from the best certified
@@ -368,6 +368,7 @@ _RULES: dict[str, dict[str, dict]] = {
         "hidden": _COUNT, "features": _COUNT, "eps": _POS, "lr": _POS, "steps": _COUNT,
         "batch": _COUNT, "decay": _NONNEG, "level_slack": _NONNEG, "w_decrease": _NONNEG,
         "w_inside": _NONNEG, "w_outside": _NONNEG, "w_grad": _NONNEG, "w_anchor": _NONNEG,
+        "w_inward": _NONNEG,
         "w_fit": _NONNEG, "fit_quantile": _UNIT, "fit_cap": _POS,
         "fit_transform": {"choices": ("log", "linear")}, "w_pde": _NONNEG,
         "w_local": _NONNEG, "lr_schedule": {"choices": ("constant", "cosine")},
@@ -466,6 +467,8 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "train_controller": "train the gain K of κ(x) = C·tanh(Kx + b) with V (false: keep "
                             "the LQR gain)",
         "w_anchor": "weight of ‖G − G_lqr‖², keeping the trained gain near its LQR start",
+        "w_inward": "weight of mean relu(n·g/‖g‖) on ∂D (n the outward normal): the trained "
+                    "κ turns the closed loop inward on the domain's boundary where it can",
         "w_fit": "weight of fitting V to the simulated trajectory cost target (0: off)",
         "fit_quantile": "target level 1 = this quantile of the converging states' "
                         "trajectory cost",

@@ -134,15 +134,16 @@ def _unknown_band(monkeypatch, low: float, high: float):
     separate those levels from the violation at ``V = T``); every other check is the real
     verifier's. Returns the levels of the decrease checks, in order."""
     real_check, real_problem = par.check, roa.lyapunov_problem
-    levels, asked = {}, []
+    levels, asked = {}, []   # id -> (the problem, kept alive so that no id is reused; level)
 
     def problem(*a, level=None, **kw):
         p = real_problem(*a, level=level, **kw)
-        levels[id(p)] = level
+        levels[id(p)] = (p, level)
         return p
 
     def check(p, **kw):
-        c = levels.get(id(p))
+        kept = levels.get(id(p))
+        c = kept[1] if kept is not None and kept[0] is p else None
         if c is not None:
             asked.append(c)
             if low < c <= high:

@@ -11,9 +11,11 @@ Small queries first: the seed paper's three systems with networks of its publish
 V and the saturated controller of ``nlyap run NAME --preset fast --known-dynamics``, seed 0,
 saved as bench/data/NAME_fast_V.json and NAME_fast_K.json), the true f, one query each: V > 0
 and the decrease on the preset's annulus, as the paper hands it to dReal (dReal takes
-0.06-0.15 s per such query). Printed per system: building the problem, the first verification
-(its graphs compiled in this process), the warm verification (best of runs, wall and CPU), the
-verdict and boxes.
+0.06-0.15 s per such query; the bench has no per-system dReal figures and prints that range).
+Printed per system: building the problem, the first verification (its graphs compiled in this
+process), the warm verification (best of runs, wall and CPU), the verdict and boxes, and the
+warm CPU seconds, verdict and boxes with the boundary pre-search (``presearch_boundary=500``:
+points moved onto the annulus' circles tried before bisection; off by default).
 
 Networks are made once (seeded) and cached in bench/data/; delete them to rebuild.
 Targets on 2 cores: (i) ≤ 0.03 s, (ii) ≤ 0.04 s (≤ 0.1 s and ≥ 5× fewer boxes
@@ -24,7 +26,7 @@ enclosure, splitting by the affine sensitivities) and, in the last two columns, 
 ``affine=False`` (interval enclosure ∩ mean-value form, splitting by the Jacobian's smear:
 the verifier before the linear relaxation; ``--no-compare`` skips it).
 
-    python bench/verify.py [--repeat 5] [--no-compare]
+    python bench/verify.py [--repeat 5] [--no-compare] [--small]
 """
 
 from __future__ import annotations
@@ -141,6 +143,9 @@ def per_query(repeat: int) -> None:
     print()
 
 
+#: dReal's seconds per small query of the seed paper (a range over its systems, not per system)
+DREAL_SMALL_QUERY = "0.06-0.15 s"
+
 #: the seed paper's systems: (name, annulus inner, outer) of the fast presets (Van der Pol:
 #: bench/verify.py's query (i))
 SEED_SYSTEMS = (("van_der_pol", 0.2, 1.2), ("unicycle_path_following", 0.1, 0.8),
@@ -171,10 +176,12 @@ def _seed_networks(name: str):
 def seed_queries(repeat: int) -> None:
     """One small query per seed-paper system (see the module's text)."""
     print("Small queries: the seed paper's systems, published-size networks, true f, "
-          "V > 0 and decrease on the annulus (seconds; CPU s in brackets):")
+          "V > 0 and decrease on the annulus (seconds; CPU s in brackets; last columns: "
+          "warm, with presearch_boundary=500):")
     print("| system | annulus | build the problem | first verify | warm verify (best) | "
-          "verdict | boxes |")
-    print("|---|---|---|---|---|---|---|")
+          "verdict | boxes | boundary pre-search: warm CPU s | verdict | boxes | "
+          "dReal per query |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, inner, outer in SEED_SYSTEMS:
         s = systems.get(name)
         V, K = _seed_networks(name)
@@ -182,8 +189,10 @@ def seed_queries(repeat: int) -> None:
                              closed_loop_problem(s, V, K, inner=inner, outer=outer), 1)
         (tf, cf), _ = _timed(lambda p=p: verify(p), 1)
         (tw, cw), r = _timed(lambda p=p: verify(p), max(3, repeat))
+        (_, cb2), r2 = _timed(lambda p=p: verify(p, presearch_boundary=500), max(3, repeat))
         print(f"| {name} | {inner:g} ≤ ‖x‖ ≤ {outer:g} | {tb:.4f} ({cb:.4f}) | {tf:.4f} "
-              f"({cf:.4f}) | {tw:.4f} ({cw:.4f}) | {r.status} | {r.boxes} |")
+              f"({cf:.4f}) | {tw:.4f} ({cw:.4f}) | {r.status} | {r.boxes} | {cb2:.4f} | "
+              f"{r2.status} | {r2.boxes} | {DREAL_SMALL_QUERY} |")
     print()
 
 
@@ -192,8 +201,13 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--no-compare", dest="compare", action="store_false",
                     help="skip the runs without affine arithmetic")
+    ap.add_argument("--small", action="store_true",
+                    help="only the small queries of the seed paper's systems")
     args = ap.parse_args(argv)
     DATA.mkdir(exist_ok=True)
+    if args.small:
+        seed_queries(args.repeat)
+        return
     s = systems.get("van_der_pol")
     V6 = _train_V("vdp_V6", [6], 3, 1.4, 1500)
     phi = _dynamics_200()

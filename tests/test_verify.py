@@ -297,3 +297,77 @@ def test_boxes_and_executor_exclude_each_other():
     with ThreadPoolExecutor(1) as ex, pytest.raises(ValueError, match="exclude each other"):
         verify_interval(prob, boxes=np.array([[[-1.0, 0.0]]]), executor=ex)
     assert verify_interval(prob, boxes=np.array([[[-1.0, 0.0]]])).status == "verified"
+
+
+# ------------------------------------------------------------------ pre-search on the boundary
+_ARC = np.array([np.cos(-0.5), np.sin(-0.5)])
+
+
+def _arc_problem(a: float) -> VerificationProblem:
+    """On the annulus 0.2 ≤ ‖x‖ ≤ 1, ``p = c·x − a`` (``‖c‖ = 1``) is ``≥ 0`` only on the
+    cap ``c·x ≥ a`` of the outer circle: an arc of half-angle ``acos(a)`` and depth
+    ``1 − a``."""
+    x = ca.MX.sym("x", 2)
+    r2 = ca.sumsqr(x)
+    return VerificationProblem(x, [[-1.0, 1.0], [-1.0, 1.0]], [r2 - 1.0, 0.04 - r2],
+                               [ca.dot(ca.DM(_ARC), x) - a], ["outer", "inner"], ["p"])
+
+
+def test_boundary_presearch_finds_a_sliver_of_the_outer_circle():
+    p = _arc_problem(0.9999)  # a cap 10⁻⁴ deep, 0.03 rad wide: no random sample lands in it
+    plain = verify(p)
+    assert plain.status == "counterexample" and plain.boxes > 0  # found by bisection
+    r = verify(p, presearch_boundary=200)
+    assert r.status == "counterexample" and r.boxes == 0  # found before any box
+    assert_confirmed(p, r.counterexample)
+    pt = r.counterexample.point
+    assert 1.0 - 1e-6 <= pt @ pt <= 1.0 and _ARC @ pt >= 0.9999  # just inside the circle
+
+
+def test_boundary_presearch_changes_nothing_where_it_need_not_or_cannot():
+    safe = _arc_problem(1.0001)  # no point of the region violates p
+    a, b = verify(safe), verify(safe, presearch_boundary=200)
+    assert a.status == b.status == "verified" and a.boxes == b.boxes
+    wide = _arc_problem(0.5)  # the random pre-search finds counterexamples already
+    a, b = verify(wide), verify(wide, presearch_boundary=200)
+    assert a.status == b.status == "counterexample" and a.boxes == b.boxes == 0
+    assert [c.point.tolist() for c in a.counterexamples] == \
+        [c.point.tolist() for c in b.counterexamples]
+    x = ca.MX.sym("x", 2)  # no constraint: no boundary to sample, bisection as before
+    box = VerificationProblem(x, [[-1.0, 1.0], [-1.0, 1.0]], [], [x[0] - 0.99999])
+    a, b = verify(box, presearch=0), verify(box, presearch=0, presearch_boundary=200)
+    assert a.status == b.status == "counterexample" and a.boxes == b.boxes > 0
+
+
+def test_floating_point_flags_are_ignored_for_the_walk_only():
+    """The verifier ignores floating-point flags for the whole walk (entered once, not per
+    operation), whatever the caller's setting, and restores the caller's setting; a thread
+    started meanwhile does not inherit the shortcut (it sets the state per operation)."""
+    import threading
+
+    from verification.interval import Interval, IntervalArithmetic, _fp_ignored
+
+    x = ca.MX.sym("x", 2)  # 1/x₀ and log(x₁) over boxes holding 0: inf and NaN on the way
+    p = VerificationProblem(x, [[-1.0, 1.0], [-1.0, 1.0]], [ca.sumsqr(x) - 1.0],
+                            [ca.log(x[1] ** 2 + 1.0) / (x[0] ** 2 + 1.0) - 1.0])
+    ref = verify(p)
+    with np.errstate(all="raise"):
+        got = verify(p)
+        assert np.geterr()["invalid"] == "raise"
+    assert (got.status, got.boxes, got.depth) == (ref.status, ref.boxes, ref.depth)
+    errors = []
+
+    def multiply():  # 0 · inf on the way: numpy's "invalid" flag
+        try:
+            with np.errstate(all="raise"):
+                r = IntervalArithmetic().binary(ca.OP_MUL, Interval([0.0], [1.0]),
+                                                Interval([1.0], [np.inf]))
+            assert -1e-300 < r.lo[0] <= 0.0 and r.hi[0] == np.inf
+        except Exception as exc:  # noqa: BLE001 - reported to the main thread
+            errors.append(exc)
+
+    with _fp_ignored():
+        t = threading.Thread(target=multiply)
+        t.start()
+        t.join()
+    assert not errors, errors

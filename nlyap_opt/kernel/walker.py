@@ -834,7 +834,8 @@ def _concat_last(*parts):
         torch = deps.torch()
 
         return torch.cat([p.expand(b + (p.shape[-1],)) for p in parts], dim=-1)
-    return np.concatenate([np.broadcast_to(p, b + (p.shape[-1],)) for p in parts], axis=-1)
+    return np.concatenate([p if p.shape == b + (p.shape[-1],) else
+                           np.broadcast_to(p, b + (p.shape[-1],)) for p in parts], axis=-1)
 
 
 def _stack_last(*cols):
@@ -843,7 +844,7 @@ def _stack_last(*cols):
         torch = deps.torch()
 
         return torch.stack([c.expand(b) for c in cols], dim=-1)
-    return np.stack([np.broadcast_to(c, b) for c in cols], axis=-1)
+    return np.stack([c if c.shape == b else np.broadcast_to(c, b) for c in cols], axis=-1)
 
 
 def evaluate(fun: ca.Function | Program, args: Sequence, arith=NUMPY) -> list:

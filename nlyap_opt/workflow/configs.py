@@ -596,6 +596,8 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "affine": "intersect the interval enclosures with affine-form ranges",
         "presearch": "sampled points (with gradient ascent) searched for a counterexample "
                      "before bisection (0: none)",
+        "presearch_boundary": "where those find none, points moved onto the region's "
+                              "boundary tried too (0: none)",
         "stop_at_first": "stop at the first confirmed counterexample",
         "keep_leaves": "keep the decided boxes in the result (diagnostics)",
         "seed": "seed of the presearch samples",

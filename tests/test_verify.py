@@ -371,3 +371,49 @@ def test_floating_point_flags_are_ignored_for_the_walk_only():
         t.start()
         t.join()
     assert not errors, errors
+
+
+# ------------------------------------------------------------------ values fixed by the graph
+def _fixed_graph(bias: float) -> ca.Function:
+    """``y = tanh(W c + b)ᵀ x + |sin((W c + b)₀) − s₀|`` with ``s₀`` the float value of the
+    sine: ``tanh(W c + b)`` (a product, a sum and ``tanh`` of graph constants) is the same on
+    every pass; the ``fabs`` of an enclosure of about 0 is a kink on every box (a check,
+    never cached)."""
+    x = ca.MX.sym("x", 2)
+    W = ca.MX(ca.DM([[1.5, -0.5], [0.25, 2.0]]))  # MX constants: not folded by CasADi
+    z = ca.mtimes(W, ca.MX(ca.DM([0.3, -0.7]))) + ca.MX(bias)
+    s = ca.sin(z[0]) - ca.MX(float(np.sin(0.8 + bias)))  # about 0: |s| has a kink at 0
+    return ca.Function("fixed", [x], [ca.dot(ca.tanh(z), x) + ca.fabs(s)])
+
+
+def test_values_from_constants_are_computed_once_per_graph_and_arithmetic():
+    """Steps whose arguments are graph constants only are evaluated once per arithmetic
+    and reused: each graph and each arithmetic keeps its own value (another bias gives
+    another value, not the first graph's), and checked steps still report on every pass."""
+    from nlyap_opt.kernel.walker import NUMPY, compile_function, evaluate
+    from verification.affine import Affine, AffineArithmetic
+    from verification.interval import CheckedIntervalArithmetic, Interval, IntervalArithmetic
+
+    f1, f2 = _fixed_graph(0.1), _fixed_graph(-0.9)
+    assert any(s.__name__ == "fixed_step" for s in compile_function(f1).steps)
+    pts = np.array([[0.5, -1.0], [1.0, 1.0], [-0.3, 0.8]])
+    lo, hi = pts - 1e-3, pts + 1e-3
+    ia, aa = IntervalArithmetic(), AffineArithmetic()
+    for _ in range(2):  # the second round is served from the caches
+        for f in (f1, f2, f1):
+            y = evaluate(f, [pts], NUMPY)[0]
+            assert np.allclose(y[:, 0], [float(f(p)) for p in pts], rtol=1e-12, atol=1e-12)
+            corners = [np.array([[float(f([a, b]))] for a, b in zip(u, v)])
+                       for u in (lo[:, 0], hi[:, 0]) for v in (lo[:, 1], hi[:, 1])]
+            enc = evaluate(f, [Interval(lo, hi)], ia)[0]
+            aff = evaluate(f, [Affine.from_box(lo, hi)], aa)[0].to_interval()
+            ck = CheckedIntervalArithmetic(len(pts), 1)
+            chk = evaluate(f, [Interval(lo, hi)], ck)[0]
+            for e in (enc, aff, chk):
+                assert np.all(e.lo <= y) and np.all(y <= e.hi)
+                for c in corners:
+                    assert np.all(e.lo <= c) and np.all(c <= e.hi)
+                assert np.all(e.hi - e.lo < 0.1)  # tight: another bias moves y by more
+            assert ck.jump.all()  # the kink is reported on every pass
+    y1, y2 = ([float(f(p)) for p in pts] for f in (f1, f2))  # CasADi's own evaluation
+    assert np.all(np.abs(np.subtract(y1, y2)) > 0.1)

@@ -300,6 +300,12 @@ class _Sp:
         self.dense = sp.is_dense()
 
     def to_nz(self, arith, a):
+        if self.dense:  # C-order dense matrix -> column-major nonzeros (a view, no gather)
+            r, c = self.shape
+            if c == 1:
+                return arith.structural(lambda x: x.reshape(tuple(x.shape[:-2]) + (r,)), a)
+            return arith.structural(
+                lambda x: x.swapaxes(-1, -2).reshape(tuple(x.shape[:-2]) + (r * c,)), a)
         rows, cols = self.rows, self.cols
         return arith.structural(lambda x: x[..., rows, cols], a)
 
@@ -442,6 +448,7 @@ class Program:
         seen_out: dict[int, int] = {}
         zero_regs: set[int] = set()  # registers that hold an all-zero constant
         consts: dict[int, np.ndarray] = {}  # registers holding a graph constant
+        fixed: set[int] = set()  # registers holding a value computed from constants only
         for k in range(f.n_instructions()):
             op = f.instruction_id(k)
             self.ops.append(op)
@@ -450,6 +457,8 @@ class Program:
             z_in = op == ca.OP_MTIMES and i[0] in zero_regs
             zero_regs.difference_update(o)
             written = [reg for reg in o if reg >= 0] if op != ca.OP_OUTPUT else []
+            from_consts = op in _FOLDABLE and all(reg in fixed for reg in i if reg >= 0)
+            fixed.difference_update(written)
             if op == ca.OP_OUTPUT:  # outputs may be written in several primitive segments
                 seg = seen_out.get(o[0], 0)
                 seen_out[o[0]] = seg + 1
@@ -519,6 +528,12 @@ class Program:
                     "the instruction walker; supported are elementwise ops, mtimes, dot, "
                     "transpose, reshape, concatenation, splits, (get/set)nonzeros and calls."
                 )
+            if op == ca.OP_CONST:
+                fixed.update(written)
+            elif from_consts and steps[-1].__name__ != "checked_step" and len(written) == 1:
+                # the same value on every evaluation: once per caching arithmetic
+                steps[-1] = _fixed(steps[-1], written[0])
+                fixed.update(written)
             if op != ca.OP_CONST:
                 for reg in written:  # the register now holds a computed value
                     consts.pop(reg, None)
@@ -600,7 +615,7 @@ def _checked(op, o, ins, feeds, base):
     a = ins[0]
     b = ins[-1]
 
-    def step(r, ctx):
+    def checked_step(r, ctx):
         ar = ctx[0]
         args = (r[a],) if unary else (r[a], r[b])
         y = ar.unary(op, args[0]) if unary else ar.binary(op, args[0], args[1])
@@ -608,7 +623,34 @@ def _checked(op, o, ins, feeds, base):
         if chk is not None:
             chk(op, feeds, base, args, y)
         r[o] = y
-    return step
+    return checked_step
+
+
+#: MX operations whose value depends on their arguments only (no checks, no calls): with
+#: constant arguments, computed once per arithmetic that caches constants (:func:`_fixed`)
+_FOLDABLE = frozenset(UNARY_OPS | BINARY_OPS | {
+    ca.OP_MTIMES, ca.OP_DOT, ca.OP_BILIN, ca.OP_TRANSPOSE, ca.OP_RESHAPE, ca.OP_PROJECT,
+    ca.OP_SPARSITY_CAST, ca.OP_VERTCAT, ca.OP_HORZCAT, ca.OP_GETNONZEROS})
+
+
+def _fixed(step, o):
+    """``step``, whose arguments are graph constants or values computed from them only,
+    evaluated once per arithmetic that declares ``cache_constants`` (its values are
+    immutable and its operations pure: the same arguments give the same value) and reused
+    afterwards, as :func:`_sx_const` reuses constants: a network's ``N(0)`` and the
+    transposed weights of a derivative graph are not recomputed on every pass."""
+    cache: dict = {}
+
+    def fixed_step(r, ctx):
+        ar = ctx[0]
+        v = cache.get(ar)
+        if v is None:
+            step(r, ctx)
+            if getattr(ar, "cache_constants", False):
+                cache[ar] = r[o]
+            return
+        r[o] = v
+    return fixed_step
 
 
 def _statically_safe(op: int, consts: list) -> bool:

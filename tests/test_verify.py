@@ -337,6 +337,10 @@ def test_boundary_presearch_changes_nothing_where_it_need_not_or_cannot():
     box = VerificationProblem(x, [[-1.0, 1.0], [-1.0, 1.0]], [], [x[0] - 0.99999])
     a, b = verify(box, presearch=0), verify(box, presearch=0, presearch_boundary=200)
     assert a.status == b.status == "counterexample" and a.boxes == b.boxes > 0
+    p = _arc_problem(0.9999)  # without the random pre-search (a task's sub-boxes): none
+    a, b = verify(p, presearch=0), verify(p, presearch=0, presearch_boundary=200)
+    assert a.boxes == b.boxes > 0 and a.counterexample.point.tolist() == \
+        b.counterexample.point.tolist()
 
 
 def test_floating_point_flags_are_ignored_for_the_walk_only():

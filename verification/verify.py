@@ -44,7 +44,9 @@ Graphs without such operations (or only with harmless ones: division by a nonzer
 constant, integer powers) take the plain path, at unchanged cost.
 
 Before branching, a float pre-search over random points and a few gradient steps proposes
-counterexamples, each confirmed by rigorous point evaluation before it is reported.
+counterexamples, each confirmed by rigorous point evaluation before it is reported; with
+``presearch_boundary`` (off by default), where it confirms none, points moved onto the
+constraints' zero sets (the outer sphere of a Lyapunov query) are tried too.
 """
 
 from __future__ import annotations
@@ -798,8 +800,9 @@ def verify_interval(
     instruction besides its time per box: the caller merges such tails of several tasks
     into one task's passes).
     ``presearch``: random points of the box (and a few gradient steps) tried as
-    counterexamples before bisection; ``presearch_boundary`` (default 0: off): where those
-    confirm none, as many random points moved onto the constraints' zero sets
+    counterexamples before bisection (0: none; the tasks of a distributed check run
+    without); ``presearch_boundary`` (default 0: off): where those confirm none, as many
+    random points moved onto the constraints' zero sets
     (:func:`_boundary_presearch`: the outer sphere of a Lyapunov query, where its
     counterexamples often lie) are tried too, a few float passes instead of the rounds of
     bisection that reach such a sliver (the counterexample found can then be another one).
@@ -868,7 +871,7 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
         if found and stop_at_first:
             return VerificationResult("counterexample", found[0], found, boxes=0, depth=0,
                                       seconds=time.perf_counter() - t0)
-    if presearch_boundary and not found:  # only where the random pre-search found nothing
+    if presearch and presearch_boundary and not found:  # after a random pre-search found none
         found = confirm_points(problem, _boundary_presearch(
             problem, presearch_boundary, np.random.default_rng([seed, 1])))
         if found and stop_at_first:

@@ -69,8 +69,13 @@ from nlyap_opt.kernel.errors import ConfigError, DimensionError
 from nlyap_opt.kernel.walker import NUMPY, compile_function, evaluate, op_name
 
 from .affine import Affine, AffineArithmetic, tight_ranges
-from .interval import (CheckedIntervalArithmetic, Interval, IntervalArithmetic, _fp_ignored,
-                       _to_shape)
+from .interval import (
+    CheckedIntervalArithmetic,
+    Interval,
+    IntervalArithmetic,
+    _fp_ignored,
+    _to_shape,
+)
 from .precondition import hessian_coordinates, solve_preconditioned
 from .problem import Counterexample, VerificationProblem, VerificationResult
 

@@ -391,8 +391,8 @@ def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
     fh = rel.f(th, th)
     alpha = rel.slope(tl, th, 0.5 * fl[0] + 0.5 * fl[1], 0.5 * fh[0] + 0.5 * fh[1])
     alpha = np.where(ok.ravel() & np.isfinite(alpha), alpha, 0.0)
-    q_lo = np.broadcast_to(q_lo, lo.shape).ravel()
-    q_hi = np.broadcast_to(q_hi, lo.shape).ravel()
+    q_lo = _to_shape(q_lo, lo.shape).ravel()
+    q_hi = _to_shape(q_hi, lo.shape).ravel()
     # pieces: left [tl, min(th, q_lo)], sliver [q_lo, q_hi] ∩ [tl, th], right [max(tl, q_hi), th]
     has_l = (tl < q_lo) & ok.ravel()
     has_r = (th > q_hi) & ok.ravel()
@@ -414,7 +414,7 @@ def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
             fa = _f_at(rel, a_new, a, fa)
             a = a_new
         if not isinstance(cvx, (bool, np.bool_)):
-            cvx = np.broadcast_to(cvx, lo.shape).ravel()[rows]
+            cvx = _to_shape(cvx, lo.shape).ravel()[rows]
         plo, phi = _piece(rel, a, b, al, cvx, fa, fb)
         dl[rows] = np.minimum(dl[rows], plo)
         dh[rows] = np.maximum(dh[rows], phi)

@@ -459,6 +459,7 @@ class Program:
             written = [reg for reg in o if reg >= 0] if op != ca.OP_OUTPUT else []
             from_consts = op in _FOLDABLE and all(reg in fixed for reg in i if reg >= 0)
             fixed.difference_update(written)
+            n_steps = len(steps)
             if op == ca.OP_OUTPUT:  # outputs may be written in several primitive segments
                 seg = seen_out.get(o[0], 0)
                 seen_out[o[0]] = seg + 1
@@ -530,7 +531,8 @@ class Program:
                 )
             if op == ca.OP_CONST:
                 fixed.update(written)
-            elif from_consts and steps[-1].__name__ != "checked_step" and len(written) == 1:
+            elif (from_consts and len(steps) == n_steps + 1 and len(written) == 1
+                  and steps[-1].__name__ != "checked_step"):
                 # the same value on every evaluation: once per caching arithmetic
                 steps[-1] = _fixed(steps[-1], written[0])
                 fixed.update(written)

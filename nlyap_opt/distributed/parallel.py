@@ -65,7 +65,7 @@ from verification.verify import confirm_points, split_box, verify_interval
 
 from ..kernel import deps
 from ..kernel.errors import BackendUnavailableError, ConfigError
-from ..kernel.walker import NUMPY, evaluate
+from ..kernel.walker import NUMPY, Program, evaluate
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
            "SimulatedCluster", "model_speedups", "task_defaults", "pass_boxes",
@@ -635,7 +635,8 @@ class SimulatedCluster:
         self._plain: dict | None = None  # the schedule of plain tasks (submit)
         # the verification tasks of every call share the virtual workers and one clock:
         # checks that run side by side (:class:`Ahead` threads) are list-scheduled together
-        self._free = [0.0] * self.workers   # when each virtual worker is free (a heap)
+        # (time, worker) at which each virtual worker is free (a heap)
+        self._free = [(0.0, w) for w in range(self.workers)]
         self._now = 0.0                     # the modelled time of the last completion
         self._end = 0.0                     # the last completion absorbed by any call
         self._seq = 0
@@ -787,6 +788,20 @@ class _SimFuture:
         return self._value
 
 
+def _compile_seconds(problem) -> float:
+    """CPU seconds to compile ``problem``'s graphs for the walker afresh (what each worker
+    process pays once per problem; this process has them cached)."""
+    names = ("function", "jacobian", "function_jacobian", "function_checked",
+             "function_jacobian_checked")
+    funs = [getattr(problem, n, None) for n in names]
+    funs += list(getattr(problem, "_second_order", None) or ())
+    t = time.thread_time()
+    for f in funs:
+        if f is not None:
+            Program(f)
+    return time.thread_time() - t
+
+
 class _SimRun:
     """The tasks of one :func:`verify_distributed` call on a :class:`SimulatedCluster`.
 
@@ -803,6 +818,10 @@ class _SimRun:
         self.start = self.last = sim._now
         self.work = 0.0
         self.tasks = self.boxes = 0
+        self.seen: set = set()  # virtual workers that ran a task of this call
+        # by CPU seconds: what a worker process pays before its first task of this problem
+        # (its graphs compiled for the walker; here they are compiled once for all)
+        self.setup = _compile_seconds(problem) if sim.cost == "cpu" else 0.0
         with sim._cv:
             sim._runs.append(self)
 
@@ -817,9 +836,13 @@ class _SimRun:
         out = fn(self.problem, *args)
         cost = float(out["boxes"]) if sim.cost == "boxes" else time.thread_time() - t
         with sim._cv:
-            start = max(sim._now, heapq.heappop(sim._free))
+            free_at, w = heapq.heappop(sim._free)
+            start = max(sim._now, free_at)
+            if w not in self.seen:  # a worker process compiles the problem's graphs once
+                self.seen.add(w)
+                cost += self.setup
             finish = start + cost
-            heapq.heappush(sim._free, finish)
+            heapq.heappush(sim._free, (finish, w))
             sim._seq += 1
             heapq.heappush(self.pending, (finish, sim._seq, out))
             self.work += cost

@@ -56,6 +56,7 @@ import threading
 import time
 from collections.abc import Iterator
 
+import casadi as ca
 import numpy as np
 
 import verification
@@ -65,7 +66,7 @@ from verification.verify import confirm_points, split_box, verify_interval
 
 from ..kernel import deps
 from ..kernel.errors import BackendUnavailableError, ConfigError
-from ..kernel.walker import NUMPY, Program, evaluate
+from ..kernel.walker import NUMPY, Program, compile_function, evaluate
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
            "SimulatedCluster", "model_speedups", "task_defaults", "pass_boxes",
@@ -789,17 +790,21 @@ class _SimFuture:
 
 
 def _compile_seconds(problem) -> float:
-    """CPU seconds to compile ``problem``'s graphs for the walker afresh (what each worker
-    process pays once per problem; this process has them cached)."""
+    """CPU seconds to compile ``problem``'s graphs for the walker afresh: what each worker
+    process pays before its first task of the problem. They are then compiled (cached) in
+    this process, so that no task's CPU seconds here include them."""
     names = ("function", "jacobian", "function_jacobian", "function_checked",
              "function_jacobian_checked")
     funs = [getattr(problem, n, None) for n in names]
-    funs += list(getattr(problem, "_second_order", None) or ())
+    funs = [f for f in funs + list(getattr(problem, "_second_order", None) or ())
+            if isinstance(f, ca.Function)]
     t = time.thread_time()
     for f in funs:
-        if f is not None:
-            Program(f)
-    return time.thread_time() - t
+        Program(f)
+    seconds = time.thread_time() - t
+    for f in funs:
+        compile_function(f)
+    return seconds
 
 
 class _SimRun:

@@ -107,6 +107,28 @@ def test_simulated_runs_decide_as_the_serial_verifier(workers, outer, expected):
         assert 1.0 <= sim.speedup() <= workers + 1e-9
 
 
+def test_each_virtual_worker_compiles_a_problem_once(monkeypatch):
+    """By CPU seconds, a virtual worker pays compiling a problem's graphs before its first
+    task of it (as each worker process does), once whatever its number of tasks; the
+    verdict and boxes stay the serial ones."""
+    from nlyap_opt.distributed import parallel
+
+    problem = _vdp_problem(1.0)
+    assert parallel._compile_seconds(problem) > 0
+    monkeypatch.setattr(parallel, "_compile_seconds", lambda p: 100.0)
+    serial = verify(problem, presearch=0)
+    for workers in (1, 2):
+        sim, st = SimulatedCluster(workers, "cpu"), {}
+        res = verify_distributed(problem, sim, presearch=0, task_boxes=32, root_boxes=1,
+                                 min_task_boxes=8, stats=st)
+        assert (res.status, res.boxes) == (serial.status, serial.boxes)
+        assert st["tasks"] >= workers + 1  # the root task, then tasks on every worker
+        # the tasks' own CPU seconds are far below 100: one compile per worker used
+        assert 100 * workers <= sim.work() < 100 * workers + 50
+        # the second worker's first task follows the root task's open boxes: it compiles then
+        assert 100 * workers <= sim.makespan() < 100 * workers + 50
+
+
 def test_unknown_stays_unknown_in_the_model():
     import casadi as ca
 

@@ -606,10 +606,14 @@ class SimulatedCluster:
         tasks): ``makespan`` (modelled time from the call's start to its last completion),
         ``work`` (the sum of the task costs, one ``startup`` included, which is the time on
         one worker), ``tasks`` (count) and, for a verification, ``start`` (the modelled time
-        it started at). Calls made side by side (:class:`Ahead` threads, as
-        :func:`nlyap_opt.certification.certificate.certify_roa` runs condition (c) on a
-        cluster) share the virtual workers, in modelled time, as their tasks share a
-        cluster's.
+        it started at) and ``boxes`` (processed). Calls made side by side (:class:`Ahead`
+        threads, as :func:`nlyap_opt.certification.certificate.certify_roa` runs condition
+        (c) on a cluster) share the virtual workers, in modelled time, as their tasks share
+        a cluster's. By CPU seconds, a virtual worker's first task of a call also pays
+        compiling the problem's graphs (timed afresh here), as a worker process does.
+    modelling_seconds : float
+        CPU seconds this process spent on the model itself (timing each problem's
+        compilation, which the workers' first tasks are charged), not part of the run.
 
     Examples
     --------
@@ -633,6 +637,7 @@ class SimulatedCluster:
         self.cost = cost
         self.startup = float(startup)
         self.calls: list[dict] = []
+        self.modelling_seconds = 0.0  # CPU this process spent on the model itself
         self._plain: dict | None = None  # the schedule of plain tasks (submit)
         # the verification tasks of every call share the virtual workers and one clock:
         # checks that run side by side (:class:`Ahead` threads) are list-scheduled together
@@ -826,7 +831,9 @@ class _SimRun:
         self.seen: set = set()  # virtual workers that ran a task of this call
         # by CPU seconds: what a worker process pays before its first task of this problem
         # (its graphs compiled for the walker; here they are compiled once for all)
+        t = time.thread_time()
         self.setup = _compile_seconds(problem) if sim.cost == "cpu" else 0.0
+        sim.modelling_seconds += time.thread_time() - t
         with sim._cv:
             sim._runs.append(self)
 

@@ -614,6 +614,9 @@ class SimulatedCluster:
     modelling_seconds : float
         CPU seconds this process spent on the model itself (timing each problem's
         compilation, which the workers' first tasks are charged), not part of the run.
+    compile_seconds : float
+        The compilations charged to the virtual workers' first tasks (part of
+        :meth:`work`).
 
     Examples
     --------
@@ -638,6 +641,7 @@ class SimulatedCluster:
         self.startup = float(startup)
         self.calls: list[dict] = []
         self.modelling_seconds = 0.0  # CPU this process spent on the model itself
+        self.compile_seconds = 0.0    # compiling charged to the virtual workers
         self._plain: dict | None = None  # the schedule of plain tasks (submit)
         # the verification tasks of every call share the virtual workers and one clock:
         # checks that run side by side (:class:`Ahead` threads) are list-scheduled together
@@ -853,6 +857,7 @@ class _SimRun:
             if w not in self.seen:  # a worker process compiles the problem's graphs once
                 self.seen.add(w)
                 cost += self.setup
+                sim.compile_seconds += self.setup
             finish = start + cost
             heapq.heappush(sim._free, (finish, w))
             sim._seq += 1

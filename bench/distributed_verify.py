@@ -33,14 +33,20 @@ worker counts this machine has. *Modelled* rows (``--model 4 8 16``) come from
 W virtual workers; the cost of a task is the boxes it processed (deterministic) or its CPU seconds
 here (which include each walker pass's fixed cost). For (D) the CPU model adds the recheck's
 CPU seconds outside the tasks (loading, building the checks) to every worker count and
-prints, per check, its modelled seconds on one and on the most workers. The model leaves
-out the scheduler's latency per task (a few ms) and runs the checks of (D) one after another
-(a cluster runs condition (c) beside (a) and (b)). Each query's
+prints, per check, its modelled seconds on one and on the most workers. As on a cluster,
+condition (c) runs beside (a) and (b) (and a saved shell form's two checks side by side):
+their tasks share the virtual workers in modelled time. The model leaves out the
+scheduler's latency per task (a few ms) and contention between the workers for memory and
+caches (it counts each task's CPU seconds on this machine). Each query's
 :func:`nlyap_opt.distributed.parallel.pass_boxes` (the least start of a task on more than two
 workers) is printed with its modelled rows. ``--workers`` with no count: the model only.
 
+The first lines printed name the command, the machine (CPU model, cores this process may
+use) and the load average, which the figures depend on.
+
     python bench/distributed_verify.py [--repeat 3] [--workers 1 2] [--cartpole-r 0.5]
-                                       [--no-certificate] [--model 4 8 16]
+                                       [--no-certificate | --certificate-only]
+                                       [--model 4 8 16]
                                        [--save-certificate DIR | --certificate DIR]
 """
 
@@ -48,6 +54,8 @@ from __future__ import annotations
 
 import argparse
 import os
+import platform
+import sys
 import time
 from pathlib import Path
 
@@ -57,6 +65,7 @@ import numpy as np
 import systems
 from nlyap_opt.distributed.parallel import (
     _starts_from_boxes,
+    cpu_cores,
     dask_client,
     model_speedups,
     pass_boxes,
@@ -167,6 +176,7 @@ def certificate_rows(workers, repeat, model=(), saved=None, keep=None):
                 client.submit(sum, [1]).result()  # workers up
                 rows.append((w, *_best(once, repeat)))
         modelled = {}
+        other = 0.0
         if model:
             cpu_total = {}
 
@@ -176,7 +186,10 @@ def certificate_rows(workers, repeat, model=(), saved=None, keep=None):
                 t = time.process_time()
                 with verifying_on(sim):
                     once()
-                cpu_total[sim.workers] = time.process_time() - t
+                # as the run would spend it: the compiles timed for the model are its own,
+                # those charged to the workers' first tasks are in the tasks' CPU
+                cpu_total[sim.workers] = time.process_time() - t - sim.modelling_seconds + \
+                    sim.compile_seconds
                 per_check[(sim.cost, sim.workers)] = list(sim.calls)
 
             for cost in ("boxes", "cpu"):
@@ -203,13 +216,25 @@ def certificate_rows(workers, repeat, model=(), saved=None, keep=None):
     if modelled:
         top = max(modelled["cpu"])
         one, many = per_check[("cpu", 1)], per_check[("cpu", top)]
-        print(f"MODELLED per check, in the order run (CPU s): on 1 worker | on {top} workers "
-              "(tasks)")
-        print("| check | 1 worker | " f"{top} workers | tasks | speed-up |")
-        print("|---|---|---|---|---|")
-        for i, (a, b) in enumerate(zip(one, many)):
-            print(f"| {i + 1} | {a['makespan']:.2f} | {b['makespan']:.2f} | {b['tasks']} | "
+        print(f"MODELLED per check, in the order they end on 1 worker (CPU s; checks that "
+              f"run side by side overlap): on 1 worker | on {top} workers, modelled start and "
+              "end (tasks)")
+        print(f"| check | 1 worker | {top} workers | start | end | tasks | speed-up |")
+        print("|---|---|---|---|---|---|---|")
+        left = list(many)
+        for i, a in enumerate(one):
+            # the same check on many workers: the call that processed as many boxes
+            b = next((c for c in left if c["boxes"] == a["boxes"]), None)
+            if b is None:
+                continue
+            left.remove(b)
+            print(f"| {i + 1} | {a['makespan']:.2f} | {b['makespan']:.2f} | "
+                  f"{b['start']:.2f} | {b['start'] + b['makespan']:.2f} | {b['tasks']} | "
                   f"{a['makespan'] / max(b['makespan'], 1e-12):.2f} |")
+        for w in sorted(modelled["cpu"]):
+            row = modelled["cpu"][w]
+            print(f"MODELLED {w} workers: {row['makespan']:.2f} s of tasks (+ {other:.2f} CPU s "
+                  f"outside them), the tasks' CPU {row['work']:.2f} s in all")
     print()
 
 
@@ -222,6 +247,19 @@ def _print_model(modelled):
         print(f"| {w} | MODELLED (tasks: {b['tasks']}) | – | {b['speedup']:.2f} by boxes, "
               f"{c['speedup']:.2f} by CPU s | {b['efficiency']:.2f}, {c['efficiency']:.2f} "
               "| – |")
+
+
+def machine() -> str:
+    """The CPU model, the cores this process may use and the load average, in one line."""
+    model = platform.processor() or "unknown CPU"
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((ln.split(":", 1)[1].strip() for ln in f
+                          if ln.startswith("model name")), model)
+    except OSError:
+        pass
+    return (f"machine: {model}, {cpu_cores()} cores usable; load average "
+            f"{os.getloadavg()[0]:.2f}")
 
 
 def _best(fn, repeat):
@@ -241,8 +279,11 @@ def main(argv=None):
     ap.add_argument("--n-tasks", type=int, default=8, help="sub-boxes of the executor hook")
     ap.add_argument("--cartpole-r", type=float, default=0.5,
                     help="ball radius of query (C)")
-    ap.add_argument("--no-certificate", action="store_true",
-                    help="skip query (D), the cartpole certificate (about 3 minutes)")
+    only = ap.add_mutually_exclusive_group()
+    only.add_argument("--no-certificate", action="store_true",
+                      help="skip query (D), the cartpole certificate (about 3 minutes)")
+    only.add_argument("--certificate-only", action="store_true",
+                      help="query (D) alone (skip queries (A) to (C))")
     ap.add_argument("--model", type=int, nargs="*", default=[],
                     help="worker counts to model (SimulatedCluster), e.g. 4 8 16; each "
                          "costs a serial run per cost measure")
@@ -252,11 +293,17 @@ def main(argv=None):
     where.add_argument("--certificate", metavar="DIR",
                        help="re-check the certificate saved in DIR as query (D)")
     args = ap.parse_args(argv)
+    print("command: python bench/distributed_verify.py " + " ".join(sys.argv[1:] if argv is None
+                                                                   else argv))
+    print(machine())
     if not args.no_certificate:
         if args.save_certificate:
             Path(args.save_certificate).mkdir(parents=True, exist_ok=True)
         certificate_rows(args.workers, args.repeat, args.model, saved=args.certificate,
                          keep=args.save_certificate)
+        print(f"after (D): load average {os.getloadavg()[0]:.2f}")
+    if args.certificate_only:
+        return
     queries = [("(A) 4-D, 64-neuron V factor", problem_4d(1.1, 64), {})]
     p = problem_vdp30()
     if p is not None:

@@ -463,6 +463,43 @@ def test_certify_roa_on_a_cluster_checks_c_beside_a_and_b(client, monkeypatch):
     assert names and "nlyap-ahead" not in names
 
 
+@pytest.mark.parametrize("inner", [0.3, 2.5])
+def test_saved_shell_form_on_a_cluster_checks_its_core_beside_the_shell(client, monkeypatch,
+                                                                        inner):
+    """Re-checking a saved ``shell`` form on a cluster: the core ellipse's check runs in a
+    thread of its own while the shell's runs; the result is the serial one, also where the
+    shell fails (0.3: certified; 2.5: a counterexample of the shell) and the core's result
+    is not used; no thread or turn is left behind."""
+    import threading
+
+    from nlyap_opt.certification.roa import certify_inner_ellipse
+
+    form, s = "shell r=0.075 + minors", systems.get("van_der_pol")
+    serial = certify_inner_ellipse(s, None, inner, P=P_VDP, form=form)
+    spans = []
+    real = parallel.verify_distributed
+
+    def spanned(problem, client, **options):
+        t0 = time.perf_counter()
+        res = real(problem, client, **options)
+        spans.append((threading.current_thread().name, t0, time.perf_counter()))
+        return res
+
+    monkeypatch.setattr(parallel, "verify_distributed", spanned)
+    with verifying_on(client):
+        dist = certify_inner_ellipse(s, None, inner, P=P_VDP, form=form)
+    assert (dist["status"], dist["verdict"], dist["form"], dist["level"]) == \
+        (serial["status"], serial["verdict"], serial["form"], serial["level"])
+    if inner == 0.3:
+        assert serial["status"] == "certified"
+        main = [sp for sp in spans if sp[0] != "nlyap-ahead"]
+        side = [sp for sp in spans if sp[0] == "nlyap-ahead"]
+        assert main and side and side[0][1] < main[0][2]  # the core started during the shell
+    else:
+        assert "counterexample" in serial["status"]
+    assert not _ahead_threads() and not parallel._TURN.locked()
+
+
 def test_ahead_when_false_starts_nothing_on_a_cluster(client):
     calls = []
     with verifying_on(client), ahead(calls.append, 1, when=False) as job:

@@ -79,7 +79,8 @@ def test_simulated_cluster_is_list_scheduling():
         finished.append((run.now, nxt[1]["boxes"]))
     run.close()
     assert finished == [(3.0, 3), (3.0, 3), (5.0, 2)]
-    assert sim.calls == [{"makespan": 5.0, "work": 8.0, "tasks": 3}]
+    assert sim.calls == [{"makespan": 5.0, "work": 8.0, "tasks": 3, "start": 0.0,
+                          "boxes": 8}]
     assert sim.speedup() == pytest.approx(8 / 5)
 
 
@@ -104,6 +105,28 @@ def test_simulated_runs_decide_as_the_serial_verifier(workers, outer, expected):
         assert res.boxes == serial.boxes == sim.work() == sum(st["task_boxes"])
         assert st["tasks"] >= 2  # really cut into tasks
         assert 1.0 <= sim.speedup() <= workers + 1e-9
+
+
+def test_each_virtual_worker_compiles_a_problem_once(monkeypatch):
+    """By CPU seconds, a virtual worker pays compiling a problem's graphs before its first
+    task of it (as each worker process does), once whatever its number of tasks; the
+    verdict and boxes stay the serial ones."""
+    from nlyap_opt.distributed import parallel
+
+    problem = _vdp_problem(1.0)
+    assert parallel._compile_seconds(problem) > 0
+    monkeypatch.setattr(parallel, "_compile_seconds", lambda p: 100.0)
+    serial = verify(problem, presearch=0)
+    for workers in (1, 2):
+        sim, st = SimulatedCluster(workers, "cpu"), {}
+        res = verify_distributed(problem, sim, presearch=0, task_boxes=32, root_boxes=1,
+                                 min_task_boxes=8, stats=st)
+        assert (res.status, res.boxes) == (serial.status, serial.boxes)
+        assert st["tasks"] >= workers + 1  # the root task, then tasks on every worker
+        # the tasks' own CPU seconds are far below 100: one compile per worker used
+        assert 100 * workers <= sim.work() < 100 * workers + 50
+        # the second worker's first task follows the root task's open boxes: it compiles then
+        assert 100 * workers <= sim.makespan() < 100 * workers + 50
 
 
 def test_unknown_stays_unknown_in_the_model():
@@ -152,9 +175,15 @@ def test_hand_back_below_evaluates_no_box_twice():
     assert passes > 1 and total == serial.boxes and serial.status == "verified"
 
 
+def _overlap(a: dict, b: dict) -> bool:
+    """Whether two modelled calls ran side by side (their modelled spans overlap)."""
+    return a["start"] < b["start"] + b["makespan"] and b["start"] < a["start"] + a["makespan"]
+
+
 def test_a_certificate_modelled_on_a_simulated_cluster_is_the_serial_one():
     """``verifying_on(SimulatedCluster(W))``: every check of the certificate goes through
-    the model (no thread runs ahead), and the certificate is the serial one."""
+    the model, condition (c) beside (a) and (b) as on a cluster (its thread ends with the
+    call), the model is deterministic, and the certificate is the serial one."""
     import threading
 
     from nlyap_opt.certification.certificate import RoaProblem, certify_roa
@@ -163,15 +192,49 @@ def test_a_certificate_modelled_on_a_simulated_cluster_is_the_serial_one():
     prob = RoaProblem(systems.get("van_der_pol"), quadratic_lyapunov(P_VDP), inner=0.3,
                       outer=1.5)
     serial = certify_roa(prob, 1.0, log=lambda m: None)
-    sim = SimulatedCluster(4)
     before = threading.active_count()
+    calls = []
+    for _ in range(2):
+        sim = SimulatedCluster(4)
+        with verifying_on(sim):
+            modelled = certify_roa(prob, 1.0, log=lambda m: None)
+            assert threading.active_count() == before
+        assert serial.status.value == modelled.status.value == "certified"
+        assert (modelled.level, modelled.checks) == (serial.level, serial.checks)
+        np.testing.assert_array_equal(modelled.inner_ellipse.P, serial.inner_ellipse.P)
+        assert modelled.inner_ellipse.form == serial.inner_ellipse.form
+        assert len(sim.calls) >= 2 and sim.work() > 0 and 1.0 <= sim.speedup() <= 4
+        calls.append(sim.calls)
+    assert calls[0] == calls[1]  # boxes as cost: the same schedule every time
+    # (c) started with (a): some call overlaps another in modelled time, and the whole
+    # takes less than its calls one after another
+    assert any(_overlap(a, b) for i, a in enumerate(calls[0]) for b in calls[0][i + 1:])
+    assert sim.makespan() < sum(c["makespan"] for c in sim.calls)
+
+
+@pytest.mark.parametrize("inner, verdict", [(0.3, "certified"), (2.5, "counterexample")])
+def test_a_saved_shell_form_checks_its_core_beside_the_shell_as_serially(inner, verdict):
+    """Re-checking a saved ``shell`` form on a cluster runs the core ellipse's check beside
+    the shell's (both start at once); the result is the serial one, and a shell that fails
+    decides it as serially (the core's result is not used)."""
+    from nlyap_opt.certification.roa import certify_inner_ellipse
+    from nlyap_opt.distributed.parallel import verifying_on
+
+    form = "shell r=0.075 + minors"
+    system = systems.get("van_der_pol")
+    serial = certify_inner_ellipse(system, None, inner, P=P_VDP, form=form)
+    sim = SimulatedCluster(4)
     with verifying_on(sim):
-        modelled = certify_roa(prob, 1.0, log=lambda m: None)
-        assert threading.active_count() == before
-    assert serial.status.value == modelled.status.value == "certified"
-    assert (modelled.level, modelled.checks) == (serial.level, serial.checks)
-    np.testing.assert_array_equal(modelled.inner_ellipse.P, serial.inner_ellipse.P)
-    assert len(sim.calls) >= 2 and sim.work() > 0 and 1.0 <= sim.speedup() <= 4
+        modelled = certify_inner_ellipse(system, None, inner, P=P_VDP, form=form)
+    assert serial["verdict"].value == modelled["verdict"].value
+    assert serial["status"] == modelled["status"]
+    assert verdict in serial["status"]
+    assert (serial["form"], serial["level"]) == (modelled["form"], modelled["level"])
+    np.testing.assert_array_equal(serial["box"], modelled["box"])
+    if verdict == "certified":
+        assert len(sim.calls) == 2 and _overlap(*sim.calls)
+        assert [c["start"] for c in sim.calls] == [0.0, 0.0]
+        assert sim.makespan() < sim.work()
 
 
 # ------------------------------------------------------------- the fixed cost of a pass

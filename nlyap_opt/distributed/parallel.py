@@ -56,6 +56,7 @@ import threading
 import time
 from collections.abc import Iterator
 
+import casadi as ca
 import numpy as np
 
 import verification
@@ -65,7 +66,7 @@ from verification.verify import confirm_points, split_box, verify_interval
 
 from ..kernel import deps
 from ..kernel.errors import BackendUnavailableError, ConfigError
-from ..kernel.walker import NUMPY, evaluate
+from ..kernel.walker import NUMPY, Program, compile_function, evaluate
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
            "SimulatedCluster", "model_speedups", "task_defaults", "pass_boxes",
@@ -601,10 +602,21 @@ class SimulatedCluster:
     cost : str
     startup : float
     calls : list of dict
-        Per :func:`verify_distributed` call (and one for all plain tasks): ``makespan``
-        (modelled time from the first task's start to the last completion), ``work`` (the
-        sum of the task costs, one ``startup`` included, which is the time on one worker)
-        and ``tasks`` (count).
+        Per :func:`verify_distributed` call, in the order they end (and one for all plain
+        tasks): ``makespan`` (modelled time from the call's start to its last completion),
+        ``work`` (the sum of the task costs, one ``startup`` included, which is the time on
+        one worker), ``tasks`` (count) and, for a verification, ``start`` (the modelled time
+        it started at) and ``boxes`` (processed). Calls made side by side (:class:`Ahead`
+        threads, as :func:`nlyap_opt.certification.certificate.certify_roa` runs condition
+        (c) on a cluster) share the virtual workers, in modelled time, as their tasks share
+        a cluster's. By CPU seconds, a virtual worker's first task of a call also pays
+        compiling the problem's graphs (timed afresh here), as a worker process does.
+    modelling_seconds : float
+        CPU seconds this process spent on the model itself (timing each problem's
+        compilation, which the workers' first tasks are charged), not part of the run.
+    compile_seconds : float
+        The compilations charged to the virtual workers' first tasks (part of
+        :meth:`work`).
 
     Examples
     --------
@@ -628,7 +640,48 @@ class SimulatedCluster:
         self.cost = cost
         self.startup = float(startup)
         self.calls: list[dict] = []
+        self.modelling_seconds = 0.0  # CPU this process spent on the model itself
+        self.compile_seconds = 0.0    # compiling charged to the virtual workers
         self._plain: dict | None = None  # the schedule of plain tasks (submit)
+        # the verification tasks of every call share the virtual workers and one clock:
+        # checks that run side by side (:class:`Ahead` threads) are list-scheduled together
+        # (time, worker) at which each virtual worker is free (a heap)
+        self._free = [(0.0, w) for w in range(self.workers)]
+        self._now = 0.0                     # the modelled time of the last completion
+        self._end = 0.0                     # the last completion absorbed by any call
+        self._seq = 0
+        self._runs: list[_SimRun] = []      # calls in progress
+        self._cv = threading.Condition()
+        self._runnable = 1                  # threads of this model not waiting for it
+
+    def _block(self) -> None:
+        """A thread stops running (it waits for a task or for another thread): when none
+        runs any more, the earliest completion of all calls goes to its call's thread."""
+        with self._cv:
+            self._runnable -= 1
+            self._deliver()
+
+    def _unblock(self) -> None:
+        with self._cv:
+            self._runnable += 1
+
+    def _deliver(self) -> None:
+        """With the condition held: if no thread runs, hand the earliest pending completion
+        (modelled finish time, then submission order) to the call it belongs to."""
+        if self._runnable > 0:
+            return
+        heads = [(run.pending[0][:2], run) for run in self._runs
+                 if run.pending and run.delivered is None]
+        if not heads:
+            return
+        (finish, _), run = min(heads, key=lambda h: h[0])
+        finish, key, out = heapq.heappop(run.pending)
+        self._now = max(self._now, finish)
+        self._end = max(self._end, finish)
+        run.last = finish
+        run.delivered = (key, out)
+        self._runnable += 1
+        self._cv.notify_all()
 
     def _runner(self, problem) -> _SimRun:
         return _SimRun(self, problem)
@@ -711,8 +764,11 @@ class SimulatedCluster:
         return float(sum(c["work"] for c in self.calls))
 
     def makespan(self) -> float:
-        """Sum of the calls' modelled times on :attr:`workers` workers (calls in turn)."""
-        return float(sum(c["makespan"] for c in self.calls))
+        """Modelled time on :attr:`workers` workers: from the first verification task's
+        start to the last completion (calls in turn add up, calls side by side overlap),
+        plus that of the plain tasks."""
+        plain = self._plain["call"]["makespan"] if self._plain else 0.0
+        return float(self._end + plain)
 
     def speedup(self) -> float:
         """Modelled speed-up over one worker: :meth:`work` / :meth:`makespan`."""
@@ -742,43 +798,96 @@ class _SimFuture:
         return self._value
 
 
+def _compile_seconds(problem) -> float:
+    """CPU seconds to compile ``problem``'s graphs for the walker afresh: what each worker
+    process pays before its first task of the problem. They are then compiled (cached) in
+    this process, so that no task's CPU seconds here include them."""
+    names = ("function", "jacobian", "function_jacobian", "function_checked",
+             "function_jacobian_checked")
+    funs = [getattr(problem, n, None) for n in names]
+    funs = [f for f in funs + list(getattr(problem, "_second_order", None) or ())
+            if isinstance(f, ca.Function)]
+    t = time.thread_time()
+    for f in funs:
+        Program(f)
+    seconds = time.thread_time() - t
+    for f in funs:
+        compile_function(f)
+    return seconds
+
+
 class _SimRun:
-    """The tasks of one :func:`verify_distributed` call on a :class:`SimulatedCluster`."""
+    """The tasks of one :func:`verify_distributed` call on a :class:`SimulatedCluster`.
+
+    Tasks run when submitted and are placed on the model's shared virtual workers at its
+    current time; :meth:`next` waits until no thread of the model runs and this call holds
+    the earliest completion of all calls (so calls in threads side by side interleave as
+    on a cluster, in modelled time).
+    """
 
     def __init__(self, sim: SimulatedCluster, problem):
         self.sim, self.problem, self.workers = sim, problem, sim.workers
-        self.free = [0.0] * sim.workers      # when each virtual worker is free (a heap)
         self.pending: list = []              # (finish, seq, out) of tasks not absorbed
-        self.now = 0.0
-        self.seq = 0
+        self.delivered: tuple | None = None  # (key, out) handed to this call by the model
+        self.start = self.last = sim._now
         self.work = 0.0
-        self.end = 0.0
+        self.tasks = self.boxes = 0
+        self.seen: set = set()  # virtual workers that ran a task of this call
+        # by CPU seconds: what a worker process pays before its first task of this problem
+        # (its graphs compiled for the walker; here they are compiled once for all)
+        t = time.thread_time()
+        self.setup = _compile_seconds(problem) if sim.cost == "cpu" else 0.0
+        sim.modelling_seconds += time.thread_time() - t
+        with sim._cv:
+            sim._runs.append(self)
+
+    @property
+    def now(self) -> float:
+        """The model's time: the finish of the last completion absorbed."""
+        return self.sim._now
 
     def submit(self, fn, *args):
-        hq = heapq
-        start = max(self.now, hq.heappop(self.free))
+        sim = self.sim
         t = time.thread_time()
         out = fn(self.problem, *args)
-        cost = float(out["boxes"]) if self.sim.cost == "boxes" else time.thread_time() - t
-        finish = start + cost
-        hq.heappush(self.free, finish)
-        self.seq += 1
-        hq.heappush(self.pending, (finish, self.seq, out))
-        self.work += cost
-        self.end = max(self.end, finish)
-        return self.seq
+        cost = float(out["boxes"]) if sim.cost == "boxes" else time.thread_time() - t
+        with sim._cv:
+            free_at, w = heapq.heappop(sim._free)
+            start = max(sim._now, free_at)
+            if w not in self.seen:  # a worker process compiles the problem's graphs once
+                self.seen.add(w)
+                cost += self.setup
+                sim.compile_seconds += self.setup
+            finish = start + cost
+            heapq.heappush(sim._free, (finish, w))
+            sim._seq += 1
+            heapq.heappush(self.pending, (finish, sim._seq, out))
+            self.work += cost
+            self.tasks += 1
+            self.boxes += int(out["boxes"])
+            return sim._seq
 
     def next(self):
+        sim = self.sim
         if not self.pending:
             return None
-        finish, key, out = heapq.heappop(self.pending)
-        self.now = finish
-        return key, out
+        with _waiting():  # another check may take its turn meanwhile (ahead())
+            sim._block()
+            with sim._cv:
+                while self.delivered is None:
+                    sim._cv.wait()
+                done, self.delivered = self.delivered, None
+        return done
 
     def close(self):
-        # with stop_at_first, tasks not absorbed would be cancelled: end at the last absorbed
-        end = self.now if self.pending else self.end
-        self.sim.calls.append({"makespan": end, "work": self.work, "tasks": self.seq})
+        # with stop_at_first, tasks not absorbed are cancelled: the call ends at its last
+        # absorbed completion (their workers stay busy until they finish, as on Dask)
+        sim = self.sim
+        with sim._cv:
+            sim._runs.remove(self)
+            sim.calls.append({"makespan": self.last - self.start, "work": self.work,
+                              "tasks": self.tasks, "start": self.start,
+                              "boxes": self.boxes})
 
 
 def model_speedups(run, workers=(1, 2, 4, 8, 16), cost: str = "boxes") -> dict[int, dict]:
@@ -1199,9 +1308,11 @@ class Ahead:
     (few boxes, one worker busy) no longer leaves the other workers idle. The two threads
     take turns (a module lock): each runs only while the other waits for its cluster tasks,
     so CasADi never runs in two threads at once, and every verdict is the one a serial run
-    gives (:func:`check`). Without a cluster (or from inside another ``Ahead``) nothing
-    starts: ``fn`` runs when :meth:`result` is first called, exactly where a serial program
-    would run it, and not at all if the result is never asked for.
+    gives (:func:`check`). An ``Ahead`` may start another (a check beside a check). On a
+    :class:`SimulatedCluster` the threads run as on a cluster, their tasks list-scheduled
+    together on the model's workers in modelled time. Without a cluster nothing starts:
+    ``fn`` runs when :meth:`result` is first called, exactly where a serial program would
+    run it, and not at all if the result is never asked for.
 
     Use it as a context manager: leaving the block without asking for the result (an early
     return) stops the thread at its next wait for the cluster and waits for it; leaving on
@@ -1220,13 +1331,19 @@ class Ahead:
         self._thread = None
         self._took = False          # the caller took the turn to start the thread
         self._out: tuple | None = None
+        # on a model (SimulatedCluster): the thread counts among its runnable threads until
+        # it ends; a caller that joins it is handed that count back (no other thread runs)
+        self._sim = None
+        self._left = self._joined = False
         cluster = _CLUSTER.get()
-        if _defer or cluster is None or getattr(cluster, "simulated", False) or \
-                getattr(_LOCAL, "job", None) is not None:  # a model runs its checks in turn
+        if _defer or cluster is None:
             return
         if not getattr(_LOCAL, "holds", False):
             _TURN.acquire()
             _LOCAL.holds = self._took = True
+        if getattr(cluster, "simulated", False):
+            self._sim = cluster
+            cluster._unblock()
         ctx = contextvars.copy_context()
         self._thread = threading.Thread(target=self._body, args=(ctx,), daemon=True,
                                         name="nlyap-ahead")
@@ -1241,9 +1358,22 @@ class Ahead:
             self._out = (False, err)
         finally:
             _LOCAL.holds, _LOCAL.job = False, None
+            if self._sim is not None:
+                with self._sim._cv:
+                    self._left = True
+                    if not self._joined:
+                        self._sim._runnable -= 1
+                        self._sim._deliver()
             _TURN.release()
 
     def _join(self):
+        sim = self._sim
+        if sim is not None:
+            with sim._cv:  # the caller waits: it stops running until this thread ends
+                if not self._left and not self._joined:
+                    self._joined = True
+                    sim._runnable -= 1
+                    sim._deliver()
         with _waiting():
             self._thread.join()
         if self._took:

@@ -32,6 +32,7 @@ from ..certification.certificate import (
     certify_roa,
 )
 from ..certification.roa import axis_count, candidate_level, grid_area, grid_points
+from ..design.control import lqr
 from ..kernel.determinism import deterministic_torch
 from ..kernel.domain import Ball, as_domain, parse_set
 from ..kernel.errors import InputRangeError
@@ -39,7 +40,7 @@ from ..kernel.network import Network
 from ..kernel.simulate import simulate
 from .learning import LearnerState, LyapunovLearner, TrainConfig, label_boundary_states, sample_ball
 
-__all__ = ["CegisConfig", "CegisResult", "cegis"]
+__all__ = ["CegisConfig", "CegisResult", "cegis", "simulation_step"]
 
 
 @dataclass
@@ -98,6 +99,11 @@ class CegisConfig:
     domain: object = None
     initial_set: object = None
     initial_samples: int = 2000      # training states in X_I (pulled into V ≤ level)
+    # a trained controller starts from the LQR gain of the weighting (Q = I, or one state
+    # weighed GAIN_WEIGHT times the others) that keeps the largest share of D's states in D
+    # on their way to the origin under the model, when that share beats the given start's by
+    # more than GAIN_MARGIN (the caller turns it off where the user chose the LQR weights)
+    gain_scan: bool = False
 
 
 @dataclass
@@ -125,11 +131,22 @@ class CegisResult:
 def _simulation_rhs(learner, system, cfg, tabulate: bool):
     """The closed-loop model as a numpy function for the training simulations.
 
+    The true f with a model is evaluated through its CasADi graph (numpy) with the current κ.
     A learned φ (a wide network) is tabulated once on a grid of ``sim_points`` nodes over the
     ball's box and interpolated (multilinear, SciPy) when the state has at most 3
     dimensions: the simulations only shape the training targets, and a table is an order of
     magnitude faster than the network over ~10⁴ steps.
     """
+
+    if learner.dynamics is None and getattr(system, "has_model", True):
+        # the model's CasADi graph in float64 with the current κ: the same numbers as the
+        # torch graph (to rounding) at a tenth of its cost per step
+        _, ctrl = learner.export()
+
+        def model_np(x):
+            return system.evaluate(x, None if ctrl is None else ctrl.numpy(x))
+
+        return model_np
 
     def rhs_np(x):
         with torch.no_grad():
@@ -175,6 +192,78 @@ def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float
     T = g / gc
     capped = ~(T < cap)
     return np.where(capped, cap, T), np.where(capped, 0.0, dg / gc)
+
+
+#: the training simulations' RK4 step h satisfies h·ρ(A) ≤ STIFF_STEP, ρ(A) the spectral
+#: radius of the model's closed-loop linearisation at the origin: every linear mode then
+#: lies well inside RK4's stability region (|R(hλ)| ≤ 1 for Re λ ≤ 0, |hλ| ≤ 2.5) and is
+#: integrated accurately (|R(−1) − e⁻¹| < 0.01); a stiff loop gets a shorter step, and a
+#: step too long for its fast mode makes no trajectory converge (and no fit target)
+STIFF_STEP = 1.0
+
+
+def simulation_step(dt: float, A: np.ndarray) -> float:
+    """The RK4 step of the training simulations: ``dt`` (``cegis.sim_dt``), shortened to
+    ``STIFF_STEP / ρ(A)`` where the closed loop's linearisation ``A`` at the origin is faster.
+
+    Examples
+    --------
+    >>> simulation_step(0.04, np.array([[0.0, 1.0], [-2.0, -3.0]]))
+    0.04
+    >>> round(simulation_step(0.04, np.diag([-1.0, -200.0])), 6)
+    0.005
+    """
+    A = np.asarray(A, dtype=float)
+    rho = float(np.max(np.abs(np.linalg.eigvals(A)))) if A.size else 0.0
+    return min(dt, STIFF_STEP / rho) if rho > 0 else dt
+
+
+#: gain scan (cegis.gain_scan): the LQR weightings tried besides the start are
+#: Q = I + (GAIN_WEIGHT − 1)·e_i e_iᵀ, one state weighed GAIN_WEIGHT times the others
+GAIN_WEIGHT = 10.0
+#: ... a weighting replaces the start only when it keeps more than this share more of the
+#: sampled states of D in D on their way to the origin (the start wins ties and near-ties)
+GAIN_MARGIN = 0.05
+#: ... on this many of the training states drawn uniformly in D
+GAIN_STATES = 2000
+
+
+def _stay_share(learner, system, cfg: CegisConfig, D, X: np.ndarray, tabulate: bool) -> float:
+    """Share of ``X`` that the model's closed loop with the learner's current gain takes to
+    the origin within ``cegis.sim_time`` without leaving ``D``."""
+    rhs = _simulation_rhs(learner, system, cfg, tabulate)
+    dt = simulation_step(cfg.sim_dt, learner.closed_loop_jacobian().detach().numpy())
+    return float(np.mean(simulate(rhs, X, t_final=cfg.sim_time, dt=dt, tol=cfg.sim_tol,
+                                  stay=D.contains)[0]))
+
+
+def _scan_gain(learner, system, dynamics, cfg: CegisConfig, D, X: np.ndarray, log) -> None:
+    """``cegis.gain_scan``: start from the LQR weighting whose closed loop keeps the most
+    states of ``D`` in ``D`` (see :class:`CegisConfig`); sets the learner's gain."""
+    Xs = X[:GAIN_STATES]
+    tabulate = dynamics is not None
+    start = learner.G.detach().clone()
+    best = (_stay_share(learner, system, cfg, D, Xs, tabulate), "the LQR start", start)
+    first = best[0]
+    n = system.nx
+    for i in range(n):
+        Q = np.eye(n)
+        Q[i, i] = GAIN_WEIGHT
+        try:
+            K = lqr(system, Q, None, dynamics=None if getattr(system, "has_model", True)
+                    else dynamics).K
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        learner.set_gain(torch.as_tensor(K, dtype=torch.float64))
+        share = _stay_share(learner, system, cfg, D, Xs, tabulate)
+        if share > best[0]:
+            best = (share, f"LQR with Q = I, Q[{i},{i}] = {GAIN_WEIGHT:g}",
+                    learner.G.detach().clone())
+    chosen = best if best[0] > first + GAIN_MARGIN else (first, "the LQR start", start)
+    learner.set_gain(chosen[2])
+    log(f"  cegis: gain scan: the LQR start keeps {100 * first:.1f} % of {len(Xs)} states of "
+        f"D in D on their way to the origin, the best weighting ({best[1]}) "
+        f"{100 * best[0]:.1f} %; κ starts from {chosen[1]}")
 
 
 #: fewer converging training states than this share of them: the run says to raise
@@ -271,14 +360,14 @@ def _samples(cfg: CegisConfig, D, XI, rng, n: int) -> tuple[np.ndarray, np.ndarr
     return X, S
 
 
-def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
-    """Simulate the training states under the model: ``(X, weights, targets, rates)``, the
-    states (more around the model's ROA boundary when fitting), the pull of ``V ≤ 1`` on
-    each and the trajectory-cost targets (``None`` without ``w_fit``)."""
+def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log, dt: float):
+    """Simulate the training states under the model (RK4 step ``dt``): ``(X, weights,
+    targets, rates)``, the states (more around the model's ROA boundary when fitting), the
+    pull of ``V ≤ 1`` on each and the trajectory-cost targets (``None`` without ``w_fit``)."""
     stay = D.contains if cfg.sim_in_domain else None
     # fit_domain: the largest gauge of D along each simulated trajectory (see below)
     track = D.gauge if cfg.train.w_fit and cfg.train.fit_domain else None
-    conv, cost, *peak = simulate(rhs_np, X, t_final=cfg.sim_time, dt=cfg.sim_dt,
+    conv, cost, *peak = simulate(rhs_np, X, t_final=cfg.sim_time, dt=dt,
                                  tol=cfg.sim_tol, stay=stay, track=track)
     log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model"
         + (" without leaving the domain" if stay is not None else ""))
@@ -305,7 +394,7 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
                 extra = np.vstack([extra, jit + 0.03 * scale * rng.standard_normal(jit.shape)])
             if len(extra):
                 extra = extra[D.contains(extra)]
-                c2, w2, *p2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=cfg.sim_dt,
+                c2, w2, *p2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=dt,
                                        tol=cfg.sim_tol, stay=stay, track=track)
                 X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
                 peak = [np.r_[peak[0], p2[0]]] if peak else peak
@@ -477,8 +566,15 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     rim = np.zeros((0, n))   # boundary states fed back when ∂D limits the level
     learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
 
+    if cfg.gain_scan and controller is not None and learner.config.train_controller:
+        _scan_gain(learner, system, dynamics, cfg, D, X, log)
     rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
-    X, weights, targets, rates = _fit_targets(cfg, D, X, rhs_np, rng, scale, log)
+    dt = simulation_step(cfg.sim_dt, learner.closed_loop_jacobian().detach().numpy())
+    if dt < cfg.sim_dt:
+        log(f"  cegis: the training simulations step {dt:.3g} s, not cegis.sim_dt = "
+            f"{cfg.sim_dt:g} s: the model's closed loop has a mode of speed "
+            f"{STIFF_STEP / dt:.4g} at the origin")
+    X, weights, targets, rates = _fit_targets(cfg, D, X, rhs_np, rng, scale, log, dt)
     areas = _AreaGrid(D, cfg.area_points)
     cex = np.zeros((0, n))
     best: CegisResult | None = None

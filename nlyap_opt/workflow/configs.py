@@ -280,7 +280,7 @@ DEFAULT_TRAIN: dict = {
 DEFAULT_CEGIS: dict = {
     "iterations": 8, "steps": 1000, "verify_every": 3, "sim_time": 30.0, "sim_dt": 0.04,
     "sim_points": 90601, "inner_samples": 2000, "boundary_samples": 20000,
-    "sim_in_domain": True, "best_iterate": True,
+    "sim_in_domain": True, "best_iterate": True, "gain_scan": True,
 }
 
 #: the base of ``make_config(name, preset=None, ...)`` for a system without a preset; the
@@ -535,6 +535,10 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "norm_smoothing": "pointwise mode: s = norm_smoothing·M in sqrt(‖∇_L V‖² + s²) "
                           "(costs at most this fraction of β)",
         "initial_samples": "training states drawn in initial_set, pulled into V ≤ level",
+        "gain_scan": "a trained controller starts from the LQR weighting (Q = I, or one "
+                     "state weighed 10 times the others) that keeps the most sampled "
+                     "states of D in D on their way to the origin, if it beats the start "
+                     "by more than 5 points (off where lqr.Q or lqr.R is given)",
     },
     "dynamics": {
         "system": "catalogue name the settings were made for (informational)",

@@ -73,3 +73,62 @@ def test_a_non_stiff_loop_keeps_the_configured_step():
     assert simulation_step(0.02, A) == 0.02
     assert simulation_step(0.04, A) < 0.04
     assert simulation_step(0.04, np.zeros((2, 2))) == 0.04
+
+
+def _scan(name: str, radius: float, scale: float):
+    """Run the gain scan of the default method (cegis.gain_scan) on catalogue system
+    ``name`` with the true f on the disc of ``radius``; returns the start gain, the chosen
+    gain, the log and the stays-in-D shares of both on a fresh grid."""
+    import systems
+    from nlyap_opt.candidates import cegis as cg
+    from nlyap_opt.candidates.learning import LyapunovLearner, TrainConfig
+    from nlyap_opt.design.control import lqr, saturated_controller
+    from nlyap_opt.kernel.domain import Ball
+
+    s = systems.get(name)
+    D = Ball(radius, 2)
+    cfg = cg.CegisConfig(inner=0.1 * radius, outer=radius, sim_time=30.0, sim_dt=0.04,
+                         gain_scan=True)
+    learner = LyapunovLearner(s, saturated_controller(s, lqr(s).K, scale), None,
+                              TrainConfig(hidden=[4], features=2))
+    X = D.sample(400, np.random.default_rng(0))
+    start = learner.G.detach().numpy().copy()
+    lines = []
+    cg._scan_gain(learner, s, None, cfg, D, X, lines.append)
+    chosen = learner.G.detach().numpy().copy()
+    np.testing.assert_array_equal(learner.G0.numpy(), chosen)   # the anchor follows
+    g = np.linspace(-radius, radius, 25)
+    grid = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    grid = grid[D.contains(grid)]
+
+    def stays(G):
+        import torch
+        learner.set_gain(torch.as_tensor(G))
+        _, k = learner.export()
+        dt = cg.simulation_step(0.04, learner.closed_loop_jacobian().detach().numpy())
+        return simulate(lambda x: s.evaluate(x, k.numpy(x)), grid, 30.0, dt, 1e-2,
+                        stay=D.contains)[0].mean()
+
+    return start, chosen, lines, stays(start), stays(chosen)
+
+
+def test_gain_scan_replaces_a_start_that_lets_trajectories_leave_the_domain():
+    """The pendulum on the disc r = 4 with u = 20·tanh(·): the LQR start of Q = I keeps about
+    70 % of the disc in it on the way to the origin; the scan starts κ from the LQR gain of
+    Q = diag(1, 10) (more derivative action), which keeps more than 90 % (checked on a grid
+    the scan did not see), and says so in one log line."""
+    start, chosen, lines, s0, s1 = _scan("inverted_pendulum", 4.0, 20.0)
+    assert not np.allclose(start, chosen)
+    assert chosen[0, 1] > 2 * start[0, 1]          # the ω gain grew
+    assert s0 < 0.8 and s1 > 0.9
+    assert len(lines) == 1 and "Q[1,1] = 10" in lines[0] and "κ starts from LQR" in lines[0]
+
+
+def test_gain_scan_keeps_a_start_that_already_keeps_the_domain():
+    """Path following on the disc r = 0.8 with u = 5·tanh(·): the LQR start keeps about 97 %
+    of the disc in it; no weighting beats it by more than GAIN_MARGIN, so κ starts from it
+    unchanged (bit for bit)."""
+    start, chosen, lines, s0, s1 = _scan("unicycle_path_following", 0.8, 5.0)
+    np.testing.assert_array_equal(start, chosen)
+    assert s0 > 0.9 and s0 == s1
+    assert "κ starts from the LQR start" in lines[0]

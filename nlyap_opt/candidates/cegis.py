@@ -18,7 +18,7 @@ collapsed (its candidate set, which bounds what it can certify, fell below
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -104,6 +104,9 @@ class CegisConfig:
     # on their way to the origin under the model, when that share beats the given start's by
     # more than GAIN_MARGIN (the caller turns it off where the user chose the LQR weights)
     gain_scan: bool = False
+    # after the first round, a fit of V that explains less than 1 − FIT_FAILS of the targets'
+    # variance is dropped: V is trained again with the LYAPUNOV_RISK settings
+    fit_fallback: bool = False
 
 
 @dataclass
@@ -266,6 +269,27 @@ def _scan_gain(learner, system, dynamics, cfg: CegisConfig, D, X: np.ndarray, lo
         f"{100 * best[0]:.1f} %; κ starts from {chosen[1]}")
 
 
+#: cegis.fit_fallback: the Zubov-type fit has failed when, after the first training round,
+#: mean (V − T)² over the training states exceeds this share of the targets' variance (V
+#: explains less than half of T: on a stiff loop the relative decrease-law residual holds V
+#: nearly flat, V ≈ 0.05 also on ∂D)
+FIT_FAILS = 0.5
+#: ... then V is trained again from its start with these train settings (the Lyapunov-risk
+#: recipe of the catalogue presets: V ≤ 1 pulled on the converging states, the decrease
+#: asked at rate τ = decay, no fit)
+LYAPUNOV_RISK = {"w_fit": 0.0, "w_pde": 0.0, "decay": 0.1, "w_inside": 1.0}
+
+
+def fit_residual_ratio(learner, X: np.ndarray, targets: np.ndarray) -> float:
+    """``mean (V(x) − T(x))² / var T`` over the training states ``X`` (1 for a V that is the
+    targets' mean; ``inf`` for constant targets)."""
+    with torch.no_grad():
+        V = np.concatenate([learner.V(torch.as_tensor(X[i:i + 8192]))[:, 0].numpy()
+                            for i in range(0, len(X), 8192)])
+    var = float(np.var(targets))
+    return float(np.mean((V - targets) ** 2) / var) if var > 0 else float("inf")
+
+
 #: fewer converging training states than this share of them: the run says to raise
 #: cegis.sim_time (the trajectory-cost fit rests on too few states)
 MIN_CONVERGED = 0.01
@@ -362,8 +386,10 @@ def _samples(cfg: CegisConfig, D, XI, rng, n: int) -> tuple[np.ndarray, np.ndarr
 
 def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log, dt: float):
     """Simulate the training states under the model (RK4 step ``dt``): ``(X, weights,
-    targets, rates)``, the states (more around the model's ROA boundary when fitting), the
-    pull of ``V ≤ 1`` on each and the trajectory-cost targets (``None`` without ``w_fit``)."""
+    targets, rates, converged)``, the states (more around the model's ROA boundary when
+    fitting), the pull of ``V ≤ 1`` on each, the trajectory-cost targets (``None`` without
+    ``w_fit``) and which states the model takes to the origin (without leaving ``D`` with
+    ``sim_in_domain``)."""
     stay = D.contains if cfg.sim_in_domain else None
     # fit_domain: the largest gauge of D along each simulated trajectory (see below)
     track = D.gauge if cfg.train.w_fit and cfg.train.fit_domain else None
@@ -414,7 +440,7 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log, dt: flo
         weights = (conv & (cost <= w_c)).astype(float)
         log(f"  cegis: fitting V to the trajectory cost ({tc.fit_transform}; level 1 at cost "
             f"{w_c:.4g}, {len(X)} states)")
-    return X, weights, targets, rates
+    return X, weights, targets, rates, conv
 
 
 
@@ -574,7 +600,8 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         log(f"  cegis: the training simulations step {dt:.3g} s, not cegis.sim_dt = "
             f"{cfg.sim_dt:g} s: the model's closed loop has a mode of speed "
             f"{STIFF_STEP / dt:.4g} at the origin")
-    X, weights, targets, rates = _fit_targets(cfg, D, X, rhs_np, rng, scale, log, dt)
+    X, weights, targets, rates, conv = _fit_targets(cfg, D, X, rhs_np, rng, scale, log, dt)
+    start_gain = None if controller is None else learner.G.detach().clone()
     areas = _AreaGrid(D, cfg.area_points)
     cex = np.zeros((0, n))
     best: CegisResult | None = None
@@ -585,6 +612,21 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     for it in range(cfg.iterations):
         info = _train_round(learner, cfg, it, eta, margin, X, np.vstack([S, rim]), cex,
                             weights, targets, rates, D)
+        fallback = None
+        if it == 0 and targets is not None and cfg.fit_fallback:
+            fallback = fit_residual_ratio(learner, X, targets)
+            if fallback > FIT_FAILS:
+                log(f"  cegis: the Zubov-type fit fails (mean (V − T)² is {fallback:.3g} "
+                    f"of the targets' variance, above {FIT_FAILS:g}): training V again "
+                    "with the Lyapunov-risk terms instead (V ≤ 1 on the converging "
+                    f"states, decrease at rate {LYAPUNOV_RISK['decay']:g}, no fit)")
+                learner = LyapunovLearner(system, controller, dynamics,
+                                          replace(cfg.train, **LYAPUNOV_RISK), V=V0)
+                if start_gain is not None:
+                    learner.set_gain(start_gain)
+                weights, targets, rates = conv.astype(float), None, None
+                info = _train_round(learner, cfg, it, eta, margin, X, np.vstack([S, rim]),
+                                    cex, weights, targets, rates, D)
         V, ctrl = learner.export()
         problem = RoaProblem(system, V, ctrl, dynamics, inner=cfg.inner, outer=cfg.outer,
                              eta=eta, margin_mode=cfg.margin_mode,
@@ -605,6 +647,9 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         here = _new_iterate(it, info, problem, cand, (margin, M, smoothing), cfg, eta, areas,
                             learner, beat, log)
         entry = here.entry
+        if fallback is not None:
+            entry["fit_residual_ratio"] = fallback
+            entry["recipe"] = "lyapunov-risk" if fallback > FIT_FAILS else "zubov"
         history.append(entry)
         pending = [*pending, here] if cfg.best_iterate else [here]
         chosen, cert = here, None

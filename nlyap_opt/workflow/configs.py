@@ -280,7 +280,7 @@ DEFAULT_TRAIN: dict = {
 DEFAULT_CEGIS: dict = {
     "iterations": 8, "steps": 1000, "verify_every": 3, "sim_time": 30.0, "sim_dt": 0.04,
     "sim_points": 90601, "inner_samples": 2000, "boundary_samples": 20000,
-    "sim_in_domain": True, "best_iterate": True, "gain_scan": True,
+    "sim_in_domain": True, "best_iterate": True, "gain_scan": True, "fit_fallback": True,
 }
 
 #: the base of ``make_config(name, preset=None, ...)`` for a system without a preset; the
@@ -539,6 +539,10 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
                      "state weighed 10 times the others) that keeps the most sampled "
                      "states of D in D on their way to the origin, if it beats the start "
                      "by more than 5 points (off where lqr.Q or lqr.R is given)",
+        "fit_fallback": "after the first round, a fit of V to the trajectory costs that "
+                        "leaves more than half of the targets' variance unexplained is "
+                        "dropped: V is trained again with the Lyapunov-risk terms (w_fit = "
+                        "w_pde = 0, decay 0.1, w_inside 1)",
     },
     "dynamics": {
         "system": "catalogue name the settings were made for (informational)",

@@ -3,7 +3,7 @@
 A saturated controller with a large input range gives a closed loop with a fast mode (the
 catalogue pendulum: torque range 27 times the gravity torque). RK4 at a fixed step is
 unstable for a mode with h·λ < −2.79: no simulated trajectory converges and no fit target
-is made. :func:`nlyap_opt.candidates.cegis.simulation_step` shortens the step to the
+is made. :func:`nlyap_opt.kernel.simulate.stable_step` shortens the step to the
 loop's fastest linear mode. These tests check that on stiff linear loops the shortened step
 converges and gives the exact trajectory cost xᵀPx (AᵀP + PA = −I), that the fixed step
 does not, and that a non-stiff loop keeps ``cegis.sim_dt``.
@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 from scipy.linalg import solve_continuous_lyapunov
 
-from nlyap_opt.candidates.cegis import STIFF_STEP, simulation_step
-from nlyap_opt.kernel.simulate import simulate
+from nlyap_opt.kernel.simulate import STIFF_STEP, simulate, stable_step
 
 
 def _rk4_amplification(z: np.ndarray) -> np.ndarray:
@@ -39,12 +38,12 @@ def test_the_step_bound_lies_inside_rk4s_stability_region():
     # rotation (−50 ± 40i) and a slow mode
 ])
 def test_shortened_step_matches_the_exact_cost_of_a_stiff_linear_loop(A):
-    """x' = Ax from states on the circle of radius 2 (at x₃ = 1 in 3-D): with simulation_step(0.04, A) every
-    trajectory converges and its cost ∫‖x‖² dt is x₀ᵀPx₀ (AᵀP + PA = −I) within 1 % of the largest; with
-    the fixed step 0.04 (h·ρ(A) ≥ 1.6, unstable for the real stiff modes) at least one does
+    """x' = Ax from states on the circle of radius 2 (at x₃ = 1 in 3-D): with
+    stable_step(0.04, A) every trajectory converges and its cost ∫‖x‖² dt is x₀ᵀPx₀
+    (AᵀP + PA = −I) within 1 % of the largest; with the fixed step 0.04 (h·ρ(A) ≥ 1.6, unstable for the real stiff modes) at least one does
     not converge or its cost is off by more than that."""
     rho = np.max(np.abs(np.linalg.eigvals(A)))
-    dt = simulation_step(0.04, A)
+    dt = stable_step(0.04, A)
     assert dt == pytest.approx(STIFF_STEP / rho) and dt < 0.04
     phi = np.linspace(0, 2 * np.pi, 24, endpoint=False)
     x0 = 2.0 * np.stack([np.cos(phi), np.sin(phi)] + [np.full_like(phi, 0.5)] * (len(A) - 2), 1)
@@ -68,11 +67,11 @@ def test_shortened_step_matches_the_exact_cost_of_a_stiff_linear_loop(A):
 def test_a_non_stiff_loop_keeps_the_configured_step():
     """Van der Pol's linearisation (|λ| = 1) and the pendulum's LQR loop of Q = I, R = I
     (modes −1.2, −27.5: 0.04·27.5 = 1.1 > STIFF_STEP, shortened; 0.02·27.5 = 0.55 kept)."""
-    assert simulation_step(0.04, np.array([[0.0, 1.0], [-1.0, 1.0]])) == 0.04
+    assert stable_step(0.04, np.array([[0.0, 1.0], [-1.0, 1.0]])) == 0.04
     A = np.array([[0.0, 1.0], [19.62 - 26.667 * 1.977, -2.667 - 26.667 * 0.976]])
-    assert simulation_step(0.02, A) == 0.02
-    assert simulation_step(0.04, A) < 0.04
-    assert simulation_step(0.04, np.zeros((2, 2))) == 0.04
+    assert stable_step(0.02, A) == 0.02
+    assert stable_step(0.04, A) < 0.04
+    assert stable_step(0.04, np.zeros((2, 2))) == 0.04
 
 
 def _scan(name: str, radius: float, scale: float):
@@ -105,7 +104,7 @@ def _scan(name: str, radius: float, scale: float):
         import torch
         learner.set_gain(torch.as_tensor(G))
         _, k = learner.export()
-        dt = cg.simulation_step(0.04, learner.closed_loop_jacobian().detach().numpy())
+        dt = stable_step(0.04, learner.closed_loop_jacobian().detach().numpy())
         return simulate(lambda x: s.evaluate(x, k.numpy(x)), grid, 30.0, dt, 1e-2,
                         stay=D.contains)[0].mean()
 
@@ -115,13 +114,13 @@ def _scan(name: str, radius: float, scale: float):
 def test_gain_scan_replaces_a_start_that_lets_trajectories_leave_the_domain():
     """The pendulum on the disc r = 4 with u = 20·tanh(·): the LQR start of Q = I keeps about
     70 % of the disc in it on the way to the origin; the scan starts κ from the LQR gain of
-    Q = diag(1, 10) (more derivative action), which keeps more than 90 % (checked on a grid
+    Q = diag(1, 30) (more derivative action), which keeps more than 90 % (checked on a grid
     the scan did not see), and says so in one log line."""
     start, chosen, lines, s0, s1 = _scan("inverted_pendulum", 4.0, 20.0)
     assert not np.allclose(start, chosen)
     assert chosen[0, 1] > 2 * start[0, 1]          # the ω gain grew
     assert s0 < 0.8 and s1 > 0.9
-    assert len(lines) == 1 and "Q[1,1] = 10" in lines[0] and "κ starts from LQR" in lines[0]
+    assert len(lines) == 1 and "Q[1,1] = 30" in lines[0] and "κ starts from LQR" in lines[0]
 
 
 def test_gain_scan_keeps_a_start_that_already_keeps_the_domain():
@@ -132,3 +131,34 @@ def test_gain_scan_keeps_a_start_that_already_keeps_the_domain():
     np.testing.assert_array_equal(start, chosen)
     assert s0 > 0.9 and s0 == s1
     assert "κ starts from the LQR start" in lines[0]
+
+
+@pytest.mark.parametrize("name, Q, scale, fit", [
+    ("inverted_pendulum", None, 20.0, True),                 # modes −1.2, −27.5: ratio 23
+    ("inverted_pendulum", [1.0, 10.0], 20.0, False),         # −0.39, −84.6: 217
+    ("inverted_pendulum", [1.0, 30.0], 20.0, False),         # −0.23, −146: 635
+    ("unicycle_path_following", None, 5.0, True),
+    ("van_der_pol", None, None, True),
+])
+def test_the_fit_is_used_only_on_a_closed_loop_that_is_not_stiff(name, Q, scale, fit):
+    """cegis.fit_fallback trains V with the Lyapunov-risk terms where the model's closed loop
+    at the origin is stiffer than STIFF_RATIO (fastest speed over slowest decay rate): the
+    pendulum's LQR loops of Q = diag(1, 10) and diag(1, 30), on which the fit to trajectory
+    costs failed, and not its Q = I loop, path following or Van der Pol, on which it
+    certifies. The learner's linearisation is the exact one (LQR's A − BK)."""
+    import systems
+    from nlyap_opt.candidates.cegis import LYAPUNOV_RISK, STIFF_RATIO, stiffness
+    from nlyap_opt.candidates.learning import LyapunovLearner, TrainConfig
+    from nlyap_opt.design.control import lqr, saturated_controller
+
+    s = systems.get(name)
+    res = lqr(s, None if Q is None else np.diag(Q))
+    ctrl = saturated_controller(s, res.K, scale) if s.nu else None
+    learner = LyapunovLearner(s, ctrl, None, TrainConfig(hidden=[4], features=2))
+    A = learner.closed_loop_jacobian().detach().numpy()
+    np.testing.assert_allclose(A, res.A - res.B @ res.K, rtol=1e-9, atol=1e-9)
+    assert (stiffness(A) <= STIFF_RATIO) is fit
+    assert stiffness(np.diag([-1.0, -100.0])) == pytest.approx(100.0)
+    assert stiffness(np.array([[0.0, 1.0], [-1.0, 0.0]])) == np.inf      # a centre
+    # the recipe turns the fit off and asks for a decrease rate
+    assert LYAPUNOV_RISK["w_fit"] == 0 and LYAPUNOV_RISK["decay"] > 0

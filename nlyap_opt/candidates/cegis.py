@@ -17,6 +17,7 @@ collapsed (its candidate set, which bounds what it can certify, fell below
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field, replace
 
@@ -37,10 +38,10 @@ from ..kernel.determinism import deterministic_torch
 from ..kernel.domain import Ball, as_domain, parse_set
 from ..kernel.errors import InputRangeError
 from ..kernel.network import Network
-from ..kernel.simulate import simulate
+from ..kernel.simulate import STIFF_STEP, linear_modes, simulate, stable_step
 from .learning import LearnerState, LyapunovLearner, TrainConfig, label_boundary_states, sample_ball
 
-__all__ = ["CegisConfig", "CegisResult", "cegis", "simulation_step"]
+__all__ = ["CegisConfig", "CegisResult", "cegis"]
 
 
 @dataclass
@@ -104,8 +105,8 @@ class CegisConfig:
     # on their way to the origin under the model, when that share beats the given start's by
     # more than GAIN_MARGIN (the caller turns it off where the user chose the LQR weights)
     gain_scan: bool = False
-    # after the first round, a fit of V that explains less than 1 − FIT_FAILS of the targets'
-    # variance is dropped: V is trained again with the LYAPUNOV_RISK settings
+    # a closed loop stiffer than STIFF_RATIO at the origin trains V with the LYAPUNOV_RISK
+    # settings instead of the fit (train.w_fit) to trajectory costs
     fit_fallback: bool = False
 
 
@@ -197,33 +198,11 @@ def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float
     return np.where(capped, cap, T), np.where(capped, 0.0, dg / gc)
 
 
-#: the training simulations' RK4 step h satisfies h·ρ(A) ≤ STIFF_STEP, ρ(A) the spectral
-#: radius of the model's closed-loop linearisation at the origin: every linear mode then
-#: lies well inside RK4's stability region (|R(hλ)| ≤ 1 for Re λ ≤ 0, |hλ| ≤ 2.5) and is
-#: integrated accurately (|R(−1) − e⁻¹| < 0.01); a stiff loop gets a shorter step, and a
-#: step too long for its fast mode makes no trajectory converge (and no fit target)
-STIFF_STEP = 1.0
-
-
-def simulation_step(dt: float, A: np.ndarray) -> float:
-    """The RK4 step of the training simulations: ``dt`` (``cegis.sim_dt``), shortened to
-    ``STIFF_STEP / ρ(A)`` where the closed loop's linearisation ``A`` at the origin is faster.
-
-    Examples
-    --------
-    >>> simulation_step(0.04, np.array([[0.0, 1.0], [-2.0, -3.0]]))
-    0.04
-    >>> round(simulation_step(0.04, np.diag([-1.0, -200.0])), 6)
-    0.005
-    """
-    A = np.asarray(A, dtype=float)
-    rho = float(np.max(np.abs(np.linalg.eigvals(A)))) if A.size else 0.0
-    return min(dt, STIFF_STEP / rho) if rho > 0 else dt
-
-
 #: gain scan (cegis.gain_scan): the LQR weightings tried besides the start are
-#: Q = I + (GAIN_WEIGHT − 1)·e_i e_iᵀ, one state weighed GAIN_WEIGHT times the others
-GAIN_WEIGHT = 10.0
+#: Q = I + (w − 1)·e_i e_iᵀ, one state weighed w times the others, for w in GAIN_WEIGHTS
+#: (half decades; a much larger weight makes the slow mode too slow to converge within
+#: cegis.sim_time, which the scan's share counts against it)
+GAIN_WEIGHTS = (3.0, 10.0, 30.0)
 #: ... a weighting replaces the start only when it keeps more than this share more of the
 #: sampled states of D in D on their way to the origin (the start wins ties and near-ties)
 GAIN_MARGIN = 0.05
@@ -235,7 +214,7 @@ def _stay_share(learner, system, cfg: CegisConfig, D, X: np.ndarray, tabulate: b
     """Share of ``X`` that the model's closed loop with the learner's current gain takes to
     the origin within ``cegis.sim_time`` without leaving ``D``."""
     rhs = _simulation_rhs(learner, system, cfg, tabulate)
-    dt = simulation_step(cfg.sim_dt, learner.closed_loop_jacobian().detach().numpy())
+    dt = stable_step(cfg.sim_dt, learner.closed_loop_jacobian().detach().numpy())
     return float(np.mean(simulate(rhs, X, t_final=cfg.sim_time, dt=dt, tol=cfg.sim_tol,
                                   stay=D.contains)[0]))
 
@@ -249,9 +228,9 @@ def _scan_gain(learner, system, dynamics, cfg: CegisConfig, D, X: np.ndarray, lo
     best = (_stay_share(learner, system, cfg, D, Xs, tabulate), "the LQR start", start)
     first = best[0]
     n = system.nx
-    for i in range(n):
+    for i, w in itertools.product(range(n), GAIN_WEIGHTS):
         Q = np.eye(n)
-        Q[i, i] = GAIN_WEIGHT
+        Q[i, i] = w
         try:
             K = lqr(system, Q, None, dynamics=None if getattr(system, "has_model", True)
                     else dynamics).K
@@ -260,7 +239,7 @@ def _scan_gain(learner, system, dynamics, cfg: CegisConfig, D, X: np.ndarray, lo
         learner.set_gain(torch.as_tensor(K, dtype=torch.float64))
         share = _stay_share(learner, system, cfg, D, Xs, tabulate)
         if share > best[0]:
-            best = (share, f"LQR with Q = I, Q[{i},{i}] = {GAIN_WEIGHT:g}",
+            best = (share, f"LQR with Q = I, Q[{i},{i}] = {w:g}",
                     learner.G.detach().clone())
     chosen = best if best[0] > first + GAIN_MARGIN else (first, "the LQR start", start)
     learner.set_gain(chosen[2])
@@ -269,25 +248,26 @@ def _scan_gain(learner, system, dynamics, cfg: CegisConfig, D, X: np.ndarray, lo
         f"{100 * best[0]:.1f} %; κ starts from {chosen[1]}")
 
 
-#: cegis.fit_fallback: the Zubov-type fit has failed when, after the first training round,
-#: mean (V − T)² over the training states exceeds this share of the targets' variance (V
-#: explains less than half of T: on a stiff loop the relative decrease-law residual holds V
-#: nearly flat, V ≈ 0.05 also on ∂D)
-FIT_FAILS = 0.5
-#: ... then V is trained again from its start with these train settings (the Lyapunov-risk
-#: recipe of the catalogue presets: V ≤ 1 pulled on the converging states, the decrease
-#: asked at rate τ = decay, no fit)
-LYAPUNOV_RISK = {"w_fit": 0.0, "w_pde": 0.0, "decay": 0.1, "w_inside": 1.0}
+#: cegis.fit_fallback: the Zubov-type fit is not used on a closed loop whose linearisation
+#: at the origin is stiffer than this (the fastest mode's speed over the slowest mode's
+#: decay rate). Measured on the pendulum: the fit certifies at stiffness 23 (LQR of Q = I)
+#: and fails at 133, 217 and 427 (the candidate level stays below 0.06, V near 0.03 on parts
+#: of ∂D): the decrease law's residual, relative to R(x)‖x‖², weighs every error of ∇V
+#: along the fast direction by that mode's speed, and the trajectory cost barely rises
+#: across the fast direction (its transient costs ~d²/(2|λ_fast|))
+STIFF_RATIO = 50.0
+#: ... such a loop trains V with these train settings instead (the Lyapunov-risk recipe of
+#: the catalogue presets: V ≤ 1 pulled on the converging states, the decrease asked at rate
+#: τ = decay where V ≤ 1 + level_slack, containment on ∂D; no fit)
+LYAPUNOV_RISK = {"w_fit": 0.0, "w_pde": 0.0, "decay": 0.1, "w_inside": 1.0,
+                 "relative_decrease": False, "level_slack": 0.1, "w_outside": 1.0}
 
 
-def fit_residual_ratio(learner, X: np.ndarray, targets: np.ndarray) -> float:
-    """``mean (V(x) − T(x))² / var T`` over the training states ``X`` (1 for a V that is the
-    targets' mean; ``inf`` for constant targets)."""
-    with torch.no_grad():
-        V = np.concatenate([learner.V(torch.as_tensor(X[i:i + 8192]))[:, 0].numpy()
-                            for i in range(0, len(X), 8192)])
-    var = float(np.var(targets))
-    return float(np.mean((V - targets) ** 2) / var) if var > 0 else float("inf")
+def stiffness(A) -> float:
+    """The stiffness ``ρ(A) / min |Re λ|`` of a linearisation (``inf`` when a mode does not
+    decay; 1 for a single rate)."""
+    fast, slow = linear_modes(A)
+    return fast / slow if slow > 0 else float("inf")
 
 
 #: fewer converging training states than this share of them: the run says to raise
@@ -386,10 +366,8 @@ def _samples(cfg: CegisConfig, D, XI, rng, n: int) -> tuple[np.ndarray, np.ndarr
 
 def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log, dt: float):
     """Simulate the training states under the model (RK4 step ``dt``): ``(X, weights,
-    targets, rates, converged)``, the states (more around the model's ROA boundary when
-    fitting), the pull of ``V ≤ 1`` on each, the trajectory-cost targets (``None`` without
-    ``w_fit``) and which states the model takes to the origin (without leaving ``D`` with
-    ``sim_in_domain``)."""
+    targets, rates)``, the states (more around the model's ROA boundary when fitting), the
+    pull of ``V ≤ 1`` on each and the trajectory-cost targets (``None`` without ``w_fit``)."""
     stay = D.contains if cfg.sim_in_domain else None
     # fit_domain: the largest gauge of D along each simulated trajectory (see below)
     track = D.gauge if cfg.train.w_fit and cfg.train.fit_domain else None
@@ -440,7 +418,7 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log, dt: flo
         weights = (conv & (cost <= w_c)).astype(float)
         log(f"  cegis: fitting V to the trajectory cost ({tc.fit_transform}; level 1 at cost "
             f"{w_c:.4g}, {len(X)} states)")
-    return X, weights, targets, rates, conv
+    return X, weights, targets, rates
 
 
 
@@ -595,13 +573,25 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     if cfg.gain_scan and controller is not None and learner.config.train_controller:
         _scan_gain(learner, system, dynamics, cfg, D, X, log)
     rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
-    dt = simulation_step(cfg.sim_dt, learner.closed_loop_jacobian().detach().numpy())
+    dt = stable_step(cfg.sim_dt, learner.closed_loop_jacobian().detach().numpy())
     if dt < cfg.sim_dt:
         log(f"  cegis: the training simulations step {dt:.3g} s, not cegis.sim_dt = "
             f"{cfg.sim_dt:g} s: the model's closed loop has a mode of speed "
             f"{STIFF_STEP / dt:.4g} at the origin")
-    X, weights, targets, rates, conv = _fit_targets(cfg, D, X, rhs_np, rng, scale, log, dt)
-    start_gain = None if controller is None else learner.G.detach().clone()
+    A = learner.closed_loop_jacobian().detach().numpy()
+    risk = cfg.fit_fallback and cfg.train.w_fit > 0 and stiffness(A) > STIFF_RATIO
+    if risk:
+        log(f"  cegis: the model's closed loop is stiff at the origin (modes from "
+            f"{linear_modes(A)[1]:.3g} to {linear_modes(A)[0]:.4g} per s, ratio "
+            f"{stiffness(A):.0f} > {STIFF_RATIO:g}): V is trained with the Lyapunov-risk "
+            "terms, not fitted to trajectory costs (cegis.fit_fallback)")
+        gain = None if controller is None else learner.G.detach().clone()
+        learner = LyapunovLearner(system, controller, dynamics,
+                                  replace(cfg.train, **LYAPUNOV_RISK), V=V0)
+        if gain is not None:
+            learner.set_gain(gain)
+    X, weights, targets, rates = _fit_targets(
+        replace(cfg, train=learner.config) if risk else cfg, D, X, rhs_np, rng, scale, log, dt)
     areas = _AreaGrid(D, cfg.area_points)
     cex = np.zeros((0, n))
     best: CegisResult | None = None
@@ -612,21 +602,6 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     for it in range(cfg.iterations):
         info = _train_round(learner, cfg, it, eta, margin, X, np.vstack([S, rim]), cex,
                             weights, targets, rates, D)
-        fallback = None
-        if it == 0 and targets is not None and cfg.fit_fallback:
-            fallback = fit_residual_ratio(learner, X, targets)
-            if fallback > FIT_FAILS:
-                log(f"  cegis: the Zubov-type fit fails (mean (V − T)² is {fallback:.3g} "
-                    f"of the targets' variance, above {FIT_FAILS:g}): training V again "
-                    "with the Lyapunov-risk terms instead (V ≤ 1 on the converging "
-                    f"states, decrease at rate {LYAPUNOV_RISK['decay']:g}, no fit)")
-                learner = LyapunovLearner(system, controller, dynamics,
-                                          replace(cfg.train, **LYAPUNOV_RISK), V=V0)
-                if start_gain is not None:
-                    learner.set_gain(start_gain)
-                weights, targets, rates = conv.astype(float), None, None
-                info = _train_round(learner, cfg, it, eta, margin, X, np.vstack([S, rim]),
-                                    cex, weights, targets, rates, D)
         V, ctrl = learner.export()
         problem = RoaProblem(system, V, ctrl, dynamics, inner=cfg.inner, outer=cfg.outer,
                              eta=eta, margin_mode=cfg.margin_mode,
@@ -647,9 +622,8 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         here = _new_iterate(it, info, problem, cand, (margin, M, smoothing), cfg, eta, areas,
                             learner, beat, log)
         entry = here.entry
-        if fallback is not None:
-            entry["fit_residual_ratio"] = fallback
-            entry["recipe"] = "lyapunov-risk" if fallback > FIT_FAILS else "zubov"
+        if risk:
+            entry["recipe"] = "lyapunov-risk"
         history.append(entry)
         pending = [*pending, here] if cfg.best_iterate else [here]
         chosen, cert = here, None

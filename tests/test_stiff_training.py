@@ -40,8 +40,8 @@ def test_the_step_bound_lies_inside_rk4s_stability_region():
 def test_shortened_step_matches_the_exact_cost_of_a_stiff_linear_loop(A):
     """x' = Ax from states on the circle of radius 2 (at x₃ = 1 in 3-D): with
     stable_step(0.04, A) every trajectory converges and its cost ∫‖x‖² dt is x₀ᵀPx₀
-    (AᵀP + PA = −I) within 1 % of the largest; with the fixed step 0.04 (h·ρ(A) ≥ 1.6, unstable for the real stiff modes) at least one does
-    not converge or its cost is off by more than that."""
+    (AᵀP + PA = −I) within 1 % of the largest; with the fixed step 0.04 (h·ρ(A) ≥ 1.6)
+    at least one does not converge or its cost is off by more than that."""
     rho = np.max(np.abs(np.linalg.eigvals(A)))
     dt = stable_step(0.04, A)
     assert dt == pytest.approx(STIFF_STEP / rho) and dt < 0.04

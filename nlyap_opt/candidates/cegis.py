@@ -558,6 +558,36 @@ def _train_round(learner, cfg: CegisConfig, it: int, eta: float, margin: float, 
                          targets=targets, target_rates=rates, sphere_normals=normals)
 
 
+def _setup(system, controller, dynamics, cfg: CegisConfig, D, X: np.ndarray, V0, log):
+    """The learner before training, the model's closed loop for the training simulations,
+    their RK4 step and whether V is trained with the Lyapunov-risk terms: the gain scan
+    (``cegis.gain_scan``), the step for the loop's fastest mode (:func:`stable_step`) and,
+    on a stiff loop, the recipe without the fit (``cegis.fit_fallback``)."""
+    learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
+    if cfg.gain_scan and controller is not None and learner.config.train_controller:
+        _scan_gain(learner, system, dynamics, cfg, D, X, log)
+    rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
+    A = learner.closed_loop_jacobian().detach().numpy()
+    dt = stable_step(cfg.sim_dt, A)
+    if dt < cfg.sim_dt:
+        log(f"  cegis: the training simulations step {dt:.3g} s, not cegis.sim_dt = "
+            f"{cfg.sim_dt:g} s: the model's closed loop has a mode of speed "
+            f"{STIFF_STEP / dt:.4g} at the origin")
+    risk = cfg.fit_fallback and cfg.train.w_fit > 0 and stiffness(A) > STIFF_RATIO
+    if risk:
+        slow, fast = linear_modes(A)[1], linear_modes(A)[0]
+        log(f"  cegis: the model's closed loop is stiff at the origin (modes from {slow:.3g} "
+            f"to {fast:.4g} per s, ratio {stiffness(A):.0f} > {STIFF_RATIO:g}): V is trained "
+            "with the Lyapunov-risk terms, not fitted to trajectory costs "
+            "(cegis.fit_fallback)")
+        gain = None if controller is None else learner.G.detach().clone()
+        learner = LyapunovLearner(system, controller, dynamics,
+                                  replace(cfg.train, **LYAPUNOV_RISK), V=V0)
+        if gain is not None:
+            learner.set_gain(gain)
+    return learner, rhs_np, dt, risk
+
+
 def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0, beat):
     t0 = time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
@@ -568,28 +598,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     scale = D.max_norm()    # the ball's radius; jitter of extra states is relative to it
     X, S = _samples(cfg, D, XI, rng, n)
     rim = np.zeros((0, n))   # boundary states fed back when ∂D limits the level
-    learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
-
-    if cfg.gain_scan and controller is not None and learner.config.train_controller:
-        _scan_gain(learner, system, dynamics, cfg, D, X, log)
-    rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
-    dt = stable_step(cfg.sim_dt, learner.closed_loop_jacobian().detach().numpy())
-    if dt < cfg.sim_dt:
-        log(f"  cegis: the training simulations step {dt:.3g} s, not cegis.sim_dt = "
-            f"{cfg.sim_dt:g} s: the model's closed loop has a mode of speed "
-            f"{STIFF_STEP / dt:.4g} at the origin")
-    A = learner.closed_loop_jacobian().detach().numpy()
-    risk = cfg.fit_fallback and cfg.train.w_fit > 0 and stiffness(A) > STIFF_RATIO
-    if risk:
-        log(f"  cegis: the model's closed loop is stiff at the origin (modes from "
-            f"{linear_modes(A)[1]:.3g} to {linear_modes(A)[0]:.4g} per s, ratio "
-            f"{stiffness(A):.0f} > {STIFF_RATIO:g}): V is trained with the Lyapunov-risk "
-            "terms, not fitted to trajectory costs (cegis.fit_fallback)")
-        gain = None if controller is None else learner.G.detach().clone()
-        learner = LyapunovLearner(system, controller, dynamics,
-                                  replace(cfg.train, **LYAPUNOV_RISK), V=V0)
-        if gain is not None:
-            learner.set_gain(gain)
+    learner, rhs_np, dt, risk = _setup(system, controller, dynamics, cfg, D, X, V0, log)
     X, weights, targets, rates = _fit_targets(
         replace(cfg, train=learner.config) if risk else cfg, D, X, rhs_np, rng, scale, log, dt)
     areas = _AreaGrid(D, cfg.area_points)

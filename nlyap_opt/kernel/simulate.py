@@ -6,8 +6,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["STIFF_STEP", "jacobian_at_origin", "linear_modes", "rk4_step", "simulate", "simulate_converges",
-           "stable_step", "trajectories"]
+__all__ = ["STIFF_STEP", "jacobian_at_origin", "linear_modes", "rk4_step", "simulate",
+           "simulate_converges", "stable_step", "trajectories"]
 
 #: a fixed RK4 step h of a closed loop with linearisation A at the origin satisfies
 #: h·ρ(A) ≤ STIFF_STEP (ρ the spectral radius): every linear mode then lies well inside RK4's

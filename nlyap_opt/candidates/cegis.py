@@ -135,14 +135,14 @@ class CegisResult:
 def _simulation_rhs(learner, system, cfg, tabulate: bool):
     """The closed-loop model as a numpy function for the training simulations.
 
-    The true f with a model is evaluated through its CasADi graph (numpy) with the current κ.
-    A learned φ (a wide network) is tabulated once on a grid of ``sim_points`` nodes over the
+    Untabulated, the true f with a model is evaluated through its CasADi graph (numpy) with
+    the current κ. A learned φ (a wide network) is tabulated once on a grid of ``sim_points`` nodes over the
     ball's box and interpolated (multilinear, SciPy) when the state has at most 3
     dimensions: the simulations only shape the training targets, and a table is an order of
     magnitude faster than the network over ~10⁴ steps.
     """
 
-    if learner.dynamics is None and getattr(system, "has_model", True):
+    if not tabulate and learner.dynamics is None and getattr(system, "has_model", True):
         # the model's CasADi graph in float64 with the current κ: the same numbers as the
         # torch graph (to rounding) at a tenth of its cost per step
         _, ctrl = learner.export()

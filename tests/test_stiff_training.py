@@ -159,6 +159,7 @@ def test_the_fit_is_used_only_on_a_closed_loop_that_is_not_stiff(name, Q, scale,
     np.testing.assert_allclose(A, res.A - res.B @ res.K, rtol=1e-9, atol=1e-9)
     assert (stiffness(A) <= STIFF_RATIO) is fit
     assert stiffness(np.diag([-1.0, -100.0])) == pytest.approx(100.0)
-    assert stiffness(np.array([[0.0, 1.0], [-1.0, 0.0]])) == np.inf      # a centre
+    assert stiffness(np.array([[0.0, 1.0], [-1.0, 0.0]])) == 0           # a centre keeps
+    assert stiffness(np.diag([0.0, -1.0, -4.0])) == 0                     # the fit
     # the recipe turns the fit off and asks for a decrease rate
     assert LYAPUNOV_RISK["w_fit"] == 0 and LYAPUNOV_RISK["decay"] > 0

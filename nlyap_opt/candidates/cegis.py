@@ -264,10 +264,10 @@ LYAPUNOV_RISK = {"w_fit": 0.0, "w_pde": 0.0, "decay": 0.1, "w_inside": 1.0,
 
 
 def stiffness(A) -> float:
-    """The stiffness ``ρ(A) / min |Re λ|`` of a linearisation (``inf`` when a mode does not
-    decay; 1 for a single rate)."""
+    """The stiffness ``ρ(A) / min |Re λ|`` of a linearisation (1 for a single rate; 0 where a
+    mode does not decay at all, a centre: its origin is slow, not stiff, and keeps the fit)."""
     fast, slow = linear_modes(A)
-    return fast / slow if slow > 0 else float("inf")
+    return fast / slow if slow > 1e-9 * max(fast, 1.0) else 0.0
 
 
 #: fewer converging training states than this share of them: the run says to raise

@@ -13,6 +13,12 @@ verifier proves the most promising iterate since its last call (the largest cand
 and, after the call, training resumes from the best certified iterate when the current one
 collapsed (its candidate set, which bounds what it can certify, fell below
 ``RESUME_BELOW`` of the best certified area).
+
+Before training (the default method): a trained controller may start from another LQR
+weighting that keeps more of ``D`` in ``D`` under the model (``gain_scan``); the training
+simulations step at most ``STIFF_STEP/ρ(A)`` for the closed loop's fastest mode; and a loop
+stiffer than ``STIFF_RATIO`` trains V with the Lyapunov-risk terms instead of the fit to
+trajectory costs (``fit_fallback``).
 """
 
 from __future__ import annotations
@@ -101,7 +107,7 @@ class CegisConfig:
     initial_set: object = None
     initial_samples: int = 2000      # training states in X_I (pulled into V ≤ level)
     # a trained controller starts from the LQR gain of the weighting (Q = I, or one state
-    # weighed GAIN_WEIGHT times the others) that keeps the largest share of D's states in D
+    # weighed w in GAIN_WEIGHTS times the others) that keeps the largest share of D's states in D
     # on their way to the origin under the model, when that share beats the given start's by
     # more than GAIN_MARGIN (the caller turns it off where the user chose the LQR weights)
     gain_scan: bool = False
@@ -136,10 +142,10 @@ def _simulation_rhs(learner, system, cfg, tabulate: bool):
     """The closed-loop model as a numpy function for the training simulations.
 
     Untabulated, the true f with a model is evaluated through its CasADi graph (numpy) with
-    the current κ. A learned φ (a wide network) is tabulated once on a grid of ``sim_points`` nodes over the
-    ball's box and interpolated (multilinear, SciPy) when the state has at most 3
-    dimensions: the simulations only shape the training targets, and a table is an order of
-    magnitude faster than the network over ~10⁴ steps.
+    the current κ. A learned φ (a wide network) is tabulated once on a grid of
+    ``sim_points`` nodes over the ball's box and interpolated (multilinear, SciPy) when the
+    state has at most 3 dimensions: the simulations only shape the training targets, and a
+    table is an order of magnitude faster than the network over ~10⁴ steps.
     """
 
     if not tabulate and learner.dynamics is None and getattr(system, "has_model", True):

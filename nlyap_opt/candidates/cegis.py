@@ -138,19 +138,22 @@ class CegisResult:
         return self.status is CertStatus.CERTIFIED
 
 
-def _simulation_rhs(learner, system, cfg, tabulate: bool):
+def _simulation_rhs(learner, system, cfg, tabulate: bool, fast: bool = False):
     """The closed-loop model as a numpy function for the training simulations.
 
-    Untabulated, the true f with a model is evaluated through its CasADi graph (numpy) with
-    the current κ. A learned φ (a wide network) is tabulated once on a grid of
-    ``sim_points`` nodes over the ball's box and interpolated (multilinear, SciPy) when the
-    state has at most 3 dimensions: the simulations only shape the training targets, and a
-    table is an order of magnitude faster than the network over ~10⁴ steps.
+    With ``fast`` and untabulated, the true f with a model is evaluated through its CasADi
+    graph (numpy) with the current κ: the same numbers as the torch graph to rounding at a
+    tenth of its cost per step, for the many short steps of a stiff loop and the gain scan
+    (a loop that keeps ``cegis.sim_dt`` keeps the torch graph, and its training stays
+    bit-identical to the runs measured before the scan). A learned φ (a wide network) is
+    tabulated once on a grid of ``sim_points`` nodes over the ball's box and interpolated
+    (multilinear, SciPy) when the state has at most 3 dimensions: the simulations only shape
+    the training targets, and a table is an order of magnitude faster than the network over
+    ~10⁴ steps.
     """
 
-    if not tabulate and learner.dynamics is None and getattr(system, "has_model", True):
-        # the model's CasADi graph in float64 with the current κ: the same numbers as the
-        # torch graph (to rounding) at a tenth of its cost per step
+    if fast and not tabulate and learner.dynamics is None \
+            and getattr(system, "has_model", True):
         _, ctrl = learner.export()
 
         def model_np(x):
@@ -219,7 +222,7 @@ GAIN_STATES = 2000
 def _stay_share(learner, system, cfg: CegisConfig, D, X: np.ndarray, tabulate: bool) -> float:
     """Share of ``X`` that the model's closed loop with the learner's current gain takes to
     the origin within ``cegis.sim_time`` without leaving ``D``."""
-    rhs = _simulation_rhs(learner, system, cfg, tabulate)
+    rhs = _simulation_rhs(learner, system, cfg, tabulate, fast=True)
     dt = stable_step(cfg.sim_dt, learner.closed_loop_jacobian().detach().numpy())
     return float(np.mean(simulate(rhs, X, t_final=cfg.sim_time, dt=dt, tol=cfg.sim_tol,
                                   stay=D.contains)[0]))
@@ -572,9 +575,10 @@ def _setup(system, controller, dynamics, cfg: CegisConfig, D, X: np.ndarray, V0,
     learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
     if cfg.gain_scan and controller is not None and learner.config.train_controller:
         _scan_gain(learner, system, dynamics, cfg, D, X, log)
-    rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
     A = learner.closed_loop_jacobian().detach().numpy()
     dt = stable_step(cfg.sim_dt, A)
+    rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None,
+                             fast=dt < cfg.sim_dt)
     if dt < cfg.sim_dt:
         log(f"  cegis: the training simulations step {dt:.3g} s, not cegis.sim_dt = "
             f"{cfg.sim_dt:g} s: the model's closed loop has a mode of speed "

@@ -117,7 +117,7 @@ def stay_share(target: str, out: Path, cert: dict) -> float | None:
     from nlyap_opt.certification.roa import grid_points
     from nlyap_opt.kernel.domain import parse_set
     from nlyap_opt.kernel.network import Network
-    from nlyap_opt.kernel.simulate import simulate
+    from nlyap_opt.kernel.simulate import jacobian_at_origin, simulate, stable_step
 
     if cert.get("status") != "certified" or cert.get("domain") is None:
         return None
@@ -131,8 +131,9 @@ def stay_share(target: str, out: Path, cert: dict) -> float | None:
         return s.evaluate(z, None if kappa is None else kappa.numpy(z))
 
     inside = D.contains(pts)
-    conv = simulate(rhs, pts, 60.0, 0.02, 1e-3)[0] & inside
-    stays = simulate(rhs, pts, 60.0, 0.02, 1e-3, stay=D.contains)[0] & inside
+    dt = stable_step(0.02, jacobian_at_origin(rhs, s.nx))   # stable for a stiff loop
+    conv = simulate(rhs, pts, 60.0, dt, 1e-3)[0] & inside
+    stays = simulate(rhs, pts, 60.0, dt, 1e-3, stay=D.contains)[0] & inside
     if not conv.any():  # nothing converges within the horizon (a slow, non-exponential
         return None      # origin): no bound to give
     return float(stays.sum() / conv.sum())

@@ -13,12 +13,19 @@ verifier proves the most promising iterate since its last call (the largest cand
 and, after the call, training resumes from the best certified iterate when the current one
 collapsed (its candidate set, which bounds what it can certify, fell below
 ``RESUME_BELOW`` of the best certified area).
+
+Before training (the default method): a trained controller may start from another LQR
+weighting that keeps more of ``D`` in ``D`` under the model (``gain_scan``); the training
+simulations step at most ``STIFF_STEP/ρ(A)`` for the closed loop's fastest mode; and a loop
+stiffer than ``STIFF_RATIO`` trains V with the Lyapunov-risk terms instead of the fit to
+trajectory costs (``fit_fallback``).
 """
 
 from __future__ import annotations
 
+import itertools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -32,11 +39,12 @@ from ..certification.certificate import (
     certify_roa,
 )
 from ..certification.roa import axis_count, candidate_level, grid_area, grid_points
+from ..design.control import lqr
 from ..kernel.determinism import deterministic_torch
 from ..kernel.domain import Ball, as_domain, parse_set
 from ..kernel.errors import InputRangeError
 from ..kernel.network import Network
-from ..kernel.simulate import simulate
+from ..kernel.simulate import STIFF_STEP, linear_modes, simulate, stable_step
 from .learning import LearnerState, LyapunovLearner, TrainConfig, label_boundary_states, sample_ball
 
 __all__ = ["CegisConfig", "CegisResult", "cegis"]
@@ -98,6 +106,14 @@ class CegisConfig:
     domain: object = None
     initial_set: object = None
     initial_samples: int = 2000      # training states in X_I (pulled into V ≤ level)
+    # a trained controller starts from the LQR gain of the weighting (Q = I, or one state
+    # weighed w in GAIN_WEIGHTS times the others) that keeps the largest share of D's states in D
+    # on their way to the origin under the model, when that share beats the given start's by
+    # more than GAIN_MARGIN (the caller turns it off where the user chose the LQR weights)
+    gain_scan: bool = False
+    # a closed loop stiffer than STIFF_RATIO at the origin trains V with the LYAPUNOV_RISK
+    # settings instead of the fit (train.w_fit) to trajectory costs
+    fit_fallback: bool = False
 
 
 @dataclass
@@ -122,14 +138,28 @@ class CegisResult:
         return self.status is CertStatus.CERTIFIED
 
 
-def _simulation_rhs(learner, system, cfg, tabulate: bool):
+def _simulation_rhs(learner, system, cfg, tabulate: bool, fast: bool = False):
     """The closed-loop model as a numpy function for the training simulations.
 
-    A learned φ (a wide network) is tabulated once on a grid of ``sim_points`` nodes over the
-    ball's box and interpolated (multilinear, SciPy) when the state has at most 3
-    dimensions: the simulations only shape the training targets, and a table is an order of
-    magnitude faster than the network over ~10⁴ steps.
+    With ``fast`` and untabulated, the true f with a model is evaluated through its CasADi
+    graph (numpy) with the current κ: the same numbers as the torch graph to rounding at a
+    tenth of its cost per step, for the many short steps of a stiff loop and the gain scan
+    (a loop that keeps ``cegis.sim_dt`` keeps the torch graph, and its training stays
+    bit-identical to the runs measured before the scan). A learned φ (a wide network) is
+    tabulated once on a grid of ``sim_points`` nodes over the ball's box and interpolated
+    (multilinear, SciPy) when the state has at most 3 dimensions: the simulations only shape
+    the training targets, and a table is an order of magnitude faster than the network over
+    ~10⁴ steps.
     """
+
+    if fast and not tabulate and learner.dynamics is None \
+            and getattr(system, "has_model", True):
+        _, ctrl = learner.export()
+
+        def model_np(x):
+            return system.evaluate(x, None if ctrl is None else ctrl.numpy(x))
+
+        return model_np
 
     def rhs_np(x):
         with torch.no_grad():
@@ -175,6 +205,78 @@ def cost_targets(converged: np.ndarray, cost: np.ndarray, w_c: float, cap: float
     T = g / gc
     capped = ~(T < cap)
     return np.where(capped, cap, T), np.where(capped, 0.0, dg / gc)
+
+
+#: gain scan (cegis.gain_scan): the LQR weightings tried besides the start are
+#: Q = I + (w − 1)·e_i e_iᵀ, one state weighed w times the others, for w in GAIN_WEIGHTS
+#: (half decades; a much larger weight makes the slow mode too slow to converge within
+#: cegis.sim_time, which the scan's share counts against it)
+GAIN_WEIGHTS = (3.0, 10.0, 30.0)
+#: ... a weighting replaces the start only when it keeps more than this share more of the
+#: sampled states of D in D on their way to the origin (the start wins ties and near-ties)
+GAIN_MARGIN = 0.05
+#: ... on this many of the training states drawn uniformly in D
+GAIN_STATES = 2000
+
+
+def _stay_share(learner, system, cfg: CegisConfig, D, X: np.ndarray, tabulate: bool) -> float:
+    """Share of ``X`` that the model's closed loop with the learner's current gain takes to
+    the origin within ``cegis.sim_time`` without leaving ``D``."""
+    rhs = _simulation_rhs(learner, system, cfg, tabulate, fast=True)
+    dt = stable_step(cfg.sim_dt, learner.closed_loop_jacobian().detach().numpy())
+    return float(np.mean(simulate(rhs, X, t_final=cfg.sim_time, dt=dt, tol=cfg.sim_tol,
+                                  stay=D.contains)[0]))
+
+
+def _scan_gain(learner, system, dynamics, cfg: CegisConfig, D, X: np.ndarray, log) -> None:
+    """``cegis.gain_scan``: start from the LQR weighting whose closed loop keeps the most
+    states of ``D`` in ``D`` (see :class:`CegisConfig`); sets the learner's gain."""
+    Xs = X[:GAIN_STATES]
+    tabulate = dynamics is not None
+    start = learner.G.detach().clone()
+    best = (_stay_share(learner, system, cfg, D, Xs, tabulate), "the LQR start", start)
+    first = best[0]
+    n = system.nx
+    for i, w in itertools.product(range(n), GAIN_WEIGHTS):
+        Q = np.eye(n)
+        Q[i, i] = w
+        try:
+            K = lqr(system, Q, None, dynamics=None if getattr(system, "has_model", True)
+                    else dynamics).K
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        learner.set_gain(torch.as_tensor(K, dtype=torch.float64))
+        share = _stay_share(learner, system, cfg, D, Xs, tabulate)
+        if share > best[0]:
+            best = (share, f"LQR with Q = I, Q[{i},{i}] = {w:g}",
+                    learner.G.detach().clone())
+    chosen = best if best[0] > first + GAIN_MARGIN else (first, "the LQR start", start)
+    learner.set_gain(chosen[2])
+    log(f"  cegis: gain scan: the LQR start keeps {100 * first:.1f} % of {len(Xs)} states of "
+        f"D in D on their way to the origin, the best weighting ({best[1]}) "
+        f"{100 * best[0]:.1f} %; κ starts from {chosen[1]}")
+
+
+#: cegis.fit_fallback: the Zubov-type fit is not used on a closed loop whose linearisation
+#: at the origin is stiffer than this (the fastest mode's speed over the slowest mode's
+#: decay rate). Measured on the pendulum: the fit certifies at stiffness 23 (LQR of Q = I)
+#: and fails at 133, 217 and 427 (the candidate level stays below 0.06, V near 0.03 on parts
+#: of ∂D): the decrease law's residual, relative to R(x)‖x‖², weighs every error of ∇V
+#: along the fast direction by that mode's speed, and the trajectory cost barely rises
+#: across the fast direction (its transient costs ~d²/(2|λ_fast|))
+STIFF_RATIO = 50.0
+#: ... such a loop trains V with these train settings instead (the Lyapunov-risk recipe of
+#: the catalogue presets: V ≤ 1 pulled on the converging states, the decrease asked at rate
+#: τ = decay where V ≤ 1 + level_slack, containment on ∂D; no fit)
+LYAPUNOV_RISK = {"w_fit": 0.0, "w_pde": 0.0, "decay": 0.1, "w_inside": 1.0,
+                 "relative_decrease": False, "level_slack": 0.1, "w_outside": 1.0}
+
+
+def stiffness(A) -> float:
+    """The stiffness ``ρ(A) / min |Re λ|`` of a linearisation (1 for a single rate; 0 where a
+    mode does not decay at all, a centre: its origin is slow, not stiff, and keeps the fit)."""
+    fast, slow = linear_modes(A)
+    return fast / slow if slow > 1e-9 * max(fast, 1.0) else 0.0
 
 
 #: fewer converging training states than this share of them: the run says to raise
@@ -271,14 +373,14 @@ def _samples(cfg: CegisConfig, D, XI, rng, n: int) -> tuple[np.ndarray, np.ndarr
     return X, S
 
 
-def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
-    """Simulate the training states under the model: ``(X, weights, targets, rates)``, the
-    states (more around the model's ROA boundary when fitting), the pull of ``V ≤ 1`` on
-    each and the trajectory-cost targets (``None`` without ``w_fit``)."""
+def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log, dt: float):
+    """Simulate the training states under the model (RK4 step ``dt``): ``(X, weights,
+    targets, rates)``, the states (more around the model's ROA boundary when fitting), the
+    pull of ``V ≤ 1`` on each and the trajectory-cost targets (``None`` without ``w_fit``)."""
     stay = D.contains if cfg.sim_in_domain else None
     # fit_domain: the largest gauge of D along each simulated trajectory (see below)
     track = D.gauge if cfg.train.w_fit and cfg.train.fit_domain else None
-    conv, cost, *peak = simulate(rhs_np, X, t_final=cfg.sim_time, dt=cfg.sim_dt,
+    conv, cost, *peak = simulate(rhs_np, X, t_final=cfg.sim_time, dt=dt,
                                  tol=cfg.sim_tol, stay=stay, track=track)
     log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model"
         + (" without leaving the domain" if stay is not None else ""))
@@ -305,7 +407,7 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log):
                 extra = np.vstack([extra, jit + 0.03 * scale * rng.standard_normal(jit.shape)])
             if len(extra):
                 extra = extra[D.contains(extra)]
-                c2, w2, *p2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=cfg.sim_dt,
+                c2, w2, *p2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=dt,
                                        tol=cfg.sim_tol, stay=stay, track=track)
                 X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
                 peak = [np.r_[peak[0], p2[0]]] if peak else peak
@@ -465,6 +567,37 @@ def _train_round(learner, cfg: CegisConfig, it: int, eta: float, margin: float, 
                          targets=targets, target_rates=rates, sphere_normals=normals)
 
 
+def _setup(system, controller, dynamics, cfg: CegisConfig, D, X: np.ndarray, V0, log):
+    """The learner before training, the model's closed loop for the training simulations,
+    their RK4 step and whether V is trained with the Lyapunov-risk terms: the gain scan
+    (``cegis.gain_scan``), the step for the loop's fastest mode (:func:`stable_step`) and,
+    on a stiff loop, the recipe without the fit (``cegis.fit_fallback``)."""
+    learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
+    if cfg.gain_scan and controller is not None and learner.config.train_controller:
+        _scan_gain(learner, system, dynamics, cfg, D, X, log)
+    A = learner.closed_loop_jacobian().detach().numpy()
+    dt = stable_step(cfg.sim_dt, A)
+    rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None,
+                             fast=dt < cfg.sim_dt)
+    if dt < cfg.sim_dt:
+        log(f"  cegis: the training simulations step {dt:.3g} s, not cegis.sim_dt = "
+            f"{cfg.sim_dt:g} s: the model's closed loop has a mode of speed "
+            f"{STIFF_STEP / dt:.4g} at the origin")
+    risk = cfg.fit_fallback and cfg.train.w_fit > 0 and stiffness(A) > STIFF_RATIO
+    if risk:
+        slow, fast = linear_modes(A)[1], linear_modes(A)[0]
+        log(f"  cegis: the model's closed loop is stiff at the origin (modes from {slow:.3g} "
+            f"to {fast:.4g} per s, ratio {stiffness(A):.0f} > {STIFF_RATIO:g}): V is trained "
+            "with the Lyapunov-risk terms, not fitted to trajectory costs "
+            "(cegis.fit_fallback)")
+        gain = None if controller is None else learner.G.detach().clone()
+        learner = LyapunovLearner(system, controller, dynamics,
+                                  replace(cfg.train, **LYAPUNOV_RISK), V=V0)
+        if gain is not None:
+            learner.set_gain(gain)
+    return learner, rhs_np, dt, risk
+
+
 def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0, beat):
     t0 = time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
@@ -475,10 +608,9 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     scale = D.max_norm()    # the ball's radius; jitter of extra states is relative to it
     X, S = _samples(cfg, D, XI, rng, n)
     rim = np.zeros((0, n))   # boundary states fed back when ∂D limits the level
-    learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
-
-    rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None)
-    X, weights, targets, rates = _fit_targets(cfg, D, X, rhs_np, rng, scale, log)
+    learner, rhs_np, dt, risk = _setup(system, controller, dynamics, cfg, D, X, V0, log)
+    X, weights, targets, rates = _fit_targets(
+        replace(cfg, train=learner.config) if risk else cfg, D, X, rhs_np, rng, scale, log, dt)
     areas = _AreaGrid(D, cfg.area_points)
     cex = np.zeros((0, n))
     best: CegisResult | None = None
@@ -509,6 +641,8 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         here = _new_iterate(it, info, problem, cand, (margin, M, smoothing), cfg, eta, areas,
                             learner, beat, log)
         entry = here.entry
+        if risk:
+            entry["recipe"] = "lyapunov-risk"
         history.append(entry)
         pending = [*pending, here] if cfg.best_iterate else [here]
         chosen, cert = here, None

@@ -395,6 +395,13 @@ class LyapunovLearner:
             params.append(self.G)
         self.opt = torch.optim.Adam(params, lr=config.lr)
 
+    def set_gain(self, G: torch.Tensor) -> None:
+        """Start the controller from the gain ``G`` (``∂κ/∂x(0) = −G``; the anchor
+        ``w_anchor`` then keeps the trained gain near it). Before training only."""
+        with torch.no_grad():
+            self.G.copy_(G)
+        self.G0 = G.detach().clone()
+
     # ------------------------------------------------------------------ model pieces
     @property
     def K(self):

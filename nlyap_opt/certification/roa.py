@@ -61,7 +61,7 @@ from ..kernel.exact import inverse, positive_definite, rational, rational_matrix
 from ..kernel.network import Network
 from ..kernel.rounding import EPS
 from ..kernel.sampling import sample_ball, sample_sphere
-from ..kernel.simulate import simulate
+from ..kernel.simulate import jacobian_at_origin, simulate, stable_step
 from ..kernel.symbolic import closed_loop
 from ..kernel.walker import compile_function, evaluate
 
@@ -1256,7 +1256,8 @@ def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200,
                   undecided: bool = False):
     """Grid mask of initial states whose simulated closed loop converges to the origin.
 
-    Fixed-step RK4 on all grid points at once; a state counts as converged once
+    Fixed-step RK4 on all grid points at once (``dt``, shortened for a stiff loop:
+    :func:`nlyap_opt.kernel.simulate.stable_step`); a state counts as converged once
     ``‖x‖ < tol`` or, given ``ellipse = (P, c)`` (a certified quadratic ROA of this closed
     loop, :func:`certify_inner_ellipse`), once ``xᵀPx ≤ c`` (it is then dropped from the
     integration); as diverged once it leaves ``1e6`` or becomes non-finite. With
@@ -1275,6 +1276,9 @@ def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200,
             return np.einsum("ij,jk,ik->i", z, P, z) <= c
 
     pts, shape = grid_points(box, n)
+    # a stiff closed loop (a fast mode at the origin) gets a step RK4 is stable for: an
+    # unstable fast mode would count converging states outside the true ROA
+    dt = stable_step(dt, jacobian_at_origin(rhs, pts.shape[1]))
     done, _, open_ = simulate(rhs, pts, t_final, dt, tol, target=target,
                               return_undecided=True)
     if undecided:

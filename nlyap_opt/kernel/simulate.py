@@ -6,7 +6,48 @@ from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["rk4_step", "simulate", "simulate_converges", "trajectories"]
+__all__ = ["STIFF_STEP", "jacobian_at_origin", "linear_modes", "rk4_step", "simulate",
+           "simulate_converges", "stable_step", "trajectories"]
+
+#: a fixed RK4 step h of a closed loop with linearisation A at the origin satisfies
+#: h·ρ(A) ≤ STIFF_STEP (ρ the spectral radius): every linear mode then lies well inside RK4's
+#: stability region (|R(hλ)| ≤ 1 for Re λ ≤ 0, |hλ| ≤ 2.5) and decays at nearly its rate
+#: (|R(−1) − e⁻¹| < 0.01). A step too long for a stiff loop's fast mode (RK4 is unstable
+#: for hλ < −2.79) makes no simulated trajectory converge
+STIFF_STEP = 1.0
+
+
+def linear_modes(A) -> tuple[float, float]:
+    """``(ρ(A), min |Re λ|)``: the speed of the fastest and the decay rate of the slowest
+    mode of the linearisation ``A`` (their ratio is the loop's stiffness)."""
+    A = np.asarray(A, dtype=float)
+    if not A.size:
+        return 0.0, 0.0
+    ev = np.linalg.eigvals(A)
+    return float(np.max(np.abs(ev))), float(np.min(np.abs(ev.real)))
+
+
+def stable_step(dt: float, A) -> float:
+    """``dt``, shortened to ``STIFF_STEP / ρ(A)`` where the linearisation ``A`` at the origin
+    has a faster mode.
+
+    Examples
+    --------
+    >>> stable_step(0.04, np.array([[0.0, 1.0], [-2.0, -3.0]]))
+    0.04
+    >>> round(stable_step(0.04, np.diag([-1.0, -200.0])), 6)
+    0.005
+    """
+    rho = linear_modes(A)[0]
+    return min(dt, STIFF_STEP / rho) if rho > 0 else dt
+
+
+def jacobian_at_origin(rhs: Callable[[np.ndarray], np.ndarray], n: int,
+                       h: float = 1e-6) -> np.ndarray:
+    """``∂rhs/∂x(0)`` by central differences (``rhs`` maps a batch ``(N, n)`` to ``(N, n)``)."""
+    E = h * np.eye(n)
+    with np.errstate(all="ignore"):
+        return ((rhs(E) - rhs(-E)) / (2 * h)).T
 
 
 def rk4_step(rhs: Callable[[np.ndarray], np.ndarray], x: np.ndarray, dt: float) -> np.ndarray:

@@ -280,7 +280,7 @@ DEFAULT_TRAIN: dict = {
 DEFAULT_CEGIS: dict = {
     "iterations": 8, "steps": 1000, "verify_every": 3, "sim_time": 30.0, "sim_dt": 0.04,
     "sim_points": 90601, "inner_samples": 2000, "boundary_samples": 20000,
-    "sim_in_domain": True, "best_iterate": True,
+    "sim_in_domain": True, "best_iterate": True, "gain_scan": True, "fit_fallback": True,
 }
 
 #: the base of ``make_config(name, preset=None, ...)`` for a system without a preset; the
@@ -535,6 +535,16 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "norm_smoothing": "pointwise mode: s = norm_smoothing·M in sqrt(‖∇_L V‖² + s²) "
                           "(costs at most this fraction of β)",
         "initial_samples": "training states drawn in initial_set, pulled into V ≤ level",
+        "gain_scan": "a trained controller starts from the LQR weighting (Q = I, or one "
+                     "state weighed 3, 10 or 30 times the others) that keeps the most "
+                     "sampled states of D in D on their way to the origin under the model, "
+                     "if it beats the start by more than 5 points (off where lqr.Q or lqr.R "
+                     "is given)",
+        "fit_fallback": "a model closed loop stiffer than 50 at the origin (fastest mode's "
+                        "speed over the slowest mode's decay rate) trains V with the "
+                        "Lyapunov-risk terms (w_fit = w_pde = 0, decay 0.1, w_inside 1, "
+                        "level_slack 0.1, w_outside 1) instead of the fit to trajectory "
+                        "costs; false keeps the fit",
     },
     "dynamics": {
         "system": "catalogue name the settings were made for (informational)",

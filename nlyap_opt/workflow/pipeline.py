@@ -147,7 +147,8 @@ _STAGE_FIELDS: dict[str, tuple[str, ...]] = {
     "controller": ("lqr", "controller_scale"),
     "quadratic": _REGION + ("quadratic",) + _VERIFY + _EVAL,
     "sos": _REGION + ("sos",) + _VERIFY + _EVAL,
-    "cegis": _REGION + ("train", "cegis") + _EVAL,
+    # lqr: the gain scan (cegis.gain_scan) runs only where the user left the LQR weights
+    "cegis": _REGION + ("train", "cegis", "lqr") + _EVAL,
 }
 #: the files each stage writes (the sha256 of each is recorded)
 _STAGE_FILES = {
@@ -639,6 +640,8 @@ def _cegis_stage(ctx: _Context, starts: Mapping[str, _CheapRecord | None],
     D, XI, r, eps = ctx.region(view)
     ccfg = CegisConfig(inner=eps, outer=r, train=train, domain=D, initial_set=XI,
                        **view.cegis.to_json())
+    # LQR weights the user chose are kept: the gain scan only replaces the default Q = R = I
+    ccfg.gain_scan = ccfg.gain_scan and view.lqr.Q is None and view.lqr.R is None
     where = f"{eps:g} ≤ ‖x‖ ≤ {r:g}" if view.domain is None else \
         f"‖x‖ ≥ {eps:g} in {D.describe()}"
     ctx.log(f"[cegis] learning V{' and κ' if ctx.controller is not None else ''} on {where}"

@@ -99,3 +99,58 @@ def test_local_box_holds_the_controller_on_the_state_box(learned):
     assert box[2, 1] - box[2, 0] < 4                   # smaller than U
     with pytest.raises(ConfigError, match="leaves the sampling box"):
         local_box(res.grid.box, [[-0.5, 3.5], [-0.5, 0.5]], ctrl)
+
+
+@pytest.mark.slow
+def test_run_verifies_on_a_smaller_ball_with_the_local_bound(tmp_path):
+    """η on the whole box (curvature 0.4·x₁³ over gaps 0.5) leaves no room for the robust
+    margin on ‖x‖ ≤ 3; the run bounds η on the box of ‖x‖ ≤ 1.5, certifies there, and the
+    certificate re-checks from its hashed files; an edited input box is refused."""
+    import json
+
+    from nlyap_opt import make_config, run
+    from nlyap_opt.certification.certificate import recheck_certificate
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    f = ca.vertcat(x[1], -x[0] - 0.5 * x[1] + 0.02 * x[0] ** 5 + u)
+    s = systems.System("local_quintic", x, u, f, state_box=[[-3, 3], [-3, 3]],
+                       input_box=[[-2, 2]], known_state_derivatives=(0,))
+    systems.register("local_quintic", lambda: s)
+    cfg = make_config("local_quintic", preset=None, overrides={
+        "outer": 3.0, "inner": 0.1, "controller_scale": 2.0, "eval_points": 2500,
+        "quadratic": ["round"], "train": {"steps": 100},
+        "cegis": {"iterations": 1, "steps": 50, "samples": 2000},
+        "dynamics": {"grid_counts": [13, 13, 5], "hidden": 16, "train_points": 700,
+                     "boundary_points": 50, "steps": 200, "lm_iterations": 60,
+                     "minimax_rounds": 1, "minimax_iterations": 3, "interval_boxes": 1024,
+                     "check_points": 2000, "progress": False}})
+    logs = []
+    res = run(s, cfg, tmp_path / "run", log=logs.append)
+    d = tmp_path / "run"
+    glob = json.loads((d / "bounds.json").read_text())
+    loc = json.loads((d / "bounds_local.json").read_text())
+    rec = json.loads((d / "local.json").read_text())
+    assert any(m.startswith("[local] with η") for m in logs)
+    assert rec["radius"] == 1.5 and rec["global_eta"] == glob["eta"]
+    assert loc["eta"] < glob["eta"] / 10
+    box = np.asarray(loc["grid"]["box"])
+    assert np.array_equal(box[:2], [[-1.5, 1.5], [-1.5, 1.5]])
+    # the local bound holds at random points of its box
+    from nlyap_opt.kernel.network import Network
+    phi = Network.load(d / "dynamics.json")
+    z = np.random.default_rng(0).uniform(box[:, 0], box[:, 1], size=(50000, 3))
+    assert np.max(_error(s, phi, z)) <= loc["eta"]
+    assert res.certified
+    cert = res.summary
+    assert cert["eta"] == loc["eta"] and cert["outer_radius"] == 1.5
+    assert cert["inner_radius"] == rec["inner"] == 0.05      # ε scaled with the ball
+    assert cert["artifacts"]["bounds"]["file"] == "bounds_local.json"
+    assert cert["problem"]["dynamics_box"] == box[:2].tolist()
+    assert cert["problem"]["input_box"] == box[2:].tolist()
+    assert any("bounds_local.json" in a for a in cert["assumptions"])
+    assert recheck_certificate(d, log=lambda m: None).certified
+    c = json.loads((d / "certificate.json").read_text())
+    c["problem"]["input_box"] = [[-3.0, 3.0]]
+    (d / "certificate.json").write_text(json.dumps(c))
+    again = recheck_certificate(d, log=lambda m: None)
+    assert not again.certified and "input box" in again.reason

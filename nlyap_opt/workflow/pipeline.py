@@ -756,7 +756,9 @@ def _certificate_stage(ctx: _Context, cfg: RunConfig, cg: _CegisRecord,
     if ctx.eps != configured:      # raised by auto_inner from η: the certificate says so
         cert.assumptions.append(
             f"inner radius ε = {ctx.eps:.6g} chosen by the tool (configured {configured:g}): "
-            f"with η = {ctx.eta:.3g} the robust margin η‖∇V‖ needs it")
+            + (f"with η = {ctx.eta:.3g} the robust margin η‖∇V‖ needs it"
+               if ctx.bounds_file == "bounds.json" else
+               f"scaled with the verification ball of the local bound (‖x‖ ≤ {ctx.r:.4g})"))
     if ctx.bounds_file != "bounds.json":
         files = dict(files or {}, bounds=ctx.bounds_file)
     path = save_certificate(cert, problem, out, extra, files=files)
@@ -881,7 +883,7 @@ def _linear_need(system, controller, dynamics, eta: float, eps: float) -> float 
 #: the configured outer radius (largest first)
 LOCAL_FRACTIONS = (0.5, 0.25, 0.125)
 #: node budget of each local grid (:func:`nlyap_opt.learned.local_bound.local_counts`)
-LOCAL_GRID_NODES = 2_000_000
+LOCAL_GRID_NODES = 4_000_000
 
 
 def _local_stage(ctx: _Context) -> None:
@@ -894,12 +896,15 @@ def _local_stage(ctx: _Context) -> None:
     ``‖f − φ‖`` on ``X_k × U_k`` (``X_k = [−r_k, r_k]^n`` holds the ball; ``U_k`` encloses
     the initial controller on ``X_k`` with slack,
     :func:`nlyap_opt.learned.local_bound.local_box`) on a grid of its own
-    (:func:`nlyap_opt.learned.local_bound.local_bound`) and keeps the first radius whose
-    margin fits (need below half of ``r_k`` and the inner radius below that too). The run
-    then verifies on the ball of that radius with that η, ``X_k`` as the dynamics box and
-    ``U_k`` as the input box: every certificate proves ``κ(R) ⊆ U_k`` and its region inside
-    ``X_k`` and states that it rests on the local bound (``bounds_local.json``, hashed
-    with the certificate). ``local.json`` records every radius tried.
+    (:func:`nlyap_opt.learned.local_bound.local_bound`). The inner radius shrinks with the
+    ball (``ε_k = ε·r_k/r``: the configured shape of the ring, so that a quadratic's inner
+    ball still fits below its level on the sphere), and the first radius whose margin the
+    linear decrease affords at ``ε_k`` (:func:`_linear_need` over
+    :data:`INNER_MARGIN_FACTOR` below ``ε_k``) is kept. The run then verifies on the ball of
+    that radius with that η and ε, ``X_k`` as the dynamics box and ``U_k`` as the input
+    box: every certificate proves ``κ(R) ⊆ U_k`` and its region inside ``X_k`` and states
+    that it rests on the local bound (``bounds_local.json``, hashed with the certificate).
+    ``local.json`` records every radius tried.
     """
     system, log, eta = ctx.system, ctx.log, ctx.eta
     if _systems.spec.centre_dimension(system):
@@ -929,9 +934,10 @@ def _local_stage(ctx: _Context) -> None:
         ctx.stages.mark("local", *deps)
     rec = load_with_timings(out / "local.json")
     for t in rec.get("tried", []):
-        log(f"[local] ball ‖x‖ ≤ {t['radius']:.4g}: η = {t['eta']:.4g} on "
-            f"{t['counts']} nodes, the margin needs ε ≥ {t['need']:.3g} "
-            f"({'fits' if t['fits'] else 'does not fit'} below {t['room']:.3g})")
+        log(f"[local] ball ‖x‖ ≤ {t['radius']:.4g}, ε = {t['inner']:.4g}: η = {t['eta']:.4g} "
+            f"on {t['counts']} nodes; the linear decrease beats the margin beyond "
+            f"{t['need'] / INNER_MARGIN_FACTOR:.3g} ({'fits' if t['fits'] else 'not'} "
+            f"below ε)")
     if rec.get("radius") is None:
         log("[local] no smaller ball affords the robust margin: the run goes on with the "
             "global η")
@@ -946,7 +952,8 @@ def _local_stage(ctx: _Context) -> None:
         ctx.input_box = box[system.nx:]
     ctx.D = Ball(float(rec["radius"]), system.nx)
     ctx.r = ctx.D.max_norm()
-    log(f"[local] verifying on ‖x‖ ≤ {ctx.r:.4g} with η = {ctx.eta:.4g} on "
+    ctx.eps = float(rec["inner"])
+    log(f"[local] verifying on {ctx.eps:.4g} ≤ ‖x‖ ≤ {ctx.r:.4g} with η = {ctx.eta:.4g} on "
         f"{np.round(box, 4).tolist()} (bounds_local.json)")
 
 
@@ -957,7 +964,7 @@ def _local_search(ctx: _Context, view: RunConfig) -> dict:
     dcfg = as_config(system, view.dynamics.to_json())
     grid_box = np.asarray(ctx.bounds["grid"]["box"], dtype=float)
     r0 = ctx.D.max_norm()
-    tried, radius = [], None
+    tried, radius, inner = [], None, None
     t0 = time.perf_counter()
     for frac in LOCAL_FRACTIONS:
         r = r0 * frac
@@ -969,20 +976,20 @@ def _local_search(ctx: _Context, view: RunConfig) -> dict:
         res = local_bound(system, ctx.dynamics, grid_box, sub, nodes=LOCAL_GRID_NODES,
                           options=dcfg.bound_options, select=dcfg.bound_model,
                           boxes=dcfg.interval_boxes, check_points=20000, seed=dcfg.seed)
-        need = _linear_need(system, ctx.controller, ctx.dynamics, res.eta, ctx.eps)
-        room = 0.5 * r
-        fits = need is not None and need < room and ctx.eps < room
-        tried.append({"radius": r, "eta": res.eta, "need": need, "room": room, "fits": fits,
+        eps = ctx.eps * frac
+        need = _linear_need(system, ctx.controller, ctx.dynamics, res.eta, eps)
+        fits = need is not None and need / INNER_MARGIN_FACTOR < eps
+        tried.append({"radius": r, "inner": eps, "eta": res.eta, "need": need, "fits": fits,
                       "box": sub.tolist(), "counts": res.grid.counts.tolist(),
                       "alpha": res.alpha.alpha, "selected": res.selected})
         if fits:
             write_bounds(out / "bounds_local.json", res)
-            radius = r
+            radius, inner = r, eps
             break
     if radius is None:
         (out / "bounds_local.json").unlink(missing_ok=True)
     return {"format": "nlyap-local-bound", "global_eta": ctx.eta, "radius": radius,
-            "tried": tried, "seconds": time.perf_counter() - t0}
+            "inner": inner, "tried": tried, "seconds": time.perf_counter() - t0}
 
 
 def _slow_on_sphere(system, controller, dynamics, eta: float, eps: float,

@@ -1157,12 +1157,15 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
                     not np.array_equal(box[:dbox.shape[0]], dbox):
                 return _refused_run(saved, f"the certificate's dynamics box {dbox.tolist()} is "
                                 f"not the box of {art['file']}")
+            # U of the bound: the file's input rows, or for a control-affine φ (no input
+            # rows) the system's U
             ubox = np.asarray(problem_d.get("input_box") or [], dtype=float)
-            if box.shape[0] > dbox.shape[0] and (
-                    ubox.shape != box[dbox.shape[0]:].shape
-                    or not np.array_equal(box[dbox.shape[0]:], ubox)):
+            want = box[dbox.shape[0]:] if box.shape[0] > dbox.shape[0] else \
+                np.asarray(sysm.input_box if sysm.nu else [], dtype=float).reshape(-1, 2)
+            if want.size and (ubox.shape != want.shape or not np.array_equal(ubox, want)):
                 return _refused_run(saved, f"the certificate's input box {ubox.tolist()} is "
-                                f"not the input box of {art['file']}")
+                                f"not the input box {want.tolist()} of the bound in "
+                                f"{art['file']}")
             continue
         try:
             nets[role] = load_artifact(f, art.get("kind", "network"))

@@ -1389,8 +1389,8 @@ def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
     ``files`` gives per role, e.g. ``{"V": "V_quadratic.json"}``; other ``V`` as a CasADi
     Function ``V.casadi``) unless a file with that name already holds them, and each is
     recorded with its sha256; so is the bound on ``‖f − φ‖`` of learned dynamics
-    (``files["bounds"]``, default ``bounds.json``). ``extra`` (areas, true-f checks, timings) is stored beside the
-    certificate's own fields. The file is written atomically.
+    (``files["bounds"]``, default ``bounds.json``). ``extra`` (areas, true-f checks,
+    timings) is stored beside the certificate's own fields. The file is written atomically.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,7 @@ from nlyap_opt.design.control import saturated_controller
 from nlyap_opt.kernel.errors import ConfigError
 from nlyap_opt.learned.dynamics import learn_dynamics
 from nlyap_opt.learned.error_models import compute_bounds
-from nlyap_opt.learned.local_bound import local_box, local_bound, local_counts
+from nlyap_opt.learned.local_bound import local_bound, local_box, local_counts
 
 
 def _system():

@@ -85,17 +85,17 @@ from ..distributed.parallel import (
     verifying_on,
 )
 from ..distributed.parallel import check as parallel_check
+from ..kernel.domain import Ball
 from ..kernel.errors import ConfigError, NlyapError
 from ..kernel.jsonio import load_with_timings, save_timings, split_timings
 from ..kernel.network import Network
 from ..kernel.provenance import fingerprint
 from ..kernel.sampling import sample_sphere
 from ..kernel.symbolic import closed_loop
-from ..kernel.domain import Ball
 from ..learned.dynamics import as_config
 from ..learned.dynamics_stage import GateStatus, dynamics_stage, eta_limit_linear
 from ..learned.error_models import write_bounds
-from ..learned.local_bound import local_box, local_bound
+from ..learned.local_bound import local_bound, local_box
 from .configs import RunConfig, check_dynamics_box, domain_of, validate_config
 from .report import status_line, write_report
 
@@ -929,37 +929,43 @@ def _local_stage(ctx: _Context) -> None:
     out = ctx.out
     deps = ("dynamics", "controller")
     if not ctx.stages.finished("local", *deps):
-        rec = _local_search(ctx, ctx.stages.view("local"))
-        _write_stage_json(out / "local.json", rec)
+        _local_search(ctx, ctx.stages.view("local"))
         ctx.stages.mark("local", *deps)
-    rec = load_with_timings(out / "local.json")
-    for t in rec.get("tried", []):
-        log(f"[local] ball ‖x‖ ≤ {t['radius']:.4g}, ε = {t['inner']:.4g}: η = {t['eta']:.4g} "
-            f"on {t['counts']} nodes; the linear decrease beats the margin beyond "
-            f"{t['need'] / INNER_MARGIN_FACTOR:.3g} ({'fits' if t['fits'] else 'not'} "
-            f"below ε)")
-    if rec.get("radius") is None:
-        log("[local] no smaller ball affords the robust margin: the run goes on with the "
-            "global η")
-        return
-    bounds = load_with_timings(out / "bounds_local.json")
-    box = np.asarray(bounds["grid"]["box"], dtype=float)
+    path = out / "local.json"
+    try:
+        rec = load_with_timings(path)
+        for t in rec["tried"]:
+            log(f"[local] ball ‖x‖ ≤ {t['radius']:.4g}, ε = {t['inner']:.4g}: η = "
+                f"{t['eta']:.4g} on {t['counts']} nodes; the linear decrease beats the "
+                f"margin beyond {t['need'] / INNER_MARGIN_FACTOR:.3g} "
+                f"({'fits' if t['fits'] else 'not'} below ε)")
+        if rec["radius"] is None:
+            log("[local] no smaller ball affords the robust margin: the run goes on with the "
+                "global η")
+            return
+        radius, inner = float(rec["radius"]), float(rec["inner"])
+        path = out / "bounds_local.json"
+        bounds = load_with_timings(path)
+        box = np.asarray(bounds["grid"]["box"], dtype=float).reshape(-1, 2)
+        eta = float(bounds["eta"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise _record_error(path, err) from None
     ctx.bounds, ctx.bounds_file = bounds, "bounds_local.json"
     ctx.eta_stages = ("dynamics", "local")
-    ctx.eta = float(bounds["eta"])
+    ctx.eta = eta
     ctx.dyn_box = box[: system.nx]
     if len(box) > system.nx:
         ctx.input_box = box[system.nx:]
-    ctx.D = Ball(float(rec["radius"]), system.nx)
+    ctx.D = Ball(radius, system.nx)
     ctx.r = ctx.D.max_norm()
-    ctx.eps = float(rec["inner"])
+    ctx.eps = inner
     log(f"[local] verifying on {ctx.eps:.4g} ≤ ‖x‖ ≤ {ctx.r:.4g} with η = {ctx.eta:.4g} on "
         f"{np.round(box, 4).tolist()} (bounds_local.json)")
 
 
-def _local_search(ctx: _Context, view: RunConfig) -> dict:
-    """The radii of :func:`_local_stage`, largest first, until one fits; the record of
-    ``local.json`` (``bounds_local.json`` written for the radius kept)."""
+def _local_search(ctx: _Context, view: RunConfig) -> None:
+    """The radii of :func:`_local_stage`, largest first, until one fits: writes
+    ``local.json`` (every radius tried) and ``bounds_local.json`` (the radius kept)."""
     system, out = ctx.system, ctx.out
     dcfg = as_config(system, view.dynamics.to_json())
     grid_box = np.asarray(ctx.bounds["grid"]["box"], dtype=float)
@@ -988,8 +994,9 @@ def _local_search(ctx: _Context, view: RunConfig) -> dict:
             break
     if radius is None:
         (out / "bounds_local.json").unlink(missing_ok=True)
-    return {"format": "nlyap-local-bound", "global_eta": ctx.eta, "radius": radius,
-            "inner": inner, "tried": tried, "seconds": time.perf_counter() - t0}
+    _write_stage_json(out / "local.json", {
+        "format": "nlyap-local-bound", "global_eta": ctx.eta, "radius": radius,
+        "inner": inner, "tried": tried, "seconds": time.perf_counter() - t0})
 
 
 def _slow_on_sphere(system, controller, dynamics, eta: float, eps: float,

@@ -354,6 +354,23 @@ def test_recheck_refuses_a_certificate_whose_eta_was_lowered(learned_runs, tmp_p
     assert not again.certified and "η" in again.reason
 
 
+def test_recheck_refuses_a_certificate_whose_input_box_was_widened(learned_runs, tmp_path):
+    """U is part of where ‖f − φ‖ ≤ η holds: a certificate.json whose input box no longer
+    is the one of its hashed bounds file is refused, not re-verified on the wider box."""
+    import shutil
+
+    from nlyap_opt.certification.certificate import recheck_certificate
+
+    d, cert = learned_runs["inverted_pendulum"]
+    shutil.copytree(d, tmp_path / "run")
+    c = json.loads((tmp_path / "run" / "certificate.json").read_text())
+    assert c["problem"]["input_box"] is not None
+    c["problem"]["input_box"] = [[lo - 1.0, hi + 1.0] for lo, hi in c["problem"]["input_box"]]
+    (tmp_path / "run" / "certificate.json").write_text(json.dumps(c))
+    again = recheck_certificate(tmp_path / "run", log=lambda m: None)
+    assert not again.certified and "input box" in again.reason
+
+
 def test_certificate_stage_verifies_with_the_cegis_verifier_options(tmp_path):
     """cegis.verify_options hold for the certificate stage too: the saved problem carries
     them, so the run's own re-verification and `nlyap verify --certificate` use them."""

@@ -1157,6 +1157,15 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
                     not np.array_equal(box[:dbox.shape[0]], dbox):
                 return _refused_run(saved, f"the certificate's dynamics box {dbox.tolist()} is "
                                 f"not the box of {art['file']}")
+            # U of the bound: the file's input rows, or for a control-affine φ (no input
+            # rows) the system's U
+            ubox = np.asarray(problem_d.get("input_box") or [], dtype=float)
+            want = box[dbox.shape[0]:] if box.shape[0] > dbox.shape[0] else \
+                np.asarray(sysm.input_box if sysm.nu else [], dtype=float).reshape(-1, 2)
+            if want.size and (ubox.shape != want.shape or not np.array_equal(ubox, want)):
+                return _refused_run(saved, f"the certificate's input box {ubox.tolist()} is "
+                                f"not the input box {want.tolist()} of the bound in "
+                                f"{art['file']}")
             continue
         try:
             nets[role] = load_artifact(f, art.get("kind", "network"))
@@ -1379,8 +1388,9 @@ def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
     Networks are saved (``V.json``, ``controller.json``, ``dynamics.json``, or the names
     ``files`` gives per role, e.g. ``{"V": "V_quadratic.json"}``; other ``V`` as a CasADi
     Function ``V.casadi``) unless a file with that name already holds them, and each is
-    recorded with its sha256. ``extra`` (areas, true-f checks, timings) is stored beside the
-    certificate's own fields. The file is written atomically.
+    recorded with its sha256; so is the bound on ``‖f − φ‖`` of learned dynamics
+    (``files["bounds"]``, default ``bounds.json``). ``extra`` (areas, true-f checks,
+    timings) is stored beside the certificate's own fields. The file is written atomically.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -1399,10 +1409,12 @@ def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
             x = ca.SX.sym("x", problem.system.nx)
             ca.Function("V", [x], [obj.casadi(x)]).save(str(f))
             arts[role] = {"file": f.name, "sha256": sha256_file(f), "kind": "casadi"}
-    if problem.dynamics is not None and (out / "bounds.json").exists():
-        # η and its box come from the dynamics stage's bounds.json: hashed, and checked
-        # against the certificate's own numbers on re-check
-        arts["bounds"] = {"file": "bounds.json", "sha256": sha256_file(out / "bounds.json"),
+    bname = (files or {}).get("bounds", "bounds.json")
+    if problem.dynamics is not None and (out / bname).exists():
+        # η and its box come from the dynamics stage's bounds.json (or the local bound's
+        # file that ``files`` names): hashed, and checked against the certificate's own
+        # numbers on re-check
+        arts["bounds"] = {"file": bname, "sha256": sha256_file(out / bname),
                           "kind": "bounds"}
     cert.artifacts = arts
     d = cert.to_dict()

@@ -46,7 +46,8 @@ rounding allowance), ``g_i`` the grid gap on axis ``i`` (``δ = ½‖g‖₂``):
 The dynamics model ``control_affine`` (:mod:`nlyap_opt.learned.dynamics`) combines with each option:
 the grid lives in x-space and :math:`e(x, u) = f_0(x) - \varphi_0(x)` for every u, under the
 assumption :math:`f = f_0(x) + Bu` with the known constant B (checked symbolically on the
-model). A per-cell (local-constant) variant is not provided.
+model). A per-cell (local-constant) variant is not provided; the same options on a sub-box of
+``Z``, from a grid of its own, are :func:`nlyap_opt.learned.local_bound.local_bound`.
 """
 
 from __future__ import annotations

@@ -6,6 +6,9 @@ configuration loads finished stages instead of recomputing them):
 1. ``dynamics`` — learn φ on a grid, compute α, δ, K_f, K_φ, η (skipped with
    ``known_dynamics``);
 2. ``controller`` — LQR on the linearisation, saturated controller with solved bias;
+   ``local`` — only with learned dynamics whose η on the whole sampling box leaves no room
+   for the robust margin: η bounded again on the sub-box of a smaller verification ball
+   (:func:`_local_stage`);
 3. ``quadratic`` — only when the configuration lists ``quadratic`` candidates: the cheap
    certificates ``V = xᵀPx`` under the initial controller (:mod:`nlyap_opt.candidates.quadratic`);
    the best one is saved as ``V_quadratic.json``;
@@ -82,13 +85,17 @@ from ..distributed.parallel import (
     verifying_on,
 )
 from ..distributed.parallel import check as parallel_check
+from ..kernel.domain import Ball
 from ..kernel.errors import ConfigError, NlyapError
 from ..kernel.jsonio import load_with_timings, save_timings, split_timings
 from ..kernel.network import Network
 from ..kernel.provenance import fingerprint
 from ..kernel.sampling import sample_sphere
 from ..kernel.symbolic import closed_loop
+from ..learned.dynamics import as_config
 from ..learned.dynamics_stage import GateStatus, dynamics_stage, eta_limit_linear
+from ..learned.error_models import write_bounds
+from ..learned.local_bound import local_bound, local_box
 from .configs import RunConfig, check_dynamics_box, domain_of, validate_config
 from .report import status_line, write_report
 
@@ -149,6 +156,7 @@ _STAGE_FIELDS: dict[str, tuple[str, ...]] = {
     "sos": _REGION + ("sos",) + _VERIFY + _EVAL,
     # lqr: the gain scan (cegis.gain_scan) runs only where the user left the LQR weights
     "cegis": _REGION + ("train", "cegis", "lqr") + _EVAL,
+    "local": _REGION + ("dynamics",),
 }
 #: the files each stage writes (the sha256 of each is recorded)
 _STAGE_FILES = {
@@ -157,6 +165,7 @@ _STAGE_FILES = {
     "quadratic": ("quadratic.json", "V_quadratic.json"),
     "sos": ("sos.json", "V_sos.json"),
     "cegis": ("V.json", "controller.json", "cegis.json"),
+    "local": ("local.json", "bounds_local.json"),
 }
 
 
@@ -475,6 +484,7 @@ def _run(system, cfg: RunConfig, out: Path, known_dynamics: bool, log,
             return stopped
     ctx.controller = _controller_stage(ctx)
     if ctx.eta > 0:
+        _local_stage(ctx)
         ctx.eps = _inner_for_margin(system, ctx.controller, ctx.dynamics, ctx.eta, ctx.eps, D,
                                     region.auto_inner, log)
     quad = _quadratic_stage(ctx)
@@ -528,6 +538,11 @@ class _Context:
     dyn_box: np.ndarray | None = None
     input_box: np.ndarray | None = None
     controller: Network | None = None
+    #: the file of the bound η in use (``bounds_local.json`` when :func:`_local_stage`
+    #: replaced the global bound)
+    bounds_file: str = "bounds.json"
+    #: the stages the bound η comes from (``local`` joins when it replaced the global one)
+    eta_stages: tuple = ("dynamics",)
 
     def region(self, view: RunConfig) -> tuple:
         """``(D, X_I, r, ε)`` for a stage whose view declares the region keys
@@ -630,7 +645,7 @@ def _cegis_stage(ctx: _Context, starts: Mapping[str, _CheapRecord | None],
     # train.init: V starts at a cheap certificate; with the true f an iterate that cannot
     # beat the best one is not verified: the CEGIS stage builds on the cheap stages
     cheap = [c for c in starts.values() if c is not None]
-    deps = ("dynamics", "controller") + tuple(
+    deps = (*ctx.eta_stages, "controller") + tuple(
         k for k, c in starts.items() if c is not None or k == train.init)
     out = ctx.out
     if ctx.stages.finished("cegis", *deps):
@@ -730,11 +745,25 @@ def _certificate_stage(ctx: _Context, cfg: RunConfig, cg: _CegisRecord,
     if ctx.bounds is not None:
         extra["dynamics_bound"] = {k: ctx.bounds.get(k) for k in
                                    ("eta", "alpha", "delta", "K_f", "K_phi", "bound_model")}
+    if ctx.bounds_file != "bounds.json":
+        extra["dynamics_bound"]["local"] = {
+            "file": ctx.bounds_file, "radius": ctx.r,
+            "box": np.asarray(ctx.bounds["grid"]["box"]).tolist(),
+            "global_eta": load_with_timings(out / "local.json")["global_eta"]}
+        cert.assumptions.append(
+            f"η = {ctx.eta:.6g} bounds ‖f − φ‖ on the sub-box {ctx.bounds_file} names only "
+            f"(its own grid; the whole sampling box has η = "
+            f"{extra['dynamics_bound']['local']['global_eta']:.4g}): the verification ball "
+            f"‖x‖ ≤ {ctx.r:.4g} lies in its states and κ of the ball in its inputs (proved)")
     configured = float(cfg.view(_REGION).inner)
     if ctx.eps != configured:      # raised by auto_inner from η: the certificate says so
         cert.assumptions.append(
             f"inner radius ε = {ctx.eps:.6g} chosen by the tool (configured {configured:g}): "
-            f"with η = {ctx.eta:.3g} the robust margin η‖∇V‖ needs it")
+            + (f"with η = {ctx.eta:.3g} the robust margin η‖∇V‖ needs it"
+               if ctx.bounds_file == "bounds.json" else
+               f"scaled with the verification ball of the local bound (‖x‖ ≤ {ctx.r:.4g})"))
+    if ctx.bounds_file != "bounds.json":
+        files = dict(files or {}, bounds=ctx.bounds_file)
     path = save_certificate(cert, problem, out, extra, files=files)
     summary = json.loads(path.read_text())
     write_report(out, system, cfg, summary, ctx.bounds, cg.to_json())
@@ -810,11 +839,8 @@ def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, a
         need = _centre_inner(system, controller, dynamics, eta, eps, D)
         what = "the centre quadratic's decrease (sampled)"
     else:
-        try:
-            A = closed_loop_matrix(SimpleNamespace(system=system, controller=controller,
-                                                   dynamics=dynamics))
-            need = INNER_MARGIN_FACTOR * eps * eta / eta_limit_linear(A, eps)
-        except ConfigError:   # not Hurwitz: no linear estimate; the certificate stage says why
+        need = _linear_need(system, controller, dynamics, eta, eps)
+        if need is None:      # not Hurwitz: no linear estimate; the certificate stage says why
             return eps
         what = "the linear decrease"
     if need <= eps:
@@ -842,6 +868,138 @@ def _inner_for_margin(system, controller, dynamics, eta: float, eps: float, D, a
         f"inner = {eps:g}; if none does, set inner to {need:.3g} or more (or auto_inner = "
         "true)")
     return eps
+
+
+def _linear_need(system, controller, dynamics, eta: float, eps: float) -> float | None:
+    r"""The inner radius the robust margin ``η‖∇V‖`` needs by the linear decrease:
+    :data:`INNER_MARGIN_FACTOR` times :math:`2\eta\lambda_{\max}(P)`, or ``None`` when φ's
+    closed loop is not Hurwitz at 0 (no estimate)."""
+    try:
+        A = closed_loop_matrix(SimpleNamespace(system=system, controller=controller,
+                                               dynamics=dynamics))
+        return INNER_MARGIN_FACTOR * eps * eta / eta_limit_linear(A, eps)
+    except ConfigError:
+        return None
+
+
+#: the radii of the smaller verification balls :func:`_local_stage` tries, as fractions of
+#: the configured outer radius (largest first)
+LOCAL_FRACTIONS = (0.5, 0.25, 0.125)
+#: node budget of each local grid (:func:`nlyap_opt.learned.local_bound.local_counts`)
+LOCAL_GRID_NODES = 4_000_000
+
+
+def _local_stage(ctx: _Context) -> None:
+    r"""η on the sub-box of a smaller ball, when η on the whole sampling box leaves no room.
+
+    Runs only when the robust margin with the global η needs an inner radius of half the
+    domain's inradius or more (:func:`_linear_need`; the run would certify nothing), the
+    domain is the ball ``‖x‖ ≤ r`` about the origin, there is no initial set and f can be
+    evaluated off the grid. For ``r_k = r·LOCAL_FRACTIONS[k]``, largest first, it bounds
+    ``‖f − φ‖`` on ``X_k × U_k`` (``X_k = [−r_k, r_k]^n`` holds the ball; ``U_k`` encloses
+    the initial controller on ``X_k`` with slack,
+    :func:`nlyap_opt.learned.local_bound.local_box`) on a grid of its own
+    (:func:`nlyap_opt.learned.local_bound.local_bound`). The inner radius shrinks with the
+    ball (``ε_k = ε·r_k/r``: the configured shape of the ring, so that a quadratic's inner
+    ball still fits below its level on the sphere), and the first radius whose margin the
+    linear decrease affords at ``ε_k`` (:func:`_linear_need` over
+    :data:`INNER_MARGIN_FACTOR` below ``ε_k``) is kept. The run then verifies on the ball of
+    that radius with that η and ε, ``X_k`` as the dynamics box and ``U_k`` as the input
+    box: every certificate proves ``κ(R) ⊆ U_k`` and its region inside ``X_k`` and states
+    that it rests on the local bound (``bounds_local.json``, hashed with the certificate).
+    ``local.json`` records every radius tried.
+    """
+    system, log, eta = ctx.system, ctx.log, ctx.eta
+    if _systems.spec.centre_dimension(system):
+        return
+    need = _linear_need(system, ctx.controller, ctx.dynamics, eta, ctx.eps)
+    room = 0.5 * ctx.D.inradius()
+    if need is None or need < room:
+        return
+    head = (f"[local] with η = {eta:.3g} on the whole box the robust margin needs "
+            f"ε ≥ {need:.3g}, not below half the domain's inradius {ctx.D.inradius():.3g}")
+    why = None
+    if not (isinstance(ctx.D, Ball) and ctx.D.plain_ball):
+        why = f"the domain {ctx.D.describe()} is not a ball about the origin"
+    elif ctx.XI is not None:
+        why = "an initial set is given (a smaller domain may not hold it)"
+    elif not getattr(system, "can_simulate", True):
+        why = "f is known at the sample nodes only (a local grid needs new values)"
+    if why is not None:
+        log(f"{head}; no local bound: {why}")
+        return
+    log(f"{head}: bounding ‖f − φ‖ on the sub-boxes of smaller balls")
+    out = ctx.out
+    deps = ("dynamics", "controller")
+    if not ctx.stages.finished("local", *deps):
+        _local_search(ctx, ctx.stages.view("local"))
+        ctx.stages.mark("local", *deps)
+    path = out / "local.json"
+    try:
+        rec = load_with_timings(path)
+        for t in rec["tried"]:
+            log(f"[local] ball ‖x‖ ≤ {t['radius']:.4g}, ε = {t['inner']:.4g}: η = "
+                f"{t['eta']:.4g} on {t['counts']} nodes; the linear decrease beats the "
+                f"margin beyond {t['need'] / INNER_MARGIN_FACTOR:.3g} "
+                f"({'fits' if t['fits'] else 'not'} below ε)")
+        if rec["radius"] is None:
+            log("[local] no smaller ball affords the robust margin: the run goes on with the "
+                "global η")
+            return
+        radius, inner = float(rec["radius"]), float(rec["inner"])
+        path = out / "bounds_local.json"
+        bounds = load_with_timings(path)
+        box = np.asarray(bounds["grid"]["box"], dtype=float).reshape(-1, 2)
+        eta = float(bounds["eta"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise _record_error(path, err) from None
+    ctx.bounds, ctx.bounds_file = bounds, "bounds_local.json"
+    ctx.eta_stages = ("dynamics", "local")
+    ctx.eta = eta
+    ctx.dyn_box = box[: system.nx]
+    if len(box) > system.nx:
+        ctx.input_box = box[system.nx:]
+    ctx.D = Ball(radius, system.nx)
+    ctx.r = ctx.D.max_norm()
+    ctx.eps = inner
+    log(f"[local] verifying on {ctx.eps:.4g} ≤ ‖x‖ ≤ {ctx.r:.4g} with η = {ctx.eta:.4g} on "
+        f"{np.round(box, 4).tolist()} (bounds_local.json)")
+
+
+def _local_search(ctx: _Context, view: RunConfig) -> None:
+    """The radii of :func:`_local_stage`, largest first, until one fits: writes
+    ``local.json`` (every radius tried) and ``bounds_local.json`` (the radius kept)."""
+    system, out = ctx.system, ctx.out
+    dcfg = as_config(system, view.dynamics.to_json())
+    grid_box = np.asarray(ctx.bounds["grid"]["box"], dtype=float)
+    r0 = ctx.D.max_norm()
+    tried, radius, inner = [], None, None
+    t0 = time.perf_counter()
+    for frac in LOCAL_FRACTIONS:
+        r = r0 * frac
+        X = Ball(r, system.nx).bounding_box()
+        if np.any(X[:, 0] < grid_box[: system.nx, 0]) or \
+                np.any(X[:, 1] > grid_box[: system.nx, 1]):
+            continue
+        sub = local_box(grid_box, X, ctx.controller if len(grid_box) > system.nx else None)
+        res = local_bound(system, ctx.dynamics, grid_box, sub, nodes=LOCAL_GRID_NODES,
+                          options=dcfg.bound_options, select=dcfg.bound_model,
+                          boxes=dcfg.interval_boxes, check_points=20000, seed=dcfg.seed)
+        eps = ctx.eps * frac
+        need = _linear_need(system, ctx.controller, ctx.dynamics, res.eta, eps)
+        fits = need is not None and need / INNER_MARGIN_FACTOR < eps
+        tried.append({"radius": r, "inner": eps, "eta": res.eta, "need": need, "fits": fits,
+                      "box": sub.tolist(), "counts": res.grid.counts.tolist(),
+                      "alpha": res.alpha.alpha, "selected": res.selected})
+        if fits:
+            write_bounds(out / "bounds_local.json", res)
+            radius, inner = r, eps
+            break
+    if radius is None:
+        (out / "bounds_local.json").unlink(missing_ok=True)
+    _write_stage_json(out / "local.json", {
+        "format": "nlyap-local-bound", "global_eta": ctx.eta, "radius": radius,
+        "inner": inner, "tried": tried, "seconds": time.perf_counter() - t0})
 
 
 def _slow_on_sphere(system, controller, dynamics, eta: float, eps: float,
@@ -915,7 +1073,7 @@ def _quadratic_stage(ctx: _Context) -> _CheapRecord | None:
     names = list(view.quadratic or [])
     if not names:
         return None
-    deps = ("dynamics", "controller")
+    deps = (*ctx.eta_stages, "controller")
     out, log = ctx.out, ctx.log
     if ctx.stages.finished("quadratic", *deps):
         return _CheapRecord.load("quadratic", out / "quadratic.json")
@@ -955,7 +1113,7 @@ def _sos_stage(ctx: _Context) -> _CheapRecord | None:
     if not choice.degree:
         return None
     sc = replace(sc, degree=choice.degree)
-    deps = ("dynamics", "controller")
+    deps = (*ctx.eta_stages, "controller")
     path = ctx.out / "sos.json"
     if ctx.stages.finished("sos", *deps):
         saved = _saved_sos_degree(path)

@@ -349,7 +349,7 @@ def test_floating_point_flags_are_ignored_for_the_walk_only():
     started meanwhile does not inherit the shortcut (it sets the state per operation)."""
     import threading
 
-    from verification.interval import Interval, IntervalArithmetic, _fp_ignored
+    from verification.interval import Interval, IntervalArithmetic, fp_ignored
 
     x = ca.MX.sym("x", 2)  # 1/x₀ and log(x₁) over boxes holding 0: inf and NaN on the way
     p = VerificationProblem(x, [[-1.0, 1.0], [-1.0, 1.0]], [ca.sumsqr(x) - 1.0],
@@ -370,7 +370,7 @@ def test_floating_point_flags_are_ignored_for_the_walk_only():
         except Exception as exc:  # noqa: BLE001 - reported to the main thread
             errors.append(exc)
 
-    with _fp_ignored():
+    with fp_ignored():
         t = threading.Thread(target=multiply)
         t.start()
         t.join()

@@ -56,14 +56,14 @@ from .interval import (
     _PI,
     Interval,
     IntervalArithmetic,
-    _fp_ignore,
+    fp_ignore,
     _guard,
     _mm,
     _mul,
     _period_index,
     _sq,
     _sub,
-    _to_shape,
+    to_shape,
 )
 
 __all__ = ["Affine", "AffineArithmetic", "tight_ranges"]
@@ -123,7 +123,7 @@ class Affine:
 
     def __getitem__(self, idx) -> Affine:
         idx = idx if isinstance(idx, tuple) else (idx,)
-        e = _to_shape(self.e, self.c.shape)[idx]
+        e = to_shape(self.e, self.c.shape)[idx]
         g = None if self.g is None else self.g[(slice(None),) + idx]
         return Affine(self.c[idx], g, e)
 
@@ -156,7 +156,7 @@ class Affine:
         lo, hi = x.lo, x.hi
         if lo is hi:
             return cls(lo, None, np.zeros(lo.shape))
-        with _fp_ignore():
+        with fp_ignore():
             c = 0.5 * lo + 0.5 * hi
             c = np.where(np.isfinite(c), c, 0.0)
             r = np.maximum(hi - c, c - lo)  # error <= u r (subtraction)
@@ -174,10 +174,10 @@ class Affine:
     def to_interval(self) -> Interval:
         """Rigorous range ``[c - radius, c + radius]`` (outward rounded; NaN: everything)."""
         rad = self.radius()
-        with _fp_ignore():
+        with fp_ignore():
             lo = dn_sum(self.c - rad)
             hi = up_sum(self.c + rad)
-            lo, hi = _guard(_to_shape(lo, np.shape(self.c)), _to_shape(hi, np.shape(self.c)))
+            lo, hi = _guard(to_shape(lo, np.shape(self.c)), to_shape(hi, np.shape(self.c)))
         return Interval(lo, hi)
 
     def __repr__(self) -> str:
@@ -391,8 +391,8 @@ def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
     fh = rel.f(th, th)
     alpha = rel.slope(tl, th, 0.5 * fl[0] + 0.5 * fl[1], 0.5 * fh[0] + 0.5 * fh[1])
     alpha = np.where(ok.ravel() & np.isfinite(alpha), alpha, 0.0)
-    q_lo = _to_shape(q_lo, lo.shape).ravel()
-    q_hi = _to_shape(q_hi, lo.shape).ravel()
+    q_lo = to_shape(q_lo, lo.shape).ravel()
+    q_hi = to_shape(q_hi, lo.shape).ravel()
     # pieces: left [tl, min(th, q_lo)], sliver [q_lo, q_hi] ∩ [tl, th], right [max(tl, q_hi), th]
     has_l = (tl < q_lo) & ok.ravel()
     has_r = (th > q_hi) & ok.ravel()
@@ -414,7 +414,7 @@ def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
             fa = _f_at(rel, a_new, a, fa)
             a = a_new
         if not isinstance(cvx, (bool, np.bool_)):
-            cvx = _to_shape(cvx, lo.shape).ravel()[rows]
+            cvx = to_shape(cvx, lo.shape).ravel()[rows]
         plo, phi = _piece(rel, a, b, al, cvx, fa, fb)
         dl[rows] = np.minimum(dl[rows], plo)
         dh[rows] = np.maximum(dh[rows], phi)
@@ -641,7 +641,7 @@ class AffineArithmetic:
     def unary(self, op: int, a) -> Affine:
         """Affine image of ``op(a)`` (relaxed, or by intervals on the range of ``a``)."""
         a = _aff(a)
-        with _fp_ignore():
+        with fp_ignore():
             if op == ca.OP_ASSIGN:
                 return a
             if op == ca.OP_NEG:
@@ -659,7 +659,7 @@ class AffineArithmetic:
         """Affine image of the elementwise binary ``op(a, b)``, with broadcasting."""
         a = _aff(a)
         b = _aff(b)
-        with _fp_ignore():
+        with fp_ignore():
             if op == ca.OP_ADD:
                 return _add_aff(a, b, 1.0)
             if op == ca.OP_SUB:
@@ -680,7 +680,7 @@ class AffineArithmetic:
         """Rigorous ``a @ b`` of forms (numpy ``matmul`` semantics over the batch)."""
         a = _aff(a)
         b = _aff(b)
-        with _fp_ignore():
+        with fp_ignore():
             return _matmul_aff(a, b)
 
     def sum(self, a, axis=None) -> Affine:
@@ -697,9 +697,9 @@ class AffineArithmetic:
             k *= a.c.shape[ax]
         if k <= 1:
             return self.structural(lambda v: np.sum(v, axis=tuple(ax - nd for ax in axes)), a)
-        with _fp_ignore():
+        with fp_ignore():
             c = np.sum(a.c, axis=axes)
-            e = _to_shape(a.e, a.c.shape)
+            e = to_shape(a.e, a.c.shape)
             mag = np.abs(a.c)
             g = None
             n = 0
@@ -715,7 +715,7 @@ class AffineArithmetic:
         """Apply an exact rearrangement to ``c``, ``g`` and ``e`` alike."""
         args = [_aff(x) for x in args]
         c = np.asarray(fn(*[x.c for x in args]), dtype=np.float64)
-        e = np.asarray(fn(*[_to_shape(x.e, x.c.shape) for x in args]),
+        e = np.asarray(fn(*[to_shape(x.e, x.c.shape) for x in args]),
                        dtype=np.float64)
         if all(x.g is None for x in args):
             return Affine(c, None, e)
@@ -764,8 +764,8 @@ def _matmul_aff(a: Affine, b: Affine) -> Affine:
         t = _matmul_aff(_transpose(b), _transpose(a))
         return _transpose(t)
     k = a.c.shape[-1]
-    ea = _to_shape(a.e, a.c.shape)
-    eb = _to_shape(b.e, b.c.shape)
+    ea = to_shape(a.e, a.c.shape)
+    eb = to_shape(b.e, b.c.shape)
     gk = 2.0 * gamma(k + 4)
     ama = np.abs(a.c)
     amb = np.abs(b.c)
@@ -792,7 +792,7 @@ def _matmul_aff(a: Affine, b: Affine) -> Affine:
 
 
 def _transpose(x: Affine) -> Affine:
-    e = _to_shape(x.e, x.c.shape)
+    e = to_shape(x.e, x.c.shape)
     return Affine(np.swapaxes(x.c, -1, -2), None if x.g is None else np.swapaxes(x.g, -1, -2),
                   np.swapaxes(e, -1, -2))
 

@@ -100,14 +100,14 @@ _FP_QUIET = contextvars.ContextVar("nlyap_fp_quiet", default=False)
 _NOOP = contextlib.nullcontext()
 
 
-def _fp_ignore():
-    """``np.errstate(all="ignore")``, or a no-op inside :func:`_fp_ignored`, which holds it
+def fp_ignore():
+    """``np.errstate(all="ignore")``, or a no-op inside :func:`fp_ignored`, which holds it
     already (the state costs about 1.5 µs to enter, several thousand times per query)."""
     return _NOOP if _FP_QUIET.get() else np.errstate(all="ignore")
 
 
 @contextlib.contextmanager
-def _fp_ignored():
+def fp_ignored():
     """Ignore floating-point flags (``np.errstate(all="ignore")``) for a whole walk.
 
     The arithmetics then skip entering the state per operation; values are unchanged
@@ -133,7 +133,7 @@ def _guard(lo, hi):
     return np.where(bad, -_INF, lo), np.where(bad, _INF, hi)
 
 
-def _to_shape(a: np.ndarray, shape: tuple) -> np.ndarray:
+def to_shape(a: np.ndarray, shape: tuple) -> np.ndarray:
     """``np.broadcast_to(a, shape)``, or ``a`` itself when it has that shape already (the
     view costs several µs; callers only read it)."""
     return a if a.shape == shape else np.broadcast_to(a, shape)
@@ -871,7 +871,7 @@ class IntervalArithmetic:
         if f is None:
             raise _unsupported(op, "unary")
         a = _as_interval(a)
-        with _fp_ignore():
+        with fp_ignore():
             lo, hi = f(a.lo, a.hi)
         return _iv(lo, hi)
 
@@ -899,7 +899,7 @@ class IntervalArithmetic:
             raise _unsupported(op, "binary")
         a = _as_interval(a)
         b = _as_interval(b)
-        with _fp_ignore():
+        with fp_ignore():
             lo, hi = f(a.lo, a.hi, b.lo, b.hi)
         return _iv(lo, hi)
 
@@ -941,7 +941,7 @@ class IntervalArithmetic:
         if n <= 1:
             return self.structural(lambda x: np.sum(x, axis=axes), a)
         g3 = _g3(n)
-        with _fp_ignore():
+        with fp_ignore():
             if lo is hi:
                 s = _reduce(lo, axes)
                 t = _reduce(np.abs(lo), axes)
@@ -989,7 +989,7 @@ class IntervalArithmetic:
         a = _as_interval(a)
         b = _as_interval(b)
         k = a.lo.shape[-1]
-        with _fp_ignore():
+        with fp_ignore():
             if k == 0 or not (_finite(a) and _finite(b)):
                 return self._matmul_elementwise(a, b)
             g = gamma(k)
@@ -1405,7 +1405,7 @@ class CheckedIntervalArithmetic(IntervalArithmetic):
         """As :meth:`IntervalArithmetic.unary`, propagating and creating domain taint."""
         a = _as_interval(a)
         res = super().unary(op, a)
-        with _fp_ignore():
+        with fp_ignore():
             return _attach(res, _merge(_taint(a), _domain_taint(op, (a,))))
 
     def binary(self, op: int, a: Interval, b: Interval) -> Interval:
@@ -1416,7 +1416,7 @@ class CheckedIntervalArithmetic(IntervalArithmetic):
         ta, tb = _taint(a), _taint(b)
         if ta is None and tb is None and op not in _DOMAINS:
             return res
-        with _fp_ignore():
+        with fp_ignore():
             if op == ca.OP_IF_ELSE_ZERO and tb is not None:
                 t, p = _truth(a.lo, a.hi)  # c certainly / possibly nonzero
                 um, us, uo = tb
@@ -1575,7 +1575,7 @@ class CheckedIntervalArithmetic(IntervalArithmetic):
         if not len(feeds):
             return
         bounds = [(a.lo, a.hi) for a in map(_as_interval, args)]
-        with _fp_ignore():
+        with fp_ignore():
             jump = _JUMPS.get(op)
             if jump is not None:
                 m = self._per_box(jump(bounds, (res.lo, res.hi)), base)

@@ -73,8 +73,8 @@ from .interval import (
     CheckedIntervalArithmetic,
     Interval,
     IntervalArithmetic,
-    _fp_ignored,
-    _to_shape,
+    fp_ignored,
+    to_shape,
 )
 from .precondition import hessian_coordinates, solve_preconditioned
 from .problem import Counterexample, VerificationProblem, VerificationResult
@@ -150,7 +150,7 @@ def _columns(outs, B: int) -> Interval:
     """``(B, K)`` enclosure from ``K`` scalar outputs (each ``(B, 1)``, or constant)."""
     def col(a):
         a = a.reshape(-1, 1) if a.ndim < 2 else a
-        return _to_shape(a, (B, 1))
+        return to_shape(a, (B, 1))
     return Interval(np.concatenate([col(o.lo) for o in outs], axis=1),
                     np.concatenate([col(o.hi) for o in outs], axis=1))
 
@@ -356,7 +356,7 @@ def _affine_enclosure(problem: VerificationProblem, lo: np.ndarray, hi: np.ndarr
     # out in proportion to r_i; an unknown remainder (inf) counts as the widths alone
     r = hi - lo
     frac = r / np.maximum(r.sum(axis=1, keepdims=True), 1e-300)  # (B, n)
-    e = _to_shape(out.e, shape)
+    e = to_shape(out.e, shape)
     known = np.isfinite(e) & np.isfinite(rng.lo) & np.isfinite(rng.hi)
     sens = np.where(known, e, 0.0)[..., None] * frac[:, None, :]
     if out.g is not None:
@@ -364,7 +364,7 @@ def _affine_enclosure(problem: VerificationProblem, lo: np.ndarray, hi: np.ndarr
         sens = sens + np.where(np.isfinite(g), g, 0.0)
     sens = np.where(known[..., None], sens, frac[:, None, :])
     lag = _lagrangian_holds(out, problem.n_constraints, shape)
-    return (Interval(_to_shape(rng.lo, shape), _to_shape(rng.hi, shape)), sens,
+    return (Interval(to_shape(rng.lo, shape), to_shape(rng.hi, shape)), sens,
             lag)
 
 
@@ -386,8 +386,8 @@ def _lagrangian_holds(out, m: int, shape) -> np.ndarray | None:
         return None
     n = len(out.g)
     with np.errstate(all="ignore"):
-        c = _to_shape(out.c, shape)
-        e = _to_shape(out.e, shape)
+        c = to_shape(out.c, shape)
+        e = to_shape(out.e, shape)
         g = np.broadcast_to(out.g, (n,) + shape)
         holds = np.zeros((B, K - m), bool)
         for k in range(m):
@@ -856,7 +856,7 @@ def verify_interval(
                                    presearch_boundary=presearch_boundary,
                                    stop_at_first=stop_at_first, keep_leaves=keep_leaves, seed=seed,
                                    initial_boxes=initial_boxes, second_order=second_order)
-    with _single_thread_blas(), _fp_ignored():
+    with _single_thread_blas(), fp_ignored():
         return _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
                              stop_at_first, keep_leaves, seed, initial_boxes, progress,
                              affine, second_order, boxes, hand_back,

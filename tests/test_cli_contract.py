@@ -232,6 +232,23 @@ def test_time_limit_stops_with_exit_5_and_the_rerun_gives_the_reference(tmp_path
     assert_fast_certificate("van_der_pol/learned", cert, out)
 
 
+def test_time_limit_waits_for_a_running_import(tmp_path, monkeypatch):
+    """--time-limit never fires inside an import: a module imported through a C++ extension
+    (torch's imports run so) would abort the process with the exception thrown through it
+    (seen: `terminate called ... TimeLimitReached` and SIGABRT when a clean clone's first run
+    imported torch at the limit). The guard fires once the import is done."""
+    (tmp_path / "slow_import_mod.py").write_text("import time\ntime.sleep(0.4)\nDONE = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "slow_import_mod", raising=False)
+    with pytest.raises(cli.TimeLimitReached):
+        with cli._time_guard(0.1):
+            import slow_import_mod  # noqa: F401 - the import is what is timed
+            sys.modules["slow_import_mod"].AFTER = True
+            signal.pause()  # the limit ends the wait
+    mod = sys.modules["slow_import_mod"]
+    assert mod.DONE and mod.AFTER  # the import ended, then the limit stopped the rest
+
+
 def test_an_open_progress_bar_does_not_swallow_the_one_line_message(capsys):
     """A run stopped mid-bar (--time-limit during φ's training) left the bar's line open and
     the message was appended to it; the CLI closes open bars before its message."""

@@ -155,9 +155,14 @@ class TimeLimitReached(KeyboardInterrupt):
     """
 
 
+#: seconds after which --time-limit tries again when it ran out during an import
+IMPORT_RETRY = 0.05
+
+
 @contextlib.contextmanager
 def _time_guard(seconds: float | None):
-    """Raise :class:`TimeLimitReached` after ``seconds`` of wall time (``None``: no guard)."""
+    """Raise :class:`TimeLimitReached` after ``seconds`` of wall time (``None``: no guard),
+    or as soon after as no import is running."""
     if seconds is None:
         yield
         return
@@ -167,6 +172,14 @@ def _time_guard(seconds: float | None):
                          "lacks; drop --time-limit (or stop the run with Ctrl-C)")
 
     def _stop(signum, frame):
+        # never inside an import: a module's import may run in a C++ extension's call
+        # (torch's do), and an exception thrown through it aborts the process; the guard
+        # fires again once the import is done
+        while frame is not None:
+            if frame.f_code.co_filename.startswith("<frozen importlib"):
+                signal.setitimer(signal.ITIMER_REAL, IMPORT_RETRY)
+                return
+            frame = frame.f_back
         raise TimeLimitReached(seconds)
 
     old = signal.signal(signal.SIGALRM, _stop)

@@ -249,6 +249,32 @@ def test_time_limit_waits_for_a_running_import(tmp_path, monkeypatch):
     assert mod.DONE and mod.AFTER  # the import ended, then the limit stopped the rest
 
 
+def test_ctrl_c_waits_for_a_running_import_and_main_restores_the_handler(tmp_path,
+                                                                          monkeypatch):
+    """Ctrl-C during an import (a clean run's imports of torch take seconds) must not throw
+    through it: seen were a torch module left half initialised and the next import failing
+    as "internal error" (exit 4) instead of exit 130. The CLI's SIGINT handler waits for
+    the import; main() puts the caller's handler back."""
+    import os
+    import threading
+
+    (tmp_path / "slow_import_int.py").write_text("import time\ntime.sleep(0.4)\nDONE = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "slow_import_int", raising=False)
+    old = signal.signal(signal.SIGINT, cli._outside_imports(cli._interrupt))
+    try:
+        threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGINT)).start()
+        with pytest.raises(KeyboardInterrupt):
+            import slow_import_int  # noqa: F401 - the import is what is interrupted
+            signal.pause()  # the deferred Ctrl-C ends the wait
+    finally:
+        signal.signal(signal.SIGINT, old)
+    assert sys.modules["slow_import_int"].DONE
+    before = signal.getsignal(signal.SIGINT)
+    assert main(["run", "van_der_pol", "--time-limit", "soon"]) == 3
+    assert signal.getsignal(signal.SIGINT) is before
+
+
 def test_an_open_progress_bar_does_not_swallow_the_one_line_message(capsys):
     """A run stopped mid-bar (--time-limit during φ's training) left the bar's line open and
     the message was appended to it; the CLI closes open bars before its message."""

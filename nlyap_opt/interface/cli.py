@@ -19,6 +19,7 @@ import json
 import os
 import signal
 import sys
+import threading
 import traceback
 import warnings
 from pathlib import Path
@@ -155,8 +156,42 @@ class TimeLimitReached(KeyboardInterrupt):
     """
 
 
-#: seconds after which --time-limit tries again when it ran out during an import
+#: seconds after which a stop (Ctrl-C, --time-limit) that came during an import is tried again
 IMPORT_RETRY = 0.05
+
+
+def _in_import(frame) -> bool:
+    """Whether ``frame`` (a signal handler's) runs inside an import."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _outside_imports(stop):
+    """A signal handler that calls ``stop()`` (which raises) — never inside an import.
+
+    A module's import may run inside a C++ extension's call (torch's do): an exception
+    thrown through it aborts the process (``terminate called ...``), or leaves a module half
+    initialised that a later import then fails on. During an import the handler asks again
+    :data:`IMPORT_RETRY` seconds later (the same signal, sent to the main thread, where it
+    also ends a blocking wait).
+    """
+    def handler(signum, frame):
+        if _in_import(frame) and hasattr(signal, "pthread_kill"):
+            retry = threading.Timer(IMPORT_RETRY, signal.pthread_kill,
+                                    (threading.main_thread().ident, signum))
+            retry.daemon = True
+            retry.start()
+            return
+        stop()
+
+    return handler
+
+
+def _interrupt():
+    raise KeyboardInterrupt
 
 
 @contextlib.contextmanager
@@ -171,18 +206,10 @@ def _time_guard(seconds: float | None):
         raise UsageError("--time-limit needs POSIX interval timers, which this platform "
                          "lacks; drop --time-limit (or stop the run with Ctrl-C)")
 
-    def _stop(signum, frame):
-        # never inside an import: a module's import may run in a C++ extension's call
-        # (torch's do), and an exception thrown through it aborts the process; the guard
-        # fires again once the import is done
-        while frame is not None:
-            if frame.f_code.co_filename.startswith("<frozen importlib"):
-                signal.setitimer(signal.ITIMER_REAL, IMPORT_RETRY)
-                return
-            frame = frame.f_back
+    def _stop():
         raise TimeLimitReached(seconds)
 
-    old = signal.signal(signal.SIGALRM, _stop)
+    old = signal.signal(signal.SIGALRM, _outside_imports(_stop))
     signal.setitimer(signal.ITIMER_REAL, seconds)
     try:
         yield
@@ -768,8 +795,24 @@ def _enter_portable_mode(argv: list[str], may_restart: bool) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run ``nlyap`` with ``argv`` (default ``sys.argv[1:]``); return the exit code.
 
-    Never raises: every outcome is an exit code of :data:`EXIT_CODES`.
+    Never raises: every outcome is an exit code of :data:`EXIT_CODES`. Ctrl-C stops the
+    command (exit 130) but never inside an import (:func:`_outside_imports`); the caller's
+    SIGINT handler is restored on return.
     """
+    sigint = signal.getsignal(signal.SIGINT)
+    own = sigint is signal.default_int_handler and \
+        threading.current_thread() is threading.main_thread()
+    if own:
+        signal.signal(signal.SIGINT, _outside_imports(_interrupt))
+    try:
+        return _main(argv)
+    finally:
+        if own:
+            signal.signal(signal.SIGINT, sigint)
+
+
+def _main(argv: list[str] | None) -> int:
+    """:func:`main` with its SIGINT handler in place."""
     may_restart = argv is None   # the nlyap command itself, not a call from Python
     argv = list(sys.argv[1:] if argv is None else argv)
     full_argv = list(argv)

@@ -380,3 +380,25 @@ def test_learned_pendulum_simulate_and_filter_with_the_margin(tmp_path):
     for i in range(0, len(pts), 50):
         us, st = filt.solve(a[i], e[i], dd[i], k[i], np.zeros(1))
         assert st == "solved" and e[i] + a[i] @ us <= -filt.decay * dd[i] * (1 - 1e-6)
+
+
+@pytest.mark.parametrize("lam,kept", [(-300.0, False), (0.5, True)])
+def test_a_rise_of_v_counts_only_if_the_refined_step_keeps_it(lam, kept):
+    """x' = λx, V = x²: with λ = −300 one RK4 step of 0.01 (hλ = −3, outside RK4's
+    stability interval) raises V although the flow lowers it: the refined step drops the
+    rise. With λ = 0.5 V truly rises and the rise stays."""
+    from types import SimpleNamespace
+
+    from nlyap_opt.deployment.deploy import _confirmed_rises
+    from nlyap_opt.kernel.simulate import trajectories
+
+    def f(x):
+        return lam * x
+
+    run = SimpleNamespace(V=lambda x: np.sum(x ** 2, axis=1))
+    Xi = trajectories(f, np.array([[1.0], [0.5]]), 0.01, 1)       # one coarse step
+    rise = run.V(Xi[1]) - run.V(Xi[0])
+    if lam < 0:
+        assert (rise > 0).all()                                   # the coarse step's artefact
+    out = _confirmed_rises(run, f, Xi, rise[None, :], dt=0.01, tol=1e-9)
+    assert ((out > 1e-9).all() if kept else (out < 0).all()), out

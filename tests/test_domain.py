@@ -254,14 +254,14 @@ def test_compare_rows_are_certified_on_the_declared_domain(tmp_path):
     box = {"type": "box", "box": [[-1.5, 1.5], [-1.2, 1.2]]}
     cfg = make_config("van_der_pol", "fast", overrides={"domain": box})
     rows = compare("van_der_pol", cfg, tmp_path, log=lambda m: None, include_neural=False)
-    certified = [r for r in rows if r["certified"]]
-    assert any(r["method"].startswith("sos") for r in certified)
+    certified = [r for r in rows if r.certified]
+    assert any(r.method.startswith("sos") for r in certified)
     D = Box(box["box"])
     pts = D.sample(4000, np.random.default_rng(0))
     for r in certified:   # the LQR and the SOS rows: the same D, re-checkable
-        saved = json.loads(Path(r["certificate"]).read_text())
+        saved = json.loads(Path(r.extra["certificate"]).read_text())
         assert saved["domain"] == box
-        cert = recheck_certificate(r["certificate"], log=lambda m: None)
+        cert = recheck_certificate(r.extra["certificate"], log=lambda m: None)
         assert cert.certified
         far = np.vstack([pts, 2 * pts])
         inside = cert.contains(far)

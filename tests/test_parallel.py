@@ -386,10 +386,8 @@ def test_ahead_without_a_cluster_runs_where_its_result_is_asked_for():
         job.result()
 
 
-def test_ahead_on_a_cluster_runs_beside_the_caller_with_serial_verdicts(client, monkeypatch):
-    """On a cluster the job's checks run while the caller waits for its own: the job's first
-    check starts before the caller's first check ends (the caller hands over its turn while
-    it waits), and both verdicts, counterexample points included, are the serial ones."""
+def _record_spans(monkeypatch) -> list:
+    """``(thread name, start, end)`` of every distributed check from now on."""
     import threading
 
     spans = []
@@ -402,6 +400,15 @@ def test_ahead_on_a_cluster_runs_beside_the_caller_with_serial_verdicts(client, 
         return res
 
     monkeypatch.setattr(parallel, "verify_distributed", spanned)
+    return spans
+
+
+def test_ahead_on_a_cluster_runs_beside_the_caller_with_serial_verdicts(client, monkeypatch):
+    """On a cluster the job's checks run while the caller waits for its own: the job's first
+    check starts before the caller's first check ends (the caller hands over its turn while
+    it waits), and both verdicts, counterexample points included, are the serial ones."""
+
+    spans = _record_spans(monkeypatch)
     pa, pb = _vdp_problem(1.0), _vdp_problem(1.2)
     sa, sb = verify(pa), verify(pb)
     with verifying_on(client), ahead(check, pb) as job:
@@ -470,22 +477,12 @@ def test_saved_shell_form_on_a_cluster_checks_its_core_beside_the_shell(client, 
     thread of its own while the shell's runs; the result is the serial one, also where the
     shell fails (0.3: certified; 2.5: a counterexample of the shell) and the core's result
     is not used; no thread or turn is left behind."""
-    import threading
 
     from nlyap_opt.certification.roa import certify_inner_ellipse
 
     form, s = "shell r=0.075 + minors", systems.get("van_der_pol")
     serial = certify_inner_ellipse(s, None, inner, P=P_VDP, form=form)
-    spans = []
-    real = parallel.verify_distributed
-
-    def spanned(problem, client, **options):
-        t0 = time.perf_counter()
-        res = real(problem, client, **options)
-        spans.append((threading.current_thread().name, t0, time.perf_counter()))
-        return res
-
-    monkeypatch.setattr(parallel, "verify_distributed", spanned)
+    spans = _record_spans(monkeypatch)
     with verifying_on(client):
         dist = certify_inner_ellipse(s, None, inner, P=P_VDP, form=form)
     assert (dist["status"], dist["verdict"], dist["form"], dist["level"]) == \

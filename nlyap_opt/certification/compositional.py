@@ -55,12 +55,10 @@ import numpy as np
 from scipy.linalg import eigh, solve_continuous_lyapunov
 
 from ..kernel.errors import ConfigError, UnsupportedOperationError
-from ..kernel.exact import float_down, float_up, inverse_diagonal, positive_definite, rational
+from ..kernel.exact import float_down, inverse_diagonal, positive_definite, rational
 from ..kernel.jsonio import save_timings, split_timings
 from ..kernel.provenance import fingerprint
-from ..kernel.rounding import FOLD
-from ..kernel.walker import compile_function, evaluate
-from ..learned.interval_sup import interval_arithmetic
+from ..kernel.walker import compile_function
 from .certificate import (
     CertStatus,
     bound_system,
@@ -68,6 +66,7 @@ from .certificate import (
     system_binding,
     write_json_atomic,
 )
+from .roa import taylor_hessian_bound
 
 __all__ = ["FORMAT", "VERSION", "Piece", "CompositionalCertificate", "certify_compositional",
            "check_compositional", "recheck_compositional", "save_compositional",
@@ -76,13 +75,8 @@ __all__ = ["FORMAT", "VERSION", "Piece", "CompositionalCertificate", "certify_co
 FORMAT = "nlyap-compositional-certificate"
 VERSION = 1
 
-#: the toolbox's allowance for CasADi's constant folding, exactly
-#: (:data:`nlyap_opt.kernel.rounding.FOLD`)
-_FOLD = Fraction(FOLD)
 #: decay fractions θ tried: α_i = θ·α_i*, α_i* the subsystem's own rate on its box
 _THETAS = (0.9, 0.75, 0.5, 0.3, 0.15)
-#: pieces of [0, 1] in the integral form of Taylor's remainder (:func:`_hessian_bound`)
-_SLICES = 16
 
 ASSUMPTIONS = [
     "the model f is the true dynamics (a compositional certificate is about the given model)",
@@ -201,7 +195,7 @@ def _refusal(system, parts) -> str:
 
 
 def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
-    """``(N, "")`` with ``N`` of :func:`_hessian_bound` for subsystem ``i`` on its box
+    """``(N, "")`` with ``N`` of :func:`nlyap_opt.certification.roa.taylor_hessian_bound` for subsystem ``i`` on its box
     ``Y_i`` (its states, then its neighbours' in order), or ``(None, why)``.
 
     Refused when the graph of ``f_i``, ``∇V_i·f_i`` or its Hessian holds an operation that
@@ -224,57 +218,12 @@ def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
             return None, (f"{name}: f uses non-smooth or partial operations; the "
                           "compositional method needs f twice continuously differentiable "
                           "on all of D")
-        N = _hessian_bound(H, system.state_box[idx])
+        N = taylor_hessian_bound(H, system.state_box[idx])
     except UnsupportedOperationError as err:
         return None, f"{name}: {err}"
     if N is None:
         return None, f"{name}: the Hessian of dV_i/dt is not bounded on its box"
     return N, ""
-
-
-def _hessian_bound(H: ca.Function, box: np.ndarray,
-                   slices: int = _SLICES) -> list[list[Fraction]] | None:
-    r"""``C_s + diag(R̄ 1)`` (exact rationals) with :math:`y^\top M y \le y^\top (C_s +
-    \mathrm{diag}(\bar R 1)) y` for every :math:`M = \int_0^1 (1-t)\, h(t y)\, dt`,
-    :math:`y \in` ``box`` (a box containing 0) and :math:`h = ∇^2(∇V_i·f_i)`; None when an
-    enclosure is not finite.
-
-    :math:`[0, 1]` is cut into ``slices`` pieces :math:`[t_k, t_{k+1}]`; on each,
-    :math:`t y \in t_{k+1} Y` (``Y`` contains 0), so :math:`M \in \sum_k w_k\,[h](t_{k+1}
-    Y)` with :math:`w_k = \int_{t_k}^{t_{k+1}} (1 - t)\,dt` (exact). A cubic term of
-    :math:`∇V_i·f_i` then counts about :math:`\tfrac16` of its Hessian on ``Y``, not
-    :math:`\tfrac12`.
-    """
-    Interval, ia = interval_arithmetic()
-    d = box.shape[0]
-    ts = [Fraction(k, slices) for k in range(slices + 1)]
-    lo_b = np.array([[float_down(t * rational(v)) for v in box[:, 0]] for t in ts[1:]])
-    hi_b = np.array([[float_up(t * rational(v)) for v in box[:, 1]] for t in ts[1:]])
-    res = evaluate(H, [Interval(lo_b, hi_b)], ia)[0]
-    lo, hi = np.asarray(res.lo, dtype=float), np.asarray(res.hi, dtype=float)
-    if lo.size not in (d * d, slices * d * d) or hi.size != lo.size:
-        return None
-    lo = np.broadcast_to(lo.reshape(-1, d * d), (slices, d * d))   # a constant: (d²,)
-    hi = np.broadcast_to(hi.reshape(-1, d * d), (slices, d * d))
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        return None
-    weights = [(t1 - t0) - (t1 * t1 - t0 * t0) / 2 for t0, t1 in zip(ts, ts[1:])]
-    L = [[Fraction(0)] * d for _ in range(d)]
-    U = [[Fraction(0)] * d for _ in range(d)]
-    for k, wk in enumerate(weights):
-        # column-major nonzeros of the dense d×d Hessian, widened by the fold allowance
-        lk, hk = lo[k].reshape(d, d).T, hi[k].reshape(d, d).T
-        for a in range(d):
-            for b in range(d):
-                vl, vh = Fraction(lk[a, b]), Fraction(hk[a, b])
-                L[a][b] += wk * (vl - abs(vl) * _FOLD)
-                U[a][b] += wk * (vh + abs(vh) * _FOLD)
-    C = [[(L[a][b] + U[a][b]) / 2 for b in range(d)] for a in range(d)]
-    R = [[(U[a][b] - L[a][b]) / 2 for b in range(d)] for a in range(d)]
-    N = [[(C[a][b] + C[b][a]) / 2 for b in range(d)] for a in range(d)]
-    for a in range(d):
-        N[a][a] += sum((R[a][b] + R[b][a]) / 2 for b in range(d))
-    return N
 
 
 def _local_matrix(N, sizes, P, alpha, beta) -> list[list[Fraction]]:

@@ -57,18 +57,28 @@ from ..design.control import InnerStatus, ellipse_candidates, lyapunov_matrix, v
 from ..design.polynomial import exact_polynomials
 from ..distributed import parallel
 from ..kernel.domain import Ball, Box, Ellipsoid, as_domain
-from ..kernel.exact import inverse, positive_definite, rational, rational_matrix
+from ..kernel.errors import UnsupportedOperationError
+from ..kernel.exact import (
+    float_down,
+    float_up,
+    inverse,
+    inverse_diagonal,
+    positive_definite,
+    rational,
+    rational_matrix,
+)
 from ..kernel.network import Network
-from ..kernel.rounding import EPS
+from ..kernel.rounding import EPS, FOLD
 from ..kernel.sampling import sample_ball, sample_sphere
 from ..kernel.simulate import jacobian_at_origin, simulate, stable_step
 from ..kernel.symbolic import closed_loop
 from ..kernel.walker import compile_function, evaluate
+from ..learned.interval_sup import interval_arithmetic
 
 __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
     "quadratic_form", "quadratic_containment", "quadratic_inner_ball", "inner_ellipse_bound",
-    "centre_lyapunov_matrix",
+    "centre_lyapunov_matrix", "taylor_hessian_bound", "TaylorDecrease",
     "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "InnerForm",
     "InnerFormKind",
 ]
@@ -438,6 +448,142 @@ def quadratic_inner_ball(P: list[list[Fraction]], level: float,
     return _exact_result(t0, x, "V<level on inner sphere (exact)", x @ Pf @ x - level)
 
 
+# ============================================================================ Taylor's formula
+#: pieces of [0, 1] in the integral form of Taylor's remainder (:func:`taylor_hessian_bound`)
+TAYLOR_SLICES = 16
+#: the toolbox's allowance for CasADi's constant folding, exactly
+#: (:data:`nlyap_opt.kernel.rounding.FOLD`)
+_FOLD = Fraction(FOLD)
+
+
+def taylor_hessian_bound(H: ca.Function, box: np.ndarray,
+                         slices: int = TAYLOR_SLICES) -> list[list[Fraction]] | None:
+    r"""``C_s + diag(R̄ 1)`` (exact rationals) with :math:`y^\top M y \le y^\top (C_s +
+    \mathrm{diag}(\bar R 1)) y` for every :math:`M = \int_0^1 (1-t)\, h(t y)\, dt`,
+    :math:`y \in` ``box`` (a box containing 0) and ``h`` the Hessian that ``H`` computes;
+    None when an enclosure is not finite.
+
+    For a twice continuously differentiable ``F`` with :math:`F(0) = 0` and
+    :math:`\nabla F(0) = 0`, Taylor's formula with the integral remainder gives
+    :math:`F(y) = y^\top M(y)\, y`, :math:`M(y) = \int_0^1 (1-t)\, \nabla^2 F(t y)\, dt`; so
+    a negative definite bound proves :math:`F < 0` on ``box`` minus the origin.
+
+    :math:`[0, 1]` is cut into ``slices`` pieces :math:`[t_k, t_{k+1}]`; on each,
+    :math:`t y \in t_{k+1} Y` (``Y`` contains 0), so :math:`M \in \sum_k w_k\,[h](t_{k+1}
+    Y)` with :math:`w_k = \int_{t_k}^{t_{k+1}} (1 - t)\,dt` (exact). A cubic term of ``F``
+    then counts about :math:`\tfrac16` of its Hessian on ``Y``, not :math:`\tfrac12`. The
+    enclosures come from the outward-rounded interval arithmetic over ``H``'s graph, each
+    entry widened by CasADi's constant-folding allowance.
+    """
+    Interval, ia = interval_arithmetic()
+    d = box.shape[0]
+    ts = [Fraction(k, slices) for k in range(slices + 1)]
+    lo_b = np.array([[float_down(t * rational(v)) for v in box[:, 0]] for t in ts[1:]])
+    hi_b = np.array([[float_up(t * rational(v)) for v in box[:, 1]] for t in ts[1:]])
+    res = evaluate(H, [Interval(lo_b, hi_b)], ia)[0]
+    lo, hi = np.asarray(res.lo, dtype=float), np.asarray(res.hi, dtype=float)
+    if lo.size not in (d * d, slices * d * d) or hi.size != lo.size:
+        return None
+    lo = np.broadcast_to(lo.reshape(-1, d * d), (slices, d * d))   # a constant: (d²,)
+    hi = np.broadcast_to(hi.reshape(-1, d * d), (slices, d * d))
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        return None
+    weights = [(t1 - t0) - (t1 * t1 - t0 * t0) / 2 for t0, t1 in zip(ts, ts[1:])]
+    L = [[Fraction(0)] * d for _ in range(d)]
+    U = [[Fraction(0)] * d for _ in range(d)]
+    for k, wk in enumerate(weights):
+        # column-major nonzeros of the dense d×d Hessian, widened by the fold allowance
+        lk, hk = lo[k].reshape(d, d).T, hi[k].reshape(d, d).T
+        for a in range(d):
+            for b in range(d):
+                vl, vh = Fraction(lk[a, b]), Fraction(hk[a, b])
+                L[a][b] += wk * (vl - abs(vl) * _FOLD)
+                U[a][b] += wk * (vh + abs(vh) * _FOLD)
+    C = [[(L[a][b] + U[a][b]) / 2 for b in range(d)] for a in range(d)]
+    R = [[(U[a][b] - L[a][b]) / 2 for b in range(d)] for a in range(d)]
+    N = [[(C[a][b] + C[b][a]) / 2 for b in range(d)] for a in range(d)]
+    for a in range(d):
+        N[a][a] += sum((R[a][b] + R[b][a]) / 2 for b in range(d))
+    return N
+
+
+def _sqrt_up(q: Fraction) -> float:
+    """A float ``s ≥ √q`` (``q ≥ 0`` rational), the nearest such float or one above it."""
+    s = math.sqrt(float_up(q))
+    while Fraction(s) ** 2 < q:
+        s = math.nextafter(s, math.inf)
+    return s
+
+
+class TaylorDecrease:
+    r"""Condition (a) for a quadratic ``V = xᵀPx``, decided on a whole box at once.
+
+    ``lie`` is :math:`F = \nabla V \cdot g`. When ``F``'s graph holds only smooth operations
+    defined everywhere and :math:`F(0) = 0`, :math:`\nabla F(0) = 0` structurally (substituting
+    ``x = 0`` into the graphs of ``F`` and of its gradient leaves the constant 0; true for
+    ``V = xᵀPx`` and any smooth closed loop with ``g(0) = 0``), :meth:`check` proves
+    :math:`F < 0` on the box ``Y`` that bounds :math:`\{x^\top P x \le c\} \cap D` minus the
+    origin, by :func:`taylor_hessian_bound` and one exact ``LDLᵀ``: condition (a) on the
+    whole sublevel set with no bisection. A linear closed loop has a constant Hessian, so
+    the test is then exact at every level; for a nonlinear one it holds at the levels where
+    the Hessian's enclosure over ``Y`` stays negative definite, and the verifier decides the
+    others. ``why`` says why the test does not apply (then :meth:`check` returns ``None``).
+    """
+
+    def __init__(self, x, lie, P: list[list[Fraction]]):
+        self.P = P
+        self.why = ""
+        self._H = None
+        n = x.numel()
+        try:
+            F = ca.Function("taylor_lie", [x], [lie]).expand()
+        except RuntimeError as err:        # a callback (black box) or an MX-only operation
+            self.why = f"dV/dt has no expanded graph ({str(err).splitlines()[0][:80]})"
+            return
+        y = ca.SX.sym("y", n)
+        Fy = F(y)
+        grad = ca.gradient(Fy, y)
+        hess = ca.densify(ca.hessian(Fy, y)[0])
+        try:
+            # first: with only smooth total operations no 0/0 can fold to a false 0 below
+            if compile_function(ca.Function("taylor_all", [y], [Fy, grad, hess])).checked:
+                self.why = "dV/dt uses non-smooth or partial operations"
+                return
+        except UnsupportedOperationError as err:
+            self.why = str(err)
+            return
+        at0 = ca.substitute(ca.vertcat(Fy, grad), y, ca.SX.zeros(n))
+        if not all(at0[k].is_zero() for k in range(at0.numel())):
+            self.why = "dV/dt or its gradient is not structurally 0 at the origin"
+            return
+        self._H = ca.Function("taylor_hess", [y], [hess])
+        self._Pinv_diag = inverse_diagonal(P)
+
+    def box(self, level: float, domain_box: np.ndarray) -> np.ndarray:
+        """A box that holds :math:`\\{x^\\top P x \\le c\\} \\cap D`: the ellipsoid's bounding
+        box (half-widths :math:`\\sqrt{c\\,(P^{-1})_{kk}}`, rounded up) within ``D``'s."""
+        c = rational(level)
+        h = np.array([_sqrt_up(c * d) for d in self._Pinv_diag])
+        b = np.asarray(domain_box, dtype=float)
+        return np.column_stack([np.maximum(-h, b[:, 0]), np.minimum(h, b[:, 1])])
+
+    def check(self, level: float, domain_box: np.ndarray) -> VerificationResult | None:
+        """``verified`` (backend ``"taylor"``) when the test proves :math:`F < 0` on the
+        sublevel set ``V ≤ level`` within ``D`` (minus the origin), else ``None``: the
+        test decides nothing else (no counterexample comes from it)."""
+        if self._H is None or not level > 0:
+            return None
+        t0 = time.perf_counter()
+        Y = self.box(level, domain_box)
+        if not np.all((Y[:, 0] <= 0) & (Y[:, 1] >= 0)):
+            return None
+        N = taylor_hessian_bound(self._H, Y)
+        if N is None or not positive_definite([[-v for v in row] for row in N]):
+            return None
+        return VerificationResult(QueryStatus.VERIFIED, seconds=time.perf_counter() - t0,
+                                  backend="taylor")
+
+
 def _float_matrix(P: list[list[Fraction]]) -> np.ndarray:
     """The rational matrix rounded to float64 (to locate a refutation's point only)."""
     return np.array([[float(v) for v in row] for row in P])
@@ -500,7 +646,11 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     (:func:`quadratic_form`); condition (b) (``V > c`` on ``∂D``, ``V < c`` on the inner
     sphere) is then decided exactly by :func:`quadratic_containment` and
     :func:`quadratic_inner_ball` (the verifier only for a piece of ``∂D`` they leave open).
-    Each history entry records how (b) was decided (``containment_backend``).
+    Each history entry records how (b) was decided (``containment_backend``). With
+    ``margin = 0`` condition (a) is first tried by :class:`TaylorDecrease` on the sublevel
+    set's bounding box (no bisection; exact for a linear closed loop), and the verifier
+    decides where that test does not apply or does not prove it (``decrease_backend``:
+    ``taylor`` or the verifier's).
     """
 
     t0 = time.perf_counter()
@@ -518,6 +668,9 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     best = None         # (level, res_a, res_b) of the largest level verified so far
     above = math.inf    # the least level above ``best`` that failed (or a violation's V)
     followed = False    # ``c`` was set by a followed decrease violation
+    # (a) for a quadratic V and known dynamics: Taylor's formula on the sublevel set's box
+    taylor = TaylorDecrease(x, lie, quadratic) if quadratic is not None and not margin \
+        else None
 
     def lower(c_old, c_new):
         """The next level: ``c_new``, the inner ball's level instead, or ``None`` (stop)."""
@@ -552,14 +705,20 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
             res_b = r
             if r.status != "verified":
                 break
-        prob_a = lyapunov_problem(x, V, lie, inner=inner, domain=D, level=c, margin=margin,
-                                  box=box, check_positive=False)
-        res_a = parallel.check(prob_a, **opts) if res_b.status == "verified" else None
+        res_a = None
+        if res_b.status == "verified":
+            res_a = None if taylor is None else taylor.check(c, box)
+            if res_a is None:
+                prob_a = lyapunov_problem(x, V, lie, inner=inner, domain=D, level=c,
+                                          margin=margin, box=box, check_positive=False)
+                res_a = parallel.check(prob_a, **opts)
         hist.append({"level": c, "containment": res_b.status,
                      "decrease": None if res_a is None else res_a.status,
                      "seconds": res_b.seconds + (res_a.seconds if res_a else 0.0),
                      "boxes": res_b.boxes + (res_a.boxes if res_a else 0),
                      "containment_backend": "+".join(sorted(set(how)))})
+        if res_a is not None:
+            hist[-1]["decrease_backend"] = res_a.backend
         log(f"    level {c:.6g}: containment {res_b.status}, decrease "
             f"{hist[-1]['decrease']}")
         res_d = None

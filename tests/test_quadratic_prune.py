@@ -29,7 +29,7 @@ def _pendulum(controller_scale=20.0):
     return problem, np.asarray(cfg["eval_box"], dtype=float)
 
 
-def _wide(A_cl, known=True):
+def _wide(A_cl, known=True, domain=None):
     """The Lyapunov matrix of ``A_clᵀP + PA_cl = −diag(1, 30)``: on the pendulum its
     certified set is about three times that of the ``"lyapunov"`` candidate."""
     return solve_continuous_lyapunov(A_cl.T, -np.diag([1.0, 30.0]))

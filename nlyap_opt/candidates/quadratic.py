@@ -8,8 +8,9 @@ conditions (a), (b), (c), the robust margin ``η‖∇_L V‖`` for learned dyna
 initial set). The pipeline then re-verifies the best certified quadratic at its saved level and
 keeps whichever certificate -- the neural one or the quadratic one -- covers the larger volume.
 
-Candidates (:data:`QUADRATIC_CANDIDATES`, a registry of ``(A_cl, known) -> P or None``;
-``known``: the true f, else learned dynamics):
+Candidates (:data:`QUADRATIC_CANDIDATES`, a registry of ``(A_cl, known, domain) -> P or
+None``; ``known``: the true f, else learned dynamics; ``domain``: the run's region ``D``, a
+:class:`nlyap_opt.kernel.domain.Region`, or ``None``):
 
 - ``"lyapunov"``: ``A_clᵀP + PA_cl = −I``; for the LQR loop this is the ``P`` of the LQR
   baseline (``nlyap compare``);
@@ -23,6 +24,10 @@ Candidates (:data:`QUADRATIC_CANDIDATES`, a registry of ``(A_cl, known) -> P or 
   only the directions the linearisation pins stay thin (cartpole: certified volume 0.52
   with the true f, 3.5 times the round ``P``'s, and 0.235 with learned dynamics, 4.9 times;
   in 6-D the verifier is the limit, see ``docs/topics/high_dimension.md``);
+- ``"domain"``: the Lyapunov matrix whose ellipsoid inside the run's domain ``D`` is largest
+  (:func:`nlyap_opt.design.control.domain_lyapunov_matrix`, the same decay rates as
+  ``"volume"``): fitted to ``D``'s own shape (a box's half-widths, a centred ellipsoid, a
+  ball), where ``"volume"`` fits the unit ball;
 - ``"centre"``: for a linearisation with eigenvalues on the imaginary axis (a centre along
   coordinate axes, no other candidate applies), the identity on the centre coordinates and
   the Lyapunov matrix of the Hurwitz block
@@ -86,11 +91,13 @@ from ..certification.roa import (
     grid_points,
 )
 from ..design.control import (
+    domain_lyapunov_matrix,
     lyapunov_matrix,
     quadratic_lyapunov,
     round_lyapunov_matrix,
     volume_lyapunov_matrix,
 )
+from ..kernel.domain import Ball, Box, Ellipsoid
 from ..kernel.errors import ConfigError
 from ..kernel.symbolic import closed_loop
 
@@ -98,15 +105,15 @@ __all__ = ["QUADRATIC_CANDIDATES", "QuadraticCandidate", "certify_quadratics",
            "closed_loop_matrix", "quadratic_policy", "volume_bound"]
 
 
-def _lyapunov(A_cl, known: bool = True):
+def _lyapunov(A_cl, known: bool = True, domain=None):
     return lyapunov_matrix(A_cl)
 
 
-def _round(A_cl, known: bool = True):
+def _round(A_cl, known: bool = True, domain=None):
     return round_lyapunov_matrix(A_cl)
 
 
-def _volume(A_cl, known: bool = True):
+def _volume(A_cl, known: bool = True, domain=None):
     return volume_lyapunov_matrix(
         A_cl, VOLUME_DECAY_FRACTION if known else LEARNED_VOLUME_DECAY_FRACTION)
 
@@ -120,13 +127,35 @@ VOLUME_DECAY_FRACTION = 0.05
 #: smallest level holding the ball; 0.2 certifies there, volume 0.235 on the grid)
 LEARNED_VOLUME_DECAY_FRACTION = 0.2
 
-def _centre(A_cl, known: bool = True):
+def _domain_fit(A_cl, known: bool = True, domain=None):
+    """``"domain"``: the largest Lyapunov ellipsoid inside ``D`` itself."""
+    if domain is None:
+        return None
+    inside, half = None, None
+    if isinstance(domain, Box):
+        b = domain.bounding_box()
+        if not np.all((b[:, 0] < 0) & (b[:, 1] > 0)):
+            return None
+        half = np.minimum(-b[:, 0], b[:, 1])
+    elif isinstance(domain, Ellipsoid) and domain.centre is None:
+        inside = np.linalg.inv(domain.Q)
+    else:                               # a ball about 0, or the inscribed ball of D
+        r = domain.radius if isinstance(domain, Ball) and domain.centre is None \
+            else domain.inradius()
+        inside = r * r * np.eye(A_cl.shape[0])
+    return domain_lyapunov_matrix(
+        A_cl, VOLUME_DECAY_FRACTION if known else LEARNED_VOLUME_DECAY_FRACTION,
+        inside=inside, half_widths=half)
+
+
+def _centre(A_cl, known: bool = True, domain=None):
     return centre_lyapunov_matrix(A_cl)
 
 
 #: name -> ``(A_cl, known) -> P`` (``None``: no candidate); the names a configuration may list
 QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": _lyapunov, "round": _round,
-                                             "volume": _volume, "centre": _centre}
+                                             "volume": _volume, "domain": _domain_fit,
+                                             "centre": _centre}
 #: the candidates for a linearisation that is not Hurwitz (the others need one)
 _NOT_HURWITZ = ("centre",)
 
@@ -291,7 +320,7 @@ def _candidate_matrix(problem, name: str, A_cl: np.ndarray, hurwitz: bool,
         A = closed_loop_matrix(SimpleNamespace(system=problem.system,
                                                controller=problem.controller,
                                                dynamics=None))
-    P = QUADRATIC_CANDIDATES[name](A, problem.known) if fits else None
+    P = QUADRATIC_CANDIDATES[name](A, problem.known, problem.domain) if fits else None
     if P is None:
         whys[name] = "has no centre" if name in _NOT_HURWITZ else \
             "gave no solution" if fits else "not Hurwitz"

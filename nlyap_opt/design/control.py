@@ -24,6 +24,7 @@ from ..kernel.symbolic import learned_rhs
 __all__ = [
     "InnerStatus", "LQRResult", "ellipse_candidates", "verdict_of", "lqr", "linearisation",
     "lyapunov_matrix", "round_lyapunov_matrix", "saturated_controller", "volume_lyapunov_matrix",
+    "domain_lyapunov_matrix",
     "linear_controller",
     "quadratic_lyapunov",
 ]
@@ -239,6 +240,54 @@ def volume_lyapunov_matrix(A_cl, decay_fraction: float = 0.1, *, rounds: int = 4
         if done:
             break
     return P
+
+
+def domain_lyapunov_matrix(A_cl, decay_fraction: float = 0.1, *, inside=None,
+                           half_widths=None) -> np.ndarray | None:
+    r"""The Lyapunov matrix of ``A_cl`` whose ellipsoid inside the domain is largest.
+
+    With :math:`Q = P^{-1}` (the ellipsoid :math:`\{x^\top P x \le 1\}` has the shape
+    matrix ``Q``) the problem is convex: maximise :math:`\log\det Q` subject to
+    :math:`A_{cl} Q + Q A_{cl}^\top \preceq -2\alpha Q` (the decay rate ``α`` of
+    :func:`round_lyapunov_matrix`; equivalent to :math:`A_{cl}^\top P + P A_{cl} \preceq
+    -2\alpha P`) and the ellipsoid in the domain: :math:`Q \preceq` ``inside`` (a ball of
+    radius ``r``: :math:`r^2 I`; a centred ellipsoid :math:`x^\top E x \le 1`:
+    :math:`E^{-1}`) and :math:`Q_{kk} \le h_k^2` for the box :math:`|x_k| \le h_k`
+    (``half_widths``). Where :func:`volume_lyapunov_matrix` fits the ellipsoid to the unit
+    ball, this one fits it to the domain's own shape (a long, thin box gets a long, thin
+    ellipsoid).
+
+    Only a candidate: the certificate proves the decrease of ``xᵀPx`` on the nonlinear loop
+    at a verified level. Returns ``None`` when ``A_cl`` is not Hurwitz, no bound is given
+    or no SDP solver succeeds.
+    """
+    cp = deps.cvxpy()
+
+    A_cl = np.asarray(A_cl, dtype=float)
+    n = A_cl.shape[0]
+    margin = -float(np.max(np.linalg.eigvals(A_cl).real))
+    if not np.all(np.isfinite(A_cl)) or margin <= 0 or (inside is None and half_widths is None):
+        return None
+    Q = cp.Variable((n, n), symmetric=True)
+    alpha = decay_fraction * margin
+    cons = [A_cl @ Q + Q @ A_cl.T + 2 * alpha * Q << 0]
+    if inside is not None:
+        cons.append(Q << np.asarray(inside, dtype=float))
+    if half_widths is not None:
+        cons += [Q[k, k] <= float(h) ** 2 for k, h in enumerate(half_widths)]
+    installed = set(cp.installed_solvers())
+    for solver in [s for s in ("CLARABEL", "SCS") if s in installed]:
+        try:
+            cp.Problem(cp.Maximize(cp.log_det(Q)), cons).solve(solver=solver)
+        except Exception:  # a failed solve only loses a candidate
+            continue
+        if Q.value is None:
+            continue
+        Qv = 0.5 * (Q.value + Q.value.T)
+        if np.all(np.isfinite(Qv)) and np.linalg.eigvalsh(Qv)[0] > 0:
+            P = np.linalg.inv(Qv)
+            return 0.5 * (P + P.T)
+    return None
 
 
 def ellipse_candidates(A_cl):

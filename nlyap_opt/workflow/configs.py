@@ -300,7 +300,7 @@ DEFAULT_CEGIS: dict = {
 #: run still certifies their sets, and says which certificate won.
 _GENERIC: dict = {"controller_scale": None, "train": DEFAULT_TRAIN, "cegis": DEFAULT_CEGIS,
                   "eval_points": 40000, "dynamics": {"preset": "default"},
-                  "quadratic": ["lyapunov", "round"], "sos": {"degree": "auto"}}
+                  "quadratic": ["lyapunov", "round", "domain"], "sos": {"degree": "auto"}}
 
 
 # ============================================================================ schema
@@ -433,7 +433,8 @@ _TOP_DOCS = {
     "dynamics": "learned-dynamics stage (nlyap_opt.learned.dynamics_config.DynamicsConfig)",
     "quadratic": "quadratic V = xᵀPx certified before the neural stage, under the initial "
                  "controller ('lyapunov': A_clᵀP + PA_cl = -I, 'round': min cond P, "
-                 "'volume', 'centre': a linearisation with a centre); the larger certified "
+                 "'volume': largest ellipsoid in the unit ball, 'domain': largest ellipsoid "
+                 "in D, 'centre': a linearisation with a centre); the larger certified "
                  "volume wins ([]: off; nlyap_opt.candidates.quadratic)",
     "sos": "an SOS V certified before the neural stage where f is known and the closed loop "
            "polynomial (nlyap_opt.candidates.sos.SOSConfig: degree, 0 off, 'auto' chosen from "

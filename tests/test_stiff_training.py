@@ -163,3 +163,65 @@ def test_the_fit_is_used_only_on_a_closed_loop_that_is_not_stiff(name, Q, scale,
     assert stiffness(np.diag([0.0, -1.0, -4.0])) == 0                     # the fit
     # the recipe turns the fit off and asks for a decrease rate
     assert LYAPUNOV_RISK["w_fit"] == 0 and LYAPUNOV_RISK["decay"] > 0
+
+
+@pytest.mark.parametrize("A", [
+    np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0],
+              [-576.0, -2400.0, -4180.0, -3980.0]]),   # a linear chain, modes 0.31 … 3979
+    np.array([[-1.0, 500.0], [0.0, -3000.0]]),          # non-normal, modes −1 and −3000
+])
+def test_a_very_stiff_loop_is_integrated_implicitly_at_the_configured_step(A):
+    """Past IMPLICIT_RATIO RK4 steps per step, ``integration`` keeps the step and switches to
+    ROS2: every trajectory converges, the cost is x₀ᵀPx₀ up to the first step's quadrature, the
+    state at t = 1 matches expm(A) within 1 % of its norm; RK4 at that step blows up."""
+    from scipy.linalg import expm
+
+    from nlyap_opt.kernel.simulate import IMPLICIT_RATIO, integration, ros2_step
+    how = integration(0.04, A)
+    assert how.method == "ROS2" and how.dt == 0.04
+    assert np.max(np.abs(np.linalg.eigvals(A))) * 0.04 > IMPLICIT_RATIO * STIFF_STEP
+    rng = np.random.default_rng(1)
+    x0 = rng.uniform(-1, 1, (24, len(A)))
+    P = solve_continuous_lyapunov(A.T, -np.eye(len(A)))
+    exact = np.einsum("ij,jk,ik->i", x0, P, x0)
+    slow = -np.max(np.linalg.eigvals(A).real)
+
+    def rhs(x):
+        return x @ A.T
+
+    conv, cost = simulate(rhs, x0, t_final=25.0 / slow, dt=how.dt, tol=1e-5,
+                          jacobian=how.jacobian)
+    assert conv.all()
+    # the trapezoidal rule over the first step counts the fast transient as h‖x₀‖²/2
+    # (its true cost is ~‖x₀‖²/(2ρ)): that much, plus 2 % of the largest cost
+    slack = 2e-2 * exact.max() + 0.5 * 0.04 * np.einsum("ij,ij->i", x0, x0)
+    assert np.all(np.abs(cost - exact) <= slack)
+    W_inv = np.linalg.inv(np.eye(len(A)) - (1 + 1 / np.sqrt(2)) * 0.04 * A)
+    z = x0.copy()
+    for _ in range(25):
+        z = ros2_step(rhs, z, 0.04, W_inv)
+    ref = x0 @ expm(A).T
+    assert np.max(np.linalg.norm(z - ref, axis=1)) < 1e-2 * np.max(np.linalg.norm(ref, axis=1))
+    conv_f, _ = simulate(rhs, x0, t_final=25.0 / slow, dt=0.04, tol=1e-5)
+    assert not conv_f.any()
+
+
+def test_implicit_labels_agree_with_rk4_on_a_stiff_nonlinear_loop():
+    """Khalil's x1' = −x1 + x1²x2, x2' = −x2 (ROA x1x2 < 2) with a fast state
+    x3' = −3000 x3 + x1²: which states converge, under ROS2 at 0.04 s and under RK4 at its
+    stable step, agrees on all but a sliver next to the ROA's boundary."""
+    from nlyap_opt.kernel.simulate import integration, jacobian_at_origin
+
+    def rhs(x):
+        return np.stack([-x[:, 0] + x[:, 0] ** 2 * x[:, 1], -x[:, 1],
+                         -3000.0 * x[:, 2] + x[:, 0] ** 2], 1)
+
+    J = jacobian_at_origin(rhs, 3)
+    how = integration(0.04, J)
+    assert how.method == "ROS2"
+    x0 = np.random.default_rng(2).uniform([-4, -1, -1], [4, 1, 1], (3000, 3))
+    a = simulate(rhs, x0, t_final=15.0, dt=how.dt, jacobian=how.jacobian)[0]
+    b = simulate(rhs, x0, t_final=15.0, dt=1.0 / 3000.0)[0]
+    truth = x0[:, 0] * x0[:, 1] < 2
+    assert np.mean(a == b) > 0.99 and np.mean(a == truth) > 0.99
+    assert a.sum() > 0.5 * len(x0)

@@ -44,7 +44,7 @@ from ..kernel.determinism import deterministic_torch
 from ..kernel.domain import Ball, as_domain, parse_set
 from ..kernel.errors import InputRangeError
 from ..kernel.network import Network
-from ..kernel.simulate import STIFF_STEP, linear_modes, simulate, stable_step
+from ..kernel.simulate import STIFF_STEP, Integration, integration, linear_modes, simulate
 from .learning import LearnerState, LyapunovLearner, TrainConfig, label_boundary_states, sample_ball
 
 __all__ = ["CegisConfig", "CegisResult", "cegis"]
@@ -223,9 +223,9 @@ def _stay_share(learner, system, cfg: CegisConfig, D, X: np.ndarray, tabulate: b
     """Share of ``X`` that the model's closed loop with the learner's current gain takes to
     the origin within ``cegis.sim_time`` without leaving ``D``."""
     rhs = _simulation_rhs(learner, system, cfg, tabulate, fast=True)
-    dt = stable_step(cfg.sim_dt, learner.closed_loop_jacobian().detach().numpy())
-    return float(np.mean(simulate(rhs, X, t_final=cfg.sim_time, dt=dt, tol=cfg.sim_tol,
-                                  stay=D.contains)[0]))
+    how = integration(cfg.sim_dt, learner.closed_loop_jacobian().detach().numpy())
+    return float(np.mean(simulate(rhs, X, t_final=cfg.sim_time, dt=how.dt, tol=cfg.sim_tol,
+                                  stay=D.contains, jacobian=how.jacobian)[0]))
 
 
 def _scan_gain(learner, system, dynamics, cfg: CegisConfig, D, X: np.ndarray, log) -> None:
@@ -373,15 +373,16 @@ def _samples(cfg: CegisConfig, D, XI, rng, n: int) -> tuple[np.ndarray, np.ndarr
     return X, S
 
 
-def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log, dt: float):
-    """Simulate the training states under the model (RK4 step ``dt``): ``(X, weights,
+def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log, how: Integration):
+    """Simulate the training states under the model (``how``): ``(X, weights,
     targets, rates)``, the states (more around the model's ROA boundary when fitting), the
     pull of ``V ≤ 1`` on each and the trajectory-cost targets (``None`` without ``w_fit``)."""
     stay = D.contains if cfg.sim_in_domain else None
     # fit_domain: the largest gauge of D along each simulated trajectory (see below)
     track = D.gauge if cfg.train.w_fit and cfg.train.fit_domain else None
-    conv, cost, *peak = simulate(rhs_np, X, t_final=cfg.sim_time, dt=dt,
-                                 tol=cfg.sim_tol, stay=stay, track=track)
+    conv, cost, *peak = simulate(rhs_np, X, t_final=cfg.sim_time, dt=how.dt,
+                                 tol=cfg.sim_tol, stay=stay, track=track,
+                                 jacobian=how.jacobian)
     log(f"  cegis: {int(conv.sum())}/{len(X)} training states converge under the model"
         + (" without leaving the domain" if stay is not None else ""))
     if cfg.train.w_fit and conv.sum() < max(MIN_CONVERGED * len(X), 1):
@@ -407,8 +408,9 @@ def _fit_targets(cfg: CegisConfig, D, X, rhs_np, rng, scale: float, log, dt: flo
                 extra = np.vstack([extra, jit + 0.03 * scale * rng.standard_normal(jit.shape)])
             if len(extra):
                 extra = extra[D.contains(extra)]
-                c2, w2, *p2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=dt,
-                                       tol=cfg.sim_tol, stay=stay, track=track)
+                c2, w2, *p2 = simulate(rhs_np, extra, t_final=cfg.sim_time, dt=how.dt,
+                                       tol=cfg.sim_tol, stay=stay, track=track,
+                                       jacobian=how.jacobian)
                 X, conv, cost = np.vstack([X, extra]), np.r_[conv, c2], np.r_[cost, w2]
                 peak = [np.r_[peak[0], p2[0]]] if peak else peak
         targets, rates = cost_targets(conv, cost, w_c, tc.fit_cap, tc.fit_transform)
@@ -569,20 +571,27 @@ def _train_round(learner, cfg: CegisConfig, it: int, eta: float, margin: float, 
 
 def _setup(system, controller, dynamics, cfg: CegisConfig, D, X: np.ndarray, V0, log):
     """The learner before training, the model's closed loop for the training simulations,
-    their RK4 step and whether V is trained with the Lyapunov-risk terms: the gain scan
-    (``cegis.gain_scan``), the step for the loop's fastest mode (:func:`stable_step`) and,
+    their integration and whether V is trained with the Lyapunov-risk terms: the gain scan
+    (``cegis.gain_scan``), the integration for the loop's fastest mode
+    (:func:`nlyap_opt.kernel.simulate.integration`: RK4 at a step it is stable for, ROS2 at
+    ``cegis.sim_dt`` for a very stiff loop) and,
     on a stiff loop, the recipe without the fit (``cegis.fit_fallback``)."""
     learner = LyapunovLearner(system, controller, dynamics, cfg.train, V=V0)
     if cfg.gain_scan and controller is not None and learner.config.train_controller:
         _scan_gain(learner, system, dynamics, cfg, D, X, log)
     A = learner.closed_loop_jacobian().detach().numpy()
-    dt = stable_step(cfg.sim_dt, A)
+    how = integration(cfg.sim_dt, A)
     rhs_np = _simulation_rhs(learner, system, cfg, tabulate=dynamics is not None,
-                             fast=dt < cfg.sim_dt)
-    if dt < cfg.sim_dt:
-        log(f"  cegis: the training simulations step {dt:.3g} s, not cegis.sim_dt = "
+                             fast=how.dt < cfg.sim_dt or how.jacobian is not None)
+    if how.jacobian is not None:
+        log(f"  cegis: the training simulations use the linearly implicit ROS2 at "
+            f"cegis.sim_dt = {cfg.sim_dt:g} s: the model's closed loop has a mode of speed "
+            f"{linear_modes(A)[0]:.4g} at the origin, and RK4 would need "
+            f"{linear_modes(A)[0] * cfg.sim_dt / STIFF_STEP:.0f} steps per step")
+    elif how.dt < cfg.sim_dt:
+        log(f"  cegis: the training simulations step {how.dt:.3g} s, not cegis.sim_dt = "
             f"{cfg.sim_dt:g} s: the model's closed loop has a mode of speed "
-            f"{STIFF_STEP / dt:.4g} at the origin")
+            f"{STIFF_STEP / how.dt:.4g} at the origin")
     risk = cfg.fit_fallback and cfg.train.w_fit > 0 and stiffness(A) > STIFF_RATIO
     if risk:
         slow, fast = linear_modes(A)[1], linear_modes(A)[0]
@@ -595,7 +604,7 @@ def _setup(system, controller, dynamics, cfg: CegisConfig, D, X: np.ndarray, V0,
                                   replace(cfg.train, **LYAPUNOV_RISK), V=V0)
         if gain is not None:
             learner.set_gain(gain)
-    return learner, rhs_np, dt, risk
+    return learner, rhs_np, how, risk
 
 
 def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0, beat):
@@ -608,9 +617,9 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     scale = D.max_norm()    # the ball's radius; jitter of extra states is relative to it
     X, S = _samples(cfg, D, XI, rng, n)
     rim = np.zeros((0, n))   # boundary states fed back when ∂D limits the level
-    learner, rhs_np, dt, risk = _setup(system, controller, dynamics, cfg, D, X, V0, log)
+    learner, rhs_np, how, risk = _setup(system, controller, dynamics, cfg, D, X, V0, log)
     X, weights, targets, rates = _fit_targets(
-        replace(cfg, train=learner.config) if risk else cfg, D, X, rhs_np, rng, scale, log, dt)
+        replace(cfg, train=learner.config) if risk else cfg, D, X, rhs_np, rng, scale, log, how)
     areas = _AreaGrid(D, cfg.area_points)
     cex = np.zeros((0, n))
     best: CegisResult | None = None

@@ -70,7 +70,7 @@ from ..kernel.exact import (
 from ..kernel.network import Network
 from ..kernel.rounding import EPS, FOLD
 from ..kernel.sampling import sample_ball, sample_sphere
-from ..kernel.simulate import jacobian_at_origin, simulate, stable_step
+from ..kernel.simulate import integration, jacobian_at_origin, simulate
 from ..kernel.symbolic import closed_loop
 from ..kernel.walker import compile_function, evaluate
 from ..learned.interval_sup import interval_arithmetic
@@ -1415,8 +1415,9 @@ def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200,
                   undecided: bool = False):
     """Grid mask of initial states whose simulated closed loop converges to the origin.
 
-    Fixed-step RK4 on all grid points at once (``dt``, shortened for a stiff loop:
-    :func:`nlyap_opt.kernel.simulate.stable_step`); a state counts as converged once
+    Fixed-step RK4 on all grid points at once (``dt``, shortened for a stiff loop; for a
+    very stiff one the linearly implicit ROS2 at ``dt``:
+    :func:`nlyap_opt.kernel.simulate.integration`); a state counts as converged once
     ``‖x‖ < tol`` or, given ``ellipse = (P, c)`` (a certified quadratic ROA of this closed
     loop, :func:`certify_inner_ellipse`), once ``xᵀPx ≤ c`` (it is then dropped from the
     integration); as diverged once it leaves ``1e6`` or becomes non-finite. With
@@ -1437,9 +1438,9 @@ def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200,
     pts, shape = grid_points(box, n)
     # a stiff closed loop (a fast mode at the origin) gets a step RK4 is stable for: an
     # unstable fast mode would count converging states outside the true ROA
-    dt = stable_step(dt, jacobian_at_origin(rhs, pts.shape[1]))
-    done, _, open_ = simulate(rhs, pts, t_final, dt, tol, target=target,
-                              return_undecided=True)
+    how = integration(dt, jacobian_at_origin(rhs, pts.shape[1]))
+    done, _, open_ = simulate(rhs, pts, t_final, how.dt, tol, target=target,
+                              return_undecided=True, jacobian=how.jacobian)
     if undecided:
         return done.reshape(shape), open_.reshape(shape)
     return done.reshape(shape)

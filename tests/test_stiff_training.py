@@ -208,20 +208,20 @@ def test_a_very_stiff_loop_is_integrated_implicitly_at_the_configured_step(A):
 
 def test_implicit_labels_agree_with_rk4_on_a_stiff_nonlinear_loop():
     """Khalil's x1' = −x1 + x1²x2, x2' = −x2 (ROA x1x2 < 2) with a fast state
-    x3' = −3000 x3 + x1²: which states converge, under ROS2 at 0.04 s and under RK4 at its
+    x3' = −600 x3 + x1²: which states converge, under ROS2 at 0.04 s and under RK4 at its
     stable step, agrees on all but a sliver next to the ROA's boundary."""
     from nlyap_opt.kernel.simulate import integration, jacobian_at_origin
 
     def rhs(x):
         return np.stack([-x[:, 0] + x[:, 0] ** 2 * x[:, 1], -x[:, 1],
-                         -3000.0 * x[:, 2] + x[:, 0] ** 2], 1)
+                         -600.0 * x[:, 2] + x[:, 0] ** 2], 1)
 
     J = jacobian_at_origin(rhs, 3)
     how = integration(0.04, J)
     assert how.method == "ROS2"
-    x0 = np.random.default_rng(2).uniform([-4, -1, -1], [4, 1, 1], (3000, 3))
-    a = simulate(rhs, x0, t_final=15.0, dt=how.dt, jacobian=how.jacobian)[0]
-    b = simulate(rhs, x0, t_final=15.0, dt=1.0 / 3000.0)[0]
+    x0 = np.random.default_rng(2).uniform([-4, -1, -1], [4, 1, 1], (1500, 3))
+    a = simulate(rhs, x0, t_final=12.0, dt=how.dt, jacobian=how.jacobian)[0]
+    b = simulate(rhs, x0, t_final=12.0, dt=1.0 / 600.0)[0]
     truth = x0[:, 0] * x0[:, 1] < 2
     assert np.mean(a == b) > 0.99 and np.mean(a == truth) > 0.99
     assert a.sum() > 0.5 * len(x0)

@@ -69,3 +69,57 @@ def test_ball_ellipsoid_and_refusals():
                                          Box([[-1, 1], [-1, 1]])) is None   # not Hurwitz
     assert QUADRATIC_CANDIDATES["domain"](A, True, None) is None
     assert domain_lyapunov_matrix(A) is None                                   # no bound
+
+
+# ---------------------------------------------------------------- thin sublevel sets
+def _thin_problem(A, box, rhs=None):
+    import casadi as ca
+
+    import systems
+    from nlyap_opt.certification.certificate import RoaProblem
+    from nlyap_opt.design.control import quadratic_lyapunov
+
+    n = len(A)
+    z = ca.SX.sym("z", n)
+    f = ca.DM(A) @ z if rhs is None else rhs(z)
+    sys_ = systems.System("thin", z, None, f, state_box=box)
+    return RoaProblem(sys_, quadratic_lyapunov(np.eye(n)), None, None, inner=0.1,
+                      domain=Box(box))
+
+
+def test_a_thin_quadratic_gets_an_inner_radius_its_sublevel_set_holds():
+    """A 3-D chain with a badly conditioned Lyapunov matrix on the box [-1, 1]³: the
+    radius is half the shortest semi-axis at the box's exact plane level, below the
+    policy's smallest radius, and its ball lies in that sublevel set; the candidate is then
+    certified at that radius with the decrease decided by Taylor's formula."""
+    from nlyap_opt.candidates.quadratic import certify_quadratics, quadratic_policy, thin_radius
+    from nlyap_opt.design.control import lyapunov_matrix
+
+    A = np.diag([1.0, 1.0], 1)
+    A[-1, :] = [-90000.0, -93030.0, -3031.0]       # poles -1, -30, -3000 (cond P 1.8·10⁵)
+    P = lyapunov_matrix(A)
+    problem = _thin_problem(A, [[-1.0, 1.0]] * 3)
+    policy = quadratic_policy(True)
+    eps = thin_radius(problem, P, policy)
+    smallest = policy.inner_fraction * problem.inner * min(policy.factors)
+    assert eps is not None and 0 < 2 * eps < smallest    # the semi-axis is 2ε
+    c = float(np.min(1.0 / np.diag(np.linalg.inv(P))))
+    assert eps == pytest.approx(0.5 * np.sqrt(c / np.max(np.linalg.eigvalsh(P))))
+    ball = np.random.default_rng(0).standard_normal((5000, 3))
+    ball *= eps / np.linalg.norm(ball, axis=1)[:, None]
+    assert np.all(np.einsum("ij,jk,ik->i", ball, P, ball) < c)
+    # a round matrix needs no such radius; learned dynamics and a non-smooth f get none
+    assert thin_radius(problem, np.eye(3), policy) is None
+    from types import SimpleNamespace
+    learned = SimpleNamespace(**{k: getattr(problem, k) for k in ("system", "domain", "inner",
+                                                                  "controller")}, known=False)
+    assert thin_radius(learned, P, policy) is None
+    import casadi as ca
+    kinked = _thin_problem(A, [[-1.0, 1.0]] * 3,
+                           rhs=lambda z: ca.DM(A) @ z + ca.vertcat(0, 0, 0.01 * ca.fabs(z[0]) * z[0]))
+    assert thin_radius(kinked, P, policy) is None
+
+    cand = certify_quadratics(problem, ["lyapunov"], box=np.array([[-1.0, 1.0]] * 3), n=9,
+                              log=lambda m: None)[0]
+    assert cand.certified
+    assert cand.certificate.inner == pytest.approx(eps)

@@ -115,8 +115,8 @@ def test_a_thin_quadratic_gets_an_inner_radius_its_sublevel_set_holds():
                                                                   "controller")}, known=False)
     assert thin_radius(learned, P, policy) is None
     import casadi as ca
-    kinked = _thin_problem(A, [[-1.0, 1.0]] * 3,
-                           rhs=lambda z: ca.DM(A) @ z + ca.vertcat(0, 0, 0.01 * ca.fabs(z[0]) * z[0]))
+    kinked = _thin_problem(A, [[-1.0, 1.0]] * 3, rhs=lambda z: ca.DM(A) @ z
+                           + ca.vertcat(0, 0, 0.01 * ca.fabs(z[0]) * z[0]))
     assert thin_radius(kinked, P, policy) is None
 
     cand = certify_quadratics(problem, ["lyapunov"], box=np.array([[-1.0, 1.0]] * 3), n=9,

@@ -89,9 +89,9 @@ from ..certification.roa import (
     INNER_LEVEL_MARGIN,
     TaylorDecrease,
     centre_lyapunov_matrix,
-    quadratic_form,
     grid_area,
     grid_points,
+    quadratic_form,
 )
 from ..design.control import (
     domain_lyapunov_matrix,
@@ -155,7 +155,8 @@ def _centre(A_cl, known: bool = True, domain=None):
     return centre_lyapunov_matrix(A_cl)
 
 
-#: name -> ``(A_cl, known) -> P`` (``None``: no candidate); the names a configuration may list
+#: name -> ``(A_cl, known, domain) -> P`` (``None``: no candidate); the names a configuration
+#: may list
 QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": _lyapunov, "round": _round,
                                              "volume": _volume, "domain": _domain_fit,
                                              "centre": _centre}
@@ -342,9 +343,10 @@ def thin_radius(problem, P: np.ndarray, policy: LevelPolicy) -> float | None:
     ``ε`` is :data:`THIN_RADIUS_FRACTION` of the shortest semi-axis of ``{xᵀPx ≤ c}``, ``c`` a
     lower bound of the least ``V`` on ``∂D`` (a box: the least ``V`` on each face's plane,
     :math:`h_k^2/(P^{-1})_{kk}`; otherwise :math:`\lambda_{\min}(P)` times the squared
-    inradius), so every level the search can certify holds the ball. Only with the true f and where :class:`~nlyap_opt.certification.roa.TaylorDecrease`
-    applies to the closed loop: it proves the decrease on the whole sublevel set, so the
-    inner ball costs nothing, where the verifier would have to bisect next to a tiny ball.
+    inradius), so the sublevel set at that level holds the ball. Only with the true f and
+    where :class:`~nlyap_opt.certification.roa.TaylorDecrease` applies to the closed loop:
+    it proves the decrease on the whole sublevel set, so the inner ball costs nothing, where
+    the verifier would have to bisect next to a tiny ball.
     The radius only chooses what is checked; conditions (a)-(c) are proved at it as at any
     other (a badly conditioned linear chain, Fossil's HighOrd8: shortest semi-axis 0.0024
     at the box's level against the smallest radius tried, 0.0031).

@@ -195,8 +195,9 @@ def _refusal(system, parts) -> str:
 
 
 def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
-    """``(N, "")`` with ``N`` of :func:`nlyap_opt.certification.roa.taylor_hessian_bound` for subsystem ``i`` on its box
-    ``Y_i`` (its states, then its neighbours' in order), or ``(None, why)``.
+    """``(N, "")`` with ``N`` of :func:`~nlyap_opt.certification.roa.taylor_hessian_bound`
+    for subsystem ``i`` on its box ``Y_i`` (its states, then its neighbours' in order), or
+    ``(None, why)``.
 
     Refused when the graph of ``f_i``, ``∇V_i·f_i`` or its Hessian holds an operation that
     is non-smooth or partial (the walker's checked operations, constant arguments

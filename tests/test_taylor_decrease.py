@@ -1,6 +1,7 @@
-"""Condition (a) of a quadratic ``V = xᵀPx`` decided on the sublevel set's box by Taylor's
-formula (:class:`nlyap_opt.certification.roa.TaylorDecrease`): proofs only where the
-decrease holds, refusals where the test does not apply, and the level search using it."""
+"""Condition (a) of a quadratic ``V = xᵀPx`` decided on the sublevel set's box by the
+mean-value form of the closed loop (:class:`nlyap_opt.certification.roa.TaylorDecrease`):
+proofs only where the decrease holds (also where CasADi's float constant folding would hide
+a violation), refusals where the test does not apply, and the level search using it."""
 
 from fractions import Fraction
 
@@ -20,10 +21,12 @@ def _lie(V, x, g):
 
 
 def _setup(P, g_of_x, n):
+    """``(x, V, lie, P exact, g)``."""
     x = ca.SX.sym("x", n)
     V_net = quadratic_lyapunov(P)
     V = V_net.casadi(x)
-    return x, V, _lie(V, x, g_of_x(x)), quadratic_form(V_net)
+    g = g_of_x(x)
+    return x, V, _lie(V, x, g), quadratic_form(V_net), g
 
 
 def _sampled_max(x, V, lie, level, box, rng, m=200000):
@@ -51,13 +54,13 @@ def test_a_linear_loop_is_proved_at_every_level_and_sampling_agrees(n):
     decrease at any level (also past ``D``'s box), and sampling finds no violation."""
     A = _stiff_chain(n)
     P = solve_continuous_lyapunov(A.T, -np.eye(n))
-    x, V, lie, Pq = _setup(P, lambda z: ca.DM(A) @ z, n)
-    t = TaylorDecrease(x, lie, Pq)
+    x, V, lie, Pq, g = _setup(P, lambda z: ca.DM(A) @ z, n)
+    t = TaylorDecrease(x, g, Pq)
     assert t.why == ""
     box = np.array([[-1.0, 1.0]] * n)
     rng = np.random.default_rng(n)
     for level in (1e-4, 0.3, 50.0):
-        res = t.check(level, box)
+        res = t.check(level, box, 1e-3)
         assert res is not None and res.status == "verified" and res.backend == "taylor"
         Y = t.box(level, box)
         assert _sampled_max(x, V, lie, level, Y, rng, 50000) < 0
@@ -68,37 +71,37 @@ def test_an_unstable_loop_is_never_proved():
     the test proves nothing at any level (sampling finds the increase)."""
     A = np.array([[0.2, 1.0], [0.0, -1.0]])
     P = np.array([[1.0, 0.0], [0.0, 1.0]])
-    x, V, lie, Pq = _setup(P, lambda z: ca.DM(A) @ z, 2)
-    t = TaylorDecrease(x, lie, Pq)
+    x, V, lie, Pq, g = _setup(P, lambda z: ca.DM(A) @ z, 2)
+    t = TaylorDecrease(x, g, Pq)
     box = np.array([[-1.0, 1.0]] * 2)
     for level in (1e-3, 0.5):
-        assert t.check(level, box) is None
+        assert t.check(level, box, 1e-3) is None
         assert _sampled_max(x, V, lie, level, t.box(level, box), np.random.default_rng(0)) > 0
 
 
 def test_a_nonlinear_loop_is_proved_inside_and_not_at_the_roa_boundary():
-    """``x' = -x + x³`` (ROA |x| < 1), ``V = x²``: ``dV/dt = -2x²(1 - x²)``. Taylor's
-    remainder with the 16 slices proves the decrease for ``|x| ≤ 0.5`` (``M ≤ -2 + 2x²``);
-    at ``|x| ≤ 1`` the decrease vanishes at ±1 and nothing may be proved, past it the
+    """``x' = -x + x³`` (ROA |x| < 1), ``V = x²``: ``dV/dt = -2x²(1 - x²)``. The mean
+    Jacobian on 16 slices is at most ``-1 + 1.096 x²``, so the decrease is proved for
+    ``x² ≤ 0.8``; at ``|x| ≤ 1`` it vanishes at ±1 and nothing may be proved, past it the
     decrease fails."""
-    x, V, lie, Pq = _setup(np.array([[1.0]]), lambda z: -z + z ** 3, 1)
-    t = TaylorDecrease(x, lie, Pq)
+    x, V, lie, Pq, g = _setup(np.array([[1.0]]), lambda z: -z + z ** 3, 1)
+    t = TaylorDecrease(x, g, Pq)
     box = np.array([[-3.0, 3.0]])
-    assert t.check(0.25, box).status == "verified"
-    assert t.check(0.8, box).status == "verified"      # M ≤ -2 + 2·0.8 + slicing slack
-    assert t.check(1.0, box) is None
-    assert t.check(1.21, box) is None
+    assert t.check(0.25, box, 1e-3).status == "verified"
+    assert t.check(0.8, box, 1e-3).status == "verified"      # -1 + 1.096·0.8 < 0
+    assert t.check(1.0, box, 1e-3) is None
+    assert t.check(1.21, box, 1e-3) is None
     # the box of D cuts the ellipse's: |x| ≤ 0.6 within D = [-0.6, 3]
     assert np.allclose(t.box(4.0, np.array([[-0.6, 3.0]])), [[-0.6, 2.0]])
-    assert t.check(4.0, np.array([[-0.6, 0.6]])).status == "verified"
+    assert t.check(4.0, np.array([[-0.6, 0.6]]), 1e-3).status == "verified"
 
 
 def test_the_box_holds_the_ellipsoid():
     rng = np.random.default_rng(3)
     U = np.linalg.qr(rng.standard_normal((3, 3)))[0]
     P = U @ np.diag([1.0, 10.0, 300.0]) @ U.T
-    x, V, lie, Pq = _setup(P, lambda z: -z, 3)
-    t = TaylorDecrease(x, lie, Pq)
+    x, V, lie, Pq, g = _setup(P, lambda z: -z, 3)
+    t = TaylorDecrease(x, g, Pq)
     Y = t.box(0.7, np.array([[-10.0, 10.0]] * 3))
     # extreme points of the ellipsoid xᵀPx = c along each axis: ±√(c (P⁻¹)_kk), held
     # exactly (rationals) and with at most a few ulps to spare
@@ -109,26 +112,70 @@ def test_the_box_holds_the_ellipsoid():
     assert np.array_equal(Y[:, 0], -Y[:, 1])
 
 
-@pytest.mark.parametrize("case, why", [
-    ("offset", "not structurally 0"),
-    ("abs", "non-smooth"),
-    ("slope", "not structurally 0"),
-    ("sqrt", "non-smooth or partial"),
-    ("division", "non-smooth or partial"),
-])
-def test_the_test_refuses_what_taylors_formula_does_not_cover(case, why):
+@pytest.mark.parametrize("case", ["abs", "sqrt", "division"])
+def test_the_test_refuses_a_closed_loop_that_is_not_smooth(case):
     x = ca.SX.sym("x", 2)
     V_net = quadratic_lyapunov(np.eye(2))
-    V = V_net.casadi(x)
-    base = _lie(V, x, -x)
-    lie = {"offset": base + 1e-3,                      # F(0) ≠ 0
-           "abs": base + 0.1 * ca.fabs(x[0]) * x[0] ** 2,   # not C²
-           "slope": base + 1e-3 * x[1],                # ∇F(0) ≠ 0
-           "sqrt": base + 0.01 * ca.norm_2(x),         # a robust-margin-like term
-           "division": base * x[0] ** 2 / (x[0] ** 2 + x[1] ** 2)}[case]   # 0/0 at 0
-    t = TaylorDecrease(x, lie, quadratic_form(V_net))
-    assert why in t.why
-    assert t.check(0.5, np.array([[-1.0, 1.0]] * 2)) is None
+    g = {"abs": -x + ca.vertcat(0.1 * ca.fabs(x[0]) * x[0], 0),       # not C²... nor C¹-safe
+         "sqrt": -x + 0.01 * ca.norm_2(x),
+         "division": -x * (x[0] ** 2 / (x[0] ** 2 + x[1] ** 2 + 0.5))}[case]
+    t = TaylorDecrease(x, g, quadratic_form(V_net))
+    assert "non-smooth or partial" in t.why
+    assert t.check(0.5, np.array([[-1.0, 1.0]] * 2), 0.1) is None
+
+
+def test_an_offset_equilibrium_is_proved_only_outside_the_ball_it_allows():
+    """``g = −x + δe₁`` (``g(0) ≠ 0``), ``V = ‖x‖²``: ``V̇ = −2‖x‖² + 2δx₁ > 0`` at
+    ``x = (t, 0)``, ``0 < t < δ``. Proved outside ``ε > δ`` (``−N = 2I``, ``λ = 2δ/ε``);
+    never at ``ε ≤ δ``, nor without an inner ball."""
+    d = 1e-3
+    x, V, lie, Pq, g = _setup(np.eye(2), lambda z: -z + ca.vertcat(d, 0), 2)
+    t = TaylorDecrease(x, g, Pq)
+    box = np.array([[-1.0, 1.0]] * 2)
+    assert t.check(0.5, box, 0.01).status == "verified"
+    assert t.check(0.5, box, 0.0) is None
+    assert t.check(0.5, box, 0.5 * d) is None
+    assert t.check(0.5, box, d) is None
+
+
+def test_float_folding_that_hides_an_offset_is_not_trusted():
+    """``g₁ = −x₁ + ((x₁² + 10¹⁶) + 1) − 10¹⁶``: substituting 0 folds the extra term to 0 in
+    floats, its real value is 1, so ``V̇(0.05, 0) = +0.095`` for ``V = ‖x‖²``; the interval
+    enclosure of ``g(0)`` sees it, and ε = 0.01 is not proved."""
+    x = ca.SX.sym("x", 2)
+    g = ca.vertcat(-x[0] + ((x[0] ** 2 + 1e16) + 1) - 1e16, -x[1])
+    V_net = quadratic_lyapunov(np.eye(2))
+    t = TaylorDecrease(x, g, quadratic_form(V_net))
+    assert t.check(0.01, np.array([[-1.0, 1.0]] * 2), 0.01) is None
+
+
+def test_a_decrease_that_fails_by_a_rounding_of_the_product_is_not_proved():
+    """A linear loop whose exact ``AᵀP + PA`` has the (1, 1) entry ``+ε`` (``V̇ > 0`` along
+    the x₁ axis) while float products round it negative: ``P`` and ``A`` enter the test as
+    exact rationals, so it is refused."""
+    from fractions import Fraction as Fr
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        Pf = np.diag(rng.uniform(0.5, 2, 2))
+        Pf[0, 1] = Pf[1, 0] = rng.uniform(-0.4, 0.4)
+        net = quadratic_lyapunov(Pf)
+        Pq = quadratic_form(net)
+        a21, a22 = rng.uniform(-2, 2), -1.0
+        a0 = float(-Pq[0][1] * Fr(a21) / Pq[0][0])
+        for k in range(-2, 3):
+            a11 = a0 + k * np.spacing(a0)
+            a12 = float(-(Pq[0][1] * Fr(a22) + Pq[1][0] * Fr(a11) + Pq[1][1] * Fr(a21))
+                        / Pq[0][0])
+            A = [[Fr(a11), Fr(a12)], [Fr(a21), Fr(a22)]]
+            h11 = 2 * sum(Pq[0][k2] * A[k2][0] for k2 in range(2))   # (PA + AᵀP)₁₁
+            if h11 > 0:
+                x = ca.SX.sym("x", 2)
+                g = ca.DM(np.array([[a11, a12], [a21, a22]])) @ x
+                t = TaylorDecrease(x, g, Pq)
+                assert t.why == ""
+                assert t.check(1.0, np.array([[-2.0, 2.0]] * 2), 0.01) is None
+                return
+    pytest.fail("no case with a positive exact entry was found")
 
 
 def test_the_level_search_uses_it_and_agrees_with_the_verifier():
@@ -138,16 +185,16 @@ def test_the_level_search_uses_it_and_agrees_with_the_verifier():
     A = _stiff_chain(4)
     P = solve_continuous_lyapunov(A.T, -np.eye(4))
     P = P / np.max(np.linalg.eigvalsh(P))
-    x, V, lie, Pq = _setup(P, lambda z: ca.DM(A) @ z, 4)
+    x, V, lie, Pq, g = _setup(P, lambda z: ca.DM(A) @ z, 4)
     D = Box([[-1.0, 1.0]] * 4)
     kw = dict(level=10.0, inner=0.01, margin=0.0, max_tries=4, log=lambda m: None, domain=D)
-    res = certify_level(x, V, lie, quadratic=Pq, **kw)
+    res = certify_level(x, V, lie, quadratic=Pq, rhs=g, **kw)
     assert res.status == "certified"
     assert res.history[-1]["decrease_backend"] == "taylor"
     # the certified level is the largest the box allows: min over faces of 1/(P⁻¹)_kk
     c_max = 1.0 / np.max(np.diag(np.linalg.inv(np.array(Pq, dtype=float))))
     assert 0.98 * c_max < res.level < c_max
     # a margin (learned dynamics) leaves the decision to the verifier
-    with_margin = certify_level(x, V, lie, quadratic=Pq, **{**kw, "margin": 1e-9,
+    with_margin = certify_level(x, V, lie, quadratic=Pq, rhs=g, **{**kw, "margin": 1e-9,
                                                              "max_tries": 1})
     assert all(h.get("decrease_backend") != "taylor" for h in with_margin.history)

@@ -368,10 +368,8 @@ def thin_radius(problem, P: np.ndarray, policy: LevelPolicy) -> float | None:
         return None
     eps = THIN_RADIUS_FRACTION * axis
     cl = closed_loop(problem.system, problem.controller)
-    V = quadratic_lyapunov(P)
-    Vx = V.casadi(cl.x)
-    Pq = quadratic_form(V)
-    if Pq is None or TaylorDecrease(cl.x, ca.jacobian(Vx, cl.x) @ cl.rhs, Pq).why:
+    Pq = quadratic_form(quadratic_lyapunov(P))
+    if Pq is None or TaylorDecrease(cl.x, cl.rhs, Pq).why:
         return None
     return eps
 

@@ -278,6 +278,7 @@ class Decrease:
     margin: float
     M: float | None
     smoothing: float
+    rhs: object = None      # the closed loop's right-hand side g (lie = ∇V·g)
 
 
 @dataclass
@@ -414,7 +415,7 @@ class RoaProblem:
         if not self.known and self.margin_mode == "pointwise":
             lie = robust_lie(lie, Vx, cl.x, self.eta, s,
                              learned_components_of(self.system, self.dynamics))
-        self._decrease = Decrease(cl.x, Vx, lie, margin, M, s)
+        self._decrease = Decrease(cl.x, Vx, lie, margin, M, s, cl.rhs)
         return self._decrease
 
     def V_numpy(self, pts: np.ndarray) -> np.ndarray:
@@ -644,7 +645,8 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
                        domain=problem.domain, margin=margin, max_tries=8 if search else 1,
                        shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
                        log=log, follow_violations=follow_violations,
-                       quadratic=quadratic_form(problem.V))
+                       quadratic=quadratic_form(problem.V),
+                       rhs=dec.rhs if problem.known else None)
     # the checks of the certified level (a search's later tries may have failed above it)
     last = lc.history[-1] if lc.history else {}
     if lc.status == "certified":

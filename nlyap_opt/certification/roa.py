@@ -78,7 +78,7 @@ from ..learned.interval_sup import interval_arithmetic
 __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
     "quadratic_form", "quadratic_containment", "quadratic_inner_ball", "inner_ellipse_bound",
-    "centre_lyapunov_matrix", "taylor_hessian_bound", "TaylorDecrease",
+    "centre_lyapunov_matrix", "taylor_hessian_bound", "sliced_enclosure", "TaylorDecrease",
     "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "InnerForm",
     "InnerFormKind",
 ]
@@ -456,43 +456,33 @@ TAYLOR_SLICES = 16
 _FOLD = Fraction(FOLD)
 
 
-def taylor_hessian_bound(H: ca.Function, box: np.ndarray,
-                         slices: int = TAYLOR_SLICES) -> list[list[Fraction]] | None:
-    r"""``C_s + diag(R̄ 1)`` (exact rationals) with :math:`y^\top M y \le y^\top (C_s +
-    \mathrm{diag}(\bar R 1)) y` for every :math:`M = \int_0^1 (1-t)\, h(t y)\, dt`,
-    :math:`y \in` ``box`` (a box containing 0) and ``h`` the Hessian that ``H`` computes;
-    None when an enclosure is not finite.
-
-    For a twice continuously differentiable ``F`` with :math:`F(0) = 0` and
-    :math:`\nabla F(0) = 0`, Taylor's formula with the integral remainder gives
-    :math:`F(y) = y^\top M(y)\, y`, :math:`M(y) = \int_0^1 (1-t)\, \nabla^2 F(t y)\, dt`; so
-    a negative definite bound proves :math:`F < 0` on ``box`` minus the origin.
-
-    :math:`[0, 1]` is cut into ``slices`` pieces :math:`[t_k, t_{k+1}]`; on each,
-    :math:`t y \in t_{k+1} Y` (``Y`` contains 0), so :math:`M \in \sum_k w_k\,[h](t_{k+1}
-    Y)` with :math:`w_k = \int_{t_k}^{t_{k+1}} (1 - t)\,dt` (exact). A cubic term of ``F``
-    then counts about :math:`\tfrac16` of its Hessian on ``Y``, not :math:`\tfrac12`. The
-    enclosures come from the outward-rounded interval arithmetic over ``H``'s graph, each
-    entry widened by CasADi's constant-folding allowance.
-    """
+def sliced_enclosure(H: ca.Function, box: np.ndarray, weights: list[Fraction]
+                     ) -> tuple[list[list[Fraction]], list[list[Fraction]]] | None:
+    r"""``(C, R)``, exact rational centre and radius of :math:`\sum_k w_k [h](t_k Y)`, ``Y`` =
+    ``box`` (a box containing 0), :math:`t_k = (k+1)/K` for the ``K`` weights and ``[h]`` the
+    outward-rounded interval enclosure of the ``d×d`` matrix that ``H`` computes, each entry
+    widened by CasADi's constant-folding allowance; ``None`` when an enclosure is not
+    finite. Since :math:`tY \subseteq t_{k+1} Y` for :math:`t \le t_{k+1}`, an integral
+    :math:`\int_0^1 \omega(t)\,h(ty)\,dt` with :math:`w_k = \int_{t_k}^{t_{k+1}}\omega`
+    lies in the sum for every ``y ∈ Y``."""
     Interval, ia = interval_arithmetic()
     d = box.shape[0]
-    ts = [Fraction(k, slices) for k in range(slices + 1)]
+    K = len(weights)
+    ts = [Fraction(k, K) for k in range(K + 1)]
     lo_b = np.array([[float_down(t * rational(v)) for v in box[:, 0]] for t in ts[1:]])
     hi_b = np.array([[float_up(t * rational(v)) for v in box[:, 1]] for t in ts[1:]])
     res = evaluate(H, [Interval(lo_b, hi_b)], ia)[0]
     lo, hi = np.asarray(res.lo, dtype=float), np.asarray(res.hi, dtype=float)
-    if lo.size not in (d * d, slices * d * d) or hi.size != lo.size:
+    if lo.size not in (d * d, K * d * d) or hi.size != lo.size:
         return None
-    lo = np.broadcast_to(lo.reshape(-1, d * d), (slices, d * d))   # a constant: (d²,)
-    hi = np.broadcast_to(hi.reshape(-1, d * d), (slices, d * d))
+    lo = np.broadcast_to(lo.reshape(-1, d * d), (K, d * d))   # a constant: (d²,)
+    hi = np.broadcast_to(hi.reshape(-1, d * d), (K, d * d))
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         return None
-    weights = [(t1 - t0) - (t1 * t1 - t0 * t0) / 2 for t0, t1 in zip(ts, ts[1:])]
     L = [[Fraction(0)] * d for _ in range(d)]
     U = [[Fraction(0)] * d for _ in range(d)]
     for k, wk in enumerate(weights):
-        # column-major nonzeros of the dense d×d Hessian, widened by the fold allowance
+        # column-major nonzeros of the dense d×d matrix, widened by the fold allowance
         lk, hk = lo[k].reshape(d, d).T, hi[k].reshape(d, d).T
         for a in range(d):
             for b in range(d):
@@ -501,6 +491,30 @@ def taylor_hessian_bound(H: ca.Function, box: np.ndarray,
                 U[a][b] += wk * (vh + abs(vh) * _FOLD)
     C = [[(L[a][b] + U[a][b]) / 2 for b in range(d)] for a in range(d)]
     R = [[(U[a][b] - L[a][b]) / 2 for b in range(d)] for a in range(d)]
+    return C, R
+
+
+def taylor_hessian_bound(H: ca.Function, box: np.ndarray,
+                         slices: int = TAYLOR_SLICES) -> list[list[Fraction]] | None:
+    r"""``C_s + diag(R̄ 1)`` (exact rationals) with :math:`y^\top M y \le y^\top (C_s +
+    \mathrm{diag}(\bar R 1)) y` for every :math:`M = \int_0^1 (1-t)\, h(t y)\, dt`,
+    :math:`y \in` ``box`` (a box containing 0) and ``h`` the Hessian that ``H`` computes;
+    None when an enclosure is not finite (:func:`sliced_enclosure` with the weights
+    :math:`\int_{t_k}^{t_{k+1}} (1 - t)\,dt`: a cubic term counts about a sixth of its
+    Hessian on ``Y``, not a half).
+
+    For a twice continuously differentiable ``F`` with :math:`F(0) = 0` and
+    :math:`\nabla F(0) = 0`, Taylor's formula with the integral remainder gives
+    :math:`F(y) = y^\top M(y)\, y`; a negative definite bound proves :math:`F < 0` on
+    ``box`` minus the origin.
+    """
+    ts = [Fraction(k, slices) for k in range(slices + 1)]
+    weights = [(t1 - t0) - (t1 * t1 - t0 * t0) / 2 for t0, t1 in zip(ts, ts[1:])]
+    CR = sliced_enclosure(H, box, weights)
+    if CR is None:
+        return None
+    C, R = CR
+    d = len(C)
     N = [[(C[a][b] + C[b][a]) / 2 for b in range(d)] for a in range(d)]
     for a in range(d):
         N[a][a] += sum((R[a][b] + R[b][a]) / 2 for b in range(d))
@@ -518,45 +532,52 @@ def _sqrt_up(q: Fraction) -> float:
 class TaylorDecrease:
     r"""Condition (a) for a quadratic ``V = xᵀPx``, decided on a whole box at once.
 
-    ``lie`` is :math:`F = \nabla V \cdot g`. When ``F``'s graph holds only smooth operations
-    defined everywhere and :math:`F(0) = 0`, :math:`\nabla F(0) = 0` structurally (substituting
-    ``x = 0`` into the graphs of ``F`` and of its gradient leaves the constant 0; true for
-    ``V = xᵀPx`` and any smooth closed loop with ``g(0) = 0``), :meth:`check` proves
-    :math:`F < 0` on the box ``Y`` that bounds :math:`\{x^\top P x \le c\} \cap D` minus the
-    origin, by :func:`taylor_hessian_bound` and one exact ``LDLᵀ``: condition (a) on the
-    whole sublevel set with no bisection. A linear closed loop has a constant Hessian, so
-    the test is then exact at every level; for a nonlinear one it holds at the levels where
-    the Hessian's enclosure over ``Y`` stays negative definite, and the verifier decides the
-    others. ``why`` says why the test does not apply (then :meth:`check` returns ``None``).
+    ``g`` is the closed loop's right-hand side (a graph of the true f with the controller).
+    With ``J`` its Jacobian and ``Y`` a box containing 0 (so ``sy ∈ Y`` for ``s ∈ [0, 1]``),
+    the mean-value form :math:`g(y) = g(0) + \bar J(y)\,y`, :math:`\bar J(y) = \int_0^1
+    J(sy)\,ds`, gives
+
+    .. math:: \dot V(y) = 2 y^\top P g(0) + y^\top (P \bar J + \bar J^\top P)\, y .
+
+    :meth:`check` encloses ``J`` on 16 nested slices ``s_k Y`` by outward-rounded interval
+    arithmetic (each entry also widened by CasADi's constant-folding allowance of a
+    derivative graph), so :math:`\bar J \in [C - R, C + R]` entrywise with rational ``C``,
+    ``R``; then :math:`y^\top(P\bar J + \bar J^\top P)y \le y^\top N y` with the exact
+    rational :math:`N = PC + C^\top P + \mathrm{diag}((|P|R + R^\top|P|)\mathbf 1)`.
+    ``g(0)`` is enclosed the same way at the point 0 (no structural or float zero is
+    trusted): with :math:`b \ge \|P g(0)\|` and ``−N − λI ≻ 0`` (exact ``LDLᵀ``) for
+    :math:`\lambda = 2b/\varepsilon`, :math:`\dot V(y) < \|y\|(2b - \lambda\|y\|) \le 0` for
+    every ``y ∈ Y`` with ``‖y‖ ≥ ε`` (for ``g(0)`` enclosed in ``[0, 0]``, every ``y ≠ 0``).
+    ``Y`` is the box that holds :math:`\{x^\top P x \le c\} \cap D`, so this proves condition
+    (a) on the whole sublevel set with no bisection. ``P`` enters as the exact rational
+    matrix of the stored network (:func:`quadratic_form`), so ``V̇`` is the real derivative
+    of the real ``V``. A linear loop has a constant ``J`` (``R`` only the folding allowance):
+    the test is then exact up to that allowance at every level. ``g`` must be continuously
+    differentiable on ``Y``: graphs with non-smooth or partial operations are refused
+    (``why``), and :meth:`check` then returns ``None``, as it does where the enclosure is not
+    tight enough.
     """
 
-    def __init__(self, x, lie, P: list[list[Fraction]]):
+    def __init__(self, x, g, P: list[list[Fraction]]):
         self.P = P
         self.why = ""
-        self._H = None
+        self._J = None
         n = x.numel()
         try:
-            F = ca.Function("taylor_lie", [x], [lie]).expand()
-        except RuntimeError as err:        # a callback (black box) or an MX-only operation
-            self.why = f"dV/dt has no expanded graph ({str(err).splitlines()[0][:80]})"
+            G = ca.Function("taylor_g", [x], [g]).expand()
+            y = ca.SX.sym("y", n)
+            gy = G(y)
+            J = ca.densify(ca.jacobian(gy, y))
+            prog = compile_function(ca.Function("taylor_gJ", [y], [gy, J]))
+        except (RuntimeError, UnsupportedOperationError) as err:
+            # a callback (black box), an operation the walker does not support
+            self.why = f"the closed loop has no expanded graph ({str(err).splitlines()[0][:80]})"
             return
-        y = ca.SX.sym("y", n)
-        Fy = F(y)
-        grad = ca.gradient(Fy, y)
-        hess = ca.densify(ca.hessian(Fy, y)[0])
-        try:
-            # first: with only smooth total operations no 0/0 can fold to a false 0 below
-            if compile_function(ca.Function("taylor_all", [y], [Fy, grad, hess])).checked:
-                self.why = "dV/dt uses non-smooth or partial operations"
-                return
-        except UnsupportedOperationError as err:
-            self.why = str(err)
+        if prog.checked:
+            self.why = "the closed loop uses non-smooth or partial operations"
             return
-        at0 = ca.substitute(ca.vertcat(Fy, grad), y, ca.SX.zeros(n))
-        if not all(at0[k].is_zero() for k in range(at0.numel())):
-            self.why = "dV/dt or its gradient is not structurally 0 at the origin"
-            return
-        self._H = ca.Function("taylor_hess", [y], [hess])
+        self._g = ca.Function("taylor_g0", [y], [gy])
+        self._J = ca.Function("taylor_J", [y], [J])
         self._Pinv_diag = inverse_diagonal(P)
 
     def box(self, level: float, domain_box: np.ndarray) -> np.ndarray:
@@ -567,18 +588,49 @@ class TaylorDecrease:
         b = np.asarray(domain_box, dtype=float)
         return np.column_stack([np.maximum(-h, b[:, 0]), np.minimum(h, b[:, 1])])
 
-    def check(self, level: float, domain_box: np.ndarray) -> VerificationResult | None:
-        """``verified`` (backend ``"taylor"``) when the test proves :math:`F < 0` on the
-        sublevel set ``V ≤ level`` within ``D`` (minus the origin), else ``None``: the
-        test decides nothing else (no counterexample comes from it)."""
-        if self._H is None or not level > 0:
+    def _g0_bound(self) -> Fraction | None:
+        """A rational ``b ≥ ‖P g(0)‖`` (``0`` when ``g(0)`` is enclosed in ``[0, 0]``)."""
+        Interval, ia = interval_arithmetic()
+        n = len(self.P)
+        z = np.zeros((1, n))
+        res = evaluate(self._g, [Interval(z, z)], ia)[0]
+        lo, hi = np.asarray(res.lo, dtype=float).ravel(), np.asarray(res.hi, dtype=float).ravel()
+        if lo.size != n or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+            return None
+        m = [max(abs(Fraction(a)), abs(Fraction(b))) for a, b in zip(lo, hi)]
+        if not any(m):
+            return Fraction(0)
+        v = [sum(abs(self.P[i][j]) * m[j] for j in range(n)) for i in range(n)]
+        return Fraction(_sqrt_up(sum(t * t for t in v)))
+
+    def check(self, level: float, domain_box: np.ndarray,
+              inner: float = 0.0) -> VerificationResult | None:
+        """``verified`` (backend ``"taylor"``) when the test proves ``V̇ < 0`` on the
+        sublevel set ``V ≤ level`` within ``D`` outside the ball of radius ``inner``, else
+        ``None``: the test decides nothing else (no counterexample comes from it)."""
+        if self._J is None or not level > 0:
             return None
         t0 = time.perf_counter()
         Y = self.box(level, domain_box)
         if not np.all((Y[:, 0] <= 0) & (Y[:, 1] >= 0)):
             return None
-        N = taylor_hessian_bound(self._H, Y)
-        if N is None or not positive_definite([[-v for v in row] for row in N]):
+        b = self._g0_bound()
+        if b is None or (b > 0 and not inner > 0):
+            return None
+        CR = sliced_enclosure(self._J, Y, [Fraction(1, TAYLOR_SLICES)] * TAYLOR_SLICES)
+        if CR is None:
+            return None
+        C, R = CR
+        n = len(self.P)
+        P = self.P
+        PC = [[sum(P[i][k] * C[k][j] for k in range(n)) for j in range(n)] for i in range(n)]
+        Q = [[sum(abs(P[i][k]) * R[k][j] for k in range(n)) for j in range(n)]
+             for i in range(n)]
+        lam = 2 * b / rational(inner) if b > 0 else Fraction(0)
+        M = [[-(PC[i][j] + PC[j][i]) - (sum(Q[i][k] + Q[k][i] for k in range(n))
+                                         if i == j else 0) - (lam if i == j else 0)
+              for j in range(n)] for i in range(n)]
+        if not positive_definite(M):
             return None
         return VerificationResult(QueryStatus.VERIFIED, seconds=time.perf_counter() - t0,
                                   backend="taylor")
@@ -615,7 +667,8 @@ class LevelCertificate:
 def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: float,
                   max_tries: int = 8, shrink: float = 1e-3, verify_options: dict | None = None,
                   log=print, domain=None, follow_violations: bool = False,
-                  quadratic: list[list[Fraction]] | None = None) -> LevelCertificate:
+                  quadratic: list[list[Fraction]] | None = None,
+                  rhs=None) -> LevelCertificate:
     """Prove (a) and (b) at the largest level we can reach from ``level`` downwards.
 
     The region is ``domain`` (a :class:`nlyap_opt.kernel.domain.Region`) or the ball
@@ -647,8 +700,9 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     sphere) is then decided exactly by :func:`quadratic_containment` and
     :func:`quadratic_inner_ball` (the verifier only for a piece of ``∂D`` they leave open).
     Each history entry records how (b) was decided (``containment_backend``). With
-    ``margin = 0`` condition (a) is first tried by :class:`TaylorDecrease` on the sublevel
-    set's bounding box (no bisection; exact for a linear closed loop), and the verifier
+    ``quadratic``, ``margin = 0`` and ``rhs`` (the closed loop's right-hand side ``g`` with
+    ``lie = ∇V·g``: the true f) condition (a) is first tried by :class:`TaylorDecrease` on
+    the sublevel set's bounding box (no bisection; exact for a linear closed loop), and the verifier
     decides where that test does not apply or does not prove it (``decrease_backend``:
     ``taylor`` or the verifier's).
     """
@@ -669,8 +723,8 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     above = math.inf    # the least level above ``best`` that failed (or a violation's V)
     followed = False    # ``c`` was set by a followed decrease violation
     # (a) for a quadratic V and known dynamics: Taylor's formula on the sublevel set's box
-    taylor = TaylorDecrease(x, lie, quadratic) if quadratic is not None and not margin \
-        else None
+    taylor = TaylorDecrease(x, rhs, quadratic) \
+        if quadratic is not None and rhs is not None and not margin else None
 
     def lower(c_old, c_new):
         """The next level: ``c_new``, the inner ball's level instead, or ``None`` (stop)."""
@@ -707,7 +761,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                 break
         res_a = None
         if res_b.status == "verified":
-            res_a = None if taylor is None else taylor.check(c, box)
+            res_a = None if taylor is None else taylor.check(c, box, inner)
             if res_a is None:
                 prob_a = lyapunov_problem(x, V, lie, inner=inner, domain=D, level=c,
                                           margin=margin, box=box, check_positive=False)

@@ -82,6 +82,9 @@ ASSUMPTIONS = [
     "the model f is the true dynamics (a compositional certificate is about the given model)",
     "f is twice continuously differentiable on the domain box D (its CasADi graph holds "
     "only smooth operations defined everywhere; checked)",
+    "the constants CasADi computes in floating point while it builds the Hessian of "
+    "dV_i/dt are within a relative 2^-30 of their exact values (not checked: a sum that "
+    "cancels to nearly 0 can exceed it)",
 ]
 
 

@@ -145,6 +145,25 @@ def _lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return K, S, E
 
 
+def _positive_solution(problem, X) -> np.ndarray | None:
+    """Solve ``problem`` with CLARABEL, else SCS (those installed), and return the symmetrised
+    value of the matrix variable ``X`` from the first solve that gives a finite, positive
+    definite one (``None``: none did; a failed solve only loses a candidate)."""
+    cp = deps.cvxpy()
+    installed = set(cp.installed_solvers())
+    for solver in [s for s in ("CLARABEL", "SCS") if s in installed]:
+        try:
+            problem.solve(solver=solver)
+        except Exception:  # a failed solve only loses a candidate
+            continue
+        if X.value is None:
+            continue
+        Xv = 0.5 * (X.value + X.value.T)
+        if np.all(np.isfinite(Xv)) and np.linalg.eigvalsh(Xv)[0] > 0:
+            return Xv
+    return None
+
+
 def round_lyapunov_matrix(A_cl, decay_fraction: float = 0.1) -> np.ndarray | None:
     r"""The Lyapunov matrix of ``A_cl`` with the smallest condition number (an SDP).
 
@@ -171,18 +190,7 @@ def round_lyapunov_matrix(A_cl, decay_fraction: float = 0.1) -> np.ndarray | Non
     t = cp.Variable()
     alpha = decay_fraction * margin
     cons = [P >> np.eye(n), P << t * np.eye(n), A_cl.T @ P + P @ A_cl + 2 * alpha * P << 0]
-    installed = set(cp.installed_solvers())
-    for solver in [s for s in ("CLARABEL", "SCS") if s in installed]:
-        try:
-            cp.Problem(cp.Minimize(t), cons).solve(solver=solver)
-        except Exception:  # a failed solve only loses a candidate
-            continue
-        if P.value is None:
-            continue
-        Pv = 0.5 * (P.value + P.value.T)
-        if np.all(np.isfinite(Pv)) and np.linalg.eigvalsh(Pv)[0] > 0:
-            return Pv
-    return None
+    return _positive_solution(cp.Problem(cp.Minimize(t), cons), P)
 
 
 def volume_lyapunov_matrix(A_cl, decay_fraction: float = 0.1, *, rounds: int = 40,
@@ -275,19 +283,11 @@ def domain_lyapunov_matrix(A_cl, decay_fraction: float = 0.1, *, inside=None,
         cons.append(Q << np.asarray(inside, dtype=float))
     if half_widths is not None:
         cons += [Q[k, k] <= float(h) ** 2 for k, h in enumerate(half_widths)]
-    installed = set(cp.installed_solvers())
-    for solver in [s for s in ("CLARABEL", "SCS") if s in installed]:
-        try:
-            cp.Problem(cp.Maximize(cp.log_det(Q)), cons).solve(solver=solver)
-        except Exception:  # a failed solve only loses a candidate
-            continue
-        if Q.value is None:
-            continue
-        Qv = 0.5 * (Q.value + Q.value.T)
-        if np.all(np.isfinite(Qv)) and np.linalg.eigvalsh(Qv)[0] > 0:
-            P = np.linalg.inv(Qv)
-            return 0.5 * (P + P.T)
-    return None
+    Qv = _positive_solution(cp.Problem(cp.Maximize(cp.log_det(Q)), cons), Q)
+    if Qv is None:
+        return None
+    P = np.linalg.inv(Qv)
+    return 0.5 * (P + P.T)
 
 
 def ellipse_candidates(A_cl):

@@ -173,6 +173,56 @@ def test_non_smooth_or_shifted_systems_are_not_certified():
     assert not cert.certified and "not an equilibrium" in cert.reason
 
 
+def test_a_float_fold_that_hides_an_offset_is_not_an_equilibrium():
+    """``f₁ = −x₁ + ((x₁² + 10¹⁶) + 1) − 10¹⁶``: substituting 0 folds the extra term to 0
+    in floats, its real value is 1 (``f(0) ≠ 0``). The equilibrium is decided in exact
+    arithmetic: neither the search nor the re-check of a clean system's numbers accepts it."""
+    x = ca.SX.sym("x", 2)
+    fold = systems.System("fold", x, None,
+                          ca.vertcat(-x[0] + ((x[0] ** 2 + 1e16) + 1) - 1e16, -x[1]),
+                          state_box=[[-1, 1]] * 2, subsystems=[(0,), (1,)])
+    assert float(ca.substitute(fold.f, x, ca.DM.zeros(2))[0]) == 0.0
+    cert = certify_compositional(fold, **QUIET)
+    assert not cert.certified and "not an equilibrium" in cert.reason
+    clean = certify_compositional(_pair(0.0), **QUIET)
+    assert clean.certified
+    ok, checks, why = check_compositional(fold, clean.pieces, clean.weights, clean.level,
+                                          clean.decay)
+    assert not ok and "equilibrium" in checks and "not exactly 0" in why
+
+
+def test_a_decrease_that_fails_by_a_rounding_of_the_product_is_not_proved():
+    """One 2-state subsystem ``ẋ = Ax`` whose exact ``AᵀP + PA`` has a (1, 1) entry ``+ε``
+    (``V̇ > 0`` along the x₁ axis) while float products round it to ≤ 0: ``P`` and ``A``
+    enter the local test as exact rationals, so it fails there (with ``α = 0`` a passing
+    local test would fail only later, at the comparison system)."""
+    from nlyap_opt.certification.compositional import Piece
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        Pf = np.diag(rng.uniform(0.5, 2, 2))
+        Pf[0, 1] = Pf[1, 0] = rng.uniform(-0.4, 0.4)
+        Pq = [[Fraction(v) for v in row] for row in Pf]
+        a21, a22 = rng.uniform(-2, 2), -1.0
+        a0 = float(-Pq[0][1] * Fraction(a21) / Pq[0][0])
+        for k in range(-2, 3):
+            a11 = a0 + k * np.spacing(a0)
+            a12 = float(-(Pq[0][1] * Fraction(a22) + Pq[1][0] * Fraction(a11)
+                          + Pq[1][1] * Fraction(a21)) / Pq[0][0])
+            A = [[Fraction(a11), Fraction(a12)], [Fraction(a21), Fraction(a22)]]
+            h11 = 2 * sum(Pq[0][j] * A[j][0] for j in range(2))   # (PA + AᵀP)₁₁
+            float_h11 = 2 * (Pf[0, 0] * a11 + Pf[0, 1] * a21)
+            if h11 > 0 and float_h11 <= 0:
+                x = ca.SX.sym("x", 2)
+                s = systems.System("rounded", x, None,
+                                   ca.DM(np.array([[a11, a12], [a21, a22]])) @ x,
+                                   state_box=[[-1, 1]] * 2, subsystems=[(0, 1)])
+                piece = Piece((0, 1), (), Pf, 0.0, ())
+                ok, checks, why = check_compositional(s, [piece], [1.0], 0.1, 0.1)
+                assert not ok and "local" in checks and "not proved" in checks["local"]
+                return
+    pytest.fail("no case with a positive exact entry and a non-positive float one was found")
+
+
 # ============================================================================ re-check
 @pytest.fixture(scope="module")
 def saved(tmp_path_factory):

@@ -15,15 +15,19 @@ system's box :math:`D`. What is proved (all of it again by :func:`recheck_compos
    .. math:: F_i(y_i) = \nabla V_i \cdot f_i(y_i) + \alpha_i V_i(x_i)
              - \sum_{j \in N(i)} \beta_{ij} V_j(x_j) \le 0 \quad \text{on } Y_i.
 
-   :math:`F_i(0) = 0` and :math:`\nabla F_i(0) = 0` (``f(0) = 0`` is checked exactly), so
-   by Taylor's formula with integral remainder :math:`F_i(y) = y^\top M y` with :math:`M`
-   in half the interval enclosure of the Hessian :math:`\nabla^2 F_i(Y_i)` (the box contains
-   0, so :math:`t y \in Y_i`). The enclosure comes from the outward-rounded interval
-   arithmetic over the CasADi graph of :math:`\nabla^2 (\nabla V_i \cdot f_i)`; with its
-   centre :math:`C` and radius :math:`R`, :math:`y^\top M y \le y^\top (C_s + \mathrm{diag}
-   (\bar R \mathbf 1)) y` and negative definiteness of that rational matrix is decided by an
-   exact :math:`LDL^\top` in :class:`fractions.Fraction` arithmetic. The test works on the
-   low-dimensional :math:`Y_i` only: nothing bisects the whole state space.
+   ``f(0) = 0`` is proved by evaluating ``f``'s graph at 0 in exact rational arithmetic,
+   so the mean-value form :math:`f_i(y) = \bar J_i(y)\,y`, :math:`\bar J_i(y) = \int_0^1
+   J_i(ty)\,dt` (``J_i`` the Jacobian of ``f_i``; the box contains 0, so :math:`t y \in
+   Y_i`) gives :math:`\nabla V_i \cdot f_i = 2 x_i^\top P_i \bar J_i\, y`. The entries of
+   :math:`\bar J_i` are enclosed by outward-rounded interval arithmetic over the CasADi graph
+   of ``J_i`` on 16 nested slices :math:`t_k Y_i`; with the centre :math:`C` and radius
+   :math:`R` of that enclosure and ``P_i`` padded with zeros to all of ``y``,
+   :math:`2 x_i^\top P_i \bar J_i y \le y^\top N y`, :math:`N = PC + C^\top P +
+   \mathrm{diag}((|P|R + R^\top|P|)\mathbf 1)`, formed in exact rationals (``P_i`` never
+   enters a CasADi graph). Negative definiteness of :math:`N + \mathrm{blockdiag}(\alpha_i
+   P_i, -\beta_{ij} P_j)` is decided by an exact :math:`LDL^\top` in
+   :class:`fractions.Fraction` arithmetic. The test works on the low-dimensional
+   :math:`Y_i` only: nothing bisects the whole state space.
 2. **Comparison system.** The Metzler matrix :math:`A_c = -\mathrm{diag}(\alpha) + B`,
    :math:`B_{ij} = \beta_{ij}`, with weights :math:`w > 0` and
    :math:`(w^\top A_c)_j \le -\gamma w_j`, :math:`\gamma > 0`, checked exactly; then
@@ -55,10 +59,16 @@ import numpy as np
 from scipy.linalg import eigh, solve_continuous_lyapunov
 
 from ..kernel.errors import ConfigError, UnsupportedOperationError
-from ..kernel.exact import float_down, inverse_diagonal, positive_definite, rational
+from ..kernel.exact import (
+    float_down,
+    inverse_diagonal,
+    positive_definite,
+    rational,
+    rational_matrix,
+)
 from ..kernel.jsonio import save_timings, split_timings
 from ..kernel.provenance import fingerprint
-from ..kernel.walker import compile_function
+from ..kernel.walker import compile_function, exact_values
 from .certificate import (
     CertStatus,
     bound_system,
@@ -66,7 +76,7 @@ from .certificate import (
     system_binding,
     write_json_atomic,
 )
-from .roa import taylor_hessian_bound
+from .roa import TAYLOR_SLICES, mean_value_form, sliced_enclosure
 
 __all__ = ["FORMAT", "VERSION", "Piece", "CompositionalCertificate", "certify_compositional",
            "check_compositional", "recheck_compositional", "save_compositional",
@@ -80,11 +90,8 @@ _THETAS = (0.9, 0.75, 0.5, 0.3, 0.15)
 
 ASSUMPTIONS = [
     "the model f is the true dynamics (a compositional certificate is about the given model)",
-    "f is twice continuously differentiable on the domain box D (its CasADi graph holds "
+    "f is continuously differentiable on the domain box D (its CasADi graph holds "
     "only smooth operations defined everywhere; checked)",
-    "the constants CasADi computes in floating point while it builds the Hessian of "
-    "dV_i/dt are within a relative 2^-30 of their exact values (not checked: a sum that "
-    "cancels to nearly 0 can exceed it)",
 ]
 
 
@@ -198,36 +205,42 @@ def _refusal(system, parts) -> str:
 
 
 def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
-    """``(N, "")`` with ``N`` of :func:`~nlyap_opt.certification.roa.taylor_hessian_bound`
-    for subsystem ``i`` on its box ``Y_i`` (its states, then its neighbours' in order), or
-    ``(None, why)``.
+    r"""``(N, "")`` with :math:`\nabla V_i \cdot f_i(y) \le y^\top N y` on subsystem
+    ``i``'s box ``Y_i`` (its states, then its neighbours' in order), or ``(None, why)``.
 
-    Refused when the graph of ``f_i``, ``∇V_i·f_i`` or its Hessian holds an operation that
+    ``P``: the exact rational ``P_i``. The mean-value form :math:`f_i(y) = \bar J_i(y)\,y`
+    (``f_i(0) = 0`` proved exactly beforehand), :math:`\bar J_i = \int_0^1 J_i(sy)\,ds`,
+    with the Jacobian ``J_i`` of ``f_i`` enclosed on nested slices of ``Y_i``
+    (:func:`~nlyap_opt.certification.roa.sliced_enclosure`) and ``P_i`` padded with zeros
+    to all of ``y`` (:func:`~nlyap_opt.certification.roa.mean_value_form`). ``P_i`` never
+    enters a CasADi graph, so no float folding of its products with ``f``'s constants can
+    change a sign. Refused when the graph of ``f_i`` or its Jacobian holds an operation that
     is non-smooth or partial (the walker's checked operations, constant arguments
-    excepted): Taylor's formula needs ``f`` twice continuously differentiable on ``D``.
+    excepted): the mean-value form needs ``f`` continuously differentiable on ``D``.
     """
     idx = list(parts[i]) + [k for j in nbrs[i] for k in parts[j]]
-    y = ca.SX.sym("y", len(idx))
+    m, ni = len(idx), len(parts[i])
+    y = ca.SX.sym("y", m)
     xs = ca.SX.zeros(system.nx)
     for a, k in enumerate(idx):
         xs[k] = y[a]
     fi = ca.substitute(ca.vertcat(*[system.f[r] for r in parts[i]]), system.x, xs)
-    xi = y[:len(parts[i])]
-    vdot = 2 * ca.dot(ca.mtimes(ca.DM(np.asarray(P, dtype=float)), xi), fi)
-    hess = ca.densify(ca.hessian(vdot, y)[0])
-    H = ca.Function(f"hess_{i}", [y], [hess])
+    # the rows of the neighbours' states are 0: V_i reads x_i only
+    J = ca.densify(ca.vertcat(ca.jacobian(fi, y), ca.SX.zeros(m - ni, m)))
     name = f"subsystem {i + 1} ({', '.join(system.state_names[k] for k in parts[i])})"
     try:
-        if compile_function(ca.Function(f"local_{i}", [y], [fi, vdot, hess])).checked:
+        if compile_function(ca.Function(f"local_{i}", [y], [fi, J])).checked:
             return None, (f"{name}: f uses non-smooth or partial operations; the "
-                          "compositional method needs f twice continuously differentiable "
+                          "compositional method needs f continuously differentiable "
                           "on all of D")
-        N = taylor_hessian_bound(H, system.state_box[idx])
+        CR = sliced_enclosure(ca.Function(f"jac_{i}", [y], [J]), system.state_box[idx],
+                              [Fraction(1, TAYLOR_SLICES)] * TAYLOR_SLICES)
     except UnsupportedOperationError as err:
         return None, f"{name}: {err}"
-    if N is None:
-        return None, f"{name}: the Hessian of dV_i/dt is not bounded on its box"
-    return N, ""
+    if CR is None:
+        return None, f"{name}: the Jacobian of f_i is not bounded on its box"
+    Pm = [[P[a][b] if a < ni and b < ni else Fraction(0) for b in range(m)] for a in range(m)]
+    return mean_value_form(Pm, *CR), ""
 
 
 def _local_matrix(N, sizes, P, alpha, beta) -> list[list[Fraction]]:
@@ -244,14 +257,14 @@ def _local_matrix(N, sizes, P, alpha, beta) -> list[list[Fraction]]:
 
 
 def _equilibrium_refusal(system) -> str:
-    """``""`` when ``f(0) = 0`` structurally: substituting ``x = 0`` into ``f``'s CasADi
-    graph leaves the constant 0 in every component (the test of the blow-up argument of
-    :func:`nlyap_opt.certification.roa.certify_inner_blowup`); interval arithmetic rounds every
-    product
-    outward and cannot return an exact 0."""
-    f0 = ca.substitute(system.f, system.x, ca.SX.zeros(system.nx))
-    if not all(f0[k].is_zero() for k in range(system.nx)):
-        return "the origin is not an equilibrium: f(0) is not structurally 0"
+    """``""`` when ``f(0) = 0`` exactly: the CasADi graph of ``f`` evaluated at ``x = 0`` in
+    exact rational arithmetic (:class:`~nlyap_opt.kernel.walker.ExactPointArithmetic`) gives
+    the rational 0 in every component. Neither a float evaluation nor a substitution into
+    the graph can prove it (both round; ``((x² + 10¹⁶) + 1) − 10¹⁶`` folds to 0 at 0)."""
+    vals = exact_values(ca.Function("f0", [system.x], [system.f]), [0] * system.nx)
+    if vals is None or not all(isinstance(v, Fraction) and v == 0 for v in vals):
+        return ("the origin is not an equilibrium: f(0) is not exactly 0 (evaluated in exact "
+                "rational arithmetic); shift the state so that the equilibrium is at 0")
     return ""
 
 
@@ -289,7 +302,7 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
     why = _equilibrium_refusal(system)
     if why:
         return False, {**checks, "equilibrium": why}, why
-    checks["equilibrium"] = "proved (f(0) is structurally 0)"
+    checks["equilibrium"] = "proved (f(0) = 0 in exact rational arithmetic)"
     try:
         w = [rational(v) for v in np.asarray(weights, dtype=float).ravel()]
         c, g = rational(level), rational(decay)
@@ -314,7 +327,7 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
         if alphas[i] < 0 or any(b < 0 for b in betas[i]):
             why = f"subsystem {i + 1}: α and β must be ≥ 0"
             return False, {**checks, "local": why}, why
-        N, why = _local_bound(system, parts, nbrs, i, p.P)
+        N, why = _local_bound(system, parts, nbrs, i, Ps[i])
         if N is None:
             return False, {**checks, "local": why}, why
         sizes = [len(p.states)] + [len(parts[j]) for j in p.neighbours]
@@ -325,8 +338,8 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
                    "(coupling too strong for this domain, or the domain too large)")
             return False, {**checks, "local": why}, why
     dim = max(len(p.states) + sum(len(parts[j]) for j in p.neighbours) for p in pieces)
-    checks["local"] = (f"proved on {len(pieces)} boxes of dimension ≤ {dim} (interval Hessian, "
-                       "exact LDLᵀ)")
+    checks["local"] = (f"proved on {len(pieces)} boxes of dimension ≤ {dim} (mean-value form "
+                       "of f_i's interval Jacobian, P_i exact, exact LDLᵀ)")
     if g <= 0 or any(v <= 0 for v in w):
         why = "the weights and the decay rate must be positive"
         return False, {**checks, "comparison": why}, why
@@ -438,7 +451,7 @@ def certify_compositional(system, *, log=print) -> CompositionalCertificate:
         Ps.append(P)
     bounds = []
     for i in range(len(parts)):
-        N, why = _local_bound(system, parts, nbrs, i, Ps[i])
+        N, why = _local_bound(system, parts, nbrs, i, rational_matrix(Ps[i]))
         if N is None:
             return fail(why)
         bounds.append(N)

@@ -72,13 +72,13 @@ from ..kernel.rounding import EPS, FOLD
 from ..kernel.sampling import sample_ball, sample_sphere
 from ..kernel.simulate import integration, jacobian_at_origin, simulate
 from ..kernel.symbolic import closed_loop
-from ..kernel.walker import compile_function, evaluate
+from ..kernel.walker import REAL, compile_function, evaluate, exact_values
 from ..learned.interval_sup import interval_arithmetic
 
 __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
     "quadratic_form", "quadratic_containment", "quadratic_inner_ball", "inner_ellipse_bound",
-    "centre_lyapunov_matrix", "taylor_hessian_bound", "sliced_enclosure", "TaylorDecrease",
+    "centre_lyapunov_matrix", "mean_value_form", "sliced_enclosure", "TaylorDecrease",
     "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "InnerForm",
     "InnerFormKind",
 ]
@@ -449,7 +449,7 @@ def quadratic_inner_ball(P: list[list[Fraction]], level: float,
 
 
 # ============================================================================ Taylor's formula
-#: pieces of [0, 1] in the integral form of Taylor's remainder (:func:`taylor_hessian_bound`)
+#: pieces of [0, 1] in the mean-value integral of a Jacobian (:func:`sliced_enclosure`)
 TAYLOR_SLICES = 16
 #: the toolbox's allowance for CasADi's constant folding, exactly
 #: (:data:`nlyap_opt.kernel.rounding.FOLD`)
@@ -494,31 +494,25 @@ def sliced_enclosure(H: ca.Function, box: np.ndarray, weights: list[Fraction]
     return C, R
 
 
-def taylor_hessian_bound(H: ca.Function, box: np.ndarray,
-                         slices: int = TAYLOR_SLICES) -> list[list[Fraction]] | None:
-    r"""``C_s + diag(R̄ 1)`` (exact rationals) with :math:`y^\top M y \le y^\top (C_s +
-    \mathrm{diag}(\bar R 1)) y` for every :math:`M = \int_0^1 (1-t)\, h(t y)\, dt`,
-    :math:`y \in` ``box`` (a box containing 0) and ``h`` the Hessian that ``H`` computes;
-    None when an enclosure is not finite (:func:`sliced_enclosure` with the weights
-    :math:`\int_{t_k}^{t_{k+1}} (1 - t)\,dt`: a cubic term counts about a sixth of its
-    Hessian on ``Y``, not a half).
+def mean_value_form(P: list[list[Fraction]], C: list[list[Fraction]],
+                    R: list[list[Fraction]]) -> list[list[Fraction]]:
+    r"""The exact symmetric ``N`` with :math:`2 y^\top P \bar J y \le y^\top N y` for every
+    ``y`` and every :math:`\bar J \in [C - R, C + R]` (entrywise; all ``n×n`` rationals):
 
-    For a twice continuously differentiable ``F`` with :math:`F(0) = 0` and
-    :math:`\nabla F(0) = 0`, Taylor's formula with the integral remainder gives
-    :math:`F(y) = y^\top M(y)\, y`; a negative definite bound proves :math:`F < 0` on
-    ``box`` minus the origin.
+    .. math:: N = PC + C^\top P + \mathrm{diag}\big((|P|R + R^\top |P|)\,\mathbf 1\big).
+
+    With :math:`\bar J = C + \Delta`, :math:`|\Delta| \le R`:
+    :math:`2y^\top P\Delta y \le 2\sum_{ab} (|P|R)_{ab}|y_a||y_b| \le \sum_{ab}
+    (|P|R)_{ab}(y_a^2 + y_b^2)`. Rows of ``P`` that are 0 (a ``P`` padded to more
+    coordinates than ``V`` reads) contribute nothing.
     """
-    ts = [Fraction(k, slices) for k in range(slices + 1)]
-    weights = [(t1 - t0) - (t1 * t1 - t0 * t0) / 2 for t0, t1 in zip(ts, ts[1:])]
-    CR = sliced_enclosure(H, box, weights)
-    if CR is None:
-        return None
-    C, R = CR
-    d = len(C)
-    N = [[(C[a][b] + C[b][a]) / 2 for b in range(d)] for a in range(d)]
-    for a in range(d):
-        N[a][a] += sum((R[a][b] + R[b][a]) / 2 for b in range(d))
-    return N
+    n = len(P)
+    PC = [[sum(P[i][k] * C[k][j] for k in range(n) if P[i][k]) for j in range(n)]
+          for i in range(n)]
+    Q = [[sum(abs(P[i][k]) * R[k][j] for k in range(n) if P[i][k]) for j in range(n)]
+         for i in range(n)]
+    return [[PC[i][j] + PC[j][i] + (sum(Q[i][k] + Q[k][i] for k in range(n)) if i == j else 0)
+             for j in range(n)] for i in range(n)]
 
 
 def _sqrt_up(q: Fraction) -> float:
@@ -544,10 +538,12 @@ class TaylorDecrease:
     derivative graph), so :math:`\bar J \in [C - R, C + R]` entrywise with rational ``C``,
     ``R``; then :math:`y^\top(P\bar J + \bar J^\top P)y \le y^\top N y` with the exact
     rational :math:`N = PC + C^\top P + \mathrm{diag}((|P|R + R^\top|P|)\mathbf 1)`.
-    ``g(0)`` is enclosed the same way at the point 0 (no structural or float zero is
-    trusted): with :math:`b \ge \|P g(0)\|` and ``−N − λI ≻ 0`` (exact ``LDLᵀ``) for
-    :math:`\lambda = 2b/\varepsilon`, :math:`\dot V(y) < \|y\|(2b - \lambda\|y\|) \le 0` for
-    every ``y ∈ Y`` with ``‖y‖ ≥ ε`` (for ``g(0)`` enclosed in ``[0, 0]``, every ``y ≠ 0``).
+    ``g(0)`` is evaluated at the point 0 in exact rational arithmetic
+    (:class:`~nlyap_opt.kernel.walker.ExactPointArithmetic`; no structural or float zero is
+    trusted), else enclosed by intervals there: with :math:`b \ge \|P g(0)\|` and ``−N − λI
+    ≻ 0`` (exact ``LDLᵀ``) for :math:`\lambda = 2b/\varepsilon`, :math:`\dot V(y) <
+    \|y\|(2b - \lambda\|y\|) \le 0` for every ``y ∈ Y`` with ``‖y‖ ≥ ε`` (for ``g(0) = 0``
+    exactly, ``b = 0`` and every ``y ≠ 0``).
     ``Y`` is the box that holds :math:`\{x^\top P x \le c\} \cap D`, so this proves condition
     (a) on the whole sublevel set with no bisection. ``P`` enters as the exact rational
     matrix of the stored network (:func:`quadratic_form`), so ``V̇`` is the real derivative
@@ -589,9 +585,13 @@ class TaylorDecrease:
         return np.column_stack([np.maximum(-h, b[:, 0]), np.minimum(h, b[:, 1])])
 
     def _g0_bound(self) -> Fraction | None:
-        """A rational ``b ≥ ‖P g(0)‖`` (``0`` when ``g(0)`` is enclosed in ``[0, 0]``)."""
-        Interval, ia = interval_arithmetic()
+        """A rational ``b ≥ ‖P g(0)‖``: ``0`` when ``g(0) = 0`` exactly (the graph evaluated
+        at 0 in exact rational arithmetic), else from the interval enclosure at 0."""
         n = len(self.P)
+        exact = exact_values(self._g, [0] * n)
+        if exact is not None and all(isinstance(v, Fraction) and v == 0 for v in exact):
+            return Fraction(0)
+        Interval, ia = interval_arithmetic()
         z = np.zeros((1, n))
         res = evaluate(self._g, [Interval(z, z)], ia)[0]
         lo, hi = np.asarray(res.lo, dtype=float).ravel(), np.asarray(res.hi, dtype=float).ravel()
@@ -620,16 +620,9 @@ class TaylorDecrease:
         CR = sliced_enclosure(self._J, Y, [Fraction(1, TAYLOR_SLICES)] * TAYLOR_SLICES)
         if CR is None:
             return None
-        C, R = CR
-        n = len(self.P)
-        P = self.P
-        PC = [[sum(P[i][k] * C[k][j] for k in range(n)) for j in range(n)] for i in range(n)]
-        Q = [[sum(abs(P[i][k]) * R[k][j] for k in range(n)) for j in range(n)]
-             for i in range(n)]
+        N = mean_value_form(self.P, *CR)
         lam = 2 * b / rational(inner) if b > 0 else Fraction(0)
-        M = [[-(PC[i][j] + PC[j][i]) - (sum(Q[i][k] + Q[k][i] for k in range(n))
-                                         if i == j else 0) - (lam if i == j else 0)
-              for j in range(n)] for i in range(n)]
+        M = [[-v - (lam if i == j else 0) for j, v in enumerate(row)] for i, row in enumerate(N)]
         if not positive_definite(M):
             return None
         return VerificationResult(QueryStatus.VERIFIED, seconds=time.perf_counter() - t0,
@@ -1257,15 +1250,28 @@ def centre_lyapunov_matrix(A_cl) -> np.ndarray | None:
     return found[0][0] if found else None
 
 
-def _leading_term(h_sub, r, max_order: int, order: int | None = None):
-    """``(m, D_m)``: the least ``m`` whose ``∂ᵐh/∂rᵐ`` at ``r = 0`` is not structurally zero
-    (or ``order``, when the exact expansion gave it), and that derivative as a function of
-    ``r`` (``None`` past ``max_order``)."""
+def _leading_term(h_sub, r, u, max_order: int, order: int | None = None):
+    """``(m, D_m)``: the least ``m`` whose ``∂ᵐh/∂rᵐ`` at ``r = 0`` is not exactly zero for
+    every ``u`` (or ``order``, when the exact expansion gave it), and that derivative as a
+    function of ``(r, u)`` (``None`` past ``max_order``).
+
+    "Exactly zero" is the derivative graph evaluated at ``r = 0`` in exact rational
+    arithmetic with every ``u_i`` standing for any real
+    (:class:`~nlyap_opt.kernel.walker.ExactPointArithmetic`): a substitution of ``r = 0``
+    into the graph folds constants in floats and could show a 0 that is not one. A graph
+    the exact arithmetic cannot show to be 0 ends the search at that order, and the
+    verifier then has to prove that term negative."""
     D = h_sub
+    ru = ca.vertcat(r, u)
+    point = [0] + [REAL] * u.numel()
     for m in range(max_order + 1):
-        if (m == order) if order is not None else \
-                not ca.substitute(D, r, ca.SX(0)).is_zero():
-            return m, D
+        if order is not None:
+            if m == order:
+                return m, D
+        else:
+            vals = exact_values(ca.Function("d", [ru], [D]), point)
+            if vals is None or not all(isinstance(v, Fraction) and v == 0 for v in vals):
+                return m, D
         D = ca.jacobian(D, r)
     return None, None
 
@@ -1313,8 +1319,9 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
     :math:`r = \max_i |x_i|^{1/w_i} \in (0, R]` and ``u`` on a face of the unit cube
     (:math:`|u_j| \le 1`, :math:`u_i = \pm 1` for the maximising ``i``). Let
     :math:`h(r, u) = \nabla V_q \cdot f(r^w \odot u)`, :math:`V_q = x^\top P x`, and ``m``
-    the least order whose :math:`\partial_r^m h(0, u)` is not structurally zero
-    (CasADi's symbolic derivatives). Taylor's theorem with the Lagrange remainder gives
+    the least order whose :math:`\partial_r^m h(0, u)` is not exactly zero for every ``u``
+    (CasADi's symbolic derivatives, evaluated at ``r = 0`` in exact rational arithmetic).
+    Taylor's theorem with the Lagrange remainder gives
     :math:`h(r, u) = \frac{r^m}{m!}\,\partial_r^m h(\xi, u)` for some
     :math:`\xi \in (0, r)`, so :math:`\partial_r^m h(s, u) < 0` for every
     :math:`s \in [0, R]` and ``u`` on each of the ``2n`` faces (interval verifier) proves
@@ -1370,7 +1377,7 @@ def certify_inner_blowup(cl, A_cl, inner: float, *, verify_options: dict | None 
             order = _exact_order(Fx, P, T, w)
             if order is None:
                 continue
-        m, D = _leading_term(h_sub, r, BLOWUP_MAX_ORDER, order)
+        m, D = _leading_term(h_sub, r, u, BLOWUP_MAX_ORDER, order)
         if m is None:
             continue
         form = InnerForm(InnerFormKind.BLOWUP, weights=tuple(w), order=m).to_str()

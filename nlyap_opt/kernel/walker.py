@@ -26,8 +26,10 @@ constants are read from ``instruction_constant`` (SX) or ``evalf`` (MX).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 from typing import Any
 
 import casadi as ca
@@ -39,7 +41,8 @@ from .errors import UnsupportedOperationError
 
 __all__ = [
     "ArrayArithmetic", "Program", "compile_function", "evaluate", "op_name", "NUMPY", "OpInfo",
-    "OP_TABLE", "UNARY_OPS", "BINARY_OPS", "CHECKED_OPS",
+    "OP_TABLE", "UNARY_OPS", "BINARY_OPS", "CHECKED_OPS", "ExactPointArithmetic", "exact_values",
+    "REAL", "UNDEFINED",
 ]
 
 OP_NAMES: dict[int, str] = {getattr(ca, a): a for a in dir(ca) if a.startswith("OP_")}
@@ -921,3 +924,201 @@ def evaluate(fun: ca.Function | Program, args: Sequence, arith=NUMPY) -> list:
                 f"{tuple(a.shape)}"
             )
     return prog(args, arith)
+
+
+# --------------------------------------------------------------------------- exact values
+class _Real:
+    """A real number the exact arithmetic does not compute (defined and finite), or, for
+    :data:`UNDEFINED`, a value outside an operation's domain (``log(0)``, ``1/0``)."""
+
+    __slots__ = ("name",)
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def __repr__(self) -> str:
+        return self.name
+
+
+#: a defined real number whose exact value is not computed (``sin(1)``)
+REAL = _Real("REAL")
+#: not a real number: an operation applied outside its domain
+UNDEFINED = _Real("UNDEFINED")
+
+# value of an elementary function at the rational points where it is rational
+_SPECIAL = {
+    ca.OP_EXP: {0: 1}, ca.OP_EXPM1: {0: 0}, ca.OP_LOG: {1: 0}, ca.OP_LOG1P: {0: 0},
+    ca.OP_SIN: {0: 0}, ca.OP_COS: {0: 1}, ca.OP_TAN: {0: 0}, ca.OP_ASIN: {0: 0},
+    ca.OP_ACOS: {1: 0}, ca.OP_ATAN: {0: 0}, ca.OP_SINH: {0: 0}, ca.OP_COSH: {0: 1},
+    ca.OP_TANH: {0: 0}, ca.OP_ASINH: {0: 0}, ca.OP_ACOSH: {1: 0}, ca.OP_ATANH: {0: 0},
+    ca.OP_ERF: {0: 0},
+}
+# the domain of the partial elementary functions (rational arguments)
+_DOMAIN = {
+    ca.OP_LOG: lambda q: q > 0, ca.OP_LOG1P: lambda q: q > -1, ca.OP_SQRT: lambda q: q >= 0,
+    ca.OP_ASIN: lambda q: -1 <= q <= 1, ca.OP_ACOS: lambda q: -1 <= q <= 1,
+    ca.OP_ACOSH: lambda q: q >= 1, ca.OP_ATANH: lambda q: -1 < q < 1,
+    ca.OP_INV: lambda q: q != 0,
+}
+_MAX_EXACT_POWER = 64
+
+
+def _rational_sqrt(q: Fraction):
+    """``√q`` when it is rational, else :data:`REAL` (``q ≥ 0``)."""
+    a, b = math.isqrt(q.numerator), math.isqrt(q.denominator)
+    return Fraction(a, b) if a * a == q.numerator and b * b == q.denominator else REAL
+
+
+class ExactPointArithmetic:
+    """Exact evaluation of an SX graph at a point, for the questions "is ``f(0)`` exactly 0"
+    that float evaluation cannot answer.
+
+    Every value is a :class:`fractions.Fraction` (the exact real value: every float constant
+    of the graph is the rational it denotes, and ``+ - * /``, integer powers, ``fabs``,
+    ``fmin``, comparisons, ... are exact), :data:`REAL` (a defined real number the
+    arithmetic does not compute: ``sin(1)``, ``√2``) or :data:`UNDEFINED` (an operation
+    outside its domain, or a partial one whose argument is only known to be real). The
+    elementary functions are exact at the points where their value is rational (``sin 0 =
+    0``, ``exp 0 = 1``, ``log 1 = 0``, ...). ``0 · REAL = 0`` exactly, so a term that
+    vanishes at the point vanishes whatever its other factor is. Nothing is rounded: an
+    output found to be ``Fraction(0)`` is the real number 0, which no float evaluation (and
+    no substitution into a CasADi graph, which folds constants in float64) can prove.
+
+    Examples
+    --------
+    >>> x = ca.SX.sym("x")
+    >>> exact_values(ca.Function("f", [x], [((x**2 + 1e16) + 1) - 1e16]), [0])
+    [Fraction(1, 1)]
+    >>> exact_values(ca.Function("f", [x], [ca.sin(x) * ca.exp(x + 1)]), [0])
+    [Fraction(0, 1)]
+    """
+
+    name = "exact point"
+    symbolic = True   # scalar values, one per register; outputs as lists
+
+    def constant(self, value):
+        v = float(np.asarray(value, dtype=float))
+        return Fraction(v) if math.isfinite(v) else UNDEFINED
+
+    def unary(self, op: int, a):
+        if op not in OP_TABLE or OP_TABLE[op].arity != 1:
+            raise _unsupported(op, self.name, UNARY_OPS)
+        if a is UNDEFINED:
+            return UNDEFINED
+        if a is REAL:
+            # a partial function of an unknown real may leave its domain
+            return UNDEFINED if OP_TABLE[op].domain is not None else REAL
+        if op in _DOMAIN and not _DOMAIN[op](a):
+            return UNDEFINED
+        if op == ca.OP_NEG:
+            return -a
+        if op in (ca.OP_ASSIGN,):
+            return a
+        if op == ca.OP_SQ:
+            return a * a
+        if op == ca.OP_TWICE:
+            return a + a
+        if op == ca.OP_FABS:
+            return abs(a)
+        if op == ca.OP_INV:
+            return 1 / a
+        if op == ca.OP_SQRT:
+            return _rational_sqrt(a)
+        if op == ca.OP_SIGN:
+            return Fraction((a > 0) - (a < 0))
+        if op == ca.OP_FLOOR:
+            return Fraction(math.floor(a))
+        if op == ca.OP_CEIL:
+            return Fraction(math.ceil(a))
+        if op == ca.OP_NOT:
+            return Fraction(int(a == 0))
+        special = _SPECIAL.get(op, {})
+        return Fraction(special[a]) if a in special else REAL
+
+    def binary(self, op: int, a, b):
+        if op not in OP_TABLE or OP_TABLE[op].arity != 2:
+            raise _unsupported(op, self.name, BINARY_OPS)
+        if op == ca.OP_IF_ELSE_ZERO:           # c ? y : 0, the branch not taken does not count
+            if isinstance(a, Fraction):
+                return b if a != 0 else Fraction(0)
+            if a is UNDEFINED or b is UNDEFINED:
+                return UNDEFINED
+            return Fraction(0) if b == 0 else REAL
+        if a is UNDEFINED or b is UNDEFINED:
+            return UNDEFINED
+        if op == ca.OP_MUL and (isinstance(a, Fraction) and a == 0
+                                or isinstance(b, Fraction) and b == 0):
+            return Fraction(0)
+        exact = isinstance(a, Fraction) and isinstance(b, Fraction)
+        if op in (ca.OP_DIV, ca.OP_FMOD):
+            if not (isinstance(b, Fraction) and b != 0):
+                return UNDEFINED
+            if isinstance(a, Fraction) and a == 0:
+                return Fraction(0)
+            if not exact:
+                return REAL
+            return a / b if op == ca.OP_DIV else a - b * int(a / b)   # C fmod: truncation
+        if op in (ca.OP_POW, ca.OP_CONSTPOW):
+            return self._pow(a, b)
+        if not exact:
+            total = OP_TABLE[op].domain is None
+            return REAL if total else UNDEFINED
+        if op == ca.OP_ADD:
+            return a + b
+        if op == ca.OP_SUB:
+            return a - b
+        if op == ca.OP_MUL:
+            return a * b
+        if op == ca.OP_FMIN:
+            return min(a, b)
+        if op == ca.OP_FMAX:
+            return max(a, b)
+        if op == ca.OP_HYPOT:
+            return _rational_sqrt(a * a + b * b)
+        if op == ca.OP_COPYSIGN:
+            return abs(a) if b >= 0 else -abs(a)   # (copysign(x, -0.0): -0.0 is the rational 0)
+        if op == ca.OP_ATAN2:
+            return Fraction(0) if a == 0 and b >= 0 else REAL
+        compare = {ca.OP_LT: a < b, ca.OP_LE: a <= b, ca.OP_EQ: a == b, ca.OP_NE: a != b,
+                   ca.OP_AND: a != 0 and b != 0, ca.OP_OR: a != 0 or b != 0}
+        return Fraction(int(compare[op]))
+
+    @staticmethod
+    def _pow(a, b):
+        if not isinstance(b, Fraction):
+            return UNDEFINED if not (isinstance(a, Fraction) and a > 0) else REAL
+        if b.denominator == 1:
+            k = int(b)
+            if k == 0:
+                return Fraction(1)
+            if not isinstance(a, Fraction):
+                return REAL if k > 0 else UNDEFINED
+            if a == 0:
+                return Fraction(0) if k > 0 else UNDEFINED
+            return a ** k if abs(k) <= _MAX_EXACT_POWER else REAL
+        if not isinstance(a, Fraction) or a < 0:
+            return UNDEFINED
+        if a in (0, 1):
+            return Fraction(a) if b > 0 or a == 1 else UNDEFINED
+        return REAL
+
+    def structural(self, fn, *args):
+        return fn(*args)
+
+
+def exact_values(fun: ca.Function, point) -> list | None:
+    """The outputs of the single-input ``fun`` at ``point`` in :class:`ExactPointArithmetic`
+    (a flat list over the nonzeros of every output; ``None`` when the graph is not an SX
+    graph the arithmetic can walk). ``point``: floats or :class:`fractions.Fraction`, or
+    :data:`REAL` for a coordinate that stands for every real number (an output exactly 0
+    is then 0 for all of them)."""
+    if fun.n_in() != 1 or not fun.is_a("SXFunction"):
+        return None
+    pt = np.empty(len(point), dtype=object)
+    for i, v in enumerate(point):
+        pt[i] = v if isinstance(v, (Fraction, _Real)) else Fraction(float(v))
+    try:
+        outs = evaluate(fun, [pt], ExactPointArithmetic())
+    except UnsupportedOperationError:
+        return None
+    return [v for out in outs if out is not None for v in out]

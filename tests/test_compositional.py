@@ -223,6 +223,20 @@ def test_a_decrease_that_fails_by_a_rounding_of_the_product_is_not_proved():
     pytest.fail("no case with a positive exact entry and a non-positive float one was found")
 
 
+def test_a_derivative_that_casadi_folds_to_a_wrong_sign_is_not_trusted():
+    """``ẋ₁ = 2((10¹⁶x₁ + x₁) − 10¹⁶x₁) − x₁ = +x₁`` (unstable) while ``ca.jacobian`` folds
+    it to ``−1``: the local test encloses the Jacobian along a symbolic seed and refuses."""
+    from nlyap_opt.certification.compositional import Piece
+    x = ca.SX.sym("x", 2)
+    f = ca.vertcat(2 * ((1e16 * x[0] + x[0]) + (-1e16) * x[0]) - x[0], -x[1])
+    assert float(ca.jacobian(f, x)[0, 0]) == -1.0
+    s = systems.System("folded", x, None, f, state_box=[[-1, 1]] * 2, subsystems=[(0,), (1,)])
+    pieces = [Piece((0,), (), np.eye(1), 0.5, ()), Piece((1,), (), np.eye(1), 0.5, ())]
+    ok, checks, why = check_compositional(s, pieces, [1.0, 1.0], 0.25, 0.5)
+    assert not ok and "not proved" in checks["local"]
+    assert not certify_compositional(s, **QUIET).certified
+
+
 # ============================================================================ re-check
 @pytest.fixture(scope="module")
 def saved(tmp_path_factory):

@@ -78,3 +78,17 @@ def test_a_coordinate_that_stands_for_every_real():
     assert _at(x[0] + x[1], [0, REAL]) is REAL
     assert _at(x[0] * ca.log(x[1]), [0, REAL]) is UNDEFINED   # log of a real may not exist
     assert _at(ca.tanh(x[0]) + ca.cos(x[0]) - 1, [0, REAL]) == 0
+
+
+def test_huge_rationals_become_real_instead_of_hanging():
+    """Thirty squarings of ``x + 3`` would need ~2³⁰-digit integers; past the size cap the
+    value is REAL, so the evaluation stays fast and claims no 0 it did not compute."""
+    def chain():
+        e = x[0] + 3
+        for _ in range(30):
+            e = e * e
+        return e
+    e1, e2 = chain(), chain()                   # two graphs of the same value
+    assert _at(e1 - e2, [0, 0]) is REAL
+    assert _at(e1 * x[0], [0, 0]) == 0
+    assert _at(e1 - e2, [-3, 0]) == 0            # small values stay exact

@@ -194,7 +194,63 @@ def test_the_level_search_uses_it_and_agrees_with_the_verifier():
     # the certified level is the largest the box allows: min over faces of 1/(P⁻¹)_kk
     c_max = 1.0 / np.max(np.diag(np.linalg.inv(np.array(Pq, dtype=float))))
     assert 0.98 * c_max < res.level < c_max
-    # a margin (learned dynamics) leaves the decision to the verifier
-    with_margin = certify_level(x, V, lie, quadratic=Pq, rhs=g, **{**kw, "margin": 1e-9,
-                                                             "max_tries": 1})
-    assert all(h.get("decrease_backend") != "taylor" for h in with_margin.history)
+    # a small global margin (learned dynamics) is proved by Taylor too, at the same level;
+    # one larger than the decrease at ‖x‖ = ε is not (the verifier then finds it fails)
+    small = certify_level(x, V, lie, quadratic=Pq, rhs=g, **{**kw, "margin": 1e-9})
+    assert small.status == "certified" and small.level == res.level
+    assert small.history[-1]["decrease_backend"] == "taylor"
+    big = certify_level(x, V, lie, quadratic=Pq, rhs=g, **{**kw, "margin": 1.0,
+                                                               "max_tries": 1})
+    assert big.status != "certified"
+    assert all(h.get("decrease_backend") != "taylor" for h in big.history)
+
+
+def test_the_robust_property_of_learned_dynamics_is_proved_only_outside_its_radius(rng):
+    """``g = −y`` (a φ), ``V = ‖y‖²``, ``‖f − φ‖ ≤ η``: the robust property
+    ``∇V·g + η‖∇_L V‖ = −2r² + 2η‖y_L‖`` (``r = ‖y‖``) is negative exactly where
+    ``‖y_L‖ < r²/η``; with every component learned, where ``r > η``. The test bounds
+    ``‖P_L‖₂`` by the Frobenius norm (``√2`` for both components, 1 for one), so it proves
+    ``ε > √2 η`` (``ε > η`` with one learned component) and never an ``ε`` at which the
+    property fails somewhere; a global margin ``m`` needs ``ε > √(m/2)``. Where it proves,
+    sampling agrees."""
+    eta = 0.01
+    x, V, lie, Pq, g = _setup(np.eye(2), lambda z: -z, 2)
+    box = np.array([[-1.0, 1.0]] * 2)
+    both = TaylorDecrease(x, g, Pq, eta=eta)
+    assert both.check(0.5, box, 0.0) is None
+    assert both.check(0.5, box, 0.5 * eta) is None        # fails at ‖y‖ < η: not provable
+    assert both.check(0.5, box, 1.2 * eta) is None        # true, beyond the Frobenius bound
+    assert both.check(0.5, box, 1.5 * eta).status == "verified"
+    one = TaylorDecrease(x, g, Pq, eta=eta, components=[0])
+    assert one.check(0.5, box, 0.9 * eta) is None
+    assert one.check(0.5, box, 1.1 * eta).status == "verified"
+    # smoothing s adds η·s: λ = (2√2 η ε + η s)/ε² must stay below 2 (ε = 0.02: s < 0.0234)
+    assert TaylorDecrease(x, g, Pq, eta=eta, smoothing=0.01).check(0.5, box, 0.02).status \
+        == "verified"
+    assert TaylorDecrease(x, g, Pq, eta=eta, smoothing=0.04).check(0.5, box, 0.02) is None
+    m = 2e-4
+    glob = TaylorDecrease(x, g, Pq, margin=m)
+    assert glob.check(0.5, box, 0.9 * np.sqrt(m / 2)) is None
+    assert glob.check(0.5, box, 1.1 * np.sqrt(m / 2)).status == "verified"
+    # the proved property holds on samples outside the radius
+    eps = 1.5 * eta
+    robust = lie + eta * ca.norm_2(ca.gradient(V, x))
+    pts = rng.uniform(-0.8, 0.8, (100000, 2))
+    pts = pts[np.linalg.norm(pts, axis=1) >= eps]
+    vals = np.asarray(ca.Function("p", [x], [robust])(pts.T)).ravel()
+    assert np.all(vals < 0)
+
+
+@pytest.mark.parametrize("inner", [0.0, 0.01])
+def test_a_derivative_that_casadi_folds_to_a_wrong_sign_is_not_trusted(inner):
+    """``g = 2((10¹⁶x + x) − 10¹⁶x) − x`` is ``+x`` as a real function (unstable), but
+    ``ca.jacobian`` folds ``10¹⁶ + 1`` to ``10¹⁶`` and gives the constant ``−1``. The test's
+    Jacobian is CasADi's forward mode along a symbolic seed: interval arithmetic rounds
+    ``10¹⁶·S + S`` outward and sees the ``+1``, so nothing is proved."""
+    from fractions import Fraction as Fr
+    x = ca.SX.sym("x", 1)
+    g = 2 * ((1e16 * x[0] + x[0]) + (-1e16) * x[0]) - x[0]
+    assert float(ca.jacobian(g, x)) == -1.0
+    t = TaylorDecrease(x, g, [[Fr(1)]])
+    assert t.why == ""
+    assert t.check(0.25, np.array([[-1.0, 1.0]]), inner) is None

@@ -279,6 +279,9 @@ class Decrease:
     M: float | None
     smoothing: float
     rhs: object = None      # the closed loop's right-hand side g (lie = ∇V·g)
+    #: learned dynamics, pointwise margin: ``eta``, ``smoothing`` and ``components`` of the
+    #: robust ``lie`` (:func:`nlyap_opt.kernel.symbolic.robust_lie`); ``None`` otherwise
+    robust: dict | None = None
 
 
 @dataclass
@@ -412,10 +415,12 @@ class RoaProblem:
         cl = closed_loop(self.system, self.controller, self.dynamics, strict=True)
         Vx = self.V_expr(cl.x)
         lie = lie_derivative(Vx, cl.x, cl.rhs)
+        robust = None
         if not self.known and self.margin_mode == "pointwise":
-            lie = robust_lie(lie, Vx, cl.x, self.eta, s,
-                             learned_components_of(self.system, self.dynamics))
-        self._decrease = Decrease(cl.x, Vx, lie, margin, M, s, cl.rhs)
+            comp = learned_components_of(self.system, self.dynamics)
+            lie = robust_lie(lie, Vx, cl.x, self.eta, s, comp)
+            robust = {"eta": self.eta, "smoothing": s, "components": comp}
+        self._decrease = Decrease(cl.x, Vx, lie, margin, M, s, cl.rhs, robust)
         return self._decrease
 
     def V_numpy(self, pts: np.ndarray) -> np.ndarray:
@@ -646,7 +651,7 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
                        shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
                        log=log, follow_violations=follow_violations,
                        quadratic=quadratic_form(problem.V),
-                       rhs=dec.rhs if problem.known else None)
+                       rhs=dec.rhs, robust=dec.robust)
     # the checks of the certified level (a search's later tries may have failed above it)
     last = lc.history[-1] if lc.history else {}
     if lc.status == "certified":

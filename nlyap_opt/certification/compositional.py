@@ -225,15 +225,17 @@ def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
     for a, k in enumerate(idx):
         xs[k] = y[a]
     fi = ca.substitute(ca.vertcat(*[system.f[r] for r in parts[i]]), system.x, xs)
-    # the rows of the neighbours' states are 0: V_i reads x_i only
-    J = ca.densify(ca.vertcat(ca.jacobian(fi, y), ca.SX.zeros(m - ni, m)))
+    # the rows of the neighbours' states are 0: V_i reads x_i only (a symbolic seed S: no
+    # float folding of f's constants in the derivative, see seeded_jacobian)
+    S = ca.SX.sym("S", m, m)
+    JS = ca.densify(ca.vertcat(ca.jtimes(fi, y, S), ca.SX.zeros(m - ni, m)))
     name = f"subsystem {i + 1} ({', '.join(system.state_names[k] for k in parts[i])})"
     try:
-        if compile_function(ca.Function(f"local_{i}", [y], [fi, J])).checked:
+        if compile_function(ca.Function(f"local_{i}", [y, S], [fi, JS])).checked:
             return None, (f"{name}: f uses non-smooth or partial operations; the "
                           "compositional method needs f continuously differentiable "
                           "on all of D")
-        CR = sliced_enclosure(ca.Function(f"jac_{i}", [y], [J]), system.state_box[idx],
+        CR = sliced_enclosure(ca.Function(f"jac_{i}", [y, S], [JS]), system.state_box[idx],
                               [Fraction(1, TAYLOR_SLICES)] * TAYLOR_SLICES)
     except UnsupportedOperationError as err:
         return None, f"{name}: {err}"

@@ -78,7 +78,8 @@ from ..learned.interval_sup import interval_arithmetic
 __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
     "quadratic_form", "quadratic_containment", "quadratic_inner_ball", "inner_ellipse_bound",
-    "centre_lyapunov_matrix", "mean_value_form", "sliced_enclosure", "TaylorDecrease",
+    "centre_lyapunov_matrix", "mean_value_form", "sliced_enclosure", "seeded_jacobian",
+    "TaylorDecrease",
     "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "InnerForm",
     "InnerFormKind",
 ]
@@ -456,6 +457,21 @@ TAYLOR_SLICES = 16
 _FOLD = Fraction(FOLD)
 
 
+def seeded_jacobian(name: str, g, y) -> ca.Function:
+    r"""``H(y, S) = J(y)·S``: the Jacobian of ``g`` in ``y`` by CasADi's forward mode along a
+    seed ``S`` that is a *symbol* while the graph is built (evaluate it at ``S = I``).
+
+    CasADi folds operations between numbers it knows into float64 constants as it builds a
+    graph; a derivative built by ``ca.jacobian`` holds such folds of ``g``'s own constants
+    (``d/dx [(10¹⁶x + x) − 10¹⁶x]`` becomes the constant 0, not 1), and no widening covers
+    a fold that cancels. With a symbolic seed every derivative term keeps a symbol
+    (``(10¹⁶·S + S) − 10¹⁶·S``), so the interval evaluation at ``S = I`` rounds each
+    operation outward like any other and encloses the real derivative."""
+    n = y.numel()
+    S = ca.SX.sym("S", n, n)
+    return ca.Function(name, [y, S], [ca.densify(ca.jtimes(g, y, S))])
+
+
 def sliced_enclosure(H: ca.Function, box: np.ndarray, weights: list[Fraction]
                      ) -> tuple[list[list[Fraction]], list[list[Fraction]]] | None:
     r"""``(C, R)``, exact rational centre and radius of :math:`\sum_k w_k [h](t_k Y)`, ``Y`` =
@@ -464,14 +480,19 @@ def sliced_enclosure(H: ca.Function, box: np.ndarray, weights: list[Fraction]
     widened by CasADi's constant-folding allowance; ``None`` when an enclosure is not
     finite. Since :math:`tY \subseteq t_{k+1} Y` for :math:`t \le t_{k+1}`, an integral
     :math:`\int_0^1 \omega(t)\,h(ty)\,dt` with :math:`w_k = \int_{t_k}^{t_{k+1}}\omega`
-    lies in the sum for every ``y ∈ Y``."""
+    lies in the sum for every ``y ∈ Y``. ``H`` of :func:`seeded_jacobian` (a second input,
+    the seed) is evaluated at the identity seed."""
     Interval, ia = interval_arithmetic()
     d = box.shape[0]
     K = len(weights)
     ts = [Fraction(k, K) for k in range(K + 1)]
     lo_b = np.array([[float_down(t * rational(v)) for v in box[:, 0]] for t in ts[1:]])
     hi_b = np.array([[float_up(t * rational(v)) for v in box[:, 1]] for t in ts[1:]])
-    res = evaluate(H, [Interval(lo_b, hi_b)], ia)[0]
+    args = [Interval(lo_b, hi_b)]
+    if H.n_in() == 2:
+        eye = np.tile(np.eye(H.size1_in(1)).ravel(order="F"), (K, 1))
+        args.append(Interval(eye, eye.copy()))
+    res = evaluate(H, args, ia)[0]
     lo, hi = np.asarray(res.lo, dtype=float), np.asarray(res.hi, dtype=float)
     if lo.size not in (d * d, K * d * d) or hi.size != lo.size:
         return None
@@ -552,19 +573,38 @@ class TaylorDecrease:
     differentiable on ``Y``: graphs with non-smooth or partial operations are refused
     (``why``), and :meth:`check` then returns ``None``, as it does where the enclosure is not
     tight enough.
+
+    **Learned dynamics** (``g`` the closed loop with φ, ``‖f − φ‖ ≤ η``): the property the
+    certificate proves is ``∇V·g + margin < 0`` (``margin``: the global ``M·η``) or
+    ``∇V·g + η·sqrt(‖∇_L V‖² + s²) < 0`` (``eta``, ``smoothing`` ``s`` and the learned
+    ``components`` ``L``: :func:`nlyap_opt.kernel.symbolic.robust_lie`). With
+    ``∇_L V = 2 P_L y`` (the rows ``L`` of ``P``), ``‖2 P_L y‖ ≤ 2 p‖y‖`` for ``p ≥
+    ‖P_L‖_F`` and ``sqrt(q + s²) ≤ sqrt(q) + s``, the property is at most
+    :math:`y^\top N y + 2B\|y\| + m` with ``B = b + η p`` and ``m = margin + η s``. With
+    :math:`\lambda = (2B\varepsilon + m)/\varepsilon^2` and ``−N − λI ≻ 0``, the bound
+    :math:`q(r) = -\lambda r^2 + 2Br + m` is 0 at ``r = ε`` and decreasing beyond it, so the
+    property holds for every ``‖y‖ ≥ ε`` (strictly: ``yᵀNy < −λ‖y‖²`` for ``y ≠ 0``).
     """
 
-    def __init__(self, x, g, P: list[list[Fraction]]):
+    def __init__(self, x, g, P: list[list[Fraction]], *, eta: float = 0.0,
+                 smoothing: float = 0.0, components=None, margin: float = 0.0):
         self.P = P
         self.why = ""
         self._J = None
+        n0 = len(P)
+        rows = range(n0) if components is None else list(components)
+        self._eta, self._margin = rational(eta), rational(margin)
+        self._s = rational(smoothing)
+        self._pl = Fraction(_sqrt_up(sum(P[i][j] ** 2 for i in rows for j in range(n0)))) \
+            if self._eta > 0 else Fraction(0)
         n = x.numel()
         try:
             G = ca.Function("taylor_g", [x], [g]).expand()
             y = ca.SX.sym("y", n)
             gy = G(y)
-            J = ca.densify(ca.jacobian(gy, y))
-            prog = compile_function(ca.Function("taylor_gJ", [y], [gy, J]))
+            J = seeded_jacobian("taylor_J", gy, y)
+            S = ca.SX.sym("S", n, n)
+            prog = compile_function(ca.Function("taylor_gJ", [y, S], [gy, J(y, S)]))
         except (RuntimeError, UnsupportedOperationError) as err:
             # a callback (black box), an operation the walker does not support
             self.why = f"the closed loop has no expanded graph ({str(err).splitlines()[0][:80]})"
@@ -573,7 +613,7 @@ class TaylorDecrease:
             self.why = "the closed loop uses non-smooth or partial operations"
             return
         self._g = ca.Function("taylor_g0", [y], [gy])
-        self._J = ca.Function("taylor_J", [y], [J])
+        self._J = J
         self._Pinv_diag = inverse_diagonal(P)
 
     def box(self, level: float, domain_box: np.ndarray) -> np.ndarray:
@@ -605,7 +645,8 @@ class TaylorDecrease:
 
     def check(self, level: float, domain_box: np.ndarray,
               inner: float = 0.0) -> VerificationResult | None:
-        """``verified`` (backend ``"taylor"``) when the test proves ``V̇ < 0`` on the
+        """``verified`` (backend ``"taylor"``) when the test proves ``V̇ < 0`` (with learned
+        dynamics: the robust property) on the
         sublevel set ``V ≤ level`` within ``D`` outside the ball of radius ``inner``, else
         ``None``: the test decides nothing else (no counterexample comes from it)."""
         if self._J is None or not level > 0:
@@ -615,13 +656,18 @@ class TaylorDecrease:
         if not np.all((Y[:, 0] <= 0) & (Y[:, 1] >= 0)):
             return None
         b = self._g0_bound()
-        if b is None or (b > 0 and not inner > 0):
+        if b is None:
+            return None
+        B = b + self._eta * self._pl
+        m = self._margin + self._eta * self._s
+        if (B > 0 or m > 0) and not inner > 0:
             return None
         CR = sliced_enclosure(self._J, Y, [Fraction(1, TAYLOR_SLICES)] * TAYLOR_SLICES)
         if CR is None:
             return None
         N = mean_value_form(self.P, *CR)
-        lam = 2 * b / rational(inner) if b > 0 else Fraction(0)
+        eps = rational(inner) if inner > 0 else None
+        lam = (2 * B * eps + m) / (eps * eps) if (B > 0 or m > 0) else Fraction(0)
         M = [[-v - (lam if i == j else 0) for j, v in enumerate(row)] for i, row in enumerate(N)]
         if not positive_definite(M):
             return None
@@ -661,7 +707,7 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                   max_tries: int = 8, shrink: float = 1e-3, verify_options: dict | None = None,
                   log=print, domain=None, follow_violations: bool = False,
                   quadratic: list[list[Fraction]] | None = None,
-                  rhs=None) -> LevelCertificate:
+                  rhs=None, robust: dict | None = None) -> LevelCertificate:
     """Prove (a) and (b) at the largest level we can reach from ``level`` downwards.
 
     The region is ``domain`` (a :class:`nlyap_opt.kernel.domain.Region`) or the ball
@@ -693,8 +739,10 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     sphere) is then decided exactly by :func:`quadratic_containment` and
     :func:`quadratic_inner_ball` (the verifier only for a piece of ``∂D`` they leave open).
     Each history entry records how (b) was decided (``containment_backend``). With
-    ``quadratic``, ``margin = 0`` and ``rhs`` (the closed loop's right-hand side ``g`` with
-    ``lie = ∇V·g``: the true f) condition (a) is first tried by :class:`TaylorDecrease` on
+    ``quadratic`` and ``rhs`` (the closed loop's right-hand side ``g`` with ``lie = ∇V·g``,
+    or with learned dynamics its robust form: ``robust`` holds the ``eta``, ``smoothing`` and
+    learned ``components`` of :func:`nlyap_opt.kernel.symbolic.robust_lie`, and ``margin``
+    the global one) condition (a) is first tried by :class:`TaylorDecrease` on
     the sublevel set's bounding box (no bisection; exact for a linear closed loop), and the verifier
     decides where that test does not apply or does not prove it (``decrease_backend``:
     ``taylor`` or the verifier's).
@@ -716,8 +764,8 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     above = math.inf    # the least level above ``best`` that failed (or a violation's V)
     followed = False    # ``c`` was set by a followed decrease violation
     # (a) for a quadratic V and known dynamics: Taylor's formula on the sublevel set's box
-    taylor = TaylorDecrease(x, rhs, quadratic) \
-        if quadratic is not None and rhs is not None and not margin else None
+    taylor = TaylorDecrease(x, rhs, quadratic, margin=margin, **(robust or {})) \
+        if quadratic is not None and rhs is not None else None
 
     def lower(c_old, c_new):
         """The next level: ``c_new``, the inner ball's level instead, or ``None`` (stop)."""

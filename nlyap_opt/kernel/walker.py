@@ -961,6 +961,17 @@ _DOMAIN = {
     ca.OP_INV: lambda q: q != 0,
 }
 _MAX_EXACT_POWER = 64
+#: a rational whose numerator or denominator needs more bits than this becomes REAL (a
+#: chain of squarings doubles the size each time: the evaluation must stay fast)
+_MAX_EXACT_BITS = 4096
+
+
+def _capped(q):
+    """``q``, or :data:`REAL` when it has grown past :data:`_MAX_EXACT_BITS`."""
+    if isinstance(q, Fraction) and (q.numerator.bit_length() > _MAX_EXACT_BITS
+                                    or q.denominator.bit_length() > _MAX_EXACT_BITS):
+        return REAL
+    return q
 
 
 def _rational_sqrt(q: Fraction):
@@ -982,7 +993,11 @@ class ExactPointArithmetic:
     0``, ``exp 0 = 1``, ``log 1 = 0``, ...). ``0 · REAL = 0`` exactly, so a term that
     vanishes at the point vanishes whatever its other factor is. Nothing is rounded: an
     output found to be ``Fraction(0)`` is the real number 0, which no float evaluation (and
-    no substitution into a CasADi graph, which folds constants in float64) can prove.
+    no substitution into a CasADi graph, which folds constants in float64) can prove. A
+    rational that grows past 4096 bits becomes ``REAL``. Signed zeros are not modelled:
+    ``-0.0`` is the rational 0, so ``copysign`` and ``atan2`` at a zero argument are those of
+    ``+0`` (CasADi's floats tell the zeros apart); both are non-smooth operations, which the
+    callers refuse before they evaluate.
 
     Examples
     --------
@@ -1001,6 +1016,12 @@ class ExactPointArithmetic:
         return Fraction(v) if math.isfinite(v) else UNDEFINED
 
     def unary(self, op: int, a):
+        return _capped(self._unary(op, a))
+
+    def binary(self, op: int, a, b):
+        return _capped(self._binary(op, a, b))
+
+    def _unary(self, op: int, a):
         if op not in OP_TABLE or OP_TABLE[op].arity != 1:
             raise _unsupported(op, self.name, UNARY_OPS)
         if a is UNDEFINED:
@@ -1035,7 +1056,7 @@ class ExactPointArithmetic:
         special = _SPECIAL.get(op, {})
         return Fraction(special[a]) if a in special else REAL
 
-    def binary(self, op: int, a, b):
+    def _binary(self, op: int, a, b):
         if op not in OP_TABLE or OP_TABLE[op].arity != 2:
             raise _unsupported(op, self.name, BINARY_OPS)
         if op == ca.OP_IF_ELSE_ZERO:           # c ? y : 0, the branch not taken does not count

@@ -417,3 +417,24 @@ def test_alpha_pairs_each_output_with_its_listed_component():
     fb = ca.Function("b", [x, u], [learned_rhs(s, swapped, x, u)])
     np.testing.assert_allclose(np.array(fa([0.2, -0.3], [0.5])),
                                np.array(fb([0.2, -0.3], [0.5])), rtol=1e-13)
+
+
+def test_a_linear_component_is_carried_by_the_linear_neuron():
+    """A stiff linear chain (Fossil's HighOrd4: modes up to 3979/s): every component is linear,
+    the least-squares fit explains it, and φ is f to ~10⁻⁸ relative on the whole grid (without
+    the neuron the tanh layer left α ≈ 0.6). A nonlinear component is fitted by the neurons
+    alone."""
+    from nlyap_opt.learned.phi_training import LINEAR_RESIDUAL_MAX, linear_fit
+    x = ca.SX.sym("x", 4)
+    f = ca.vertcat(x[1], x[2], x[3], -576 * x[0] - 2400 * x[1] - 4180 * x[2] - 3980 * x[3])
+    s = systems.System("chain4", x, None, f, state_box=[[-1, 1]] * 4)
+    res = learn_dynamics(s, {"grid_counts": [7] * 4, "hidden": 4, "train_points": 400,
+                             "boundary_points": 50, "steps": 50, "lm_iterations": 5,
+                             "minimax_rounds": 0, "progress": False})
+    scale = float(np.max(np.abs(s.evaluate(np.ones((1, 4))))))
+    assert res.alpha.alpha < 1e-7 * scale
+    assert all(fit is not None for fit in res._state["linear"])
+    z = np.linspace(-1, 1, 50)[:, None]
+    assert linear_fit(z, np.sin(3 * z[:, 0])) is None          # nonlinear: no neuron
+    a, c, r = linear_fit(z, 2 * z[:, 0] + 1 + 1e-3 * z[:, 0] ** 3)
+    assert abs(a[0] - 2) < 1e-2 and abs(c - 1) < 1e-12 and r <= LINEAR_RESIDUAL_MAX * 2

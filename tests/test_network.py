@@ -336,6 +336,41 @@ def test_network_error_bound_covers_numpy_rounding():
     assert np.all(bound < 1e-12)  # and the bound is not vacuous
 
 
+def test_network_error_bound_covers_a_linear_neuron():
+    """A φ block with the fixed linear neuron (input weights ~10⁻⁶, output weight ~10⁶,
+    :func:`~nlyap_opt.learned.phi_training.with_linear`): the rounding bound still covers
+    the float evaluation against mpmath, and stays at the size of the output."""
+    mpmath = pytest.importorskip("mpmath", reason="mpmath (dev extra) is needed for the exact "
+                                 "reference")
+    from nlyap_opt.learned.phi_training import assemble, with_linear
+    bound_fn = _private("network_error_bound", "nlyap_opt.learned.dynamics")
+    rng = np.random.default_rng(5)
+    block = (rng.uniform(-1, 1, (4, 2)), rng.uniform(-1, 1, 4), 1e-3 * rng.uniform(-1, 1, 4),
+             np.array([0.0]))
+    a = np.array([-3980.0, 2400.0])
+    net = assemble([with_linear(block, (a, 0.5, 2.0))], np.zeros(2), np.ones(2),
+                   np.array([0.0]), np.array([1.0]))
+    zmax = np.ones(2)
+    bound = bound_fn(net, zmax)
+    Z = rng.uniform(-1, 1, (40, 2))
+    got = net.numpy(Z)
+    (l0, l1), c = net.layers, net.output_scale
+    mpmath.mp.dps = 60
+    worst = 0
+    for z, y in zip(Z, got):
+        exact = mpmath.mpf(np.ravel(c)[0]) * (mpmath.fsum(
+            mpmath.mpf(l1.weight[0, j]) * mpmath.tanh(mpmath.fsum(
+                mpmath.mpf(l0.weight[j, k]) * mpmath.mpf(z[k]) for k in range(2))
+                + mpmath.mpf(l0.bias[j])) for j in range(5)) + mpmath.mpf(l1.bias[0]))
+        err = abs(mpmath.mpf(y[0]) - exact)
+        worst = max(worst, err)
+        assert err <= bound[0]
+        # the neuron is the affine map within 3.4e-13·‖a‖₁ (plus the trained neurons)
+        lin = a @ z + 0.5
+        assert abs(float(exact) - lin) <= 3.4e-13 * np.sum(np.abs(a)) + 2 * 4 * 1e-3
+    assert bound[0] < 1e-9 * np.sum(np.abs(a))   # not the 1e6 output weight times 8u
+
+
 # ============================================================================ network files
 def _good() -> dict:
     net = Network([Layer([[1.0, 2.0], [0.5, -1.0], [0.0, 3.0]], [0.1, 0.2, 0.3], "tanh"),

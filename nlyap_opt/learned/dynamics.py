@@ -13,7 +13,10 @@ configuration: :class:`nlyap_opt.learned.dynamics_config.DynamicsConfig`):
   the very sample set on which α is measured, in :math:`(x, u)`-space);
 - :math:`\alpha = \max_s \|f(s) - \varphi(s)\|_2` over **all** nodes ``s`` of that grid,
   float64, batched (bounded memory), plus a rigorous rounding allowance ``alpha_upper``;
-- the network :math:`\varphi`: one hidden tanh layer, linear output, trained on a random
+- the network :math:`\varphi`: one hidden tanh layer, linear output; a learned component
+  that a least-squares affine map explains (a linear or stiff linear part) gets that map as
+  one fixed neuron and the others fit the residual
+  (:func:`~nlyap_opt.learned.phi_training.with_linear`); trained on a random
   subset of the grid nodes (plus nodes on the box faces): Adam (minibatches, cosine
   learning-rate schedule), then Levenberg–Marquardt in float64, then Lawson-reweighted
   Levenberg–Marquardt rounds that lower the *maximum* error (α is a maximum); seeded, with a
@@ -69,7 +72,15 @@ from ..kernel.rounding import U, gamma
 from ..kernel.symbolic import learned_components_of
 from ..kernel.walker import compile_function, evaluate
 from .dynamics_config import MODELS, DynamicsConfig, dynamics_config, load_dynamics_config
-from .phi_training import assemble, polish, progress_bar, train_component
+from .phi_training import (
+    assemble,
+    linear_fit,
+    polish,
+    progress_bar,
+    residual,
+    train_component,
+    with_linear,
+)
 
 __all__ = [
     "Grid", "DynamicsResult", "AlphaResult", "learn_dynamics", "refine_dynamics",
@@ -409,14 +420,18 @@ def network_error_bound(network: Network, zmax: np.ndarray) -> np.ndarray:
 
     Standard forward error analysis of ``W1 tanh(W0 z + b0) + b1`` (any summation order,
     ``γ_k = k u / (1 − k u)``) with a libm allowance of 4 ulps for ``tanh``; valid for
-    :meth:`Network.numpy` on one-hidden-layer tanh networks.
+    :meth:`Network.numpy` on one-hidden-layer tanh networks. A neuron's ``|tanh|`` is at most
+    ``min(1, |pre-activation|)``, which keeps the allowance of a neuron with a tiny input
+    scale and a large output weight (the linear neuron of
+    :func:`~nlyap_opt.learned.phi_training.linear_neuron`) at the size of its output.
     """
     (l0, l1) = network.layers
     n, H = l0.weight.shape[1], l0.weight.shape[0]
 
     pre = np.abs(l0.weight) @ np.asarray(zmax, dtype=float) + np.abs(l0.bias)
-    err_t = gamma(n + 1) * pre + 8 * U  # |t̂ − t| (|t| ≤ 1)
-    out = np.abs(l1.weight) @ np.ones(H) + np.abs(l1.bias)
+    tmax = np.minimum(1.0, 2.0 * pre)   # ≥ |tanh| of the computed pre-activation
+    err_t = gamma(n + 1) * pre + 8 * U * tmax + 4 * 2.0**-1074   # |t̂ − t|, 4 ulps of tanh
+    out = np.abs(l1.weight) @ tmax + np.abs(l1.bias)
     err = gamma(H + 1) * out + np.abs(l1.weight) @ err_t
     scale = np.abs(np.broadcast_to(network.output_scale, err.shape))
     err = scale * err + 2 * U * scale * out
@@ -824,15 +839,18 @@ def learn_dynamics(system, config: DynamicsConfig | dict | None = None, *,
     history: list[dict] = []
     blocks = []
     cols = input_columns(system, model, comp, cfg.inputs)
+    linear = []
     with deterministic_torch(cfg.threads):
         for k in range(len(comp)):
             zk = zn if len(cols[k]) == zn.shape[1] else zn[:, cols[k]]
+            linear.append(linear_fit(zk, yn[:, k]))
             blocks.append(train_component(
-                zk, yn[:, k], hidden[k], cfg, cfg.seed + 7919 * k, progress, history,
-                f"φ[{comp[k]}] {system.name}", t0))
+                zk, residual(zk, yn[:, k], linear[k]), hidden[k], cfg, cfg.seed + 7919 * k,
+                progress,
+                history, f"φ[{comp[k]}] {system.name}", t0))
     seconds["training"] = time.perf_counter() - t0
     state = {"z": z, "centre": centre, "radius": radius, "mu": mu, "sigma": sigma,
-             "blocks": blocks, "inputs": cols, "B": B, "hidden": hidden,
+             "blocks": blocks, "linear": linear, "inputs": cols, "B": B, "hidden": hidden,
              "declarations_check": declared}
     return _finish(system, cfg, grid, model, comp, state, seconds, history, 0)
 
@@ -842,7 +860,8 @@ def _finish(system, cfg: DynamicsConfig, grid: Grid, model: str, comp: list[int]
     """Assemble the network from the trained blocks and measure α on every grid node."""
     d = grid.dim
     cols = state.get("inputs") or [list(range(d)) for _ in comp]
-    network = assemble(_widen(state["blocks"], cols, d), state["centre"], state["radius"],
+    blocks = [with_linear(b, fit) for b, fit in zip(state["blocks"], state["linear"])]
+    network = assemble(_widen(blocks, cols, d), state["centre"], state["radius"],
                         state["mu"], state["sigma"], cfg.prune)
     network.meta.update({
         "kind": "dynamics", "system": system.name, "model": model,
@@ -913,8 +932,8 @@ def refine_dynamics(result: DynamicsResult, *, points: int | None = None,
         total = cfg.lm_iterations + cfg.minimax_rounds * cfg.minimax_iterations
         bar = progress_bar(total, progress, f"φ[{comp[k]}] refine {rnd}")
         zk = zn if len(cols[k]) == zn.shape[1] else zn[:, cols[k]]
-        blocks.append(polish(zk, yn[:, k], len(block[1]), cfg, theta, bar, history,
-                              f"φ[{comp[k]}] {system.name} round {rnd}", t0))
+        blocks.append(polish(zk, residual(zk, yn[:, k], st["linear"][k]), len(block[1]), cfg,
+                             theta, bar, history, f"φ[{comp[k]}] {system.name} round {rnd}", t0))
         if bar is not None:
             bar.close()
     seconds = dict(result.seconds)

@@ -23,7 +23,70 @@ from ..kernel import deps
 from ..kernel.network import Layer, Network
 from .dynamics_config import DynamicsConfig
 
-__all__ = ["train_component", "polish", "assemble", "LevenbergMarquardt", "progress_bar"]
+__all__ = ["train_component", "polish", "assemble", "LevenbergMarquardt", "progress_bar",
+           "linear_fit", "residual", "with_linear", "LINEAR_SCALE",
+           "LINEAR_RESIDUAL_MAX"]
+
+
+#: a learned component whose least-squares affine fit leaves a residual of at most this
+#: fraction of its standard deviation (the fit explains ≥ 99.75 % of its variance: a linear or
+#: nearly linear component) gets the fixed linear neuron of :func:`with_linear`; the others
+#: are fitted by the neurons alone
+LINEAR_RESIDUAL_MAX = 0.05
+#: input scale of the linear neuron ``tanh(s aᵀz)/s`` (:func:`with_linear`): ``|s aᵀz| ≤``
+#: this on the normalised box
+LINEAR_SCALE = 1e-6
+
+
+def linear_fit(zn, y) -> tuple[np.ndarray, float, float] | None:
+    """``(a, c, r)``: the least-squares affine fit ``aᵀz + c ≈ y`` on the training nodes and
+    the standard deviation ``r`` of its residual (1 where it is 0), when the fit explains the
+    normalised target (standard deviation 1) up to ``r ≤`` :data:`LINEAR_RESIDUAL_MAX`;
+    else ``None`` (the neurons then fit ``y`` itself). The neurons are trained on the
+    residual divided by ``r``, in the units the training's settings (learning rate, LM
+    ridge) are stated for."""
+    A = np.column_stack([zn, np.ones(len(zn))])
+    coef = np.linalg.lstsq(A, y, rcond=None)[0]
+    a, c = np.asarray(coef[:-1], dtype=float), float(coef[-1])
+    r = float(np.std(y - (zn @ a + c)))
+    if not r <= LINEAR_RESIDUAL_MAX * max(float(np.std(y)), 1e-300):
+        return None
+    return a, c, (r if r > 0 else 1.0)
+
+
+def residual(zn, y, fit) -> np.ndarray:
+    """The training target of the neurons: ``(y − aᵀz − c)/r`` for ``fit = (a, c, r)``,
+    ``y`` itself for ``fit = None``."""
+    if fit is None:
+        return y
+    a, c, r = fit
+    return (y - (zn @ a + c)) / r
+
+
+def with_linear(block, fit):
+    """A block ``(W0, b0, w1, b1)`` trained on :func:`residual` with its scale ``r`` restored
+    and the affine fit joined as one more tanh neuron, first: ``(1/s)·tanh(s aᵀz) + c`` with
+    ``s =`` :data:`LINEAR_SCALE` ``/ ‖a‖₁`` (``fit = (a, c, r)``).
+
+    On the normalised box (``|z_i| ≤ 1``) ``|s aᵀz| ≤ 10⁻⁶``, so the neuron is ``aᵀz``
+    within ``s²|aᵀz|³/3 ≤ 3.4·10⁻¹³‖a‖₁``: φ carries a system's linear part (a stiff linear
+    chain's thousands per second) exactly enough, the other neurons fit only what is
+    nonlinear, and the neuron adds a curvature of order ``s‖a‖²`` to φ's second-order error
+    bound. The neuron is fixed: training sees only the residual (joined to the optimised
+    neurons its ``1/s`` output weight would make the least-squares problem ill-conditioned).
+    Without a linear part (``a = 0``) the neuron is left out; ``fit = None`` returns the block.
+    """
+    if fit is None:
+        return block
+    a, c, r = fit
+    W0, b0, w1, b1 = block
+    w1, b1 = w1 * r, b1 * r
+    norm = float(np.sum(np.abs(a)))
+    if not norm > 0:
+        return W0, b0, w1, b1 + c
+    s = LINEAR_SCALE / norm
+    return (np.vstack([s * np.asarray(a)[None, :], W0]), np.concatenate([[0.0], b0]),
+            np.concatenate([[1.0 / s], w1]), b1 + c)
 
 
 def train_component(zn, y, H, cfg: DynamicsConfig, seed, progress, history, desc, t_start):

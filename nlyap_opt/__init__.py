@@ -7,8 +7,9 @@ Public API (what users type); the machinery lives in the submodules.
   :class:`CertStatus`;
 - errors: :class:`NlyapError` and its subclasses, :class:`ConfigError` for bad user input.
 
-The pipeline and certificate names load their modules on first use (module
-``__getattr__``), so that ``import nlyap_opt`` stays light.
+Every public name except the errors loads its module on first use (module
+``__getattr__``), so that ``import nlyap_opt`` stays light (the ``nlyap`` command guards
+the heavy imports against Ctrl-C: :mod:`nlyap_opt.interface.entry`).
 """
 
 import importlib
@@ -26,9 +27,6 @@ from .kernel.errors import (
     UnsupportedLayerError,
     UnsupportedOperationError,
 )
-from .kernel.network import Layer, Network, from_torch, load_network
-from .kernel.symbolic import closed_loop, lie_derivative
-from .kernel.walker import evaluate
 
 __version__ = "0.1.0"
 
@@ -42,6 +40,13 @@ __all__ = [
 
 #: the public names loaded on first use: name -> the module that defines it
 _LAZY = {
+    "Layer": "nlyap_opt.kernel.network",
+    "Network": "nlyap_opt.kernel.network",
+    "from_torch": "nlyap_opt.kernel.network",
+    "load_network": "nlyap_opt.kernel.network",
+    "closed_loop": "nlyap_opt.kernel.symbolic",
+    "lie_derivative": "nlyap_opt.kernel.symbolic",
+    "evaluate": "nlyap_opt.kernel.walker",
     "run": "nlyap_opt.workflow.pipeline",
     "make_config": "nlyap_opt.workflow.configs",
     "RoaProblem": "nlyap_opt.certification.certificate",

@@ -114,6 +114,35 @@ def test_keyboard_interrupt_exits_130(monkeypatch, capsys):
     assert _err_lines(capsys) == ["nlyap: interrupted; rerun the same command to resume"]
 
 
+_INTERRUPT_IMPORT = """
+import sys
+class Stop:
+    def find_spec(self, name, path=None, target=None):
+        if name == "nlyap_opt.interface.cli":
+            raise KeyboardInterrupt
+sys.meta_path.insert(0, Stop())
+from nlyap_opt.interface.entry import main
+sys.exit(main(["run", "van_der_pol"]))
+"""
+
+
+def test_ctrl_c_while_the_command_line_is_imported_is_one_line_exit_130():
+    """A Ctrl-C during the ~1 s import of the command line (numpy, CasADi, the toolbox)
+    ends with one line and exit 130, never a traceback: ``import nlyap_opt`` loads nothing
+    heavy, and the console script imports the rest inside a guard."""
+    check = subprocess.run([sys.executable, "-c", "import sys, nlyap_opt, "
+                            "nlyap_opt.interface.entry; print(sorted({'numpy', 'casadi', "
+                            "'torch'} & set(sys.modules)))"],
+                           capture_output=True, text=True, timeout=60)
+    assert check.stdout.strip() == "[]", check.stdout + check.stderr
+    res = subprocess.run([sys.executable, "-c", _INTERRUPT_IMPORT], capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 130
+    assert "Traceback" not in res.stderr
+    assert res.stderr.strip().splitlines() == ["nlyap: interrupted while starting; nothing "
+                                               "was run"]
+
+
 def test_never_exit_1_for_errors(monkeypatch, capsys):
     for exc in (Exception("x"), AssertionError("y"), OSError("z"), SystemExit(1)):
         _patch_command(monkeypatch, exc)

@@ -9,7 +9,12 @@ import pytest
 
 import systems
 from baselines.compare import RowStatus, quadratic_row
-from nlyap_opt.candidates.quadratic import certify_quadratics, closed_loop_matrix, quadratic_policy
+from nlyap_opt.candidates.quadratic import (
+    certify_quadratics,
+    closed_loop_matrix,
+    decided_on_sets,
+    quadratic_policy,
+)
 from nlyap_opt.certification.certificate import LevelPolicy, RoaProblem, recheck_certificate
 from nlyap_opt.certification.roa import certify_level, least_violation
 from nlyap_opt.design.control import lqr, quadratic_lyapunov, saturated_controller
@@ -215,6 +220,10 @@ def test_level_policies():
     assert known.inner_fraction == 0.25 and 1.0 in known.factors and min(known.factors) < 1
     assert learned.inner_fraction == 1.0 and min(learned.factors) == 1.0
     assert learned.smallest_level and not known.smallest_level
+    # learned dynamics whose closed loop is smooth: searched down like the true f, at ε
+    whole = quadratic_policy(False, whole_set=True)
+    assert not whole.smallest_level and whole.factors == learned.factors
+    assert whole.inner_fraction == learned.inner_fraction
     for bad in ({"inner_fraction": 0.0}, {"inner_fraction": float("nan")}, {"factors": ()},
                 {"factors": (1.0, -2.0)}):
         with pytest.raises(ValueError):
@@ -370,3 +379,15 @@ def test_volume_candidate_certifies_the_pendulum_with_sampled_decrease():
     assert inside.sum() > 1000
     f = s.evaluate(pts[inside], problem.controller.numpy(pts[inside]))
     assert np.all(np.einsum("ij,jk,ik->i", pts[inside], c.P, f) < 0)
+
+
+def test_sets_are_decided_whole_only_for_a_smooth_closed_loop():
+    """The pendulum under the smooth controller C·tanh(K'x + b): TaylorDecrease applies; a
+    closed loop with a kink (|x₂|) it does not, and the learned policy stays at the
+    smallest level there."""
+    assert decided_on_sets(_pendulum_problem()[3])
+    x = ca.SX.sym("x", 2)
+    kink = systems.System("kink", x, None, ca.vertcat(-x[0] + 0.1 * ca.fabs(x[1]), -x[1]),
+                          state_box=[[-1, 1]] * 2)
+    assert not decided_on_sets(RoaProblem(kink, quadratic_lyapunov(np.eye(2)), None, None,
+                                          inner=0.1, outer=1.0))

@@ -74,6 +74,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from fractions import Fraction
 from types import SimpleNamespace
 
 import casadi as ca
@@ -105,7 +106,7 @@ from ..kernel.errors import ConfigError
 from ..kernel.symbolic import closed_loop
 
 __all__ = ["QUADRATIC_CANDIDATES", "QuadraticCandidate", "certify_quadratics", "thin_radius",
-           "closed_loop_matrix", "quadratic_policy", "volume_bound"]
+           "closed_loop_matrix", "quadratic_policy", "decided_on_sets", "volume_bound"]
 
 
 def _lyapunov(A_cl, known: bool = True, domain=None):
@@ -168,16 +169,32 @@ INNER_FRACTION = 0.25
 LEARNED_INNER_FRACTION = 1.0
 
 
-def quadratic_policy(known: bool) -> LevelPolicy:
+def quadratic_policy(known: bool, whole_set: bool = False) -> LevelPolicy:
     """The certification policy of a quadratic ``V = xᵀPx`` (the pipeline's candidates and
     ``nlyap compare``'s LQR rows): ε = :data:`INNER_FRACTION` of the run's with the true f,
     every radius of :data:`~nlyap_opt.certification.certificate.INNER_FACTORS`, searched down from
     the candidate level; with learned dynamics ε itself, no radius below it, each checked at the
-    smallest level that holds its inner ball. Decrease violations are followed down."""
+    smallest level that holds its inner ball, or (``whole_set``: the closed loop with φ is
+    smooth, so :class:`~nlyap_opt.certification.roa.TaylorDecrease` decides the robust
+    decrease on a whole sublevel set without bisection) searched down from the candidate
+    level as with the true f. Decrease violations are followed down."""
     if known:
         return LevelPolicy(INNER_FRACTION, INNER_FACTORS, follow_violations=True)
     return LevelPolicy(LEARNED_INNER_FRACTION, tuple(f for f in INNER_FACTORS if f >= 1),
-                       smallest_level=True, follow_violations=True)
+                       smallest_level=not whole_set, follow_violations=True)
+
+
+def decided_on_sets(problem) -> bool:
+    """Whether :class:`~nlyap_opt.certification.roa.TaylorDecrease` applies to the run's
+    closed loop (its graph is smooth and total: the decrease of a quadratic ``V`` is then
+    decided on whole sublevel sets)."""
+    try:
+        cl = closed_loop(problem.system, problem.controller, problem.dynamics)
+    except (ValueError, TypeError):
+        return False
+    n = problem.system.nx
+    eye = [[Fraction(int(i == j)) for j in range(n)] for i in range(n)]
+    return not TaylorDecrease(cl.x, cl.rhs, eye).why
 
 
 @dataclass
@@ -409,7 +426,7 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
     if unknown:
         raise ConfigError(f"unknown quadratic candidate {unknown[0]!r}; use some of "
                           f"{', '.join(QUADRATIC_CANDIDATES)}")
-    policy = quadratic_policy(problem.known)
+    policy = quadratic_policy(problem.known, not problem.known and decided_on_sets(problem))
     if inner_fraction is not None:
         policy = replace(policy, inner_fraction=inner_fraction)
     prune = not problem.known if prune is None else bool(prune)

@@ -220,9 +220,10 @@ def test_level_policies():
     assert known.inner_fraction == 0.25 and 1.0 in known.factors and min(known.factors) < 1
     assert learned.inner_fraction == 1.0 and min(learned.factors) == 1.0
     assert learned.smallest_level and not known.smallest_level
-    # learned dynamics whose closed loop is smooth: searched down like the true f, at ε
+    # learned dynamics whose closed loop is smooth: whole sets first, at ε
     whole = quadratic_policy(False, whole_set=True)
-    assert not whole.smallest_level and whole.factors == learned.factors
+    assert whole.whole_sets and not learned.whole_sets and whole.smallest_level
+    assert whole.factors == learned.factors
     assert whole.inner_fraction == learned.inner_fraction
     for bad in ({"inner_fraction": 0.0}, {"inner_fraction": float("nan")}, {"factors": ()},
                 {"factors": (1.0, -2.0)}):

@@ -174,14 +174,14 @@ def quadratic_policy(known: bool, whole_set: bool = False) -> LevelPolicy:
     ``nlyap compare``'s LQR rows): ε = :data:`INNER_FRACTION` of the run's with the true f,
     every radius of :data:`~nlyap_opt.certification.certificate.INNER_FACTORS`, searched down from
     the candidate level; with learned dynamics ε itself, no radius below it, each checked at the
-    smallest level that holds its inner ball, or (``whole_set``: the closed loop with φ is
+    smallest level that holds its inner ball, after (``whole_set``: the closed loop with φ is
     smooth, so :class:`~nlyap_opt.certification.roa.TaylorDecrease` decides the robust
-    decrease on a whole sublevel set without bisection) searched down from the candidate
-    level as with the true f. Decrease violations are followed down."""
+    decrease on a whole sublevel set without bisection) a search down from the candidate
+    level decided by that test alone. Decrease violations are followed down."""
     if known:
         return LevelPolicy(INNER_FRACTION, INNER_FACTORS, follow_violations=True)
     return LevelPolicy(LEARNED_INNER_FRACTION, tuple(f for f in INNER_FACTORS if f >= 1),
-                       smallest_level=not whole_set, follow_violations=True)
+                       smallest_level=True, follow_violations=True, whole_sets=whole_set)
 
 
 def decided_on_sets(problem) -> bool:

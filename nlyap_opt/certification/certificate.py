@@ -581,7 +581,8 @@ def _decrease_text(problem: RoaProblem, margin: float, smoothing: float) -> str:
 def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
                 check_inner_ellipse: bool = True, follow_violations: bool = False,
                 inner_ellipse: InnerEllipse | None = None,
-                ellipses: InnerEllipseCache | None = None, log=print) -> RoaCertificate:
+                ellipses: InnerEllipseCache | None = None, taylor_only: bool = False,
+                log=print) -> RoaCertificate:
     r"""Prove conditions (a), (b), (c) at ``level`` (or, with ``search``, at the largest level
     reachable from it downwards; see :func:`nlyap_opt.certification.roa.certify_level`).
 
@@ -606,6 +607,10 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     ellipses : InnerEllipseCache, optional
         Condition (c)'s results shared with other candidates ``V`` of the same closed loop
         (without ``inner_ellipse``): computed once per inner radius.
+    taylor_only : bool
+        Decide condition (a) only by the quadratic test on whole sublevel sets
+        (:class:`~nlyap_opt.certification.roa.TaylorDecrease`), never by bisection: a level
+        it does not prove is ``unknown`` (a cheap search for a quadratic ``V``).
 
     Returns
     -------
@@ -620,11 +625,11 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     fn = ellipses.get if ellipses is not None and inner_ellipse is None else _inner_ellipse
     job = ahead(fn, problem, inner_ellipse, when=not search) if check_inner_ellipse else None
     with job or contextlib.nullcontext():
-        return _certify_roa(problem, level, search, follow_violations, job, log)
+        return _certify_roa(problem, level, search, follow_violations, job, log, taylor_only)
 
 
 def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violations: bool,
-                 inner_job, log) -> RoaCertificate:
+                 inner_job, log, taylor_only: bool = False) -> RoaCertificate:
     """:func:`certify_roa`'s body; ``inner_job``: condition (c)'s :class:`Ahead`, or ``None``."""
 
     t0 = time.perf_counter()
@@ -651,7 +656,7 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
                        shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
                        log=log, follow_violations=follow_violations,
                        quadratic=quadratic_form(problem.V),
-                       rhs=dec.rhs, robust=dec.robust)
+                       rhs=dec.rhs, robust=dec.robust, taylor_only=taylor_only)
     # the checks of the certified level (a search's later tries may have failed above it)
     last = lc.history[-1] if lc.history else {}
     if lc.status == "certified":
@@ -878,12 +883,18 @@ class LevelPolicy:
         Follow decrease counterexamples down to the least ``V`` of a violation, and climb
         back from a proved level by bisection
         (:func:`nlyap_opt.certification.roa.certify_level`).
+    whole_sets : bool
+        With ``smallest_level``, for a quadratic ``V`` whose closed loop is smooth: each
+        radius is first searched down from the candidate level with condition (a) decided
+        only on whole sublevel sets (``certify_roa(..., taylor_only=True)``, no bisection),
+        and checked at the smallest level only if that certifies nothing.
     """
 
     inner_fraction: float = 1.0
     factors: tuple[float, ...] = INNER_FACTORS
     smallest_level: bool = False
     follow_violations: bool = False
+    whole_sets: bool = False
 
     def __post_init__(self):
         if not (math.isfinite(self.inner_fraction) and self.inner_fraction > 0):
@@ -1012,6 +1023,17 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
             tried.append({"inner": eps, "status": "no positive candidate level"})
             continue
         smallest = policy.smallest_level and level is None
+        if smallest and policy.whole_sets:
+            why = "" if beat is None else beat.cannot_beat(p, lv)
+            whole = None if why else certify_roa(
+                p, lv, search=True, follow_violations=policy.follow_violations,
+                ellipses=ellipses, taylor_only=True, log=log)
+            if whole is not None and whole.certified:
+                tried.append({"inner": eps, "status": whole.status.value,
+                              "reason": whole.reason, "level": whole.level})
+                if record:
+                    whole.history = list(whole.history) + [{"inner_radius_search": tried}]
+                return whole
         if smallest:
             m = inner_ball_level(dec.x, dec.V, eps)
             if not lv > m * (1.0 + INNER_LEVEL_MARGIN):

@@ -707,7 +707,8 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                   max_tries: int = 8, shrink: float = 1e-3, verify_options: dict | None = None,
                   log=print, domain=None, follow_violations: bool = False,
                   quadratic: list[list[Fraction]] | None = None,
-                  rhs=None, robust: dict | None = None) -> LevelCertificate:
+                  rhs=None, robust: dict | None = None,
+                  taylor_only: bool = False) -> LevelCertificate:
     """Prove (a) and (b) at the largest level we can reach from ``level`` downwards.
 
     The region is ``domain`` (a :class:`nlyap_opt.kernel.domain.Region`) or the ball
@@ -745,7 +746,9 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     the global one) condition (a) is first tried by :class:`TaylorDecrease` on
     the sublevel set's bounding box (no bisection; exact for a linear closed loop), and the verifier
     decides where that test does not apply or does not prove it (``decrease_backend``:
-    ``taylor`` or the verifier's).
+    ``taylor`` or the verifier's). ``taylor_only``: where that test does not prove (a) the
+    level is ``unknown`` and the search steps down, without the verifier's bisection (a
+    cheap whole-set search; the caller falls back to a smaller set).
     """
 
     t0 = time.perf_counter()
@@ -803,6 +806,8 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
         res_a = None
         if res_b.status == "verified":
             res_a = None if taylor is None else taylor.check(c, box, inner)
+            if res_a is None and taylor_only:   # undecided here: no bisection asked for
+                res_a = VerificationResult(QueryStatus.UNKNOWN, backend="taylor")
             if res_a is None:
                 prob_a = lyapunov_problem(x, V, lie, inner=inner, domain=D, level=c,
                                           margin=margin, box=box, check_positive=False)

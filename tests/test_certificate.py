@@ -228,3 +228,21 @@ def test_inner_radius_is_chosen_by_the_tool_without_retraining():
     # and it is a real certificate: re-check it at its own radius
     again = certify_roa(RoaProblem(s, V, inner=cert.inner, outer=2.0), cert.level, **QUIET)
     assert again.certified
+
+
+def test_a_radius_refuted_by_an_earlier_counterexample_is_not_searched():
+    """V = ‖x‖²: a counterexample x with ‖x‖ = 0.5 (V = 0.25) refutes every level ≥ 0.25 at
+    every radius ε ≤ 0.5; a radius needs a level above its inner ball's (ε²), so ε = 0.5
+    cannot certify, while ε = 0.1 (levels in (0.01, 0.25) remain) and ε = 0.6 (the point is
+    inside the ball) may."""
+    from nlyap_opt.certification.certificate import _refuted_radius
+    from nlyap_opt.design.control import quadratic_lyapunov
+    x = ca.SX.sym("x", 2)
+    s = systems.System("lin2", x, None, -x, state_box=[[-1, 1]] * 2)
+    prob = RoaProblem(s, quadratic_lyapunov(np.eye(2)), None, None, inner=0.1, outer=1.0)
+    dec = prob.decrease()
+    cex = [np.array([[0.3, 0.4]])]
+    assert _refuted_radius(prob, dec, 0.1, cex) == ""
+    assert "refutes every level" in _refuted_radius(prob, dec, 0.5, cex)
+    assert _refuted_radius(prob, dec, 0.6, cex) == ""
+    assert _refuted_radius(prob, dec, 0.5, []) == ""

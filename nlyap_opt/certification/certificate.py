@@ -1007,6 +1007,7 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
         return certify_roa(problem, 1.0 if level is None else level, log=log)
     record = len(policy.factors) > 1
     first, tried = None, []
+    refuted = []    # counterexamples of the radii tried so far
     for f in policy.factors:
         eps = base * f
         if not 0 < eps < problem.domain.inradius():
@@ -1021,6 +1022,11 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
                 lv = min(lv, cap)
         if not lv > 0:
             tried.append({"inner": eps, "status": "no positive candidate level"})
+            continue
+        why = _refuted_radius(problem, dec, eps, refuted)
+        if why:
+            tried.append({"inner": eps, "status": "skipped", "reason": why})
+            log(f"inner radius {eps:g}: not verified, {why}")
             continue
         smallest = policy.smallest_level and level is None
         if smallest and policy.whole_sets:
@@ -1051,6 +1057,9 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
         cert = certify_roa(p, lv, search=(f != 1.0 or level is None) and not smallest,
                            follow_violations=policy.follow_violations, ellipses=ellipses,
                            log=log)
+        if len(cert.counterexamples):
+            refuted.append(np.asarray(cert.counterexamples, dtype=float).reshape(
+                -1, problem.system.nx))
         tried.append({"inner": eps, "status": cert.status.value, "reason": cert.reason,
                       "level": cert.level})
         first = first or cert
@@ -1076,6 +1085,29 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
     if record:
         first.history = list(first.history) + [{"inner_radius_search": tried}]
     return first
+
+
+def _refuted_radius(problem: RoaProblem, dec, eps: float, refuted: list) -> str:
+    """Why no level can certify ``V`` at inner radius ``eps`` (``""``: one may).
+
+    A counterexample ``x`` of an earlier radius (of the decrease, or of containment on
+    ``∂D``) refutes every level ``c ≥ V(x)`` at every radius ``ε ≤ ‖x‖``: the property it
+    violates is the same there. A certificate at ``eps`` needs a level above the inner
+    ball's (the largest ``V`` on ``‖x‖ = eps``), so when a counterexample with ``‖x‖ ≥ eps``
+    has ``V`` at or below that, the radius cannot certify and is not searched (a skip of
+    work, never a claim)."""
+    if not refuted:
+        return ""
+    pts = np.vstack(refuted)
+    far = np.linalg.norm(pts, axis=1) >= eps
+    if not far.any():
+        return ""
+    vmin = float(np.min(problem.V_numpy(pts[far])))
+    m = inner_ball_level(dec.x, dec.V, eps)
+    if vmin > m * (1.0 + INNER_LEVEL_MARGIN):
+        return ""
+    return (f"a counterexample of another radius (V = {vmin:.4g}, outside ‖x‖ = {eps:g}) "
+            f"refutes every level that holds the inner ball (V > {m:.4g})")
 
 
 def certify_with_inner_search(problem: RoaProblem, level: float | None, *,

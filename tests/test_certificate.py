@@ -242,7 +242,8 @@ def test_a_radius_refuted_by_an_earlier_counterexample_is_not_searched():
     prob = RoaProblem(s, quadratic_lyapunov(np.eye(2)), None, None, inner=0.1, outer=1.0)
     dec = prob.decrease()
     cex = [np.array([[0.3, 0.4]])]
-    assert _refuted_radius(prob, dec, 0.1, cex) == ""
-    assert "refutes every level" in _refuted_radius(prob, dec, 0.5, cex)
-    assert _refuted_radius(prob, dec, 0.6, cex) == ""
-    assert _refuted_radius(prob, dec, 0.5, []) == ""
+    assert _refuted_radius(prob, dec, 0.1, cex) == ("", pytest.approx(0.25))   # start below
+    why, below = _refuted_radius(prob, dec, 0.5, cex)
+    assert "refutes every level" in why and below == pytest.approx(0.25)
+    assert _refuted_radius(prob, dec, 0.6, cex) == ("", np.inf)
+    assert _refuted_radius(prob, dec, 0.5, []) == ("", np.inf)

@@ -371,6 +371,25 @@ def test_network_error_bound_covers_a_linear_neuron():
     assert bound[0] < 1e-9 * np.sum(np.abs(a))   # not the 1e6 output weight times 8u
 
 
+def test_network_error_bound_covers_subnormal_pre_activations():
+    """Input weights of 2⁻¹⁰⁷⁴ (each product w·z rounds by half a subnormal step) and an
+    output weight of 10³⁰⁰: the bound still covers the float evaluation (mpmath)."""
+    mpmath = pytest.importorskip("mpmath", reason="mpmath (dev extra) is needed for the exact "
+                                 "reference")
+    bound_fn = _private("network_error_bound", "nlyap_opt.learned.dynamics")
+    mpmath.mp.prec = 2000
+    for n, zval in ((10, 0.49), (10, 0.51), (16, 0.49)):
+        W0 = np.full((1, n), 2.0**-1074)
+        net = Network([Layer(W0, np.zeros(1), "tanh"),
+                       Layer(np.array([[1e300]]), np.zeros(1), "linear")])
+        bound = bound_fn(net, np.full(n, zval))[0]
+        z = np.full(n, zval)
+        got = net.numpy(z[None, :])[0, 0]
+        exact = mpmath.mpf(1e300) * mpmath.tanh(mpmath.fsum(
+            mpmath.mpf(W0[0, k]) * mpmath.mpf(z[k]) for k in range(n)))
+        assert abs(mpmath.mpf(got) - exact) <= bound
+
+
 # ============================================================================ network files
 def _good() -> dict:
     net = Network([Layer([[1.0, 2.0], [0.5, -1.0], [0.0, 3.0]], [0.1, 0.2, 0.3], "tanh"),

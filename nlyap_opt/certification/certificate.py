@@ -1023,11 +1023,13 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
         if not lv > 0:
             tried.append({"inner": eps, "status": "no positive candidate level"})
             continue
-        why = _refuted_radius(problem, dec, eps, refuted)
+        why, below = _refuted_radius(problem, dec, eps, refuted)
         if why:
             tried.append({"inner": eps, "status": "skipped", "reason": why})
             log(f"inner radius {eps:g}: not verified, {why}")
             continue
+        if below < lv and (level is None or f != 1.0):   # start below the refuted levels
+            lv = below * (1.0 - 1e-3)
         smallest = policy.smallest_level and level is None
         if smallest and policy.whole_sets:
             why = "" if beat is None else beat.cannot_beat(p, lv)
@@ -1087,8 +1089,11 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
     return first
 
 
-def _refuted_radius(problem: RoaProblem, dec, eps: float, refuted: list) -> str:
-    """Why no level can certify ``V`` at inner radius ``eps`` (``""``: one may).
+def _refuted_radius(problem: RoaProblem, dec, eps: float, refuted: list
+                    ) -> tuple[str, float]:
+    """``(why, below)``: why no level can certify ``V`` at inner radius ``eps`` (``""``: one
+    may), and the least ``V`` of the counterexamples that refute levels there (``inf``:
+    none), below which a search at ``eps`` starts.
 
     A counterexample ``x`` of an earlier radius (of the decrease, or of containment on
     ``∂D``) refutes every level ``c ≥ V(x)`` at every radius ``ε ≤ ‖x‖``: the property it
@@ -1097,17 +1102,17 @@ def _refuted_radius(problem: RoaProblem, dec, eps: float, refuted: list) -> str:
     has ``V`` at or below that, the radius cannot certify and is not searched (a skip of
     work, never a claim)."""
     if not refuted:
-        return ""
+        return "", math.inf
     pts = np.vstack(refuted)
     far = np.linalg.norm(pts, axis=1) >= eps
     if not far.any():
-        return ""
+        return "", math.inf
     vmin = float(np.min(problem.V_numpy(pts[far])))
     m = inner_ball_level(dec.x, dec.V, eps)
     if vmin > m * (1.0 + INNER_LEVEL_MARGIN):
-        return ""
+        return "", vmin
     return (f"a counterexample of another radius (V = {vmin:.4g}, outside ‖x‖ = {eps:g}) "
-            f"refutes every level that holds the inner ball (V > {m:.4g})")
+            f"refutes every level that holds the inner ball (V > {m:.4g})"), vmin
 
 
 def certify_with_inner_search(problem: RoaProblem, level: float | None, *,

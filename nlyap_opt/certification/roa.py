@@ -468,7 +468,7 @@ def seeded_jacobian(name: str, g, y) -> ca.Function:
     (``(10¹⁶·S + S) − 10¹⁶·S``), so the interval evaluation at ``S = I`` rounds each
     operation outward like any other and encloses the real derivative."""
     n = y.numel()
-    S = ca.SX.sym("S", n, n)
+    S = (ca.SX if isinstance(y, ca.SX) else ca.MX).sym("S", n, n)
     return ca.Function(name, [y, S], [ca.densify(ca.jtimes(g, y, S))])
 
 
@@ -598,23 +598,26 @@ class TaylorDecrease:
         self._pl = Fraction(_sqrt_up(sum(P[i][j] ** 2 for i in rows for j in range(n0)))) \
             if self._eta > 0 else Fraction(0)
         n = x.numel()
+        # the graph as given (an MX closed loop is not expanded: expanding folds its
+        # constant parts, e.g. C·tanh(b) − u_eq of a controller, in floats)
         try:
-            G = ca.Function("taylor_g", [x], [g]).expand()
-            y = ca.SX.sym("y", n)
-            gy = G(y)
-            J = seeded_jacobian("taylor_J", gy, y)
-            S = ca.SX.sym("S", n, n)
-            prog = compile_function(ca.Function("taylor_gJ", [y, S], [gy, J(y, S)]))
+            self._g = ca.Function("taylor_g", [x], [g])
+            J = seeded_jacobian("taylor_J", g, x)
+            S = (ca.SX if isinstance(x, ca.SX) else ca.MX).sym("S", n, n)
+            prog = compile_function(ca.Function("taylor_gJ", [x, S], [g, J(x, S)]))
         except (RuntimeError, UnsupportedOperationError) as err:
             # a callback (black box), an operation the walker does not support
-            self.why = f"the closed loop has no expanded graph ({str(err).splitlines()[0][:80]})"
+            self.why = f"the closed loop has no graph to enclose ({str(err).splitlines()[0][:80]})"
             return
         if prog.checked:
             self.why = "the closed loop uses non-smooth or partial operations"
             return
-        self._g = ca.Function("taylor_g0", [y], [gy])
+        try:
+            self._Pinv_diag = inverse_diagonal(P)
+        except ZeroDivisionError:
+            self.why = "P is not positive definite"
+            return
         self._J = J
-        self._Pinv_diag = inverse_diagonal(P)
 
     def box(self, level: float, domain_box: np.ndarray) -> np.ndarray:
         """A box that holds :math:`\\{x^\\top P x \\le c\\} \\cap D`: the ellipsoid's bounding
@@ -628,7 +631,7 @@ class TaylorDecrease:
         """A rational ``b ≥ ‖P g(0)‖``: ``0`` when ``g(0) = 0`` exactly (the graph evaluated
         at 0 in exact rational arithmetic), else from the interval enclosure at 0."""
         n = len(self.P)
-        exact = exact_values(self._g, [0] * n)
+        exact = exact_values(self._g, [0] * n)     # SX graphs only (None for MX)
         if exact is not None and all(isinstance(v, Fraction) and v == 0 for v in exact):
             return Fraction(0)
         Interval, ia = interval_arithmetic()

@@ -430,9 +430,11 @@ def network_error_bound(network: Network, zmax: np.ndarray) -> np.ndarray:
 
     pre = np.abs(l0.weight) @ np.asarray(zmax, dtype=float) + np.abs(l0.bias)
     tmax = np.minimum(1.0, 2.0 * pre)   # ≥ |tanh| of the computed pre-activation
-    err_t = gamma(n + 1) * pre + 8 * U * tmax + 4 * 2.0**-1074   # |t̂ − t|, 4 ulps of tanh
+    # |t̂ − t|: the relative rounding of the pre-activation's n products and sums, each of
+    # those 2n + 1 operations may also lose half a subnormal step (2⁻¹⁰⁷⁵), and 4 ulps of tanh
+    err_t = gamma(n + 1) * pre + (n + 1) * 2.0**-1074 + 8 * U * tmax + 4 * 2.0**-1074
     out = np.abs(l1.weight) @ tmax + np.abs(l1.bias)
-    err = gamma(H + 1) * out + np.abs(l1.weight) @ err_t
+    err = gamma(H + 1) * out + (H + 1) * 2.0**-1074 + np.abs(l1.weight) @ err_t
     scale = np.abs(np.broadcast_to(network.output_scale, err.shape))
     err = scale * err + 2 * U * scale * out
     return err * (1 + 1e-6) + 1e-300

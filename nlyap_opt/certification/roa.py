@@ -1049,6 +1049,36 @@ def inner_ellipse_bound(system, controller, inner: float, pts: np.ndarray, *,
     return mask
 
 
+def _origin_offset(cl, P) -> float | None:
+    r"""A float ``b ≥ ‖P g(0)‖₂`` for the closed loop ``g`` at the origin (``0`` when ``g(0) =
+    0`` exactly: an SX graph evaluated in exact rationals, or an interval enclosure that is
+    ``[0, 0]``); ``None`` when the enclosure is not finite.
+
+    A closed loop's equilibrium is the origin only up to rounding (``C·tanh(b) = u_eq`` of a
+    controller holds in floats): the forms of :func:`_inner_ellipse` then prove
+    ``PJ + JᵀP + λI ≺ 0`` on ``E`` with ``λ = 4b/ε``, so that ``V̇_q = 2xᵀPg(0) + xᵀS̄x <
+    2b‖x‖ − λ‖x‖² ≤ 0`` on ``∂E`` (``‖x‖ ≥ ε`` there): ``E`` is forward invariant, and the
+    loop contracts on it to its one equilibrium in ``E``, within ``ε/2`` of the origin."""
+    n = cl.x.numel()
+    F = ca.Function("g_origin", [cl.x], [cl.rhs])
+    exact = exact_values(F, [0] * n)
+    if exact is not None and all(isinstance(v, Fraction) and v == 0 for v in exact):
+        return 0.0
+    Interval, ia = interval_arithmetic()
+    z = np.zeros((1, n))
+    res = evaluate(F, [Interval(z, z.copy())], ia)[0]
+    lo = np.asarray(res.lo, dtype=float).ravel()
+    hi = np.asarray(res.hi, dtype=float).ravel()
+    if lo.size != n or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        return None
+    m = [max(abs(Fraction(u)), abs(Fraction(v))) for u, v in zip(lo, hi)]
+    if not any(m):
+        return 0.0
+    Pq = rational_matrix(P)
+    w = [sum(abs(Pq[i][j]) * m[j] for j in range(n)) for i in range(n)]
+    return _sqrt_up(sum(t * t for t in w))
+
+
 def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = None, *,
                    shell: bool = True):
     """Verify condition (c) for ``P`` on ``E = {xᵀPx ≤ c_q}`` (``c_q = λ_max(P) ε²``).
@@ -1095,6 +1125,13 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
                             only=only.core)
     S = ca.mtimes(ca.DM(P), J)
     S = S + S.T
+    b = _origin_offset(cl, P)
+    if b is None:
+        return {"status": "inner ellipse not proved (the closed loop at the origin is not "
+                          "finite)", "verdict": InnerStatus.NOT_PROVED, "P": P, "level": c_q,
+                "box": a, "result": None, "form": "" if only is None else only.to_str()}
+    if b > 0:   # S + λI ≺ 0 with λ = 4b/ε: V̇_q < 2b‖x‖ − λ‖x‖² ≤ 0 for ‖x‖ ≥ ε/2, on ∂E
+        S = S + float(np.nextafter(4.0 * b / inner, np.inf)) * ca.DM.eye(n)
     # J only matters on E (convex: it holds every segment [0, x]); the box's corners reach
     # V = n·c_q, so the region is E itself
     Vq = ca.bilin(ca.DM(P), cl.x, cl.x)

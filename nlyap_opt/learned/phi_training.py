@@ -46,9 +46,10 @@ def linear_fit(zn, y) -> tuple[np.ndarray, float, float] | None:
     residual divided by ``r``, in the units the training's settings (learning rate, LM
     ridge) are stated for."""
     A = np.column_stack([zn, np.ones(len(zn))])
-    coef = np.linalg.lstsq(A, y, rcond=None)[0]
-    a, c = np.asarray(coef[:-1], dtype=float), float(coef[-1])
-    r = float(np.std(y - (zn @ a + c)))
+    with threadpool_limits(limits=1, user_api="blas"):   # the same bits on any machine load
+        coef = np.linalg.lstsq(A, y, rcond=None)[0]
+        a, c = np.asarray(coef[:-1], dtype=float), float(coef[-1])
+        r = float(np.std(y - (zn @ a + c)))
     if not r <= LINEAR_RESIDUAL_MAX * max(float(np.std(y)), 1e-300):
         return None
     return a, c, (r if r > 0 else 1.0)
@@ -60,7 +61,8 @@ def residual(zn, y, fit) -> np.ndarray:
     if fit is None:
         return y
     a, c, r = fit
-    return (y - (zn @ a + c)) / r
+    with threadpool_limits(limits=1, user_api="blas"):
+        return (y - (zn @ a + c)) / r
 
 
 def with_linear(block, fit):

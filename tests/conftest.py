@@ -101,3 +101,23 @@ def log_until():
         return log
 
     return make
+
+
+@pytest.fixture
+def offset_equilibrium_loop():
+    """``(system, κ)`` whose closed loop's equilibrium is off the origin by more than
+    rounding: κ = C·tanh(0·x + b), C = 10¹⁰, u_eq = fl(C·tanh b), so the real g₀(0) =
+    C·tanh(b) − u_eq ≈ −2.4·10⁻⁷ against a decay of 10⁻⁹ along x₀ (equilibrium near
+    x₀ = −238). Expanding the loop to SX folds g₀(0) to exactly 0."""
+    import math
+
+    import casadi as ca
+
+    from nlyap_opt.kernel.network import Layer, Network
+
+    b, C = 0.3, 1e10
+    u_eq = float(C * math.tanh(b))
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    s = systems.System("slowfold", x, u, ca.vertcat(-1e-9 * x[0] + (u - u_eq), -x[1]),
+                       state_box=[[-2, 2], [-2, 2]], input_box=[[-1e11, 1e11]], u_eq=[u_eq])
+    return s, Network([Layer([[0.0, 0.0]], [b], "tanh")], output_scale=C)

@@ -148,22 +148,14 @@ def test_inner_form_is_frozen_and_checks_parameters():
         InnerForm(InnerFormKind.SHELL, radius=0.1, core=InnerFormKind.SHELL)
 
 
-def test_condition_c_pays_for_an_equilibrium_off_the_origin():
-    """κ = C·tanh(0·x + b), C = 10¹⁰, u_eq = fl(C·tanh b): the real g(0) is about
-    −2.4·10⁻⁷ and the loop decays at 10⁻⁹ along x₀, so its equilibrium is near x₀ = −238
-    and E is not invariant. PJ + JᵀP ≺ 0 holds on E; the forms of (c) must also beat
+def test_condition_c_pays_for_an_equilibrium_off_the_origin(offset_equilibrium_loop):
+    """The loop of the ``offset_equilibrium_loop`` fixture (equilibrium near x₀ = −238):
+    PJ + JᵀP ≺ 0 holds on E, but E is not invariant; the forms of (c) must also beat
     2‖Pg(0)‖ on ∂E and refuse. A loop whose g(0) is exactly 0 still certifies."""
-    import math
-
     from nlyap_opt.design.control import InnerStatus
-    from nlyap_opt.kernel.network import Layer, Network
 
-    b, C = 0.3, 1e10
-    u_eq = float(C * math.tanh(b))
-    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
-    s = systems.System("slowfold", x, u, ca.vertcat(-1e-9 * x[0] + (u - u_eq), -x[1]),
-                       state_box=[[-2, 2], [-2, 2]], input_box=[[-1e11, 1e11]], u_eq=[u_eq])
-    kappa = Network([Layer([[0.0, 0.0]], [b], "tanh")], output_scale=C)
+    s, kappa = offset_equilibrium_loop
+    x = ca.SX.sym("x", 2)
     for form in ("minors", "frobenius"):
         out = certify_inner_ellipse(s, kappa, 0.1, P=np.eye(2), form=form)
         assert out["verdict"] is not InnerStatus.CERTIFIED, form

@@ -10,12 +10,10 @@ import numpy as np
 import pytest
 from scipy.linalg import solve_continuous_lyapunov
 
-import systems
 from nlyap_opt.certification.roa import TaylorDecrease, certify_level, quadratic_form
 from nlyap_opt.design.control import quadratic_lyapunov
 from nlyap_opt.kernel.domain import Box
 from nlyap_opt.kernel.exact import inverse_diagonal
-from nlyap_opt.kernel.network import Layer, Network
 from nlyap_opt.kernel.symbolic import closed_loop
 
 
@@ -259,19 +257,13 @@ def test_a_derivative_that_casadi_folds_to_a_wrong_sign_is_not_trusted(inner):
     assert t.check(0.25, np.array([[-1.0, 1.0]]), inner) is None
 
 
-def test_a_controller_constant_that_expansion_would_fold_is_not_trusted():
-    """κ = C·tanh(0·x + b) with C = 10¹⁰ and u_eq = fl(C·tanh b): the real closed loop has
-    g₀(0) = C·tanh(b) − u_eq ≈ −2.4·10⁻⁷, against a decay of 10⁻⁹·x₀, so V = ‖x‖² does not
-    decrease at (−0.5, 0). Expanding the MX loop to SX folds g₀(0) to exactly 0; the test
-    reads the graph as given (intervals of C·tanh(b) − u_eq) and proves nothing."""
-    import math
-
-    b, C = 0.3, 1e10
-    u_eq = float(C * math.tanh(b))
-    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
-    s = systems.System("slowfold", x, u, ca.vertcat(-1e-9 * x[0] + (u - u_eq), -x[1]),
-                       state_box=[[-2, 2], [-2, 2]], input_box=[[-1e11, 1e11]], u_eq=[u_eq])
-    kappa = Network([Layer([[0.0, 0.0]], [b], "tanh")], output_scale=C)
+def test_a_controller_constant_that_expansion_would_fold_is_not_trusted(
+        offset_equilibrium_loop):
+    """The loop of the ``offset_equilibrium_loop`` fixture: g₀(0) ≈ −2.4·10⁻⁷ against a
+    decay of 10⁻⁹·x₀, so V = ‖x‖² does not decrease at (−0.5, 0). Expanding the MX loop to
+    SX folds g₀(0) to exactly 0; the test reads the graph as given (intervals of
+    C·tanh(b) − u_eq) and proves nothing."""
+    s, kappa = offset_equilibrium_loop
     cl = closed_loop(s, kappa, strict=True)
     t = TaylorDecrease(cl.x, cl.rhs, quadratic_form(quadratic_lyapunov(np.eye(2))))
     assert t.why == ""

@@ -175,6 +175,28 @@ def test_domain_gauge_is_one_on_the_boundary_and_homogeneous():
                                rtol=1e-9)
 
 
+def test_quadratic_sets_have_the_gauge_of_bisection_in_closed_form():
+    """Balls and ellipsoids, centred or not (origin inside): the closed-form gauge is the
+    root of the quadratic that bisection on ``contains`` approximates; 1 on the boundary;
+    a set that does not hold the origin strictly falls back to bisection; NaN is out of
+    reach."""
+    from nlyap_opt.kernel.domain import Ball, Ellipsoid, Region
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(500, 3)) * 2.0
+    Q = np.array([[2.0, 0.5, 0.0], [0.5, 1.0, 0.1], [0.0, 0.1, 3.0]])
+    for D in (Ball(2.0, 3, centre=[0.5, -0.3, 0.2]), Ellipsoid(np.diag([1.0, 4.0, 0.25])),
+              Ellipsoid(Q, centre=[0.1, 0.2, -0.3]), Ball(1.0, 3, centre=[2.0, 0.0, 0.0])):
+        np.testing.assert_allclose(D.gauge(x), Region.gauge(D, x), rtol=1e-10)
+        g = D.gauge(x)
+        if np.all(np.isfinite(g)):
+            np.testing.assert_allclose(D.gauge(x / g[:, None]), 1.0, rtol=1e-12)
+            assert np.all(D.contains(x / (g[:, None] * (1 + 1e-9))))
+            assert not np.any(D.contains(x / (g[:, None] * (1 - 1e-9))))
+    assert Ellipsoid(Q).gauge(np.array([[np.nan, 0.0, 0.0], [0.0, 0.0, 0.0]])).tolist() \
+        == [np.inf, 0.0]
+
+
 @pytest.mark.slow
 def test_reversed_van_der_pol_mu3_with_default_settings(tmp_path):
     """A peer's system with nothing but its spec file (LyZNet's box): the default method

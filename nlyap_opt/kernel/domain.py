@@ -158,6 +158,27 @@ def _reject_inner(draw, n: int, rng, inner: float) -> np.ndarray:
     return pts[:n]
 
 
+def _quadratic_gauge(x, Q, c) -> np.ndarray | None:
+    """The gauge of ``{(y − c)ᵀQ(y − c) ≤ 1}`` about the origin in closed form, or ``None``
+    when the origin is not strictly inside (then :meth:`Region.gauge` bisects).
+
+    ``x/t`` lies in the set iff ``a t² + 2bt − q ≥ 0`` with ``a = 1 − cᵀQc``,
+    ``b = cᵀQx``, ``q = xᵀQx``; for ``a > 0`` the gauge is the positive root, written
+    without cancellation (``q/(b + d)`` for ``b > 0``, ``(d − b)/a`` otherwise,
+    ``d = sqrt(b² + aq)``). Non-finite points are out of reach (``inf``).
+    """
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    a = 1.0 - float(c @ Q @ c)
+    if not a > 0:
+        return None
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        q = np.einsum("ij,jk,ik->i", x, Q, x)
+        b = x @ (Q @ c)
+        d = np.sqrt(b * b + a * q)
+        t = np.where(b > 0, q / np.where(b > 0, b + d, 1.0), (d - b) / a)
+    return np.where(np.isfinite(t), t, np.inf)
+
+
 class Ball(Region):
     """``{‖x − centre‖₂ ≤ radius}``."""
 
@@ -187,6 +208,13 @@ class Ball(Region):
         if self.centre is not None:
             pts = pts - self.centre
         return np.linalg.norm(pts, axis=1) <= self.radius + tol
+
+    def gauge(self, pts, iterations: int = 40) -> np.ndarray:
+        """The gauge in closed form (``‖x‖/r`` when centred at 0); bisection only when the
+        origin is not strictly inside."""
+        Q = np.eye(self.n) / self.radius ** 2
+        g = _quadratic_gauge(pts, Q, self._c())
+        return super().gauge(pts, iterations) if g is None else g
 
     def inradius(self):
         return self.radius - float(np.linalg.norm(self._c()))
@@ -358,6 +386,12 @@ class Ellipsoid(Region):
     def contains(self, pts, tol=0.0):
         z = np.atleast_2d(np.asarray(pts, dtype=float)) - self._c()
         return np.einsum("ij,jk,ik->i", z, self.Q, z) <= 1.0 + tol
+
+    def gauge(self, pts, iterations: int = 40) -> np.ndarray:
+        """The gauge in closed form; bisection only when the origin is not strictly
+        inside."""
+        g = _quadratic_gauge(pts, self.Q, self._c())
+        return super().gauge(pts, iterations) if g is None else g
 
     def inradius(self):
         # distance from 0 to the boundary: min over the sphere directions, via the centred

@@ -27,7 +27,8 @@ system's input box for the true ``f``). Then
 2. every feasible ``u`` gives ``∇V·f(x, u) ≤ −λ·d(x) < 0`` for the true ``f`` (for φ by
    Cauchy–Schwarz, since ``‖f − φ‖ ≤ η`` on ``X × U``);
 3. hence, for any nominal controller, the filtered closed loop keeps ``Ω_c ∪ E`` forward
-   invariant and converges to the origin: on the compact ``Ω_c∖int E`` (which misses
+   invariant and converges to the equilibrium of (c) in ``E`` (the origin, or within ``ε/2``
+   of it where ``κ(0)`` is ``u_eq`` only up to rounding): on the compact ``Ω_c∖int E`` (which misses
    ``B_ε``) ``V`` decreases at a rate bounded away from 0, so ``E`` is reached in finite
    time, and on ``E`` the filter is ``κ``, for which (c) proves ``E`` invariant and
    attractive. Outside the certified set the filter promises nothing.

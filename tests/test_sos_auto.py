@@ -101,6 +101,11 @@ def test_auto_is_off_where_sos_does_not_apply():
     vdp = systems.get("van_der_pol")
     learned = choose_degree(vdp, AUTO, known=False)
     assert learned.degree == 0 and "learned dynamics" in learned.reason
+    # with a polynomial model of φ its degree sizes the programs, as f's does
+    from nlyap_opt.design.polynomial import PolynomialFit
+    model = PolynomialFit(polynomial_closed_loop(vdp), 3, 1e-4)
+    fitted = choose_degree(vdp, AUTO, known=False, model=model)
+    assert fitted.degree == 6 and "a degree-3 model of φ" in fitted.reason
     pend = systems.get("inverted_pendulum")
     assert choose_degree(pend, AUTO).degree == 0                       # inputs: κ unknown
     tanh = choose_degree(pend, AUTO, controller=saturated_controller(pend, lqr(pend).K, 20.0))
@@ -160,7 +165,10 @@ def test_nlyap_config_says_what_auto_resolves_to(capsys):
     assert json.loads(out)["sos"]["degree"] == "auto"        # stdout stays the JSON config
     assert err.strip() == ("with --known-dynamics, sos.degree 'auto' -> degree 6: n = 2, "
                            "deg f = 3: Gram matrices of order 20 <= 40; with learned "
-                           "dynamics, off")
+                           "dynamics, chosen once φ is learned, from the degree of a "
+                           "polynomial model of φ")
+    assert main(["config", "inverted_pendulum", "--preset", "default"]) == 0
+    assert capsys.readouterr().err.strip().endswith("with learned dynamics, off (an input)")
     assert main(["config", "van_der_pol", "--preset", "fast"]) == 0
     assert capsys.readouterr().err == ""
 

@@ -49,17 +49,76 @@ def test_a_saturated_controller_makes_sos_not_applicable():
     assert "tanh" in res.non_polynomial
 
 
-def test_learned_dynamics_make_sos_not_applicable():
-    """With φ in place of f the SOS programs would need the model an unknown system does
-    not have: refused before any SDP, whatever φ is."""
-    s = systems.get("van_der_pol")
-    phi = Network([Layer(np.full((3, 2), 0.1), np.zeros(3), "tanh"),
+def test_learned_dynamics_with_inputs_make_sos_not_applicable():
+    """With φ and an input the closed loop under C·tanh(Kx + b) is not polynomial: refused
+    before any SDP or fit."""
+    s = systems.get("inverted_pendulum")
+    phi = Network([Layer(np.full((3, 3), 0.1), np.zeros(3), "tanh"),
                    Layer(-np.eye(2, 3), np.zeros(2), "linear")])
-    p = RoaProblem(s, quadratic_lyapunov(np.eye(2)), None, phi, inner=0.1, outer=1.0,
-                   eta=0.01, dynamics_box=[[-2, 2], [-2, 2]])
+    ctrl = saturated_controller(s, lqr(s).K, 20.0)
+    p = RoaProblem(s, quadratic_lyapunov(np.eye(2)), ctrl, phi, inner=0.1, outer=1.0,
+                   eta=0.01, dynamics_box=[[-2, 2], [-2, 2]], input_box=[[-20, 20]])
     res = certify_sos(p, SOSConfig(degree=4), log=lambda m: None)
-    assert res.text.startswith("not applicable: learned dynamics")
+    assert res.text.startswith("not applicable: learned dynamics with inputs")
     assert res.V is None and res.history == [] and res.certificate is None
+
+
+def test_learned_dynamics_run_sos_on_a_model_of_phi_and_certify_on_phi(trained, monkeypatch):
+    """Learned Van der Pol: the SOS programs run on a polynomial fitted to φ, never on the
+    model of f (reading it fails the test), and the V they give is certified on φ with the
+    robust margin; the property holds at sampled points of the certified set."""
+    import casadi as ca
+
+    import nlyap_opt.candidates.sos as sos_mod
+    from nlyap_opt.kernel.symbolic import closed_loop
+
+    def model_read(*a, **k):
+        raise AssertionError("the model of f was read")
+    monkeypatch.setattr(sos_mod, "polynomial_closed_loop", model_read)
+    monkeypatch.setattr(sos_mod, "lqr", model_read)
+    res_phi = trained["van_der_pol"]
+    s, eta = systems.get("van_der_pol"), 2e-3
+    p = RoaProblem(s, quadratic_lyapunov(np.eye(2)), None, res_phi.network, inner=0.1,
+                   outer=1.5, eta=eta, dynamics_box=[[-2, 2], [-2, 2]])
+    logs = []
+    res = certify_sos(p, SOSConfig(degree=4, iterations=3), log=logs.append)
+    assert res.certified, res.text
+    assert res.V.degree == 4 and res.inner == p.inner          # the run's ε (robust margin)
+    assert not res.problem.known and res.problem.eta == eta
+    assert any("least-squares model of φ" in m for m in logs)
+    # ∇V·φ + η‖∇V‖ < 0 on sampled points of {V ≤ c} ∩ D outside B_ε
+    x = ca.SX.sym("x", 2)
+    V = res.V.casadi(x)
+    g = closed_loop(s, None, res_phi.network, x=x, strict=False).rhs
+    F = ca.Function("F", [x], [V, ca.dot(ca.gradient(V, x), g)
+                               + eta * ca.norm_2(ca.gradient(V, x)[1])])
+    pts = np.random.default_rng(0).uniform(-1.5, 1.5, (4000, 2))
+    v, prop = (np.asarray(a).ravel() for a in F.map(len(pts))(pts.T))
+    keep = (v <= res.certified_level) & (np.linalg.norm(pts, axis=1) >= p.inner) \
+        & (np.linalg.norm(pts, axis=1) <= 1.5)
+    assert keep.sum() > 500 and np.all(prop[keep] < 0)
+
+
+def test_the_polynomial_model_is_the_least_degree_that_fits():
+    """A quadratic field is fitted at degree 2 (exactly), a cubic at 3; a field no cubic
+    fits returns degree 3 with its residual; the model vanishes at 0; same bits twice."""
+    import casadi as ca
+
+    from nlyap_opt.design.polynomial import FIT_TOLERANCE, fit_polynomial_model
+
+    x = ca.SX.sym("x", 2)
+    box = [[-2.0, 2.0], [-1.0, 3.0]]
+    quad = fit_polynomial_model(ca.Function("q", [x], [ca.vertcat(-x[0] + x[1] ** 2,
+                                                                  -2 * x[1] + x[0] * x[1])]), box)
+    assert quad.degree == 2 and quad.residual < 1e-12
+    assert abs(quad.polynomials[0].to_dict()[(0, 2)] - 1.0) < 1e-10
+    np.testing.assert_allclose(quad.linear_part, [[-1, 0], [0, -2]], atol=1e-10)
+    fsin = ca.Function("s", [x], [ca.vertcat(ca.sin(3 * x[0]) - x[1], -x[1])])
+    a, b = fit_polynomial_model(fsin, box), fit_polynomial_model(fsin, box)
+    assert a.degree == 3 and a.residual > FIT_TOLERANCE
+    assert all((pa.coefficients == pb.coefficients).all()
+               for pa, pb in zip(a.polynomials, b.polynomials))
+    assert all(p(np.zeros((1, 2)))[0] == 0 for p in a.polynomials)
 
 
 def test_degree_zero_is_off():

@@ -328,7 +328,8 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     ----------
     system : systems.System
     V, controller, dynamics : nlyap_opt.kernel.network.Network
-        ``dynamics`` (learned φ) replaces the system's ``f`` in the Lie derivative.
+        ``dynamics`` (learned φ) replaces the system's ``f`` in the Lie derivative; ``V``
+        may also be a :class:`~nlyap_opt.design.polynomial.Polynomial`.
     inner, outer : float      annulus ``inner ≤ ‖x‖₂ ≤ outer``
     domain : Region, optional ``D`` in place of the ball ``‖x‖ ≤ outer``
     level : float, optional   intersect with ``V(x) ≤ level``
@@ -341,10 +342,12 @@ def closed_loop_problem(system, V, controller=None, dynamics=None, *, inner: flo
     strict : bool             raise (True) or warn (False) if 0 is not an equilibrium
     """
 
-    if V.n_in != system.nx or V.n_out != 1:
+    # a network, or a polynomial V (an SOS certificate: nx variables, one value)
+    n_in, n_out = getattr(V, "n_in", getattr(V, "nx", None)), getattr(V, "n_out", 1)
+    if n_in != system.nx or n_out != 1:
         raise DimensionError(
             f"V must map R^{system.nx} -> R (system {system.name!r}), got "
-            f"R^{V.n_in} -> R^{V.n_out}"
+            f"R^{n_in} -> R^{n_out}"
         )
     cl = closed_loop(system, controller, dynamics, strict=strict)
     Vx = V.casadi(cl.x)

@@ -49,6 +49,19 @@ Certification (what makes a result a claim)
 
 Non-polynomial closed loops (``sin``, ``cos``, ``1/(1 - d)``, ``tanh`` controllers) are not
 handled: :func:`sos_roa` returns ``status = "not applicable: ..."`` with the reason.
+
+Learned dynamics (no input)
+    ``φ`` is a tanh network, and an unknown system has no model to expand. The programs then
+    run on a least-squares polynomial model of ``φ`` on the domain's box
+    (:func:`learned_model`, :func:`nlyap_opt.design.polynomial.fit_polynomial_model`: the
+    least degree of 1, 2, 3 that fits to 10⁻³ of each component's RMS, else 3), started
+    from the Lyapunov matrix of the model's linear part. The model is a search model only:
+    the resulting ``V`` is a candidate like any other, certified on ``φ`` with the robust
+    margin of ``η`` (``∇V·φ + η‖∇_L V‖ < 0``), at the run's ``ε``. The true f is never
+    read. For a polynomial system the fit is exact up to φ's own error, so the SOS ``V``
+    with learned dynamics is close to the one of the true f (a 2-D cubic system: certified
+    91.6 % of the true ROA against 91.8 % with the model, where the neural V alone reached
+    72.8 %).
 """
 
 from __future__ import annotations
@@ -58,6 +71,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from enum import Enum
 
+import casadi as ca
 import numpy as np
 
 from ..certification.certificate import (
@@ -69,8 +83,14 @@ from ..certification.certificate import (
     certify_roa,
 )
 from ..certification.roa import grid_area, grid_points
-from ..design.control import lqr
-from ..design.polynomial import NotPolynomialError, Polynomial, polynomial_closed_loop
+from ..design.control import lqr, lyapunov_matrix
+from ..design.polynomial import (
+    NotPolynomialError,
+    Polynomial,
+    PolynomialFit,
+    fit_polynomial_model,
+    polynomial_closed_loop,
+)
 from ..design.sos_sdp import (
     SOSLevel,
     boundary_points,
@@ -80,12 +100,13 @@ from ..design.sos_sdp import (
     vs_iteration,
 )
 from ..kernel.errors import NotStabilizableError
-from .quadratic import INNER_FRACTION
+from ..kernel.symbolic import closed_loop
+from .quadratic import INNER_FRACTION, LEARNED_INNER_FRACTION
 
 __all__ = [
     "AUTO", "AUTO_DEGREES", "AUTO_GRAM_LIMIT", "NotPolynomialError", "Polynomial", "SOSChoice",
     "SOSConfig", "SOSLevel", "SOSResult", "SOSStatus", "certify_sos", "choose_degree",
-    "polynomial_closed_loop", "sos_level", "sos_policy", "sos_roa",
+    "learned_model", "polynomial_closed_loop", "sos_level", "sos_policy", "sos_roa",
 ]
 
 
@@ -219,6 +240,7 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
             push: float = 1.05, solver: str = "CLARABEL",
             outer_margin: float = 0.05, certify: bool = True,
             verify_options: dict | None = None, domain=None, keep_in=None,
+            f: list[Polynomial] | None = None,
             log: Callable[[str], None] | None = None) -> SOSResult:
     r"""SOS estimate of the region of attraction, certified by the interval verifier.
 
@@ -246,6 +268,11 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     domain : nlyap_opt.kernel.domain.Region, optional
         Certify on this verification domain ``D`` (a declared domain: the same set as the
         other rows of a comparison) instead of the ball around the SOS level set.
+    f : list of Polynomial, optional
+        The polynomial closed loop the SOS programs use (default: the exact expansion of
+        the system's model under ``controller``); a model fitted to a learned ``φ``
+        (:func:`learned_model`) only with ``certify=False``: the claim is then made by
+        the caller on ``φ``.
     keep_in : nlyap_opt.kernel.domain.Region, optional
         Where the V–s iteration's set crosses the boundary of this region (on seeded
         samples of it) and its SDPs are small (Gram matrices of order at most
@@ -294,8 +321,11 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
         raise ValueError(f"degree must be an even integer >= 2, got {degree!r}")
     if not inner > 0:
         raise ValueError(f"inner must be > 0 (condition (c) covers the ball), got {inner}")
+    if f is not None and certify:
+        raise ValueError("a given polynomial model f is a search model: certify on the "
+                         "system's closed loop with certify=True needs f = None")
     try:
-        f = polynomial_closed_loop(system, controller)
+        f = polynomial_closed_loop(system, controller) if f is None else list(f)
     except NotPolynomialError as err:
         reason = (
             f"the closed loop of {system.name!r} is {err}. SOS certificates need polynomial "
@@ -461,8 +491,9 @@ class SOSConfig:
     degree: int | str = field(default=0, metadata={
         "choices": (AUTO, 0, 2, 4, 6),
         "doc": "degree of an SOS V certified before the neural stage where the closed loop "
-               "is polynomial and f is known (0: off; 'auto': the largest of 6, 4 whose "
-               f"SDPs have Gram matrices of order <= {AUTO_GRAM_LIMIT}, off with learned f, a "
+               "is polynomial (with learned f and no input: a polynomial model fitted to φ; "
+               "0: off; 'auto': the largest of 6, 4 whose "
+               f"SDPs have Gram matrices of order <= {AUTO_GRAM_LIMIT}, off for a "
                "non-polynomial closed loop or larger SDPs; nlyap_opt.candidates.sos)"})
     iterations: int = field(default=20, metadata={
         "lo": 1, "doc": "V-s iteration rounds per degree (a count, never a time)"})
@@ -501,13 +532,15 @@ class SOSChoice:
 
 
 def choose_degree(system, degree: int | str = AUTO, *, known: bool = True,
-                  controller=None) -> SOSChoice:
+                  controller=None, model: PolynomialFit | None = None) -> SOSChoice:
     r"""The degree of the SOS candidate of a run: ``degree`` when it is a number, else chosen.
 
     The automatic choice (``degree = "auto"``) runs SOS only where it applies and is cheap:
 
-    1. the model of ``f`` is used (``known``; a learned ``φ`` is a tanh network and an
-       unknown system has no polynomial model);
+    1. the model of ``f`` is used (``known``), or, with learned dynamics, ``model``, a
+       polynomial model fitted to ``φ`` (:func:`learned_model`; ``φ`` is a tanh network,
+       and an unknown system has no polynomial model of its own), whose degree counts as
+       ``f``'s below;
     2. the closed loop is polynomial: no inputs, or a polynomial ``controller`` (the pipeline's
        ``C·tanh(Kx + b)`` is not), and ``f`` expands exactly
        (:func:`nlyap_opt.design.polynomial.polynomial_closed_loop`);
@@ -528,6 +561,8 @@ def choose_degree(system, degree: int | str = AUTO, *, known: bool = True,
         The run uses the model of ``f`` (``--known-dynamics``).
     controller : nlyap_opt.kernel.network.Network, optional
         The run's initial controller (``None`` for a system without inputs).
+    model : PolynomialFit, optional
+        With learned dynamics: the polynomial model of ``φ`` the SOS programs would use.
 
     Returns
     -------
@@ -537,27 +572,33 @@ def choose_degree(system, degree: int | str = AUTO, *, known: bool = True,
     if degree != AUTO:
         why = "off as configured" if not degree else "as configured"
         return SOSChoice(int(degree), why, degree)
-    if not known or not getattr(system, "has_model", True):
+    learned = not known or not getattr(system, "has_model", True)
+    if learned and model is None:
         return SOSChoice(0, "learned dynamics: the SOS programs need the polynomial model of f",
                          degree)
-    if system.nu and controller is None:
+    if system.nu and (controller is None or learned):
         return SOSChoice(0, "the closed loop under the controller C·tanh(Kx + b) is not "
                             "polynomial", degree)
     low = AUTO_DEGREES[-1]
     least = gram_size(system.nx, low, 1)   # whatever f: no expansion where nothing would fit
     if least > AUTO_GRAM_LIMIT:
         return SOSChoice(0, f"n = {system.nx}: {_too_large(low, f'>= {least}')}", degree)
-    try:
-        f = polynomial_closed_loop(system, controller)
-    except NotPolynomialError as err:
-        ops = ", ".join(err.operations) or "a non-polynomial operation"
-        return SOSChoice(0, f"the closed loop is not polynomial: it applies {ops}", degree)
+    if learned:
+        f = model.polynomials
+    else:
+        try:
+            f = polynomial_closed_loop(system, controller)
+        except NotPolynomialError as err:
+            ops = ", ".join(err.operations) or "a non-polynomial operation"
+            return SOSChoice(0, f"the closed loop is not polynomial: it applies {ops}", degree)
     deg_f = max(1, max(p.degree for p in f))
+    what = (f"a degree-{model.degree} model of φ (residual {model.residual:.2g}) for learned "
+            "dynamics, " if learned else "")
     for d in AUTO_DEGREES:
         m = gram_size(system.nx, d, deg_f)
         if m <= AUTO_GRAM_LIMIT:
-            return SOSChoice(d, f"n = {system.nx}, deg f = {deg_f}: Gram matrices of order "
-                                f"{m} <= {AUTO_GRAM_LIMIT}", degree, m)
+            return SOSChoice(d, f"{what}n = {system.nx}, deg f = {deg_f}: Gram matrices of "
+                                f"order {m} <= {AUTO_GRAM_LIMIT}", degree, m)
     m = gram_size(system.nx, low, deg_f)
     return SOSChoice(0, f"n = {system.nx}, deg f = {deg_f}: {_too_large(low, m)}", degree)
 
@@ -579,10 +620,13 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
     from the SDP level), so that the SOS certificate and the neural one claim sets of the
     same kind and are compared on the same grid.
 
-    Not applicable (``status`` ``"not applicable: ..."``, no SDP solved) with learned
-    dynamics -- the SOS programs would use the model of ``f``, which an unknown system does
-    not have, and ``φ`` is a tanh network -- or when the closed loop is not polynomial (a
-    saturated ``tanh`` controller, ``sin``, ...).
+    With learned dynamics (no inputs) the SOS programs run on a polynomial model fitted to
+    ``φ`` (:func:`learned_model`: ``φ`` is a tanh network, and an unknown system has no
+    model of its own), started from the Lyapunov matrix of the model's linear part; their
+    ``V`` is only a candidate, certified on ``φ`` with the robust margin of ``η`` like every
+    learned-dynamics certificate. Not applicable (``status`` ``"not applicable: ..."``, no
+    SDP solved) when the closed loop is not polynomial (a saturated ``tanh`` controller,
+    ``sin``, ...; with learned dynamics: any input).
 
     Parameters
     ----------
@@ -592,9 +636,8 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
         ``degree`` (> 0; ``"auto"`` is resolved by :func:`choose_degree` first) and
         ``iterations``.
     inner_fraction : float, optional
-        The SOS certificate's ``ε`` as a fraction of ``problem.inner`` (default
-        :data:`nlyap_opt.candidates.quadratic.INNER_FRACTION`, as the quadratic candidates with the
-        true ``f``).
+        The SOS certificate's ``ε`` as a fraction of ``problem.inner`` (default: as the
+        quadratic candidates, :func:`sos_policy`).
     log : callable
 
     Returns
@@ -606,18 +649,33 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
     if not isinstance(config.degree, int) or not config.degree:
         raise ValueError(f"SOSConfig.degree is {config.degree!r}: the SOS stage is off (0) or "
                          "not resolved ('auto': choose_degree gives the degree)")
-    policy = sos_policy(inner_fraction)
+    policy = sos_policy(inner_fraction, known=problem.known)
     eps = problem.inner * policy.inner_fraction
     t0 = time.perf_counter()
+    kw = {}
     if not problem.known:
-        reason = ("learned dynamics: the SOS programs need the polynomial model of f, which "
-                  "an unknown system does not have (and φ is a tanh network); the quadratic "
-                  "candidates and the neural V cover this run")
-        return SOSResult(SOSStatus.NOT_APPLICABLE, config.degree, notes=[reason],
-                         inner=eps, non_polynomial={"learned dynamics": "φ"}, reason=reason)
+        if problem.system.nu or problem.dynamics is None:
+            reason = ("learned dynamics with inputs: the closed loop under the controller "
+                      "C·tanh(Kx + b) is not polynomial; the quadratic candidates and the "
+                      "neural V cover this run")
+            return SOSResult(SOSStatus.NOT_APPLICABLE, config.degree, notes=[reason],
+                             inner=eps, non_polynomial={"learned dynamics": "φ"},
+                             reason=reason)
+        model = learned_model(problem.system, problem.dynamics,
+                              problem.domain.bounding_box())
+        A = model.linear_part
+        if not np.max(np.linalg.eigvals(A).real) < 0:
+            reason = ("the polynomial model of φ is not Hurwitz at the origin: no quadratic "
+                      "V starts the SOS programs")
+            return SOSResult(SOSStatus.NO_LEVEL, config.degree, notes=[reason], inner=eps,
+                             reason=reason)
+        kw = dict(f=model.polynomials, V0=lyapunov_matrix(A))
+        log(f"  learned dynamics: the SOS programs run on a degree-{model.degree} "
+            f"least-squares model of φ (residual {model.residual:.2g} of its RMS on D's "
+            "box); their V is a candidate, certified on φ with η")
     res = sos_roa(problem.system, degree=config.degree, inner=eps,
                   controller=problem.controller, iterations=config.iterations,
-                  certify=False, keep_in=problem.domain, log=log)
+                  certify=False, keep_in=problem.domain, log=log, **kw)
     if not res.applicable or res.V is None or not res.sdp_level > 0:
         return res
     res.problem = replace(problem, V=res.V, inner=eps)
@@ -634,13 +692,27 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
     return res
 
 
-def sos_policy(inner_fraction: float | None = None) -> LevelPolicy:
+def sos_policy(inner_fraction: float | None = None, known: bool = True) -> LevelPolicy:
     """The certification policy of the pipeline's SOS candidate: ε = ``inner_fraction`` of
-    the run's (default :data:`nlyap_opt.candidates.quadratic.INNER_FRACTION`, as the quadratic
-    candidates with the true ``f``), that radius only, searched down from the lesser of the
-    SDP level and the candidate level, decrease violations followed down."""
-    return LevelPolicy(INNER_FRACTION if inner_fraction is None else inner_fraction, (1.0,),
-                       follow_violations=True)
+    the run's (default: as the quadratic candidates,
+    :data:`nlyap_opt.candidates.quadratic.INNER_FRACTION` with the true ``f`` and
+    :data:`~nlyap_opt.candidates.quadratic.LEARNED_INNER_FRACTION` with learned dynamics,
+    where the robust margin ``η‖∇_L V‖`` outweighs the decrease near the origin), that
+    radius only, searched down from the lesser of the SDP level and the candidate level,
+    decrease violations followed down."""
+    if inner_fraction is None:
+        inner_fraction = INNER_FRACTION if known else LEARNED_INNER_FRACTION
+    return LevelPolicy(inner_fraction, (1.0,), follow_violations=True)
+
+
+def learned_model(system, dynamics, box) -> PolynomialFit:
+    """The polynomial search model of a learned closed loop without inputs: ``φ`` (with the
+    exactly known components of ``system``) fitted on ``box`` by
+    :func:`nlyap_opt.design.polynomial.fit_polynomial_model`. Only the SOS programs use it;
+    every claim is made on ``φ`` with its bound ``η``."""
+    x = ca.MX.sym("x", system.nx)
+    cl = closed_loop(system, None, dynamics, x=x, strict=False)
+    return fit_polynomial_model(ca.Function("phi_closed_loop", [x], [cl.rhs]), box)
 
 
 def _record(res: SOSResult, cert: RoaCertificate) -> None:

@@ -1410,6 +1410,14 @@ class _CasadiV:
     def __init__(self, fn: ca.Function):
         self.fn = fn
 
+    @property
+    def n_in(self) -> int:
+        return int(self.fn.nnz_in(0))
+
+    @property
+    def n_out(self) -> int:
+        return int(self.fn.nnz_out(0))
+
     def casadi(self, x):
         return self.fn(x)
 

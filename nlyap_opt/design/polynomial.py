@@ -28,6 +28,7 @@ from fractions import Fraction
 
 import casadi as ca
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ..kernel.errors import UnsupportedOperationError
 from ..kernel.symbolic import closed_loop
@@ -36,6 +37,7 @@ from ..kernel.walker import NUMPY, evaluate, op_name
 __all__ = [
     "CONDITIONAL_OPS", "ExactPolynomialArithmetic", "NotPolynomialError", "POLYNOMIAL_OPS",
     "Polynomial", "PolynomialArithmetic", "exact_polynomials", "expand_polynomials",
+    "FIT_DEGREES", "FIT_POINTS", "FIT_TOLERANCE", "PolynomialFit", "fit_polynomial_model",
     "monomial_matrix", "monomials", "polynomial_closed_loop",
 ]
 
@@ -486,6 +488,102 @@ def polynomial_closed_loop(system, controller=None) -> list[Polynomial]:
     cl = closed_loop(system, controller, strict=True)
     return expand_polynomials(ca.Function("cl", [cl.x], [cl.rhs]).expand())
 
+
+
+#: degrees of :func:`fit_polynomial_model`, in the order tried
+FIT_DEGREES = (1, 2, 3)
+#: :func:`fit_polynomial_model` keeps the least degree whose residual is at most this
+#: fraction of every component's root mean square on the grid
+FIT_TOLERANCE = 1e-3
+#: points of :func:`fit_polynomial_model`'s grid (``round(FIT_POINTS^(1/n))`` per axis, at
+#: least 3)
+FIT_POINTS = 20000
+
+
+@dataclass(frozen=True)
+class PolynomialFit:
+    """A least-squares polynomial model of a vector field (:func:`fit_polynomial_model`).
+
+    Attributes
+    ----------
+    polynomials : list of Polynomial
+        One per state; no constant terms, so the model vanishes at the origin.
+    degree : int
+        The degree fitted.
+    residual : float
+        The largest, over the components, root mean square of the residual on the grid
+        divided by the component's root mean square there.
+    """
+
+    polynomials: list
+    degree: int
+    residual: float
+
+    @property
+    def linear_part(self) -> np.ndarray:
+        """The ``(n, n)`` matrix of the degree-1 coefficients (the model's Jacobian at 0)."""
+        n = len(self.polynomials)
+        A = np.zeros((n, n))
+        for i, p in enumerate(self.polynomials):
+            for j in range(n):
+                A[i, j] = p.to_dict().get(_unit(n, j), 0.0)
+        return A
+
+
+def fit_polynomial_model(fun: ca.Function, box, *, degrees=FIT_DEGREES,
+                         tol: float = FIT_TOLERANCE, points: int = FIT_POINTS) -> PolynomialFit:
+    r"""A polynomial model of the vector field ``fun`` on ``box``, by least squares on a grid.
+
+    Each degree ``d`` of ``degrees`` fits every component by the monomials of degree
+    ``1..d`` (no constant term: the model vanishes at 0, as a closed loop at its equilibrium
+    does); the first degree whose :attr:`PolynomialFit.residual` is at most ``tol`` is
+    returned, else the last one. The model is a search model only (the SOS programs of a
+    learned ``φ`` run on it): nothing claimed rests on it, so its error needs no bound.
+    The fits run with one BLAS thread (the same bits whatever the machine's thread count).
+
+    Parameters
+    ----------
+    fun : casadi.Function
+        ``x -> f(x)``, ``n`` inputs and ``n`` outputs.
+    box : (n, 2) array_like
+        Where to fit (the grid's bounds).
+
+    Returns
+    -------
+    PolynomialFit
+
+    Examples
+    --------
+    >>> x = ca.SX.sym("x", 2)
+    >>> fit = fit_polynomial_model(ca.Function("f", [x], [ca.vertcat(-x[1], x[0] - x[1]
+    ...                            + x[0] ** 2 * x[1])]), [[-2, 2], [-2, 2]])
+    >>> fit.degree, fit.residual < 1e-12
+    (3, True)
+    """
+    box = np.asarray(box, dtype=float).reshape(-1, 2)
+    n = len(box)
+    k = max(3, int(round(points ** (1.0 / n))))
+    axes = [np.linspace(lo, hi, k) for lo, hi in box]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n)
+    F = np.asarray(fun.map(len(X))(X.T), dtype=float).reshape(n, -1).T
+    if not np.all(np.isfinite(F)):
+        raise ValueError("the vector field is not finite on the fit's grid")
+    rms = np.sqrt(np.mean(F ** 2, axis=0))
+    rms = np.where(rms > 0, rms, 1.0)
+    fit = None
+    with threadpool_limits(limits=1, user_api="blas"):
+        for d in degrees:
+            exps = monomials(n, 1, d)
+            Z = monomial_matrix(X, exps)
+            cn = np.linalg.norm(Z, axis=0)
+            cn = np.where(cn > 0, cn, 1.0)
+            C = np.linalg.lstsq(Z / cn, F, rcond=None)[0] / cn[:, None]
+            res = float(np.max(np.sqrt(np.mean((F - Z @ C) ** 2, axis=0)) / rms))
+            fit = PolynomialFit([Polynomial.from_dict(dict(zip(exps, C[:, i])), n)
+                                 for i in range(n)], d, res)
+            if res <= tol:
+                break
+    return fit
 
 # --------------------------------------------------------------------------- exact rationals
 def _qadd(p: dict, q: dict, sign: int = 1) -> dict:

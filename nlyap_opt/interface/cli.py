@@ -598,8 +598,11 @@ def cmd_config(args) -> int:
     cfg = _run_config(args, learned=False)
     print(json.dumps(cfg.to_json(), indent=1, allow_nan=False))
     if cfg.sos.degree == AUTO:   # what the automatic SOS degree resolves to (not JSON: stderr)
-        choice = choose_degree(systems.get(args.system), AUTO, known=True)
-        print(f"with --known-dynamics, {choice.describe()}; with learned dynamics, off",
+        system = systems.get(args.system)
+        choice = choose_degree(system, AUTO, known=True)
+        learned = "off (an input)" if system.nu else \
+            "chosen once φ is learned, from the degree of a polynomial model of φ"
+        print(f"with --known-dynamics, {choice.describe()}; with learned dynamics, {learned}",
               file=sys.stderr)
     return 0
 

@@ -73,7 +73,12 @@ def _as_function(obj, n_in: int, what: str) -> ca.Function:
         if obj.n_in() != 1 or obj.nnz_in(0) != n_in:
             raise DimensionError(f"{what} Function must take one input of size {n_in}")
         return obj
-    raise TypeError(f"{what} must be a Network or a casadi.Function, got {type(obj).__name__}")
+    if callable(getattr(obj, "casadi", None)) \
+            and getattr(obj, "nx", getattr(obj, "n_in", None)) == n_in:
+        x = ca.SX.sym("x", n_in)      # a polynomial V (an SOS certificate), or a saved graph
+        return ca.Function(what, [x], [obj.casadi(x)])
+    raise TypeError(f"{what} must be a Network, a polynomial or a casadi.Function, got "
+                    f"{type(obj).__name__}")
 
 
 def _grad_function(V, n: int) -> ca.Function:

@@ -436,9 +436,10 @@ _TOP_DOCS = {
                  "'volume': largest ellipsoid in the unit ball, 'domain': largest ellipsoid "
                  "in D, 'centre': a linearisation with a centre); the larger certified "
                  "volume wins ([]: off; nlyap_opt.candidates.quadratic)",
-    "sos": "an SOS V certified before the neural stage where f is known and the closed loop "
-           "polynomial (nlyap_opt.candidates.sos.SOSConfig: degree, 0 off, 'auto' chosen from "
-           "the SDP sizes; iterations); the largest certified volume wins",
+    "sos": "an SOS V certified before the neural stage where the closed loop is polynomial "
+           "(the model of f; with learned dynamics and no input, a polynomial fitted to φ, "
+           "the V then certified on φ) (nlyap_opt.candidates.sos.SOSConfig: degree, 0 off, "
+           "'auto' chosen from the SDP sizes; iterations); the largest certified volume wins",
     "system": "informational; must name the system being run",
     "preset": "informational; must name the preset the file is merged over",
     "comment": "free text",

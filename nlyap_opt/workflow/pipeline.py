@@ -56,7 +56,7 @@ from verification import closed_loop_problem
 from ..candidates.cegis import CegisConfig, cegis
 from ..candidates.learning import TrainConfig, quadratic_start, sos_start
 from ..candidates.quadratic import certify_quadratics, closed_loop_matrix
-from ..candidates.sos import SOSConfig, certify_sos, choose_degree
+from ..candidates.sos import SOSConfig, certify_sos, choose_degree, learned_model
 from ..certification.certificate import (
     CertStatus,
     RoaCertificate,
@@ -1106,8 +1106,13 @@ def _sos_stage(ctx: _Context) -> _CheapRecord | None:
     line); returns its record (``sos.json``'s ``best``) when certified, else ``None``."""
     view = ctx.stages.view("sos")
     sc = SOSConfig(**view.sos.to_json())
+    model = None
+    if not ctx.stages.known and not ctx.system.nu and ctx.dynamics is not None \
+            and sc.degree != 0:
+        # the polynomial search model of φ (its degree sizes the SDPs)
+        model = learned_model(ctx.system, ctx.dynamics, ctx.D.bounding_box())
     choice = choose_degree(ctx.system, sc.degree, known=ctx.stages.known,
-                           controller=ctx.controller)
+                           controller=ctx.controller, model=model)
     if choice.automatic:
         ctx.log(f"[sos] {choice.describe()}")
     if not choice.degree:

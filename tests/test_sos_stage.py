@@ -99,6 +99,23 @@ def test_learned_dynamics_run_sos_on_a_model_of_phi_and_certify_on_phi(trained, 
     assert keep.sum() > 500 and np.all(prop[keep] < 0)
 
 
+@pytest.mark.slow
+def test_a_learned_dynamics_run_keeps_an_sos_winner_that_rechecks(tmp_path):
+    """Van der Pol with learned dynamics, the neural stage cut to one step: the SOS V of
+    the model of φ wins, its certificate names φ and the bound, and `nlyap verify
+    --certificate` re-checks it from the hashed files."""
+    cfg = make_config("van_der_pol", "fast", overrides={
+        "sos": {"degree": 4, "iterations": 2}, "train": {"steps": 1},
+        "cegis": {"iterations": 1, "steps": 1}})
+    res = run("van_der_pol", cfg, tmp_path, known_dynamics=False, log=lambda m: None)
+    summary = json.loads((tmp_path / "certificate.json").read_text())
+    assert res.certified and summary["artifacts"]["V"]["kind"] == "casadi"
+    assert {"dynamics", "bounds"} <= set(summary["artifacts"])
+    assert any("SOS degree 4 polynomial" in a for a in summary["assumptions"])
+    again = recheck_certificate(tmp_path, log=lambda m: None)
+    assert again.certified and again.level == summary["level"]
+
+
 def test_the_polynomial_model_is_the_least_degree_that_fits():
     """A quadratic field is fitted at degree 2 (exactly), a cubic at 3; a field no cubic
     fits returns degree 3 with its residual; the model vanishes at 0; same bits twice."""

@@ -10,6 +10,7 @@ import pytest
 import systems
 from baselines.compare import RowStatus, quadratic_row
 from nlyap_opt.candidates.quadratic import (
+    LEARNED_SEARCH_STATES,
     certify_quadratics,
     closed_loop_matrix,
     decided_on_sets,
@@ -225,6 +226,11 @@ def test_level_policies():
     assert whole.whole_sets and not learned.whole_sets and whole.smallest_level
     assert whole.factors == learned.factors
     assert whole.inner_fraction == learned.inner_fraction
+    # at most LEARNED_SEARCH_STATES states: searched down from the candidate level, at ε
+    small = quadratic_policy(False, nx=LEARNED_SEARCH_STATES)
+    assert not small.smallest_level and not small.whole_sets
+    assert small.factors == learned.factors and small.inner_fraction == 1.0
+    assert quadratic_policy(False, nx=LEARNED_SEARCH_STATES + 1) == learned
     for bad in ({"inner_fraction": 0.0}, {"inner_fraction": float("nan")}, {"factors": ()},
                 {"factors": (1.0, -2.0)}):
         with pytest.raises(ValueError):

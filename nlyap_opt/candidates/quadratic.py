@@ -50,7 +50,11 @@ an ``unknown`` one at the least violation, 0.0168 proved, four bisection tries),
 creeping search stopped at 0.025 after eight; the ``volume`` ``P`` of the planar quadrotor
 at level 0.258 in eight.
 
-With learned dynamics each inner radius starts at the smallest level that holds its inner
+With learned dynamics and at most :data:`LEARNED_SEARCH_STATES` states the level is searched
+down from the candidate level as with the true f, at the run's ``ε`` (each check takes
+seconds: Fossil's 3-D NonPoly2 with φ certifies the ``round`` candidate's whole ball, volume
+114.6 in 0.3 s, where the smallest-level policy below gave 16.1). With more states each
+inner radius starts at the smallest level that holds its inner
 ball (``smallest_level`` of :func:`nlyap_opt.certification.certificate.certify_with_inner_search`),
 the level with the most room for the robust margin: the learned-f cartpole's round ``P`` stayed
 "unknown" at levels 0.999 and 0.7 after 2·10⁶ boxes each, while at 0.62, just above
@@ -169,19 +173,31 @@ INNER_FRACTION = 0.25
 LEARNED_INNER_FRACTION = 1.0
 
 
-def quadratic_policy(known: bool, whole_set: bool = False) -> LevelPolicy:
+#: with learned dynamics, systems of at most this many states search each quadratic's level
+#: down from its candidate level with the verifier, as with the true f (each check takes
+#: seconds there); larger ones check the smallest level (each check takes minutes)
+LEARNED_SEARCH_STATES = 3
+
+
+def quadratic_policy(known: bool, whole_set: bool = False,
+                     nx: int | None = None) -> LevelPolicy:
     """The certification policy of a quadratic ``V = xᵀPx`` (the pipeline's candidates and
     ``nlyap compare``'s LQR rows): ε = :data:`INNER_FRACTION` of the run's with the true f,
     every radius of :data:`~nlyap_opt.certification.certificate.INNER_FACTORS`, searched down from
-    the candidate level; with learned dynamics ε itself, no radius below it, each checked at the
-    smallest level that holds its inner ball, after (``whole_set``: the closed loop with φ is
-    smooth, so :class:`~nlyap_opt.certification.roa.TaylorDecrease` decides the robust
-    decrease on a whole sublevel set without bisection) a search down from the candidate
-    level decided by that test alone. Decrease violations are followed down."""
+    the candidate level. With learned dynamics ε itself and no radius below it; for at most
+    :data:`LEARNED_SEARCH_STATES` states (``nx``) searched down from the candidate level as
+    with the true f; otherwise each radius is checked at the smallest level that holds its
+    inner ball, after (``whole_set``: the closed loop with φ is smooth, so
+    :class:`~nlyap_opt.certification.roa.TaylorDecrease` decides the robust decrease on a whole
+    sublevel set without bisection) a search down from the candidate level decided by that
+    test alone. Decrease violations are followed down."""
     if known:
         return LevelPolicy(INNER_FRACTION, INNER_FACTORS, follow_violations=True)
-    return LevelPolicy(LEARNED_INNER_FRACTION, tuple(f for f in INNER_FACTORS if f >= 1),
-                       smallest_level=True, follow_violations=True, whole_sets=whole_set)
+    factors = tuple(f for f in INNER_FACTORS if f >= 1)
+    if nx is not None and nx <= LEARNED_SEARCH_STATES:
+        return LevelPolicy(LEARNED_INNER_FRACTION, factors, follow_violations=True)
+    return LevelPolicy(LEARNED_INNER_FRACTION, factors, smallest_level=True,
+                       follow_violations=True, whole_sets=whole_set)
 
 
 def decided_on_sets(problem) -> bool:
@@ -426,7 +442,9 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
     if unknown:
         raise ConfigError(f"unknown quadratic candidate {unknown[0]!r}; use some of "
                           f"{', '.join(QUADRATIC_CANDIDATES)}")
-    policy = quadratic_policy(problem.known, not problem.known and decided_on_sets(problem))
+    nx = problem.system.nx
+    policy = quadratic_policy(problem.known, not problem.known and nx > LEARNED_SEARCH_STATES
+                              and decided_on_sets(problem), nx)
     if inner_fraction is not None:
         policy = replace(policy, inner_fraction=inner_fraction)
     prune = not problem.known if prune is None else bool(prune)

@@ -106,6 +106,9 @@ def test_auto_is_off_where_sos_does_not_apply():
     model = PolynomialFit(polynomial_closed_loop(vdp), 3, 1e-4)
     fitted = choose_degree(vdp, AUTO, known=False, model=model)
     assert fitted.degree == 6 and "a degree-3 model of φ" in fitted.reason
+    # learned dynamics with an input: the controller's tanh is named, not a missing model
+    pend = systems.get("inverted_pendulum")
+    assert "C·tanh(Kx + b)" in choose_degree(pend, AUTO, known=False).reason
     pend = systems.get("inverted_pendulum")
     assert choose_degree(pend, AUTO).degree == 0                       # inputs: κ unknown
     tanh = choose_degree(pend, AUTO, controller=saturated_controller(pend, lqr(pend).K, 20.0))

@@ -573,12 +573,12 @@ def choose_degree(system, degree: int | str = AUTO, *, known: bool = True,
         why = "off as configured" if not degree else "as configured"
         return SOSChoice(int(degree), why, degree)
     learned = not known or not getattr(system, "has_model", True)
-    if learned and model is None:
-        return SOSChoice(0, "learned dynamics: the SOS programs need the polynomial model of f",
-                         degree)
     if system.nu and (controller is None or learned):
         return SOSChoice(0, "the closed loop under the controller C·tanh(Kx + b) is not "
                             "polynomial", degree)
+    if learned and model is None:
+        return SOSChoice(0, "learned dynamics: the SOS programs need the polynomial model of f",
+                         degree)
     low = AUTO_DEGREES[-1]
     least = gram_size(system.nx, low, 1)   # whatever f: no expansion where nothing would fit
     if least > AUTO_GRAM_LIMIT:

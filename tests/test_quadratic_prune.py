@@ -168,3 +168,29 @@ def test_learned_dynamics_prune_by_default_and_the_bound_bounds_every_radius():
     assert same.certified and same.volume == win.volume
     assert same.certificate.level == win.certificate.level
     assert max(c.volume for c in pruned) == win.volume
+
+
+def test_few_states_with_learned_dynamics_try_the_true_f_decay_rate_first(monkeypatch):
+    """Learned dynamics in 2 states: the "volume" candidate is the true f's matrix (decay
+    rate VOLUME_DECAY_FRACTION); where it certifies nothing, the learned-dynamics rate's
+    matrix is verified and kept."""
+    problem, box = _learned_toy()
+    A = quadratic.closed_loop_matrix(problem)
+    P_known = quadratic.QUADRATIC_CANDIDATES["volume"](A, True, problem.domain)
+    P_learned = quadratic.QUADRATIC_CANDIDATES["volume"](A, False, problem.domain)
+    assert not np.allclose(P_known, P_learned)
+    found = certify_quadratics(problem, ["volume"], box=box, n=31, log=lambda m: None)[0]
+    assert found.certified and np.array_equal(found.P, P_known)
+    real = quadratic.certify_candidate
+
+    def refuse_known(prob, policy, **kw):       # as if the true f's rate were refuted
+        cert = real(prob, policy, **kw)
+        P = quadratic.quadratic_form(prob.V)
+        if np.allclose(np.array(P, dtype=float), P_known):
+            cert.status = type(cert.status)("not certified")
+        return cert
+    monkeypatch.setattr(quadratic, "certify_candidate", refuse_known)
+    logs = []
+    again = certify_quadratics(problem, ["volume"], box=box, n=31, log=logs.append)[0]
+    assert again.certified and np.array_equal(again.P, P_learned)
+    assert any("the learned-dynamics rate" in m for m in logs)

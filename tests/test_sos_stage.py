@@ -488,3 +488,29 @@ def test_no_gram_matrix_starts_v_at_random(monkeypatch, tmp_path, log_until):
     text = "\n".join(log.lines)
     assert "[cegis] V cannot start at the SOS degree 2 (no Gram matrix" in text
     assert "V starts at the SOS" not in text
+
+
+def test_no_model_of_phi_is_fitted_where_auto_cannot_pick_a_degree_and_starts_are_checked():
+    """Four or more states: "auto" cannot pick a degree whatever f, so no fit is made (a
+    3ⁿ grid of 20 states would not fit in memory); a fit in many states uses seeded points;
+    a linear part stable only up to rounding gives no start matrix."""
+    import casadi as ca
+
+    from nlyap_opt.candidates.sos import _start_matrix, sos_may_fit
+    from nlyap_opt.design.polynomial import fit_polynomial_model
+
+    assert sos_may_fit(2) and sos_may_fit(3) and not sos_may_fit(4)
+    x = ca.SX.sym("x", 8)
+    fit = fit_polynomial_model(ca.Function("f", [x], [-x + 0.5 * x ** 3]),
+                               np.tile([-1.0, 1.0], (8, 1)), points=2000)
+    assert fit.degree == 3 and fit.residual < 1e-10
+    np.testing.assert_allclose(fit.linear_part, -np.eye(8), atol=1e-9)
+    rng = np.random.default_rng(4)
+    for _ in range(300):        # near-marginal: never a start matrix that is not PD
+        M = rng.normal(size=(3, 3))
+        A = M - (np.max(np.linalg.eigvals(M).real) + 1e-13) * np.eye(3)
+        P = _start_matrix(A)
+        assert P is None or np.linalg.eigvalsh(0.5 * (P + P.T))[0] > 0
+    P = _start_matrix(np.array([[-1.0, 2.0], [0.0, -3.0]]))
+    assert P is not None and np.linalg.eigvalsh(P)[0] > 0
+    assert _start_matrix(np.array([[0.0, 1.0], [-1.0, 0.0]])) is None

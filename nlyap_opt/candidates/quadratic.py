@@ -468,10 +468,16 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
     hurwitz = bool(np.all(np.isfinite(A_cl))) and np.max(np.linalg.eigvals(A_cl).real) < 0
     whys: dict[str, str] = {}
     mats = {nm: _candidate_matrix(problem, nm, A_cl, hurwitz, whys) for nm in names}
+    # the learned-dynamics decay rate's matrices, verified where the first certifies nothing
+    second = {nm: QUADRATIC_CANDIDATES[nm](A_cl, False, problem.domain) for nm in names
+              if nm in _DECAY_CANDIDATES and _searched(problem) and mats[nm] is not None}
+
+    def bound(nm, **kw):        # over both matrices a candidate may be certified with
+        return max(volume_bound(problem, P, policy, box=box, n=n, **kw)
+                   for P in (mats[nm], second.get(nm)) if P is not None)
     order = list(range(len(names)))
     if prune:   # a stable sort: equal estimates keep the order of names
-        est = {nm: volume_bound(problem, P, policy, box=box, n=n, ellipses=None)
-               for nm, P in mats.items() if P is not None}
+        est = {nm: bound(nm, ellipses=None) for nm, P in mats.items() if P is not None}
         order.sort(key=lambda i: -est.get(names[i], -1.0))
         log("  verified in the order of their sublevel sets' volume at the level bound: "
             + ", ".join(f"{names[i]} {est[names[i]]:.4g}" for i in order
@@ -488,8 +494,7 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
             continue
         if prune and win is not None:
             best = found[win]
-            b = volume_bound(problem, P, policy, box=box, n=n, ellipses=ellipses,
-                             beat=best.volume)
+            b = bound(name, ellipses=ellipses, beat=best.volume)
             if b < best.volume or (b == best.volume and i > win):
                 why = (f"cannot beat quadratic {best.name}: volume bound {b:.4g}, "
                        f"certified {best.volume:.4g}")
@@ -507,15 +512,13 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
                 replace(problem, V=quadratic_lyapunov(P)),
                 replace(policy, inner_fraction=thin / problem.inner, factors=(1.0,)),
                 ellipses=ellipses, log=lambda m: log("    " + m))
-        if not cert.certified and name in _DECAY_CANDIDATES and _searched(problem):
-            P2 = QUADRATIC_CANDIDATES[name](A_cl, False, problem.domain)
-            if P2 is not None:
-                log(f"    decay rate {VOLUME_DECAY_FRACTION:g} of the margin certifies nothing: "
-                    f"trying {LEARNED_VOLUME_DECAY_FRACTION:g}, the learned-dynamics rate")
-                cert2 = certify_candidate(replace(problem, V=quadratic_lyapunov(P2)), policy,
-                                          ellipses=ellipses, log=lambda m: log("    " + m))
-                if cert2.certified:
-                    P, cert = P2, cert2
+        if not cert.certified and second.get(name) is not None:
+            log(f"    decay rate {VOLUME_DECAY_FRACTION:g} of the margin certifies nothing: "
+                f"trying {LEARNED_VOLUME_DECAY_FRACTION:g}, the learned-dynamics rate")
+            cert2 = certify_candidate(replace(problem, V=quadratic_lyapunov(second[name])),
+                                      policy, ellipses=ellipses, log=lambda m: log("    " + m))
+            if cert2.certified:
+                P, cert = second[name], cert2
         vol = cert.area(box, n) if cert.certified else 0.0
         found[i] = QuadraticCandidate(name, P, cert, vol, time.perf_counter() - t0)
         if cert.certified and (win is None or vol > found[win].volume

@@ -57,8 +57,8 @@ Learned dynamics (no input)
     least degree of 1, 2, 3 that fits to 10⁻³ of each component's RMS, else 3), started
     from the Lyapunov matrix of the model's linear part. The model is a search model only:
     the resulting ``V`` is a candidate like any other, certified on ``φ`` with the robust
-    margin of ``η`` (``∇V·φ + η‖∇_L V‖ < 0``), at the run's ``ε``. The true f is never
-    read. For a polynomial system the fit is exact up to φ's own error, so the SOS ``V``
+    margin of ``η`` (``∇V·φ + η‖∇_L V‖ < 0``), at the run's ``ε``. The search never uses
+    the model of f. For a polynomial system the fit is exact up to φ's own error, so the SOS ``V``
     with learned dynamics is close to the one of the true f (a 2-D cubic system: certified
     91.6 % of the true ROA against 91.8 % with the model, where the neural V alone reached
     72.8 %).
@@ -106,7 +106,8 @@ from .quadratic import INNER_FRACTION, LEARNED_INNER_FRACTION
 __all__ = [
     "AUTO", "AUTO_DEGREES", "AUTO_GRAM_LIMIT", "NotPolynomialError", "Polynomial", "SOSChoice",
     "SOSConfig", "SOSLevel", "SOSResult", "SOSStatus", "certify_sos", "choose_degree",
-    "learned_model", "polynomial_closed_loop", "sos_level", "sos_policy", "sos_roa",
+    "learned_model", "polynomial_closed_loop", "sos_level", "sos_may_fit", "sos_policy",
+    "sos_roa",
 ]
 
 
@@ -661,15 +662,22 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
             return SOSResult(SOSStatus.NOT_APPLICABLE, config.degree, notes=[reason],
                              inner=eps, non_polynomial={"learned dynamics": "φ"},
                              reason=reason)
-        model = learned_model(problem.system, problem.dynamics,
-                              problem.domain.bounding_box())
-        A = model.linear_part
-        if not np.max(np.linalg.eigvals(A).real) < 0:
-            reason = ("the polynomial model of φ is not Hurwitz at the origin: no quadratic "
-                      "V starts the SOS programs")
+        try:
+            model = learned_model(problem.system, problem.dynamics,
+                                  problem.domain.bounding_box())
+        except ValueError as err:
+            reason = f"no polynomial model of φ: {err}"
+            return SOSResult(SOSStatus.NOT_APPLICABLE, config.degree, notes=[reason],
+                             inner=eps, non_polynomial={"learned dynamics": "φ"},
+                             reason=reason)
+        V0 = _start_matrix(model.linear_part)
+        if V0 is None:
+            reason = ("the polynomial model of φ has no quadratic Lyapunov function at the "
+                      "origin (its linear part is not Hurwitz with a margin): no V starts the "
+                      "SOS programs")
             return SOSResult(SOSStatus.NO_LEVEL, config.degree, notes=[reason], inner=eps,
                              reason=reason)
-        kw = dict(f=model.polynomials, V0=lyapunov_matrix(A))
+        kw = dict(f=model.polynomials, V0=V0)
         log(f"  learned dynamics: the SOS programs run on a degree-{model.degree} "
             f"least-squares model of φ (residual {model.residual:.2g} of its RMS on D's "
             "box); their V is a candidate, certified on φ with η")
@@ -692,6 +700,17 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
     return res
 
 
+def _start_matrix(A: np.ndarray) -> np.ndarray | None:
+    """The Lyapunov matrix of ``A`` (``AᵀP + PA = −I``) when it is positive definite and
+    finite, else ``None`` (a linear part stable only up to rounding gives no usable P)."""
+    if not (np.all(np.isfinite(A)) and np.max(np.linalg.eigvals(A).real) < 0):
+        return None
+    P = lyapunov_matrix(A)
+    if not np.all(np.isfinite(P)) or not np.linalg.eigvalsh(0.5 * (P + P.T))[0] > 0:
+        return None
+    return P
+
+
 def sos_policy(inner_fraction: float | None = None, known: bool = True) -> LevelPolicy:
     """The certification policy of the pipeline's SOS candidate: ε = ``inner_fraction`` of
     the run's (default: as the quadratic candidates,
@@ -705,11 +724,19 @@ def sos_policy(inner_fraction: float | None = None, known: bool = True) -> Level
     return LevelPolicy(inner_fraction, (1.0,), follow_violations=True)
 
 
+def sos_may_fit(nx: int) -> bool:
+    """Whether ``"auto"`` can pick a degree for ``nx`` states whatever ``f`` (the least
+    degree's SDPs with a linear ``f`` within :data:`AUTO_GRAM_LIMIT`): else no model of a
+    learned ``φ`` is fitted."""
+    return gram_size(nx, AUTO_DEGREES[-1], 1) <= AUTO_GRAM_LIMIT
+
+
 def learned_model(system, dynamics, box) -> PolynomialFit:
     """The polynomial search model of a learned closed loop without inputs: ``φ`` (with the
     exactly known components of ``system``) fitted on ``box`` by
     :func:`nlyap_opt.design.polynomial.fit_polynomial_model`. Only the SOS programs use it;
-    every claim is made on ``φ`` with its bound ``η``."""
+    every claim is made on ``φ`` with its bound ``η`` (the SOS search never uses the model
+    of f; the known components of ``system`` enter φ's closed loop as everywhere)."""
     x = ca.MX.sym("x", system.nx)
     cl = closed_loop(system, None, dynamics, x=x, strict=False)
     return fit_polynomial_model(ca.Function("phi_closed_loop", [x], [cl.rhs]), box)

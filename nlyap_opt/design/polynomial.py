@@ -495,8 +495,9 @@ FIT_DEGREES = (1, 2, 3)
 #: :func:`fit_polynomial_model` keeps the least degree whose residual is at most this
 #: fraction of every component's root mean square on the grid
 FIT_TOLERANCE = 1e-3
-#: points of :func:`fit_polynomial_model`'s grid (``round(FIT_POINTS^(1/n))`` per axis, at
-#: least 3)
+#: points of :func:`fit_polynomial_model`: a grid of ``round(FIT_POINTS^(1/n))`` per axis (at
+#: least the highest degree + 1) while it holds at most ``4·FIT_POINTS`` points, else this
+#: many seeded uniform points of the box (at least 20 per monomial)
 FIT_POINTS = 20000
 
 
@@ -562,9 +563,13 @@ def fit_polynomial_model(fun: ca.Function, box, *, degrees=FIT_DEGREES,
     """
     box = np.asarray(box, dtype=float).reshape(-1, 2)
     n = len(box)
-    k = max(3, int(round(points ** (1.0 / n))))
-    axes = [np.linspace(lo, hi, k) for lo, hi in box]
-    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n)
+    k = max(max(degrees) + 1, int(round(points ** (1.0 / n))))
+    if k ** n <= 4 * points:
+        axes = [np.linspace(lo, hi, k) for lo, hi in box]
+        X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n)
+    else:       # many states: seeded points (a grid of k ≥ degree + 1 per axis is too large)
+        m = max(points, 20 * len(monomials(n, 1, max(degrees))))
+        X = np.random.default_rng(0).uniform(box[:, 0], box[:, 1], (m, n))
     F = np.asarray(fun.map(len(X))(X.T), dtype=float).reshape(n, -1).T
     if not np.all(np.isfinite(F)):
         raise ValueError("the vector field is not finite on the fit's grid")

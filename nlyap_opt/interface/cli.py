@@ -29,7 +29,7 @@ import numpy as np
 import systems
 from verification import QueryStatus, closed_loop_problem, verify
 
-from ..candidates.sos import AUTO, choose_degree
+from ..candidates.sos import AUTO, choose_degree, sos_may_fit
 from ..certification.certificate import CertStatus, recheck_certificate, spec_factory
 from ..certification.compositional import (
     certify_compositional,
@@ -601,6 +601,8 @@ def cmd_config(args) -> int:
         system = systems.get(args.system)
         choice = choose_degree(system, AUTO, known=True)
         learned = "off (an input)" if system.nu else \
+            f"off (n = {system.nx}: the SDPs are too large whatever f)" \
+            if not sos_may_fit(system.nx) else \
             "chosen once φ is learned, from the degree of a polynomial model of φ"
         print(f"with --known-dynamics, {choice.describe()}; with learned dynamics, {learned}",
               file=sys.stderr)

@@ -13,8 +13,9 @@ configuration loads finished stages instead of recomputing them):
    certificates ``V = xᵀPx`` under the initial controller (:mod:`nlyap_opt.candidates.quadratic`);
    the best one is saved as ``V_quadratic.json``;
    ``sos`` — only when ``sos.degree`` > 0, or ``"auto"`` and
-   :func:`~nlyap_opt.candidates.sos.choose_degree` picks a degree (f known, the closed loop
-   polynomial, SDPs small enough): an SOS ``V`` (:mod:`nlyap_opt.candidates.sos`), saved as
+   :func:`~nlyap_opt.candidates.sos.choose_degree` picks a degree (a polynomial closed loop:
+   the model of f, or with learned dynamics and no input a polynomial fitted to φ; SDPs small
+   enough): an SOS ``V`` (:mod:`nlyap_opt.candidates.sos`), saved as
    ``V_sos.json`` when certified;
 4. ``cegis`` — learn V and κ, certify conditions (a) and (b) at a level;
 5. ``certificate`` — always rerun: the saved V, κ, φ are verified again at the saved level
@@ -56,7 +57,14 @@ from verification import closed_loop_problem
 from ..candidates.cegis import CegisConfig, cegis
 from ..candidates.learning import TrainConfig, quadratic_start, sos_start
 from ..candidates.quadratic import certify_quadratics, closed_loop_matrix
-from ..candidates.sos import SOSConfig, certify_sos, choose_degree, learned_model
+from ..candidates.sos import (
+    AUTO,
+    SOSConfig,
+    certify_sos,
+    choose_degree,
+    learned_model,
+    sos_may_fit,
+)
 from ..certification.certificate import (
     CertStatus,
     RoaCertificate,
@@ -501,7 +509,7 @@ def _check_setting(system, cfg: RunConfig, known_dynamics: bool) -> None:
                           "only be run with learned dynamics: drop --known-dynamics")
     if cfg.train.init == "sos" and (not known_dynamics or system.nu):
         raise ConfigError(
-            "train.init 'sos' starts V at the run's SOS certificate, which exists only with the "
+            "train.init 'sos' starts V at the run's SOS certificate; it is supported with the "
             "true f (--known-dynamics) and a closed loop without inputs (the controller "
             "C·tanh(Kx + b) is not polynomial); use init 'random' or 'quadratic'")
 
@@ -1108,7 +1116,7 @@ def _sos_stage(ctx: _Context) -> _CheapRecord | None:
     sc = SOSConfig(**view.sos.to_json())
     model = None
     if not ctx.stages.known and not ctx.system.nu and ctx.dynamics is not None \
-            and sc.degree != 0:
+            and sc.degree != 0 and (sc.degree != AUTO or sos_may_fit(ctx.system.nx)):
         # the polynomial search model of φ (its degree sizes the SDPs)
         model = learned_model(ctx.system, ctx.dynamics, ctx.D.bounding_box())
     choice = choose_degree(ctx.system, sc.degree, known=ctx.stages.known,

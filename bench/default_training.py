@@ -55,12 +55,17 @@ LARGE_SHARES = {"van_der_pol": 95.8, "unicycle_path_following": 91.5,
 def large_sets(name: str) -> dict:
     """The config overrides that put the default method on the ``large`` preset's sets of
     catalogue system ``name``: its ``domain`` (or the ball of radius ``outer``), ``inner``
-    and ``eval_box``."""
+    and ``eval_box``, and (for learned dynamics) the box on which its φ is learned and
+    bounded, ``dynamics.state_box``, which must hold the domain."""
     from nlyap_opt.workflow.configs import get_config
 
     large = get_config(name, "large").to_json()
     domain = large.get("domain") or {"type": "ball", "radius": large["outer"]}
-    return {"domain": domain, "inner": large["inner"], "eval_box": large["eval_box"]}
+    out = {"domain": domain, "inner": large["inner"], "eval_box": large["eval_box"]}
+    box = (large.get("dynamics") or {}).get("state_box")
+    if box is not None:
+        out["dynamics"] = {"state_box": box}
+    return out
 
 
 def case(name: str) -> tuple[str, float | None, dict]:

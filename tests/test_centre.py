@@ -80,6 +80,22 @@ def test_defaults_of_a_centre_choose_a_quartic_v_and_the_centre_quadratic():
     assert "train" not in e and "quadratic" not in e and e["inner"] == pytest.approx(0.3)
 
 
+def test_three_or_more_states_get_twice_the_cegis_iterations_a_centre_keeps_its_own():
+    from systems.spec import ITERATIONS_3D
+
+    from nlyap_opt.workflow.configs import DEFAULT_CEGIS
+
+    assert ITERATIONS_3D == 2 * DEFAULT_CEGIS["iterations"]
+    two = systems.default_run_settings(systems.load_spec(EXAMPLES / "small_eps_2d.toml"))
+    three = systems.default_run_settings(systems.load_spec(EXAMPLES / "lorenz_controlled.toml"))
+    assert "cegis" not in two and three["cegis"] == {"iterations": ITERATIONS_3D}
+    s = systems.load_spec(EXAMPLES / "lorenz_controlled.toml")
+    cfg = make_config(s.name if s.name in systems.names() else _register(s), preset=None)
+    assert cfg.cegis.iterations == ITERATIONS_3D
+    centre = systems.default_run_settings(systems.load_spec(EXAMPLES / "centre_4d.toml"))
+    assert centre["cegis"]["iterations"] == 6
+
+
 def _register(s):
     systems.register(s.name, lambda: s)
     return s.name

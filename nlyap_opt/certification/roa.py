@@ -627,25 +627,6 @@ class TaylorDecrease:
         b = np.asarray(domain_box, dtype=float)
         return np.column_stack([np.maximum(-h, b[:, 0]), np.minimum(h, b[:, 1])])
 
-    def _g0_bound(self) -> Fraction | None:
-        """A rational ``b ≥ ‖P g(0)‖``: ``0`` when ``g(0) = 0`` exactly (the graph evaluated
-        at 0 in exact rational arithmetic), else from the interval enclosure at 0."""
-        n = len(self.P)
-        exact = exact_values(self._g, [0] * n)     # SX graphs only (None for MX)
-        if exact is not None and all(isinstance(v, Fraction) and v == 0 for v in exact):
-            return Fraction(0)
-        Interval, ia = interval_arithmetic()
-        z = np.zeros((1, n))
-        res = evaluate(self._g, [Interval(z, z)], ia)[0]
-        lo, hi = np.asarray(res.lo, dtype=float).ravel(), np.asarray(res.hi, dtype=float).ravel()
-        if lo.size != n or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-            return None
-        m = [max(abs(Fraction(a)), abs(Fraction(b))) for a, b in zip(lo, hi)]
-        if not any(m):
-            return Fraction(0)
-        v = [sum(abs(self.P[i][j]) * m[j] for j in range(n)) for i in range(n)]
-        return Fraction(_sqrt_up(sum(t * t for t in v)))
-
     def check(self, level: float, domain_box: np.ndarray,
               inner: float = 0.0) -> VerificationResult | None:
         """``verified`` (backend ``"taylor"``) when the test proves ``V̇ < 0`` (with learned
@@ -658,7 +639,7 @@ class TaylorDecrease:
         Y = self.box(level, domain_box)
         if not np.all((Y[:, 0] <= 0) & (Y[:, 1] >= 0)):
             return None
-        b = self._g0_bound()
+        b = _origin_offset(self._g, self.P)
         if b is None:
             return None
         B = b + self._eta * self._pl
@@ -1049,21 +1030,23 @@ def inner_ellipse_bound(system, controller, inner: float, pts: np.ndarray, *,
     return mask
 
 
-def _origin_offset(cl, P) -> float | None:
-    r"""A float ``b ≥ ‖P g(0)‖₂`` for the closed loop ``g`` at the origin (``0`` when ``g(0) =
-    0`` exactly: an SX graph evaluated in exact rationals, or an interval enclosure that is
-    ``[0, 0]``); ``None`` when the enclosure is not finite.
+def _origin_offset(F: ca.Function, P: list[list[Fraction]]) -> Fraction | None:
+    r"""A rational ``b ≥ ‖P g(0)‖₂`` for the closed loop ``g`` (the graph ``F``) at the
+    origin, ``P`` exact: ``0`` when ``g(0) = 0`` exactly (an SX graph evaluated in exact
+    rational arithmetic, :class:`~nlyap_opt.kernel.walker.ExactPointArithmetic`, or an
+    interval enclosure that is ``[0, 0]``; no structural or float-folded zero is trusted);
+    ``None`` when the enclosure is not finite.
 
     A closed loop's equilibrium is the origin only up to rounding (``C·tanh(b) = u_eq`` of a
-    controller holds in floats): the forms of :func:`_inner_ellipse` then prove
-    ``PJ + JᵀP + λI ≺ 0`` on ``E`` with ``λ = 4b/ε``, so that ``V̇_q = 2xᵀPg(0) + xᵀS̄x <
-    2b‖x‖ − λ‖x‖² ≤ 0`` on ``∂E`` (``‖x‖ ≥ ε`` there): ``E`` is forward invariant, and the
-    loop contracts on it to its one equilibrium in ``E``, within ``ε/2`` of the origin."""
-    n = cl.x.numel()
-    F = ca.Function("g_origin", [cl.x], [cl.rhs])
-    exact = exact_values(F, [0] * n)
+    controller holds in floats). :class:`TaylorDecrease` pays for ``b`` near the inner ball;
+    the forms of :func:`_inner_ellipse` prove ``PJ + JᵀP + λI ≺ 0`` on ``E`` with ``λ =
+    4b/ε``, so that ``V̇_q = 2xᵀPg(0) + xᵀS̄x < 2b‖x‖ − λ‖x‖² ≤ 0`` on ``∂E`` (``‖x‖ ≥ ε``
+    there): ``E`` is forward invariant, and the loop contracts on it to its one equilibrium
+    in ``E``, within ``ε/2`` of the origin."""
+    n = len(P)
+    exact = exact_values(F, [0] * n)     # SX graphs only (None for MX)
     if exact is not None and all(isinstance(v, Fraction) and v == 0 for v in exact):
-        return 0.0
+        return Fraction(0)
     Interval, ia = interval_arithmetic()
     z = np.zeros((1, n))
     res = evaluate(F, [Interval(z, z.copy())], ia)[0]
@@ -1073,10 +1056,9 @@ def _origin_offset(cl, P) -> float | None:
         return None
     m = [max(abs(Fraction(u)), abs(Fraction(v))) for u, v in zip(lo, hi)]
     if not any(m):
-        return 0.0
-    Pq = rational_matrix(P)
-    w = [sum(abs(Pq[i][j]) * m[j] for j in range(n)) for i in range(n)]
-    return _sqrt_up(sum(t * t for t in w))
+        return Fraction(0)
+    w = [sum(abs(P[i][j]) * m[j] for j in range(n)) for i in range(n)]
+    return Fraction(_sqrt_up(sum(t * t for t in w)))
 
 
 def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = None, *,
@@ -1125,13 +1107,13 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
                             only=only.core)
     S = ca.mtimes(ca.DM(P), J)
     S = S + S.T
-    b = _origin_offset(cl, P)
+    b = _origin_offset(ca.Function("g_origin", [cl.x], [cl.rhs]), rational_matrix(P))
     if b is None:
         return {"status": "inner ellipse not proved (the closed loop at the origin is not "
                           "finite)", "verdict": InnerStatus.NOT_PROVED, "P": P, "level": c_q,
                 "box": a, "result": None, "form": "" if only is None else only.to_str()}
     if b > 0:   # S + λI ≺ 0 with λ = 4b/ε: V̇_q < 2b‖x‖ − λ‖x‖² ≤ 0 for ‖x‖ ≥ ε/2, on ∂E
-        S = S + float(np.nextafter(4.0 * b / inner, np.inf)) * ca.DM.eye(n)
+        S = S + float(np.nextafter(4.0 * float_up(b) / inner, np.inf)) * ca.DM.eye(n)
     # J only matters on E (convex: it holds every segment [0, x]); the box's corners reach
     # V = n·c_q, so the region is E itself
     Vq = ca.bilin(ca.DM(P), cl.x, cl.x)

@@ -81,9 +81,8 @@ def test_defaults_of_a_centre_choose_a_quartic_v_and_the_centre_quadratic():
 
 
 def test_three_or_more_states_get_twice_the_cegis_iterations_a_centre_keeps_its_own():
-    from systems.spec import ITERATIONS_3D
-
     from nlyap_opt.workflow.configs import DEFAULT_CEGIS
+    from systems.spec import ITERATIONS_3D
 
     assert ITERATIONS_3D == 2 * DEFAULT_CEGIS["iterations"]
     two = systems.default_run_settings(systems.load_spec(EXAMPLES / "small_eps_2d.toml"))

@@ -611,7 +611,7 @@ def _too_large(degree: int, order) -> str:
 
 
 def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = None,
-                log=print) -> SOSResult:
+                model: PolynomialFit | None = None, log=print) -> SOSResult:
     r"""The pipeline's SOS candidate: :func:`sos_roa`'s ``V`` certified on ``problem``.
 
     The SOS programs run on the polynomial closed loop of ``problem.system`` under
@@ -639,6 +639,9 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
     inner_fraction : float, optional
         The SOS certificate's ``ε`` as a fraction of ``problem.inner`` (default: as the
         quadratic candidates, :func:`sos_policy`).
+    model : PolynomialFit, optional
+        With learned dynamics: the polynomial model of ``φ`` already fitted
+        (:func:`learned_model`; fitted here when not given).
     log : callable
 
     Returns
@@ -662,14 +665,15 @@ def certify_sos(problem, config: SOSConfig, *, inner_fraction: float | None = No
             return SOSResult(SOSStatus.NOT_APPLICABLE, config.degree, notes=[reason],
                              inner=eps, non_polynomial={"learned dynamics": "φ"},
                              reason=reason)
-        try:
-            model = learned_model(problem.system, problem.dynamics,
-                                  problem.domain.bounding_box())
-        except ValueError as err:
-            reason = f"no polynomial model of φ: {err}"
-            return SOSResult(SOSStatus.NOT_APPLICABLE, config.degree, notes=[reason],
-                             inner=eps, non_polynomial={"learned dynamics": "φ"},
-                             reason=reason)
+        if model is None:
+            try:
+                model = learned_model(problem.system, problem.dynamics,
+                                      problem.domain.bounding_box())
+            except ValueError as err:
+                reason = f"no polynomial model of φ: {err}"
+                return SOSResult(SOSStatus.NOT_APPLICABLE, config.degree, notes=[reason],
+                                 inner=eps, non_polynomial={"learned dynamics": "φ"},
+                                 reason=reason)
         V0 = _start_matrix(model.linear_part)
         if V0 is None:
             reason = ("the polynomial model of φ has no quadratic Lyapunov function at the "

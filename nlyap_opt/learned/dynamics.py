@@ -420,16 +420,20 @@ def network_error_bound(network: Network, zmax: np.ndarray) -> np.ndarray:
 
     Standard forward error analysis of ``W1 tanh(W0 z + b0) + b1`` (any summation order,
     ``γ_k = k u / (1 − k u)``) with a libm allowance of 4 ulps for ``tanh``; valid for
-    :meth:`Network.numpy` on one-hidden-layer tanh networks. A neuron's ``|tanh|`` is at most
-    ``min(1, |pre-activation|)``, which keeps the allowance of a neuron with a tiny input
-    scale and a large output weight (the linear neuron of
-    :func:`~nlyap_opt.learned.phi_training.linear_neuron`) at the size of its output.
+    :meth:`Network.numpy` on one-hidden-layer tanh networks. A neuron's computed ``|tanh|``
+    is at most ``min(1, 2·p + (2n + 5)·2⁻¹⁰⁷⁴)`` with ``p`` the bound of its pre-activation
+    (twice: room for the rounding of the pre-activation and of tanh), which keeps the
+    allowance of a neuron with a tiny input scale and a large output weight (the linear
+    neuron of
+    :func:`~nlyap_opt.learned.phi_training.with_linear`) at the size of its output.
     """
     (l0, l1) = network.layers
     n, H = l0.weight.shape[1], l0.weight.shape[0]
 
     pre = np.abs(l0.weight) @ np.asarray(zmax, dtype=float) + np.abs(l0.bias)
-    tmax = np.minimum(1.0, 2.0 * pre)   # ≥ |tanh| of the computed pre-activation
+    # ≥ |tanh| of the computed pre-activation (2·pre: its relative rounding and tanh's
+    # ulps; the subnormal steps of its 2n + 1 operations added absolutely)
+    tmax = np.minimum(1.0, 2.0 * pre + (2 * n + 5) * 2.0**-1074)
     # |t̂ − t|: the relative rounding of the pre-activation's n products and sums, each of
     # those 2n + 1 operations may also lose half a subnormal step (2⁻¹⁰⁷⁵), and 4 ulps of tanh
     err_t = gamma(n + 1) * pre + (n + 1) * 2.0**-1074 + 8 * U * tmax + 4 * 2.0**-1074

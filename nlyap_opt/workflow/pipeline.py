@@ -1117,8 +1117,12 @@ def _sos_stage(ctx: _Context) -> _CheapRecord | None:
     model = None
     if not ctx.stages.known and not ctx.system.nu and ctx.dynamics is not None \
             and sc.degree != 0 and (sc.degree != AUTO or sos_may_fit(ctx.system.nx)):
-        # the polynomial search model of φ (its degree sizes the SDPs)
-        model = learned_model(ctx.system, ctx.dynamics, ctx.D.bounding_box())
+        # the polynomial search model of φ (its degree sizes the SDPs); none where φ is not
+        # finite on the fit's points (the choice then says the stage needs a model)
+        try:
+            model = learned_model(ctx.system, ctx.dynamics, ctx.D.bounding_box())
+        except ValueError:
+            model = None
     choice = choose_degree(ctx.system, sc.degree, known=ctx.stages.known,
                            controller=ctx.controller, model=model)
     if choice.automatic:
@@ -1134,7 +1138,7 @@ def _sos_stage(ctx: _Context) -> _CheapRecord | None:
             return _CheapRecord.load("sos", path)
         ctx.log(f"[sos] {path.name} holds degree {saved!r}, the run's degree is "
                 f"{choice.degree}: the SOS stage is recomputed")
-    return _sos_compute(ctx, view, sc, deps)
+    return _sos_compute(ctx, view, sc, deps, model)
 
 
 def _saved_sos_degree(path: Path):
@@ -1146,13 +1150,14 @@ def _saved_sos_degree(path: Path):
     return data.get("degree") if isinstance(data, dict) else None
 
 
-def _sos_compute(ctx: _Context, view: RunConfig, sc, deps: tuple) -> _CheapRecord | None:
+def _sos_compute(ctx: _Context, view: RunConfig, sc, deps: tuple,
+                 model=None) -> _CheapRecord | None:
     out, log = ctx.out, ctx.log
     t = time.perf_counter()
     log(f"[sos] SOS V of degree {sc.degree} under the initial controller "
         f"({sc.iterations} V-s rounds per degree at most)")
     problem = _cheap_stage_problem(ctx, view)
-    res = certify_sos(problem, sc, log=log)
+    res = certify_sos(problem, sc, model=model, log=log)
     box, n = _eval_grid(ctx.system, view)
     vol = res.area(box, n) if res.certified else 0.0
     (out / "V_sos.json").unlink(missing_ok=True)

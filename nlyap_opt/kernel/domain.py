@@ -173,7 +173,7 @@ def _quadratic_gauge(x, Q, c) -> np.ndarray | None:
         return None
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
         q = np.einsum("ij,jk,ik->i", x, Q, x)
-        b = x @ (Q @ c)
+        b = np.einsum("ij,j->i", x, Q @ c)     # no BLAS threads: the same bits on any load
         d = np.sqrt(b * b + a * q)
         t = np.where(b > 0, q / np.where(b > 0, b + d, 1.0), (d - b) / a)
     return np.where(np.isfinite(t), t, np.inf)

@@ -100,6 +100,7 @@ from ..certification.roa import (
     grid_area,
     grid_points,
     quadratic_form,
+    sector_lyapunov_matrix,
 )
 from ..design.control import (
     domain_lyapunov_matrix,
@@ -116,15 +117,15 @@ __all__ = ["QUADRATIC_CANDIDATES", "QuadraticCandidate", "certify_quadratics", "
            "closed_loop_matrix", "quadratic_policy", "decided_on_sets", "volume_bound"]
 
 
-def _lyapunov(A_cl, known: bool = True, domain=None):
+def _lyapunov(A_cl, known: bool = True, domain=None, problem=None):
     return lyapunov_matrix(A_cl)
 
 
-def _round(A_cl, known: bool = True, domain=None):
+def _round(A_cl, known: bool = True, domain=None, problem=None):
     return round_lyapunov_matrix(A_cl)
 
 
-def _volume(A_cl, known: bool = True, domain=None):
+def _volume(A_cl, known: bool = True, domain=None, problem=None):
     return volume_lyapunov_matrix(
         A_cl, VOLUME_DECAY_FRACTION if known else LEARNED_VOLUME_DECAY_FRACTION)
 
@@ -138,7 +139,7 @@ VOLUME_DECAY_FRACTION = 0.05
 #: smallest level holding the ball; 0.2 certifies there, volume 0.235 on the grid)
 LEARNED_VOLUME_DECAY_FRACTION = 0.2
 
-def _domain_fit(A_cl, known: bool = True, domain=None):
+def _domain_fit(A_cl, known: bool = True, domain=None, problem=None):
     """``"domain"``: the largest Lyapunov ellipsoid inside ``D`` itself."""
     if domain is None:
         return None
@@ -159,15 +160,49 @@ def _domain_fit(A_cl, known: bool = True, domain=None):
         inside=inside, half_widths=half)
 
 
-def _centre(A_cl, known: bool = True, domain=None):
+def _sector(A_cl, known: bool = True, domain=None, problem=None):
+    r"""``"sector"``: the ``P`` whose ellipsoid passes the whole-set decrease test under the
+    initial saturated controller, with every slope and input the controller takes on it
+    (:func:`nlyap_opt.certification.roa.sector_lyapunov_matrix`, seeded with the
+    ``"volume"`` matrix, inside ``D``). ``None`` without a problem, a one-layer tanh
+    controller or a smooth closed loop."""
+    if problem is None or problem.controller is None or domain is None:
+        return None
+    dec = replace(problem, V=quadratic_lyapunov(np.eye(problem.system.nx))).decrease()
+    sat = dec.saturated
+    if sat is None or sat.why or dec.rhs is None:
+        return None
+    eps = quadratic_policy(problem.known, nx=problem.system.nx).inner_fraction * problem.inner
+    P0 = volume_lyapunov_matrix(
+        A_cl, VOLUME_DECAY_FRACTION if known else LEARNED_VOLUME_DECAY_FRACTION)
+    if P0 is None or not eps > 0:
+        return None
+    robust = dec.robust or {}
+    outer = domain.bounding_box()
+    inside = None
+    if isinstance(domain, Ball) and domain.centre is None:
+        inside = domain.radius ** 2 * np.eye(A_cl.shape[0])
+    elif isinstance(domain, Ellipsoid) and domain.centre is None:
+        inside = np.linalg.inv(domain.Q)
+    elif not isinstance(domain, Box):
+        inside = domain.inradius() ** 2 * np.eye(A_cl.shape[0])
+    eta = float(robust.get("eta", 0.0))
+    return sector_lyapunov_matrix(
+        sat, dec.x, dec.rhs, P0, inner=eps, limit=np.minimum(-outer[:, 0], outer[:, 1]),
+        inside=inside, eta=eta, components=robust.get("components"),
+        constant=eta * float(robust.get("smoothing", 0.0)))
+
+
+def _centre(A_cl, known: bool = True, domain=None, problem=None):
     return centre_lyapunov_matrix(A_cl)
 
 
-#: name -> ``(A_cl, known, domain) -> P`` (``None``: no candidate); the names a configuration
+#: name -> ``(A_cl, known, domain, problem=None) -> P`` (``None``: no candidate); the names a
+#: configuration
 #: may list
 QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": _lyapunov, "round": _round,
                                              "volume": _volume, "domain": _domain_fit,
-                                             "centre": _centre}
+                                             "centre": _centre, "sector": _sector}
 #: the candidates for a linearisation that is not Hurwitz (the others need one)
 _NOT_HURWITZ = ("centre",)
 
@@ -360,8 +395,8 @@ def _candidate_matrix(problem, name: str, A_cl: np.ndarray, hurwitz: bool,
         A = closed_loop_matrix(SimpleNamespace(system=problem.system,
                                                controller=problem.controller,
                                                dynamics=None))
-    P = QUADRATIC_CANDIDATES[name](A, problem.known or _searched(problem), problem.domain) \
-        if fits else None
+    P = QUADRATIC_CANDIDATES[name](A, problem.known or _searched(problem), problem.domain,
+                                   problem=problem) if fits else None
     if P is None:
         whys[name] = "has no centre" if name in _NOT_HURWITZ else \
             "gave no solution" if fits else "not Hurwitz"

@@ -52,12 +52,19 @@ from ..kernel.domain import Ball, Region, as_domain, parse_set
 from ..kernel.errors import ConfigError, DimensionError, InputRangeError, NetworkFileError
 from ..kernel.network import Network
 from ..kernel.provenance import fingerprint
-from ..kernel.symbolic import closed_loop, learned_components_of, lie_derivative, robust_lie
+from ..kernel.symbolic import (
+    closed_loop,
+    learned_components_of,
+    learned_rhs,
+    lie_derivative,
+    robust_lie,
+)
 from ..kernel.walker import evaluate
 from ..learned.bounds import gradient_bound
 from ..learned.inner_from_data import prove_inner_ellipse_from_data
 from .roa import (
     INNER_LEVEL_MARGIN,
+    SaturatedLoop,
     candidate_level,
     certify_inner_ellipse,
     certify_level,
@@ -282,6 +289,9 @@ class Decrease:
     #: learned dynamics, pointwise margin: ``eta``, ``smoothing`` and ``components`` of the
     #: robust ``lie`` (:func:`nlyap_opt.kernel.symbolic.robust_lie`); ``None`` otherwise
     robust: dict | None = None
+    #: the closed loop split by its saturated controller (a quadratic ``V`` only;
+    #: :class:`~nlyap_opt.certification.roa.SaturatedLoop`), else ``None``
+    saturated: object = None
 
 
 @dataclass
@@ -420,7 +430,13 @@ class RoaProblem:
             comp = learned_components_of(self.system, self.dynamics)
             lie = robust_lie(lie, Vx, cl.x, self.eta, s, comp)
             robust = {"eta": self.eta, "smoothing": s, "components": comp}
-        self._decrease = Decrease(cl.x, Vx, lie, margin, M, s, cl.rhs, robust)
+        saturated = None
+        if self.controller is not None and quadratic_form(self.V) is not None:
+            def F_of(x, w):     # the open loop that closed_loop() composes with κ
+                return self.system.f_fun(x, w) if self.dynamics is None else \
+                    learned_rhs(self.system, self.dynamics, x, w)
+            saturated = SaturatedLoop(cl.x, F_of, self.controller)
+        self._decrease = Decrease(cl.x, Vx, lie, margin, M, s, cl.rhs, robust, saturated)
         return self._decrease
 
     def V_numpy(self, pts: np.ndarray) -> np.ndarray:
@@ -656,7 +672,8 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
                        shrink=1e-3 if search else 0.0, verify_options=problem.verify_options,
                        log=log, follow_violations=follow_violations,
                        quadratic=quadratic_form(problem.V),
-                       rhs=dec.rhs, robust=dec.robust, taylor_only=taylor_only)
+                       rhs=dec.rhs, robust=dec.robust, taylor_only=taylor_only,
+                       saturated=dec.saturated)
     # the checks of the certified level (a search's later tries may have failed above it)
     last = lc.history[-1] if lc.history else {}
     if lc.status == "certified":

@@ -53,7 +53,15 @@ from verification import (
     lyapunov_problem,
 )
 
-from ..design.control import InnerStatus, ellipse_candidates, lyapunov_matrix, verdict_of
+from ..design.control import (
+    InnerStatus,
+    ellipse_candidates,
+    lyapunov_matrix,
+    polytopic_lyapunov_matrix,
+    quadratic_lyapunov,
+    verdict_of,
+    volume_lyapunov_matrix,
+)
 from ..design.polynomial import exact_polynomials
 from ..distributed import parallel
 from ..kernel.domain import Ball, Box, Ellipsoid, as_domain
@@ -79,7 +87,7 @@ __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
     "quadratic_form", "quadratic_containment", "quadratic_inner_ball", "inner_ellipse_bound",
     "centre_lyapunov_matrix", "mean_value_form", "sliced_enclosure", "seeded_jacobian",
-    "TaylorDecrease",
+    "TaylorDecrease", "SaturatedLoop", "sector_lyapunov_matrix",
     "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "InnerForm",
     "InnerFormKind",
 ]
@@ -472,51 +480,90 @@ def seeded_jacobian(name: str, g, y) -> ca.Function:
     return ca.Function(name, [y, S], [ca.densify(ca.jtimes(g, y, S))])
 
 
-def sliced_enclosure(H: ca.Function, box: np.ndarray, weights: list[Fraction]
+def sliced_enclosure(H: ca.Function, box: np.ndarray | None, weights: list[Fraction], *,
+                     boxes: tuple[np.ndarray, np.ndarray] | None = None,
+                     split: tuple[list[int], int] | None = None
                      ) -> tuple[list[list[Fraction]], list[list[Fraction]]] | None:
     r"""``(C, R)``, exact rational centre and radius of :math:`\sum_k w_k [h](t_k Y)`, ``Y`` =
     ``box`` (a box containing 0), :math:`t_k = (k+1)/K` for the ``K`` weights and ``[h]`` the
-    outward-rounded interval enclosure of the ``d×d`` matrix that ``H`` computes, each entry
+    outward-rounded interval enclosure of the matrix that ``H`` computes (any shape), each entry
     widened by CasADi's constant-folding allowance; ``None`` when an enclosure is not
     finite. Since :math:`tY \subseteq t_{k+1} Y` for :math:`t \le t_{k+1}`, an integral
     :math:`\int_0^1 \omega(t)\,h(ty)\,dt` with :math:`w_k = \int_{t_k}^{t_{k+1}}\omega`
-    lies in the sum for every ``y ∈ Y``. ``H`` of :func:`seeded_jacobian` (a second input,
-    the seed) is evaluated at the identity seed."""
+    lies in the sum for every ``y ∈ Y``. ``H`` of :func:`seeded_jacobian` (further inputs,
+    the seeds) is evaluated at the identity seeds. ``boxes``: the ``K`` boxes themselves
+    instead of the slices of ``box`` (``(lo, hi)``, each ``(K, d)``; the caller proves that
+    they hold what the sum is about). ``split = (axes, k)``: each box is cut into ``k``
+    equal pieces along each of ``axes`` (the pieces share their float edges, so they cover
+    it) and ``[h]`` of the box is the hull of the pieces' enclosures, tighter where ``h``
+    is a deep graph of those axes (a learned φ)."""
     Interval, ia = interval_arithmetic()
-    d = box.shape[0]
     K = len(weights)
-    ts = [Fraction(k, K) for k in range(K + 1)]
-    lo_b = np.array([[float_down(t * rational(v)) for v in box[:, 0]] for t in ts[1:]])
-    hi_b = np.array([[float_up(t * rational(v)) for v in box[:, 1]] for t in ts[1:]])
+    if boxes is None:
+        ts = [Fraction(k, K) for k in range(K + 1)]
+        lo_b = np.array([[float_down(t * rational(v)) for v in box[:, 0]] for t in ts[1:]])
+        hi_b = np.array([[float_up(t * rational(v)) for v in box[:, 1]] for t in ts[1:]])
+    else:
+        lo_b, hi_b = (np.asarray(b, dtype=float) for b in boxes)
+    pieces = 1
+    if split is not None and split[0] and split[1] > 1:
+        lo_b, hi_b, pieces = _split_boxes(lo_b, hi_b, *split)
     args = [Interval(lo_b, hi_b)]
-    if H.n_in() == 2:
-        eye = np.tile(np.eye(H.size1_in(1)).ravel(order="F"), (K, 1))
+    for j in range(1, H.n_in()):        # the seeds, at the identity
+        eye = np.tile(np.eye(H.size1_in(j)).ravel(order="F"), (K * pieces, 1))
         args.append(Interval(eye, eye.copy()))
     res = evaluate(H, args, ia)[0]
     lo, hi = np.asarray(res.lo, dtype=float), np.asarray(res.hi, dtype=float)
-    if lo.size not in (d * d, K * d * d) or hi.size != lo.size:
+    rows, cols = H.size1_out(0), H.size2_out(0)
+    e = rows * cols
+    if lo.size not in (e, K * pieces * e) or hi.size != lo.size:
         return None
-    lo = np.broadcast_to(lo.reshape(-1, d * d), (K, d * d))   # a constant: (d²,)
-    hi = np.broadcast_to(hi.reshape(-1, d * d), (K, d * d))
+    lo = np.broadcast_to(lo.reshape(-1, e), (K * pieces, e))   # a constant: (e,)
+    hi = np.broadcast_to(hi.reshape(-1, e), (K * pieces, e))
+    if pieces > 1:          # the hull of each box's pieces
+        lo = lo.reshape(K, pieces, e).min(axis=1)
+        hi = hi.reshape(K, pieces, e).max(axis=1)
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         return None
-    L = [[Fraction(0)] * d for _ in range(d)]
-    U = [[Fraction(0)] * d for _ in range(d)]
+    L = [[Fraction(0)] * cols for _ in range(rows)]
+    U = [[Fraction(0)] * cols for _ in range(rows)]
     for k, wk in enumerate(weights):
-        # column-major nonzeros of the dense d×d matrix, widened by the fold allowance
-        lk, hk = lo[k].reshape(d, d).T, hi[k].reshape(d, d).T
-        for a in range(d):
-            for b in range(d):
+        # column-major entries of the dense matrix, widened by the fold allowance
+        lk, hk = lo[k].reshape(cols, rows).T, hi[k].reshape(cols, rows).T
+        for a in range(rows):
+            for b in range(cols):
                 vl, vh = Fraction(lk[a, b]), Fraction(hk[a, b])
                 L[a][b] += wk * (vl - abs(vl) * _FOLD)
                 U[a][b] += wk * (vh + abs(vh) * _FOLD)
-    C = [[(L[a][b] + U[a][b]) / 2 for b in range(d)] for a in range(d)]
-    R = [[(U[a][b] - L[a][b]) / 2 for b in range(d)] for a in range(d)]
+    C = [[(L[a][b] + U[a][b]) / 2 for b in range(cols)] for a in range(rows)]
+    R = [[(U[a][b] - L[a][b]) / 2 for b in range(cols)] for a in range(rows)]
     return C, R
 
 
+def _split_boxes(lo: np.ndarray, hi: np.ndarray, axes: list[int], k: int):
+    """Each row box of ``(lo, hi)`` cut into ``k`` pieces along each of ``axes``: ``(lo',
+    hi', pieces)`` with the ``pieces = k^len(axes)`` pieces of box ``i`` in rows ``i·pieces``
+    onwards. The edges are ``lo + (hi − lo)·j/k`` in floats with the first and last set to
+    ``lo`` and ``hi`` exactly, and neighbours share an edge: the pieces cover the box."""
+    K, d = lo.shape
+    grids = []
+    for a in axes:
+        e = lo[:, a:a + 1] + (hi[:, a:a + 1] - lo[:, a:a + 1]) * (np.arange(k + 1) / k)
+        e[:, 0], e[:, -1] = lo[:, a], hi[:, a]
+        grids.append(e)
+    idx = np.array(list(itertools.product(range(k), repeat=len(axes))))      # (pieces, len)
+    pieces = len(idx)
+    new_lo = np.repeat(lo, pieces, axis=0)
+    new_hi = np.repeat(hi, pieces, axis=0)
+    for j, a in enumerate(axes):
+        new_lo[:, a] = grids[j][:, idx[:, j]].ravel()
+        new_hi[:, a] = grids[j][:, idx[:, j] + 1].ravel()
+    return new_lo, new_hi, pieces
+
+
 def mean_value_form(P: list[list[Fraction]], C: list[list[Fraction]],
-                    R: list[list[Fraction]]) -> list[list[Fraction]]:
+                    R: list[list[Fraction]], d: list[Fraction] | None = None
+                    ) -> list[list[Fraction]]:
     r"""The exact symmetric ``N`` with :math:`2 y^\top P \bar J y \le y^\top N y` for every
     ``y`` and every :math:`\bar J \in [C - R, C + R]` (entrywise; all ``n×n`` rationals):
 
@@ -525,15 +572,231 @@ def mean_value_form(P: list[list[Fraction]], C: list[list[Fraction]],
     With :math:`\bar J = C + \Delta`, :math:`|\Delta| \le R`:
     :math:`2y^\top P\Delta y \le 2\sum_{ab} (|P|R)_{ab}|y_a||y_b| \le \sum_{ab}
     (|P|R)_{ab}(y_a^2 + y_b^2)`. Rows of ``P`` that are 0 (a ``P`` padded to more
-    coordinates than ``V`` reads) contribute nothing.
+    coordinates than ``V`` reads) contribute nothing. With positive weights ``d`` the last
+    step is :math:`2|y_a||y_b| \le (d_b/d_a) y_a^2 + (d_a/d_b) y_b^2`, so the diagonal is
+    :math:`\sum_b (Q_{ab} + Q_{ba})\,d_b/d_a` (``Q = |P|R``): with ``d`` the half-widths of
+    the box, each coordinate pays in proportion to its own extent.
     """
     n = len(P)
     PC = [[sum(P[i][k] * C[k][j] for k in range(n) if P[i][k]) for j in range(n)]
           for i in range(n)]
     Q = [[sum(abs(P[i][k]) * R[k][j] for k in range(n) if P[i][k]) for j in range(n)]
          for i in range(n)]
-    return [[PC[i][j] + PC[j][i] + (sum(Q[i][k] + Q[k][i] for k in range(n)) if i == j else 0)
-             for j in range(n)] for i in range(n)]
+    if d is None:
+        return [[PC[i][j] + PC[j][i] + (sum(Q[i][k] + Q[k][i] for k in range(n))
+                                        if i == j else 0) for j in range(n)] for i in range(n)]
+    return [[PC[i][j] + PC[j][i] + (sum((Q[i][k] + Q[k][i]) * d[k] for k in range(n)) / d[i]
+                                    if i == j else 0) for j in range(n)] for i in range(n)]
+
+
+#: the most parameters (slopes and inputs) whose box :class:`SaturatedLoop` spans by its
+#: corners (``2^p`` of them)
+SATURATED_MAX_PARAMETERS = 6
+#: :class:`SaturatedLoop` cuts each box of ``(x, u)`` into at most this many pieces, along
+#: the axes its Jacobian depends on, and encloses the hull of the pieces
+SATURATED_PIECES = 512
+
+
+class SaturatedLoop:
+    r"""A closed loop ``g(x) = F(x, κ(x))`` under a one-layer saturated controller
+    :math:`\kappa(x) = c \odot \tanh(Wx + b)`, split for :class:`TaylorDecrease`.
+
+    Its Jacobian is :math:`J(x) = F_x(x, u) + F_u(x, u)\,\mathrm{diag}(c)\,
+    \mathrm{diag}(\sigma(z))\,W` at ``u = κ(x)``, with the pre-activations ``z = Wx + b``
+    and the slopes :math:`\sigma(z) = 1 - \tanh^2 z \in (0, 1]`. The entrywise enclosure of
+    ``J`` on a box treats every entry as free, although whole rows move with the ``m`` slopes
+    and inputs, and it bounds ``z`` on the box's corners, far outside the ellipsoid the test
+    is about (a planar quadrotor: ``|W_i x|`` up to 0.58 on the box, 0.14 on the ellipsoid).
+    :meth:`enclose` keeps the slopes and the inputs as parameters and bounds ``z`` on the
+    ellipsoid :math:`\{x^\top P x \le c\}`, where :math:`|W_i x| \le \rho_i = \sqrt{c\,W_i
+    P^{-1} W_i^\top}` exactly (:meth:`radii`), so ``u`` lies in ``c ⊙ tanh(b ± ρ)``.
+
+    With ``u₀`` the centre of those inputs and ``δ = u − u₀``, the mean value in ``u`` gives
+    :math:`F_x(x, u) = F_x(x, u_0) + \sum_i \delta_i G_i` with :math:`G_i` in the hull of
+    :math:`\partial F_x/\partial u_i` on the box. So the mean-value Jacobian
+    :math:`\bar J(y) = \int_0^1 J(sy)\,ds` satisfies
+
+    .. math:: \bar J \in \Big\{C_0 + \sum_i d_i\,\hat G_i + U\,\mathrm{diag}(c \odot s)\,W
+              \Big\} + [-R, R], \quad R = R_0 + \sum_i r_i\,R_{G_i} + R_U\,\mathrm{diag}(|c|
+              \odot \sigma^{\max})\,|W|,
+
+    ``C₀ ± R₀`` the sliced enclosure of ``F_x(·, u₀)``, ``Ĝ_i ± R_{G_i}`` and ``U ± R_U``
+    the enclosures of ``∂F_x/∂u_i`` and ``F_u`` on the box of ``(x, u)``, ``r_i = max|δ_i|``,
+    ``σ^{max}`` the upper bound of ``σ`` (``σ ≥ 0``), and ``(d, s)`` in the box of the
+    averaged ``δ̄`` and ``σ̄`` (16 nested slices, as :func:`sliced_enclosure`; only the inputs
+    that ``F_x`` depends on get a ``d_i``). ``yᵀ(P\bar J + \bar J^\top P)y`` is affine in
+    ``(d, s)``, so its largest value is at a corner of that box: the decrease is proved when
+    it is proved at every corner. Each box of ``(x, u)`` is cut along the axes the
+    derivatives depend on (:data:`SATURATED_PIECES` pieces, hull of their enclosures). All
+    bounds are outward-rounded intervals of CasADi graphs of ``F`` and of the controller's own
+    weights; every product is exact in rationals.
+    """
+
+    def __init__(self, x, F_of, controller):
+        self.why = ""
+        layer = controller.layers[0] if isinstance(controller, Network) and \
+            len(controller.layers) == 1 else None
+        if layer is None or layer.activation != "tanh" or controller.head is not None:
+            self.why = "the controller is not one tanh layer c ⊙ tanh(Wx + b)"
+            return
+        m, n = layer.weight.shape
+        sym = ca.SX if isinstance(x, ca.SX) else ca.MX
+        c = np.broadcast_to(np.asarray(controller.output_scale, dtype=float), (m,))
+        self.c = [Fraction(v) for v in c]
+        self.W = [[Fraction(v) for v in row] for row in layer.weight]
+        self.b = [Fraction(v) for v in layer.bias]
+        self.n, self.m = n, m
+        v = sym.sym("v", n + m)             # (x, u)
+        F = F_of(v[:n], v[n:])
+        Sx, Su = sym.sym("Sx", n, n), sym.sym("Su", m, m)
+        z = sym.sym("z", m)
+        try:
+            fx = ca.densify(ca.jtimes(F, v, ca.vertcat(Sx, ca.DM.zeros(m, n))))
+            self.hx = ca.Function("sat_Fx", [v, Sx], [fx])
+            self.hu = ca.Function("sat_Fu", [v, Su], [ca.densify(
+                ca.jtimes(F, v, ca.vertcat(ca.DM.zeros(n, m), Su)))])
+            # column i: vec(∂F_x/∂u_i), both derivatives along symbolic seeds
+            self.hxu = ca.Function("sat_Fxu", [v, Sx, Su], [ca.densify(
+                ca.jtimes(ca.vec(fx), v, ca.vertcat(ca.DM.zeros(n, m), Su)))])
+            self.sigma = ca.Function("sat_sigma", [z], [1 - ca.tanh(z) ** 2])
+            self.kappa = ca.Function("sat_u", [z], [ca.DM(c) * ca.tanh(z)])
+            # the remainder of F_u about a matrix U0, times the slopes' gains
+            sv, U0 = sym.sym("s", m), sym.sym("U0", n, m)
+            fu = ca.jtimes(F, v, ca.vertcat(ca.DM.zeros(n, m), Su))
+            scaled = ca.horzcat(*[(fu[:, i] - U0[:, i]) * (float(c[i]) * sv[i])
+                                  for i in range(m)])
+            self.hq = ca.Function("sat_Fu_rest", [v, Su, sv, U0], [ca.densify(ca.mtimes(
+                scaled, ca.DM(layer.weight)))])
+            if any(compile_function(f).checked
+                   for f in (self.hx, self.hu, self.hxu, self.hq, self.sigma)):
+                self.why = "the loop uses non-smooth or partial operations"
+                return
+            # the inputs F_x depends on
+            sp = ca.jacobian(ca.vec(fx), v).sparsity()
+            self.affine = [i for i in range(m) if sp.colind()[n + i + 1] > sp.colind()[n + i]]
+            outs = ca.vertcat(ca.vec(fx), ca.vec(fu), ca.vec(self.hxu(v, Sx, Su)))
+            self._dep = ca.Function("sat_dep", [v, Sx, Su], [ca.jacobian(outs, v)])
+        except (RuntimeError, UnsupportedOperationError) as err:
+            self.why = f"no graph to enclose ({str(err).splitlines()[0][:80]})"
+            return
+        if m + len(self.affine) > SATURATED_MAX_PARAMETERS:
+            self.why = (f"{m + len(self.affine)} slope and input parameters (at most "
+                        f"{SATURATED_MAX_PARAMETERS})")
+
+    def _split(self, lo: np.ndarray, hi: np.ndarray):
+        """``(axes, k)`` for :func:`sliced_enclosure`: the (at most 3) axes of ``(x, u)``
+        along which the derivatives vary most over the box (their sensitivity at its centre
+        times its width), each cut into ``k`` pieces; ``None``: none varies. Only tightness
+        depends on the choice: the pieces cover the box whatever the axes."""
+        n, m = self.n, self.m
+        J = np.abs(np.asarray(self._dep(0.5 * (lo + hi), np.eye(n), np.eye(m)), dtype=float))
+        score = J.sum(axis=0) * (hi - lo)
+        axes = sorted(int(j) for j in np.argsort(-score, kind="stable")[:3] if score[j] > 0)
+        k = int(math.floor(SATURATED_PIECES ** (1.0 / len(axes)) + 1e-9)) if axes else 1
+        return (axes, k) if k > 1 else None
+
+    def radii(self, P: list[list[Fraction]], level) -> list[Fraction]:
+        r"""Rational :math:`\rho_i \ge \sqrt{c\,W_i P^{-1} W_i^\top}`: ``|W_i x| ≤ ρ_i`` on
+        :math:`\{x^\top P x \le c\}` (``c`` = ``level``, ``P`` positive definite)."""
+        Pinv = inverse(P)
+        c = rational(level)
+        n = self.n
+        return [Fraction(_sqrt_up(c * sum(w[a] * Pinv[a][b] * w[b] for a in range(n)
+                                          for b in range(n) if w[a] and w[b])))
+                for w in self.W]
+
+    def _ranges(self, H: ca.Function, rho: list[Fraction], ts: list[Fraction]):
+        """Rational ``(lo, hi)`` of ``H(z)`` on ``z ∈ b ± tρ`` for each ``t`` of ``ts``
+        (outward-rounded, widened by the fold allowance); ``None`` when not finite."""
+        Interval, ia = interval_arithmetic()
+        lo = np.array([[float_down(bi - t * r) for bi, r in zip(self.b, rho)] for t in ts])
+        hi = np.array([[float_up(bi + t * r) for bi, r in zip(self.b, rho)] for t in ts])
+        res = evaluate(H, [Interval(lo, hi)], ia)[0]
+        out_lo = np.asarray(res.lo, dtype=float).reshape(len(ts), -1)
+        out_hi = np.asarray(res.hi, dtype=float).reshape(len(ts), -1)
+        if not (np.all(np.isfinite(out_lo)) and np.all(np.isfinite(out_hi))):
+            return None
+        return ([[Fraction(v) - abs(Fraction(v)) * _FOLD for v in row] for row in out_lo],
+                [[Fraction(v) + abs(Fraction(v)) * _FOLD for v in row] for row in out_hi])
+
+    def _rest(self, whole, split, U, s_lo, s_hi):
+        """Rational ``R_U ≥ |(F_u − U) diag(c ⊙ σ) W|`` entrywise, ``F_u`` on the box
+        ``whole`` of ``(x, u)`` and ``σ ∈ [s_lo, s_hi]``: the hull over the box's pieces of
+        the graph's interval values (within a piece the rows of ``F_u − U`` are nearly
+        constant, so the inputs' terms cancel as they do in ``J``)."""
+        Interval, ia = interval_arithmetic()
+        lo, hi = whole
+        pieces = 1
+        if split is not None:
+            lo, hi, pieces = _split_boxes(lo, hi, *split)
+        n, m = self.n, self.m
+        eye = np.tile(np.eye(m).ravel(order="F"), (pieces, 1))
+        sl = np.tile([float_down(v) for v in s_lo], (pieces, 1))
+        sh = np.tile([float_up(v) for v in s_hi], (pieces, 1))
+        u0 = np.tile(np.array([[float(v) for v in row] for row in U]).ravel(order="F"),
+                     (pieces, 1))
+        res = evaluate(self.hq, [Interval(lo, hi), Interval(eye, eye.copy()),
+                                 Interval(sl, sh), Interval(u0, u0.copy())], ia)[0]
+        mag = np.maximum(np.abs(np.asarray(res.lo, dtype=float)),
+                         np.abs(np.asarray(res.hi, dtype=float))).reshape(-1, n * n)
+        if not np.all(np.isfinite(mag)):
+            return None
+        top = mag.max(axis=0).reshape(n, n).T         # column-major entries
+        return [[Fraction(top[a, b]) * (1 + _FOLD) for b in range(n)] for a in range(n)]
+
+    def enclose(self, Y: np.ndarray, rho: list[Fraction], *, pointwise: bool = False):
+        """``(corners, R)``: the exact rational matrices ``C₀ + Σ d_i Ĝ_i + U diag(c ⊙ s) W``
+        at the corners ``(d, s)`` of the parameter box and the radius ``R``, for ``y`` in
+        the box ``Y`` (containing 0) with ``|W_i y| ≤ ρ_i``; ``None`` when an enclosure is
+        not finite. The mean-value Jacobian ``J̄(y)``, or with ``pointwise`` ``J(y)``
+        itself (one slice: the whole set)."""
+        K = 1 if pointwise else TAYLOR_SLICES
+        ts = [Fraction(k + 1, K) for k in range(K)]
+        sliced = [Fraction(1, K)] * K
+        us, ss = self._ranges(self.kappa, rho, ts), self._ranges(self.sigma, rho, ts)
+        if us is None or ss is None:
+            return None
+        (u_lo, u_hi), (s_lo, s_hi) = us, ss
+        n, m = self.n, self.m
+        u0 = [(u_lo[-1][i] + u_hi[-1][i]) / 2 for i in range(m)]
+        y_lo = [[float_down(t * rational(v)) for v in Y[:, 0]] for t in ts]
+        y_hi = [[float_up(t * rational(v)) for v in Y[:, 1]] for t in ts]
+        at_u0 = (np.array([r + [float_down(w) for w in u0] for r in y_lo]),
+                 np.array([r + [float_up(w) for w in u0] for r in y_hi]))
+        whole = (np.array([y_lo[-1] + [float_down(w) for w in u_lo[-1]]]),
+                 np.array([y_hi[-1] + [float_up(w) for w in u_hi[-1]]]))
+        split = self._split(whole[0][0], whole[1][0])
+        e0 = sliced_enclosure(self.hx, None, sliced, boxes=at_u0, split=split)
+        eu = sliced_enclosure(self.hu, None, [Fraction(1)], boxes=whole, split=split)
+        eg = sliced_enclosure(self.hxu, None, [Fraction(1)], boxes=whole, split=split) \
+            if self.affine else ([], [])
+        if e0 is None or eu is None or eg is None:
+            return None
+        (C0, R0), (U, _), (G, RG) = e0, eu, eg
+        # U rounded to floats (any U works): the graph of the remainder reads it exactly
+        U = [[Fraction(float(v)) for v in row] for row in U]
+        RU = self._rest(whole, split, U, [s_lo[-1][i] for i in range(m)],
+                        [s_hi[-1][i] for i in range(m)])
+        if RU is None:
+            return None
+        # the averaged parameters' boxes: δ̄_i = ū_i − u0_i and σ̄_i
+        d_lo = [sum(u_lo[k][i] for k in range(K)) / K - u0[i] for i in range(m)]
+        d_hi = [sum(u_hi[k][i] for k in range(K)) / K - u0[i] for i in range(m)]
+        r = [max(u0[i] - u_lo[-1][i], u_hi[-1][i] - u0[i]) for i in range(m)]
+        smin = [sum(s_lo[k][i] for k in range(K)) / K for i in range(m)]
+        smax = [sum(s_hi[k][i] for k in range(K)) / K for i in range(m)]
+        # G (n²×m): row a + n·b of column i is (∂F_x/∂u_i)[a][b] (column-major vec)
+        R = [[R0[a][b] + RU[a][b] + sum(r[i] * RG[a + n * b][i] for i in self.affine)
+              for b in range(n)] for a in range(n)]
+        corners = []
+        for pick in itertools.product((0, 1), repeat=m + len(self.affine)):
+            s = [self.c[i] * (smax[i] if pick[i] else smin[i]) for i in range(m)]
+            d = {i: (d_hi[i] if pick[m + j] else d_lo[i]) for j, i in enumerate(self.affine)}
+            Us = [[U[a][i] * s[i] for i in range(m)] for a in range(n)]
+            corners.append([[C0[a][b] + sum(Us[a][i] * self.W[i][b] for i in range(m))
+                             + sum(d[i] * G[a + n * b][i] for i in self.affine)
+                             for b in range(n)] for a in range(n)])
+        return corners, R
 
 
 def _sqrt_up(q: Fraction) -> float:
@@ -578,25 +841,53 @@ class TaylorDecrease:
     certificate proves is ``∇V·g + margin < 0`` (``margin``: the global ``M·η``) or
     ``∇V·g + η·sqrt(‖∇_L V‖² + s²) < 0`` (``eta``, ``smoothing`` ``s`` and the learned
     ``components`` ``L``: :func:`nlyap_opt.kernel.symbolic.robust_lie`). With
-    ``∇_L V = 2 P_L y`` (the rows ``L`` of ``P``), ``‖2 P_L y‖ ≤ 2 p‖y‖`` for ``p ≥
-    ‖P_L‖_F`` and ``sqrt(q + s²) ≤ sqrt(q) + s``, the property is at most
-    :math:`y^\top N y + 2B\|y\| + m` with ``B = b + η p`` and ``m = margin + η s``. With
-    :math:`\lambda = (2B\varepsilon + m)/\varepsilon^2` and ``−N − λI ≻ 0``, the bound
-    :math:`q(r) = -\lambda r^2 + 2Br + m` is 0 at ``r = ε`` and decreasing beyond it, so the
-    property holds for every ``‖y‖ ≥ ε`` (strictly: ``yᵀNy < −λ‖y‖²`` for ``y ≠ 0``).
+    ``∇_L V = 2 P_L y`` (the rows ``L`` of ``P``) and ``sqrt(q + s²) ≤ sqrt(q) + s``, the
+    property is at most :math:`y^\top N y + 2b\|y\| + 2\eta\|P_L y\| + m` with ``m =
+    margin + η s``. For ``‖y‖ ≥ ε`` each term is at most a quadratic form:
+    :math:`2b\|y\| + m \le (2b/\varepsilon + m/\varepsilon^2)\|y\|^2` and, for any
+    ``t > 0``, :math:`2\eta\|P_L y\| \le 2\eta\|P_L y\|\,\|y\|/\varepsilon \le
+    (\eta/\varepsilon)(\|y\|^2/t + t\|P_L y\|^2)`. So the property holds on ``‖y‖ ≥ ε``
+    when
+
+    .. math:: -N - \Big(\frac{2b}{\varepsilon} + \frac{m}{\varepsilon^2} +
+              \frac{\eta}{\varepsilon t}\Big) I - \frac{\eta t}{\varepsilon}
+              P_L^\top P_L \succ 0
+
+    for a ``t`` chosen in floats (:meth:`_weights`: from ``t₀ = 1/‖P_L‖₂``, where the terms
+    are at most about ``2η‖P_L‖₂‖y‖²/ε``, below the scalar bound ``2η‖P_L‖_F‖y‖²/ε``, the
+    ``t`` that maximises the least eigenvalue); the test at that ``t`` is exact. A ``t``
+    away from ``t₀`` puts the margin where ``P_L`` is large, which is where ``−N`` is
+    large in a stiff loop.
+
+    **A saturated controller** (``saturated``, a :class:`SaturatedLoop`): where the entrywise
+    enclosure of ``J`` fails, the test is made at each corner of the controller's parameter
+    box (:meth:`SaturatedLoop.enclose`, on the ellipsoid's own input range), with the
+    remainder bounded row by row (:meth:`_bounded_proves`), and holds when it holds at
+    every corner.
     """
 
     def __init__(self, x, g, P: list[list[Fraction]], *, eta: float = 0.0,
-                 smoothing: float = 0.0, components=None, margin: float = 0.0):
+                 smoothing: float = 0.0, components=None, margin: float = 0.0,
+                 saturated: SaturatedLoop | None = None):
         self.P = P
         self.why = ""
         self._J = None
+        self._sat = saturated if saturated is not None and not saturated.why else None
         n0 = len(P)
         rows = range(n0) if components is None else list(components)
         self._eta, self._margin = rational(eta), rational(margin)
         self._s = rational(smoothing)
         self._pl = Fraction(_sqrt_up(sum(P[i][j] ** 2 for i in rows for j in range(n0)))) \
             if self._eta > 0 else Fraction(0)
+        # P_Lᵀ P_L, exactly (the matrix form of the robust margin), and the first weight
+        # t₀ = 1/‖P_L‖₂ (in floats: any t > 0 is sound)
+        self._plpl = [[sum(P[i][a] * P[i][b] for i in rows) for b in range(n0)]
+                      for a in range(n0)] if self._eta > 0 else None
+        self._t0 = Fraction(0)
+        if self._eta > 0 and self._pl > 0:
+            norm = float(np.linalg.norm(np.array([[float(P[i][j]) for j in range(n0)]
+                                                  for i in rows]), 2))
+            self._t0 = Fraction(1.0 / norm) if 0 < norm < math.inf else 1 / self._pl
         n = x.numel()
         # the graph as given (an MX closed loop is not expanded: expanding folds its
         # constant parts, e.g. C·tanh(b) − u_eq of a controller, in floats)
@@ -642,21 +933,178 @@ class TaylorDecrease:
         b = _origin_offset(self._g, self.P)
         if b is None:
             return None
-        B = b + self._eta * self._pl
         m = self._margin + self._eta * self._s
-        if (B > 0 or m > 0) and not inner > 0:
+        robust = self._eta > 0 and self._pl > 0
+        if (b > 0 or m > 0 or robust) and not inner > 0:
             return None
-        CR = sliced_enclosure(self._J, Y, [Fraction(1, TAYLOR_SLICES)] * TAYLOR_SLICES)
-        if CR is None:
-            return None
-        N = mean_value_form(self.P, *CR)
         eps = rational(inner) if inner > 0 else None
-        lam = (2 * B * eps + m) / (eps * eps) if (B > 0 or m > 0) else Fraction(0)
-        M = [[-v - (lam if i == j else 0) for j, v in enumerate(row)] for i, row in enumerate(N)]
-        if not positive_definite(M):
-            return None
-        return VerificationResult(QueryStatus.VERIFIED, seconds=time.perf_counter() - t0,
-                                  backend="taylor")
+        base = (2 * b * eps + m) / (eps * eps) if (b > 0 or m > 0) else Fraction(0)
+        CR = sliced_enclosure(self._J, Y, [Fraction(1, TAYLOR_SLICES)] * TAYLOR_SLICES)
+        if CR is not None and self._proves([mean_value_form(self.P, *CR)], base, eps):
+            return VerificationResult(QueryStatus.VERIFIED, seconds=time.perf_counter() - t0,
+                                      backend="taylor")
+        enc = self._sat.enclose(Y, self._sat.radii(self.P, level)) \
+            if self._sat is not None else None
+        d = [max(-rational(lo), rational(hi)) for lo, hi in Y]
+        if enc is not None and all(w > 0 for w in d) and self._bounded_proves(
+                enc[0], enc[1], d, base, eps):
+            return VerificationResult(QueryStatus.VERIFIED, seconds=time.perf_counter() - t0,
+                                      backend="taylor")
+        return None
+
+    def _bounded_proves(self, corners, R, d, base: Fraction, eps: Fraction | None,
+                        Ns: list | None = None) -> bool:
+        r"""The test with the Jacobian at each corner ``J_v`` plus a remainder ``|Δ| ≤ R``
+        bounded row by row: for a row ``b`` of ``Δ`` and any ``ν_b > 0``,
+        :math:`2(Py)_b\,\Delta_b y \le (Py)_b^2/\nu_b + \nu_b (\sum_c R_{bc}|y_c|)^2` and
+        :math:`(\sum_c R_{bc}|y_c|)^2 \le s_b \sum_c (R_{bc}/d_c) y_c^2` (Cauchy–Schwarz,
+        :math:`s_b = \sum_c R_{bc} d_c`), so :math:`2y^\top P\Delta y \le y^\top(\sum_b
+        p_b p_b^\top/\nu_b + \sum_b \nu_b s_b\,\mathrm{diag}(R_b/d))\,y` with ``p_b`` the
+        column ``b`` of ``P``. Unlike the entrywise bound, the first term lies along ``P``'s
+        own columns, where ``−(PJ + JᵀP)`` is large in a stiff loop. The weights ``t`` and
+        ``ν`` are chosen in floats (a coordinate search of the least eigenvalue); the test
+        at them is exact."""
+        n = len(self.P)
+        P = self.P
+        zero = [[Fraction(0)] * n for _ in range(n)]
+        N0 = Ns if Ns is not None else [mean_value_form(P, J, zero) for J in corners]
+        rows = [b for b in range(n) if any(R[b])]
+        sb = {b: sum(R[b][c] * d[c] for c in range(n)) for b in rows}
+        robust = self._eta > 0 and self._pl > 0
+        t, nu = self._weights(N0, R, d, rows, sb, base, eps, robust)
+        diag = base + (self._eta / (eps * t) if robust else 0)
+        w = self._eta * t / eps if robust else Fraction(0)
+        extra = [[-(w * self._plpl[i][j] if robust else 0)
+                  - sum(P[i][b] * P[j][b] / nu[b] for b in rows)
+                  - ((diag + sum(nu[b] * sb[b] * R[b][i] / d[i] for b in rows))
+                     if i == j else 0) for j in range(n)] for i in range(n)]
+        return all(positive_definite([[-N[i][j] + extra[i][j] for j in range(n)]
+                                      for i in range(n)]) for N in N0)
+
+    def _weights(self, N0, R, d, rows, sb, base, eps, robust):
+        """``(t, {b: ν_b})`` for :meth:`_bounded_proves`: from ``t = 1/p`` and ``ν_b =
+        ‖p_b‖/√(s_b max_c R_bc/d_c)``, factors of 2, 1, ½, ¼ (in log₂) up and down, one
+        weight at a time, while the least eigenvalue of the worst corner's matrix grows
+        (floats; any positive weights are sound)."""
+        n = len(self.P)
+        Pf = np.array([[float(v) for v in row] for row in self.P])
+        Nf = [np.array([[float(v) for v in row] for row in N]) for N in N0]
+        Rf = np.array([[float(v) for v in row] for row in R])
+        df = np.array([float(v) for v in d])
+        plpl = np.array([[float(v) for v in row] for row in self._plpl]) if robust else None
+        eta, ef = float(self._eta), float(eps) if eps else 1.0
+        nu0 = np.array([np.linalg.norm(Pf[:, b]) / math.sqrt(float(sb[b]) * max(
+            Rf[b] / df)) for b in rows])
+        nu0[~(nu0 > 0)] = 1.0
+        diagR = [np.diag(Rf[b] / df) * float(sb[b]) for b in rows]
+        outer = [np.outer(Pf[:, b], Pf[:, b]) for b in rows]
+
+        t0 = float(self._t0)
+
+        def least(x):
+            t = 2.0 ** x[0] * t0 if robust else 1.0
+            nu = 2.0 ** x[1:] * nu0
+            E = (float(base) + (eta / (ef * t) if robust else 0.0)) * np.eye(n)
+            if robust:
+                E = E + (eta * t / ef) * plpl
+            for k in range(len(rows)):
+                E = E + nu[k] * diagR[k] + outer[k] / nu[k]
+            vals = [np.linalg.eigvalsh(-N - E)[0] for N in Nf]
+            return min(vals) if all(np.isfinite(vals)) else -math.inf
+
+        x = np.zeros(1 + len(rows))
+        best = least(x)
+        calls = 0
+        for step in (2.0, 1.0, 0.5, 0.25):
+            improved = True
+            while improved and calls < 400:
+                improved = False
+                calls += 1
+                for k in range(len(x)):
+                    if k == 0 and not robust:
+                        continue
+                    for sgn in (1.0, -1.0):
+                        y = x.copy()
+                        y[k] += sgn * step
+                        v = least(y)
+                        if v > best:
+                            x, best, improved = y, v, True
+                            break
+        t = Fraction(2.0 ** x[0]) * self._t0 if robust else Fraction(1)
+        return t, {b: Fraction(float(2.0 ** x[1 + k] * nu0[k])) for k, b in enumerate(rows)}
+
+    def contracts(self, level: float, domain_box: np.ndarray, lam) -> bool:
+        """Whether ``PJ(y) + J(y)ᵀP + λI ≺ 0`` at every point ``y`` of ``{xᵀPx ≤ level}``
+        within ``domain_box`` (``λ`` = ``lam`` ≥ 0): the Jacobian form of condition (c),
+        decided on the whole set with the controller split (:meth:`SaturatedLoop.enclose`
+        with ``pointwise``, the remainder row by row, any positive weights: the claim is
+        about every vector ``z``, not only about ``y``). ``False`` where it does not apply
+        or does not prove it."""
+        if self._J is None or self._sat is None or not level > 0:
+            return False
+        Y = self.box(level, domain_box)
+        if not np.all((Y[:, 0] <= 0) & (Y[:, 1] >= 0)):
+            return False
+        enc = self._sat.enclose(Y, self._sat.radii(self.P, level), pointwise=True)
+        d = [max(-rational(lo), rational(hi)) for lo, hi in Y]
+        return enc is not None and all(w > 0 for w in d) and self._bounded_proves(
+            enc[0], enc[1], d, rational(lam), None)
+
+    def _proves(self, Ns: list, base: Fraction, eps: Fraction | None) -> bool:
+        """Whether ``−N − (base + η/(εt))I − (ηt/ε)P_LᵀP_L ≻ 0`` for every ``N`` of ``Ns``
+        at the weight ``t`` of :meth:`_weights` (``base`` alone without a robust margin)."""
+        n = len(self.P)
+        zero = [[Fraction(0)] * n for _ in range(n)]
+        return self._bounded_proves(None, zero, [Fraction(1)] * n, base, eps, Ns=Ns)
+
+
+#: the box scales (of the seed ellipsoid's bounding box at the inner ball's level) at which
+#: :func:`sector_lyapunov_matrix` designs its matrix; the largest ellipsoid wins
+SECTOR_SCALES = (1.0, 1.25, 1.6, 2.0, 2.5, 3.2)
+
+
+def sector_lyapunov_matrix(saturated: SaturatedLoop, x, rhs, seed: np.ndarray, *,
+                           inner: float, limit: np.ndarray, inside=None, eta: float = 0.0,
+                           components=None, constant: float = 0.0) -> np.ndarray | None:
+    r"""A ``P`` designed for :class:`TaylorDecrease` under a saturated controller: the
+    ellipsoid ``{xᵀPx ≤ 1}`` holds ``B_ε`` (``ε`` = ``inner``) and passes the whole-set test
+    with every slope and input the controller takes on it.
+
+    From the ``seed`` matrix's ellipsoid at the level that holds ``B_ε`` (bounding box ``h₀``,
+    controller ranges ``ρ₀``, :meth:`SaturatedLoop.radii`), for each scale ``s`` of
+    :data:`SECTOR_SCALES` the closed loop (``rhs`` in ``x``) is enclosed on the box ``s·h₀``
+    (within ``limit``, half-widths) and the ranges ``s·ρ₀``
+    (:meth:`SaturatedLoop.enclose`), and
+    :func:`nlyap_opt.design.control.polytopic_lyapunov_matrix` finds the largest ellipsoid
+    that the test proves with those enclosures (robust margin ``eta`` on ``components`` and
+    ``constant`` with learned dynamics; ``inside``: the domain's shape matrix). The largest
+    over the scales is returned, ``None`` if none: only a candidate, which the exact test then
+    certifies or not."""
+    n = seed.shape[0]
+    g0 = np.asarray(ca.Function("g", [x], [rhs])(np.zeros(n)), dtype=float).ravel()
+    c0 = (1 + INNER_LEVEL_MARGIN) * np.linalg.eigvalsh(seed)[-1] * inner ** 2
+    h0 = np.sqrt(c0 * np.diag(np.linalg.inv(seed)))
+    Pq = quadratic_form(quadratic_lyapunov(seed))
+    if Pq is None or not np.all(np.isfinite(g0)):
+        return None
+    rho0 = saturated.radii(Pq, c0)
+    gains = [[float(v) for v in row] for row in saturated.W]
+    best = None
+    for scale in SECTOR_SCALES:
+        h = np.minimum(scale * h0, limit)
+        rho = [Fraction(scale) * r for r in rho0]
+        enc = saturated.enclose(np.column_stack([-h, h]), rho)
+        if enc is None:
+            continue
+        P = polytopic_lyapunov_matrix(
+            [[[float(v) for v in row] for row in J] for J in enc[0]],
+            [[float(v) for v in row] for row in enc[1]], half_widths=h, inner=inner, eta=eta,
+            components=components, offset=g0, constant=constant, inside=inside,
+            gains=gains, radii=[float(r) for r in rho])
+        if P is not None and (best is None or np.linalg.slogdet(P)[1]
+                              < np.linalg.slogdet(best)[1]):
+            best = P
+    return best
 
 
 def _float_matrix(P: list[list[Fraction]]) -> np.ndarray:
@@ -692,7 +1140,8 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                   log=print, domain=None, follow_violations: bool = False,
                   quadratic: list[list[Fraction]] | None = None,
                   rhs=None, robust: dict | None = None,
-                  taylor_only: bool = False) -> LevelCertificate:
+                  taylor_only: bool = False,
+                  saturated: SaturatedLoop | None = None) -> LevelCertificate:
     """Prove (a) and (b) at the largest level we can reach from ``level`` downwards.
 
     The region is ``domain`` (a :class:`nlyap_opt.kernel.domain.Region`) or the ball
@@ -751,7 +1200,8 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     above = math.inf    # the least level above ``best`` that failed (or a violation's V)
     followed = False    # ``c`` was set by a followed decrease violation
     # (a) for a quadratic V and known dynamics: Taylor's formula on the sublevel set's box
-    taylor = TaylorDecrease(x, rhs, quadratic, margin=margin, **(robust or {})) \
+    taylor = TaylorDecrease(x, rhs, quadratic, margin=margin, saturated=saturated,
+                            **(robust or {})) \
         if quadratic is not None and rhs is not None else None
 
     def lower(c_old, c_new):
@@ -922,6 +1372,9 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     cl = closed_loop(system, controller, strict=True)
     J = ca.jacobian(cl.rhs, cl.x)
     A_cl = np.array(_fun(cl.x, J)(np.zeros(system.nx)), dtype=float)
+    sat = SaturatedLoop(cl.x, system.f_fun, controller) if controller is not None else None
+    if sat is not None and sat.why:
+        sat = None
     if form and P is None:
         raise ValueError("form names the saved P's form: give P with it")
     if P is not None:
@@ -973,9 +1426,15 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
                         "verdict": InnerStatus.NOT_HURWITZ, "P": np.eye(system.nx),
                         "level": 0.0, "box": np.zeros(system.nx), "result": None}
         candidates = ellipse_candidates(A_cl)   # Hurwitz as rounded: the Jacobian forms too
+        if sat is not None:     # the matrix designed for the whole-set test of the shell
+            sector = (_sector_candidate(sat, cl, A_cl, system, inner) for _ in (0,))  # lazy
+            candidates = itertools.chain(sector, candidates) \
+                if system.nx > SECTOR_FIRST_STATES else itertools.chain(candidates, sector)
     first = None
     for Pc in candidates:
-        out = _inner_ellipse(cl, J, Pc, inner, verify_options, only=spec)
+        if Pc is None:
+            continue
+        out = _inner_ellipse(cl, J, Pc, inner, verify_options, only=spec, saturated=sat)
         if out["verdict"] is InnerStatus.CERTIFIED:
             return out
         first = first or out
@@ -1061,8 +1520,25 @@ def _origin_offset(F: ca.Function, P: list[list[Fraction]]) -> Fraction | None:
     return Fraction(_sqrt_up(sum(t * t for t in w)))
 
 
+#: condition (c) tries the matrix of :func:`sector_lyapunov_matrix` first in more than this
+#: many states (where the other candidates' bisection forms take minutes), last otherwise
+SECTOR_FIRST_STATES = 3
+
+
+def _sector_candidate(sat: SaturatedLoop, cl, A_cl: np.ndarray, system, inner: float):
+    """Condition (c)'s candidate for a saturated controller: :func:`sector_lyapunov_matrix`
+    of the true closed loop at ``ε`` (seeded with the largest Lyapunov ellipsoid in the unit
+    ball, within the system's state box), or ``None``."""
+    seed = volume_lyapunov_matrix(A_cl, 0.05)
+    box = np.asarray(system.state_box, dtype=float) if system.state_box is not None else None
+    if seed is None or box is None or not np.all((box[:, 0] < 0) & (box[:, 1] > 0)):
+        return None
+    return sector_lyapunov_matrix(sat, cl.x, cl.rhs, seed, inner=inner,
+                                  limit=np.minimum(-box[:, 0], box[:, 1]))
+
+
 def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = None, *,
-                   shell: bool = True):
+                   shell: bool = True, saturated: SaturatedLoop | None = None):
     """Verify condition (c) for ``P`` on ``E = {xᵀPx ≤ c_q}`` (``c_q = λ_max(P) ε²``).
 
     Three sufficient forms; the first that verifies wins:
@@ -1104,7 +1580,7 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
                               "form)", "verdict": InnerStatus.NOT_PROVED, "P": P,
                     "level": c_q, "box": a, "result": None, "form": only.to_str()}
         return _inner_shell(cl, J, P, inner, verify_options, eps_s=only.radius,
-                            only=only.core)
+                            only=only.core, saturated=saturated)
     S = ca.mtimes(ca.DM(P), J)
     S = S + S.T
     b = _origin_offset(ca.Function("g_origin", [cl.x], [cl.rhs]), rational_matrix(P))
@@ -1112,8 +1588,13 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
         return {"status": "inner ellipse not proved (the closed loop at the origin is not "
                           "finite)", "verdict": InnerStatus.NOT_PROVED, "P": P, "level": c_q,
                 "box": a, "result": None, "form": "" if only is None else only.to_str()}
+    lam = 0.0
     if b > 0:   # S + λI ≺ 0 with λ = 4b/ε: V̇_q < 2b‖x‖ − λ‖x‖² ≤ 0 for ‖x‖ ≥ ε/2, on ∂E
-        S = S + float(np.nextafter(4.0 * float_up(b) / inner, np.inf)) * ca.DM.eye(n)
+        lam = float(np.nextafter(4.0 * float_up(b) / inner, np.inf))
+        S = S + lam * ca.DM.eye(n)
+    # the Jacobian forms' claim S ≺ 0 on E, tried on the whole set first (saturated loops)
+    whole = TaylorDecrease(cl.x, cl.rhs, rational_matrix(P), saturated=saturated) \
+        if saturated is not None else None
     # J only matters on E (convex: it holds every segment [0, x]); the box's corners reach
     # V = n·c_q, so the region is E itself
     Vq = ca.bilin(ca.DM(P), cl.x, cl.x)
@@ -1142,12 +1623,16 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
                 "level": c_q, "box": a, "result": None, "form": only.to_str()}
     for form in [f for f in order if f in forms]:
         if forms[form] is None:
-            out = _inner_shell(cl, J, P, inner, verify_options)
+            out = _inner_shell(cl, J, P, inner, verify_options, saturated=saturated)
         else:
             props = forms[form]
             prob = VerificationProblem(cl.x, box, [Vq - c_q], props, ["ellipse"],
                                        [f"{form}{k}" for k in range(1, len(props) + 1)])
-            res = parallel.check(prob, **(verify_options or {}))
+            res = None
+            if whole is not None and whole.contracts(c_q, box, lam):    # S ≺ 0 on E
+                res = VerificationResult(QueryStatus.VERIFIED, backend="taylor")
+            if res is None:
+                res = parallel.check(prob, **(verify_options or {}))
             out = {"status": "certified" if res.success else f"inner ellipse {res.status}",
                    "verdict": verdict_of(res.status), "P": P, "level": c_q, "box": a,
                    "result": res, "form": form}
@@ -1162,7 +1647,8 @@ SHELL_FRACTION = 0.25
 
 
 def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
-                 only: InnerFormKind | None = None) -> dict:
+                 only: InnerFormKind | None = None,
+                 saturated: SaturatedLoop | None = None) -> dict:
     r"""The shell form of condition (c): ``V̇_q = 2xᵀP g(x) < 0`` on ``E ∖ B_{ε_s}``, and
     ``S ≺ 0`` (minors or Frobenius form, ``only``: that one) on ``E_s = {xᵀPx ≤ c_s} ⊇
     B_{ε_s}``, ``c_s = λ_max(P) ε_s²``, ``0 < ε_s ≤ ε``.
@@ -1171,7 +1657,9 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
     ``E ∖ B_{ε_s}`` the quadratic decreases, at a rate bounded away from 0 (a continuous
     ``V̇_q < 0`` on a compact set): a trajectory from ``E`` stays in ``E`` and enters
     ``B_{ε_s} ⊆ E_s`` in finite time. A counterexample of the shell is a point of
-    ``E ∖ {0}`` where ``V̇_q ≥ 0``: this ``P`` cannot certify this ``E``.
+    ``E ∖ {0}`` where ``V̇_q ≥ 0``: this ``P`` cannot certify this ``E``. The shell is first
+    tried as a whole (:class:`TaylorDecrease` on ``E``'s box outside ``B_{ε_s}``, with the
+    split of a saturated controller, ``saturated``), then by bisection.
     """
 
     eps_s = float(inner * SHELL_FRACTION if eps_s is None else eps_s)
@@ -1187,7 +1675,10 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
     with parallel.ahead(_inner_ellipse, cl, J, P, eps_s, verify_options,
                         only=None if only is None else InnerForm(only), shell=False,
                         when=only is not None) as core_job:
-        res = parallel.check(prob, **(verify_options or {}))
+        res = TaylorDecrease(x, cl.rhs, rational_matrix(P), saturated=saturated).check(
+            c_q, np.stack([-a, a], axis=1), eps_s)
+        if res is None:
+            res = parallel.check(prob, **(verify_options or {}))
         if not res.success:
             return {"status": f"inner ellipse {res.status}", "verdict": verdict_of(res.status),
                     "P": P, "level": c_q, "box": a, "result": res,

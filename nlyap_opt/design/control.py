@@ -9,6 +9,7 @@ closed loop :math:`A_{cl} = A - BK` (or :math:`A` for input-free systems).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from enum import Enum
 
@@ -24,7 +25,7 @@ from ..kernel.symbolic import learned_rhs
 __all__ = [
     "InnerStatus", "LQRResult", "ellipse_candidates", "verdict_of", "lqr", "linearisation",
     "lyapunov_matrix", "round_lyapunov_matrix", "saturated_controller", "volume_lyapunov_matrix",
-    "domain_lyapunov_matrix",
+    "domain_lyapunov_matrix", "polytopic_lyapunov_matrix",
     "linear_controller",
     "quadratic_lyapunov",
 ]
@@ -288,6 +289,114 @@ def domain_lyapunov_matrix(A_cl, decay_fraction: float = 0.1, *, inside=None,
         return None
     P = np.linalg.inv(Qv)
     return 0.5 * (P + P.T)
+
+
+def polytopic_lyapunov_matrix(corners, radius, *, half_widths, inner: float, eta: float = 0.0,
+                              components=None, offset=None, constant: float = 0.0,
+                              inside=None, gains=None, radii=None, slack: float = 1.02,
+                              rounds: int = 8) -> np.ndarray | None:
+    r"""A ``P`` whose whole ellipsoid ``{xᵀPx ≤ 1}`` passes the mean-value decrease test
+    with the Jacobian in a polytope plus a remainder (an SDP, then its volume).
+
+    The test (:class:`nlyap_opt.certification.roa.TaylorDecrease`) proves ``V̇ < 0`` (with
+    learned dynamics the robust ``∇V·φ + η‖∇_L V‖ < 0``) on ``ε ≤ ‖y‖``, ``y`` in the box
+    ``|y_k| ≤ h_k``, when for every corner ``J_v`` of the Jacobian's polytope and weights
+    ``t, ν_b > 0``
+
+    .. math:: -(PJ_v + J_v^\top P) - \sum_b \Big(\frac{p_b p_b^\top}{\nu_b} + \nu_b s_b\,
+              \mathrm{diag}(R_b/h)\Big) - \Big(\frac{2b}{\varepsilon} +
+              \frac{m}{\varepsilon^2} + \frac{\eta}{\varepsilon t}\Big) I -
+              \frac{\eta t}{\varepsilon} P_L^\top P_L \succ 0
+
+    (``R`` = ``radius``, ``s_b = Σ_c R_bc h_c``, ``p_b`` the columns of ``P``, ``b ≥ ‖P
+    g(0)‖`` with ``offset`` = ``g(0)``, ``m`` = ``constant``). With ``τ = 1/t`` and Schur
+    complements for the ``p_b p_bᵀ/ν_b`` and ``P_LᵀP_L`` terms this is linear in ``(P, ν, τ,
+    b)``; it is solved in the coordinates ``z = y/h`` and time scaled by the largest entry
+    of ``J_v`` (the same conditions, better conditioned numbers). The SDP adds: the
+    ellipsoid inside the box (``(P⁻¹)_kk ≤ h_k²``), holding ``B_ε`` (``P ⪯ I/(1.03ε²)``),
+    inside the domain (``P ⪰ 1.01·inside⁻¹``, ``inside`` the shape matrix of a ball or
+    centred ellipsoid ``D``) and, for the rows ``w_i`` of ``gains``, ``|w_i x| ≤ ρ_i`` on it
+    (``radii``: ``w_i P⁻¹ w_iᵀ ≤ ρ_i²``, the ranges the polytope was enclosed on); among
+    those ``P`` it takes the largest volume by the tangents of ``log det P`` (as
+    :func:`volume_lyapunov_matrix`).
+
+    ``R``, ``η``, ``m`` and ``g(0)`` enter multiplied by ``slack``: the exact test picks its
+    weights on a grid of its own, and ``P`` is rounded to the stored network's floats.
+
+    Only a candidate: the caller certifies ``xᵀPx`` with the exact test. Returns ``None``
+    when no solver finds such a ``P``.
+    """
+    cp = deps.cvxpy()
+    corners = [np.asarray(J, dtype=float) for J in corners]
+    R = slack * np.asarray(radius, dtype=float)
+    eta, constant = slack * eta, slack * constant
+    n = R.shape[0]
+    h = np.asarray(half_widths, dtype=float)
+    if not (np.all(np.isfinite(R)) and all(np.all(np.isfinite(J)) for J in corners)
+            and np.all(h > 0) and inner > 0):
+        return None
+    H, Hi = np.diag(h), np.diag(1.0 / h)
+    scale = max(1.0, max(float(np.max(np.abs(Hi @ J @ H))) for J in corners))
+    Js = [Hi @ J @ H / scale for J in corners]
+    Rs = Hi @ R @ H / scale
+    rows = [b for b in range(n) if np.any(Rs[b] > 0)]
+    learned = list(range(n)) if components is None else list(components)
+    P = cp.Variable((n, n), symmetric=True)          # z-coordinates: P_y = Hi P Hi
+    tau, b = cp.Variable(nonneg=True), cp.Variable(nonneg=True)
+    nu = cp.Variable(len(rows), nonneg=True) if rows else None
+    eye = np.eye(n)
+    # the terms in ‖y‖² of the test, in z: yᵀy = zᵀH²z
+    shift = ((2 / inner) * b + constant / inner ** 2) / scale * (H @ H)
+    if eta > 0:
+        shift = shift + (eta / (inner * scale)) * tau * (H @ H)
+    spread = sum(nu[k] * Rs[r].sum() * np.diag(Rs[r]) for k, r in enumerate(rows)) \
+        if rows else 0
+    g0 = np.zeros(n) if offset is None else slack * np.asarray(offset, dtype=float)
+    cons = [P << H @ H / (1.03 * inner ** 2), b >= cp.norm(Hi @ P @ Hi @ g0) * (1 + 1e-6)]
+    PyL = (Hi @ P)[learned, :]
+    for J in Js:
+        M = -(P @ J + J.T @ P) - spread - shift - 1e-7 * eye
+        cols = [P[:, rows]] if rows else []
+        blocks = [[M] + cols + ([PyL.T] if eta > 0 else [])]
+        if rows:
+            blocks.append([P[rows, :], cp.diag(nu)]
+                          + ([np.zeros((len(rows), len(learned)))] if eta > 0 else []))
+        if eta > 0:
+            blocks.append([PyL] + ([np.zeros((len(learned), len(rows)))] if rows else [])
+                          + [(inner * scale / eta) * tau * np.eye(len(learned))])
+        big = cp.bmat(blocks) if len(blocks) > 1 else M
+        cons.append(0.5 * (big + big.T) >> 0)
+    for k in range(n):
+        e = np.zeros((n, 1))
+        e[k] = 1.0
+        cons.append(cp.bmat([[P, e], [e.T, np.array([[1.0]])]]) >> 0)
+    if inside is not None:
+        cons.append(P >> 1.01 * H @ np.linalg.inv(np.asarray(inside, dtype=float)) @ H)
+    for w, r in zip(np.zeros((0, n)) if gains is None else np.asarray(gains, dtype=float),
+                    [] if radii is None else radii):
+        wz = (w @ H).reshape(n, 1)
+        cons.append(cp.bmat([[P, wz], [wz.T, np.array([[float(r) ** 2]])]]) >> 0)
+    installed = set(cp.installed_solvers())
+    W, best = eye, None
+    for _ in range(rounds):
+        prob = cp.Problem(cp.Minimize(cp.trace(W @ P)), cons)
+        new = None
+        for solver in [s for s in ("CLARABEL",) if s in installed]:
+            try:
+                with warnings.catch_warnings():     # an inaccurate solve is only a candidate
+                    warnings.simplefilter("ignore")
+                    prob.solve(solver=solver)
+            except Exception:  # a failed solve only ends the descent
+                continue
+            if prob.status in ("optimal", "optimal_inaccurate") and P.value is not None:
+                new = 0.5 * (P.value + P.value.T)
+                break
+        if new is None or not np.all(np.isfinite(new)) or np.linalg.eigvalsh(new)[0] <= 0:
+            break
+        if best is not None and not np.linalg.slogdet(new)[1] < np.linalg.slogdet(best)[1]:
+            break
+        best, W = new, np.linalg.inv(new)
+    return None if best is None else Hi @ best @ Hi
 
 
 def ellipse_candidates(A_cl):

@@ -150,6 +150,7 @@ def test_the_design_meets_its_constraints_and_the_exact_test_proves_it():
     P = polytopic_lyapunov_matrix([A], np.zeros((3, 3)), half_widths=h, inner=eps, eta=eta,
                                   components=[2])
     assert P is not None
+    assert np.array_equal(P, P.T)        # exactly: a saved P must be symmetric
     assert np.linalg.eigvalsh(P)[-1] * eps ** 2 < 1
     assert np.all(np.diag(np.linalg.inv(P)) <= h ** 2 * (1 + 1e-6))
     x = ca.SX.sym("x", 3)
@@ -217,3 +218,12 @@ def test_condition_c_with_the_split_is_certified_and_rechecked():
     assert out["verdict"] is InnerStatus.CERTIFIED, out["status"]
     again = certify_inner_ellipse(s, ctrl, 0.2, P=out["P"], form=out["form"])
     assert again["verdict"] is InnerStatus.CERTIFIED
+
+
+def test_numbers_beyond_floats_leave_the_test_undecided_without_an_error():
+    """A loop whose enclosure is finite but beyond float range in the weights' search: the
+    test returns ``None`` (undecided), as the exact test alone did."""
+    x = ca.SX.sym("x", 2)
+    g = ca.vertcat(-x[0] + 1e307 * x[0] ** 3, -x[1])
+    Pq = quadratic_form(quadratic_lyapunov(10 * np.eye(2)))
+    assert TaylorDecrease(x, g, Pq).check(10.0, np.array([[-1.0, 1.0]] * 2), 0.0) is None

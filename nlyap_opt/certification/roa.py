@@ -617,19 +617,21 @@ class SaturatedLoop:
     :math:`\bar J(y) = \int_0^1 J(sy)\,ds` satisfies
 
     .. math:: \bar J \in \Big\{C_0 + \sum_i d_i\,\hat G_i + U\,\mathrm{diag}(c \odot s)\,W
-              \Big\} + [-R, R], \quad R = R_0 + \sum_i r_i\,R_{G_i} + R_U\,\mathrm{diag}(|c|
-              \odot \sigma^{\max})\,|W|,
+              \Big\} + [-R, R], \quad R = R_0 + \sum_i r_i\,R_{G_i} + R_U,
 
-    ``C₀ ± R₀`` the sliced enclosure of ``F_x(·, u₀)``, ``Ĝ_i ± R_{G_i}`` and ``U ± R_U``
-    the enclosures of ``∂F_x/∂u_i`` and ``F_u`` on the box of ``(x, u)``, ``r_i = max|δ_i|``,
-    ``σ^{max}`` the upper bound of ``σ`` (``σ ≥ 0``), and ``(d, s)`` in the box of the
-    averaged ``δ̄`` and ``σ̄`` (16 nested slices, as :func:`sliced_enclosure`; only the inputs
-    that ``F_x`` depends on get a ``d_i``). ``yᵀ(P\bar J + \bar J^\top P)y`` is affine in
-    ``(d, s)``, so its largest value is at a corner of that box: the decrease is proved when
-    it is proved at every corner. Each box of ``(x, u)`` is cut along the axes the
-    derivatives depend on (:data:`SATURATED_PIECES` pieces, hull of their enclosures). All
-    bounds are outward-rounded intervals of CasADi graphs of ``F`` and of the controller's own
-    weights; every product is exact in rationals.
+    ``C₀ ± R₀`` the sliced enclosure of ``F_x(·, u₀)``, ``Ĝ_i ± R_{G_i}`` that of
+    ``∂F_x/∂u_i`` on the box of ``(x, u)``, ``r_i = max|δ_i|``, ``U`` (floats) about the
+    centre of ``F_u`` there and ``R_U ≥ |(F_u − U)\,\mathrm{diag}(c ⊙ σ)\,W|`` entrywise (the
+    interval value of that product's graph, hull over the pieces of the box, with ``σ`` in
+    its range: the inputs' terms cancel within a piece as they do in ``J``), and ``(d, s)``
+    in the box of the averaged ``δ̄`` and ``σ̄`` (16 nested slices, as
+    :func:`sliced_enclosure`; only the inputs that ``F_x`` depends on get a ``d_i``).
+    ``yᵀ(P\bar J + \bar J^\top P)y`` is affine in ``(d, s)``, so its largest value is at a
+    corner of that box: the decrease is proved when it is proved at every corner. Each box
+    of ``(x, u)`` is cut along the axes the derivatives vary most on
+    (:data:`SATURATED_PIECES` pieces, hull of their enclosures). All bounds are
+    outward-rounded intervals of CasADi graphs of ``F`` and of the controller's own weights;
+    every product is exact in rationals.
     """
 
     def __init__(self, x, F_of, controller):
@@ -955,12 +957,13 @@ class TaylorDecrease:
     def _bounded_proves(self, corners, R, d, base: Fraction, eps: Fraction | None,
                         Ns: list | None = None) -> bool:
         r"""The test with the Jacobian at each corner ``J_v`` plus a remainder ``|Δ| ≤ R``
-        bounded row by row: for a row ``b`` of ``Δ`` and any ``ν_b > 0``,
-        :math:`2(Py)_b\,\Delta_b y \le (Py)_b^2/\nu_b + \nu_b (\sum_c R_{bc}|y_c|)^2` and
+        bounded row by row: for a row ``b`` of ``Δ``, ``p_b`` the column ``b`` of ``P`` and
+        any ``ν_b > 0``, :math:`2(p_b^\top y)\,\Delta_b y \le (p_b^\top y)^2/\nu_b +
+        \nu_b (\sum_c R_{bc}|y_c|)^2` and
         :math:`(\sum_c R_{bc}|y_c|)^2 \le s_b \sum_c (R_{bc}/d_c) y_c^2` (Cauchy–Schwarz,
         :math:`s_b = \sum_c R_{bc} d_c`), so :math:`2y^\top P\Delta y \le y^\top(\sum_b
-        p_b p_b^\top/\nu_b + \sum_b \nu_b s_b\,\mathrm{diag}(R_b/d))\,y` with ``p_b`` the
-        column ``b`` of ``P``. Unlike the entrywise bound, the first term lies along ``P``'s
+        p_b p_b^\top/\nu_b + \sum_b \nu_b s_b\,\mathrm{diag}(R_b/d))\,y`. Unlike the
+        entrywise bound, the first term lies along ``P``'s
         own columns, where ``−(PJ + JᵀP)`` is large in a stiff loop. The weights ``t`` and
         ``ν`` are chosen in floats (a coordinate search of the least eigenvalue); the test
         at them is exact."""
@@ -971,7 +974,12 @@ class TaylorDecrease:
         rows = [b for b in range(n) if any(R[b])]
         sb = {b: sum(R[b][c] * d[c] for c in range(n)) for b in rows}
         robust = self._eta > 0 and self._pl > 0
-        t, nu = self._weights(N0, R, d, rows, sb, base, eps, robust)
+        try:
+            t, nu = self._weights(N0, R, d, rows, sb, base, eps, robust)
+        except (OverflowError, ValueError, ZeroDivisionError, np.linalg.LinAlgError):
+            # numbers beyond floats: the starting weights (any positive ones are sound)
+            t = self._t0 if robust else Fraction(1)
+            nu = {b: Fraction(1) for b in rows}
         diag = base + (self._eta / (eps * t) if robust else 0)
         w = self._eta * t / eps if robust else Fraction(0)
         extra = [[-(w * self._plpl[i][j] if robust else 0)
@@ -995,7 +1003,7 @@ class TaylorDecrease:
         eta, ef = float(self._eta), float(eps) if eps else 1.0
         nu0 = np.array([np.linalg.norm(Pf[:, b]) / math.sqrt(float(sb[b]) * max(
             Rf[b] / df)) for b in rows])
-        nu0[~(nu0 > 0)] = 1.0
+        nu0[~(np.isfinite(nu0) & (nu0 > 0))] = 1.0
         diagR = [np.diag(Rf[b] / df) * float(sb[b]) for b in rows]
         outer = [np.outer(Pf[:, b], Pf[:, b]) for b in rows]
 
@@ -1031,7 +1039,9 @@ class TaylorDecrease:
                             x, best, improved = y, v, True
                             break
         t = Fraction(2.0 ** x[0]) * self._t0 if robust else Fraction(1)
-        return t, {b: Fraction(float(2.0 ** x[1 + k] * nu0[k])) for k, b in enumerate(rows)}
+        nu = 2.0 ** x[1:] * nu0
+        nu[~(np.isfinite(nu) & (nu > 0))] = 1.0
+        return t, {b: Fraction(float(nu[k])) for k, b in enumerate(rows)}
 
     def contracts(self, level: float, domain_box: np.ndarray, lam) -> bool:
         """Whether ``PJ(y) + J(y)ᵀP + λI ≺ 0`` at every point ``y`` of ``{xᵀPx ≤ level}``
@@ -1040,7 +1050,7 @@ class TaylorDecrease:
         with ``pointwise``, the remainder row by row, any positive weights: the claim is
         about every vector ``z``, not only about ``y``). ``False`` where it does not apply
         or does not prove it."""
-        if self._J is None or self._sat is None or not level > 0:
+        if self._J is None or self._sat is None or not level > 0 or self._eta > 0:
             return False
         Y = self.box(level, domain_box)
         if not np.all((Y[:, 0] <= 0) & (Y[:, 1] >= 0)):
@@ -1432,7 +1442,7 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
                 if system.nx > SECTOR_FIRST_STATES else itertools.chain(candidates, sector)
     first = None
     for Pc in candidates:
-        if Pc is None:
+        if Pc is None or not np.array_equal(Pc, Pc.T):   # a saved P must be symmetric too
             continue
         out = _inner_ellipse(cl, J, Pc, inner, verify_options, only=spec, saturated=sat)
         if out["verdict"] is InnerStatus.CERTIFIED:
@@ -1518,6 +1528,11 @@ def _origin_offset(F: ca.Function, P: list[list[Fraction]]) -> Fraction | None:
         return Fraction(0)
     w = [sum(abs(P[i][j]) * m[j] for j in range(n)) for i in range(n)]
     return Fraction(_sqrt_up(sum(t * t for t in w)))
+
+
+def _UNBOUNDED(n: int) -> np.ndarray:    # noqa: N802 (a constant's factory)
+    """The box of all of ``R^n``: a whole-set test then works on the ellipsoid's own box."""
+    return np.array([[-np.inf, np.inf]] * n)
 
 
 #: condition (c) tries the matrix of :func:`sector_lyapunov_matrix` first in more than this
@@ -1629,7 +1644,7 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
             prob = VerificationProblem(cl.x, box, [Vq - c_q], props, ["ellipse"],
                                        [f"{form}{k}" for k in range(1, len(props) + 1)])
             res = None
-            if whole is not None and whole.contracts(c_q, box, lam):    # S ≺ 0 on E
+            if whole is not None and whole.contracts(c_q, _UNBOUNDED(n), lam):  # S ≺ 0 on E
                 res = VerificationResult(QueryStatus.VERIFIED, backend="taylor")
             if res is None:
                 res = parallel.check(prob, **(verify_options or {}))
@@ -1674,9 +1689,9 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
     # as serially
     with parallel.ahead(_inner_ellipse, cl, J, P, eps_s, verify_options,
                         only=None if only is None else InnerForm(only), shell=False,
-                        when=only is not None) as core_job:
+                        saturated=saturated, when=only is not None) as core_job:
         res = TaylorDecrease(x, cl.rhs, rational_matrix(P), saturated=saturated).check(
-            c_q, np.stack([-a, a], axis=1), eps_s)
+            c_q, _UNBOUNDED(len(a)), eps_s)             # on all of E ∖ B_{ε_s}
         if res is None:
             res = parallel.check(prob, **(verify_options or {}))
         if not res.success:

@@ -396,7 +396,10 @@ def polytopic_lyapunov_matrix(corners, radius, *, half_widths, inner: float, eta
         if best is not None and not np.linalg.slogdet(new)[1] < np.linalg.slogdet(best)[1]:
             break
         best, W = new, np.linalg.inv(new)
-    return None if best is None else Hi @ best @ Hi
+    if best is None:
+        return None
+    X = Hi @ best @ Hi
+    return 0.5 * (X + X.T)          # exactly symmetric (the products round unevenly)
 
 
 def ellipse_candidates(A_cl):

@@ -239,8 +239,10 @@ PRESETS["planar_quadrotor"] = {
         # coordinates of the decrease (verifier option precondition): level 0.08 in 1.6·10⁵
         # boxes, where the axis-aligned boxes left it unknown after 1.5·10⁶; its level search
         # certifies level 0.258 (volume 0.0067, 362 times the LQR P's). The round P
-        # (cond 71) stays unknown even at level 0.01 and is not listed
-        "quadratic": ["lyapunov", "volume"],
+        # (cond 71) stays unknown even at level 0.01 and is not listed. The sector P
+        # (designed for the saturated controller's slopes and inputs on its own ellipsoid)
+        # is the one whose decrease the whole-set test proves with learned dynamics
+        "quadratic": ["lyapunov", "sector", "volume"],
         "train": {"hidden": [16], "features": 8, "steps": 1500, "lr": 0.01,
                   "w_local": 10.0, "lr_schedule": "cosine"},
         "cegis": {"iterations": 4, "steps": 500, "samples": 20000, "area_points": 531441,

@@ -117,15 +117,15 @@ __all__ = ["QUADRATIC_CANDIDATES", "QuadraticCandidate", "certify_quadratics", "
            "closed_loop_matrix", "quadratic_policy", "decided_on_sets", "volume_bound"]
 
 
-def _lyapunov(A_cl, known: bool = True, domain=None, problem=None):
+def _lyapunov(A_cl, known: bool = True, domain=None):
     return lyapunov_matrix(A_cl)
 
 
-def _round(A_cl, known: bool = True, domain=None, problem=None):
+def _round(A_cl, known: bool = True, domain=None):
     return round_lyapunov_matrix(A_cl)
 
 
-def _volume(A_cl, known: bool = True, domain=None, problem=None):
+def _volume(A_cl, known: bool = True, domain=None):
     return volume_lyapunov_matrix(
         A_cl, VOLUME_DECAY_FRACTION if known else LEARNED_VOLUME_DECAY_FRACTION)
 
@@ -139,7 +139,7 @@ VOLUME_DECAY_FRACTION = 0.05
 #: smallest level holding the ball; 0.2 certifies there, volume 0.235 on the grid)
 LEARNED_VOLUME_DECAY_FRACTION = 0.2
 
-def _domain_fit(A_cl, known: bool = True, domain=None, problem=None):
+def _domain_fit(A_cl, known: bool = True, domain=None):
     """``"domain"``: the largest Lyapunov ellipsoid inside ``D`` itself."""
     if domain is None:
         return None
@@ -193,16 +193,19 @@ def _sector(A_cl, known: bool = True, domain=None, problem=None):
         constant=eta * float(robust.get("smoothing", 0.0)))
 
 
-def _centre(A_cl, known: bool = True, domain=None, problem=None):
+def _centre(A_cl, known: bool = True, domain=None):
     return centre_lyapunov_matrix(A_cl)
 
 
-#: name -> ``(A_cl, known, domain, problem=None) -> P`` (``None``: no candidate); the names a
-#: configuration
-#: may list
+#: name -> ``(A_cl, known, domain) -> P`` (``None``: no candidate; those of
+#: ``_PROBLEM_CANDIDATES`` also get ``problem=``, the run's problem); the names a
+#: configuration may list
 QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": _lyapunov, "round": _round,
                                              "volume": _volume, "domain": _domain_fit,
                                              "centre": _centre, "sector": _sector}
+#: the candidates that read the run's problem as well (``problem=``; the registry's other
+#: plug-ins take ``(A_cl, known, domain)`` only)
+_PROBLEM_CANDIDATES = ("sector",)
 #: the candidates for a linearisation that is not Hurwitz (the others need one)
 _NOT_HURWITZ = ("centre",)
 
@@ -395,8 +398,9 @@ def _candidate_matrix(problem, name: str, A_cl: np.ndarray, hurwitz: bool,
         A = closed_loop_matrix(SimpleNamespace(system=problem.system,
                                                controller=problem.controller,
                                                dynamics=None))
+    extra = {"problem": problem} if name in _PROBLEM_CANDIDATES else {}
     P = QUADRATIC_CANDIDATES[name](A, problem.known or _searched(problem), problem.domain,
-                                   problem=problem) if fits else None
+                                   **extra) if fits else None
     if P is None:
         whys[name] = "has no centre" if name in _NOT_HURWITZ else \
             "gave no solution" if fits else "not Hurwitz"

@@ -227,3 +227,27 @@ def test_numbers_beyond_floats_leave_the_test_undecided_without_an_error():
     g = ca.vertcat(-x[0] + 1e307 * x[0] ** 3, -x[1])
     Pq = quadratic_form(quadratic_lyapunov(10 * np.eye(2)))
     assert TaylorDecrease(x, g, Pq).check(10.0, np.array([[-1.0, 1.0]] * 2), 0.0) is None
+
+
+def test_a_saved_sector_certificate_rechecks_and_a_tampered_one_does_not(tmp_path):
+    """The catalogue pendulum under a saturated controller: the ``sector`` quadratic is
+    certified, saved, and re-checked from its files (the split rebuilt from the saved
+    controller); a flatter ``V`` (a larger set) is refused."""
+    from nlyap_opt.certification.certificate import recheck_certificate, save_certificate
+    from nlyap_opt.kernel.network import Network
+    s = systems.get("inverted_pendulum")
+    res = lqr(s, np.eye(2), [[1.0]])
+    ctrl = saturated_controller(s, res.K, 4.0)
+    problem = RoaProblem(s, quadratic_lyapunov(np.eye(2)), ctrl, None, inner=0.4, outer=4.0)
+    (c,) = certify_quadratics(problem, ["sector"], box=np.array([[-4.0, 4.0]] * 2), n=41,
+                              log=lambda m: None)
+    assert c.certified, c.certificate.reason
+    from dataclasses import replace
+    d = tmp_path / "sector"
+    save_certificate(c.certificate, replace(problem, V=quadratic_lyapunov(c.P),
+                                            inner=c.certificate.inner), d)
+    assert recheck_certificate(d, log=lambda m: None).certified
+    V = Network.load(d / "V.json")
+    V.layers[0].weight = V.layers[0].weight * 0.5
+    V.save(d / "V.json")
+    assert not recheck_certificate(d, log=lambda m: None).certified

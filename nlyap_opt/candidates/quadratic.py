@@ -110,7 +110,7 @@ from ..design.control import (
     volume_lyapunov_matrix,
 )
 from ..kernel.domain import Ball, Box, Ellipsoid
-from ..kernel.errors import ConfigError
+from ..kernel.errors import ConfigError, InputRangeError
 from ..kernel.symbolic import closed_loop
 
 __all__ = ["QUADRATIC_CANDIDATES", "QuadraticCandidate", "certify_quadratics", "thin_radius",
@@ -139,22 +139,30 @@ VOLUME_DECAY_FRACTION = 0.05
 #: smallest level holding the ball; 0.2 certifies there, volume 0.235 on the grid)
 LEARNED_VOLUME_DECAY_FRACTION = 0.2
 
+def _domain_shape(domain, n: int):
+    """``(inside, half)``: the shape matrix of the centred ellipsoid an ellipsoid ``{xᵀPx ≤
+    1}`` must lie in (``P ⪰ inside⁻¹``: a ball about 0, a centred ellipsoid, else the
+    inscribed ball of ``D``), or for a box the half-widths of its nearer faces; ``None,
+    None`` for a box that does not hold the origin."""
+    if isinstance(domain, Box):
+        b = domain.bounding_box()
+        if not np.all((b[:, 0] < 0) & (b[:, 1] > 0)):
+            return None, None
+        return None, np.minimum(-b[:, 0], b[:, 1])
+    if isinstance(domain, Ellipsoid) and domain.centre is None:
+        return np.linalg.inv(domain.Q), None
+    r = domain.radius if isinstance(domain, Ball) and domain.centre is None \
+        else domain.inradius()
+    return r * r * np.eye(n), None
+
+
 def _domain_fit(A_cl, known: bool = True, domain=None):
     """``"domain"``: the largest Lyapunov ellipsoid inside ``D`` itself."""
     if domain is None:
         return None
-    inside, half = None, None
-    if isinstance(domain, Box):
-        b = domain.bounding_box()
-        if not np.all((b[:, 0] < 0) & (b[:, 1] > 0)):
-            return None
-        half = np.minimum(-b[:, 0], b[:, 1])
-    elif isinstance(domain, Ellipsoid) and domain.centre is None:
-        inside = np.linalg.inv(domain.Q)
-    else:                               # a ball about 0, or the inscribed ball of D
-        r = domain.radius if isinstance(domain, Ball) and domain.centre is None \
-            else domain.inradius()
-        inside = r * r * np.eye(A_cl.shape[0])
+    inside, half = _domain_shape(domain, A_cl.shape[0])
+    if inside is None and half is None:
+        return None
     return domain_lyapunov_matrix(
         A_cl, VOLUME_DECAY_FRACTION if known else LEARNED_VOLUME_DECAY_FRACTION,
         inside=inside, half_widths=half)
@@ -168,7 +176,10 @@ def _sector(A_cl, known: bool = True, domain=None, problem=None):
     controller or a smooth closed loop."""
     if problem is None or problem.controller is None or domain is None:
         return None
-    dec = replace(problem, V=quadratic_lyapunov(np.eye(problem.system.nx))).decrease()
+    try:
+        dec = replace(problem, V=quadratic_lyapunov(np.eye(problem.system.nx))).decrease()
+    except InputRangeError:     # the problem's bound does not apply: no candidate proves
+        return None
     sat = dec.saturated
     if sat is None or sat.why or dec.rhs is None:
         return None
@@ -179,13 +190,7 @@ def _sector(A_cl, known: bool = True, domain=None, problem=None):
         return None
     robust = dec.robust or {}
     outer = domain.bounding_box()
-    inside = None
-    if isinstance(domain, Ball) and domain.centre is None:
-        inside = domain.radius ** 2 * np.eye(A_cl.shape[0])
-    elif isinstance(domain, Ellipsoid) and domain.centre is None:
-        inside = np.linalg.inv(domain.Q)
-    elif not isinstance(domain, Box):
-        inside = domain.inradius() ** 2 * np.eye(A_cl.shape[0])
+    inside, _ = _domain_shape(domain, A_cl.shape[0])      # a box: its own limit below
     eta = float(robust.get("eta", 0.0))
     return sector_lyapunov_matrix(
         sat, dec.x, dec.rhs, P0, inner=eps, limit=np.minimum(-outer[:, 0], outer[:, 1]),
@@ -206,6 +211,9 @@ QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": _lyapunov, "round": _ro
 #: the candidates that read the run's problem as well (``problem=``; the registry's other
 #: plug-ins take ``(A_cl, known, domain)`` only)
 _PROBLEM_CANDIDATES = ("sector",)
+#: why a candidate gave no matrix, where "no solution" does not say it
+_NO_MATRIX = {"sector": "no sector design: it needs a one-layer tanh controller, a smooth "
+                        "closed loop and a feasible SDP"}
 #: the candidates for a linearisation that is not Hurwitz (the others need one)
 _NOT_HURWITZ = ("centre",)
 
@@ -402,8 +410,9 @@ def _candidate_matrix(problem, name: str, A_cl: np.ndarray, hurwitz: bool,
     P = QUADRATIC_CANDIDATES[name](A, problem.known or _searched(problem), problem.domain,
                                    **extra) if fits else None
     if P is None:
-        whys[name] = "has no centre" if name in _NOT_HURWITZ else \
-            "gave no solution" if fits else "not Hurwitz"
+        whys[name] = "closed-loop linearisation " + (
+            "has no centre" if name in _NOT_HURWITZ else "gave no solution" if fits
+            else "not Hurwitz") if name not in _NO_MATRIX or not fits else _NO_MATRIX[name]
     return P
 
 
@@ -528,7 +537,7 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
         name, P = names[i], mats[names[i]]
         t0 = time.perf_counter()
         if P is None:
-            log(f"  quadratic {name}: no matrix (closed-loop linearisation {whys[name]})")
+            log(f"  quadratic {name}: no matrix ({whys[name]})")
             found[i] = QuadraticCandidate(name, None, seconds=time.perf_counter() - t0)
             continue
         if prune and win is not None:

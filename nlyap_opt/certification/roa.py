@@ -649,10 +649,10 @@ class SaturatedLoop:
         self.b = [Fraction(v) for v in layer.bias]
         self.n, self.m = n, m
         v = sym.sym("v", n + m)             # (x, u)
-        F = F_of(v[:n], v[n:])
         Sx, Su = sym.sym("Sx", n, n), sym.sym("Su", m, m)
         z = sym.sym("z", m)
         try:
+            F = F_of(v[:n], v[n:])
             fx = ca.densify(ca.jtimes(F, v, ca.vertcat(Sx, ca.DM.zeros(m, n))))
             self.hx = ca.Function("sat_Fx", [v, Sx], [fx])
             self.hu = ca.Function("sat_Fu", [v, Su], [ca.densify(
@@ -1530,7 +1530,7 @@ def _origin_offset(F: ca.Function, P: list[list[Fraction]]) -> Fraction | None:
     return Fraction(_sqrt_up(sum(t * t for t in w)))
 
 
-def _UNBOUNDED(n: int) -> np.ndarray:    # noqa: N802 (a constant's factory)
+def _whole_space(n: int) -> np.ndarray:
     """The box of all of ``R^n``: a whole-set test then works on the ellipsoid's own box."""
     return np.array([[-np.inf, np.inf]] * n)
 
@@ -1644,7 +1644,7 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
             prob = VerificationProblem(cl.x, box, [Vq - c_q], props, ["ellipse"],
                                        [f"{form}{k}" for k in range(1, len(props) + 1)])
             res = None
-            if whole is not None and whole.contracts(c_q, _UNBOUNDED(n), lam):  # S ≺ 0 on E
+            if whole is not None and whole.contracts(c_q, _whole_space(n), lam):  # S ≺ 0 on E
                 res = VerificationResult(QueryStatus.VERIFIED, backend="taylor")
             if res is None:
                 res = parallel.check(prob, **(verify_options or {}))
@@ -1691,7 +1691,7 @@ def _inner_shell(cl, J, P, inner, verify_options, *, eps_s: float | None = None,
                         only=None if only is None else InnerForm(only), shell=False,
                         saturated=saturated, when=only is not None) as core_job:
         res = TaylorDecrease(x, cl.rhs, rational_matrix(P), saturated=saturated).check(
-            c_q, _UNBOUNDED(len(a)), eps_s)             # on all of E ∖ B_{ε_s}
+            c_q, _whole_space(len(a)), eps_s)             # on all of E ∖ B_{ε_s}
         if res is None:
             res = parallel.check(prob, **(verify_options or {}))
         if not res.success:

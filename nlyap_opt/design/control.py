@@ -223,17 +223,32 @@ def volume_lyapunov_matrix(A_cl, decay_fraction: float = 0.1, *, rounds: int = 4
     A_cl = np.asarray(A_cl, dtype=float)
     n = A_cl.shape[0]
     alpha = decay_fraction * -float(np.max(np.linalg.eigvals(A_cl).real))
-    P = P / np.linalg.eigvalsh(P)[0]
-    logdet = np.linalg.slogdet(P)[1]
+    X = cp.Variable((n, n), symmetric=True)
+    cons = [X >> np.eye(n), A_cl.T @ X + X @ A_cl + 2 * alpha * X << 0]
+    return _log_det_descent(X, cons, P / np.linalg.eigvalsh(P)[0], rounds=rounds, tol=tol)
+
+
+def _log_det_descent(X, cons, start: np.ndarray | None = None, *, rounds: int,
+                     tol: float = 0.0, solvers=("CLARABEL", "SCS")) -> np.ndarray | None:
+    r"""The least :math:`\log\det X` over the constraints ``cons`` by its tangents: each round
+    minimises :math:`\mathrm{tr}(X_k^{-1} X)` (majorisation-minimisation, ``X₀`` = ``start``,
+    a feasible point, or the identity's tangent without one), and :math:`\log\det X_k`
+    never increases; it stops when a round does not decrease it, decreases it by less than
+    ``tol``, or no solver of ``solvers`` gives a finite, positive definite ``X``. Returns
+    the last ``X_k`` (``start`` if no round improved it)."""
+    cp = deps.cvxpy()
     installed = set(cp.installed_solvers())
+    best = start
+    logdet = np.linalg.slogdet(start)[1] if start is not None else np.inf
+    W = np.linalg.inv(start) if start is not None else np.eye(X.shape[0])
     for _ in range(rounds):
-        X = cp.Variable((n, n), symmetric=True)
-        cons = [X >> np.eye(n), A_cl.T @ X + X @ A_cl + 2 * alpha * X << 0]
-        prob = cp.Problem(cp.Minimize(cp.trace(np.linalg.inv(P) @ X)), cons)
+        prob = cp.Problem(cp.Minimize(cp.trace(W @ X)), cons)
         new = None
-        for solver in [s for s in ("CLARABEL", "SCS") if s in installed]:
+        for solver in [s for s in solvers if s in installed]:
             try:
-                prob.solve(solver=solver)
+                with warnings.catch_warnings():     # an inaccurate solve is only a candidate
+                    warnings.simplefilter("ignore")
+                    prob.solve(solver=solver)
             except Exception:  # a failed solve only ends the descent
                 continue
             if X.value is not None and np.all(np.isfinite(X.value)):
@@ -244,11 +259,11 @@ def volume_lyapunov_matrix(A_cl, decay_fraction: float = 0.1, *, rounds: int = 4
         new_logdet = np.linalg.slogdet(new)[1]
         if not new_logdet < logdet:
             break
-        P, done = new, logdet - new_logdet < tol
-        logdet = new_logdet
+        done = logdet - new_logdet < tol
+        best, logdet, W = new, new_logdet, np.linalg.inv(new)
         if done:
             break
-    return P
+    return best
 
 
 def domain_lyapunov_matrix(A_cl, decay_fraction: float = 0.1, *, inside=None,
@@ -320,8 +335,8 @@ def polytopic_lyapunov_matrix(corners, radius, *, half_widths, inner: float, eta
     those ``P`` it takes the largest volume by the tangents of ``log det P`` (as
     :func:`volume_lyapunov_matrix`).
 
-    ``R``, ``η``, ``m`` and ``g(0)`` enter multiplied by ``slack``: the exact test picks its
-    weights on a grid of its own, and ``P`` is rounded to the stored network's floats.
+    ``R``, ``η``, ``m`` and ``g(0)`` enter multiplied by ``slack``: the exact test chooses its
+    own weights (in floats), and ``P`` is rounded to the stored network's floats.
 
     Only a candidate: the caller certifies ``xᵀPx`` with the exact test. Returns ``None``
     when no solver finds such a ``P``.
@@ -376,26 +391,7 @@ def polytopic_lyapunov_matrix(corners, radius, *, half_widths, inner: float, eta
                     [] if radii is None else radii):
         wz = (w @ H).reshape(n, 1)
         cons.append(cp.bmat([[P, wz], [wz.T, np.array([[float(r) ** 2]])]]) >> 0)
-    installed = set(cp.installed_solvers())
-    W, best = eye, None
-    for _ in range(rounds):
-        prob = cp.Problem(cp.Minimize(cp.trace(W @ P)), cons)
-        new = None
-        for solver in [s for s in ("CLARABEL",) if s in installed]:
-            try:
-                with warnings.catch_warnings():     # an inaccurate solve is only a candidate
-                    warnings.simplefilter("ignore")
-                    prob.solve(solver=solver)
-            except Exception:  # a failed solve only ends the descent
-                continue
-            if prob.status in ("optimal", "optimal_inaccurate") and P.value is not None:
-                new = 0.5 * (P.value + P.value.T)
-                break
-        if new is None or not np.all(np.isfinite(new)) or np.linalg.eigvalsh(new)[0] <= 0:
-            break
-        if best is not None and not np.linalg.slogdet(new)[1] < np.linalg.slogdet(best)[1]:
-            break
-        best, W = new, np.linalg.inv(new)
+    best = _log_det_descent(P, cons, rounds=rounds, solvers=("CLARABEL",))
     if best is None:
         return None
     X = Hi @ best @ Hi

@@ -445,8 +445,12 @@ def test_ahead_left_early_stops_its_job_at_the_next_wait(client):
 
 def test_certify_roa_on_a_cluster_checks_c_beside_a_and_b(client, monkeypatch):
     """``certify_roa`` inside ``verifying_on``: condition (c) runs ahead, beside (a) and (b),
-    and the certificate (status, level, checks, proved ellipse) is the serial one."""
+    and the certificate (status, level, checks, proved ellipse) is the serial one. (c)'s
+    whole-set Jacobian test is switched off: it would decide this small ellipse at once."""
     from nlyap_opt.certification.certificate import RoaProblem, certify_roa
+    from nlyap_opt.certification.roa import TaylorDecrease
+
+    monkeypatch.setattr(TaylorDecrease, "contracts", lambda self, *a, **k: False)
 
     s = systems.get("van_der_pol")
     prob = RoaProblem(s, quadratic_lyapunov(P_VDP), inner=0.3, outer=1.5)
@@ -476,12 +480,13 @@ def test_saved_shell_form_on_a_cluster_checks_its_core_beside_the_shell(client, 
     """Re-checking a saved ``shell`` form on a cluster: the core ellipse's check runs in a
     thread of its own while the shell's runs; the result is the serial one, also where the
     shell fails (0.3: certified; 2.5: a counterexample of the shell) and the core's result
-    is not used; no thread or turn is left behind. The shell goes to bisection here (its
-    whole-set test is switched off: it would decide Van der Pol's shell at once)."""
+    is not used; no thread or turn is left behind. The shell goes to bisection here (the
+    whole-set tests are switched off: they would decide Van der Pol's shell and core at once)."""
 
     from nlyap_opt.certification.roa import TaylorDecrease, certify_inner_ellipse
 
     monkeypatch.setattr(TaylorDecrease, "check", lambda self, *a, **k: None)
+    monkeypatch.setattr(TaylorDecrease, "contracts", lambda self, *a, **k: False)
 
     form, s = "shell r=0.075 + minors", systems.get("van_der_pol")
     serial = certify_inner_ellipse(s, None, inner, P=P_VDP, form=form)

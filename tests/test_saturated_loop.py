@@ -251,3 +251,23 @@ def test_a_saved_sector_certificate_rechecks_and_a_tampered_one_does_not(tmp_pat
     V.layers[0].weight = V.layers[0].weight * 0.5
     V.save(d / "V.json")
     assert not recheck_certificate(d, log=lambda m: None).certified
+
+
+def test_the_volume_bound_holds_the_sector_candidates_ellipse():
+    """:func:`inner_ellipse_bound` (which skips candidates that cannot win) holds every
+    ellipse condition (c) may prove, the ``sector`` matrix's included."""
+    from nlyap_opt.certification.roa import (
+        _sector_candidate,
+        ellipse_around_ball,
+        grid_points,
+        inner_ellipse_bound,
+    )
+    s, ctrl, cl, A = _loop(scale=2.0)
+    sat = SaturatedLoop(cl.x, s.f_fun, ctrl)
+    P = _sector_candidate(sat, cl, A, s, 0.2)
+    assert P is not None
+    c_q, _ = ellipse_around_ball(P, 0.2)
+    pts, _ = grid_points(np.array([[-2.0, 2.0]] * 2), 121)
+    inside = np.einsum("ij,jk,ik->i", pts, P, pts) <= c_q
+    mask = inner_ellipse_bound(s, ctrl, 0.2, pts)
+    assert inside.sum() > 10 and mask is not None and np.all(mask[inside])

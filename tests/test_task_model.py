@@ -180,14 +180,18 @@ def _overlap(a: dict, b: dict) -> bool:
     return a["start"] < b["start"] + b["makespan"] and b["start"] < a["start"] + a["makespan"]
 
 
-def test_a_certificate_modelled_on_a_simulated_cluster_is_the_serial_one():
+def test_a_certificate_modelled_on_a_simulated_cluster_is_the_serial_one(monkeypatch):
     """``verifying_on(SimulatedCluster(W))``: every check of the certificate goes through
     the model, condition (c) beside (a) and (b) as on a cluster (its thread ends with the
-    call), the model is deterministic, and the certificate is the serial one."""
+    call), the model is deterministic, and the certificate is the serial one. (c)'s
+    whole-set Jacobian test is switched off: it would decide this small ellipse at once."""
     import threading
 
     from nlyap_opt.certification.certificate import RoaProblem, certify_roa
+    from nlyap_opt.certification.roa import TaylorDecrease
     from nlyap_opt.distributed.parallel import verifying_on
+
+    monkeypatch.setattr(TaylorDecrease, "contracts", lambda self, *a, **k: False)
 
     prob = RoaProblem(systems.get("van_der_pol"), quadratic_lyapunov(P_VDP), inner=0.3,
                       outer=1.5)
@@ -218,11 +222,13 @@ def test_a_saved_shell_form_checks_its_core_beside_the_shell_as_serially(inner, 
     """Re-checking a saved ``shell`` form on a cluster runs the core ellipse's check beside
     the shell's (both start at once); the result is the serial one, and a shell that fails
     decides it as serially (the core's result is not used). The shell goes to bisection
-    here (its whole-set test is switched off: it would decide Van der Pol's shell at once)."""
+    here (the whole-set tests are switched off: they would decide Van der Pol's shell and
+    core at once)."""
     from nlyap_opt.certification.roa import TaylorDecrease, certify_inner_ellipse
     from nlyap_opt.distributed.parallel import verifying_on
 
     monkeypatch.setattr(TaylorDecrease, "check", lambda self, *a, **k: None)
+    monkeypatch.setattr(TaylorDecrease, "contracts", lambda self, *a, **k: False)
 
     form = "shell r=0.075 + minors"
     system = systems.get("van_der_pol")

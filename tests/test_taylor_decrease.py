@@ -114,14 +114,18 @@ def test_the_box_holds_the_ellipsoid():
 
 
 @pytest.mark.parametrize("case", ["abs", "sqrt", "division"])
-def test_the_test_refuses_a_closed_loop_that_is_not_smooth(case):
+def test_the_test_refuses_a_closed_loop_that_is_not_smooth_on_the_box(case):
+    """A kink or a partial operation inside the box (``|x₀|`` at 0, ``‖x‖`` at 0): the
+    checked walk does not clear it, nothing is proved. A division whose denominator stays
+    positive is used, and proves nothing here either: ``V̇ = 0`` on the ``x₁`` axis."""
     x = ca.SX.sym("x", 2)
     V_net = quadratic_lyapunov(np.eye(2))
     g = {"abs": -x + ca.vertcat(0.1 * ca.fabs(x[0]) * x[0], 0),       # not C²... nor C¹-safe
          "sqrt": -x + 0.01 * ca.norm_2(x),
          "division": -x * (x[0] ** 2 / (x[0] ** 2 + x[1] ** 2 + 0.5))}[case]
     t = TaylorDecrease(x, g, quadratic_form(V_net))
-    assert "non-smooth or partial" in t.why
+    Y = t.box(0.5, np.array([[-1.0, 1.0]] * 2))
+    assert t._smooth_on(Y) == (case == "division")
     assert t.check(0.5, np.array([[-1.0, 1.0]] * 2), 0.1) is None
 
 
@@ -278,3 +282,60 @@ def test_a_singular_quadratic_is_refused_with_a_reason():
     t = TaylorDecrease(x, -x, [[Fraction(1), Fraction(1)], [Fraction(1), Fraction(1)]])
     assert "not positive definite" in t.why
     assert t.check(0.5, np.array([[-1.0, 1.0]] * 2), 0.1) is None
+
+
+def test_the_jacobian_form_without_a_controller_split_holds_where_sampling_agrees():
+    """``contracts`` on a smooth loop without a saturated controller (the Jacobian enclosed
+    entrywise on the set's box): ``PJ(y) + J(y)ᵀP ≺ 0`` proved on a small ellipse, refused on
+    one large enough for the sampled largest eigenvalue to turn positive, and every proof
+    agrees with sampling; ``λ`` beyond the margin is refused."""
+    x = ca.SX.sym("x", 2)
+    g = ca.vertcat(x[1], -x[0] - x[1] + x[0] ** 3 / 3)      # reversed Van der Pol, damped
+    A = np.array([[0.0, 1.0], [-1.0, -1.0]])
+    P = solve_continuous_lyapunov(A.T, -np.eye(2))
+    Pq = quadratic_form(quadratic_lyapunov(P))
+    t = TaylorDecrease(x, g, Pq)
+    J = ca.Function("J", [x], [ca.jacobian(g, x)])
+    whole = np.array([[-np.inf, np.inf]] * 2)
+    rng = np.random.default_rng(3)
+    verdicts = {}
+    for level in (1e-4, 0.05, 3.0):
+        w, U = np.linalg.eigh(P)                  # points of {xᵀPx ≤ level}
+        z = rng.normal(size=(3000, 2))
+        z *= (rng.random((3000, 1)) ** 0.5) / np.linalg.norm(z, axis=1, keepdims=True)
+        pts = (z * np.sqrt(level / w)) @ U.T
+        worst = max(np.linalg.eigvalsh(P @ np.array(J(y)) + np.array(J(y)).T @ P)[-1]
+                    for y in pts)
+        verdicts[level] = t.contracts(level, whole, 0.0)
+        if verdicts[level]:
+            assert worst < 0, level
+        if level == 3.0:
+            assert worst > 0                        # the refusal is right there
+    assert verdicts[1e-4] and not verdicts[3.0]
+    # S(0) = -I: the margin λ = 0.9 holds on a tiny set, λ = 1.1 nowhere
+    assert t.contracts(1e-8, whole, 0.9) and not t.contracts(1e-8, whole, 1.1)
+
+
+def test_partial_and_non_smooth_operations_are_used_where_a_checked_walk_clears_them():
+    """A loop with a division and a kink: the whole-set test applies on a box where a
+    checked interval walk proves the denominator away from 0 and the kink away from the box
+    (sampling agrees), and returns ``None`` where the box reaches the kink."""
+    x = ca.SX.sym("x", 2)
+    g = ca.vertcat(x[1], -x[0] / (2 + ca.sin(x[0])) - x[1] + 0.1 * (ca.fabs(x[0] + 3) - 3))
+    A = np.array([[0.0, 1.0], [-0.5 + 0.1, -1.0]])
+    P = solve_continuous_lyapunov(A.T, -np.eye(2))
+    V_net = quadratic_lyapunov(P)
+    V, Pq = V_net.casadi(x), quadratic_form(V_net)
+    t = TaylorDecrease(x, g, Pq)
+    assert t.why == "" and t._checked is not None       # the graph has checked operations
+    whole = np.array([[-np.inf, np.inf]] * 2)
+    Pinv = np.linalg.inv(P)
+    small = 0.01 / Pinv[0, 0]                             # |x0| ≤ 0.1 on {V ≤ small}
+    big = 16.0 / Pinv[0, 0]                               # |x0| reaches 4: the kink at -3
+    res = t.check(small, whole, 0.0)
+    assert res is not None and res.status.value == "verified"
+    box = np.sqrt(small * np.diag(Pinv))[:, None] * np.array([-1.0, 1.0])
+    assert _sampled_max(x, V, _lie(V, x, g), small, box, np.random.default_rng(0)) < 0
+    assert t.check(big, whole, 0.0) is None
+    assert t.contracts(small / 4, whole, 0.0) in (True, False)   # decided without an error
+    assert not t.contracts(big, whole, 0.0)

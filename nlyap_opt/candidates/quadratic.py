@@ -212,8 +212,8 @@ QUADRATIC_CANDIDATES: dict[str, Callable] = {"lyapunov": _lyapunov, "round": _ro
 #: plug-ins take ``(A_cl, known, domain)`` only)
 _PROBLEM_CANDIDATES = ("sector",)
 #: why a candidate gave no matrix, where "no solution" does not say it
-_NO_MATRIX = {"sector": "no sector design: it needs a one-layer tanh controller, a smooth "
-                        "closed loop and a feasible SDP"}
+_NO_MATRIX = {"sector": "no sector design: it needs a one-layer tanh controller, a closed "
+                        "loop smooth on the design's boxes and a feasible SDP"}
 #: the candidates for a linearisation that is not Hurwitz (the others need one)
 _NOT_HURWITZ = ("centre",)
 
@@ -251,15 +251,16 @@ def quadratic_policy(known: bool, whole_set: bool = False,
 
 def decided_on_sets(problem) -> bool:
     """Whether :class:`~nlyap_opt.certification.roa.TaylorDecrease` applies to the run's
-    closed loop (its graph is smooth and total: the decrease of a quadratic ``V`` is then
-    decided on whole sublevel sets)."""
+    closed loop on the domain (its graph is smooth there, any partial or non-smooth
+    operation cleared on the domain's box: the decrease of a quadratic ``V`` is then decided
+    on whole sublevel sets)."""
     try:
         cl = closed_loop(problem.system, problem.controller, problem.dynamics)
     except (ValueError, TypeError):
         return False
     n = problem.system.nx
     eye = [[Fraction(int(i == j)) for j in range(n)] for i in range(n)]
-    return not TaylorDecrease(cl.x, cl.rhs, eye).why
+    return TaylorDecrease(cl.x, cl.rhs, eye).applies(problem.domain.bounding_box())
 
 
 @dataclass
@@ -441,7 +442,8 @@ def thin_radius(problem, P: np.ndarray, policy: LevelPolicy) -> float | None:
     lower bound of the least ``V`` on ``∂D`` (a box: the least ``V`` on each face's plane,
     :math:`h_k^2/(P^{-1})_{kk}`; otherwise :math:`\lambda_{\min}(P)` times the squared
     inradius), so the sublevel set at that level holds the ball. Only with the true f and
-    where :class:`~nlyap_opt.certification.roa.TaylorDecrease` applies to the closed loop:
+    where :class:`~nlyap_opt.certification.roa.TaylorDecrease` applies to the closed loop on
+    the domain:
     it proves the decrease on the whole sublevel set, so the inner ball costs nothing, where
     the verifier would have to bisect next to a tiny ball.
     The radius only chooses what is checked; conditions (a)-(c) are proved at it as at any

@@ -52,6 +52,7 @@ from verification import (
     VerificationResult,
     lyapunov_problem,
 )
+from verification.interval import CheckedIntervalArithmetic, Interval
 
 from ..design.control import (
     InnerStatus,
@@ -597,6 +598,31 @@ SATURATED_MAX_PARAMETERS = 6
 SATURATED_PIECES = 512
 
 
+def _cleared(prog, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether a checked interval walk of ``prog`` (a compiled walker program whose first
+    input is the point, any further inputs square seed matrices, set to the identity) on the
+    box ``[lo, hi]`` proves every non-smooth operation away from its kink or jump set and
+    every partial operation inside its domain, for every output, with finite enclosures.
+    A graph of smooth operations is then continuously differentiable on the box (each is on
+    the interior of its domain; an argument on a closed domain's edge, ``√x`` at ``x = 0``,
+    leaves a derivative graph undefined there, e.g. a division by an interval holding 0, so
+    programs that hold the derivatives are checked with them)."""
+    args = [Interval(np.asarray(lo, dtype=float)[None, :].copy(),
+                     np.asarray(hi, dtype=float)[None, :].copy())]
+    for sp in prog.sp_in[1:]:
+        eye = np.eye(sp.shape[0]).ravel(order="F")[None, :]
+        args.append(Interval(eye, eye.copy()))
+    ar = CheckedIntervalArithmetic(1, len(prog.sp_out))
+    try:
+        with np.errstate(all="ignore"):
+            outs = evaluate(prog, args, ar)
+    except (ArithmeticError, ValueError):
+        return False
+    ar.collect(outs)
+    finite = all(np.all(np.isfinite(o.lo)) and np.all(np.isfinite(o.hi)) for o in outs)
+    return finite and not (ar.jump.any() or ar.maybe_undefined.any())
+
+
 class SaturatedLoop:
     r"""A closed loop ``g(x) = F(x, κ(x))`` under a one-layer saturated controller
     :math:`\kappa(x) = c \odot \tanh(Wx + b)`, split for :class:`TaylorDecrease`.
@@ -631,7 +657,10 @@ class SaturatedLoop:
     of ``(x, u)`` is cut along the axes the derivatives vary most on
     (:data:`SATURATED_PIECES` pieces, hull of their enclosures). All bounds are
     outward-rounded intervals of CasADi graphs of ``F`` and of the controller's own weights;
-    every product is exact in rationals.
+    every product is exact in rationals. A graph of ``F`` with non-smooth or partial
+    operations (the cartpole's division) is used on a box of ``(x, u)`` only where a checked
+    walk of ``F`` and its derivatives clears them (:func:`_cleared`); elsewhere
+    :meth:`enclose` returns ``None``.
     """
 
     def __init__(self, x, F_of, controller):
@@ -669,10 +698,13 @@ class SaturatedLoop:
                                   for i in range(m)])
             self.hq = ca.Function("sat_Fu_rest", [v, Su, sv, U0], [ca.densify(ca.mtimes(
                 scaled, ca.DM(layer.weight)))])
+            # non-smooth or partial operations of F: usable on a box of (x, u) that a checked
+            # walk of F and its derivatives clears (:func:`_cleared`, in :meth:`enclose`)
+            self._checked = None
             if any(compile_function(f).checked
                    for f in (self.hx, self.hu, self.hxu, self.hq, self.sigma)):
-                self.why = "the loop uses non-smooth or partial operations"
-                return
+                self._checked = compile_function(ca.Function(
+                    "sat_all", [v, Sx, Su], [F, fx, fu, self.hxu(v, Sx, Su)]))
             # the inputs F_x depends on
             sp = ca.jacobian(ca.vec(fx), v).sparsity()
             self.affine = [i for i in range(m) if sp.colind()[n + i + 1] > sp.colind()[n + i]]
@@ -767,6 +799,8 @@ class SaturatedLoop:
                  np.array([r + [float_up(w) for w in u0] for r in y_hi]))
         whole = (np.array([y_lo[-1] + [float_down(w) for w in u_lo[-1]]]),
                  np.array([y_hi[-1] + [float_up(w) for w in u_hi[-1]]]))
+        if self._checked is not None and not _cleared(self._checked, whole[0][0], whole[1][0]):
+            return None         # every box below lies in ``whole``
         split = self._split(whole[0][0], whole[1][0])
         e0 = sliced_enclosure(self.hx, None, sliced, boxes=at_u0, split=split)
         eu = sliced_enclosure(self.hu, None, [Fraction(1)], boxes=whole, split=split)
@@ -835,9 +869,10 @@ class TaylorDecrease:
     matrix of the stored network (:func:`quadratic_form`), so ``V̇`` is the real derivative
     of the real ``V``. A linear loop has a constant ``J`` (``R`` only the folding allowance):
     the test is then exact up to that allowance at every level. ``g`` must be continuously
-    differentiable on ``Y``: graphs with non-smooth or partial operations are refused
-    (``why``), and :meth:`check` then returns ``None``, as it does where the enclosure is not
-    tight enough.
+    differentiable on ``Y``: a graph with non-smooth or partial operations is used only on
+    a ``Y`` where a checked interval walk of ``g`` and ``J`` clears each of them
+    (:meth:`_smooth_on`), and :meth:`check` returns ``None`` elsewhere, as it does where the
+    enclosure is not tight enough.
 
     **Learned dynamics** (``g`` the closed loop with φ, ``‖f − φ‖ ≤ η``): the property the
     certificate proves is ``∇V·g + margin < 0`` (``margin``: the global ``M·η``) or
@@ -902,15 +937,28 @@ class TaylorDecrease:
             # a callback (black box), an operation the walker does not support
             self.why = f"the closed loop has no graph to enclose ({str(err).splitlines()[0][:80]})"
             return
-        if prog.checked:
-            self.why = "the closed loop uses non-smooth or partial operations"
-            return
+        # non-smooth or partial operations: usable on a box where a checked walk proves every
+        # one of them away from its kink/jump set and inside its domain (:meth:`_smooth_on`)
+        self._checked = prog if prog.checked else None
         try:
             self._Pinv_diag = inverse_diagonal(P)
         except ZeroDivisionError:
             self.why = "P is not positive definite"
             return
         self._J = J
+
+    def applies(self, box) -> bool:
+        """Whether the test can decide anything on sets within ``box`` (a finite box, e.g.
+        the domain's bounding box): the closed loop has a graph, ``P`` is positive definite,
+        and :meth:`_smooth_on` clears the box (a sublevel set's box within it is then cleared
+        too: a checked walk's enclosure of a sub-box lies in the box's)."""
+        return not self.why and self._smooth_on(np.asarray(box, dtype=float))
+
+    def _smooth_on(self, Y: np.ndarray) -> bool:
+        """Whether ``g`` is continuously differentiable on the box ``Y`` with Jacobian ``J``:
+        always for a graph of smooth total operations, else where :func:`_cleared` clears
+        the graph of ``(g, J)`` on ``Y``. Every set the test encloses lies in ``Y``."""
+        return self._checked is None or _cleared(self._checked, Y[:, 0], Y[:, 1])
 
     def box(self, level: float, domain_box: np.ndarray) -> np.ndarray:
         """A box that holds :math:`\\{x^\\top P x \\le c\\} \\cap D`: the ellipsoid's bounding
@@ -930,7 +978,7 @@ class TaylorDecrease:
             return None
         t0 = time.perf_counter()
         Y = self.box(level, domain_box)
-        if not np.all((Y[:, 0] <= 0) & (Y[:, 1] >= 0)):
+        if not np.all((Y[:, 0] <= 0) & (Y[:, 1] >= 0)) or not self._smooth_on(Y):
             return None
         b = _origin_offset(self._g, self.P)
         if b is None:
@@ -1046,14 +1094,23 @@ class TaylorDecrease:
     def contracts(self, level: float, domain_box: np.ndarray, lam) -> bool:
         """Whether ``PJ(y) + J(y)ᵀP + λI ≺ 0`` at every point ``y`` of ``{xᵀPx ≤ level}``
         within ``domain_box`` (``λ`` = ``lam`` ≥ 0): the Jacobian form of condition (c),
-        decided on the whole set with the controller split (:meth:`SaturatedLoop.enclose`
+        decided on the whole set. First with ``J`` enclosed entrywise on the set's box
+        ``Y`` (``J(y) ∈ [C − R, C + R]`` for every ``y ∈ Y``, so
+        ``zᵀ(PJ + JᵀP)z ≤ zᵀNz`` for every vector ``z``, ``N`` of :func:`mean_value_form`,
+        and ``−N − λI ≻ 0`` is decided by an exact ``LDLᵀ``; tight on a small set, where
+        ``J`` hardly varies); then with the controller split (:meth:`SaturatedLoop.enclose`
         with ``pointwise``, the remainder row by row, any positive weights: the claim is
         about every vector ``z``, not only about ``y``). ``False`` where it does not apply
         or does not prove it."""
-        if self._J is None or self._sat is None or not level > 0 or self._eta > 0:
+        if self._J is None or not level > 0 or self._eta > 0:
             return False
         Y = self.box(level, domain_box)
-        if not np.all((Y[:, 0] <= 0) & (Y[:, 1] >= 0)):
+        if not np.all((Y[:, 0] <= 0) & (Y[:, 1] >= 0)) or not self._smooth_on(Y):
+            return False
+        CR = sliced_enclosure(self._J, None, [Fraction(1)], boxes=(Y[None, :, 0], Y[None, :, 1]))
+        if CR is not None and self._proves([mean_value_form(self.P, *CR)], rational(lam), None):
+            return True
+        if self._sat is None:
             return False
         enc = self._sat.enclose(Y, self._sat.radii(self.P, level), pointwise=True)
         d = [max(-rational(lo), rational(hi)) for lo, hi in Y]
@@ -1468,8 +1525,10 @@ def inner_ellipse_bound(system, controller, inner: float, pts: np.ndarray, *,
     :math:`\dot V_q = 2x^\top P f(x) < 0` on :math:`E \setminus \{0\}`. A candidate whose
     ellipse holds a sampled point (``samples`` seeded points inside and on ``E``) with
     :math:`\dot V_q` clearly positive (beyond :data:`_VDOT_SLACK` of its terms) can
-    therefore not be proved; the mask is the union of the other candidates' ellipses.
-    ``None`` (no bound) where (c) would take another route: a linearisation that is not
+    therefore not be proved; the mask is the union of the other candidates' ellipses. Under a
+    saturated controller (:class:`SaturatedLoop`) the candidates include the ``sector`` matrix
+    that :func:`certify_inner_ellipse` also tries (:func:`_sector_candidate`, computed here
+    too). ``None`` (no bound) where (c) would take another route: a linearisation that is not
     Hurwitz or has a centre (the weighted blow-up).
     """
     cl = closed_loop(system, controller, strict=True)
@@ -1478,12 +1537,16 @@ def inner_ellipse_bound(system, controller, inner: float, pts: np.ndarray, *,
     if not np.all(np.isfinite(A_cl)) or np.max(np.linalg.eigvals(A_cl).real) >= 0 \
             or _centre_split(A_cl) is not None:
         return None
+    candidates = list(ellipse_candidates(A_cl))
+    sat = SaturatedLoop(cl.x, system.f_fun, controller) if controller is not None else None
+    if sat is not None and not sat.why:
+        candidates.append(_sector_candidate(sat, cl, A_cl, system, inner))
     F = _fun(cl.x, cl.rhs)
     rng = np.random.default_rng(seed)
     u = np.vstack([sample_ball(samples // 2, n, 1.0, rng),
                    sample_sphere(samples - samples // 2, n, 1.0, rng)])
     mask = np.zeros(len(pts), dtype=bool)
-    for P in ellipse_candidates(A_cl):
+    for P in candidates:
         if P is None or not np.all(np.isfinite(P)):
             continue
         c_q, _ = ellipse_around_ball(P, inner)
@@ -1607,9 +1670,8 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
     if b > 0:   # S + λI ≺ 0 with λ = 4b/ε: V̇_q < 2b‖x‖ − λ‖x‖² ≤ 0 for ‖x‖ ≥ ε/2, on ∂E
         lam = float(np.nextafter(4.0 * float_up(b) / inner, np.inf))
         S = S + lam * ca.DM.eye(n)
-    # the Jacobian forms' claim S ≺ 0 on E, tried on the whole set first (saturated loops)
-    whole = TaylorDecrease(cl.x, cl.rhs, rational_matrix(P), saturated=saturated) \
-        if saturated is not None else None
+    # the Jacobian forms' claim S ≺ 0 on E, tried on the whole set first
+    whole = TaylorDecrease(cl.x, cl.rhs, rational_matrix(P), saturated=saturated)
     # J only matters on E (convex: it holds every segment [0, x]); the box's corners reach
     # V = n·c_q, so the region is E itself
     Vq = ca.bilin(ca.DM(P), cl.x, cl.x)
@@ -1644,7 +1706,7 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
             prob = VerificationProblem(cl.x, box, [Vq - c_q], props, ["ellipse"],
                                        [f"{form}{k}" for k in range(1, len(props) + 1)])
             res = None
-            if whole is not None and whole.contracts(c_q, _whole_space(n), lam):  # S ≺ 0 on E
+            if whole.contracts(c_q, _whole_space(n), lam):  # S ≺ 0 on E
                 res = VerificationResult(QueryStatus.VERIFIED, backend="taylor")
             if res is None:
                 res = parallel.check(prob, **(verify_options or {}))

@@ -91,3 +91,27 @@ def test_cegis_does_not_verify_an_iterate_that_cannot_beat():
                   log=lambda m: None)
     assert plain.history[0]["candidate_level"] == skipped.history[0]["candidate_level"]
     assert plain.history[0]["boxes"] > 0 and plain.history[0]["skipped"] == ""
+
+
+def test_the_bound_applies_to_learned_dynamics_where_c_is_proved_on_the_model(vdp):
+    """With learned dynamics of a system that has a model, condition (c) is proved on the
+    true closed loop, so the bound is the true f's (it reads no φ); without a model (c)
+    comes from the samples or is assumed, and there is no bound."""
+    import dataclasses
+    import math
+
+    s, problem = vdp
+    phi = quadratic_lyapunov(np.eye(2))        # any network: the bound does not read φ
+    learned = dataclasses.replace(problem, dynamics=phi, eta=0.01, dynamics_box=BOX)
+    assert not learned.known and s.has_model
+    beat = VolumeToBeat(0.0, BOX, N, "x")
+    assert beat.bound(learned, 1.0) == beat.bound(problem, 1.0) < math.inf
+
+    class NoModel:                              # the system as a sample file would give it
+        has_model = False
+
+        def __getattr__(self, name):
+            return getattr(s, name)
+
+    sampled = dataclasses.replace(learned, system=NoModel())
+    assert beat.bound(sampled, 1.0) == math.inf

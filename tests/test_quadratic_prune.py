@@ -194,3 +194,21 @@ def test_few_states_with_learned_dynamics_try_the_true_f_decay_rate_first(monkey
     again = certify_quadratics(problem, ["volume"], box=box, n=31, log=logs.append)[0]
     assert again.certified and np.array_equal(again.P, P_learned)
     assert any("the learned-dynamics rate" in m for m in logs)
+
+
+def test_a_radius_whose_own_level_cannot_win_is_not_checked(monkeypatch):
+    """Once a candidate is certified, the next one is also skipped radius by radius where
+    the level it would check cannot beat it (here with the stage's own bound made useless),
+    and the winner is the one found without skipping."""
+    problem, box = _pendulum()
+    monkeypatch.setitem(quadratic.QUADRATIC_CANDIDATES, "wide", _wide)
+    names = ["wide", "lyapunov"]
+    full = certify_quadratics(problem, names, box=box, n=101, prune=False, log=lambda m: None)
+    monkeypatch.setattr(quadratic, "volume_bound", lambda *a, **k: np.inf)
+    pruned = certify_quadratics(problem, names, box=box, n=101, prune=True, log=lambda m: None)
+    wide, lyap = pruned
+    assert wide.certified and wide.volume == full[0].volume > full[1].volume
+    assert not lyap.skipped and not lyap.certified
+    assert "cannot beat the quadratic wide" in lyap.certificate.reason
+    tried = lyap.certificate.history[-1]["inner_radius_search"]
+    assert tried and all(t["status"] == "skipped" for t in tried)

@@ -91,6 +91,7 @@ from ..certification.certificate import (
     INNER_FACTORS,
     InnerEllipseCache,
     LevelPolicy,
+    VolumeToBeat,
     certify_candidate,
 )
 from ..certification.roa import (
@@ -468,7 +469,7 @@ def thin_radius(problem, P: np.ndarray, policy: LevelPolicy) -> float | None:
     eps = THIN_RADIUS_FRACTION * axis
     cl = closed_loop(problem.system, problem.controller)
     Pq = quadratic_form(quadratic_lyapunov(P))
-    if Pq is None or TaylorDecrease(cl.x, cl.rhs, Pq).why:
+    if Pq is None or not TaylorDecrease(cl.x, cl.rhs, Pq).applies(D.bounding_box()):
         return None
     return eps
 
@@ -481,7 +482,11 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
     (:func:`volume_bound` without ``E``, largest first) and a candidate whose
     :func:`volume_bound` cannot beat the best one certified so far is not verified: it could
     not have won (a tie goes to the earlier name, as without pruning), so the best
-    candidate is the same. Condition (c) does not depend on ``V``: the candidates share it
+    candidate is the same. The bound is that of the levels a search may start from; once a
+    candidate is certified, the next ones are also skipped at each radius whose level to
+    check cannot beat it (:class:`~nlyap_opt.certification.certificate.VolumeToBeat` with
+    the shared ellipses: with the smallest-level policy, the level that holds the inner
+    ball). Condition (c) does not depend on ``V``: the candidates share it
     (:class:`~nlyap_opt.certification.certificate.InnerEllipseCache`).
 
     Parameters
@@ -552,8 +557,12 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
                                               bound=b, skipped=why)
                 log(f"  quadratic {name}: not verified, {why} ({found[i].seconds:.1f} s)")
                 continue
+        # the radii whose own level cannot beat the best so far are not checked either
+        beat = VolumeToBeat(found[win].volume, np.asarray(box, dtype=float), n,
+                            f"quadratic {found[win].name}", ellipses) \
+            if prune and win is not None else None
         cert = certify_candidate(replace(problem, V=quadratic_lyapunov(P)), policy,
-                                 ellipses=ellipses, log=lambda m: log("    " + m))
+                                 ellipses=ellipses, beat=beat, log=lambda m: log("    " + m))
         thin = None if cert.certified else thin_radius(problem, P, policy)
         if thin is not None:
             log(f"    the sublevel sets of xᵀPx are too thin for the inner radii tried: "
@@ -561,12 +570,13 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
             cert = certify_candidate(
                 replace(problem, V=quadratic_lyapunov(P)),
                 replace(policy, inner_fraction=thin / problem.inner, factors=(1.0,)),
-                ellipses=ellipses, log=lambda m: log("    " + m))
+                ellipses=ellipses, beat=beat, log=lambda m: log("    " + m))
         if not cert.certified and second.get(name) is not None:
             log(f"    decay rate {VOLUME_DECAY_FRACTION:g} of the margin certifies nothing: "
                 f"trying {LEARNED_VOLUME_DECAY_FRACTION:g}, the learned-dynamics rate")
             cert2 = certify_candidate(replace(problem, V=quadratic_lyapunov(second[name])),
-                                      policy, ellipses=ellipses, log=lambda m: log("    " + m))
+                                      policy, ellipses=ellipses, beat=beat,
+                                      log=lambda m: log("    " + m))
             if cert2.certified:
                 P, cert = second[name], cert2
         vol = cert.area(box, n) if cert.certified else 0.0

@@ -939,23 +939,37 @@ class VolumeToBeat:
     volume : float      the certified volume on the grid
     box : (nx, 2) ndarray, n : int   the evaluation grid (``n`` nodes per axis)
     label : str         how messages name the certificate (``"quadratic volume"``)
+    ellipses : InnerEllipseCache, optional
+        Condition (c) of the candidates' closed loop, shared with their checks (candidates
+        that differ only in ``V``): the bound then counts the ellipse (c) proves (or assumes)
+        at each radius, computed once, instead of every ellipse it may prove.
     """
 
     volume: float
     box: np.ndarray
     n: int
     label: str
+    ellipses: InnerEllipseCache | None = None
 
     def bound(self, problem: RoaProblem, level: float) -> float:
         """An upper bound of the grid volume of a certificate of ``problem`` at any level up to
         ``level``: the grid points of ``{x ∈ D: V(x) ≤ level}`` and of every ellipse that
-        condition (c) may prove (:func:`nlyap_opt.certification.roa.inner_ellipse_bound`).
-        ``inf`` where no such bound is available (learned dynamics, whose (c) is not proved
-        on the true f by this route; a linearisation that is not Hurwitz or has a centre)."""
-        if not problem.known:
-            return math.inf
+        condition (c) may prove (:func:`nlyap_opt.certification.roa.inner_ellipse_bound`;
+        with learned dynamics too where the system has a model: (c) is then proved on the
+        true closed loop, as with the true f). ``inf`` where no such bound is available
+        (learned dynamics without a model, whose (c) comes from the samples or is assumed;
+        a linearisation that is not Hurwitz or has a centre). With :attr:`ellipses`: the
+        grid points of the ellipse of (c) at the problem's radius, as its checks use it
+        (any dynamics)."""
         pts, shape = grid_points(np.asarray(self.box, dtype=float), self.n)
-        ell = inner_ellipse_bound(problem.system, problem.controller, problem.inner, pts)
+        if self.ellipses is not None:
+            res, _ = self.ellipses.get(problem)
+            Pe = np.asarray(res["P"], dtype=float)
+            ell = np.einsum("ij,jk,ik->i", pts, Pe, pts) <= float(res["level"]) * (1 + 1e-9)
+        elif not problem.known and not getattr(problem.system, "has_model", False):
+            return math.inf
+        else:
+            ell = inner_ellipse_bound(problem.system, problem.controller, problem.inner, pts)
         if ell is None:
             return math.inf
         m = problem.domain.contains(pts) & (problem.V_numpy(pts) <= level * (1 + 1e-9))

@@ -986,6 +986,19 @@ class VolumeToBeat:
         return ""
 
 
+def _below_inner_ball(tried: list, log, eps: float, lv: float, m: float,
+                      least: float) -> bool:
+    """Whether the candidate level ``lv`` is at most ``least`` (the inner ball's level
+    ``m``, with or without a margin): the radius is then skipped, recorded in ``tried``."""
+    if lv > least:
+        return False
+    tried.append({"inner": eps, "status": f"candidate level {lv:.4g} below the inner "
+                  f"ball's level {m:.4g}"})
+    log(f"inner radius {eps:g}: candidate level {lv:.4g} lies below the inner ball's level "
+        f"{m:.4g}; skipped")
+    return True
+
+
 def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, *,
                       level: float | None = None, cap: float | None = None,
                       ellipses: InnerEllipseCache | None = None,
@@ -1062,6 +1075,10 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
         if below < lv and (level is None or f != 1.0):   # start below the refuted levels
             lv = below * (1.0 - 1e-3)
         smallest = policy.smallest_level and level is None
+        m = inner_ball_level(dec.x, dec.V, eps) if smallest else 0.0
+        # no level up to the candidate's holds the ball: nothing to search down from it
+        if smallest and _below_inner_ball(tried, log, eps, lv, m, m):
+            continue
         if smallest and policy.whole_sets:
             why = "" if beat is None else beat.cannot_beat(p, lv)
             whole = None if why else certify_roa(
@@ -1073,13 +1090,8 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
                 if record:
                     whole.history = list(whole.history) + [{"inner_radius_search": tried}]
                 return whole
-        if smallest:
-            m = inner_ball_level(dec.x, dec.V, eps)
-            if not lv > m * (1.0 + INNER_LEVEL_MARGIN):
-                tried.append({"inner": eps, "status": f"candidate level {lv:.4g} below the "
-                              f"inner ball's level {m:.4g}"})
-                log(f"inner radius {eps:g}: candidate level {lv:.4g} lies below the inner "
-                    f"ball's level {m:.4g}; skipped")
+        if smallest:    # the smallest level checked holds the ball with a margin
+            if _below_inner_ball(tried, log, eps, lv, m, m * (1.0 + INNER_LEVEL_MARGIN)):
                 continue
             lv = m * (1.0 + INNER_LEVEL_MARGIN)
         why = "" if beat is None else beat.cannot_beat(p, lv)

@@ -1,9 +1,11 @@
 """Quadratic certificates of the 4-D cartpole and the 6-D planar quadrotor: which ``P``.
 
-For the saturated LQR loop of each system's ``large`` preset (true f), three candidate
-matrices of :mod:`nlyap_opt.candidates.quadratic` -- ``lyapunov`` (``A_clᵀP + PA_cl = −I``),
-``round`` (smallest condition number) and ``volume`` (largest Lyapunov ellipsoid in the unit ball,
-:func:`nlyap_opt.design.control.volume_lyapunov_matrix`) -- each with:
+For the saturated LQR loop of each system's ``large`` preset (true f), the candidate
+matrices of :mod:`nlyap_opt.candidates.quadratic` (``--candidates``, by default all of them:
+e.g. ``lyapunov`` (``A_clᵀP + PA_cl = −I``), ``round`` (smallest condition number),
+``volume`` (largest Lyapunov ellipsoid in the unit ball,
+:func:`nlyap_opt.design.control.volume_lyapunov_matrix`) and ``sector`` (designed for the
+whole-set test under the saturated controller, for the run's problem)), each with:
 
 - the *sampled* level: the least ``V`` of a sampled decrease violation or of the domain's
   boundary (``‖x‖ = 1``), over ``--samples`` uniform points of the ellipsoid;
@@ -23,6 +25,7 @@ only): see ``docs/topics/high_dimension.md``.
 from __future__ import annotations
 
 import argparse
+import inspect
 import math
 import time
 
@@ -89,16 +92,20 @@ def main(argv=None) -> None:
     for name in a.systems:
         s, ctrl, A, cfg = loop(name)
         eps = 0.25 * cfg["inner"]
+        prob = RoaProblem(s, quadratic_lyapunov(np.eye(s.nx)), ctrl, inner=cfg["inner"],
+                          outer=cfg["outer"], verify_options=cfg["cegis"]["verify_options"])
         for cand in a.candidates:
-            P = QUADRATIC_CANDIDATES[cand](A, True)
+            plug = QUADRATIC_CANDIDATES[cand]   # "sector" designs P for the run's problem
+            kw = {"problem": prob} if "problem" in inspect.signature(plug).parameters else {}
+            P = plug(A, True, prob.domain, **kw)
+            if P is None:
+                print(f"| {name} | {cand} | no matrix | | | | | |", flush=True)
+                continue
             c = sampled_level(s, ctrl, P, inner=eps, samples=a.samples)
             row = [name, cand, f"{np.linalg.cond(P):.3g}", f"{c:.4g}", f"{_volume(P, c):.4g}"]
             if a.certify:
                 t = time.perf_counter()
                 box = np.asarray(cfg["eval_box"], dtype=float)
-                prob = RoaProblem(s, quadratic_lyapunov(np.eye(s.nx)), ctrl,
-                                  inner=cfg["inner"], outer=cfg["outer"],
-                                  verify_options=cfg["cegis"]["verify_options"])
                 q = certify_quadratics(prob, [cand], box=box,
                                        n=axis_count(cfg["eval_points"], s.nx),
                                        log=print if a.verbose else lambda m: None)[0]

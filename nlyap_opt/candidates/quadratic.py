@@ -481,12 +481,14 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
     With ``prune`` the candidates are verified in the order of their sublevel-set estimate
     (:func:`volume_bound` without ``E``, largest first) and a candidate whose
     :func:`volume_bound` cannot beat the best one certified so far is not verified: it could
-    not have won (a tie goes to the earlier name, as without pruning), so the best
-    candidate is the same. The bound is that of the levels a search may start from; once a
-    candidate is certified, the next ones are also skipped at each radius whose level to
-    check cannot beat it (:class:`~nlyap_opt.certification.certificate.VolumeToBeat` with
-    the shared ellipses: with the smallest-level policy, the level that holds the inner
-    ball). Condition (c) does not depend on ``V``: the candidates share it
+    not have won (a tie goes to the earlier name, as without pruning). The bound is that of
+    the levels a search may start from; once a candidate is certified, the next ones are
+    also skipped at each radius whose level to check cannot beat it
+    (:class:`~nlyap_opt.certification.certificate.VolumeToBeat` with the shared ellipses:
+    with the smallest-level policy, the level that holds the inner ball). The best volume is
+    thus never smaller than without pruning, and it can be larger: a candidate whose first
+    radius would certify a set smaller than the best goes on to its other radii. Condition
+    (c) does not depend on ``V``: the candidates share it
     (:class:`~nlyap_opt.certification.certificate.InnerEllipseCache`).
 
     Parameters

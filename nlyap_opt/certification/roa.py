@@ -701,8 +701,8 @@ class SaturatedLoop:
             # non-smooth or partial operations of F: usable on a box of (x, u) that a checked
             # walk of F and its derivatives clears (:func:`_cleared`, in :meth:`enclose`)
             self._checked = None
-            if any(compile_function(f).checked
-                   for f in (self.hx, self.hu, self.hxu, self.hq, self.sigma)):
+            if any(compile_function(f).checked for f in (
+                    ca.Function("sat_F", [v], [F]), self.hx, self.hu, self.hxu, self.hq)):
                 self._checked = compile_function(ca.Function(
                     "sat_all", [v, Sx, Su], [F, fx, fu, self.hxu(v, Sx, Su)]))
             # the inputs F_x depends on

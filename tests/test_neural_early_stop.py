@@ -115,3 +115,19 @@ def test_the_bound_applies_to_learned_dynamics_where_c_is_proved_on_the_model(vd
 
     sampled = dataclasses.replace(learned, system=NoModel())
     assert beat.bound(sampled, 1.0) == math.inf
+
+
+def test_a_radius_below_the_inner_balls_level_is_skipped_before_the_bound(vdp):
+    """A radius whose candidate level holds no inner ball is skipped at once: the volume
+    bound (which may compute condition (c) at that radius) is not asked for it."""
+    s, problem = vdp
+
+    class NoBound(VolumeToBeat):
+        def bound(self, problem, level):
+            raise AssertionError(f"bound asked at ε = {problem.inner}")
+
+    policy = LevelPolicy(1.0, (15.0,), smallest_level=True, whole_sets=True)
+    cert = certify_candidate(problem, policy, beat=NoBound(1e3, BOX, N, "x"),
+                             log=lambda m: None)
+    assert not cert.certified
+    assert "ε = 1.5: candidate level" in cert.reason and "inner ball's level" in cert.reason

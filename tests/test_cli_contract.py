@@ -321,3 +321,36 @@ def test_an_open_progress_bar_does_not_swallow_the_one_line_message(capsys):
     assert "3/10" in err                                      # the bar was drawn
     assert err.strip().splitlines()[-1] == "nlyap: stopped"
     assert bar.disable or bar not in getattr(tqdm, "_instances", set())
+
+
+def test_a_stop_is_deferred_inside_casadis_wrapper_and_found_behind_a_wrapping_error():
+    """A stop (Ctrl-C, --time-limit) is not raised inside CasADi's SWIG wrapper module, whose
+    overload dispatch clears exceptions (the stop was lost, the run went on to exit 0) and
+    whose C functions wrap them in ``SystemError`` (exit 4): the handler retries later, as
+    during an import. A stop wrapped by an extension is still found behind the error."""
+    import sys as _sys
+
+    from nlyap_opt.interface.cli import TimeLimitReached, _in_import
+    from nlyap_opt.kernel.errors import interruption, raise_if_interrupted
+
+    def frame_in(module_name):
+        scope = {"__name__": module_name, "_sys": _sys}
+        exec("def here():\n    return _sys._getframe()\n", scope)
+        return scope["here"]()
+
+    assert _in_import(frame_in("casadi.casadi"))
+    assert not _in_import(frame_in("nlyap_opt.workflow.pipeline"))
+    stop = TimeLimitReached(0.3)
+    try:
+        try:
+            raise stop
+        except KeyboardInterrupt as inner:
+            raise SystemError("returned a result with an exception set") from inner
+    except SystemError as wrapped:
+        assert interruption(wrapped) is stop
+        with pytest.raises(TimeLimitReached):
+            raise_if_interrupted(wrapped)
+    plain = ValueError("solver failed")
+    plain.__context__ = RuntimeError("before")
+    assert interruption(plain) is None
+    raise_if_interrupted(plain)            # nothing to raise

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.linalg import solve_continuous_are, solve_continuous_lyapunov
 
 from ..kernel import deps
-from ..kernel.errors import DimensionError, NotStabilizableError
+from ..kernel.errors import DimensionError, NotStabilizableError, raise_if_interrupted
 from ..kernel.network import Layer, Network
 from ..kernel.symbolic import learned_rhs
 
@@ -155,7 +155,8 @@ def _positive_solution(problem, X) -> np.ndarray | None:
     for solver in [s for s in ("CLARABEL", "SCS") if s in installed]:
         try:
             problem.solve(solver=solver)
-        except Exception:  # a failed solve only loses a candidate
+        except Exception as exc:  # a failed solve only loses a candidate
+            raise_if_interrupted(exc)
             continue
         if X.value is None:
             continue
@@ -249,7 +250,8 @@ def _log_det_descent(X, cons, start: np.ndarray | None = None, *, rounds: int,
                 with warnings.catch_warnings():     # an inaccurate solve is only a candidate
                     warnings.simplefilter("ignore")
                     prob.solve(solver=solver)
-            except Exception:  # a failed solve only ends the descent
+            except Exception as exc:  # a failed solve only ends the descent
+                raise_if_interrupted(exc)
                 continue
             if X.value is not None and np.all(np.isfinite(X.value)):
                 new = 0.5 * (X.value + X.value.T)

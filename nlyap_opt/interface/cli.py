@@ -45,7 +45,7 @@ from ..distributed.parallel import (
     verify_distributed,
     verifying_on,
 )
-from ..kernel.errors import ConfigError, NlyapError, UsageError
+from ..kernel.errors import ConfigError, NlyapError, UsageError, interruption
 from ..kernel.network import Network
 from ..kernel.provenance import (
     PORTABLE_FLAG,
@@ -156,21 +156,27 @@ class TimeLimitReached(KeyboardInterrupt):
     """
 
 
-#: seconds after which a stop (Ctrl-C, --time-limit) that came during an import is tried again
+#: seconds after which a stop (Ctrl-C, --time-limit) that came during an import, or inside
+#: CasADi's wrapper, is tried again
 IMPORT_RETRY = 0.05
 
 
 def _in_import(frame) -> bool:
-    """Whether ``frame`` (a signal handler's) runs inside an import."""
+    """Whether ``frame`` (a signal handler's) runs inside an import, or inside CasADi's SWIG
+    wrapper module (``casadi.casadi``): its overload dispatch calls Python code to test
+    conversions and clears any exception that comes out (a stop raised there is lost
+    without a trace), and its C functions turn one into ``SystemError``."""
     while frame is not None:
-        if frame.f_code.co_filename.startswith("<frozen importlib"):
+        if frame.f_code.co_filename.startswith("<frozen importlib") or \
+                frame.f_globals.get("__name__") == "casadi.casadi":
             return True
         frame = frame.f_back
     return False
 
 
 def _outside_imports(stop):
-    """A signal handler that calls ``stop()`` (which raises) — never inside an import.
+    """A signal handler that calls ``stop()`` (which raises) — never inside an import or
+    CasADi's wrapper (:func:`_in_import`).
 
     A module's import may run inside a C++ extension's call (torch's do): an exception
     thrown through it aborts the process (``terminate called ...``), or leaves a module half
@@ -834,7 +840,13 @@ def _main(argv: list[str] | None) -> int:
             _enter_portable_mode(full_argv, may_restart)
         _check_paths(args)
         with _time_guard(getattr(args, "time_limit", None)):
-            return int(args.func(args) or 0)
+            try:
+                return int(args.func(args) or 0)
+            except Exception as exc:    # a stop that a C extension wrapped (SystemError)
+                stop = interruption(exc)
+                if stop is None:
+                    raise
+                raise stop from None
     except TimeLimitReached as stop:
         _close_progress_bars()
         where = getattr(args, "out", None) or "the output directory"

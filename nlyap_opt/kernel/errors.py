@@ -21,6 +21,8 @@ __all__ = [
     "InputRangeError",
     "ConfigError",
     "UsageError",
+    "interruption",
+    "raise_if_interrupted",
 ]
 
 
@@ -77,3 +79,29 @@ class ConfigError(NlyapError, ValueError):
 
 class UsageError(NlyapError, ValueError):
     """A command-line argument or an input file is invalid (``nlyap`` exits with code 3)."""
+
+
+def interruption(exc: BaseException) -> KeyboardInterrupt | None:
+    """The :class:`KeyboardInterrupt` (Ctrl-C, or the CLI's ``--time-limit`` stop, a
+    subclass) that ``exc`` is or that caused it, else ``None``.
+
+    An interrupt raised while a C extension (CasADi's SWIG layer, a solver) runs can come
+    out as another exception, e.g. ``SystemError: ... returned a result with an exception
+    set``, with the interrupt as its cause or context: the chain is followed.
+    """
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def raise_if_interrupted(exc: BaseException) -> None:
+    """Raise the interrupt behind ``exc`` (:func:`interruption`), if any: a handler that
+    turns failures into a fallback (``except Exception``: try the next solver) must not
+    swallow a stop the user asked for."""
+    stop = interruption(exc)
+    if stop is not None:
+        raise stop

@@ -97,7 +97,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..kernel import deps
-from ..kernel.errors import DimensionError
+from ..kernel.errors import DimensionError, raise_if_interrupted
 from ..kernel.rounding import U, gamma, next_up
 
 __all__ = ["LipschitzResult", "lipschitz_lipsdp", "lipschitz_naive", "lipschitz_sampled"]
@@ -665,6 +665,7 @@ def lipschitz_lipsdp(
         try:
             tn, rn = _solve_sdp(A, B, a, b, name, verbose)
         except Exception as exc:  # solver failure: try the next one
+            raise_if_interrupted(exc)
             errors.append(f"{name}: {type(exc).__name__}: {exc}")
             continue
         t_sol = tn * s1**2

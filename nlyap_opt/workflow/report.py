@@ -10,6 +10,7 @@ from ..certification.certificate import CertStatus, load_artifact, status_text
 from ..certification.roa import InnerForm, InnerFormKind, grid_points
 from ..kernel import deps
 from ..kernel.domain import Ball, parse_set
+from ..kernel.errors import raise_if_interrupted
 from ..kernel.network import Network
 from ..kernel.provenance import describe
 
@@ -196,6 +197,7 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
     try:
         plot_roa(out / "roa.png", system, cert, out)
     except Exception as err:  # a plot must never lose a certificate
+        raise_if_interrupted(err)
         print(f"warning: roa.png not written: {err}")
 
 

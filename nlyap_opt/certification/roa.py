@@ -1439,9 +1439,7 @@ def certify_inner_ellipse(system, controller, inner: float, *, P=None,
     cl = closed_loop(system, controller, strict=True)
     J = ca.jacobian(cl.rhs, cl.x)
     A_cl = np.array(_fun(cl.x, J)(np.zeros(system.nx)), dtype=float)
-    sat = SaturatedLoop(cl.x, system.f_fun, controller) if controller is not None else None
-    if sat is not None and sat.why:
-        sat = None
+    sat = _true_loop_split(cl, system, controller)
     if form and P is None:
         raise ValueError("form names the saved P's form: give P with it")
     if P is not None:
@@ -1538,8 +1536,8 @@ def inner_ellipse_bound(system, controller, inner: float, pts: np.ndarray, *,
             or _centre_split(A_cl) is not None:
         return None
     candidates = list(ellipse_candidates(A_cl))
-    sat = SaturatedLoop(cl.x, system.f_fun, controller) if controller is not None else None
-    if sat is not None and not sat.why:
+    sat = _true_loop_split(cl, system, controller)
+    if sat is not None:
         candidates.append(_sector_candidate(sat, cl, A_cl, system, inner))
     F = _fun(cl.x, cl.rhs)
     rng = np.random.default_rng(seed)
@@ -1601,6 +1599,13 @@ def _whole_space(n: int) -> np.ndarray:
 #: condition (c) tries the matrix of :func:`sector_lyapunov_matrix` first in more than this
 #: many states (where the other candidates' bisection forms take minutes), last otherwise
 SECTOR_FIRST_STATES = 3
+
+
+def _true_loop_split(cl, system, controller) -> SaturatedLoop | None:
+    """The true closed loop ``cl`` split by its saturated controller, or ``None`` where the
+    split does not apply (no controller, not one tanh layer, no graph to enclose)."""
+    sat = SaturatedLoop(cl.x, system.f_fun, controller) if controller is not None else None
+    return None if sat is None or sat.why else sat
 
 
 def _sector_candidate(sat: SaturatedLoop, cl, A_cl: np.ndarray, system, inner: float):

@@ -201,6 +201,13 @@ def test_no_task_starts_from_fewer_than_min_task_boxes(client):
                               tasks_per_worker=4)
     assert dist.status == serial.status == "verified" and dist.boxes == serial.boxes
     assert st["starts"] and min(st["starts"]) >= 16
+    # the timeline: one entry per task, the root first, each on one worker's clock
+    # (ends after it starts); its boxes are the check's
+    tl = st["timeline"]
+    assert len(tl) == st["tasks"] == len(st["starts"]) + 1
+    assert all(s <= e for _, s, e, _, _ in tl)
+    assert sum(b for *_, b in tl) == dist.boxes
+    assert {p for p, *_ in tl[1:]} == set(st["cpu_by_worker"])
     # default: the root processes a quarter batch first, so a small check is decided there
     small: dict = {}
     res = verify_distributed(problem, client, stats=small)

@@ -349,9 +349,9 @@ def _box_task(problem, boxes: np.ndarray, budget: int, options: dict, batched: b
     compiled CasADi Functions), run to the end (``budget`` is then the global cap).
     ``tail`` (batched): a queue that shrinks below this many boxes comes back open too.
     """
-    t = time.thread_time()
+    t, w = time.thread_time(), time.time()
     out = _decide_boxes(problem, boxes, budget, options, batched, tail)
-    return dict(out, cpu=time.thread_time() - t, pid=os.getpid())
+    return dict(out, cpu=time.thread_time() - t, pid=os.getpid(), span=(w, time.time()))
 
 
 def _decide_boxes(problem, boxes, budget, options, batched, tail: int = 0) -> dict:
@@ -389,12 +389,12 @@ def _root_task(problem, options: dict, presearch: int, initial_boxes: int,
     """Worker side: the pre-search and the serial verifier on the root box until ``budget``
     boxes are spent (``budget = 0``: only the root box itself is evaluated)."""
 
-    t = time.thread_time()
+    t, w = time.thread_time(), time.time()
     more = {"hand_back": True} if budget else {}  # batched: the halves go on unevaluated
     r = verify_interval(problem, max_boxes=budget, presearch=presearch,
                         initial_boxes=initial_boxes, **more, **options)
     return dict(_pack(r, options["resolution"], problem.n), cpu=time.thread_time() - t,
-                pid=os.getpid())
+                pid=os.getpid(), span=(w, time.time()))
 
 
 class _CountingArithmetic:
@@ -1015,7 +1015,10 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         ``cpu_by_worker`` (CPU seconds of the other tasks per worker process: the load
         balance, independent of other load on the machines), ``starts`` (the number of
         open boxes each task after the root started from), ``task_boxes`` (the boxes each
-        task processed, in the order they were absorbed) and ``grains`` (the grains used).
+        task processed, in the order they were absorbed), ``grains`` (the grains used) and
+        ``timeline`` (per task, root first: worker process id, wall-clock start and end on
+        the worker, wall-clock time this process absorbed it, boxes: the schedule as it
+        ran, for diagnosis; nothing depends on it).
     **options
         Any other option of the interval verifier (``batch``, ``mean_value``, ``affine``,
         ``seed``, ...), passed to every task.
@@ -1083,13 +1086,16 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
     found, unknown, leaves = [], [], []
     state = {"boxes": 0, "depth": 0, "running": 0, "ramped": False}
     tally = {"tasks": 0, "root_cpu": None, "cpu_by_worker": {}, "starts": [],
-             "task_boxes": [], "grains": dict(grains)}
+             "task_boxes": [], "grains": dict(grains), "timeline": []}
 
     offsets: dict = {}  # task key -> bisection depth of its deepest starting box
 
     def absorb(out, offset: int = 0) -> np.ndarray:
         tally["tasks"] += 1
         tally["task_boxes"].append(int(out["boxes"]))
+        if "span" in out:
+            tally["timeline"].append((out["pid"], *out["span"], time.time(),
+                                      int(out["boxes"])))
         if tally["root_cpu"] is None:
             tally["root_cpu"] = out["cpu"]
         else:

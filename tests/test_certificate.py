@@ -1,5 +1,7 @@
 """The one certificate core: conditions (a), (b), (c), typed results, honest status, JSON."""
 
+import json
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -185,8 +187,15 @@ def test_recheck_rejects_non_certificates(tmp_path):
         recheck_certificate(tmp_path / "missing.json", **QUIET)
 
 
-def test_non_network_V_is_saved_as_casadi_function(tmp_path):
-    """A V that is only a CasADi expression (SOS polynomial) is saved and re-checked too."""
+def test_non_network_V_is_saved_as_data_and_rechecked_and_no_casadi_binary_is_loaded(
+        tmp_path):
+    """A V that is only a CasADi expression (SOS polynomial) is saved as the data of its
+    scalar graph (``V.sx.json``) and re-checked from it. A certificate naming a CasADi
+    serialised Function (``kind: casadi``, which can open a shared library or start a
+    compiler when loaded) is refused without loading it, and so is an ``sx`` file with an
+    operation outside the op table."""
+    from nlyap_opt.certification.certificate import sha256_file
+
     s, V, P = _vdp_quadratic()
 
     class Poly:
@@ -197,8 +206,71 @@ def test_non_network_V_is_saved_as_casadi_function(tmp_path):
     cert = certify_roa(prob, 0.5 * _min_V_where_decrease_fails(P, s, 2.0), **QUIET)
     assert cert.certified
     path = save_certificate(cert, prob, tmp_path)
-    assert (tmp_path / "V.casadi").exists()
+    d = json.loads(path.read_text())
+    assert d["artifacts"]["V"]["kind"] == "sx" and not (tmp_path / "V.casadi").exists()
+    again = recheck_certificate(path, **QUIET)
+    assert again.certified and again.level == cert.level
+    # a CasADi binary, hashed and named in the certificate: never loaded
+    x = ca.SX.sym("x", 2)
+    ca.Function("V", [x], [ca.mtimes([x.T, ca.DM(P), x])]).save(str(tmp_path / "V.casadi"))
+    loads = []
+    real = ca.Function.load
+    try:
+        ca.Function.load = staticmethod(lambda *a: loads.append(a) or real(*a))
+        d["artifacts"]["V"] = {"file": "V.casadi", "sha256": sha256_file(tmp_path / "V.casadi"),
+                               "kind": "casadi"}
+        path.write_text(json.dumps(d))
+        refused = recheck_certificate(path, **QUIET)
+    finally:
+        ca.Function.load = real
+    assert not refused.certified and "not loaded" in refused.reason and not loads
+    # an sx file with an operation that is not arithmetic
+    data = json.loads((tmp_path / "V.sx.json").read_text())
+    data["instructions"][1][0] = "OP_CALL"
+    (tmp_path / "V.sx.json").write_text(json.dumps(data))
+    d["artifacts"]["V"] = {"file": "V.sx.json", "sha256": sha256_file(tmp_path / "V.sx.json"),
+                           "kind": "sx"}
+    path.write_text(json.dumps(d))
+    bad = recheck_certificate(path, **QUIET)
+    assert not bad.certified and "unknown operation 'OP_CALL'" in bad.reason
+
+
+def test_artifacts_outside_the_directory_pipes_and_edited_number_types_are_refused(tmp_path):
+    """An artifact name with a directory part (absolute, ``../``), a named pipe in place of
+    an artifact (refused without waiting on it) and a level written as a string or a
+    boolean never re-check as certified."""
+    import os
+
+    from nlyap_opt.certification.certificate import sha256_file
+
+    s, V, P = _vdp_quadratic()
+    prob = RoaProblem(s, V, inner=0.05, outer=2.0)
+    cert = certify_roa(prob, 0.5 * _min_V_where_decrease_fails(P, s, 2.0), **QUIET)
+    path = save_certificate(cert, prob, tmp_path / "run")
+    good = json.loads(path.read_text())
     assert recheck_certificate(path, **QUIET).certified
+    vfile = good["artifacts"]["V"]["file"]
+    outside = tmp_path / "elsewhere.json"
+    outside.write_bytes((tmp_path / "run" / vfile).read_bytes())
+    for name in (str(outside), "../elsewhere.json"):
+        d = json.loads(json.dumps(good))
+        d["artifacts"]["V"]["file"] = name
+        path.write_text(json.dumps(d))
+        r = recheck_certificate(path, **QUIET)
+        assert not r.certified and "no directory part" in r.reason
+    os.mkfifo(tmp_path / "run" / "pipe.json")
+    d = json.loads(json.dumps(good))
+    d["artifacts"]["V"]["file"] = "pipe.json"
+    path.write_text(json.dumps(d))
+    r = recheck_certificate(path, **QUIET)            # returns: nothing waits on the pipe
+    assert not r.certified and "not a regular file" in r.reason
+    for level in (str(good["level"]), True):
+        d = json.loads(json.dumps(good))
+        d["level"] = level
+        path.write_text(json.dumps(d))
+        with pytest.raises(ConfigError, match="level must be a number"):
+            recheck_certificate(path, **QUIET)
+    assert sha256_file(tmp_path / "run" / vfile) == good["artifacts"]["V"]["sha256"]
 
 
 def test_lyapunov_matrix_is_the_lyapunov_solution():

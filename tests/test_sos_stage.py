@@ -109,7 +109,7 @@ def test_a_learned_dynamics_run_keeps_an_sos_winner_that_rechecks(tmp_path):
         "cegis": {"iterations": 1, "steps": 1}})
     res = run("van_der_pol", cfg, tmp_path, known_dynamics=False, log=lambda m: None)
     summary = json.loads((tmp_path / "certificate.json").read_text())
-    assert res.certified and summary["artifacts"]["V"]["kind"] == "casadi"
+    assert res.certified and summary["artifacts"]["V"]["kind"] == "sx"
     assert {"dynamics", "bounds"} <= set(summary["artifacts"])
     assert any("SOS degree 4 polynomial" in a for a in summary["assumptions"])
     again = recheck_certificate(tmp_path, log=lambda m: None)
@@ -165,8 +165,8 @@ def test_the_sos_certificate_wins_and_is_saved_with_its_artifacts(sos_run):
     cands = summary["candidates"]
     assert [c["V"] for c in cands] == ["neural (V.json)", "SOS degree 2 (V_sos.json)"]
     assert [c["winner"] for c in cands] == [False, True]
-    assert summary["artifacts"]["V"] == {**summary["artifacts"]["V"], "file": "V.casadi",
-                                         "kind": "casadi"}
+    assert summary["artifacts"]["V"] == {**summary["artifacts"]["V"], "file": "V.sx.json",
+                                         "kind": "sx"}
     assert summary["certified_area"] == pytest.approx(cands[1]["certified_volume"])
     assert any("SOS degree 2 polynomial" in a for a in summary["assumptions"])
     rec = json.loads((d / "sos.json").read_text())
@@ -216,7 +216,7 @@ def test_the_sos_certificate_rechecks_and_a_tampered_one_does_not(sos_run, tmp_p
     assert json.loads((e / "V_sos.json").read_text()) == \
         json.loads((d / "V_sos.json").read_text())
     # and the certificate's own V artifact is hashed too
-    f = e / "V.casadi"
+    f = e / "V.sx.json"
     f.write_bytes(f.read_bytes() + b"\n")
     again = recheck_certificate(e, log=lambda m: None)
     assert not again.certified and "changed" in again.reason

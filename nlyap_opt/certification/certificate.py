@@ -48,8 +48,10 @@ from verification.verify import check_file_options
 from ..design.control import InnerStatus, lyapunov_matrix
 from ..distributed import parallel
 from ..distributed.parallel import ahead
+from ..kernel import sxjson
 from ..kernel.domain import Ball, Region, as_domain, parse_set
 from ..kernel.errors import ConfigError, DimensionError, InputRangeError, NetworkFileError
+from ..kernel.jsonio import MAX_INPUT_BYTES, read_file_bytes
 from ..kernel.network import Network
 from ..kernel.provenance import fingerprint
 from ..kernel.symbolic import (
@@ -105,13 +107,14 @@ class CertStatus(str, Enum):
         return self.value
 
 
+#: the largest artifact a certificate may name
+MAX_ARTIFACT_BYTES = MAX_INPUT_BYTES
+
+
 def sha256_file(path: str | Path) -> str:
-    """Hex sha256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+    """Hex sha256 of a regular file's bytes (a pipe or device raises :class:`ConfigError`,
+    without waiting on it; see :func:`~nlyap_opt.kernel.jsonio.read_file_bytes`)."""
+    return hashlib.sha256(read_file_bytes(path, "file", MAX_ARTIFACT_BYTES)).hexdigest()
 
 
 def status_text(status: str, declared) -> str:
@@ -562,21 +565,38 @@ class RoaCertificate:
             sets = {key: parse_set(d[key], int(d["state_dimension"]), key,
                                    domain=key == "domain")
                     for key in ("domain", "initial_set") if d.get(key) is not None}
+            arts = d["artifacts"]
+            if not isinstance(arts, dict) or not all(isinstance(a, dict)
+                                                     for a in arts.values()):
+                raise TypeError("artifacts must map each role to an object")
+            words = (d["assumptions"], d.get("assumptions_declared_by_user", []))
+            if not all(isinstance(w, list) and all(isinstance(t, str) for t in w)
+                       for w in words):
+                raise TypeError("assumptions must be lists of strings")
             return cls(
                 CertStatus(d["status"]), str(d["reason"]), str(d["system"]), str(d["setting"]),
-                float(d["level"]), float(d["inner_radius"]), float(d["outer_radius"]),
-                float(d["eta"]), str(d["margin_mode"]), float(d["margin"]),
-                float(d["norm_smoothing"]), None if d["M"] is None else float(d["M"]),
+                _number(d, "level"), _number(d, "inner_radius"), _number(d, "outer_radius"),
+                _number(d, "eta"), str(d["margin_mode"]), _number(d, "margin"),
+                _number(d, "norm_smoothing"), None if d["M"] is None else _number(d, "M"),
                 str(d["decrease_condition"]), dict(d["checks"]),
                 None if d["inner_ellipse"] is None
                 else InnerEllipse.from_dict(d["inner_ellipse"]),
-                list(d["assumptions"]), list(d["history"]),
-                ce, float(d["verify_seconds"]),
-                dict(d["artifacts"]), list(d.get("assumptions_declared_by_user", [])),
+                list(words[0]), list(d["history"]),
+                ce, _number(d, "verify_seconds"),
+                dict(arts), list(words[1]),
                 domain=sets.get("domain"), initial_set=sets.get("initial_set"))
-        except (KeyError, TypeError, ValueError, ConfigError) as err:
+        except (KeyError, TypeError, ValueError, OverflowError, ConfigError) as err:
             raise ConfigError(f"malformed certificate: {type(err).__name__}: {err}; rerun "
                               "the command that wrote it") from None
+
+
+def _number(d: dict, key: str) -> float:
+    """``d[key]`` as a float: a JSON number, never a string or a boolean (a certificate's
+    numbers are written as numbers; anything else is an edit)."""
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise TypeError(f"{key} must be a number, got {type(v).__name__} {v!r}")
+    return float(v)
 
 
 def _numpy_of(V, pts):
@@ -1175,10 +1195,16 @@ def read_certificate_file(path: str | Path) -> tuple[Path, object]:
     if path.is_dir():
         path = path / "certificate.json"
     try:
-        d = json.loads(path.read_text())
+        d = json.loads(read_file_bytes(path, "certificate").decode("utf-8"))
     except OSError as err:
         raise ConfigError(f"cannot read certificate {path}: {err.strerror or err}; pass the "
                           "certificate.json of a finished run") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"certificate {path} is not UTF-8 text; pass the certificate.json "
+                          "of a finished run") from None
+    except RecursionError:
+        raise ConfigError(f"certificate {path} is nested too deeply to read; rerun the "
+                          "command that wrote it") from None
     except json.JSONDecodeError as err:
         raise ConfigError(f"certificate {path} is not valid JSON ({err.msg}, line "
                           f"{err.lineno}); rerun the command that wrote it") from None
@@ -1243,10 +1269,19 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
     base = path.parent
     nets: dict[str, object] = {}
     for role, art in saved.artifacts.items():
-        f = base / art["file"]
+        name = art.get("file") if isinstance(art, dict) else None
+        if not isinstance(name, str) or not isinstance(art.get("sha256"), str) or \
+                name in ("", ".", "..") or Path(name).name != name or "\\" in name:
+            return _refused_run(saved, f"artifact entry {role!r} must name a file beside "
+                                "certificate.json (no directory part) and its sha256")
+        f = base / name
         if not f.exists():
             return _refused_run(saved, f"artifact {art['file']} ({role}) is missing")
-        digest = sha256_file(f)
+        try:
+            digest = sha256_file(f)
+        except (ConfigError, OSError) as err:
+            return _refused_run(saved, f"artifact {art['file']} ({role}) cannot be read: "
+                                f"{err}")
         if digest != art["sha256"]:
             return _refused_run(saved, f"artifact {art['file']} ({role}) changed since the "
                             f"certificate was written (sha256 {digest[:12]}… ≠ "
@@ -1470,14 +1505,30 @@ class _CasadiV:
 
 def load_artifact(path, kind: str = "network"):
     """A saved V, κ or φ of ``certificate.json``'s ``artifacts``: a network file (``kind``
-    ``"network"``: :class:`~nlyap_opt.kernel.network.Network`), or a CasADi Function of a V that is
-    not a network (``"casadi"``: a quadratic or SOS polynomial), with ``casadi(x)`` and
-    ``numpy(points) -> (N, 1)``. The caller checks the file's sha256 first."""
+    ``"network"``: :class:`~nlyap_opt.kernel.network.Network`), or the scalar graph of a V
+    that is not a network (``"sx"``: an SOS polynomial, :mod:`nlyap_opt.kernel.sxjson`),
+    with ``casadi(x)`` and ``numpy(points) -> (N, 1)``. The caller checks the file's
+    sha256 first.
+
+    Both are data read by this package's own code. A CasADi serialised Function (``kind``
+    ``"casadi"``, written by earlier versions) is refused: loading one can open a shared
+    library or start a compiler that the file names, so it would run code from disk."""
     if kind == "network":
         return Network.load(path)
+    if kind == "sx":
+        try:
+            d = json.loads(read_file_bytes(path, "artifact", MAX_ARTIFACT_BYTES))
+        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+            raise ValueError(f"not a JSON file ({type(err).__name__})") from None
+        try:
+            return _CasadiV(sxjson.from_json(d))
+        except ConfigError as err:
+            raise ValueError(str(err)) from None
     if kind == "casadi":
-        return _CasadiV(ca.Function.load(str(path)))
-    raise ValueError(f"unknown artifact kind {kind!r} (network or casadi)")
+        raise ValueError("a CasADi serialised Function is not loaded (loading one can run "
+                         "code named inside the file); rerun the command that wrote the "
+                         "certificate with this version, which saves V as data")
+    raise ValueError(f"unknown artifact kind {kind!r} (network or sx)")
 
 
 def _refused_run(saved: RoaCertificate, reason: str) -> tuple[RoaCertificate, None]:
@@ -1503,8 +1554,8 @@ def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
     """Write the certificate with its artifacts into directory ``out``.
 
     Networks are saved (``V.json``, ``controller.json``, ``dynamics.json``, or the names
-    ``files`` gives per role, e.g. ``{"V": "V_quadratic.json"}``; other ``V`` as a CasADi
-    Function ``V.casadi``) unless a file with that name already holds them, and each is
+    ``files`` gives per role, e.g. ``{"V": "V_quadratic.json"}``; other ``V`` as the data
+    of its scalar graph, ``V.sx.json``) unless a file with that name already holds them, and each is
     recorded with its sha256; so is the bound on ``‖f − φ‖`` of learned dynamics
     (``files["bounds"]``, default ``bounds.json``). ``extra`` (areas, true-f checks,
     timings) is stored beside the certificate's own fields. The file is written atomically.
@@ -1522,10 +1573,10 @@ def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
                 obj.save(f)
             arts[role] = {"file": f.name, "sha256": sha256_file(f), "kind": "network"}
         else:
-            f = out / f"{role}.casadi"
+            f = out / f"{role}.sx.json"
             x = ca.SX.sym("x", problem.system.nx)
-            ca.Function("V", [x], [obj.casadi(x)]).save(str(f))
-            arts[role] = {"file": f.name, "sha256": sha256_file(f), "kind": "casadi"}
+            write_json_atomic(f, sxjson.to_json(ca.Function("V", [x], [obj.casadi(x)])))
+            arts[role] = {"file": f.name, "sha256": sha256_file(f), "kind": "sx"}
     bname = (files or {}).get("bounds", "bounds.json")
     if problem.dynamics is not None and (out / bname).exists():
         # η and its box come from the dynamics stage's bounds.json (or the local bound's

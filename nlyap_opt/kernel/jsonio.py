@@ -14,12 +14,57 @@ hashed, never trusted for anything but display); :func:`load_with_timings` puts 
 from __future__ import annotations
 
 import json
+import os
+import stat
 from pathlib import Path
 
 from .errors import ConfigError
 
-__all__ = ["TIMINGS_FILE", "load_with_timings", "read_json_object", "save_timings",
-           "split_timings"]
+__all__ = ["MAX_INPUT_BYTES", "TIMINGS_FILE", "load_with_timings", "read_file_bytes",
+           "read_json_object", "save_timings", "split_timings"]
+
+#: the largest file any reader of this package reads (a spec, sample, network, configuration
+#: or certificate file): a larger one is refused before it fills the memory
+MAX_INPUT_BYTES = 1 << 30
+
+
+def read_file_bytes(path: str | Path, what: str, limit: int = MAX_INPUT_BYTES) -> bytes:
+    """The bytes of the regular file ``path`` (symbolic links followed).
+
+    A pipe, device or socket is refused without waiting on it (it is opened non-blocking
+    and checked before any read), and so is a file of more than ``limit`` bytes.
+
+    Raises
+    ------
+    ConfigError
+        Not a regular file, or too large (naming ``what`` and the path).
+    OSError
+        The file is missing or unreadable (callers say so in their own words).
+    """
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    try:
+        st = os.fstat(fd)
+        if stat.S_ISDIR(st.st_mode):
+            raise IsADirectoryError(21, "Is a directory", str(path))
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError(f"{what} {path} is not a regular file (a pipe, device or "
+                              "socket); pass a file")
+        if st.st_size > limit:
+            raise ConfigError(f"{what} {path} holds {st.st_size} bytes, more than the "
+                              f"{limit} this tool reads; pass the right file")
+        chunks, size = [], 0
+        while True:
+            b = os.read(fd, 1 << 20)
+            if not b:
+                break
+            chunks.append(b)
+            size += len(b)
+            if size > limit:
+                raise ConfigError(f"{what} {path} grows past the {limit} bytes this tool "
+                                  "reads; pass a finished file")
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
 
 #: the file beside a run's stage files that holds their wall-clock timings
 TIMINGS_FILE = "timings.json"
@@ -118,7 +163,10 @@ def read_json_object(path: str | Path) -> dict:
     if p.is_dir():
         raise ConfigError(f"config {path} is a directory; pass the JSON file inside it")
     try:
-        obj = json.loads(p.read_text())
+        obj = json.loads(read_file_bytes(p, "config").decode("utf-8"))
+    except RecursionError:
+        raise ConfigError(f"config {path} is nested too deeply to read; fix the file") \
+            from None
     except OSError as err:
         raise ConfigError(f"cannot read config {path}: {err.strerror or err}; "
                           "check the path") from None

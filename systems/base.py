@@ -20,6 +20,7 @@ expressions in the system's symbols (:attr:`System.known_rhs`) for every kind.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Sequence
 
 import casadi as ca
@@ -56,6 +57,16 @@ def _box(box, n: int, what: str) -> np.ndarray:
         raise ValueError(f"{what} needs finite bounds with lower < upper on every row, got {b}")
     return b
 
+
+
+def _function_name(name: str) -> str:
+    """``name`` as a CasADi Function name: itself where CasADi accepts it (a letter, then
+    letters, digits and single underscores), else its letters and digits joined by ``_``
+    after ``f_`` (``"my-system"`` → ``"f_my_system"``)."""
+    if ca.Function.check_name(name):
+        return name
+    parts = [p for p in re.split(r"[^0-9A-Za-z]+", name) if p]
+    return "_".join(["f", *parts])
 
 class System:
     r"""A continuous-time control system :math:`\dot x = f(x, u)`.
@@ -154,7 +165,7 @@ class System:
                 f"f must have shape ({x.numel()}, 1) to match x, got {f.shape}; "
                 "build it with ca.vertcat(...)"
             )
-        fun = ca.Function(name, [x, u], [f], ["x", "u"], ["f"])
+        fun = ca.Function(_function_name(name), [x, u], [f], ["x", "u"], ["f"])
         if fun.has_free():
             raise ValueError(
                 f"f depends on symbols other than x and u: {fun.get_free()}; "
@@ -168,7 +179,8 @@ class System:
         self.known_state_derivatives = self._known_indices(known_state_derivatives)
         self.subsystems = self._partition(subsystems)
         self.u_eq = self._equilibrium_input(u_eq)
-        jac = ca.Function("jac_" + name, [x, u], [ca.jacobian(f, x), ca.jacobian(f, u)])
+        jac = ca.Function(_function_name("jac_" + name), [x, u],
+                          [ca.jacobian(f, x), ca.jacobian(f, u)])
         A, B = jac(np.zeros(self.nx), self.u_eq)
         self._A = np.array(A, dtype=float).reshape(self.nx, self.nx)
         self._B = np.array(B, dtype=float).reshape(self.nx, self.nu)
@@ -559,7 +571,8 @@ class System:
         known = self.known_rhs
         out = ca.vertcat(*[known[i] for i in self.known_state_derivatives]) if known \
             else ca.SX(0, 1)
-        return ca.Function(f"{self.name}_known", [self.x, self.u], [out], ["x", "u"], ["f"])
+        return ca.Function(_function_name(f"{self.name}_known"), [self.x, self.u], [out],
+                           ["x", "u"], ["f"])
 
     @property
     def sampling_box(self) -> np.ndarray:
@@ -659,7 +672,7 @@ class System:
     def closed_loop(self, feedback: Callable[[ca.SX], ca.SX] | None = None) -> ca.Function:
         """CasADi Function ``x -> f(x, κ(x))`` for a symbolic feedback ``κ`` (SX -> SX)."""
         u = ca.DM(self.u_eq) if feedback is None else feedback(self.x)
-        return ca.Function(f"{self.name}_cl", [self.x], [self.f_fun(self.x, u)])
+        return ca.Function(_function_name(f"{self.name}_cl"), [self.x], [self.f_fun(self.x, u)])
 
     def simulate(
         self,

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import csv
 import difflib
+import io
 import unicodedata
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -40,6 +41,7 @@ import numpy as np
 from nlyap_opt.kernel.errors import ConfigError, DimensionError
 from nlyap_opt.kernel.grid import GridNodes
 from nlyap_opt.kernel.grid import norm2_up as _norm2_up
+from nlyap_opt.kernel.jsonio import read_file_bytes
 
 __all__ = ["SampleSet", "load_samples", "save_samples", "sample_function", "RTOL_GRID"]
 
@@ -281,9 +283,10 @@ def _is_number(s: str) -> bool:
 
 
 def _read_csv(path: Path, columns: Sequence[str] | None) -> tuple[list[str], np.ndarray]:
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a spreadsheet's BOM
-            rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    try:  # utf-8-sig: a spreadsheet's BOM
+        text = read_file_bytes(path, "sample file").decode("utf-8-sig")
+        rows = [r for r in csv.reader(io.StringIO(text, newline=""))
+                if r and any(c.strip() for c in r)]
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at "
                           f"offset {exc.start}); save the csv as UTF-8") from None
@@ -341,7 +344,8 @@ def _real_array(path: Path, name: str, a: np.ndarray) -> np.ndarray:
 def _read_npz(path: Path, nx: int, nu: int):
     """Arrays ``x``, ``u``, ``xdot`` of an npz file, read without pickle and checked."""
     try:
-        with np.load(path, allow_pickle=False) as npz:
+        with np.load(io.BytesIO(read_file_bytes(path, "sample file")),
+                     allow_pickle=False) as npz:
             keys = set(npz.files)
             need = {"x", "xdot"} | ({"u"} if nu else set())
             extra = keys - need - {"u"}

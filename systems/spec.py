@@ -64,6 +64,7 @@ import sympy
 import tomllib
 
 from nlyap_opt.kernel.errors import ConfigError
+from nlyap_opt.kernel.jsonio import read_file_bytes
 from nlyap_opt.kernel.walker import OP_TABLE
 
 from .base import System
@@ -716,8 +717,7 @@ def load_spec(path) -> System:
     """
     path = Path(path)
     try:
-        with open(path, "rb") as fh:
-            spec = tomllib.load(fh)
+        spec = tomllib.loads(read_file_bytes(path, "system spec").decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"system spec {str(path)!r} not found; check the path") from None
     except IsADirectoryError:

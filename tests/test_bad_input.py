@@ -166,6 +166,9 @@ def files(tmp_path_factory):
     (d / "afile").write_text("x")
     paths["file"] = str(d / "afile")
     paths["missing"] = str(d / "nothing_here.json")
+    (d / "nanrun.toml").write_text('name = "n"\nstates = ["x"]\nstate_box = [[-1.0, 1.0]]\n'
+                                   '[rhs]\nx = "-x"\n[run]\nouter = nan\n')
+    paths["nanrun"] = str(d / "nanrun.toml")
     paths["cert_noproblem"] = str(d / "cert_noproblem.json")
     (d / "cert_noproblem.json").write_text(json.dumps({"status": "certified"}))
     return paths
@@ -477,6 +480,13 @@ CLI_CASES = [
     _c("config no system", ["config"], ["system", "--keys"]),
     _c("config unknown key", ["config", "van_der_pol", "--config", "{cfg}"], ["train.stpes"],
        {"train": {"stpes": 1}}),
+    # ---------------------------------------------------------------- files that are not files
+    _c("config is a device", ["config", "van_der_pol", "--config", "/dev/zero"],
+       ["/dev/zero", "not a regular file"]),
+    _c("spec is a device", ["systems", "--check", "/dev/zero"], ["not a regular file"]),
+    _c("certificate is a device", ["verify", "--certificate", "/dev/zero"],
+       ["not a regular file"]),
+    _c("spec run table nan", ["systems", "--check", "{nanrun}"], ["not finite", "nan"]),
 ]
 
 
@@ -488,6 +498,27 @@ def _fill(argv, files, config, label):
             fh.write(config if isinstance(config, str) else json.dumps(config))
         values["cfg"] = p
     return [a.format(**values) for a in argv]
+
+
+def test_systems_check_reads_a_factory_spec_without_running_it_and_any_name_loads(
+        tmp_path, capsys):
+    """``systems --check`` reads files and runs nothing: a spec whose system is built by
+    Python code (here ``os:abort``, which would end the process) is described, not
+    imported. A system name CasADi would not accept as a Function name (``my-system``)
+    loads too."""
+    from nlyap_opt.interface.cli import main
+
+    f = tmp_path / "factory.toml"
+    f.write_text('name = "t"\nfactory = "os:abort"\n')
+    assert main(["systems", "--check", str(f)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["factory"] == "os:abort" and "does not run" in out["note"]
+    g = tmp_path / "named.toml"
+    g.write_text('name = "my-system"\nstates = ["x"]\nstate_box = [[-1.0, 1.0]]\n'
+                 '[rhs]\nx = "-x"\n')
+    assert main(["systems", "--check", str(g)]) == 0
+    assert json.loads(capsys.readouterr().out)["name"] == "my-system"
+    assert systems.load_spec(g).A.tolist() == [[-1.0]]
 
 
 def test_cli_table_has_over_100_cases():

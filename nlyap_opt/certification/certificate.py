@@ -217,9 +217,8 @@ def spec_factory(path: str | Path) -> str | None:
     import tomllib  # lazy: tomllib, in the standard library from Python 3.11 only
 
     try:
-        with open(path, "rb") as fh:
-            spec = tomllib.load(fh)
-    except (OSError, tomllib.TOMLDecodeError):
+        spec = tomllib.loads(read_file_bytes(path, "system spec").decode("utf-8"))
+    except (OSError, ConfigError, UnicodeDecodeError, tomllib.TOMLDecodeError):
         return None
     return None if "factory" not in spec else str(spec["factory"])
 

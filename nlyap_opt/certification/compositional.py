@@ -66,7 +66,7 @@ from ..kernel.exact import (
     rational,
     rational_matrix,
 )
-from ..kernel.jsonio import save_timings, split_timings
+from ..kernel.jsonio import read_file_bytes, save_timings, split_timings
 from ..kernel.provenance import fingerprint
 from ..kernel.walker import compile_function, exact_values
 from .certificate import (
@@ -538,9 +538,9 @@ def is_compositional_file(path: str | Path) -> bool:
     if path.is_dir():
         path = path / "certificate.json"
     try:
-        d = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return False
+        d = json.loads(read_file_bytes(path, "certificate"))
+    except (OSError, ValueError, RecursionError, ConfigError):
+        return False  # the reader of the certificate says why
     return isinstance(d, dict) and d.get("format") == FORMAT
 
 

@@ -30,7 +30,12 @@ import systems
 from verification import QueryStatus, closed_loop_problem, verify
 
 from ..candidates.sos import AUTO, choose_degree, sos_may_fit
-from ..certification.certificate import CertStatus, recheck_certificate, spec_factory
+from ..certification.certificate import (
+    CertStatus,
+    read_certificate_file,
+    recheck_certificate,
+    spec_factory,
+)
 from ..certification.compositional import (
     certify_compositional,
     is_compositional_file,
@@ -352,8 +357,23 @@ def _load_network(path: str, option: str):
 # ============================================================================ commands
 def cmd_systems(args) -> int:
     if args.check:
-        s = systems.load_spec(args.check) if _is_spec(args.check) else systems.get(args.check)
-        print(json.dumps(s.summary(), indent=1, allow_nan=False, default=str))
+        if _is_spec(args.check):
+            factory = spec_factory(args.check)
+            if factory is not None:  # Python code: --check reads files, it runs nothing
+                print(json.dumps({"spec": str(args.check), "factory": factory,
+                                  "note": "the system is built by Python code, which --check "
+                                          "does not run; `nlyap run FILE` imports it"},
+                                 indent=1))
+                return 0
+            s = systems.load_spec(args.check)
+        else:
+            s = systems.get(args.check)
+        try:
+            text = json.dumps(s.summary(), indent=1, allow_nan=False, default=str)
+        except ValueError:
+            raise ConfigError(f"{args.check}: a number the file declares is not finite (nan "
+                              "or inf, e.g. in its [run] table); write a finite number") from None
+        print(text)
         return 0
 
     print(f"{'name':26s} {'nx':>3s} {'nu':>3s}  state box / input box")
@@ -392,8 +412,8 @@ def _note_other_fingerprint(path: Path) -> None:
     verdict does not depend on it; a re-run of its training would)."""
 
     try:
-        stored = json.loads(path.read_text()).get("provenance")
-    except (OSError, ValueError, AttributeError):
+        stored = read_certificate_file(path)[1].get("provenance")
+    except (ConfigError, AttributeError):
         return  # the re-check itself reports an unreadable certificate
     diff = differences(stored)
     if diff == ["unknown"]:
@@ -415,16 +435,13 @@ def _verify_certificate(args) -> int:
     system = None
     if args.system is not None:      # loaded by _check_paths (a factory only when allowed)
         system = systems.get(args.system)
-    path = Path(args.certificate)
-    if path.is_dir():
-        path = path / "certificate.json"
-
     verifier = [o for o, given in (("--backend", args.backend != "interval"),
                                    ("--precision", args.precision is not None),
                                    ("--resolution", args.resolution is not None)) if given]
     if verifier:
         raise UsageError("--certificate re-checks with the interval verifier and the options "
                          f"saved in the certificate; drop {', '.join(verifier)}")
+    path, _ = read_certificate_file(args.certificate)  # a readable JSON file, or one line
 
     if is_compositional_file(path):
         if args.workers is not None or args.scheduler is not None:

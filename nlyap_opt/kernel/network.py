@@ -50,7 +50,14 @@ import casadi as ca
 import numpy as np
 
 from . import deps
-from .errors import DimensionError, NetworkFileError, NlyapError, UnsupportedLayerError
+from .errors import (
+    ConfigError,
+    DimensionError,
+    NetworkFileError,
+    NlyapError,
+    UnsupportedLayerError,
+)
+from .jsonio import read_file_bytes
 
 __all__ = [
     "Activation", "Layer", "Network", "ACTIVATIONS", "HEADS", "TORCH_CONVERTERS", "from_torch",
@@ -415,8 +422,8 @@ class Network:
         """Read and validate a network JSON file (see :meth:`from_dict`)."""
         path = Path(path)
         try:
-            text = path.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as err:
+            text = read_file_bytes(path, "network file").decode("utf-8")
+        except (OSError, UnicodeDecodeError, ConfigError) as err:
             raise NetworkFileError(
                 f"cannot read network file {path}: {_one_line(err)}; pass the path of a JSON "
                 "file written by Network.save"

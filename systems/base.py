@@ -55,8 +55,14 @@ def _box(box, n: int, what: str) -> np.ndarray:
         )
     if not np.all(np.isfinite(b)) or np.any(b[:, 0] >= b[:, 1]):
         raise ValueError(f"{what} needs finite bounds with lower < upper on every row, got {b}")
+    if np.any(np.abs(b) > BOX_LIMIT):
+        raise ValueError(f"{what} has a bound beyond ±{BOX_LIMIT:g} (squares and widths of "
+                         f"such states overflow); rescale the states, got {b.tolist()}")
     return b
 
+
+#: the largest magnitude of a box bound (a state of 1e100 has a finite square; 1e308 not)
+BOX_LIMIT = 1e100
 
 
 def _function_name(name: str) -> str:
@@ -67,6 +73,7 @@ def _function_name(name: str) -> str:
         return name
     parts = [p for p in re.split(r"[^0-9A-Za-z]+", name) if p]
     return "_".join(["f", *parts])
+
 
 class System:
     r"""A continuous-time control system :math:`\dot x = f(x, u)`.

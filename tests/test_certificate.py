@@ -237,8 +237,8 @@ def test_non_network_V_is_saved_as_data_and_rechecked_and_no_casadi_binary_is_lo
 
 def test_artifacts_outside_the_directory_pipes_and_edited_number_types_are_refused(tmp_path):
     """An artifact name with a directory part (absolute, ``../``), a named pipe in place of
-    an artifact (refused without waiting on it) and a level written as a string or a
-    boolean never re-check as certified."""
+    an artifact (refused without waiting on it), a level written as a string or a boolean
+    and an assumption list without one the proof rests on never re-check as certified."""
     import os
 
     from nlyap_opt.certification.certificate import sha256_file
@@ -271,6 +271,16 @@ def test_artifacts_outside_the_directory_pipes_and_edited_number_types_are_refus
         with pytest.raises(ConfigError, match="level must be a number"):
             recheck_certificate(path, **QUIET)
     assert sha256_file(tmp_path / "run" / vfile) == good["artifacts"]["V"]["sha256"]
+    # an assumption the proof rests on, removed from the list: refused; one added: kept
+    assert good["assumptions"]
+    d = json.loads(json.dumps(good))
+    d["assumptions"] = d["assumptions"][1:]
+    path.write_text(json.dumps(d))
+    r = recheck_certificate(path, **QUIET)
+    assert not r.certified and "assumptions" in r.reason
+    d["assumptions"] = good["assumptions"] + ["the run also assumed nothing else"]
+    path.write_text(json.dumps(d))
+    assert recheck_certificate(path, **QUIET).certified
 
 
 def test_lyapunov_matrix_is_the_lyapunov_solution():

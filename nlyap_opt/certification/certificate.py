@@ -1446,7 +1446,8 @@ def _not_as_proved(saved: RoaCertificate, new: RoaCertificate) -> list[str]:
     The level, the radii, η, s, the domain and the inner ellipse's ``P`` and form are used
     as written by the re-check, so they must equal the proved ones exactly; the derived
     numbers (``M``, the margin β, the box around ``E``) to :data:`DERIVED_RTOL`; the inner
-    ellipse's level ``c_q`` may not exceed the proved one (a larger ``E`` is not proved)."""
+    ellipse's level ``c_q`` may not exceed the proved one (a larger ``E`` is not proved);
+    every assumption the re-check's proof rests on must be listed (more may be)."""
     out = []
 
     def field(name, stored, proved, ok):
@@ -1464,6 +1465,9 @@ def _not_as_proved(saved: RoaCertificate, new: RoaCertificate) -> list[str]:
     field("M", saved.M, new.M, _close(saved.M, new.M))
     field("assumptions_declared_by_user", saved.declared, new.declared,
           list(saved.declared) == list(new.declared))
+    missing = [a for a in new.assumptions if a not in saved.assumptions]
+    field("assumptions", "a list without " + "; ".join(missing) if missing else "",
+          "the proof rests on them", not missing)
     si, ni = saved.inner_ellipse, new.inner_ellipse
     if (si is None) != (ni is None):
         field("inner_ellipse", None if si is None else "an ellipse",

@@ -50,9 +50,17 @@ def _int_at_least(text: str, low: int) -> int:
     return v
 
 
+#: the largest seed (the random generators of numpy and torch take 32-bit seeds alike) and
+#: the most seeds of one portfolio
+MAX_SEED, MAX_SEEDS = 2**32 - 1, 10_000
+
+
 def seed(text: str) -> int:
-    """An integer >= 0."""
-    return _int_at_least(text, 0)
+    """An integer in ``[0, MAX_SEED]``."""
+    v = _int_at_least(text, 0)
+    if v > MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_SEED}, got {v}")
+    return v
 
 
 def seeds(text: str) -> int | list[int]:
@@ -64,11 +72,14 @@ def seeds(text: str) -> int | list[int]:
         raise argparse.ArgumentTypeError(
             f"expected a count K >= 1 or seeds like 0,3,7, got {text!r}") from None
     if len(vals) == 1 and "," not in text:
-        if vals[0] < 1:
-            raise argparse.ArgumentTypeError(f"the number of seeds must be >= 1, got {vals[0]}")
+        if not 1 <= vals[0] <= MAX_SEEDS:
+            raise argparse.ArgumentTypeError(f"the number of seeds must be between 1 and "
+                                             f"{MAX_SEEDS}, got {vals[0]}")
         return vals[0]
-    if any(v < 0 for v in vals) or len(set(vals)) != len(vals):
-        raise argparse.ArgumentTypeError(f"seeds must be distinct integers >= 0, got {text!r}")
+    if any(not 0 <= v <= MAX_SEED for v in vals) or len(set(vals)) != len(vals) or \
+            len(vals) > MAX_SEEDS:
+        raise argparse.ArgumentTypeError(f"seeds must be at most {MAX_SEEDS} distinct integers "
+                                         f"in [0, {MAX_SEED}], got {text!r}")
     return vals
 
 

@@ -41,6 +41,10 @@ def _run_dir(path: str) -> Path:
     return p
 
 
+#: the most states (trajectories times steps) one ``simulate`` keeps in memory
+MAX_STORED_STATES = 1e8
+
+
 def _log(msg: str) -> None:
     print(f"[re-check] {msg.strip()}")
 
@@ -56,6 +60,14 @@ def cmd_simulate(args) -> int:
     if args.nominal and not args.filter:
         raise UsageError("--nominal FILE is the controller the safety filter keeps safe; add "
                          "--filter clf-qp")
+    if args.dt > args.horizon:
+        raise UsageError(f"--dt {args.dt:g} is longer than --horizon {args.horizon:g}; give a "
+                         "step below the horizon")
+    steps = args.horizon / args.dt
+    if steps * args.points > MAX_STORED_STATES:
+        raise UsageError(f"{args.points} trajectories of {steps:.3g} steps would keep "
+                         f"{steps * args.points:.3g} states (at most {MAX_STORED_STATES:.0e}); "
+                         "lower --points or --horizon, or raise --dt")
     run = load_run(_run_dir(args.run_dir), log=_log)
     which = "true" if args.true else "learned" if args.learned else None
     out = Path(args.out)

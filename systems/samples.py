@@ -322,11 +322,14 @@ def _read_csv(path: Path, columns: Sequence[str] | None) -> tuple[list[str], np.
         )
     if len(names) != width:
         raise ConfigError(f"{path}: {len(names)} column names for rows of {width} fields")
+    if not data:
+        raise ConfigError(f"{path}: the csv has a header but no data rows; write one row per "
+                          "sample below it")
     try:
         arr = np.array([[float(c) for c in row] for row in data], dtype=float)
     except ValueError as exc:
         raise ConfigError(f"{path}: a field is not a number ({exc}); fix the data") from None
-    return names, arr.reshape(len(data), width)
+    return names, _magnitudes(path, "a field", arr.reshape(len(data), width))
 
 
 def _real_array(path: Path, name: str, a: np.ndarray) -> np.ndarray:
@@ -338,7 +341,23 @@ def _real_array(path: Path, name: str, a: np.ndarray) -> np.ndarray:
         fix = "x.real, if the imaginary part is 0" if what == "complex" else "float64 arrays"
         raise ConfigError(f"{path}: array {name!r} is {what} ({a.dtype}); an npz sample file "
                           f"holds real numbers only (save {fix})")
-    return np.asarray(a, dtype=float)
+    return _magnitudes(path, name, np.asarray(a, dtype=float))
+
+
+#: the largest magnitude of a sample value (its square is finite; 1e308's is not)
+SAMPLE_LIMIT = 1e100
+
+
+def _magnitudes(path: Path, name: str, a: np.ndarray) -> np.ndarray:
+    """``a``, unless a finite value exceeds :data:`SAMPLE_LIMIT` in magnitude (named by its
+    first row)."""
+    with np.errstate(invalid="ignore"):
+        big = np.isfinite(a) & (np.abs(a) > SAMPLE_LIMIT)
+    if np.any(big):
+        row = int(np.argwhere(big)[0][0])
+        raise ConfigError(f"{path}: {name} holds {a[np.argwhere(big)[0][0]].ravel()[0]:g} "
+                          f"(row {row}), beyond ±{SAMPLE_LIMIT:g}; rescale the samples")
+    return a
 
 
 def _read_npz(path: Path, nx: int, nu: int):

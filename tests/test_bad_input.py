@@ -487,6 +487,10 @@ CLI_CASES = [
     _c("certificate is a device", ["verify", "--certificate", "/dev/zero"],
        ["not a regular file"]),
     _c("spec run table nan", ["systems", "--check", "{nanrun}"], ["not finite", "nan"]),
+    _c("cfg duplicate key", RUN, ["outer", "appears twice"], '{"outer": 1.0, "outer": 2.0}'),
+    _c("cfg count beyond 2^53", RUN, ["train.steps", "2^53"], {"train": {"steps": 10**30}}),
+    _c("run seeds huge", ["run", "van_der_pol", "--seeds", "99999999999999999999"],
+       ["--seeds", "10000"]),
 ]
 
 

@@ -1316,6 +1316,10 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
             return _refused_run(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
     if "V" not in nets:
         raise ConfigError(f"certificate {path} lists no V artifact; rerun the command")
+    dyn_assumed = problem_d.get("dynamics_assumptions", [])
+    if not isinstance(dyn_assumed, list) or not all(isinstance(a, str) for a in dyn_assumed):
+        raise ConfigError(f"certificate {path}: problem.dynamics_assumptions must be a list of "
+                          "strings; rerun the command that wrote it")
     refusal = _binding_refusal(d, sysm)
     if refusal:
         return _refused_run(saved, refusal)
@@ -1325,7 +1329,7 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
         initial_set=saved.initial_set,
         margin_mode=problem_d.get("margin_mode", "pointwise"), smoothing=saved.smoothing,
         dynamics_box=problem_d.get("dynamics_box"), input_box=problem_d.get("input_box"),
-        dynamics_assumptions=list(problem_d.get("dynamics_assumptions", [])),
+        dynamics_assumptions=list(dyn_assumed),
         verify_options=check_file_options(problem_d.get("verify_options"),
                                           f"certificate {path}",
                                           "rerun the command that wrote it"))

@@ -142,6 +142,17 @@ def load_with_timings(path: str | Path) -> dict:
     return obj
 
 
+def _unique_keys(pairs: list) -> dict:
+    """A JSON object whose keys are all different (a key given twice is refused: JSON
+    readers disagree on which value wins)."""
+    seen: dict = {}
+    for k, v in pairs:
+        if k in seen:
+            raise ConfigError(f"key {k!r} appears twice in one object; keep one")
+        seen[k] = v
+    return seen
+
+
 def read_json_object(path: str | Path) -> dict:
     """A configuration file: a JSON object (else :class:`ConfigError` saying why).
 
@@ -163,17 +174,21 @@ def read_json_object(path: str | Path) -> dict:
     if p.is_dir():
         raise ConfigError(f"config {path} is a directory; pass the JSON file inside it")
     try:
-        obj = json.loads(read_file_bytes(p, "config").decode("utf-8"))
-    except RecursionError:
-        raise ConfigError(f"config {path} is nested too deeply to read; fix the file") \
-            from None
+        data = read_file_bytes(p, "config")
     except OSError as err:
         raise ConfigError(f"cannot read config {path}: {err.strerror or err}; "
                           "check the path") from None
+    try:
+        obj = json.loads(data.decode("utf-8"), object_pairs_hook=_unique_keys)
+    except RecursionError:
+        raise ConfigError(f"config {path} is nested too deeply to read; fix the file") \
+            from None
     except UnicodeDecodeError:
         raise ConfigError(f"config {path} is not a text file; pass a JSON file") from None
     except json.JSONDecodeError as err:
         raise ConfigError(f"config {path} is not valid JSON ({err}); fix the file") from None
+    except ConfigError as err:
+        raise ConfigError(f"config {path}: {err}") from None
     if not isinstance(obj, dict):
         raise ConfigError(f"config {path} must hold a JSON object {{...}}, "
                           f"got a {type(obj).__name__}")

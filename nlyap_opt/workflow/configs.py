@@ -802,7 +802,15 @@ def _ok_str(key: Key, v, where: str) -> bool:
     return isinstance(v, str)
 
 
+#: the largest integer a setting takes (float64 represents every integer up to it; a
+#: count beyond it is an edit or a typo, not a budget)
+MAX_INT_SETTING = 2**53
+
+
 def _ok_int(key: Key, v, where: str) -> bool:
+    if _is_int(v) and abs(v) > MAX_INT_SETTING:
+        raise ConfigError(f"{where}: {key.name} = {_show(v)} is beyond {MAX_INT_SETTING} "
+                          "(2^53); give a smaller integer")
     return _is_int(v) and _in_range(key, v) and (not key.choices or v in key.choices)
 
 

@@ -181,8 +181,11 @@ def _factory_file(tmp_path):
                                        ("needs", ["needs the arguments ['a']"]),
                                        ("wrong", ["returned int"])])
 def test_bad_factory_exits_3_naming_it(fn, words, tmp_path, capsys):
+    """The factory is run by the commands that build the system (``lqr`` here; ``systems
+    --check`` reads the spec without running it)."""
     _factory_file(tmp_path)
-    code, err = _check(_spec(tmp_path, f'factory = "fac.py:{fn}"\n'), capsys)
+    code = main(["lqr", str(_spec(tmp_path, f'factory = "fac.py:{fn}"\n'))])
+    err = capsys.readouterr().err
     _one_line_exit3(code, err)
     assert f"'fac.py:{fn}'" in err and all(w in err for w in words)
 

@@ -225,3 +225,19 @@ def test_a_failed_bisection_try_never_replaces_the_proved_level(monkeypatch):
     assert len(after) >= 2                              # the tries were spent climbing
     assert again.checks["(a) decrease"] == again.checks["(b) B_ε ⊆ Ω_c"] == "verified"
     assert again.checks["(b) V > level on ‖x‖ = r"] == "verified"
+
+
+def test_a_starting_level_below_v_on_the_inner_sphere_is_not_checked(monkeypatch):
+    """Ring, ``V = ‖x‖²``, ε = 0.95: V = 0.9025 on the whole inner sphere, so a search that
+    starts at 0.8 (or any level up to 0.9025) can never hold B_ε. Nothing is handed to the
+    verifier, and the reason says why; a start above it is searched as before."""
+    s = _ring()
+    p = RoaProblem(s, quadratic_lyapunov(np.eye(2)), inner=EPS, outer=2.0)
+    real, calls = par.check, []
+    monkeypatch.setattr(par, "check", lambda prob, **kw: calls.append(1) or real(prob, **kw))
+    logs = []
+    cert = certify_roa(p, 0.8, search=True, log=logs.append)
+    assert not cert.certified and not calls and not cert.history
+    assert "none was checked" in cert.reason and "0.9025" in cert.reason
+    assert any("cannot hold the inner ball" in line for line in logs)
+    assert certify_roa(p, 0.95, search=True, log=lambda m: None).certified and calls

@@ -1218,7 +1218,9 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     usually a near-tangency that a small step resolves). A search never goes to a level at
     or below :func:`inner_ball_level` (no such ``Ω_c`` holds ``B_ε``): the first step that
     would tries ``(1 +`` :data:`INNER_LEVEL_MARGIN` ``)`` times it instead, the smallest level
-    that can hold the inner ball, and the search ends after that. Each try is one entry of
+    that can hold the inner ball, and the search ends after that. A starting level below
+    ``V`` at one of 512 seeded points of the inner sphere is not checked at all (no level up
+    to it can hold the ball). Each try is one entry of
     the ``history``. Returns the certified level or why none was found.
 
     With ``follow_violations`` (off by default, so that existing certificates do not move):
@@ -1341,6 +1343,20 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
         return LevelCertificate("certified", lv, res_a, res_b, hist, cx,
                                 time.perf_counter() - t0)
 
+    if inner > 0 and c > 0:
+        # V at seeded points of the inner sphere: a level below one of them cannot hold
+        # B_ε (condition (b) would refute it after (a) and (b) had been checked: minutes in
+        # 6-D), and every lower level neither, so nothing is checked
+        d = np.random.default_rng(0).standard_normal((max(512, 2 * n), n))
+        d[:n], d[n:2 * n] = np.eye(n), -np.eye(n)
+        seen = float(np.max(evaluate(Vf, [inner * d / np.linalg.norm(d, axis=1,
+                                                                      keepdims=True)])[0]))
+        if c < seen * (1.0 - 1e-9):
+            floor["m"], floor["sampled"] = seen, True
+            log(f"    level {c:.6g} cannot hold the inner ball (V = {seen:.6g} at a point of "
+                f"‖x‖ = {inner:g}): not checked")
+            c = None
+
     for k in range(max_tries):
         if c is None or not c > 0:
             break
@@ -1392,7 +1408,11 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     if best is not None:
         return result()
     why = "no level certified"
-    if c is None:
+    if c is None and floor.get("sampled"):
+        why += (f" (the candidate level {level * (1.0 - shrink):.6g} is below V = "
+                f"{floor['m']:.6g} at a point of ‖x‖ = {inner:g}: no level up to it holds "
+                "the inner ball; none was checked)")
+    elif c is None:
         why += (f" (none above the inner ball's level {floor['m']:.6g}, max V on ‖x‖ = "
                 f"{inner:g}, holds)")
     return LevelCertificate(why, 0.0, None, None, hist,

@@ -277,6 +277,7 @@ def test_bad_warm_start_settings_are_config_errors(train, match):
         make_config("inverted_pendulum", "fast", overrides={"train": {"init": "quadratic"}})
 
 
+@pytest.mark.slow  # a whole run (6 s); quadratic_start itself is tested above
 def test_a_run_with_init_quadratic_starts_cegis_at_the_certified_quadratic(tmp_path,
                                                                             log_until):
     """The pendulum with ``train.init: quadratic``: CEGIS starts from the quadratic stage's

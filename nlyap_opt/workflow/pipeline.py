@@ -1259,7 +1259,7 @@ def _best_certificate(system, cfg, cert, problem, checked: list, log):
         what = f"the quadratic xᵀPx ({rec.name} candidate, {rec.file})"
         files = {"V": rec.file, "controller": "controller_init.json"}
     else:
-        what = f"the {rec.label} polynomial ({rec.file}; saved as V.casadi)"
+        what = f"the {rec.label} polynomial ({rec.file}; saved as V.sx.json)"
         files = {"controller": "controller_init.json"}
     win.assumptions.append(
         f"the certified V is {what} under the initial controller"

@@ -84,13 +84,14 @@ def get(name: str, **params) -> System:
     return factory(**params)
 
 
-def load_spec(path) -> System:
-    """Build a :class:`System` from a TOML spec file (:func:`systems.spec.load_spec`).
+def load_spec(path, *, allow_factory: bool = True) -> System:
+    """Build a :class:`System` from a TOML spec file (:func:`systems.spec.load_spec`;
+    ``allow_factory=False`` refuses a spec whose system is Python code).
 
     Imports SymPy (the expression parser) only when called.
     """
 
-    return _load_spec(path)
+    return _load_spec(path, allow_factory=allow_factory)
 
 
 def default_run_settings(system: System) -> dict:

@@ -693,12 +693,16 @@ def _quick_check(system: System, path) -> System:
     return system
 
 
-def load_spec(path) -> System:
+def load_spec(path, *, allow_factory: bool = True) -> System:
     """Build a :class:`~systems.base.System` from a TOML spec file.
 
     Parameters
     ----------
     path : str or Path
+    allow_factory : bool
+        Whether a ``factory`` (Python code) may be imported and run. ``False``: a spec with
+        one is refused, decided on the same bytes that are parsed (a file changed between a
+        caller's own look and this read cannot slip a factory in).
 
     Returns
     -------
@@ -728,6 +732,15 @@ def load_spec(path) -> System:
                           f"offset {exc.start}); save the file as UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: nested too deeply to read; fix the file") from None
+    except ValueError as exc:  # an integer of thousands of digits (Python's own limit)
+        raise ConfigError(f"{path}: cannot be read ({' '.join(str(exc).split())[:120]}); "
+                          "fix the file") from None
+    if "factory" in spec and not allow_factory:
+        raise ConfigError(f"{path} defines its system with factory = "
+                          f"{_short(str(spec['factory']), 80)}, Python code that is run only "
+                          "when asked; read it, then allow it (nlyap verify --allow-factory)")
     try:
         return _load_spec(path, spec)
     except OverflowError as exc:  # a number of hundreds of digits anywhere in the file

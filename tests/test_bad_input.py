@@ -570,3 +570,20 @@ def test_cli_bad_input_in_a_real_process(argv, files, tmp_path):
     assert res.returncode == 3, res.stderr
     assert "Traceback" not in res.stderr
     assert res.stderr.strip().count("\n") == 0 and res.stderr.startswith("nlyap: error:")
+
+
+def test_load_spec_without_factories_decides_on_the_bytes_it_parses(tmp_path):
+    """``load_spec(allow_factory=False)`` refuses a factory spec itself (the callers' own
+    look at the file is not what keeps the code from running); a TOML integer of thousands
+    of digits is a one-line error."""
+    from nlyap_opt.kernel.errors import ConfigError
+
+    f = tmp_path / "factory.toml"
+    f.write_text('name = "t"\nfactory = "os:abort"\n')
+    with pytest.raises(ConfigError, match="factory"):
+        systems.load_spec(f, allow_factory=False)
+    g = tmp_path / "big.toml"
+    g.write_text('name = "t"\nstates = ["x"]\nstate_box = [[-1.0, 1.0]]\n[rhs]\nx = "-x"\n'
+                 "[parameters]\nk = " + "9" * 5000 + "\n")
+    with pytest.raises(ConfigError, match="cannot be read"):
+        systems.load_spec(g)

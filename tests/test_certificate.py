@@ -329,3 +329,32 @@ def test_a_radius_refuted_by_an_earlier_counterexample_is_not_searched():
     assert "refutes every level" in why and below == pytest.approx(0.25)
     assert _refuted_radius(prob, dec, 0.6, cex) == ("", np.inf)
     assert _refuted_radius(prob, dec, 0.5, []) == ("", np.inf)
+
+
+def test_sx_files_rebuild_exactly_or_are_refused_and_huge_numbers_are_one_line_errors(
+        tmp_path):
+    """An sx file is taken only if its instructions rebuild to themselves: ``x/x`` (which
+    CasADi would fold to 1) and an extra argument are refused, as is a constant of 400
+    digits; a certificate holding an integer of thousands of digits is a ConfigError."""
+    from nlyap_opt.kernel import sxjson
+
+    x = ca.SX.sym("x", 2)
+    good = sxjson.to_json(ca.Function("V", [x], [x[0] * x[1] + 2.5 * x[0] ** 2]))
+    assert sxjson.to_json(sxjson.from_json(json.loads(json.dumps(good)))) == good
+    folded = dict(good, registers=2, instructions=[["OP_INPUT", [0], [0, 0]],
+                                                   ["OP_DIV", [1], [0, 0]],
+                                                   ["OP_OUTPUT", [0, 0], [1]]])
+    with pytest.raises(ConfigError, match="rebuild to themselves"):
+        sxjson.from_json(folded)
+    extra = json.loads(json.dumps(good))
+    k = next(j for j, r in enumerate(extra["instructions"]) if r[0] == "OP_MUL")
+    extra["instructions"][k][2].append(0)
+    with pytest.raises(ConfigError, match="two arguments"):
+        sxjson.from_json(extra)
+    big = json.loads(json.dumps(good))
+    big["instructions"].insert(0, ["OP_CONST", [0], [], 10**400])
+    with pytest.raises(ConfigError, match="finite number"):
+        sxjson.from_json(big)
+    (tmp_path / "certificate.json").write_text('{"level": ' + "9" * 5000 + "}")
+    with pytest.raises(ConfigError, match="cannot be read"):
+        recheck_certificate(tmp_path, **QUIET)

@@ -218,7 +218,7 @@ def spec_factory(path: str | Path) -> str | None:
 
     try:
         spec = tomllib.loads(read_file_bytes(path, "system spec").decode("utf-8"))
-    except (OSError, ConfigError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+    except (OSError, ConfigError, ValueError, RecursionError):  # TOMLDecodeError included
         return None
     return None if "factory" not in spec else str(spec["factory"])
 
@@ -1207,6 +1207,9 @@ def read_certificate_file(path: str | Path) -> tuple[Path, object]:
     except json.JSONDecodeError as err:
         raise ConfigError(f"certificate {path} is not valid JSON ({err.msg}, line "
                           f"{err.lineno}); rerun the command that wrote it") from None
+    except ValueError as err:  # an integer of thousands of digits (Python's own limit)
+        raise ConfigError(f"certificate {path} cannot be read ({' '.join(str(err).split())[:120]});"
+                          " rerun the command that wrote it") from None
     return path, d
 
 
@@ -1316,6 +1319,9 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
             return _refused_run(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
     if "V" not in nets:
         raise ConfigError(f"certificate {path} lists no V artifact; rerun the command")
+    if getattr(nets["V"], "n_in", sysm.nx) != sysm.nx:
+        return _refused_run(saved, f"V ({saved.artifacts['V']['file']}) takes "
+                            f"{nets['V'].n_in} states, the system has {sysm.nx}")
     dyn_assumed = problem_d.get("dynamics_assumptions", [])
     if not isinstance(dyn_assumed, list) or not all(isinstance(a, str) for a in dyn_assumed):
         raise ConfigError(f"certificate {path}: problem.dynamics_assumptions must be a list of "
@@ -1373,7 +1379,7 @@ def _recheck_system(saved: RoaCertificate, d: dict, path: Path, system, allow_fa
                 f"system file {p} defines its system with factory = {factory!r}, Python code "
                 "that runs only when asked; read it, then pass --system FILE.toml "
                 "--allow-factory (Python: allow_factory=True)")
-        return systems.load_spec(p)
+        return systems.load_spec(p, allow_factory=allow_factory)
     if saved.system in systems.CATALOGUE:
         return systems.get(saved.system)
     src = d.get("system_source")
@@ -1391,7 +1397,8 @@ def _recheck_system(saved: RoaCertificate, d: dict, path: Path, system, allow_fa
                 f"{factory!r} is Python code; a re-check never runs code named inside a "
                 "certificate: read the factory, then pass --system FILE.toml --allow-factory "
                 "(Python: system=FILE.toml, allow_factory=True)")
-        return systems.load_spec(src)       # expressions or samples: parsed, not executed
+        # expressions or samples: parsed, not executed
+        return systems.load_spec(src, allow_factory=False)
     if saved.system in systems.names():     # registered in this process by its own code
         return systems.get(saved.system)
     raise ConfigError(f"certificate {path} is about system {saved.system!r}, which is not in "
@@ -1524,8 +1531,8 @@ def load_artifact(path, kind: str = "network"):
         return Network.load(path)
     if kind == "sx":
         try:
-            d = json.loads(read_file_bytes(path, "artifact", MAX_ARTIFACT_BYTES))
-        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+            d = json.loads(read_file_bytes(path, "artifact", sxjson.MAX_BYTES))
+        except (ValueError, RecursionError) as err:   # not UTF-8, not JSON, huge integers
             raise ValueError(f"not a JSON file ({type(err).__name__})") from None
         try:
             return _CasadiV(sxjson.from_json(d))

@@ -293,14 +293,14 @@ def _is_spec(name: str) -> bool:
     return name.endswith(".toml") or os.sep in name or Path(name).is_file()
 
 
-def _spec_system(path: str) -> str:
+def _spec_system(path: str, allow_factory: bool = True) -> str:
     """Load a system spec file (TOML), register it for this process, return its name."""
 
     p = Path(path)
     if not p.is_file():
         raise UsageError(f"system file {p}: no such file; check the path (or pass a "
                          "catalogue name, see 'nlyap systems')")
-    s = systems.load_spec(p)
+    s = systems.load_spec(p, allow_factory=allow_factory)
     if s.name in systems.CATALOGUE:   # another spec file of this process may be replaced
         raise UsageError(f"system file {p} names its system {s.name!r}, which is a catalogue "
                          "system; choose another name in the file")
@@ -321,7 +321,8 @@ def _check_paths(args) -> None:
                                  "read it, then add --allow-factory")
         if _is_spec(args.system):   # --system FILE.toml / run FILE.toml
             args.system_file = str(Path(args.system).resolve())  # Dask workers load it
-            args.system = _spec_system(args.system)
+            args.system = _spec_system(
+                args.system, allow_factory=args.command != "verify" or args.allow_factory)
         _catalogue_system(args.system)
     for attr in ("config", "lyapunov", "controller", "dynamics", "certificate"):
         value = getattr(args, attr, None)
@@ -365,7 +366,7 @@ def cmd_systems(args) -> int:
                                           "does not run; `nlyap run FILE` imports it"},
                                  indent=1))
                 return 0
-            s = systems.load_spec(args.check)
+            s = systems.load_spec(args.check, allow_factory=False)
         else:
             s = systems.get(args.check)
         try:

@@ -189,6 +189,9 @@ def read_json_object(path: str | Path) -> dict:
         raise ConfigError(f"config {path} is not valid JSON ({err}); fix the file") from None
     except ConfigError as err:
         raise ConfigError(f"config {path}: {err}") from None
+    except ValueError as err:  # an integer of thousands of digits (Python's own limit)
+        raise ConfigError(f"config {path} cannot be read ({' '.join(str(err).split())[:120]}); "
+                          "fix the file") from None
     if not isinstance(obj, dict):
         raise ConfigError(f"config {path} must hold a JSON object {{...}}, "
                           f"got a {type(obj).__name__}")

@@ -442,6 +442,9 @@ class Network:
             ) from None
         except NetworkFileError as err:
             raise NetworkFileError(f"{path}: {err}") from None
+        except ValueError as err:  # an integer of thousands of digits (Python's own limit)
+            raise NetworkFileError(f"{path} cannot be read ({_one_line(err)}); re-save it "
+                                   "with Network.save") from None
         return cls.from_dict(d, str(path))
 
 

@@ -23,6 +23,8 @@ VERSION = 1
 #: the most instructions and registers a file may declare (a quadratic in 20 states has
 #: about 900 instructions; an SOS polynomial of degree 6 in 4 states about 2 000)
 MAX_INSTRUCTIONS = 2_000_000
+#: the largest file :func:`from_json`'s callers read (its instructions at most, as JSON)
+MAX_BYTES = 64 << 20
 
 _BY_NAME = {info.name: op for op, info in OP_TABLE.items()}
 _SPECIAL = {"OP_CONST": ca.OP_CONST, "OP_INPUT": ca.OP_INPUT, "OP_OUTPUT": ca.OP_OUTPUT}
@@ -95,10 +97,12 @@ def from_json(d, name: str = "V") -> ca.Function:
         where = f"instruction {k} ({name_k})"
         if op == ca.OP_CONST:
             c = row[3] if len(row) == 4 else None
-            if isinstance(c, bool) or not isinstance(c, (int, float)) or not math.isfinite(c):
+            finite = (isinstance(c, float) and math.isfinite(c)) or (
+                isinstance(c, int) and not isinstance(c, bool) and abs(c) <= 2**53)
+            if not finite:
                 raise ConfigError(f"{where}: the constant must be a finite number")
-            if len(o) != 1:
-                raise ConfigError(f"{where}: one output register")
+            if len(o) != 1 or i:
+                raise ConfigError(f"{where}: one output register, no arguments")
             reg[_int(o[0], f"{where} output", 0, n_reg)] = ca.SX(float(c))
             continue
         if len(row) != 3:
@@ -127,11 +131,11 @@ def from_json(d, name: str = "V") -> ca.Function:
             raise ConfigError(f"{where}: one output register")
         dst = _int(o[0], f"{where} output", 0, n_reg)
         if op in UNARY_OPS:
-            if len(i) < 1:
+            if len(i) != 1:
                 raise ConfigError(f"{where}: one argument")
             reg[dst] = ca.SX.unary(op, read(i[0]))
         elif op in BINARY_OPS:
-            if len(i) < 2:
+            if len(i) != 2:
                 raise ConfigError(f"{where}: two arguments")
             reg[dst] = ca.SX.binary(op, read(i[0]), read(i[1]))
         else:  # pragma: no cover - the table holds unary and binary operations only
@@ -139,4 +143,10 @@ def from_json(d, name: str = "V") -> ca.Function:
     if any(v is None for v in out):
         raise ConfigError("not every output entry is written")
     y = ca.reshape(ca.vertcat(*out), rows, cols) if n_out else ca.SX(rows, cols)
-    return ca.Function(name, [x], [y])
+    fun = ca.Function(name, [x], [y])
+    # CasADi simplifies while it builds (x/x to 1, sq(sqrt(x)) to x): the function is the
+    # file's only if it gives back the same instruction list
+    if to_json(fun)["instructions"] != ins:
+        raise ConfigError("the instructions do not rebuild to themselves (CasADi would "
+                          "simplify them); rerun the command that wrote the file")
+    return fun

@@ -815,6 +815,8 @@ def _ok_int(key: Key, v, where: str) -> bool:
 
 
 def _ok_float(key: Key, v, where: str) -> bool:
+    if _is_int(v) and abs(v) > MAX_INT_SETTING:   # math.isfinite overflows on such an int
+        return False
     return _is_real(v) and math.isfinite(v) and _in_range(key, v)
 
 

@@ -362,9 +362,14 @@ def _magnitudes(path: Path, name: str, a: np.ndarray) -> np.ndarray:
 
 def _read_npz(path: Path, nx: int, nu: int):
     """Arrays ``x``, ``u``, ``xdot`` of an npz file, read without pickle and checked."""
+    data = read_file_bytes(path, "sample file")
+    if not data.startswith((b"PK\x03\x04", b"PK\x05\x06")):  # numpy.savez writes a zip
+        kind = "text" if data[:512].isascii() else "binary data"
+        raise ConfigError(f"{path}: is not an npz file (an npz is a zip archive; this file "
+                          f"holds {kind}); write it with numpy.savez(path, x=..., u=..., "
+                          "xdot=...), or give a csv file the suffix .csv")
     try:
-        with np.load(io.BytesIO(read_file_bytes(path, "sample file")),
-                     allow_pickle=False) as npz:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
             keys = set(npz.files)
             need = {"x", "xdot"} | ({"u"} if nu else set())
             extra = keys - need - {"u"}

@@ -4,6 +4,7 @@ interrupted; one line, no traceback unless ``--debug``."""
 
 import argparse
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -89,6 +90,7 @@ def _patch_command(monkeypatch, exc):
     (PermissionError(13, "Permission denied", "/root/z"), 3, ["Permission denied"]),
     (json.JSONDecodeError("Expecting value", "{", 1), 3, ["malformed JSON"]),
     (SystemExit(1), 4, ["internal error"]),
+    (MemoryError(), 3, ["out of memory", "--config"]),
 ])
 def test_exceptions_map_to_exit_codes(monkeypatch, capsys, exc, code, words):
     _patch_command(monkeypatch, exc)
@@ -210,6 +212,18 @@ def test_help_and_usage_error_in_a_real_process():
     assert "positive definite" in err
     out, err = h.communicate(timeout=120)
     assert h.returncode == 0 and "exit codes:" in out
+
+
+def test_a_reader_that_leaves_the_pipe_does_not_turn_the_exit_code_into_an_error():
+    r, w = os.pipe()
+    os.close(r)                                  # `nlyap systems | true`: the reader is gone
+    try:
+        p = subprocess.run([sys.executable, "-m", "nlyap_opt.interface.cli", "systems"],
+                           stdout=w, stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(w)
+    assert p.returncode == 0, p.stderr
+    assert p.stderr == ""                        # no BrokenPipeError, not even at exit
 
 
 def test_sigint_during_a_run_exits_130(tmp_path):

@@ -130,6 +130,11 @@ def test_system_without_a_preset_says_what_is_possible():
     ({"train": {"time_budget": 60.0}}, ["time_budget", "wall-clock budgets were removed"]),
     ({"cegis": {"verify_options": {"max_boxes": 0}}}, ["max_boxes", ">= 1"]),
     ({"train": {"threads": 1.0}}, ["train.threads", "integer"]),
+    ({"eval_points": 10**11}, ["eval_points", "state coordinates", "1e+08"]),
+    ({"train": {"hidden": [10**9]}}, ["train.hidden", "weights of V's network"]),
+    ({"train": {"hidden": [50000]}}, ["cegis.samples", "narrow train.hidden"]),
+    ({"dynamics": {"hidden": 10**8}}, ["'hidden'", "hidden activations"]),
+    ({"dynamics": {"grid_counts": [10**5, 10**5]}}, ["'grid_counts'", "grid coordinates"]),
 ])
 def test_bad_overrides_are_refused_before_anything_runs(over, words):
     with pytest.raises(ConfigError) as err:

@@ -255,7 +255,11 @@ def _truncated(p, X):
     (lambda p, X: np.savez(p, x=X, xdot=-X + 1e-3j), ["'xdot' is complex", "x.real"]),
     (lambda p, X: np.savez(p, x=X.astype(str), xdot=-X), ["'x' is text"]),
     (lambda p, X: np.savez(p, x=X > 0, xdot=-X), ["'x' is boolean"]),
-], ids=["truncated", "corrupt", "complex", "text", "boolean"])
+    (lambda p, X: p.write_text("x,y,x_dot,y_dot\n0,0,0,0\n"),
+     ["is not an npz file", "holds text", "suffix .csv"]),
+    (lambda p, X: np.save(p.with_suffix(".npy"), X) or p.with_suffix(".npy").rename(p),
+     ["is not an npz file", "binary data"]),
+], ids=["truncated", "corrupt", "complex", "text", "boolean", "plain-text", "npy"])
 def test_bad_npz_exits_3_with_the_fix(write, words, tmp_path, capsys):
     code, err = _check(_npz_spec(tmp_path, write), capsys)
     _one_line_exit3(code, err)

@@ -354,6 +354,36 @@ def test_recheck_refuses_a_certificate_whose_eta_was_lowered(learned_runs, tmp_p
     assert not again.certified and "η" in again.reason
 
 
+@pytest.mark.parametrize("edit,words", [
+    (lambda b: b.update(eta=10 ** 400), "eta"),
+    (lambda b: b.update(eta="0.01"), "eta must be a number"),
+    (lambda b: b.update(grid=5), "'grid'"),
+    (lambda b: b["grid"].update(box=[[-1, 1], [0]]), "grid.box"),
+    (lambda b: b["grid"].update(box=[[-1, 10 ** 400], [-1, 1]]), "grid.box"),
+], ids=["huge-eta", "text-eta", "grid-number", "ragged-box", "huge-box"])
+def test_recheck_refuses_an_edited_bounds_file_whose_hash_was_updated(learned_runs, tmp_path,
+                                                                      edit, words):
+    """A bounds file edited together with its hash in certificate.json is refused with a
+    reason (the certificate is not certified), never an internal error."""
+    import hashlib
+    import shutil
+
+    from nlyap_opt.certification.certificate import recheck_certificate
+
+    d, cert = learned_runs["van_der_pol"]
+    shutil.copytree(d, tmp_path / "run")
+    c = json.loads((tmp_path / "run" / "certificate.json").read_text())
+    bf = tmp_path / "run" / c["artifacts"]["bounds"]["file"]
+    b = json.loads(bf.read_text())
+    edit(b)
+    bf.write_text(json.dumps(b))
+    c["artifacts"]["bounds"]["sha256"] = hashlib.sha256(bf.read_bytes()).hexdigest()
+    (tmp_path / "run" / "certificate.json").write_text(json.dumps(c))
+    again = recheck_certificate(tmp_path / "run", log=lambda m: None)
+    assert not again.certified and "cannot be read" in again.reason, again.reason
+    assert words in again.reason, again.reason
+
+
 def test_recheck_refuses_a_certificate_whose_input_box_was_widened(learned_runs, tmp_path):
     """U is part of where ‖f − φ‖ ≤ η holds: a certificate.json whose input box no longer
     is the one of its hashed bounds file is refused, not re-verified on the wider box."""

@@ -595,7 +595,10 @@ def _number(d: dict, key: str) -> float:
     v = d[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise TypeError(f"{key} must be a number, got {type(v).__name__} {v!r}")
-    return float(v)
+    try:
+        return float(v)
+    except OverflowError:
+        raise ValueError(f"{key} is an integer beyond float range") from None
 
 
 def _numpy_of(V, pts):
@@ -1279,25 +1282,25 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
         f = base / name
         if not f.exists():
             return _refused_run(saved, f"artifact {art['file']} ({role}) is missing")
-        try:
-            digest = sha256_file(f)
+        try:   # read once: what is hashed is what is parsed
+            data = read_file_bytes(f, "file", MAX_ARTIFACT_BYTES)
         except (ConfigError, OSError) as err:
             return _refused_run(saved, f"artifact {art['file']} ({role}) cannot be read: "
                                 f"{err}")
+        digest = hashlib.sha256(data).hexdigest()
         if digest != art["sha256"]:
             return _refused_run(saved, f"artifact {art['file']} ({role}) changed since the "
                             f"certificate was written (sha256 {digest[:12]}… ≠ "
                             f"{art['sha256'][:12]}…)")
         if art.get("kind") == "bounds":
             try:
-                b = json.loads(f.read_text())
-                eta = float(b["eta"])
-            except (ValueError, KeyError, TypeError) as err:
-                return _refused_run(saved, f"artifact {art['file']} cannot be read: {err}")
+                eta, box = _bound_of(data)
+            except (ValueError, KeyError, TypeError, RecursionError, OverflowError) as err:
+                return _refused_run(saved, f"artifact {art['file']} cannot be read: "
+                                    f"{' '.join(str(err).split())[:200]}")
             if eta != saved.eta:
                 return _refused_run(saved, f"the certificate's η = {saved.eta!r} is not the η = "
                                 f"{eta!r} of {art['file']}")
-            box = np.asarray(b.get("grid", {}).get("box", []), dtype=float)
             dbox = np.asarray(problem_d.get("dynamics_box") or [], dtype=float)
             if dbox.size == 0 or box.shape[0] < dbox.shape[0] or \
                     not np.array_equal(box[:dbox.shape[0]], dbox):
@@ -1314,7 +1317,7 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
                                 f"{art['file']}")
             continue
         try:
-            nets[role] = load_artifact(f, art.get("kind", "network"))
+            nets[role] = load_artifact(f, art.get("kind", "network"), data)
         except (NetworkFileError, RuntimeError, ValueError) as err:
             return _refused_run(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
     if "V" not in nets:
@@ -1517,21 +1520,25 @@ class _CasadiV:
         return evaluate(self.fn, [np.asarray(pts, dtype=float)])[0]
 
 
-def load_artifact(path, kind: str = "network"):
+def load_artifact(path, kind: str = "network", data: bytes | None = None):
     """A saved V, κ or φ of ``certificate.json``'s ``artifacts``: a network file (``kind``
     ``"network"``: :class:`~nlyap_opt.kernel.network.Network`), or the scalar graph of a V
     that is not a network (``"sx"``: an SOS polynomial, :mod:`nlyap_opt.kernel.sxjson`),
     with ``casadi(x)`` and ``numpy(points) -> (N, 1)``. The caller checks the file's
-    sha256 first.
+    sha256 first, and passes the bytes it hashed as ``data`` so that what is loaded is
+    what was hashed (the file is not read a second time).
 
     Both are data read by this package's own code. A CasADi serialised Function (``kind``
     ``"casadi"``, written by earlier versions) is refused: loading one can open a shared
     library or start a compiler that the file names, so it would run code from disk."""
     if kind == "network":
-        return Network.load(path)
+        return Network.load(path, data)
     if kind == "sx":
+        if data is not None and len(data) > sxjson.MAX_BYTES:
+            raise ValueError(f"larger than {sxjson.MAX_BYTES} bytes")
         try:
-            d = json.loads(read_file_bytes(path, "artifact", sxjson.MAX_BYTES))
+            d = json.loads(read_file_bytes(path, "artifact", sxjson.MAX_BYTES)
+                           if data is None else data)
         except (ValueError, RecursionError) as err:   # not UTF-8, not JSON, huge integers
             raise ValueError(f"not a JSON file ({type(err).__name__})") from None
         try:
@@ -1543,6 +1550,30 @@ def load_artifact(path, kind: str = "network"):
                          "code named inside the file); rerun the command that wrote the "
                          "certificate with this version, which saves V as data")
     raise ValueError(f"unknown artifact kind {kind!r} (network or sx)")
+
+
+def _bound_of(data: bytes) -> tuple[float, np.ndarray]:
+    """η and the ``(n, 2)`` box of a ``bounds.json``'s bytes; ``ValueError`` (or
+    ``KeyError``, ``TypeError``) names what is wrong."""
+    b = json.loads(data)
+    if not isinstance(b, dict) or not isinstance(b.get("grid"), dict):
+        raise ValueError("a bounds file is a JSON object with 'eta' and 'grid': {'box': ...}")
+    eta = _number(b, "eta")
+    if not np.isfinite(eta) or eta < 0:
+        raise ValueError(f"eta must be a finite number ≥ 0, got {eta!r}")
+    rows = b["grid"].get("box")
+    if not isinstance(rows, list) or not all(
+            isinstance(r, list) and len(r) == 2 and
+            all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in r)
+            for r in rows):
+        raise ValueError("grid.box must be a list of [low, high] number pairs")
+    try:
+        box = np.array(rows, dtype=float).reshape(-1, 2)
+    except OverflowError:
+        box = np.array([np.inf])
+    if not np.all(np.isfinite(box)):
+        raise ValueError("grid.box holds a number beyond float range")
+    return eta, box
 
 
 def _refused_run(saved: RoaCertificate, reason: str) -> tuple[RoaCertificate, None]:

@@ -297,6 +297,10 @@ def _spec_system(path: str, allow_factory: bool = True) -> str:
     """Load a system spec file (TOML), register it for this process, return its name."""
 
     p = Path(path)
+    if p.is_dir():
+        raise UsageError(f"system file {p} is a directory; pass a system spec file (.toml) "
+                         "or a catalogue name (a run's directory is re-checked with "
+                         "'nlyap verify --certificate DIR')")
     if not p.is_file():
         raise UsageError(f"system file {p}: no such file; check the path (or pass a "
                          "catalogue name, see 'nlyap systems')")
@@ -311,6 +315,11 @@ def _spec_system(path: str, allow_factory: bool = True) -> str:
 def _check_paths(args) -> None:
     """Refuse missing inputs and unusable outputs before any work starts."""
     _check_dask_args(args)
+    for attr in ("config", "lyapunov", "controller", "dynamics", "certificate", "out", "json"):
+        value = getattr(args, attr, None)
+        if isinstance(value, str) and not value.strip():
+            raise UsageError(f"--{attr} is given an empty path; give a path, or leave the "
+                             "option out")
     if getattr(args, "system", None) is not None:
         if _is_spec(args.system) and args.command == "verify" and \
                 not args.allow_factory and Path(args.system).is_file():
@@ -779,6 +788,10 @@ def _classify(err: BaseException, command: str | None) -> tuple[int, str]:
     if isinstance(err, NlyapError):
         msg = _one_line(err)
         return 3, msg if ";" in msg else f"{msg}; {see}"
+    if isinstance(err, MemoryError):
+        return 3, ("this machine ran out of memory; lower the sizes of the run in --config "
+                   "(eval_points, cegis.area_points, cegis.samples, train.hidden, the "
+                   "dynamics grid) or use a machine with more memory")
     if isinstance(err, OSError) and err.filename is not None:
         return 3, (f"{err.filename}: {err.strerror or _one_line(err)}; check the path "
                    "(and its permissions)")
@@ -821,21 +834,65 @@ def _enter_portable_mode(argv: list[str], may_restart: bool) -> None:
             "networks are bit for bit reproducible on this machine's fingerprint only)")
 
 
+class _ReaderMayLeave:
+    """Standard output that drops what is written after its reader closed the pipe
+    (``nlyap systems | head``): the command goes on and ends with its own exit code,
+    without a ``BrokenPipeError``. The file descriptor is pointed at ``/dev/null`` so that
+    the interpreter's own flush at exit stays silent too."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self._gone = False
+
+    def _left(self) -> None:
+        self._gone = True
+        with contextlib.suppress(Exception):
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, self._stream.fileno())
+            os.close(null)
+
+    def write(self, text):
+        if not self._gone:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._left()
+        return len(text)
+
+    def flush(self):
+        if not self._gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._left()
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``nlyap`` with ``argv`` (default ``sys.argv[1:]``); return the exit code.
 
     Never raises: every outcome is an exit code of :data:`EXIT_CODES`. Ctrl-C stops the
     command (exit 130) but never inside an import (:func:`_outside_imports`); the caller's
-    SIGINT handler is restored on return.
+    SIGINT handler is restored on return. Output written after a pipe's reader has gone
+    is dropped (:class:`_ReaderMayLeave`).
     """
     sigint = signal.getsignal(signal.SIGINT)
     own = sigint is signal.default_int_handler and \
         threading.current_thread() is threading.main_thread()
     if own:
         signal.signal(signal.SIGINT, _outside_imports(_interrupt))
+    stdout = sys.stdout
+    sys.stdout = _ReaderMayLeave(stdout)
     try:
         return _main(argv)
     finally:
+        gone = sys.stdout._gone if isinstance(sys.stdout, _ReaderMayLeave) else False
+        sys.stdout = stdout
+        if gone:    # the descriptor is /dev/null now; keep the exit flush quiet
+            with contextlib.suppress(Exception):
+                stdout.flush()
         if own:
             signal.signal(signal.SIGINT, sigint)
 

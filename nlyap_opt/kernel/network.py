@@ -418,11 +418,17 @@ class Network:
         return _parse_network(cls, d, source)
 
     @classmethod
-    def load(cls, path: str | Path) -> Network:
-        """Read and validate a network JSON file (see :meth:`from_dict`)."""
+    def load(cls, path: str | Path, data: bytes | None = None) -> Network:
+        """Read and validate a network JSON file (see :meth:`from_dict`).
+
+        ``data``, when given, is the file's content already read (and hashed) by the
+        caller: it is parsed instead of reading ``path`` again, which is then only named in
+        messages."""
         path = Path(path)
         try:
-            text = read_file_bytes(path, "network file").decode("utf-8")
+            if data is None:
+                data = read_file_bytes(path, "network file")
+            text = data.decode("utf-8")
         except (OSError, UnicodeDecodeError, ConfigError) as err:
             raise NetworkFileError(
                 f"cannot read network file {path}: {_one_line(err)}; pass the path of a JSON "

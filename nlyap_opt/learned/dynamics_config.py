@@ -466,3 +466,32 @@ def _validate(cfg: DynamicsConfig) -> None:
         if cfg.bound_model != "best" and cfg.bound_model not in b:
             _fail("bound_model", cfg.bound_model, f"'best' or one of bound_options {b}")
     _int_list(cfg, "interval_counts", 1)
+    _check_sizes(cfg)
+
+
+#: the most numbers one array that a dynamics setting sizes may hold (0.8 GB of float64);
+#: the run configuration's own settings have the same limit
+MAX_ARRAY_NUMBERS = 10**8
+
+
+def _check_sizes(cfg: DynamicsConfig) -> None:
+    """Grids, point sets and networks whose arrays would exceed :data:`MAX_ARRAY_NUMBERS`
+    are refused before anything runs (instead of ending the run out of memory)."""
+    hidden = sum(cfg.hidden) if isinstance(cfg.hidden, list) else cfg.hidden
+    dims = max(len(cfg.grid_counts or []), len(cfg.interval_counts or []), 1)
+    sizes = [("grid_counts", cfg.grid_counts, math.prod(cfg.grid_counts or [0]) * dims,
+              "grid coordinates"),
+             ("interval_counts", cfg.interval_counts,
+              math.prod(cfg.interval_counts or [0]) * 2 * dims, "box bounds"),
+             ("interval_boxes", cfg.interval_boxes, cfg.interval_boxes * 2 * dims, "box bounds"),
+             ("hidden", cfg.hidden, hidden * (cfg.train_points + cfg.boundary_points),
+              "hidden activations of the training points"),
+             ("check_points", cfg.check_points, cfg.check_points * dims, "coordinates"),
+             ("probe_points", cfg.probe_points, cfg.probe_points * dims, "coordinates"),
+             ("eval_batch", cfg.eval_batch, cfg.eval_batch * max(hidden, dims),
+              "activations per batch")]
+    for key, value, numbers, what in sizes:
+        if numbers > MAX_ARRAY_NUMBERS:
+            raise ConfigError(f"dynamics config {key!r} = {value!r} makes {numbers:.3g} {what}, "
+                              f"beyond the {MAX_ARRAY_NUMBERS:.0e} numbers one array may hold "
+                              "(0.8 GB); lower it")

@@ -72,7 +72,7 @@ from ..design.control import lqr
 from ..kernel.domain import Ball, parse_set
 from ..kernel.errors import ConfigError, UnknownNameError
 from ..kernel.jsonio import read_json_object
-from ..learned.dynamics_config import DynamicsConfig, dynamics_config
+from ..learned.dynamics_config import MAX_ARRAY_NUMBERS, DynamicsConfig, dynamics_config
 
 __all__ = [
     "DEFAULT_CEGIS", "DEFAULT_TRAIN", "PRESETS", "Key", "RunConfig", "Section",
@@ -957,9 +957,37 @@ def validate_config(cfg: Mapping, system: str, *, where: str = "run config") -> 
     _check_region(rc, s, where)
     _check_start(rc, s, where)
     _check_cegis(rc, where)
+    _check_sizes(rc, s.nx, where)
     _check_controller(rc, s, where)
     _check_dynamics(rc.dynamics.to_json(), system, where)
     return cfg
+
+
+
+
+def _check_sizes(rc: RunConfig, nx: int, where: str) -> None:
+    """Settings whose arrays would exceed :data:`MAX_ARRAY_NUMBERS` (states × dimension,
+    V's weights, states × hidden width)."""
+    widths = [nx, *rc.train.hidden, rc.train.features]
+    width = max(widths)
+    sizes = [("train.hidden", rc.train.hidden,
+              sum((a + 1) * b for a, b in zip(widths, widths[1:])), "weights of V's network")]
+    for name, points in (("eval_points", rc.eval_points),
+                         ("cegis.area_points", rc.cegis.area_points),
+                         ("cegis.sim_points", rc.cegis.sim_points)):
+        sizes.append((name, points, points * nx, "state coordinates of its grid"))
+    for name, points in (("cegis.samples", rc.cegis.samples),
+                         ("cegis.sphere_samples", rc.cegis.sphere_samples),
+                         ("cegis.boundary_samples", rc.cegis.boundary_samples),
+                         ("cegis.inner_samples", rc.cegis.inner_samples),
+                         ("train.batch", rc.train.batch)):
+        sizes.append((name, points, points * width, "training activations (states × "
+                      "widest layer; or narrow train.hidden)"))
+    for name, value, numbers, what in sizes:
+        if numbers > MAX_ARRAY_NUMBERS:
+            raise ConfigError(f"{where}: {name} = {_show(value)} makes {numbers:.3g} {what}, "
+                              f"beyond the {MAX_ARRAY_NUMBERS:.0e} numbers one array may hold "
+                              "(0.8 GB); lower it")
 
 
 def _check_values(rc: RunConfig, where: str) -> None:

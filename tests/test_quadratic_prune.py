@@ -2,6 +2,8 @@
 it certifies, a skipped candidate's bound is at most the winner's volume, and the winner is
 the one found without skipping. Condition (c) is computed once per radius and shared."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.linalg import solve_continuous_lyapunov
@@ -212,3 +214,82 @@ def test_a_radius_whose_own_level_cannot_win_is_not_checked(monkeypatch):
     assert "cannot beat the quadratic wide" in lyap.certificate.reason
     tried = lyap.certificate.history[-1]["inner_radius_search"]
     assert tried and all(t["status"] == "skipped" for t in tried)
+
+
+def _wide_problem():
+    problem, box = _pendulum()
+    P = _wide(closed_loop_matrix(problem))
+    return RoaProblem(problem.system, quadratic_lyapunov(P), problem.controller, None,
+                      inner=0.4, outer=4.0), box
+
+
+def test_no_level_below_the_least_level_can_beat_and_the_next_grid_point_can():
+    """``VolumeToBeat.least_level``: the bound is below the volume at the returned level (so
+    at every lower one, the bound being monotone in the level), and reaches it one or two
+    grid points higher: the floor is tight, not merely safe."""
+    from nlyap_opt.certification.certificate import VolumeToBeat
+    from nlyap_opt.certification.roa import grid_points
+
+    problem, box = _wide_problem()
+    pts, _ = grid_points(box, 61)
+    v = np.sort(problem.V_numpy(pts[problem.domain.contains(pts)]))
+    for volume in (10.0, 20.0, 40.0):     # (c)'s ellipse alone: 6.3; the disc: 50.4
+        beat = VolumeToBeat(volume, box, 61, "test", ellipses=InnerEllipseCache())
+        least = beat.least_level(problem)
+        assert 0 < least < np.inf
+        assert beat.bound(problem, least) < volume
+        above = v[np.searchsorted(v, least * (1 + 1e-9), side="right") + 2]
+        assert beat.bound(problem, above) >= volume
+    assert VolumeToBeat(1e-9, box, 61, "test", ellipses=InnerEllipseCache()
+                        ).least_level(problem) == 0.0
+    assert VolumeToBeat(1e9, box, 61, "test", ellipses=InnerEllipseCache()
+                        ).least_level(problem) == np.inf
+
+
+def test_a_level_search_stops_above_the_least_level_that_can_beat():
+    """A search that would step below ``least`` ends there with the reason, having checked
+    no level below it; without ``least`` the same search goes on down and certifies."""
+    from nlyap_opt.certification.certificate import certify_roa
+
+    problem, _ = _wide_problem()
+    free = certify_roa(problem, 200.0, search=True, log=lambda m: None)
+    assert free.certified and free.level < 200.0
+    tried = [h["level"] for h in free.history if "level" in h]
+    floor = 0.5 * (tried[0] + free.level)       # above the certified level
+    logs = []
+    stopped = certify_roa(problem, 200.0, search=True, least=(floor, "quadratic test"),
+                          log=logs.append)
+    assert not stopped.certified
+    assert "could beat the quadratic test" in stopped.reason
+    assert all(h["level"] >= floor for h in stopped.history if "level" in h)
+    assert any("the search ends" in m for m in logs)
+
+
+def test_a_radius_whose_search_ends_at_the_least_level_ends_the_radius_search(monkeypatch):
+    """When no level that could beat the certificate to beat holds at the first radius, the
+    other radii are not tried (as when a level that cannot win is certified there); without
+    a certificate to beat, the same candidate goes through every radius."""
+    from types import SimpleNamespace
+
+    from nlyap_opt.certification import certificate as cert_mod
+    from nlyap_opt.certification.certificate import VolumeToBeat, certify_candidate
+
+    problem, box = _pendulum()
+    problem = RoaProblem(problem.system, quadratic_lyapunov(np.eye(2)), problem.controller,
+                         None, inner=0.4, outer=4.0)     # V = |x|²: no level certifies
+    monkeypatch.setattr(cert_mod, "candidate_level",
+                        lambda *a, **k: SimpleNamespace(level=15.0))
+    policy = quadratic_policy(True)
+    cache = InnerEllipseCache()
+    free = certify_candidate(problem, policy, ellipses=cache, log=lambda m: None)
+    assert not free.certified
+    assert len(free.history[-1]["inner_radius_search"]) == len(policy.factors)
+    beat = VolumeToBeat(20.0, box, 61, "quadratic test", cache)
+    least = beat.least_level(replace(problem, inner=problem.inner * policy.inner_fraction))
+    assert 0 < least < 15.0
+    logs = []
+    cut = certify_candidate(problem, policy, ellipses=cache, beat=beat, log=logs.append)
+    tried = cut.history[-1]["inner_radius_search"]
+    assert not cut.certified and len(tried) == 1
+    assert "could beat the quadratic test" in tried[0]["reason"]
+    assert any("the other radii are not tried" in m for m in logs)

@@ -46,6 +46,7 @@ from ..kernel.errors import InputRangeError
 from ..kernel.network import Network
 from ..kernel.simulate import STIFF_STEP, Integration, integration, linear_modes, simulate
 from .learning import LearnerState, LyapunovLearner, TrainConfig, label_boundary_states, sample_ball
+from .quadratic import LEARNED_SEARCH_STATES
 
 __all__ = ["CegisConfig", "CegisResult", "cegis"]
 
@@ -489,10 +490,15 @@ def _unverified(x: _Iterate, system, dynamics, cfg: CegisConfig, D) -> RoaCertif
                           domain=D)
 
 
-def _verify_window(pending: list, here: _Iterate, log) -> tuple[_Iterate, RoaCertificate | None]:
+def _verify_window(pending: list, here: _Iterate, log, beat: VolumeToBeat | None = None
+                   ) -> tuple[_Iterate, RoaCertificate | None]:
     """Verify the most promising iterate of ``pending`` (the iterates since the last call);
     ``None`` when its candidate level is not positive or it cannot beat the cheap
-    certificate (``skipped``)."""
+    certificate (``skipped``). In more than
+    :data:`~nlyap_opt.candidates.quadratic.LEARNED_SEARCH_STATES` states, where each level
+    check costs minutes, the level search does not go below the least level that can still
+    beat it (:meth:`VolumeToBeat.least_level`; the counterexamples of the levels below it
+    are then not found)."""
     chosen = _most_promising(pending)
     if chosen is not here:
         log(f"  cegis: iteration {chosen.entry['iteration']} has the largest candidate "
@@ -500,8 +506,11 @@ def _verify_window(pending: list, here: _Iterate, log) -> tuple[_Iterate, RoaCer
             f"against {here.entry['candidate_area']:.4g}); it is the one verified")
     if not chosen.cand.level > 0 or chosen.entry["skipped"]:
         return chosen, None
+    least = beat.least_level(chosen.problem) \
+        if beat is not None and chosen.problem.system.nx > LEARNED_SEARCH_STATES else 0.0
     return chosen, certify_roa(chosen.problem, chosen.cand.level, search=True,
-                               check_inner_ellipse=False, log=lambda m: log("  " + m))
+                               check_inner_ellipse=False, log=lambda m: log("  " + m),
+                               least=(least, beat.label) if least > 0 else None)
 
 
 def _log_iterate(log, x: _Iterate, certified: bool) -> None:
@@ -656,7 +665,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         pending = [*pending, here] if cfg.best_iterate else [here]
         chosen, cert = here, None
         if last or (it + 1) % cfg.verify_every == 0:
-            chosen, cert = _verify_window(pending, here, log)
+            chosen, cert = _verify_window(pending, here, log, beat)
             pending = []
         # falsifier only: the sampled violations that limit the candidate
         cert = cert or _unverified(chosen, system, dynamics, cfg, D)

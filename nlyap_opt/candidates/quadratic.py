@@ -504,7 +504,12 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
         The evaluation grid of the volumes (the run's ``eval_box`` and points per axis).
     prune : bool, optional
         Skip the candidates that cannot win (default: with learned dynamics, where each
-        verification costs minutes; with the true f every candidate is verified).
+        verification costs minutes; with the true f every candidate is verified). With
+        ``prune``, and with the true f in more than :data:`LEARNED_SEARCH_STATES` states
+        (checks of minutes there too), once a candidate is certified the later ones check
+        no level that cannot beat it: a level search ends where no lower level can
+        (:meth:`~nlyap_opt.certification.certificate.VolumeToBeat.least_level`), and such a
+        candidate is recorded as not certified, not with its own smaller volume.
 
     Returns
     -------
@@ -521,6 +526,7 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
     if inner_fraction is not None:
         policy = replace(policy, inner_fraction=inner_fraction)
     prune = not problem.known if prune is None else bool(prune)
+    floor = prune or nx > LEARNED_SEARCH_STATES
     A_cl = closed_loop_matrix(problem)
     hurwitz = bool(np.all(np.isfinite(A_cl))) and np.max(np.linalg.eigvals(A_cl).real) < 0
     whys: dict[str, str] = {}
@@ -559,10 +565,11 @@ def certify_quadratics(problem, names, *, box, n: int, inner_fraction: float | N
                                               bound=b, skipped=why)
                 log(f"  quadratic {name}: not verified, {why} ({found[i].seconds:.1f} s)")
                 continue
-        # the radii whose own level cannot beat the best so far are not checked either
+        # the radii whose own level cannot beat the best so far are not checked either,
+        # nor a search's levels below the least that can
         beat = VolumeToBeat(found[win].volume, np.asarray(box, dtype=float), n,
                             f"quadratic {found[win].name}", ellipses) \
-            if prune and win is not None else None
+            if floor and win is not None else None
         cert = certify_candidate(replace(problem, V=quadratic_lyapunov(P)), policy,
                                  ellipses=ellipses, beat=beat, log=lambda m: log("    " + m))
         thin = None if cert.certified else thin_radius(problem, P, policy)

@@ -65,6 +65,7 @@ from ..kernel.walker import evaluate
 from ..learned.bounds import gradient_bound
 from ..learned.inner_from_data import prove_inner_ellipse_from_data
 from .roa import (
+    BELOW_LEAST,
     INNER_LEVEL_MARGIN,
     SaturatedLoop,
     candidate_level,
@@ -620,7 +621,7 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
                 check_inner_ellipse: bool = True, follow_violations: bool = False,
                 inner_ellipse: InnerEllipse | None = None,
                 ellipses: InnerEllipseCache | None = None, taylor_only: bool = False,
-                log=print) -> RoaCertificate:
+                least: tuple[float, str] | None = None, log=print) -> RoaCertificate:
     r"""Prove conditions (a), (b), (c) at ``level`` (or, with ``search``, at the largest level
     reachable from it downwards; see :func:`nlyap_opt.certification.roa.certify_level`).
 
@@ -649,6 +650,9 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
         Decide condition (a) only by the quadratic test on whole sublevel sets
         (:class:`~nlyap_opt.certification.roa.TaylorDecrease`), never by bisection: a level
         it does not prove is ``unknown`` (a cheap search for a quadratic ``V``).
+    least : (float, str), optional
+        With ``search``: a level below which no certificate could beat the one named
+        (:meth:`VolumeToBeat.least_level`); the search does not go below it.
 
     Returns
     -------
@@ -663,11 +667,13 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     fn = ellipses.get if ellipses is not None and inner_ellipse is None else _inner_ellipse
     job = ahead(fn, problem, inner_ellipse, when=not search) if check_inner_ellipse else None
     with job or contextlib.nullcontext():
-        return _certify_roa(problem, level, search, follow_violations, job, log, taylor_only)
+        return _certify_roa(problem, level, search, follow_violations, job, log, taylor_only,
+                            least)
 
 
 def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violations: bool,
-                 inner_job, log, taylor_only: bool = False) -> RoaCertificate:
+                 inner_job, log, taylor_only: bool = False,
+                 least: tuple[float, str] | None = None) -> RoaCertificate:
     """:func:`certify_roa`'s body; ``inner_job``: condition (c)'s :class:`Ahead`, or ``None``."""
 
     t0 = time.perf_counter()
@@ -695,7 +701,7 @@ def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violati
                        log=log, follow_violations=follow_violations,
                        quadratic=quadratic_form(problem.V),
                        rhs=dec.rhs, robust=dec.robust, taylor_only=taylor_only,
-                       saturated=dec.saturated)
+                       saturated=dec.saturated, least=least if search else None)
     # the checks of the certified level (a search's later tries may have failed above it)
     last = lc.history[-1] if lc.history else {}
     if lc.status == "certified":
@@ -984,18 +990,45 @@ class VolumeToBeat:
         grid points of the ellipse of (c) at the problem's radius, as its checks use it
         (any dynamics)."""
         pts, shape = grid_points(np.asarray(self.box, dtype=float), self.n)
-        if self.ellipses is not None:
-            res, _ = self.ellipses.get(problem)
-            Pe = np.asarray(res["P"], dtype=float)
-            ell = np.einsum("ij,jk,ik->i", pts, Pe, pts) <= float(res["level"]) * (1 + 1e-9)
-        elif not problem.known and not getattr(problem.system, "has_model", False):
-            return math.inf
-        else:
-            ell = inner_ellipse_bound(problem.system, problem.controller, problem.inner, pts)
+        ell = self._ellipse(problem, pts)
         if ell is None:
             return math.inf
         m = problem.domain.contains(pts) & (problem.V_numpy(pts) <= level * (1 + 1e-9))
         return grid_area((m | ell).reshape(shape), self.box)
+
+    def _ellipse(self, problem: RoaProblem, pts: np.ndarray) -> np.ndarray | None:
+        """The grid points :meth:`bound` counts for condition (c), or ``None`` (no bound)."""
+        if self.ellipses is not None:
+            res, _ = self.ellipses.get(problem)
+            Pe = np.asarray(res["P"], dtype=float)
+            return np.einsum("ij,jk,ik->i", pts, Pe, pts) <= float(res["level"]) * (1 + 1e-9)
+        if not problem.known and not getattr(problem.system, "has_model", False):
+            return None
+        return inner_ellipse_bound(problem.system, problem.controller, problem.inner, pts)
+
+    def least_level(self, problem: RoaProblem) -> float:
+        """A level below which no level of ``problem`` can win: :meth:`bound` is below
+        :attr:`volume` at every level under it (one grid point of slack). ``0.0`` where no
+        such level is known, ``inf`` where no level can win. A level search stops there
+        (:func:`nlyap_opt.certification.roa.certify_level`'s ``least``): a skip of work,
+        never a claim."""
+        pts, _ = grid_points(np.asarray(self.box, dtype=float), self.n)
+        ell = self._ellipse(problem, pts)
+        if ell is None:
+            return 0.0
+        box = np.asarray(self.box, dtype=float)
+        cells = float(np.prod((box[:, 1] - box[:, 0]) / self.n))
+        need = self.volume / cells - int(ell.sum())     # grid points still to be counted
+        k = math.ceil(need) - 1                          # one point of slack
+        if k <= 0:
+            return 0.0
+        inside = problem.domain.contains(pts) & ~ell
+        v = np.sort(problem.V_numpy(pts[inside]))
+        if k > v.size:
+            return math.inf
+        # at this level V ≤ level·(1 + 1e-9) holds at fewer than k of the points: the bound
+        # is below the volume here and at every lower level
+        return float(v[k - 1]) / (1 + 1e-9) * (1 - 1e-9)
 
     def cannot_beat(self, problem: RoaProblem, level: float) -> str:
         """Why a certificate of ``problem`` at a level up to ``level`` cannot win (its
@@ -1121,15 +1154,23 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
             tried.append({"inner": eps, "status": "skipped", "reason": why})
             log(f"inner radius {eps:g}: not verified, {why}")
             continue
-        cert = certify_roa(p, lv, search=(f != 1.0 or level is None) and not smallest,
-                           follow_violations=policy.follow_violations, ellipses=ellipses,
-                           log=log)
+        search = (f != 1.0 or level is None) and not smallest
+        least = beat.least_level(p) if beat is not None and search else 0.0
+        cert = certify_roa(p, lv, search=search, follow_violations=policy.follow_violations,
+                           ellipses=ellipses, log=log,
+                           least=(least, beat.label) if least > 0 else None)
         if len(cert.counterexamples):
             refuted.append(np.asarray(cert.counterexamples, dtype=float).reshape(
                 -1, problem.system.nx))
         tried.append({"inner": eps, "status": cert.status.value, "reason": cert.reason,
                       "level": cert.level})
         first = first or cert
+        if least > 0 and not cert.certified and BELOW_LEAST in cert.reason:
+            # its levels that could still win failed: the other radii are not tried, as
+            # when a level that cannot win is certified here
+            log(f"inner radius {eps:g}: no level that could beat the {beat.label} holds; "
+                "the other radii are not tried")
+            break
         if cert.certified:
             if f != 1.0:
                 log(f"inner radius {base:g} refused; certified with ε = {eps:g}")

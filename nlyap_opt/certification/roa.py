@@ -1202,13 +1202,19 @@ class LevelCertificate:
     seconds: float = 0.0
 
 
+#: :func:`certify_level`'s reason when its search ended at ``least`` (the caller tells
+#: such an end from the others by it)
+BELOW_LEAST = "no level below"
+
+
 def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: float,
                   max_tries: int = 8, shrink: float = 1e-3, verify_options: dict | None = None,
                   log=print, domain=None, follow_violations: bool = False,
                   quadratic: list[list[Fraction]] | None = None,
                   rhs=None, robust: dict | None = None,
                   taylor_only: bool = False,
-                  saturated: SaturatedLoop | None = None) -> LevelCertificate:
+                  saturated: SaturatedLoop | None = None,
+                  least: tuple[float, str] | None = None) -> LevelCertificate:
     """Prove (a) and (b) at the largest level we can reach from ``level`` downwards.
 
     The region is ``domain`` (a :class:`nlyap_opt.kernel.domain.Region`) or the ball
@@ -1251,6 +1257,9 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     ``taylor`` or the verifier's). ``taylor_only``: where that test does not prove (a) the
     level is ``unknown`` and the search steps down, without the verifier's bisection (a
     cheap whole-set search; the caller falls back to a smaller set).
+
+    ``least = (c_min, name)``: no level below ``c_min`` can give a certificate larger than
+    ``name``'s (the caller's volume bound); the search stops instead of stepping below it.
     """
 
     t0 = time.perf_counter()
@@ -1275,6 +1284,15 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
 
     def lower(c_old, c_new):
         """The next level: ``c_new``, the inner ball's level instead, or ``None`` (stop)."""
+        c_next = _lower(c_old, c_new)
+        if least is not None and c_next is not None and 0 < c_next < least[0]:
+            floor["least"] = True
+            log(f"    level {c_next:.6g} cannot beat the {least[1]} (no level below "
+                f"{least[0]:.6g} can): the search ends")
+            return None
+        return c_next
+
+    def _lower(c_old, c_new):
         if inner <= 0 or not c_new > 0:
             return c_new
         if "m" not in floor:
@@ -1408,7 +1426,10 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
     if best is not None:
         return result()
     why = "no level certified"
-    if c is None and floor.get("sampled"):
+    if c is None and floor.get("least"):
+        why += (f" (none of the levels checked held, and {BELOW_LEAST} {least[0]:.6g} "
+                f"could beat the {least[1]})")
+    elif c is None and floor.get("sampled"):
         why += (f" (the candidate level {level * (1.0 - shrink):.6g} is below V = "
                 f"{floor['m']:.6g} at a point of ‖x‖ = {inner:g}: no level up to it holds "
                 "the inner ball; none was checked)")

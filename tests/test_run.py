@@ -384,6 +384,65 @@ def test_recheck_refuses_an_edited_bounds_file_whose_hash_was_updated(learned_ru
     assert words in again.reason, again.reason
 
 
+def _edit_run(src, dst, edit):
+    """Copy a run, apply ``edit(dir, certificate dict)``, write the certificate back."""
+    import shutil
+
+    shutil.copytree(src, dst)
+    c = json.loads((dst / "certificate.json").read_text())
+    edit(dst, c)
+    (dst / "certificate.json").write_text(json.dumps(c))
+    return dst
+
+
+def _shift_phi(d, c, by=0.1):
+    """φ's first output moved by ``by`` (far beyond η), its hash in the certificate updated."""
+    import hashlib
+
+    f = d / c["artifacts"]["dynamics"]["file"]
+    phi = json.loads(f.read_text())
+    phi["layers"][-1]["bias"][0] += by
+    f.write_text(json.dumps(phi))
+    c["artifacts"]["dynamics"]["sha256"] = hashlib.sha256(f.read_bytes()).hexdigest()
+
+
+def _drop_bound(d, c):
+    c["artifacts"].pop("bounds")
+    c["eta"] = 0.0
+    _shift_phi(d, c)
+
+
+@pytest.mark.parametrize("edit,words", [
+    (_drop_bound, "lists no bound on ‖f − φ‖"),
+    (_shift_phi, "is not the network that bounds.json bounds"),
+], ids=["bound-removed-eta-0", "phi-changed"])
+def test_recheck_refuses_learned_dynamics_without_the_bound_of_this_phi(learned_runs, tmp_path,
+                                                                        edit, words):
+    """η rests on bounds.json, computed for one φ: a certificate whose bound was removed (and
+    η set to 0), or whose φ was replaced with its hash updated, is refused, not re-verified
+    with a φ no bound covers."""
+    from nlyap_opt.certification.certificate import recheck_certificate
+    from nlyap_opt.interface.cli import main
+
+    d, _ = learned_runs["van_der_pol"]
+    run = _edit_run(d, tmp_path / "run", edit)
+    again = recheck_certificate(run, log=lambda m: None)
+    assert not again.certified and words in again.reason, again.reason
+    assert main(["verify", "--certificate", str(run)]) == 2
+
+
+def test_recheck_refuses_a_controlled_system_without_its_controller(learned_runs, tmp_path,
+                                                                    capsys):
+    """A certificate of a system with inputs whose κ artifact was removed is refused (exit 2),
+    not verified for the open loop (whose counterexample would be exit 1)."""
+    from nlyap_opt.interface.cli import main
+
+    d, _ = learned_runs["inverted_pendulum"]
+    run = _edit_run(d, tmp_path / "run", lambda d, c: c["artifacts"].pop("controller"))
+    assert main(["verify", "--certificate", str(run)]) == 2
+    assert "lists no controller" in capsys.readouterr().out
+
+
 def test_recheck_refuses_a_certificate_whose_input_box_was_widened(learned_runs, tmp_path):
     """U is part of where ‖f − φ‖ ≤ η holds: a certificate.json whose input box no longer
     is the one of its hashed bounds file is refused, not re-verified on the wider box."""

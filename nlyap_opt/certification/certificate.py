@@ -1314,6 +1314,7 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
     sysm = _recheck_system(saved, d, path, system, allow_factory)
     base = path.parent
     nets: dict[str, object] = {}
+    bounded = None          # (file, sha256 of the φ it bounds) of the bounds artifact
     for role, art in saved.artifacts.items():
         name = art.get("file") if isinstance(art, dict) else None
         if not isinstance(name, str) or not isinstance(art.get("sha256"), str) or \
@@ -1335,7 +1336,8 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
                             f"{art['sha256'][:12]}…)")
         if art.get("kind") == "bounds":
             try:
-                eta, box = _bound_of(data)
+                eta, box, phi_sha = _bound_of(data)
+                bounded = (art["file"], phi_sha)
             except (ValueError, KeyError, TypeError, RecursionError, OverflowError) as err:
                 return _refused_run(saved, f"artifact {art['file']} cannot be read: "
                                     f"{' '.join(str(err).split())[:200]}")
@@ -1363,6 +1365,9 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
             return _refused_run(saved, f"artifact {art['file']} ({role}) cannot be read: {err}")
     if "V" not in nets:
         raise ConfigError(f"certificate {path} lists no V artifact; rerun the command")
+    refusal = _missing_pieces(saved, nets, bounded, sysm)
+    if refusal:
+        return _refused_run(saved, refusal)
     if getattr(nets["V"], "n_in", sysm.nx) != sysm.nx:
         return _refused_run(saved, f"V ({saved.artifacts['V']['file']}) takes "
                             f"{nets['V'].n_in} states, the system has {sysm.nx}")
@@ -1593,12 +1598,15 @@ def load_artifact(path, kind: str = "network", data: bytes | None = None):
     raise ValueError(f"unknown artifact kind {kind!r} (network or sx)")
 
 
-def _bound_of(data: bytes) -> tuple[float, np.ndarray]:
-    """η and the ``(n, 2)`` box of a ``bounds.json``'s bytes; ``ValueError`` (or
-    ``KeyError``, ``TypeError``) names what is wrong."""
+def _bound_of(data: bytes) -> tuple[float, np.ndarray, str | None]:
+    """η, the ``(n, 2)`` box and the sha256 of the network φ it bounds (``None``: not
+    recorded) of a ``bounds.json``'s bytes; ``ValueError`` (or ``KeyError``,
+    ``TypeError``) names what is wrong."""
     b = json.loads(data)
     if not isinstance(b, dict) or not isinstance(b.get("grid"), dict):
         raise ValueError("a bounds file is a JSON object with 'eta' and 'grid': {'box': ...}")
+    net = b.get("network")
+    phi = net.get("sha256") if isinstance(net, dict) else None
     eta = _number(b, "eta")
     if not np.isfinite(eta) or eta < 0:
         raise ValueError(f"eta must be a finite number ≥ 0, got {eta!r}")
@@ -1614,7 +1622,32 @@ def _bound_of(data: bytes) -> tuple[float, np.ndarray]:
         box = np.array([np.inf])
     if not np.all(np.isfinite(box)):
         raise ValueError("grid.box holds a number beyond float range")
-    return eta, box
+    return eta, box, phi if isinstance(phi, str) else None
+
+
+def _missing_pieces(saved: RoaCertificate, nets: dict, bounded: tuple | None,
+                    sysm) -> str:
+    """Why a certificate's artifacts cannot carry its claim (``""``: they can): a system
+    with inputs needs its controller κ; learned dynamics φ need the hashed bound on
+    ``‖f − φ‖``, and that bound must be the one computed for this very φ (``bounds.json``
+    records the sha256 of the network it bounds)."""
+    if sysm.nu and "controller" not in nets:
+        return (f"the system {sysm.name} has inputs, but the certificate lists no controller "
+                "artifact κ; rerun the command that wrote it")
+    if "dynamics" not in nets:
+        return ""
+    if bounded is None:
+        return ("the certificate rests on learned dynamics φ but lists no bound on ‖f − φ‖ "
+                "(an artifact of kind 'bounds'); rerun the command that wrote it")
+    name, phi_sha = bounded
+    if phi_sha is None:
+        return (f"{name} does not name the network φ it bounds (its 'network' sha256); "
+                "rerun the command that wrote the certificate")
+    want = saved.artifacts["dynamics"]["sha256"]
+    if phi_sha != want:
+        return (f"φ ({saved.artifacts['dynamics']['file']}, sha256 {want[:12]}…) is not the "
+                f"network that {name} bounds (sha256 {phi_sha[:12]}…)")
+    return ""
 
 
 def _refused_run(saved: RoaCertificate, reason: str) -> tuple[RoaCertificate, None]:

@@ -1000,7 +1000,8 @@ def _local_search(ctx: _Context, view: RunConfig) -> None:
                       "box": sub.tolist(), "counts": res.grid.counts.tolist(),
                       "alpha": res.alpha.alpha, "selected": res.selected})
         if fits:
-            write_bounds(out / "bounds_local.json", res)
+            write_bounds(out / "bounds_local.json", res,
+                         network_path=str(out / "dynamics.json"))
             radius, inner = r, eps
             break
     if radius is None:

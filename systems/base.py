@@ -620,6 +620,11 @@ class System:
             u_eq = sol.x
         u_eq = np.zeros(0) if not self.nu else np.asarray(u_eq, dtype=float).reshape(self.nu)
         resid = np.array(self.f_fun(zero, u_eq), dtype=float).ravel()
+        if not np.all(np.isfinite(resid)):
+            raise EquilibriumError(
+                f"f of {self.name!r} is not defined at the origin: f(0, u_eq={u_eq}) = "
+                f"{resid.tolist()}; the equilibrium x = 0 must lie where every expression "
+                "is defined (check square roots, logarithms and divisions there)")
         if np.max(np.abs(resid), initial=0.0) > EQUILIBRIUM_TOL:
             raise EquilibriumError(
                 f"the origin is not an equilibrium of {self.name!r}: f(0, u_eq={u_eq}) = {resid}; "

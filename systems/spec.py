@@ -518,6 +518,11 @@ def _box(path, spec: dict, key: str, n: int, required: bool):
         if required:
             raise _err(path, key, f"missing; give {n} rows [lo, hi]")
         return None
+    if not isinstance(v, list) or not all(
+            isinstance(r, list) and all(isinstance(a, (int, float)) and not isinstance(a, bool)
+                                        for a in r) for r in v):
+        raise _err(path, key, f"must be {n} rows [lo, hi] of numbers (not strings or "
+                   f"booleans), got {v!r}")
     try:
         b = np.array(v, dtype=float)
     except (TypeError, ValueError):
@@ -753,6 +758,11 @@ def _load_spec(path: Path, spec: dict) -> System:
     name = spec.get("name", path.stem)
     if not isinstance(name, str) or not name:
         raise _err(path, "name", "must be a non-empty string")
+    if any(c in name for c in "/\\") or name.startswith(".") or \
+            not name.isprintable() or len(name) > 200:
+        raise _err(path, "name", "must be a plain name of at most 200 printable characters, "
+                   "without '/' or '\\' and not starting with '.' (it names the output "
+                   f"directory runs/NAME), got {name!r}; rename the system")
     run = spec.get("run", {})
     if not isinstance(run, dict):
         raise _err(path, "run", "must be a table of run-config overrides")

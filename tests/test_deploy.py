@@ -156,6 +156,7 @@ def test_simulate_refuses_bad_input(vdp_run, tmp_path, capsys):
         ["simulate", str(vdp_run), "--points", "0", "--out", str(tmp_path / "o")],
         ["simulate", str(vdp_run), "--filter", "clf-qp", "--out", str(tmp_path / "o")],
         ["simulate", str(vdp_run), "--learned", "--out", str(tmp_path / "o")],
+        ["simulate", str(vdp_run), "--decay", "0.5", "--out", str(tmp_path / "o")],
     ]
     for argv in cases:
         assert main(argv) == 3, argv
@@ -337,6 +338,12 @@ def test_nominal_files_are_data_not_code(tmp_path, capsys, cartpole_run):
         bad.write_text(json.dumps(d))
         with pytest.raises(ConfigError, match=msg):
             load_nominal(bad, 4, 1)
+    v = json.loads((cartpole_run / "V.json").read_text())       # a V is not a controller
+    v["layers"][-1]["weight"] = v["layers"][-1]["weight"][:1]
+    v["layers"][-1]["bias"] = v["layers"][-1]["bias"][:1]
+    bad.write_text(json.dumps(v))
+    with pytest.raises(ConfigError, match="of kind 'lyapunov'"):
+        load_nominal(bad, 4, 1)
     f = load_nominal(write_linear_nominal(bad, [[1.0, 2.0, 3.0, 4.0]], [0.5]), 4, 1)
     np.testing.assert_allclose(f(np.ones((2, 4))), [[-9.5], [-9.5]])
 

@@ -327,6 +327,14 @@ HOSTILE = [  # (id, file body, expected exit code)
     ("not-toml", "this is not toml", 3),
     ("empty-file", "", 3),
     ("nul-byte", HEAD + '[rhs]\nx = "-x\\u0000"\ny = "-y"', 3),
+    ("name-escapes-runs", 'name = "../../../tmp/evil"\n' + HEAD + '[rhs]\nx = "-x"\ny = "-y"', 3),
+    ("name-absolute", 'name = "/tmp/evil"\n' + HEAD + '[rhs]\nx = "-x"\ny = "-y"', 3),
+    ("name-dot", 'name = "."\n' + HEAD + '[rhs]\nx = "-x"\ny = "-y"', 3),
+    ("name-plain", 'name = "my system-2"\n' + HEAD + '[rhs]\nx = "-x"\ny = "-y"', 0),
+    ("nan-at-origin", HEAD + '[rhs]\nx = "sqrt(x - 2)"\ny = "-y"', 3),
+    ("nan-cancelled-at-origin", HEAD + '[rhs]\nx = "-x + sqrt(x-2) - sqrt(x-2)"\ny = "-y"', 3),
+    ("box-booleans", 'states = ["x"]\nstate_box = [[false, true]]\n[rhs]\nx = "-x"', 3),
+    ("box-numeric-strings", 'states = ["x"]\nstate_box = [["-1", "1"]]\n[rhs]\nx = "-x"', 3),
 ]
 
 

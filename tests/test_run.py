@@ -431,6 +431,28 @@ def test_recheck_refuses_learned_dynamics_without_the_bound_of_this_phi(learned_
     assert main(["verify", "--certificate", str(run)]) == 2
 
 
+def test_a_reversed_controller_is_a_counterexample_with_the_point_named(learned_runs,
+                                                                        tmp_path, capsys):
+    """κ with its sign flipped (hash updated) is re-verified and refuted: exit 1, and the
+    line names a state that violates the certificate's condition."""
+    import hashlib
+
+    from nlyap_opt.interface.cli import main
+
+    def flip(d, c):
+        f = d / c["artifacts"]["controller"]["file"]
+        k = json.loads(f.read_text())
+        scale = k["output_scale"]
+        k["output_scale"] = [-v for v in scale] if isinstance(scale, list) else -scale
+        f.write_text(json.dumps(k))
+        c["artifacts"]["controller"]["sha256"] = hashlib.sha256(f.read_bytes()).hexdigest()
+
+    run = _edit_run(learned_runs["inverted_pendulum"][0], tmp_path / "run", flip)
+    assert main(["verify", "--certificate", str(run)]) == 1
+    out = capsys.readouterr().out.strip().splitlines()[-1]
+    assert out.startswith("counterexample:") and "violates it" in out and "x = [" in out
+
+
 def test_recheck_refuses_a_controlled_system_without_its_controller(learned_runs, tmp_path,
                                                                     capsys):
     """A certificate of a system with inputs whose κ artifact was removed is refused (exit 2),

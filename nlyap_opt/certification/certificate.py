@@ -499,7 +499,12 @@ class RoaCertificate:
         if self.certified:
             return (f"{status_text(self.status, self.declared)}: level {self.level:.6g} on "
                     f"{self.region_text()} ({self.setting} dynamics)")
-        return f"{self.status.value}: {self.reason}"
+        pts = np.atleast_2d(np.asarray(self.counterexamples, dtype=float)) \
+            if self.status is CertStatus.COUNTEREXAMPLE and np.size(self.counterexamples) \
+            else None
+        where = "" if pts is None else \
+            f" (x = {np.array2string(pts[0], precision=6, separator=', ')} violates it)"
+        return f"{self.status.value}: {self.reason}{where}"
 
     # ------------------------------------------------------------------ the certified set
     def contains(self, points) -> np.ndarray:

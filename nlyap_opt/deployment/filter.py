@@ -89,6 +89,10 @@ def load_nominal(path: str | Path, nx: int, nu: int) -> Callable[[np.ndarray], n
     fmt = d.get("format")
     if fmt == NETWORK_FORMAT:
         net = Network.from_dict(d, source=str(path))
+        kind = (d.get("meta") or {}).get("kind") if isinstance(d.get("meta"), dict) else None
+        if kind not in (None, "controller"):
+            raise ConfigError(f"nominal controller {path} is a network of kind {kind!r} (a "
+                              "controller's file says 'controller'); pass a controller")
         if net.n_in != nx or net.n_out != nu:
             raise ConfigError(f"nominal controller {path} maps R^{net.n_in} -> R^{net.n_out}; "
                               f"the system needs R^{nx} -> R^{nu}")

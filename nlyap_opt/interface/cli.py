@@ -73,6 +73,7 @@ from .cli_args import (
     inner_radius,
     nonneg,
     outer_radius,
+    plain_float,
     positive,
     seeds,
     time_limit_arg,
@@ -234,10 +235,10 @@ def _matrix_arg(text: str | None, option: str):
     if text is None:
         return None
     try:
-        rows = [[float(v) for v in r.split(",")] for r in text.split(";")]
+        rows = [[plain_float(v) for v in r.split(",")] for r in text.split(";")]
     except ValueError:
-        raise UsageError(f"{option} {text!r} is not a number or rows of numbers like "
-                         "'1,0;0,1'; fix the value") from None
+        raise UsageError(f"{option} {text!r} is not a finite number or rows of finite "
+                         "numbers like '1,0;0,1' (plain decimals); fix the value") from None
     if len({len(r) for r in rows}) != 1:
         raise UsageError(f"{option} {text!r} has rows of different lengths; give a square "
                          "matrix like '1,0;0,1'")
@@ -305,6 +306,11 @@ def _spec_system(path: str, allow_factory: bool = True) -> str:
         raise UsageError(f"system file {p}: no such file; check the path (or pass a "
                          "catalogue name, see 'nlyap systems')")
     s = systems.load_spec(p, allow_factory=allow_factory)
+    if not isinstance(s.name, str) or not s.name or any(c in s.name for c in "/\\") or \
+            s.name.startswith("."):
+        raise UsageError(f"system file {p} gives its system the name {s.name!r}, which is "
+                         "not a plain name (it names the output directory runs/NAME); set "
+                         "name = \"...\" in the file")
     if s.name in systems.CATALOGUE:   # another spec file of this process may be replaced
         raise UsageError(f"system file {p} names its system {s.name!r}, which is a catalogue "
                          "system; choose another name in the file")

@@ -6,9 +6,23 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 
 __all__ = ["RADIUS_MAX", "connect_timeout_arg", "inner_radius", "nonneg", "number",
-           "outer_radius", "positive", "seed", "seeds", "time_limit_arg", "workers"]
+           "outer_radius", "plain_float", "positive", "seed", "seeds", "time_limit_arg",
+           "workers"]
+
+_FLOAT = re.compile(r"\s*[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?\s*", re.ASCII)
+_INT = re.compile(r"\s*[+-]?\d+\s*", re.ASCII)
+
+
+def plain_float(text: str) -> float:
+    """A number written as plain ASCII decimals (``1``, ``-0.5``, ``2e-3``); ``ValueError``
+    for anything else that Python's ``float`` would take (``1_0``, other scripts' digits,
+    ``inf``, ``nan``)."""
+    if not isinstance(text, str) or not _FLOAT.fullmatch(text):
+        raise ValueError(f"not a plain decimal number: {text!r}")
+    return float(text)
 
 
 def number(check, want: str):
@@ -17,7 +31,7 @@ def number(check, want: str):
 
     def parse(text: str) -> float:
         try:
-            v = float(text)
+            v = plain_float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}") from None
         if not math.isfinite(v) or not check(v):
@@ -41,10 +55,9 @@ connect_timeout_arg = number(lambda v: 0 < v <= 3600, "a finite number of second
 
 def _int_at_least(text: str, low: int) -> int:
     """``text`` as an integer ``>= low``; otherwise the argparse error naming the bound."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
+    if not _INT.fullmatch(text):
+        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}")
+    v = int(text)
     if v < low:
         raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {v}")
     return v
@@ -66,11 +79,10 @@ def seed(text: str) -> int:
 def seeds(text: str) -> int | list[int]:
     """``--seeds K`` (seeds 0..K-1) or ``--seeds 0,3,7``."""
     parts = [p.strip() for p in text.split(",")]
-    try:
-        vals = [int(p) for p in parts]
-    except ValueError:
+    if not all(_INT.fullmatch(p) for p in parts):
         raise argparse.ArgumentTypeError(
-            f"expected a count K >= 1 or seeds like 0,3,7, got {text!r}") from None
+            f"expected a count K >= 1 or seeds like 0,3,7, got {text!r}")
+    vals = [int(p) for p in parts]
     if len(vals) == 1 and "," not in text:
         if not 1 <= vals[0] <= MAX_SEEDS:
             raise argparse.ArgumentTypeError(f"the number of seeds must be between 1 and "

@@ -55,6 +55,10 @@ def cmd_simulate(args) -> int:
     if args.filter and not args.nominal:
         raise UsageError("--filter clf-qp needs --nominal FILE (the controller to filter: a "
                          "JSON linear gain or network file)")
+    if args.decay is not None and not args.filter:
+        raise UsageError("--decay is the safety filter's share of κ's decrease; add "
+                         "--filter clf-qp --nominal FILE, or drop --decay")
+    args.decay = _DECAY_DEFAULT if args.decay is None else args.decay
     if not 0 < args.decay <= 1:
         raise UsageError(f"--decay must lie in (0, 1], got {args.decay:g}")
     if args.nominal and not args.filter:
@@ -136,6 +140,10 @@ def cmd_export(args) -> int:
     return 0
 
 
+#: ``--decay`` when not given
+_DECAY_DEFAULT = 0.5
+
+
 def register_cli(sub) -> None:
     """Add ``nlyap simulate`` and ``nlyap export`` to a subparsers object."""
 
@@ -159,8 +167,9 @@ def register_cli(sub) -> None:
     sp.add_argument("--nominal", metavar="FILE",
                     help="nominal controller: JSON {\"format\": \"nlyap-nominal-controller\", "
                          "\"K\": [[...]], \"u0\": [...]} (u = u0 - K x) or a network file")
-    sp.add_argument("--decay", type=_nonneg, default=0.5,
-                    help="λ in (0, 1]: the filtered input keeps λ times κ's proven decrease")
+    sp.add_argument("--decay", type=_nonneg, default=None,
+                    help="with --filter: λ in (0, 1], the filtered input keeps λ times κ's "
+                         f"proven decrease (default {_DECAY_DEFAULT})")
     sp.add_argument("--out", required=True, help="directory for the files (created)")
     sp.set_defaults(func=cmd_simulate)
 

@@ -453,6 +453,22 @@ def test_a_reversed_controller_is_a_counterexample_with_the_point_named(learned_
     assert out.startswith("counterexample:") and "violates it" in out and "x = [" in out
 
 
+@pytest.mark.parametrize("edit,words", [
+    (lambda d, c: c["checks"].update({"(a) decrease": "failed"}), "checks['(a) decrease']"),
+    (lambda d, c: c["checks"].update({"(z) extra": "failed"}), "checks['(z) extra']"),
+    (lambda d, c: c.update(reason="PROVEN BY ME"), "reason"),
+], ids=["failed-check", "extra-failed-check", "reason"])
+def test_recheck_refuses_stored_checks_that_contradict_the_proof(learned_runs, tmp_path,
+                                                                 edit, words):
+    """The stored checks and reason describe the proof: a certificate that states a check
+    failed (or another reason) beside its certified status is refused as edited."""
+    from nlyap_opt.certification.certificate import recheck_certificate
+
+    run = _edit_run(learned_runs["van_der_pol"][0], tmp_path / "run", edit)
+    again = recheck_certificate(run, log=lambda m: None)
+    assert not again.certified and words in again.reason, again.reason
+
+
 def test_recheck_refuses_a_controlled_system_without_its_controller(learned_runs, tmp_path,
                                                                     capsys):
     """A certificate of a system with inputs whose κ artifact was removed is refused (exit 2),

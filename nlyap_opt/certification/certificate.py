@@ -1547,6 +1547,14 @@ def _not_as_proved(saved: RoaCertificate, new: RoaCertificate) -> list[str]:
               si.level <= ni.level and _close(si.level, ni.level, 1e-12))
         field("inner_ellipse.box_half_widths", np.asarray(si.half_widths).tolist(),
               np.asarray(ni.half_widths).tolist(), _close(si.half_widths, ni.half_widths))
+    # what the proof says of itself: the same words as the re-check's, and no stored check
+    # that did not hold beside a certified status
+    field("reason", saved.reason, new.reason, saved.reason == new.reason)
+    saved_checks = saved.checks if isinstance(saved.checks, dict) else {}
+    for name, verdict in saved_checks.items():
+        proved = new.checks.get(name)
+        ok = verdict == proved if proved is not None else verdict in ("verified", "certified")
+        field(f"checks[{name!r}]", verdict, proved, ok)
     return out
 
 

@@ -213,6 +213,7 @@ def test_bad_domain_on_the_command_line_is_one_line_exit_3(tmp_path, capsys):
     assert not (tmp_path / "r" / "V.json").exists()
 
 
+@pytest.mark.slow  # the default tier stays within 5 min on 2 cores
 def test_box_domain_example_certifies_its_initial_set_and_rechecks(tmp_path, capsys):
     """examples/box_domain.toml (Khalil's x1 x2 < 2): a box domain and an initial set."""
     spec = tmp_path / "box_domain.toml"

@@ -310,6 +310,7 @@ def test_fast_certificates_reach_their_floors_and_match_this_fingerprint(
         assert_fast_certificate(f"{name}/{setting}", cert, d)
 
 
+@pytest.mark.slow  # the default tier stays within 5 min on 2 cores
 def test_interrupt_after_the_dynamics_files_are_written(tmp_path, monkeypatch):
     """SIGINT right after φ's files are written but before the stage is recorded: the rerun
     learns φ again (deterministically: the same φ) and its certificate re-verifies."""

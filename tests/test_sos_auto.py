@@ -303,6 +303,7 @@ _DET = ("import json, systems; from nlyap_opt.candidates.sos import sos_roa; "
         "print(json.dumps([r.V.as_json(), r.sdp_level, r.history]))")
 
 
+@pytest.mark.slow  # the default tier stays within 5 min on 2 cores
 def test_the_sos_programs_give_the_same_v_in_one_process_and_across_processes():
     """Same input, same SOS V bit for bit: twice here and once in a process with another
     hash seed."""

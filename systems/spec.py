@@ -753,9 +753,8 @@ def load_spec(path, *, allow_factory: bool = True) -> System:
                           "below 1.8e308") from None
 
 
-def _load_spec(path: Path, spec: dict) -> System:
-    _check_keys(path, spec, SPEC_KEYS[""], "")
-    name = spec.get("name", path.stem)
+def _check_name(path, name) -> None:
+    """A system name names the output directory ``runs/NAME``: a plain, printable name."""
     if not isinstance(name, str) or not name:
         raise _err(path, "name", "must be a non-empty string")
     if any(c in name for c in "/\\") or name.startswith(".") or \
@@ -763,6 +762,12 @@ def _load_spec(path: Path, spec: dict) -> System:
         raise _err(path, "name", "must be a plain name of at most 200 printable characters, "
                    "without '/' or '\\' and not starting with '.' (it names the output "
                    f"directory runs/NAME), got {name!r}; rename the system")
+
+
+def _load_spec(path: Path, spec: dict) -> System:
+    _check_keys(path, spec, SPEC_KEYS[""], "")
+    name = spec.get("name", path.stem)
+    _check_name(path, name)
     run = spec.get("run", {})
     if not isinstance(run, dict):
         raise _err(path, "run", "must be a table of run-config overrides")
@@ -786,6 +791,7 @@ def _load_spec(path: Path, spec: dict) -> System:
                 system.check_declarations(system.samples)
         if "name" in spec:
             system.name = name
+        _check_name(path, system.name)      # the factory's own name, when the file gives none
         if "description" in spec:
             system.description = str(spec["description"])
         system.run_overrides = {**system.run_overrides, **run}

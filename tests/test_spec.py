@@ -357,3 +357,18 @@ def test_a_dependency_the_samples_agree_with_is_kept_and_listed(tmp_path):
     assert said and "x1' depends on (x2) only; x2' depends on (x1, x2, u) only" in said[0]
     assert input_columns(s, "full", [0, 1], "model") == [[1], [0, 1, 2]]
     assert input_columns(s, "full", [0, 1], "all") == [[0, 1, 2], [0, 1, 2]]
+
+
+def test_a_factory_systems_name_must_be_plain_when_the_file_gives_none(tmp_path):
+    """The name of a factory's system names runs/NAME as a spec's own name does: one
+    leaving runs/ is refused with the fix; the file's own name replaces it."""
+    (tmp_path / "m.py").write_text(
+        "import casadi as ca\nimport systems\n"
+        "def make():\n"
+        "    x = ca.SX.sym('x', 1)\n"
+        "    return systems.System('../../escape', x, None, -x, state_box=[[-1, 1]])\n")
+    (tmp_path / "f.toml").write_text('factory = "m.py:make"\n')
+    with pytest.raises(ConfigError, match=r"name: must be a plain name.*'\.\./\.\./escape'"):
+        systems.load_spec(tmp_path / "f.toml")
+    (tmp_path / "g.toml").write_text('name = "fine"\nfactory = "m.py:make"\n')
+    assert systems.load_spec(tmp_path / "g.toml").name == "fine"

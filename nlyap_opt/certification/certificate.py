@@ -1631,9 +1631,9 @@ def _bound_of(data: bytes) -> tuple[float, np.ndarray, str | None]:
         raise ValueError("grid.box must be a list of [low, high] number pairs")
     try:
         box = np.array(rows, dtype=float).reshape(-1, 2)
-    except OverflowError:
-        box = np.array([np.inf])
-    if not np.all(np.isfinite(box)):
+    except OverflowError:           # an integer beyond float range
+        box = None
+    if box is None or not np.all(np.isfinite(box)):
         raise ValueError("grid.box holds a number beyond float range")
     return eta, box, phi if isinstance(phi, str) else None
 

@@ -306,11 +306,6 @@ def _spec_system(path: str, allow_factory: bool = True) -> str:
         raise UsageError(f"system file {p}: no such file; check the path (or pass a "
                          "catalogue name, see 'nlyap systems')")
     s = systems.load_spec(p, allow_factory=allow_factory)
-    if not isinstance(s.name, str) or not s.name or any(c in s.name for c in "/\\") or \
-            s.name.startswith("."):
-        raise UsageError(f"system file {p} gives its system the name {s.name!r}, which is "
-                         "not a plain name (it names the output directory runs/NAME); set "
-                         "name = \"...\" in the file")
     if s.name in systems.CATALOGUE:   # another spec file of this process may be replaced
         raise UsageError(f"system file {p} names its system {s.name!r}, which is a catalogue "
                          "system; choose another name in the file")

@@ -330,7 +330,7 @@ def test_cli_run_and_verify(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv,words", [
-    (["run", "lyznet_10d"], "add --known-dynamics"),
+    (["run", "lyznet_10d", "--seeds", "2"], "drop --seeds"),
     (["run", "lyznet_chain", "--known-dynamics", "--seeds", "2"], "drop --seeds"),
     (["run", "lyznet_chain", "--known-dynamics", "--preset", "fast"], "drop --preset"),
 ])
@@ -410,3 +410,149 @@ def test_end_to_end_20d_chain_from_a_fresh_process(tmp_path):
     assert time.perf_counter() - t0 < 600
     d = json.loads((out / "certificate.json").read_text())
     assert len(d["subsystems"]) == 10 and len(d["domain_box"]) == 20
+
+
+# ============================================================================ data setting
+def _coupled() -> systems.System:
+    """Two oscillators with non-polynomial couplings (f(0) = 0, smooth everywhere)."""
+    x = ca.SX.sym("x", 4)
+    f = ca.vertcat(-x[0] + 0.5 * x[1] + 0.2 * ca.sin(x[2]) * x[3],
+                   -0.5 * x[0] - x[1] + 0.1 * ca.tanh(x[0]) * x[1],
+                   -x[2] + x[3],
+                   -x[2] - x[3] + 0.3 * ca.sin(x[1]) ** 2)
+    return systems.System("coupled_pair", x, None, f, state_box=[[-1.5, 1.5]] * 4,
+                          subsystems=[(0, 1), (2, 3)])
+
+
+def _mean_jacobian(fun, y):
+    """``∫₀¹ J(ty) dt`` by 30-node Gauss–Legendre quadrature (float)."""
+    t, w = np.polynomial.legendre.leggauss(30)
+    t, w = 0.5 * (t + 1), 0.5 * w
+    return sum(wk * np.array(fun(tk * y)) for tk, wk in zip(t, w))
+
+
+@pytest.mark.parametrize("split", [1, 2])
+def test_data_enclosure_holds_the_mean_jacobian_and_needs_the_hessian_bound(split, rng):
+    """Every piece's ``[C − R, C + R]`` holds ``J̄(y) = ∫₀¹ J(ty) dt`` at random ``y`` of the
+    piece (padded rows 0); with ``H = 0`` (the finite differences alone) it does not."""
+    from nlyap_opt.certification.compositional import (
+        _block_function,
+        _data_enclosures,
+        _structure,
+        hessian_bound,
+    )
+    from nlyap_opt.certification.roa import _split_boxes
+    s = _coupled()
+    parts = s.subsystems
+    nbrs = _structure(s, parts)
+    missed = 0
+    for i in range(len(parts)):
+        idx, y, fi = _block_function(s, parts, nbrs, i)
+        m, ni = len(idx), len(parts[i])
+        J = ca.Function("J", [y], [ca.vertcat(ca.jacobian(fi, y), ca.DM.zeros(m - ni, m))])
+        H, why = hessian_bound(s, parts, nbrs, i)
+        assert H is not None and H.shape == (ni, m, m) and np.all(H >= 0), why
+        box = s.state_box[idx]
+        lo, hi = box[None, :, 0].copy(), box[None, :, 1].copy()
+        if split > 1:
+            lo, hi, _ = _split_boxes(lo, hi, list(range(m)), split)
+        for H_used, must_hold in ((H, True), (np.zeros_like(H), False)):
+            encl, why = _data_enclosures(s, parts, nbrs, i, H_used, split)
+            assert len(encl) == len(lo), why
+            for (C, R), bl, bh in zip(encl, lo, hi):
+                C = np.array(C, dtype=float)
+                R = np.array(R, dtype=float)
+                for yv in rng.uniform(bl, bh, size=(20, m)):
+                    Jb = _mean_jacobian(J, yv)
+                    inside = np.all(np.abs(Jb - C) <= R + 1e-12 * (1 + np.abs(C)))
+                    if must_hold:
+                        assert inside, (i, yv, Jb, C, R)
+                    else:
+                        missed += not inside
+                if must_hold:
+                    assert R.max() < 1.0           # an enclosure, not everything
+    assert missed > 0   # the H terms are what makes it hold
+
+
+def test_data_setting_certifies_and_v_decreases_on_samples(rng):
+    """``nlyap run`` without ``--known-dynamics`` on a system with subsystems: the data
+    setting certifies LyZNet's 10-D system with a level near the known setting's, and
+    ``dV/dt ≤ −γ V`` holds at random points of the set with the true f."""
+    s = systems.get("lyznet_10d")
+    known = certify_compositional(s, **QUIET)
+    data = certify_compositional(s, setting="data", **QUIET)
+    assert data.certified and data.setting == "data" and data.split in (1, 2, 4)
+    assert "sampled f" in data.summary()
+    assert all(p.hessian is not None for p in data.pieces)
+    vol = [sum(0.5 * len(p.states) * np.log(c.level / w) - 0.5 * np.log(np.linalg.det(p.P))
+               for w, p in zip(c.weights, c.pieces)) for c in (known, data)]
+    assert vol[1] > vol[0] - np.log(2)             # within a factor 2 of the known volume
+    X = _points_in(data, 4000, rng)
+    assert np.all(_vdot(s, data, X) <= -data.decay * data.V(X) * (1 - 1e-9))
+
+
+@pytest.fixture(scope="module")
+def saved_data(tmp_path_factory):
+    s = _coupled()
+    cert = certify_compositional(s, setting="data", **QUIET)
+    assert cert.certified
+    out = tmp_path_factory.mktemp("comp_data")
+    save_compositional(cert, s, out)
+    return out, cert, s
+
+
+def test_recheck_of_a_data_certificate(saved_data):
+    out, cert, s = saved_data
+    d = json.loads((out / "certificate.json").read_text())
+    assert d["setting"] == "data" and d["split"] == cert.split
+    assert all("hessian_bound" in p for p in d["subsystems"])
+    again = recheck_compositional(out, system=s)
+    assert again.certified and again.level == cert.level and again.setting == "data"
+
+
+def _lower_hessian(d):
+    H = np.array(d["subsystems"][0]["hessian_bound"])
+    k = np.unravel_index(np.argmax(H), H.shape)
+    H[k] /= 2
+    d["subsystems"][0]["hessian_bound"] = H.tolist()
+
+
+@pytest.mark.parametrize("edit,words", [
+    (_lower_hessian, "below the simulator's"),
+    (lambda d: d["subsystems"][1]["hessian_bound"][0][0].__setitem__(0, -1.0), "≥ 0"),
+    (lambda d: d["subsystems"][1].pop("hessian_bound"), "≥ 0"),
+    (lambda d: d.update(assumptions=d["assumptions"][1:]), "assumptions"),
+])
+def test_recheck_refuses_an_edited_data_certificate(tmp_path, saved_data, edit, words):
+    cert = recheck_compositional(_edited(tmp_path, saved_data, edit), system=saved_data[2])
+    assert cert.status is CertStatus.NOT_CERTIFIED
+    assert words in cert.reason, cert.reason
+
+
+@pytest.mark.parametrize("edit,words", [
+    (lambda d: d.update(split=3), "'split' must be one of"),
+    (lambda d: d.update(split=True), "'split' must be one of"),
+    (lambda d: d.update(setting="guessed"), "'setting' must be one of"),
+    (lambda d: d.pop("setting"), "'setting' must be one of"),
+])
+def test_recheck_refuses_a_malformed_data_certificate(tmp_path, saved_data, edit, words):
+    with pytest.raises(ConfigError, match=words):
+        recheck_compositional(_edited(tmp_path, saved_data, edit), system=saved_data[2])
+
+
+def test_a_known_certificate_with_data_fields_is_refused(tmp_path, saved):
+    def add_h(d):
+        d["subsystems"][0]["hessian_bound"] = [[[0.0] * 4] * 4] * 2
+    cert = recheck_compositional(_edited(tmp_path, saved, add_h))
+    assert not cert.certified and "second-derivative bounds" in cert.reason
+    with pytest.raises(ConfigError, match="'split' belongs to the data setting"):
+        recheck_compositional(_edited(tmp_path, saved, lambda d: d.update(split=2)))
+
+
+def test_cli_run_without_known_dynamics_certifies_from_samples(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", "lyznet_10d", "--out", str(out)]) == 0
+    assert "sampled f with a second-derivative bound" in capsys.readouterr().out
+    assert json.loads((out / "certificate.json").read_text())["setting"] == "data"
+    assert main(["verify", "--certificate", str(out)]) == 0
+    assert capsys.readouterr().out.startswith("certified")

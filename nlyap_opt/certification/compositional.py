@@ -61,6 +61,7 @@ from scipy.linalg import eigh, solve_continuous_lyapunov
 from ..kernel.errors import ConfigError, UnsupportedOperationError
 from ..kernel.exact import (
     float_down,
+    float_up,
     inverse_diagonal,
     positive_definite,
     rational,
@@ -68,7 +69,9 @@ from ..kernel.exact import (
 )
 from ..kernel.jsonio import read_file_bytes, save_timings, split_timings
 from ..kernel.provenance import fingerprint
-from ..kernel.walker import compile_function, exact_values
+from ..kernel.rounding import dn, dn_sum, gamma, up, up_roundings, up_sum
+from ..kernel.walker import compile_function, evaluate, exact_values
+from ..learned.interval_sup import interval_arithmetic
 from .certificate import (
     CertStatus,
     bound_system,
@@ -76,7 +79,7 @@ from .certificate import (
     system_binding,
     write_json_atomic,
 )
-from .roa import TAYLOR_SLICES, mean_value_form, sliced_enclosure
+from .roa import TAYLOR_SLICES, _split_boxes, mean_value_form, sliced_enclosure
 
 __all__ = ["FORMAT", "VERSION", "Piece", "CompositionalCertificate", "certify_compositional",
            "check_compositional", "recheck_compositional", "save_compositional",
@@ -94,6 +97,31 @@ ASSUMPTIONS = [
     "only smooth operations defined everywhere; checked)",
 ]
 
+#: how the local inequalities learn the Jacobian of f: ``"known"``, from the model's Jacobian
+#: graph (interval arithmetic); ``"data"``, from values of f at finite-difference points and
+#: a bound on f's second derivatives (the unknown-dynamics setting of ``nlyap run`` without
+#: ``--known-dynamics``)
+SETTINGS = ("known", "data")
+#: sub-boxes per axis of each subsystem's box that the data setting tries, in order
+DATA_SPLITS = (1, 2, 4)
+
+ASSUMPTIONS_DATA = [
+    "f is the system's f, known to this certificate only through its values at "
+    "finite-difference points of each subsystem's box (sampled from the simulator, each "
+    "value enclosed with outward rounding) and a bound H on its second derivatives",
+    "f is twice continuously differentiable on the domain box D with "
+    "|d2 f_k / dy_a dy_b| <= H[k][a][b] on each subsystem's box (the hessian_bound stored "
+    "per subsystem; computed from the simulator's graph by interval evaluation of the "
+    "Hessian, checked again by the re-check)",
+    "f_i reads only the states of subsystem i and of its neighbours, and f(0) = 0 (from "
+    "the simulator's graph, in exact arithmetic)",
+]
+
+
+def assumptions_of(setting: str) -> list[str]:
+    """The assumptions a compositional certificate of ``setting`` lists."""
+    return list(ASSUMPTIONS_DATA if setting == "data" else ASSUMPTIONS)
+
 
 # ============================================================================ the certificate
 @dataclass
@@ -106,11 +134,17 @@ class Piece:
     P: np.ndarray
     alpha: float = 0.0
     beta: tuple[float, ...] = ()
+    #: data setting: ``H[k][a][b] ≥ |∂²f_k/∂y_a∂y_b|`` on the subsystem's box (``k`` its
+    #: states, ``y`` its and its neighbours' states); ``None`` in the known setting
+    hessian: np.ndarray | None = None
 
     def to_dict(self) -> dict:
-        return {"states": list(self.states), "neighbours": list(self.neighbours),
-                "P": np.asarray(self.P, dtype=float).tolist(), "alpha": float(self.alpha),
-                "beta": [float(b) for b in self.beta]}
+        d = {"states": list(self.states), "neighbours": list(self.neighbours),
+             "P": np.asarray(self.P, dtype=float).tolist(), "alpha": float(self.alpha),
+             "beta": [float(b) for b in self.beta]}
+        if self.hessian is not None:
+            d["hessian_bound"] = np.asarray(self.hessian, dtype=float).tolist()
+        return d
 
 
 @dataclass
@@ -128,6 +162,10 @@ class CompositionalCertificate:
     checks: dict = field(default_factory=dict)
     assumptions: list = field(default_factory=lambda: list(ASSUMPTIONS))
     seconds: float = 0.0
+    #: ``"known"`` or ``"data"`` (:data:`SETTINGS`)
+    setting: str = "known"
+    #: data setting: each subsystem's box is cut into ``split`` pieces along every axis
+    split: int = 1
 
     @property
     def certified(self) -> bool:
@@ -154,15 +192,17 @@ class CompositionalCertificate:
         if self.certified:
             return (f"certified: level {self.level:.6g} of V = Σ w_i x_iᵀP_i x_i "
                     f"({len(self.pieces)} subsystems, {self.domain_box.shape[0]} states), "
-                    f"dV/dt ≤ -{self.decay:.4g} V, inside the box D (known dynamics, "
-                    "compositional)")
+                    f"dV/dt ≤ -{self.decay:.4g} V, inside the box D ("
+                    + ("known dynamics" if self.setting == "known" else
+                       "sampled f with a second-derivative bound") + ", compositional)")
         return f"{self.status.value}: {self.reason}"
 
     def to_dict(self) -> dict:
         return {
             "format": FORMAT, "version": VERSION, "status": self.status.value,
             "reason": self.reason, "system": self.system, "method": "compositional",
-            "setting": "known",
+            "setting": self.setting,
+            **({"split": int(self.split)} if self.setting == "data" else {}),
             "certified_set": "{x : sum_i w_i x_i^T P_i x_i <= level}",
             "decrease_condition": "dV/dt <= -decay * V on the certified set",
             "domain_box": np.asarray(self.domain_box, dtype=float).tolist(),
@@ -190,8 +230,9 @@ def _structure(system, parts) -> list[tuple[int, ...]]:
 def _refusal(system, parts) -> str:
     """Why the compositional method does not apply to ``system`` (``""``: it does)."""
     if not getattr(system, "has_model", False):
-        return ("the compositional method needs the model f (a proof about the true "
-                "dynamics); this system has none")
+        return ("the compositional method needs f's graph (the model, or the simulator whose "
+                "values and second derivatives it samples); this system has none: drop its "
+                "subsystems to run the neural method on its samples")
     if system.nu:
         return (f"the compositional method is for systems without inputs; {system.name!r} has "
                 f"{system.nu} (close the loop in f first)")
@@ -202,6 +243,22 @@ def _refusal(system, parts) -> str:
     if not np.all((box[:, 0] < 0) & (box[:, 1] > 0)):
         return "the compositional method needs the origin inside the state box (lower < 0 < upper)"
     return ""
+
+
+def _block_function(system, parts, nbrs, i: int):
+    """``(idx, y, f_i(y))``: subsystem ``i``'s variables (its states, then its neighbours' in
+    order), their symbol ``y`` and ``f_i`` of them with every other state 0 (``f_i`` reads
+    only these, :func:`_structure`)."""
+    idx = list(parts[i]) + [k for j in nbrs[i] for k in parts[j]]
+    y = ca.SX.sym("y", len(idx))
+    xs = ca.SX.zeros(system.nx)
+    for a, k in enumerate(idx):
+        xs[k] = y[a]
+    return idx, y, ca.substitute(ca.vertcat(*[system.f[r] for r in parts[i]]), system.x, xs)
+
+
+def _subsystem_name(system, parts, i: int) -> str:
+    return f"subsystem {i + 1} ({', '.join(system.state_names[k] for k in parts[i])})"
 
 
 def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
@@ -218,18 +275,13 @@ def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
     is non-smooth or partial (the walker's checked operations, constant arguments
     excepted): the mean-value form needs ``f`` continuously differentiable on ``D``.
     """
-    idx = list(parts[i]) + [k for j in nbrs[i] for k in parts[j]]
+    idx, y, fi = _block_function(system, parts, nbrs, i)
     m, ni = len(idx), len(parts[i])
-    y = ca.SX.sym("y", m)
-    xs = ca.SX.zeros(system.nx)
-    for a, k in enumerate(idx):
-        xs[k] = y[a]
-    fi = ca.substitute(ca.vertcat(*[system.f[r] for r in parts[i]]), system.x, xs)
     # the rows of the neighbours' states are 0: V_i reads x_i only (a symbolic seed S: no
     # float folding of f's constants in the derivative, see seeded_jacobian)
     S = ca.SX.sym("S", m, m)
     JS = ca.densify(ca.vertcat(ca.jtimes(fi, y, S), ca.SX.zeros(m - ni, m)))
-    name = f"subsystem {i + 1} ({', '.join(system.state_names[k] for k in parts[i])})"
+    name = _subsystem_name(system, parts, i)
     try:
         if compile_function(ca.Function(f"local_{i}", [y, S], [fi, JS])).checked:
             return None, (f"{name}: f uses non-smooth or partial operations; the "
@@ -243,6 +295,167 @@ def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
         return None, f"{name}: the Jacobian of f_i is not bounded on its box"
     Pm = [[P[a][b] if a < ni and b < ni else Fraction(0) for b in range(m)] for a in range(m)]
     return mean_value_form(Pm, *CR), ""
+
+
+# ============================================================================ the data setting
+#: the hull of the Hessian's interval enclosures on ``_HESSIAN_PIECES`` per axis of a box
+#: of at most 4 dimensions (2 per axis up to 6, else the whole box)
+_HESSIAN_PIECES = {4: 4, 6: 2}
+
+
+def hessian_bound(system, parts, nbrs, i: int) -> tuple[np.ndarray | None, str]:
+    r"""``(H, "")`` with :math:`H_{kab} \ge |\partial^2 f_k / \partial y_a \partial y_b|` on
+    subsystem ``i``'s box ``Y_i`` (``k`` its states, ``y`` its and its neighbours' states),
+    or ``(None, why)``.
+
+    From the simulator's graph: the outward-rounded interval enclosure of the second
+    derivatives (forward mode twice along symbolic seeds, evaluated at the identity seeds,
+    :func:`~nlyap_opt.certification.roa.sliced_enclosure`), the hull of its values on equal
+    pieces of ``Y_i``, widened by CasADi's constant-folding allowance. Refused when the graph
+    holds a non-smooth or partial operation (``f`` must be :math:`C^2` on ``D``).
+    """
+    idx, y, fi = _block_function(system, parts, nbrs, i)
+    m, ni = len(idx), len(parts[i])
+    S1, S2 = ca.SX.sym("S", m, m), ca.SX.sym("T", m, m)
+    T = ca.densify(ca.jtimes(ca.vec(ca.jtimes(fi, y, S1)), y, S2))     # (ni·m) × m
+    fun = ca.Function(f"hess_{i}", [y, S1, S2], [T])
+    name = _subsystem_name(system, parts, i)
+    pieces = next((k for d, k in sorted(_HESSIAN_PIECES.items()) if m <= d), 1)
+    try:
+        if compile_function(ca.Function(f"f2_{i}", [y, S1, S2], [fi, T])).checked:
+            return None, (f"{name}: f uses non-smooth or partial operations; the "
+                          "compositional method from samples needs f twice continuously "
+                          "differentiable on all of D")
+        CR = sliced_enclosure(fun, system.state_box[idx], [Fraction(1)],
+                              split=(list(range(m)), pieces))
+    except UnsupportedOperationError as err:
+        return None, f"{name}: {err}"
+    if CR is None:
+        return None, f"{name}: the second derivatives of f_i are not bounded on its box"
+    C, R = CR
+    H = np.array([[[float_up(abs(C[k + ni * a][b]) + R[k + ni * a][b]) + 0.0 for b in range(m)]
+                   for a in range(m)] for k in range(ni)])
+    return H, ""
+
+
+def _slices(box: np.ndarray, split: int) -> tuple[np.ndarray, np.ndarray, int]:
+    r"""The boxes ``(lo, hi)``, shape ``(K·nb, m)`` (slice-major), holding
+    :math:`\{t y : t \in [t_k, t_{k+1}], y \in B\}` for the ``nb = split^m`` equal pieces
+    ``B`` of ``box`` and :math:`t_k = k/K` (``K``: the Taylor slices of
+    :func:`~nlyap_opt.certification.roa.sliced_enclosure`): per axis the hull of
+    :math:`t_k B` and :math:`t_{k+1} B` (``t ≥ 0``), rounded outward
+    and then cut back to ``box`` (which holds the exact set: ``box`` contains 0)."""
+    m = box.shape[0]
+    lo, hi = box[None, :, 0].copy(), box[None, :, 1].copy()
+    nb = 1
+    if split > 1:
+        lo, hi, nb = _split_boxes(lo, hi, list(range(m)), split)
+    K = TAYLOR_SLICES
+    t = (np.arange(K + 1) / K)[:, None, None]              # k/16: exact
+    a_lo, b_lo = t[:-1] * lo[None], t[1:] * lo[None]
+    a_hi, b_hi = t[:-1] * hi[None], t[1:] * hi[None]
+    slo = np.maximum(np.minimum(dn(a_lo), dn(b_lo)), box[:, 0])
+    shi = np.minimum(np.maximum(up(a_hi), up(b_hi)), box[:, 1])
+    return slo.reshape(-1, m), shi.reshape(-1, m), nb
+
+
+def _data_enclosures(system, parts, nbrs, i: int, H: np.ndarray, split: int
+                     ) -> tuple[list | None, str]:
+    r"""``([(C, R), …], "")``: for each of the ``split^m`` pieces ``B`` of subsystem ``i``'s
+    box, the exact rational centre and radius of an enclosure of
+    :math:`\bar J_i(y) = \int_0^1 J_i(ty)\,dt` for every ``y ∈ B`` (``J_i`` the Jacobian of
+    ``f_i`` in ``y``, padded with zero rows to ``m × m``), from values of ``f_i`` and the
+    second-derivative bound ``H`` only; or ``(None, why)``.
+
+    On each slice box ``S`` (:func:`_slices`; ``ty ∈ S`` for ``t`` in its slice) with centre
+    ``s``: the difference quotient :math:`q = (f_k(p^+) - f_k(p^-))/(a + b)` at
+    :math:`p^\pm = s \pm (a, b)\,e_j` inside ``S`` is :math:`\partial_j f_k(s)` within
+    :math:`H_{kjj}(a^2 + b^2)/(2(a + b)) \le H_{kjj}\max(a, b)/2` (Taylor with the Lagrange
+    remainder), and for ``z ∈ S``, :math:`|\partial_j f_k(z) - \partial_j f_k(s)| \le
+    \sum_i H_{kji} \max_{z \in S}|z_i - s_i|` (mean value theorem; ``S`` is convex). The
+    values of ``f_k`` are outward-rounded interval evaluations of the simulator at the float
+    points, the quotient is rounded outward with the exact ``a + b`` enclosed, and every
+    error term is rounded up. The mean over the ``K`` slices (weights ``1/K``) is summed in
+    exact rationals.
+    """
+    idx, y, fi = _block_function(system, parts, nbrs, i)
+    m, ni = len(idx), len(parts[i])
+    H = np.asarray(H, dtype=float)
+    slo, shi, nb = _slices(system.state_box[idx], split)
+    if not np.all(shi > slo):
+        return None, f"{_subsystem_name(system, parts, i)}: a slice of its box has no width"
+    nS = len(slo)
+    s = 0.5 * (slo + shi)
+    h = 0.25 * (shi - slo)
+    pts = np.repeat(s[:, None, :], 2 * m, axis=1)                  # (nS, 2m, m)
+    for j in range(m):
+        pts[:, 2 * j, j] = np.minimum(s[:, j] + h[:, j], shi[:, j])
+        pts[:, 2 * j + 1, j] = np.maximum(s[:, j] - h[:, j], slo[:, j])
+    Interval, ia = interval_arithmetic()
+    flat = pts.reshape(-1, m)
+    val = evaluate(ca.Function(f"f_{i}", [y], [fi]), [Interval(flat, flat.copy())], ia)[0]
+    Flo = np.asarray(val.lo, dtype=float).reshape(nS, 2 * m, ni)
+    Fhi = np.asarray(val.hi, dtype=float).reshape(nS, 2 * m, ni)
+    if not (np.all(np.isfinite(Flo)) and np.all(np.isfinite(Fhi))):
+        return None, f"{_subsystem_name(system, parts, i)}: f_i is not finite on its box"
+    rho = up_sum(np.maximum(shi - s, s - slo))                     # (nS, m)
+    Jlo = np.zeros((nS, ni, m))
+    Jhi = np.zeros((nS, ni, m))
+    for j in range(m):
+        pp, pm = pts[:, 2 * j, j], pts[:, 2 * j + 1, j]
+        dl, dh = dn_sum(pp - pm), up_sum(pp - pm)
+        if not np.all(dl > 0):
+            return None, f"{_subsystem_name(system, parts, i)}: a difference step vanished"
+        nl = dn_sum(Flo[:, 2 * j] - Fhi[:, 2 * j + 1])             # (nS, ni)
+        nh = up_sum(Fhi[:, 2 * j] - Flo[:, 2 * j + 1])
+        ql = np.minimum(dn(nl / dl[:, None]), dn(nl / dh[:, None]))
+        qh = np.maximum(up(nh / dl[:, None]), up(nh / dh[:, None]))
+        amax = np.maximum(up_sum(pp - s[:, j]), up_sum(s[:, j] - pm))       # (nS,)
+        e = H[None, :, j, j] * amax[:, None] * 0.5 + rho @ H[:, j, :].T       # (nS, ni)
+        e = up_roundings(e, 2 * m + 4)
+        Jlo[:, :, j] = dn_sum(ql - e)
+        Jhi[:, :, j] = up_sum(qh + e)
+    if not (np.all(np.isfinite(Jlo)) and np.all(np.isfinite(Jhi))):
+        return None, f"{_subsystem_name(system, parts, i)}: the Jacobian enclosure is not finite"
+    K = TAYLOR_SLICES
+    Jlo, Jhi = Jlo.reshape(K, nb, ni, m), Jhi.reshape(K, nb, ni, m)
+    # the means over the slices, rounded outward: a K-term float sum is within
+    # γ_K Σ|terms| of the exact one; division by K = 16 is exact but for underflow
+    lo_mean = dn(dn_sum(np.sum(Jlo, axis=0) - _sum_error(Jlo)) / K)
+    hi_mean = up(up_sum(np.sum(Jhi, axis=0) + _sum_error(Jhi)) / K)
+    out = []
+    zero = Fraction(0)
+    for b in range(nb):
+        C = [[zero] * m for _ in range(m)]
+        R = [[zero] * m for _ in range(m)]
+        for k in range(ni):
+            for j in range(m):
+                L, Uq = Fraction(lo_mean[b, k, j]), Fraction(hi_mean[b, k, j])
+                C[k][j], R[k][j] = (L + Uq) / 2, (Uq - L) / 2
+        out.append((C, R))
+    return out, ""
+
+
+def _sum_error(terms: np.ndarray) -> np.ndarray:
+    """An upper bound of ``|fl(Σ_k t_k) − Σ_k t_k|`` for numpy's sum over axis 0:
+    ``γ_K Σ|t_k|`` (Higham), with the rounding of ``Σ|t_k|`` and of the product covered."""
+    K = terms.shape[0]
+    return up_roundings(gamma(K) * np.sum(np.abs(terms), axis=0), K + 1)
+
+
+def _local_bounds(system, parts, nbrs, i: int, P, setting: str, hessian=None,
+                  split: int = 1) -> tuple[list | None, str]:
+    """The matrices ``N`` of :func:`_local_bound` for subsystem ``i``: one (``"known"``), or
+    one per piece of its box (``"data"``, :func:`_data_enclosures` with ``hessian``)."""
+    if setting == "known":
+        N, why = _local_bound(system, parts, nbrs, i, P)
+        return (None if N is None else [N]), why
+    encl, why = _data_enclosures(system, parts, nbrs, i, hessian, split)
+    if encl is None:
+        return None, why
+    m, ni = len(encl[0][0]), len(parts[i])
+    Pm = [[P[a][b] if a < ni and b < ni else Fraction(0) for b in range(m)] for a in range(m)]
+    return [mean_value_form(Pm, C, R) for C, R in encl], ""
 
 
 def _local_matrix(N, sizes, P, alpha, beta) -> list[list[Fraction]]:
@@ -271,8 +484,38 @@ def _equilibrium_refusal(system) -> str:
 
 
 # ============================================================================ the checks
+def _hessian_refusal(system, parts, nbrs, pieces: list[Piece], setting: str, split) -> str:
+    """``""`` when the pieces' second-derivative bounds fit ``setting``: none in the known
+    setting; in the data setting a finite ``H ≥ 0`` of shape ``(n_i, m_i, m_i)`` per piece,
+    entrywise at least :func:`hessian_bound` of the simulator, and ``split`` one of
+    :data:`DATA_SPLITS`."""
+    if setting not in SETTINGS:
+        return f"unknown setting {setting!r} (one of {', '.join(SETTINGS)})"
+    if setting == "known":
+        if any(p.hessian is not None for p in pieces):
+            return "a certificate of the known setting holds second-derivative bounds"
+        return ""
+    if isinstance(split, bool) or split not in DATA_SPLITS:
+        return f"split must be one of {', '.join(map(str, DATA_SPLITS))}, got {split!r}"
+    for i, p in enumerate(pieces):
+        m = len(p.states) + sum(len(parts[j]) for j in p.neighbours)
+        H = None if p.hessian is None else np.asarray(p.hessian, dtype=float)
+        if H is None or H.shape != (len(p.states), m, m) or not np.all(np.isfinite(H)) \
+                or np.any(H < 0):
+            return (f"subsystem {i + 1}: the second-derivative bound must be finite numbers "
+                    f"≥ 0 of shape ({len(p.states)}, {m}, {m})")
+        Hm, why = hessian_bound(system, parts, nbrs, i)
+        if Hm is None:
+            return why
+        if np.any(H < Hm):
+            return (f"{_subsystem_name(system, parts, i)}: the stored second-derivative bound "
+                    "is below the simulator's second derivatives on its box")
+    return ""
+
+
 def check_compositional(system, pieces: list[Piece], weights, level: float,
-                        decay: float) -> tuple[bool, dict, str]:
+                        decay: float, *, setting: str = "known", split: int = 1
+                        ) -> tuple[bool, dict, str]:
     """Prove the certificate's conditions for ``system`` exactly (module docstring, 1–3).
 
     Parameters
@@ -283,6 +526,10 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
     weights : (N,) array_like
     level, decay : float
         The claimed ``c`` and ``γ``.
+    setting : {"known", "data"}
+        How the local inequalities enclose the Jacobian of ``f`` (:data:`SETTINGS`); the
+        data setting needs every piece's ``hessian`` (checked to bound the simulator's
+        second derivatives) and the pieces per axis ``split`` (one of :data:`DATA_SPLITS`).
 
     Returns
     -------
@@ -325,23 +572,36 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
             why = f"P of subsystem {i + 1} is not a symmetric positive definite {n}x{n} matrix"
             return False, {**checks, "positive definite": why}, why
     checks["positive definite"] = "proved (exact LDLᵀ of every P_i)"
+    why = _hessian_refusal(system, parts, nbrs, pieces, setting, split)
+    if why:
+        return False, {**checks, "second derivatives": why}, why
+    if setting == "data":
+        checks["second derivatives"] = ("proved (each stored H bounds the interval enclosure "
+                                        "of f's second derivatives on its subsystem's box)")
     for i, p in enumerate(pieces):
         if alphas[i] < 0 or any(b < 0 for b in betas[i]):
             why = f"subsystem {i + 1}: α and β must be ≥ 0"
             return False, {**checks, "local": why}, why
-        N, why = _local_bound(system, parts, nbrs, i, Ps[i])
-        if N is None:
+        Ns, why = _local_bounds(system, parts, nbrs, i, Ps[i], setting, p.hessian, split)
+        if Ns is None:
             return False, {**checks, "local": why}, why
         sizes = [len(p.states)] + [len(parts[j]) for j in p.neighbours]
         Ploc = [Ps[i]] + [Ps[j] for j in p.neighbours]
-        if not positive_definite(_local_matrix(N, sizes, Ploc, p.alpha, p.beta)):
+        if not all(positive_definite(_local_matrix(N, sizes, Ploc, p.alpha, p.beta))
+                   for N in Ns):
             why = (f"subsystem {i + 1} (states {', '.join(system.state_names[k] for k in p.states)}"
                    f"): dV_i/dt ≤ -{p.alpha:.4g} V_i + Σ β_ij V_j is not proved on its box "
                    "(coupling too strong for this domain, or the domain too large)")
             return False, {**checks, "local": why}, why
     dim = max(len(p.states) + sum(len(parts[j]) for j in p.neighbours) for p in pieces)
-    checks["local"] = (f"proved on {len(pieces)} boxes of dimension ≤ {dim} (mean-value form "
-                       "of f_i's interval Jacobian, P_i exact, exact LDLᵀ)")
+    if setting == "known":
+        checks["local"] = (f"proved on {len(pieces)} boxes of dimension ≤ {dim} (mean-value "
+                           "form of f_i's interval Jacobian, P_i exact, exact LDLᵀ)")
+    else:
+        checks["local"] = (f"proved on {len(pieces)} boxes of dimension ≤ {dim}, each cut into "
+                           f"{split} pieces per axis (mean-value form of the Jacobian enclosed "
+                           "by finite differences of sampled f and the bound H, P_i exact, "
+                           "exact LDLᵀ)")
     if g <= 0 or any(v <= 0 for v in w):
         why = "the weights and the decay rate must be positive"
         return False, {**checks, "comparison": why}, why
@@ -374,12 +634,13 @@ def _lyapunov_P(A: np.ndarray) -> np.ndarray | None:
     return 0.5 * (P + P.T)
 
 
-def _gains(N, sizes, P, theta: float):
-    """Float choice of ``α = θ α*`` and one ``β`` for all neighbours (bisection)."""
-    Nf = np.array([[float(v) for v in row] for row in N])
+def _gains(Ns, sizes, P, theta: float):
+    """Float choice of ``α = θ α*`` and one ``β`` for all neighbours (bisection) that suit
+    every matrix of ``Ns`` (one per piece of the subsystem's box)."""
+    Nf = np.array([[[float(v) for v in row] for row in N] for N in Ns])
     n0 = sizes[0]
     Pf = [np.asarray(p, dtype=float) for p in P]
-    a_star = float(eigh(-Nf[:n0, :n0], Pf[0], eigvals_only=True)[0])
+    a_star = min(float(eigh(-N[:n0, :n0], Pf[0], eigvals_only=True)[0]) for N in Nf)
     if not a_star > 0:
         return None
     alpha = theta * a_star
@@ -392,9 +653,9 @@ def _gains(N, sizes, P, theta: float):
         off = 0
         for s, coef in enumerate([alpha] + [-beta] * k):
             n = sizes[s]
-            M[off:off + n, off:off + n] += coef * Pf[s]
+            M[:, off:off + n, off:off + n] += coef * Pf[s]
             off += n
-        return np.max(np.linalg.eigvalsh(0.5 * (M + M.T))) < 0
+        return np.max(np.linalg.eigvalsh(0.5 * (M + np.swapaxes(M, 1, 2)))) < 0
 
     hi = 1.0
     while not ok(hi):
@@ -408,13 +669,20 @@ def _gains(N, sizes, P, theta: float):
     return alpha, (hi * (1 + 1e-6) + 1e-12,) * k
 
 
-def certify_compositional(system, *, log=print) -> CompositionalCertificate:
+def certify_compositional(system, *, setting: str = "known",
+                          log=print) -> CompositionalCertificate:
     """Certify a region of attraction of ``system`` compositionally (module docstring).
 
     Parameters
     ----------
     system : systems.System
         A model without inputs that declares ``subsystems``.
+    setting : {"known", "data"}
+        ``"known"``: the local inequalities use the model's Jacobian graph. ``"data"`` (the
+        unknown-dynamics setting): they use only values of ``f`` at finite-difference
+        points and a bound on its second derivatives (:func:`hessian_bound`, stored in the
+        certificate); each subsystem's box is cut into 1, 2, then 4 pieces per axis
+        (:data:`DATA_SPLITS`) until a certificate is proved.
     log : callable
 
     Returns
@@ -429,6 +697,9 @@ def certify_compositional(system, *, log=print) -> CompositionalCertificate:
         the origin not inside its box): the message says what to change.
     """
     t0 = time.perf_counter()
+    if setting not in SETTINGS:
+        raise ConfigError(f"unknown compositional setting {setting!r}; use one of "
+                          f"{', '.join(SETTINGS)}")
     parts = system.subsystems
     why = _refusal(system, parts)
     if why:
@@ -439,7 +710,8 @@ def certify_compositional(system, *, log=print) -> CompositionalCertificate:
     def fail(reason, pieces=()):
         return CompositionalCertificate(CertStatus.NOT_CERTIFIED, reason, system.name,
                                         list(pieces), np.zeros(0), 0.0, 0.0, box,
-                                        seconds=time.perf_counter() - t0)
+                                        assumptions=assumptions_of(setting),
+                                        seconds=time.perf_counter() - t0, setting=setting)
 
     why = _equilibrium_refusal(system)
     if why:
@@ -451,12 +723,42 @@ def certify_compositional(system, *, log=print) -> CompositionalCertificate:
             return fail(f"subsystem {i + 1}'s linearisation is not Hurwitz: the compositional "
                         "method needs every subsystem stable on its own")
         Ps.append(P)
-    bounds = []
-    for i in range(len(parts)):
-        N, why = _local_bound(system, parts, nbrs, i, rational_matrix(Ps[i]))
-        if N is None:
-            return fail(why)
-        bounds.append(N)
+    hessians = [None] * len(parts)
+    if setting == "data":
+        for i in range(len(parts)):
+            hessians[i], why = hessian_bound(system, parts, nbrs, i)
+            if hessians[i] is None:
+                return fail(why)
+    why, best = "", None
+    for split in (DATA_SPLITS if setting == "data" else (1,)):
+        bounds = []
+        for i in range(len(parts)):
+            Ns, why = _local_bounds(system, parts, nbrs, i, rational_matrix(Ps[i]), setting,
+                                    hessians[i], split)
+            if Ns is None:
+                return fail(why)
+            bounds.append(Ns)
+        cert, why = _search(system, parts, nbrs, Ps, bounds, hessians, setting, split, t0, log)
+        if cert is not None and (best is None or _log_volume(cert) > _log_volume(best)):
+            best = cert
+    if best is not None:
+        best.seconds = time.perf_counter() - t0
+        return best
+    return fail(why)
+
+
+def _log_volume(cert: CompositionalCertificate) -> float:
+    """The log of the volume of ``{V ≤ level}`` up to a constant of the dimensions (float)."""
+    return sum(0.5 * len(p.states) * math.log(cert.level / w)
+               - 0.5 * math.log(np.linalg.det(p.P)) for w, p in zip(cert.weights, cert.pieces))
+
+
+def _search(system, parts, nbrs, Ps, bounds, hessians, setting: str, split: int, t0: float,
+            log) -> tuple[CompositionalCertificate | None, str]:
+    """The float choice of ``α, β, w, c, γ`` for each decay fraction θ, the largest
+    ``Ω_c`` first, each proved by :func:`check_compositional`: ``(certificate, "")`` for
+    the first proved, else ``(None, why)``."""
+    box = system.state_box
     candidates = []
     for theta in _THETAS:
         pieces = []
@@ -465,7 +767,7 @@ def certify_compositional(system, *, log=print) -> CompositionalCertificate:
             g = _gains(bounds[i], sizes, [Ps[i]] + [Ps[j] for j in nbrs[i]], theta)
             if g is None:
                 break
-            pieces.append(Piece(tuple(parts[i]), nbrs[i], Ps[i], g[0], g[1]))
+            pieces.append(Piece(tuple(parts[i]), nbrs[i], Ps[i], g[0], g[1], hessians[i]))
         if len(pieces) < len(parts):
             continue
         Ac = -np.diag([p.alpha for p in pieces])
@@ -495,14 +797,17 @@ def certify_compositional(system, *, log=print) -> CompositionalCertificate:
     why = ("no decay rates and coupling gains make the comparison system stable: the "
            "interconnection is too strong on this domain (a smaller box may certify)")
     for _, theta, pieces, w, level, gamma in sorted(candidates, key=lambda c: c[:2]):
-        ok, checks, why = check_compositional(system, pieces, w, level, gamma)
+        ok, checks, why = check_compositional(system, pieces, w, level, gamma,
+                                              setting=setting, split=split)
         seconds = time.perf_counter() - t0
-        log(f"compositional: {len(pieces)} subsystems, θ = {theta}, level {level:.6g}, "
+        where = f", {split} pieces per axis" if setting == "data" else ""
+        log(f"compositional: {len(pieces)} subsystems{where}, θ = {theta}, level {level:.6g}, "
             f"decay {gamma:.4g}: {'certified' if ok else why} ({seconds:.2f} s)")
         if ok:
-            return CompositionalCertificate(CertStatus.CERTIFIED, "", system.name, pieces, w,
-                                            level, gamma, box, checks, seconds=seconds)
-    return fail(why)
+            return CompositionalCertificate(
+                CertStatus.CERTIFIED, "", system.name, pieces, w, level, gamma, box, checks,
+                assumptions_of(setting), seconds, setting, split), ""
+    return None, why
 
 
 def _decay(pieces: list[Piece], w: np.ndarray) -> float:
@@ -587,18 +892,33 @@ def recheck_compositional(path: str | Path, *, system=None,
     known = {"format", "version", "status", "reason", "system", "method", "setting",
              "certified_set", "decrease_condition", "domain_box", "subsystems", "weights",
              "level", "decay", "checks", "assumptions", "system_binding", "system_source",
-             "provenance"}
+             "provenance", "split"}
     unknown = sorted(set(d) - known)
     if unknown:
         raise ConfigError(f"compositional certificate {path} holds fields this nlyap does not "
                           f"know ({', '.join(unknown)}); re-check it with the nlyap that wrote "
                           "it, or rerun the command")
     name = _typed(d, "system", str, path)
+    setting = d.get("setting")
+    if setting not in SETTINGS:
+        raise ConfigError(f"malformed compositional certificate {path}: 'setting' must be one "
+                          f"of {', '.join(SETTINGS)}, got {setting!r}; rerun the command that "
+                          "wrote it")
+    split = d.get("split", 1) if setting == "data" else 1
+    if setting == "data" and (not isinstance(split, int) or isinstance(split, bool)
+                              or split not in DATA_SPLITS):
+        raise ConfigError(f"malformed compositional certificate {path}: 'split' must be one of "
+                          f"{', '.join(map(str, DATA_SPLITS))}; rerun the command that wrote it")
+    if setting == "known" and "split" in d:
+        raise ConfigError(f"malformed compositional certificate {path}: 'split' belongs to the "
+                          "data setting; rerun the command that wrote it")
     try:
         pieces = [Piece(tuple(int(k) for k in s["states"]),
                         tuple(int(j) for j in s["neighbours"]),
                         np.asarray(s["P"], dtype=float), float(s["alpha"]),
-                        tuple(float(b) for b in s["beta"])) for s in d["subsystems"]]
+                        tuple(float(b) for b in s["beta"]),
+                        None if "hessian_bound" not in s else
+                        np.asarray(s["hessian_bound"], dtype=float)) for s in d["subsystems"]]
         weights = np.asarray(d["weights"], dtype=float)
         if weights.ndim != 1:
             raise ValueError(f"weights must be a list of numbers, got shape {weights.shape}")
@@ -613,7 +933,8 @@ def recheck_compositional(path: str | Path, *, system=None,
     def result(ok, reason, checks=None):
         return CompositionalCertificate(
             CertStatus.CERTIFIED if ok else CertStatus.NOT_CERTIFIED, reason, name, pieces,
-            weights, level, decay, dbox, checks or {}, assumptions)
+            weights, level, decay, dbox, checks or {}, assumptions, setting=setting,
+            split=split)
 
     if d.get("status") != CertStatus.CERTIFIED.value:
         return result(False, f"the certificate does not claim a region ({d.get('status')!r})")
@@ -621,8 +942,9 @@ def recheck_compositional(path: str | Path, *, system=None,
         return result(False, refusal)
     if dbox.shape != sysm.state_box.shape or not np.array_equal(dbox, sysm.state_box):
         return result(False, "the certificate's domain box is not the system's state box")
-    if assumptions != ASSUMPTIONS:
+    if assumptions != assumptions_of(setting):
         return result(False, "the certificate lists other assumptions than this method's "
                       "(an edited certificate.json?); rerun the command that wrote it")
-    ok, checks, why = check_compositional(sysm, pieces, weights, level, decay)
+    ok, checks, why = check_compositional(sysm, pieces, weights, level, decay,
+                                          setting=setting, split=split)
     return result(ok, why, checks)

@@ -569,19 +569,17 @@ def _run_config(args, learned: bool) -> RunConfig:
 
 def _run_compositional(args, system) -> int:
     """``nlyap run`` of a system that declares its subsystems: the compositional
-    certificate (:mod:`nlyap_opt.certification.compositional`), about the model f."""
-    if not args.known_dynamics:
-        raise UsageError(f"{system.name} declares subsystems: its compositional certificate "
-                         "is about the model f; add --known-dynamics")
+    certificate (:mod:`nlyap_opt.certification.compositional`), from the model's Jacobian
+    (``--known-dynamics``) or from sampled values of f and a second-derivative bound."""
     given = [o for o, v in (("--config", args.config), ("--preset", args.preset),
                             ("--seeds", args.seeds), ("--workers", args.workers),
                             ("--scheduler", args.scheduler)) if v is not None]
     if given:
         raise UsageError(f"the compositional certificate of {system.name} has no training "
                          f"or Dask stage; drop {', '.join(given)}")
-    out = args.out or f"runs/{system.name}_known"
+    out = args.out or f"runs/{system.name}{'_known' if args.known_dynamics else ''}"
     _check_writable(Path(out), "--out", directory=True)
-    cert = certify_compositional(system)
+    cert = certify_compositional(system, setting="known" if args.known_dynamics else "data")
     path = save_compositional(cert, system, out)
     print(cert.summary())
     print(f"wrote {path}")

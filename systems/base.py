@@ -208,6 +208,7 @@ class System:
         known_rhs: dict | None = None,
         equilibrium_tol: float = EQUILIBRIUM_TOL,
         symbols: tuple[ca.SX, ca.SX] | None = None,
+        subsystems: Sequence[Sequence[int]] | None = None,
         **kwargs,
     ) -> System:
         r"""A system given by a black-box batched function ``fun(X, U) -> Xdot``.
@@ -233,6 +234,10 @@ class System:
             Absolute tolerance of the equilibrium check (default 1e-9).
         symbols : (casadi.SX, casadi.SX), optional
             The system's ``x`` and ``u`` (default: new ones from :meth:`symbols`).
+        subsystems : sequence of sequence of int, optional
+            As for the constructor: an interconnected system's parts, certified
+            compositionally from the simulator's values (``nu = 0``; declare ``hessian``,
+            and ``depends_on`` for the states each derivative reads).
         **kwargs
             ``params``, ``state_names``, ``input_names``, ``description``,
             ``declarations``, ``run_overrides``, ``source``.
@@ -251,6 +256,7 @@ class System:
         self = cls.__new__(cls)
         x, u = cls._given_symbols(symbols, int(nx), int(nu), kwargs)
         self._setup(name, x, u, "callable", state_box=state_box, input_box=input_box, **kwargs)
+        self.subsystems = self._partition(subsystems)
         self._callable = fun
         self._set_known_rhs(known_rhs)
         self.u_eq = self._declared_u_eq(u_eq)

@@ -861,8 +861,9 @@ def _load_spec(path: Path, spec: dict) -> System:
                    "[samples] file, or factory = \"module:function\"")
     # ---- samples
     if "subsystems" in spec:
-        raise _err(path, "subsystems", "a compositional certificate is about the model f: "
-                   "give f as [rhs] expressions, or remove subsystems")
+        raise _err(path, "subsystems", "a compositional certificate evaluates f at its own "
+                   "points, which a sample file cannot: give f as [rhs] expressions or a "
+                   "simulator (factory), or remove subsystems")
     smp = spec["samples"]
     if not isinstance(smp, dict):
         raise _err(path, "samples", "must be a table with 'file' (and optional 'columns')")

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 from fractions import Fraction
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -462,7 +463,7 @@ def test_data_enclosure_holds_the_mean_jacobian_and_needs_the_hessian_bound(spli
             for (C, R), bl, bh in zip(encl, lo, hi):
                 C = np.array(C, dtype=float)
                 R = np.array(R, dtype=float)
-                for yv in rng.uniform(bl, bh, size=(20, m)):
+                for yv in rng.uniform(bl, bh, size=(8, m)):
                     Jb = _mean_jacobian(J, yv)
                     inside = np.all(np.abs(Jb - C) <= R + 1e-12 * (1 + np.abs(C)))
                     if must_hold:
@@ -556,3 +557,67 @@ def test_cli_run_without_known_dynamics_certifies_from_samples(tmp_path, capsys)
     assert json.loads((out / "certificate.json").read_text())["setting"] == "data"
     assert main(["verify", "--certificate", str(out)]) == 0
     assert capsys.readouterr().out.startswith("certified")
+
+
+# ============================================================================ a simulator
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "blackbox_oscillators.toml"
+
+
+def _simulator(hessian=0.2, shift=0.0, depends=True) -> systems.System:
+    """The example's three oscillators as a callable, with other declarations or ``f(0)``."""
+    ex = systems.load_spec(EXAMPLE)
+    decl = ex.declarations
+    fun = ex._callable
+    return systems.System.from_callable(
+        "oscillators", lambda X, U: fun(X, U) + shift, nx=6, state_box=ex.state_box,
+        state_names=ex.state_names, subsystems=ex.subsystems,
+        declarations=None if hessian is None else systems.Declarations(
+            hessian=hessian, depends_on=dict(decl.depends_on) if depends else None))
+
+
+def test_a_simulator_is_certified_from_its_declarations(rng):
+    from nlyap_opt.certification.compositional import ASSUMPTIONS_DECLARED
+    s = _simulator()
+    cert = certify_compositional(s, setting="data", **QUIET)
+    assert cert.certified and cert.assumptions == ASSUMPTIONS_DECLARED
+    assert "rests on declared H" in cert.summary()
+    assert cert.checks["structure"].startswith("declared")
+    # every stored bound is the declared H, 0 where depends_on rules a variable out
+    H0 = cert.pieces[0].hessian          # a1' reads a1, a2, c1, c2; a2' only a1, a2
+    assert H0.shape == (2, 4, 4) and H0[0].max() == 0.2 and np.all(H0[1][2:, :] == 0)
+    X = _points_in(cert, 4000, rng)
+    assert np.all(_vdot(s, cert, X) <= -cert.decay * cert.V(X) * (1 - 1e-9))
+    # without depends_on every derivative may read every state: one 6-D box per subsystem
+    wide = certify_compositional(_simulator(depends=False), setting="data", **QUIET)
+    assert all(len(p.neighbours) == 2 for p in wide.pieces)
+
+
+@pytest.mark.parametrize("kw,setting,words", [
+    ({}, "known", "needs the model f"),
+    ({"hessian": None}, "data", "declare hessian"),
+    ({"hessian": 0.1}, "data", "refutes its declared hessian"),
+])
+def test_a_simulator_without_the_declarations_it_needs_is_refused(kw, setting, words):
+    with pytest.raises(ConfigError, match=words):
+        certify_compositional(_simulator(**kw), setting=setting, **QUIET)
+
+
+def test_a_simulator_whose_origin_is_not_an_exact_equilibrium_is_not_certified():
+    cert = certify_compositional(_simulator(shift=1e-12), setting="data", **QUIET)
+    assert not cert.certified and "not an exact equilibrium" in cert.reason
+
+
+def test_cli_certifies_a_simulator_and_rechecks_it_only_when_allowed(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", str(EXAMPLE), "--out", str(out)]) == 0
+    assert "rests on declared H" in capsys.readouterr().out
+    assert main(["verify", "--certificate", str(out)]) == 3          # never runs the factory
+    assert "--allow-factory" in capsys.readouterr().err
+    assert main(["verify", "--certificate", str(out), "--system", str(EXAMPLE),
+                 "--allow-factory"]) == 0
+    d = json.loads((out / "certificate.json").read_text())
+    d["subsystems"][1]["hessian_bound"][1][0][0] = 0.1              # below the declared H
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "certificate.json").write_text(json.dumps(d))
+    assert main(["verify", "--certificate", str(tmp_path / "bad"), "--system", str(EXAMPLE),
+                 "--allow-factory"]) == 2

@@ -104,6 +104,9 @@ ASSUMPTIONS = [
 SETTINGS = ("known", "data")
 #: sub-boxes per axis of each subsystem's box that the data setting tries, in order
 DATA_SPLITS = (1, 2, 4)
+#: the most pieces (``split^m``) of one subsystem's box; a larger split is not tried (and a
+#: certificate that asks for one is refused)
+MAX_PIECES = 1024
 
 ASSUMPTIONS_DATA = [
     "f is the system's f, known to this certificate only through its values at "
@@ -118,9 +121,26 @@ ASSUMPTIONS_DATA = [
 ]
 
 
-def assumptions_of(setting: str) -> list[str]:
-    """The assumptions a compositional certificate of ``setting`` lists."""
-    return list(ASSUMPTIONS_DATA if setting == "data" else ASSUMPTIONS)
+ASSUMPTIONS_DECLARED = [
+    "f is the system's f, known to this certificate only through the simulator's values at "
+    "finite-difference points of each subsystem's box (each within the declared "
+    "sample_error of f, or exact when none is declared)",
+    "f is twice continuously differentiable on the domain box D with "
+    "|d2 f_k / dy_a dy_b| <= H for every k, a, b (declared hessian; 0 along the variables "
+    "f_k is declared not to depend on)",
+    "f_k reads only the states declared in depends_on (every state when it is not declared), "
+    "and f(0) = 0 exactly (the simulator returns 0 at the origin)",
+]
+
+
+def assumptions_of(setting: str, system=None) -> list[str]:
+    """The assumptions a compositional certificate of ``setting`` about ``system`` lists
+    (the data setting of a simulator without a graph rests on its declarations)."""
+    if setting != "data":
+        return list(ASSUMPTIONS)
+    if system is not None and not getattr(system, "has_model", False):
+        return list(ASSUMPTIONS_DECLARED)
+    return list(ASSUMPTIONS_DATA)
 
 
 # ============================================================================ the certificate
@@ -194,7 +214,9 @@ class CompositionalCertificate:
                     f"({len(self.pieces)} subsystems, {self.domain_box.shape[0]} states), "
                     f"dV/dt ≤ -{self.decay:.4g} V, inside the box D ("
                     + ("known dynamics" if self.setting == "known" else
-                       "sampled f with a second-derivative bound") + ", compositional)")
+                       "sampled f with a second-derivative bound") + ", compositional"
+                    + ("; rests on declared H, depends_on and f(0) = 0"
+                       if self.assumptions == ASSUMPTIONS_DECLARED else "") + ")")
         return f"{self.status.value}: {self.reason}"
 
     def to_dict(self) -> dict:
@@ -216,10 +238,18 @@ class CompositionalCertificate:
 
 # ============================================================================ structure
 def _structure(system, parts) -> list[tuple[int, ...]]:
-    """For each subsystem, the other subsystems its equations depend on (structurally)."""
-    f = system.f
+    """For each subsystem, the other subsystems its equations depend on: structurally in
+    the graph of ``f``, or, for a simulator without one, as declared (``depends_on``; a
+    state derivative not declared depends on every state)."""
     owner = {k: i for i, p in enumerate(parts) for k in p}
     out = []
+    if not getattr(system, "has_model", False):
+        deps = _declared_states(system)
+        for i, p in enumerate(parts):
+            dep = {owner[k] for r in p for k in deps[r]}
+            out.append(tuple(sorted(dep - {i})))
+        return out
+    f = system.f
     for i, p in enumerate(parts):
         fi = ca.vertcat(*[f[r] for r in p])
         dep = {owner[k] for k in range(system.nx) if ca.depends_on(fi, system.x[k])}
@@ -227,12 +257,31 @@ def _structure(system, parts) -> list[tuple[int, ...]]:
     return out
 
 
-def _refusal(system, parts) -> str:
+def _declared_states(system) -> list[tuple[int, ...]]:
+    """Per state derivative ``f_k``, the states it is declared to read (all when undeclared)."""
+    decl = system.declarations
+    deps = {} if decl is None else decl.dependencies(system.state_names, system.input_names)
+    return [tuple(c for c in deps[k] if c < system.nx) if k in deps else tuple(range(system.nx))
+            for k in range(system.nx)]
+
+
+def _refusal(system, parts, setting: str = "known") -> str:
     """Why the compositional method does not apply to ``system`` (``""``: it does)."""
     if not getattr(system, "has_model", False):
-        return ("the compositional method needs f's graph (the model, or the simulator whose "
-                "values and second derivatives it samples); this system has none: drop its "
-                "subsystems to run the neural method on its samples")
+        if setting == "known":
+            return ("a compositional certificate with --known-dynamics needs the model f; this "
+                    "system has none: run without --known-dynamics to certify it from the "
+                    "simulator's values and a declared second-derivative bound")
+        if getattr(system, "kind", "") != "callable":
+            return ("a sample file has values at its grid nodes only, and the compositional "
+                    "certificate evaluates f at its own finite-difference points: give the "
+                    "model ([rhs]) or a simulator (a factory returning System.from_callable), "
+                    "or drop the subsystems to run the neural method on the samples")
+        decl = system.declarations
+        if decl is None or decl.hessian is None:
+            return ("the compositional certificate of a simulator needs a bound on f's second "
+                    "derivatives: declare hessian (H), and depends_on for the states each "
+                    "derivative reads")
     if system.nu:
         return (f"the compositional method is for systems without inputs; {system.name!r} has "
                 f"{system.nu} (close the loop in f first)")
@@ -245,11 +294,16 @@ def _refusal(system, parts) -> str:
     return ""
 
 
+def _block_indices(parts, nbrs, i: int) -> list[int]:
+    """Subsystem ``i``'s variables ``y``: its states, then its neighbours' in order."""
+    return list(parts[i]) + [k for j in nbrs[i] for k in parts[j]]
+
+
 def _block_function(system, parts, nbrs, i: int):
-    """``(idx, y, f_i(y))``: subsystem ``i``'s variables (its states, then its neighbours' in
-    order), their symbol ``y`` and ``f_i`` of them with every other state 0 (``f_i`` reads
-    only these, :func:`_structure`)."""
-    idx = list(parts[i]) + [k for j in nbrs[i] for k in parts[j]]
+    """``(idx, y, f_i(y))``: subsystem ``i``'s variables (:func:`_block_indices`), their
+    symbol ``y`` and ``f_i`` of them with every other state 0 (``f_i`` reads only these,
+    :func:`_structure`)."""
+    idx = _block_indices(parts, nbrs, i)
     y = ca.SX.sym("y", len(idx))
     xs = ca.SX.zeros(system.nx)
     for a, k in enumerate(idx):
@@ -308,12 +362,21 @@ def hessian_bound(system, parts, nbrs, i: int) -> tuple[np.ndarray | None, str]:
     subsystem ``i``'s box ``Y_i`` (``k`` its states, ``y`` its and its neighbours' states),
     or ``(None, why)``.
 
-    From the simulator's graph: the outward-rounded interval enclosure of the second
-    derivatives (forward mode twice along symbolic seeds, evaluated at the identity seeds,
+    A simulator without a graph: the declared ``H`` for every entry, 0 where ``f_k`` is
+    declared not to read ``y_a`` or ``y_b`` (``depends_on``). With a graph: the
+    outward-rounded interval enclosure of the second derivatives (forward mode twice along
+    symbolic seeds, evaluated at the identity seeds,
     :func:`~nlyap_opt.certification.roa.sliced_enclosure`), the hull of its values on equal
     pieces of ``Y_i``, widened by CasADi's constant-folding allowance. Refused when the graph
     holds a non-smooth or partial operation (``f`` must be :math:`C^2` on ``D``).
     """
+    if not getattr(system, "has_model", False):
+        idx = _block_indices(parts, nbrs, i)
+        reads = _declared_states(system)
+        H = float(system.declarations.hessian)
+        return np.array([[[H if idx[a] in reads[k] and idx[b] in reads[k] else 0.0
+                           for b in range(len(idx))] for a in range(len(idx))]
+                         for k in parts[i]]), ""
     idx, y, fi = _block_function(system, parts, nbrs, i)
     m, ni = len(idx), len(parts[i])
     S1, S2 = ca.SX.sym("S", m, m), ca.SX.sym("T", m, m)
@@ -373,12 +436,13 @@ def _data_enclosures(system, parts, nbrs, i: int, H: np.ndarray, split: int
     :math:`H_{kjj}(a^2 + b^2)/(2(a + b)) \le H_{kjj}\max(a, b)/2` (Taylor with the Lagrange
     remainder), and for ``z ∈ S``, :math:`|\partial_j f_k(z) - \partial_j f_k(s)| \le
     \sum_i H_{kji} \max_{z \in S}|z_i - s_i|` (mean value theorem; ``S`` is convex). The
-    values of ``f_k`` are outward-rounded interval evaluations of the simulator at the float
-    points, the quotient is rounded outward with the exact ``a + b`` enclosed, and every
+    values of ``f_k`` are outward-rounded interval evaluations of the model's graph at the
+    float points (a simulator without a graph: its values, widened by the declared
+    ``sample_error``), the quotient is rounded outward with the exact ``a + b`` enclosed, and every
     error term is rounded up. The mean over the ``K`` slices (weights ``1/K``) is summed in
     exact rationals.
     """
-    idx, y, fi = _block_function(system, parts, nbrs, i)
+    idx = _block_indices(parts, nbrs, i)
     m, ni = len(idx), len(parts[i])
     H = np.asarray(H, dtype=float)
     slo, shi, nb = _slices(system.state_box[idx], split)
@@ -391,13 +455,12 @@ def _data_enclosures(system, parts, nbrs, i: int, H: np.ndarray, split: int
     for j in range(m):
         pts[:, 2 * j, j] = np.minimum(s[:, j] + h[:, j], shi[:, j])
         pts[:, 2 * j + 1, j] = np.maximum(s[:, j] - h[:, j], slo[:, j])
-    Interval, ia = interval_arithmetic()
-    flat = pts.reshape(-1, m)
-    val = evaluate(ca.Function(f"f_{i}", [y], [fi]), [Interval(flat, flat.copy())], ia)[0]
-    Flo = np.asarray(val.lo, dtype=float).reshape(nS, 2 * m, ni)
-    Fhi = np.asarray(val.hi, dtype=float).reshape(nS, 2 * m, ni)
+    Flo, Fhi = _values(system, parts, idx, i, pts.reshape(-1, m))
+    Flo, Fhi = Flo.reshape(nS, 2 * m, ni), Fhi.reshape(nS, 2 * m, ni)
     if not (np.all(np.isfinite(Flo)) and np.all(np.isfinite(Fhi))):
         return None, f"{_subsystem_name(system, parts, i)}: f_i is not finite on its box"
+    if not getattr(system, "has_model", False):
+        _refute_hessian(system, parts, idx, i, H, s, pts, Flo, Fhi)
     rho = up_sum(np.maximum(shi - s, s - slo))                     # (nS, m)
     Jlo = np.zeros((nS, ni, m))
     Jhi = np.zeros((nS, ni, m))
@@ -443,6 +506,66 @@ def _sum_error(terms: np.ndarray) -> np.ndarray:
     return up_roundings(gamma(K) * np.sum(np.abs(terms), axis=0), K + 1)
 
 
+def _values(system, parts, idx: list[int], i: int, pts: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Enclosures ``(lo, hi)``, shape ``(N, n_i)``, of ``f_i`` at the points ``pts`` of the
+    variables ``idx`` (every other state 0): the model's graph in outward-rounded interval
+    arithmetic, or the simulator's values ± its declared ``sample_error``."""
+    if getattr(system, "has_model", False):
+        _, y, fi = _block_function(system, parts, _structure(system, parts), i)
+        Interval, ia = interval_arithmetic()
+        val = evaluate(ca.Function(f"f_{i}", [y], [fi]), [Interval(pts, pts.copy())], ia)[0]
+        return (np.asarray(val.lo, dtype=float).reshape(len(pts), -1),
+                np.asarray(val.hi, dtype=float).reshape(len(pts), -1))
+    X = np.zeros((len(pts), system.nx))
+    X[:, idx] = pts
+    F = np.asarray(system.evaluate(X), dtype=float)[:, list(parts[i])]
+    eps = float(system.declarations.sample_error or 0.0)
+    if eps == 0.0:
+        return F, F.copy()
+    return dn_sum(F - eps), up_sum(F + eps)
+
+
+def _refute_hessian(system, parts, idx, i, H, s, pts, Flo, Fhi) -> None:
+    """Raise :class:`ConfigError` when the simulator's values refute the declared bound:
+    the second divided difference ``2[(f(p⁺) − f(s))/a − (f(s) − f(p⁻))/b]/(a + b)`` equals
+    ``∂²_j f_k`` at some point of the stencil, so beyond ``H[k][j][j]`` plus what the
+    declared sample error (and float rounding) can move it, the declaration is false."""
+    m = s.shape[1]
+    Clo, Chi = _values(system, parts, idx, i, s)
+    centre = 0.5 * (Clo + Chi)
+    value = 0.5 * (Flo + Fhi)
+    eps = float(system.declarations.sample_error or 0.0)
+    for j in range(m):
+        a = pts[:, 2 * j, j] - s[:, j]
+        b = s[:, j] - pts[:, 2 * j + 1, j]
+        d2 = 2.0 * ((value[:, 2 * j] - centre) / a[:, None]
+                    - (centre - value[:, 2 * j + 1]) / b[:, None]) / (a + b)[:, None]
+        scale = (np.abs(value[:, 2 * j]) + 2 * np.abs(centre) + np.abs(value[:, 2 * j + 1]))
+        slack = 2.0 * (2 * eps + 1e-12 * scale) * (1 / a + 1 / b)[:, None] / (a + b)[:, None]
+        excess = np.abs(d2) - H[None, :, j, j] - slack
+        if np.any(excess > 1e-9 * np.maximum(1.0, H[None, :, j, j])):
+            r, k = np.unravel_index(int(np.argmax(excess)), excess.shape)
+            at = ", ".join(f"{system.state_names[v]}={s[r, a_]:.4g}" for a_, v in enumerate(idx))
+            raise ConfigError(
+                f"the simulator refutes its declared hessian: the second difference of "
+                f"{system.state_names[parts[i][k]]}' along {system.state_names[idx[j]]} near "
+                f"({at}) is {d2[r, k]:.4g}, beyond H = {H[k, j, j]:.4g}; declare a larger "
+                "hessian (H ≥ every |second derivative| of f on the box)")
+
+
+def _estimated_A(system) -> np.ndarray:
+    """The linearisation of a simulator at the origin by central differences (a float
+    estimate that only chooses the ``P_i``; nothing is proved with it)."""
+    n = system.nx
+    h = 1e-6 * np.maximum(1.0, np.max(np.abs(system.state_box), axis=1))
+    X = np.zeros((2 * n, n))
+    X[np.arange(n), np.arange(n)] = h
+    X[n + np.arange(n), np.arange(n)] = -h
+    F = np.asarray(system.evaluate(X), dtype=float)
+    return ((F[:n] - F[n:]) / (2 * h[:, None])).T
+
+
 def _local_bounds(system, parts, nbrs, i: int, P, setting: str, hessian=None,
                   split: int = 1) -> tuple[list | None, str]:
     """The matrices ``N`` of :func:`_local_bound` for subsystem ``i``: one (``"known"``), or
@@ -476,6 +599,13 @@ def _equilibrium_refusal(system) -> str:
     exact rational arithmetic (:class:`~nlyap_opt.kernel.walker.ExactPointArithmetic`) gives
     the rational 0 in every component. Neither a float evaluation nor a substitution into
     the graph can prove it (both round; ``((x² + 10¹⁶) + 1) − 10¹⁶`` folds to 0 at 0)."""
+    if not getattr(system, "has_model", False):
+        f0 = system.evaluate(np.zeros((1, system.nx)))[0]
+        if np.any(f0 != 0.0):
+            return (f"the origin is not an exact equilibrium of the simulator (max |f(0)| = "
+                    f"{float(np.max(np.abs(f0))):.3g}); the compositional certificate needs "
+                    "f(0) = 0 exactly: shift the state, or make the simulator return 0 there")
+        return ""
     vals = exact_values(ca.Function("f0", [system.x], [system.f]), [0] * system.nx)
     if vals is None or not all(isinstance(v, Fraction) and v == 0 for v in vals):
         return ("the origin is not an equilibrium: f(0) is not exactly 0 (evaluated in exact "
@@ -499,6 +629,9 @@ def _hessian_refusal(system, parts, nbrs, pieces: list[Piece], setting: str, spl
         return f"split must be one of {', '.join(map(str, DATA_SPLITS))}, got {split!r}"
     for i, p in enumerate(pieces):
         m = len(p.states) + sum(len(parts[j]) for j in p.neighbours)
+        if split ** m > MAX_PIECES:
+            return (f"subsystem {i + 1}: split {split} cuts its {m}-dimensional box into "
+                    f"{split ** m} pieces, more than {MAX_PIECES}")
         H = None if p.hessian is None else np.asarray(p.hessian, dtype=float)
         if H is None or H.shape != (len(p.states), m, m) or not np.all(np.isfinite(H)) \
                 or np.any(H < 0):
@@ -537,21 +670,25 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
         Whether everything is proved, the per-condition verdicts, and the first failure.
     """
     parts = tuple(tuple(p.states) for p in pieces)
-    why = _refusal(system, parts)
+    why = _refusal(system, parts, setting if setting in SETTINGS else "known")
     if not why and parts != tuple(system.subsystems or ()):
         why = "the certificate's subsystems are not the system's declared subsystems"
     if why:
         return False, {"structure": why}, why
     checks: dict[str, str] = {}
     nbrs = _structure(system, parts)
+    graph = getattr(system, "has_model", False)
     if any(tuple(p.neighbours) != nb for p, nb in zip(pieces, nbrs)):
-        why = "the neighbours of some subsystem are not those of f's graph"
+        why = ("the neighbours of some subsystem are not those of f's graph" if graph else
+               "the neighbours of some subsystem are not those the system declares")
         return False, {"structure": why}, why
-    checks["structure"] = "proved (neighbours from f's graph)"
+    checks["structure"] = ("proved (neighbours from f's graph)" if graph else
+                           "declared (neighbours from depends_on)")
     why = _equilibrium_refusal(system)
     if why:
         return False, {**checks, "equilibrium": why}, why
-    checks["equilibrium"] = "proved (f(0) = 0 in exact rational arithmetic)"
+    checks["equilibrium"] = ("proved (f(0) = 0 in exact rational arithmetic)" if graph else
+                             "the simulator returns exactly 0 at the origin (declared exact)")
     try:
         w = [rational(v) for v in np.asarray(weights, dtype=float).ravel()]
         c, g = rational(level), rational(decay)
@@ -701,7 +838,7 @@ def certify_compositional(system, *, setting: str = "known",
         raise ConfigError(f"unknown compositional setting {setting!r}; use one of "
                           f"{', '.join(SETTINGS)}")
     parts = system.subsystems
-    why = _refusal(system, parts)
+    why = _refusal(system, parts, setting)
     if why:
         raise ConfigError(why)
     nbrs = _structure(system, parts)
@@ -710,15 +847,16 @@ def certify_compositional(system, *, setting: str = "known",
     def fail(reason, pieces=()):
         return CompositionalCertificate(CertStatus.NOT_CERTIFIED, reason, system.name,
                                         list(pieces), np.zeros(0), 0.0, 0.0, box,
-                                        assumptions=assumptions_of(setting),
+                                        assumptions=assumptions_of(setting, system),
                                         seconds=time.perf_counter() - t0, setting=setting)
 
     why = _equilibrium_refusal(system)
     if why:
         return fail(why)
     Ps = []
+    A = system.A if getattr(system, "has_model", False) else _estimated_A(system)
     for i, p in enumerate(parts):
-        P = _lyapunov_P(system.A[np.ix_(p, p)])
+        P = _lyapunov_P(A[np.ix_(p, p)])
         if P is None:
             return fail(f"subsystem {i + 1}'s linearisation is not Hurwitz: the compositional "
                         "method needs every subsystem stable on its own")
@@ -730,7 +868,10 @@ def certify_compositional(system, *, setting: str = "known",
             if hessians[i] is None:
                 return fail(why)
     why, best = "", None
+    dims = [len(_block_indices(parts, nbrs, i)) for i in range(len(parts))]
     for split in (DATA_SPLITS if setting == "data" else (1,)):
+        if split > 1 and split ** max(dims) > MAX_PIECES:
+            break
         bounds = []
         for i in range(len(parts)):
             Ns, why = _local_bounds(system, parts, nbrs, i, rational_matrix(Ps[i]), setting,
@@ -806,7 +947,7 @@ def _search(system, parts, nbrs, Ps, bounds, hessians, setting: str, split: int,
         if ok:
             return CompositionalCertificate(
                 CertStatus.CERTIFIED, "", system.name, pieces, w, level, gamma, box, checks,
-                assumptions_of(setting), seconds, setting, split), ""
+                assumptions_of(setting, system), seconds, setting, split), ""
     return None, why
 
 
@@ -942,7 +1083,7 @@ def recheck_compositional(path: str | Path, *, system=None,
         return result(False, refusal)
     if dbox.shape != sysm.state_box.shape or not np.array_equal(dbox, sysm.state_box):
         return result(False, "the certificate's domain box is not the system's state box")
-    if assumptions != assumptions_of(setting):
+    if assumptions != assumptions_of(setting, sysm):
         return result(False, "the certificate lists other assumptions than this method's "
                       "(an edited certificate.json?); rerun the command that wrote it")
     ok, checks, why = check_compositional(sysm, pieces, weights, level, decay,

@@ -305,7 +305,7 @@ def test_recheck_against_another_system_is_refused(saved):
     # the numbers alone, for a system whose box is smaller: still exact (the level check
     # is about the certificate's own box)
     ok, checks, why = check_compositional(other, saved[1].pieces, saved[1].weights,
-                                          saved[1].level, saved[1].decay)
+                                          saved[1].level, saved[1].decay, split=saved[1].split)
     assert not ok and "level" in checks and "leaves the box" in why
 
 
@@ -435,10 +435,11 @@ def _mean_jacobian(fun, y):
 @pytest.mark.parametrize("split", [1, 2])
 def test_data_enclosure_holds_the_mean_jacobian_and_needs_the_hessian_bound(split, rng):
     """Every piece's ``[C − R, C + R]`` holds ``J̄(y) = ∫₀¹ J(ty) dt`` at random ``y`` of the
-    piece (padded rows 0); with ``H = 0`` (the finite differences alone) it does not."""
+    piece (padded rows 0), from the samples with ``H`` and from the interval Jacobian
+    (``H = None``); with ``H = 0`` (the finite differences alone) it does not."""
     from nlyap_opt.certification.compositional import (
         _block_function,
-        _data_enclosures,
+        _piece_enclosures,
         _structure,
         hessian_bound,
     )
@@ -457,8 +458,8 @@ def test_data_enclosure_holds_the_mean_jacobian_and_needs_the_hessian_bound(spli
         lo, hi = box[None, :, 0].copy(), box[None, :, 1].copy()
         if split > 1:
             lo, hi, _ = _split_boxes(lo, hi, list(range(m)), split)
-        for H_used, must_hold in ((H, True), (np.zeros_like(H), False)):
-            encl, why = _data_enclosures(s, parts, nbrs, i, H_used, split)
+        for H_used, must_hold in ((H, True), (None, True), (np.zeros_like(H), False)):
+            encl, why = _piece_enclosures(s, parts, nbrs, i, H_used, split)
             assert len(encl) == len(lo), why
             for (C, R), bl, bh in zip(encl, lo, hi):
                 C = np.array(C, dtype=float)
@@ -546,8 +547,8 @@ def test_a_known_certificate_with_data_fields_is_refused(tmp_path, saved):
         d["subsystems"][0]["hessian_bound"] = [[[0.0] * 4] * 4] * 2
     cert = recheck_compositional(_edited(tmp_path, saved, add_h))
     assert not cert.certified and "second-derivative bounds" in cert.reason
-    with pytest.raises(ConfigError, match="'split' belongs to the data setting"):
-        recheck_compositional(_edited(tmp_path, saved, lambda d: d.update(split=2)))
+    with pytest.raises(ConfigError, match="'split' must be one of"):
+        recheck_compositional(_edited(tmp_path, saved, lambda d: d.update(split=3)))
 
 
 def test_cli_run_without_known_dynamics_certifies_from_samples(tmp_path, capsys):

@@ -69,7 +69,7 @@ from ..kernel.exact import (
 )
 from ..kernel.jsonio import read_file_bytes, save_timings, split_timings
 from ..kernel.provenance import fingerprint
-from ..kernel.rounding import dn, dn_sum, gamma, up, up_roundings, up_sum
+from ..kernel.rounding import FOLD, dn, dn_sum, gamma, up, up_roundings, up_sum
 from ..kernel.walker import compile_function, evaluate, exact_values
 from ..learned.interval_sup import interval_arithmetic
 from .certificate import (
@@ -107,6 +107,9 @@ DATA_SPLITS = (1, 2, 4)
 #: the most pieces (``split^m``) of one subsystem's box; a larger split is not tried (and a
 #: certificate that asks for one is refused)
 MAX_PIECES = 1024
+#: a split is tried only while all subsystems' boxes together have at most this many pieces
+#: (each piece costs exact rational checks)
+MAX_TOTAL_PIECES = 512
 
 ASSUMPTIONS_DATA = [
     "f is the system's f, known to this certificate only through its values at "
@@ -224,7 +227,8 @@ class CompositionalCertificate:
             "format": FORMAT, "version": VERSION, "status": self.status.value,
             "reason": self.reason, "system": self.system, "method": "compositional",
             "setting": self.setting,
-            **({"split": int(self.split)} if self.setting == "data" else {}),
+            **({"split": int(self.split)} if self.setting == "data" or self.split != 1
+               else {}),
             "certified_set": "{x : sum_i w_i x_i^T P_i x_i <= level}",
             "decrease_condition": "dV/dt <= -decay * V on the certified set",
             "domain_box": np.asarray(self.domain_box, dtype=float).tolist(),
@@ -422,13 +426,88 @@ def _slices(box: np.ndarray, split: int) -> tuple[np.ndarray, np.ndarray, int]:
     return slo.reshape(-1, m), shi.reshape(-1, m), nb
 
 
-def _data_enclosures(system, parts, nbrs, i: int, H: np.ndarray, split: int
-                     ) -> tuple[list | None, str]:
+def _difference_jacobian(system, parts, idx, i: int, H: np.ndarray, slo, shi):
+    """``(Jlo, Jhi, "")``, each ``(nS, n_i, m)``: the Jacobian of ``f_i`` on each slice box
+    from finite differences and ``H`` (:func:`_piece_enclosures`), or ``(None, None, why)``."""
+    m, ni = len(idx), len(parts[i])
+    name = _subsystem_name(system, parts, i)
+    if not np.all(shi > slo):
+        return None, None, f"{name}: a slice of its box has no width"
+    nS = len(slo)
+    s = 0.5 * (slo + shi)
+    h = 0.25 * (shi - slo)
+    pts = np.repeat(s[:, None, :], 2 * m, axis=1)                  # (nS, 2m, m)
+    for j in range(m):
+        pts[:, 2 * j, j] = np.minimum(s[:, j] + h[:, j], shi[:, j])
+        pts[:, 2 * j + 1, j] = np.maximum(s[:, j] - h[:, j], slo[:, j])
+    Flo, Fhi = _values(system, parts, idx, i, pts.reshape(-1, m))
+    Flo, Fhi = Flo.reshape(nS, 2 * m, ni), Fhi.reshape(nS, 2 * m, ni)
+    if not (np.all(np.isfinite(Flo)) and np.all(np.isfinite(Fhi))):
+        return None, None, f"{name}: f_i is not finite on its box"
+    if not getattr(system, "has_model", False):
+        _refute_hessian(system, parts, idx, i, H, s, pts, Flo, Fhi)
+    rho = up_sum(np.maximum(shi - s, s - slo))                     # (nS, m)
+    Jlo = np.zeros((nS, ni, m))
+    Jhi = np.zeros((nS, ni, m))
+    for j in range(m):
+        pp, pm = pts[:, 2 * j, j], pts[:, 2 * j + 1, j]
+        dl, dh = dn_sum(pp - pm), up_sum(pp - pm)
+        if not np.all(dl > 0):
+            return None, None, f"{name}: a difference step vanished"
+        nl = dn_sum(Flo[:, 2 * j] - Fhi[:, 2 * j + 1])             # (nS, ni)
+        nh = up_sum(Fhi[:, 2 * j] - Flo[:, 2 * j + 1])
+        ql = np.minimum(dn(nl / dl[:, None]), dn(nl / dh[:, None]))
+        qh = np.maximum(up(nh / dl[:, None]), up(nh / dh[:, None]))
+        amax = np.maximum(up_sum(pp - s[:, j]), up_sum(s[:, j] - pm))       # (nS,)
+        e = H[None, :, j, j] * amax[:, None] * 0.5 + rho @ H[:, j, :].T       # (nS, ni)
+        e = up_roundings(e, 2 * m + 4)
+        Jlo[:, :, j] = dn_sum(ql - e)
+        Jhi[:, :, j] = up_sum(qh + e)
+    if not (np.all(np.isfinite(Jlo)) and np.all(np.isfinite(Jhi))):
+        return None, None, f"{name}: the Jacobian enclosure is not finite"
+    return Jlo, Jhi, ""
+
+
+def _interval_jacobian(system, parts, nbrs, i: int, slo, shi):
+    """``(Jlo, Jhi, "")``, each ``(nS, n_i, m)``: the outward-rounded interval enclosure of
+    the Jacobian graph of ``f_i`` (a symbolic seed, evaluated at the identity:
+    :func:`~nlyap_opt.certification.roa.seeded_jacobian`) on each slice box, widened by
+    CasADi's constant-folding allowance; or ``(None, None, why)`` (as :func:`_local_bound`)."""
+    idx, y, fi = _block_function(system, parts, nbrs, i)
+    m, ni = len(idx), len(parts[i])
+    S = ca.SX.sym("S", m, m)
+    JS = ca.densify(ca.jtimes(fi, y, S))                       # (ni, m)
+    name = _subsystem_name(system, parts, i)
+    try:
+        if compile_function(ca.Function(f"local_{i}", [y, S], [fi, JS])).checked:
+            return None, None, (f"{name}: f uses non-smooth or partial operations; the "
+                                "compositional method needs f continuously differentiable "
+                                "on all of D")
+        Interval, ia = interval_arithmetic()
+        eye = np.tile(np.eye(m).ravel(order="F"), (len(slo), 1))
+        res = evaluate(ca.Function(f"jac_{i}", [y, S], [JS]),
+                       [Interval(slo, shi), Interval(eye, eye.copy())], ia)[0]
+    except UnsupportedOperationError as err:
+        return None, None, f"{name}: {err}"
+    lo = np.broadcast_to(np.asarray(res.lo, dtype=float).reshape(-1, ni * m), (len(slo), ni * m))
+    hi = np.broadcast_to(np.asarray(res.hi, dtype=float).reshape(-1, ni * m), (len(slo), ni * m))
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        return None, None, f"{name}: the Jacobian of f_i is not bounded on its box"
+    # column-major entries; the fold allowance |v|·2⁻³⁰ is exact but for underflow
+    lo = dn_sum(lo - up(np.abs(lo) * FOLD)).reshape(-1, m, ni).transpose(0, 2, 1)
+    hi = up_sum(hi + up(np.abs(hi) * FOLD)).reshape(-1, m, ni).transpose(0, 2, 1)
+    return lo, hi, ""
+
+
+def _piece_enclosures(system, parts, nbrs, i: int, H: np.ndarray | None, split: int
+                      ) -> tuple[list | None, str]:
     r"""``([(C, R), …], "")``: for each of the ``split^m`` pieces ``B`` of subsystem ``i``'s
     box, the exact rational centre and radius of an enclosure of
     :math:`\bar J_i(y) = \int_0^1 J_i(ty)\,dt` for every ``y ∈ B`` (``J_i`` the Jacobian of
-    ``f_i`` in ``y``, padded with zero rows to ``m × m``), from values of ``f_i`` and the
-    second-derivative bound ``H`` only; or ``(None, why)``.
+    ``f_i`` in ``y``, padded with zero rows to ``m × m``); or ``(None, why)``. With
+    ``H`` (the data setting) from values of ``f_i`` and the second-derivative bound ``H``
+    only; with ``H = None`` (the known setting) from the interval enclosure of the model's
+    Jacobian graph on each slice (:func:`_interval_jacobian`).
 
     On each slice box ``S`` (:func:`_slices`; ``ty ∈ S`` for ``t`` in its slice) with centre
     ``s``: the difference quotient :math:`q = (f_k(p^+) - f_k(p^-))/(a + b)` at
@@ -444,42 +523,14 @@ def _data_enclosures(system, parts, nbrs, i: int, H: np.ndarray, split: int
     """
     idx = _block_indices(parts, nbrs, i)
     m, ni = len(idx), len(parts[i])
-    H = np.asarray(H, dtype=float)
     slo, shi, nb = _slices(system.state_box[idx], split)
-    if not np.all(shi > slo):
-        return None, f"{_subsystem_name(system, parts, i)}: a slice of its box has no width"
-    nS = len(slo)
-    s = 0.5 * (slo + shi)
-    h = 0.25 * (shi - slo)
-    pts = np.repeat(s[:, None, :], 2 * m, axis=1)                  # (nS, 2m, m)
-    for j in range(m):
-        pts[:, 2 * j, j] = np.minimum(s[:, j] + h[:, j], shi[:, j])
-        pts[:, 2 * j + 1, j] = np.maximum(s[:, j] - h[:, j], slo[:, j])
-    Flo, Fhi = _values(system, parts, idx, i, pts.reshape(-1, m))
-    Flo, Fhi = Flo.reshape(nS, 2 * m, ni), Fhi.reshape(nS, 2 * m, ni)
-    if not (np.all(np.isfinite(Flo)) and np.all(np.isfinite(Fhi))):
-        return None, f"{_subsystem_name(system, parts, i)}: f_i is not finite on its box"
-    if not getattr(system, "has_model", False):
-        _refute_hessian(system, parts, idx, i, H, s, pts, Flo, Fhi)
-    rho = up_sum(np.maximum(shi - s, s - slo))                     # (nS, m)
-    Jlo = np.zeros((nS, ni, m))
-    Jhi = np.zeros((nS, ni, m))
-    for j in range(m):
-        pp, pm = pts[:, 2 * j, j], pts[:, 2 * j + 1, j]
-        dl, dh = dn_sum(pp - pm), up_sum(pp - pm)
-        if not np.all(dl > 0):
-            return None, f"{_subsystem_name(system, parts, i)}: a difference step vanished"
-        nl = dn_sum(Flo[:, 2 * j] - Fhi[:, 2 * j + 1])             # (nS, ni)
-        nh = up_sum(Fhi[:, 2 * j] - Flo[:, 2 * j + 1])
-        ql = np.minimum(dn(nl / dl[:, None]), dn(nl / dh[:, None]))
-        qh = np.maximum(up(nh / dl[:, None]), up(nh / dh[:, None]))
-        amax = np.maximum(up_sum(pp - s[:, j]), up_sum(s[:, j] - pm))       # (nS,)
-        e = H[None, :, j, j] * amax[:, None] * 0.5 + rho @ H[:, j, :].T       # (nS, ni)
-        e = up_roundings(e, 2 * m + 4)
-        Jlo[:, :, j] = dn_sum(ql - e)
-        Jhi[:, :, j] = up_sum(qh + e)
-    if not (np.all(np.isfinite(Jlo)) and np.all(np.isfinite(Jhi))):
-        return None, f"{_subsystem_name(system, parts, i)}: the Jacobian enclosure is not finite"
+    if H is None:
+        Jlo, Jhi, why = _interval_jacobian(system, parts, nbrs, i, slo, shi)
+    else:
+        Jlo, Jhi, why = _difference_jacobian(system, parts, idx, i, np.asarray(H, dtype=float),
+                                             slo, shi)
+    if Jlo is None:
+        return None, why
     K = TAYLOR_SLICES
     Jlo, Jhi = Jlo.reshape(K, nb, ni, m), Jhi.reshape(K, nb, ni, m)
     # the means over the slices, rounded outward: a K-term float sum is within
@@ -568,12 +619,13 @@ def _estimated_A(system) -> np.ndarray:
 
 def _local_bounds(system, parts, nbrs, i: int, P, setting: str, hessian=None,
                   split: int = 1) -> tuple[list | None, str]:
-    """The matrices ``N`` of :func:`_local_bound` for subsystem ``i``: one (``"known"``), or
-    one per piece of its box (``"data"``, :func:`_data_enclosures` with ``hessian``)."""
-    if setting == "known":
+    """The matrices ``N`` of :func:`_local_bound` for subsystem ``i``, one per piece of its
+    box (:func:`_piece_enclosures`; the known setting's one piece is :func:`_local_bound`)."""
+    if setting == "known" and split == 1:
         N, why = _local_bound(system, parts, nbrs, i, P)
         return (None if N is None else [N]), why
-    encl, why = _data_enclosures(system, parts, nbrs, i, hessian, split)
+    encl, why = _piece_enclosures(system, parts, nbrs, i,
+                                  hessian if setting == "data" else None, split)
     if encl is None:
         return None, why
     m, ni = len(encl[0][0]), len(parts[i])
@@ -615,16 +667,12 @@ def _equilibrium_refusal(system) -> str:
 
 # ============================================================================ the checks
 def _hessian_refusal(system, parts, nbrs, pieces: list[Piece], setting: str, split) -> str:
-    """``""`` when the pieces' second-derivative bounds fit ``setting``: none in the known
-    setting; in the data setting a finite ``H ≥ 0`` of shape ``(n_i, m_i, m_i)`` per piece,
-    entrywise at least :func:`hessian_bound` of the simulator, and ``split`` one of
-    :data:`DATA_SPLITS`."""
+    """``""`` when ``split`` is one of :data:`DATA_SPLITS` with at most :data:`MAX_PIECES`
+    pieces per subsystem box, and the pieces' second-derivative bounds fit ``setting``: none
+    in the known setting; in the data setting a finite ``H ≥ 0`` of shape
+    ``(n_i, m_i, m_i)`` per piece, entrywise at least :func:`hessian_bound`."""
     if setting not in SETTINGS:
         return f"unknown setting {setting!r} (one of {', '.join(SETTINGS)})"
-    if setting == "known":
-        if any(p.hessian is not None for p in pieces):
-            return "a certificate of the known setting holds second-derivative bounds"
-        return ""
     if isinstance(split, bool) or split not in DATA_SPLITS:
         return f"split must be one of {', '.join(map(str, DATA_SPLITS))}, got {split!r}"
     for i, p in enumerate(pieces):
@@ -632,6 +680,12 @@ def _hessian_refusal(system, parts, nbrs, pieces: list[Piece], setting: str, spl
         if split ** m > MAX_PIECES:
             return (f"subsystem {i + 1}: split {split} cuts its {m}-dimensional box into "
                     f"{split ** m} pieces, more than {MAX_PIECES}")
+    if setting == "known":
+        if any(p.hessian is not None for p in pieces):
+            return "a certificate of the known setting holds second-derivative bounds"
+        return ""
+    for i, p in enumerate(pieces):
+        m = len(p.states) + sum(len(parts[j]) for j in p.neighbours)
         H = None if p.hessian is None else np.asarray(p.hessian, dtype=float)
         if H is None or H.shape != (len(p.states), m, m) or not np.all(np.isfinite(H)) \
                 or np.any(H < 0):
@@ -647,8 +701,8 @@ def _hessian_refusal(system, parts, nbrs, pieces: list[Piece], setting: str, spl
 
 
 def check_compositional(system, pieces: list[Piece], weights, level: float,
-                        decay: float, *, setting: str = "known", split: int = 1
-                        ) -> tuple[bool, dict, str]:
+                        decay: float, *, setting: str = "known", split: int = 1,
+                        _local: list | None = None) -> tuple[bool, dict, str]:
     """Prove the certificate's conditions for ``system`` exactly (module docstring, 1–3).
 
     Parameters
@@ -663,6 +717,10 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
         How the local inequalities enclose the Jacobian of ``f`` (:data:`SETTINGS`); the
         data setting needs every piece's ``hessian`` (checked to bound the simulator's
         second derivatives) and the pieces per axis ``split`` (one of :data:`DATA_SPLITS`).
+    _local : list, optional
+        Internal: per subsystem, the matrices ``N`` that :func:`_local_bounds` formed for
+        these pieces' ``P``, setting and split, taken as given (the search passes the ones it
+        has just formed; the re-check never does, and forms them here).
 
     Returns
     -------
@@ -719,7 +777,8 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
         if alphas[i] < 0 or any(b < 0 for b in betas[i]):
             why = f"subsystem {i + 1}: α and β must be ≥ 0"
             return False, {**checks, "local": why}, why
-        Ns, why = _local_bounds(system, parts, nbrs, i, Ps[i], setting, p.hessian, split)
+        Ns, why = (_local[i], "") if _local is not None else \
+            _local_bounds(system, parts, nbrs, i, Ps[i], setting, p.hessian, split)
         if Ns is None:
             return False, {**checks, "local": why}, why
         sizes = [len(p.states)] + [len(parts[j]) for j in p.neighbours]
@@ -732,8 +791,10 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
             return False, {**checks, "local": why}, why
     dim = max(len(p.states) + sum(len(parts[j]) for j in p.neighbours) for p in pieces)
     if setting == "known":
-        checks["local"] = (f"proved on {len(pieces)} boxes of dimension ≤ {dim} (mean-value "
-                           "form of f_i's interval Jacobian, P_i exact, exact LDLᵀ)")
+        checks["local"] = (f"proved on {len(pieces)} boxes of dimension ≤ {dim}"
+                           + (f", each cut into {split} pieces per axis" if split > 1 else "")
+                           + " (mean-value form of f_i's interval Jacobian, P_i exact, exact "
+                           "LDLᵀ)")
     else:
         checks["local"] = (f"proved on {len(pieces)} boxes of dimension ≤ {dim}, each cut into "
                            f"{split} pieces per axis (mean-value form of the Jacobian enclosed "
@@ -818,8 +879,10 @@ def certify_compositional(system, *, setting: str = "known",
         ``"known"``: the local inequalities use the model's Jacobian graph. ``"data"`` (the
         unknown-dynamics setting): they use only values of ``f`` at finite-difference
         points and a bound on its second derivatives (:func:`hessian_bound`, stored in the
-        certificate); each subsystem's box is cut into 1, 2, then 4 pieces per axis
-        (:data:`DATA_SPLITS`) until a certificate is proved.
+        certificate). In both settings each subsystem's box is cut into 1, 2 and 4 pieces
+        per axis (:data:`DATA_SPLITS`; at most :data:`MAX_PIECES` pieces per box and
+        :data:`MAX_TOTAL_PIECES` in all), each piece with its own local matrix, and the
+        largest certified set is kept.
     log : callable
 
     Returns
@@ -869,8 +932,9 @@ def certify_compositional(system, *, setting: str = "known",
                 return fail(why)
     why, best = "", None
     dims = [len(_block_indices(parts, nbrs, i)) for i in range(len(parts))]
-    for split in (DATA_SPLITS if setting == "data" else (1,)):
-        if split > 1 and split ** max(dims) > MAX_PIECES:
+    for split in DATA_SPLITS:
+        if split > 1 and (split ** max(dims) > MAX_PIECES
+                          or sum(split ** m for m in dims) > MAX_TOTAL_PIECES):
             break
         bounds = []
         for i in range(len(parts)):
@@ -939,9 +1003,9 @@ def _search(system, parts, nbrs, Ps, bounds, hessians, setting: str, split: int,
            "interconnection is too strong on this domain (a smaller box may certify)")
     for _, theta, pieces, w, level, gamma in sorted(candidates, key=lambda c: c[:2]):
         ok, checks, why = check_compositional(system, pieces, w, level, gamma,
-                                              setting=setting, split=split)
+                                              setting=setting, split=split, _local=bounds)
         seconds = time.perf_counter() - t0
-        where = f", {split} pieces per axis" if setting == "data" else ""
+        where = f", {split} pieces per axis" if split > 1 or setting == "data" else ""
         log(f"compositional: {len(pieces)} subsystems{where}, θ = {theta}, level {level:.6g}, "
             f"decay {gamma:.4g}: {'certified' if ok else why} ({seconds:.2f} s)")
         if ok:
@@ -1045,14 +1109,11 @@ def recheck_compositional(path: str | Path, *, system=None,
         raise ConfigError(f"malformed compositional certificate {path}: 'setting' must be one "
                           f"of {', '.join(SETTINGS)}, got {setting!r}; rerun the command that "
                           "wrote it")
-    split = d.get("split", 1) if setting == "data" else 1
-    if setting == "data" and (not isinstance(split, int) or isinstance(split, bool)
-                              or split not in DATA_SPLITS):
+    split = d.get("split", 1)
+    if setting == "data" and "split" not in d or not isinstance(split, int) \
+            or isinstance(split, bool) or split not in DATA_SPLITS:
         raise ConfigError(f"malformed compositional certificate {path}: 'split' must be one of "
                           f"{', '.join(map(str, DATA_SPLITS))}; rerun the command that wrote it")
-    if setting == "known" and "split" in d:
-        raise ConfigError(f"malformed compositional certificate {path}: 'split' belongs to the "
-                          "data setting; rerun the command that wrote it")
     try:
         pieces = [Piece(tuple(int(k) for k in s["states"]),
                         tuple(int(j) for j in s["neighbours"]),

@@ -622,3 +622,22 @@ def test_cli_certifies_a_simulator_and_rechecks_it_only_when_allowed(tmp_path, c
     (tmp_path / "bad" / "certificate.json").write_text(json.dumps(d))
     assert main(["verify", "--certificate", str(tmp_path / "bad"), "--system", str(EXAMPLE),
                  "--allow-factory"]) == 2
+
+
+@pytest.mark.parametrize("edit", [
+    lambda d: d["subsystems"][0]["hessian_bound"][0][2].__setitem__(2, "0.3"),
+    lambda d: d["subsystems"][0]["hessian_bound"][0][2].__setitem__(2, True),
+    lambda d: d.update(level=str(d["level"])),
+    lambda d: d["subsystems"][0].update(states=["0", "1"]),
+    lambda d: d["subsystems"][0].update(alpha=True),
+])
+def test_recheck_refuses_numbers_that_are_not_json_numbers(tmp_path, edit):
+    """Strings and booleans where a certificate writes numbers are edits (exit 3)."""
+    s = systems.get("lyznet_10d")
+    out = tmp_path / "run"
+    save_compositional(certify_compositional(s, setting="data", **QUIET), s, out)
+    d = json.loads((out / "certificate.json").read_text())
+    edit(d)
+    (out / "certificate.json").write_text(json.dumps(d))
+    with pytest.raises(ConfigError, match="malformed"):
+        recheck_compositional(out)

@@ -1063,6 +1063,31 @@ def _typed(d: dict, key: str, kind, path):
     return v
 
 
+def _reals(v, key: str) -> np.ndarray:
+    """``v`` (a JSON number or nested lists of them) as a float array; a string, a boolean
+    or anything else is an edit (``TypeError``), a ragged list a ``ValueError``."""
+    def leaves(x):
+        if isinstance(x, list):
+            for e in x:
+                yield from leaves(e)
+        else:
+            yield x
+    for x in leaves(v):
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            raise TypeError(f"{key} must hold numbers, got {type(x).__name__} {x!r}")
+    try:
+        return np.asarray(v, dtype=float)
+    except OverflowError:
+        raise ValueError(f"{key} holds an integer beyond float range") from None
+
+
+def _ints(v, key: str) -> list[int]:
+    """``v`` as a list of JSON integers (never booleans, floats or strings)."""
+    if not isinstance(v, list) or any(isinstance(x, bool) or not isinstance(x, int) for x in v):
+        raise TypeError(f"{key} must be a list of integers, got {v!r}")
+    return list(v)
+
+
 def recheck_compositional(path: str | Path, *, system=None,
                           allow_factory: bool = False) -> CompositionalCertificate:
     """Prove a saved compositional certificate again, from its numbers and the system.
@@ -1115,17 +1140,17 @@ def recheck_compositional(path: str | Path, *, system=None,
         raise ConfigError(f"malformed compositional certificate {path}: 'split' must be one of "
                           f"{', '.join(map(str, DATA_SPLITS))}; rerun the command that wrote it")
     try:
-        pieces = [Piece(tuple(int(k) for k in s["states"]),
-                        tuple(int(j) for j in s["neighbours"]),
-                        np.asarray(s["P"], dtype=float), float(s["alpha"]),
-                        tuple(float(b) for b in s["beta"]),
+        pieces = [Piece(tuple(_ints(s["states"], "states")),
+                        tuple(_ints(s["neighbours"], "neighbours")),
+                        _reals(s["P"], "P"), float(_reals(s["alpha"], "alpha")),
+                        tuple(float(b) for b in _reals(s["beta"], "beta").ravel()),
                         None if "hessian_bound" not in s else
-                        np.asarray(s["hessian_bound"], dtype=float)) for s in d["subsystems"]]
-        weights = np.asarray(d["weights"], dtype=float)
+                        _reals(s["hessian_bound"], "hessian_bound")) for s in d["subsystems"]]
+        weights = _reals(d["weights"], "weights")
         if weights.ndim != 1:
             raise ValueError(f"weights must be a list of numbers, got shape {weights.shape}")
-        level, decay = float(d["level"]), float(d["decay"])
-        dbox = np.asarray(d["domain_box"], dtype=float)
+        level, decay = float(_reals(d["level"], "level")), float(_reals(d["decay"], "decay"))
+        dbox = _reals(d["domain_box"], "domain_box")
         assumptions = [str(a) for a in d["assumptions"]]
     except (KeyError, TypeError, ValueError) as err:
         raise ConfigError(f"malformed compositional certificate {path}: {type(err).__name__}: "

@@ -109,7 +109,7 @@ DATA_SPLITS = (1, 2, 4)
 MAX_PIECES = 1024
 #: a split is tried only while all subsystems' boxes together have at most this many pieces
 #: (each piece costs exact rational checks)
-MAX_TOTAL_PIECES = 512
+MAX_TOTAL_PIECES = 1024
 
 ASSUMPTIONS_DATA = [
     "f is the system's f, known to this certificate only through its values at "

@@ -213,13 +213,14 @@ class CompositionalCertificate:
     def summary(self) -> str:
         """One line: status, region, decay rate (or why not)."""
         if self.certified:
-            return (f"certified: level {self.level:.6g} of V = Σ w_i x_iᵀP_i x_i "
+            head = ("certified under the declared assumptions: hessian (H); depends_on; "
+                    "f(0) = 0" if self.assumptions == ASSUMPTIONS_DECLARED else "certified")
+            return (f"{head}: level {self.level:.6g} of V = Σ w_i x_iᵀP_i x_i "
                     f"({len(self.pieces)} subsystems, {self.domain_box.shape[0]} states), "
                     f"dV/dt ≤ -{self.decay:.4g} V, inside the box D ("
                     + ("known dynamics" if self.setting == "known" else
                        "sampled f with a second-derivative bound") + ", compositional"
-                    + ("; rests on declared H, depends_on and f(0) = 0"
-                       if self.assumptions == ASSUMPTIONS_DECLARED else "") + ")")
+                    + ")")
         return f"{self.status.value}: {self.reason}"
 
     def to_dict(self) -> dict:
@@ -1028,7 +1029,11 @@ def _decay(pieces: list[Piece], w: np.ndarray) -> float:
 
 # ============================================================================ files
 def save_compositional(cert: CompositionalCertificate, system, out: str | Path) -> Path:
-    """Write ``out/certificate.json`` (timings in ``timings.json`` beside it)."""
+    """Write ``out/certificate.json`` (timings in ``timings.json`` beside it), and the
+    human-readable ``report.md`` and ``subsystems.png``
+    (:func:`nlyap_opt.workflow.report.write_compositional_report`)."""
+    from ..workflow.report import write_compositional_report  # lazy: the report layer
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     d = cert.to_dict()
@@ -1039,6 +1044,7 @@ def save_compositional(cert: CompositionalCertificate, system, out: str | Path) 
     clean, timings = split_timings(d)
     write_json_atomic(out / "certificate.json", clean)
     save_timings(out / "timings.json", timings)
+    write_compositional_report(out, system, cert, d["provenance"])
     return out / "certificate.json"
 
 

@@ -14,7 +14,8 @@ from ..kernel.errors import raise_if_interrupted
 from ..kernel.network import Network
 from ..kernel.provenance import describe
 
-__all__ = ["write_report", "plot_roa", "status_line", "winner_line"]
+__all__ = ["write_report", "plot_roa", "status_line", "winner_line",
+           "write_compositional_report", "plot_subsystems"]
 
 
 def _fmt(v, digits=4):
@@ -277,6 +278,117 @@ def plot_roa(path, system, cert: dict, out: Path):
                  "blue: Ω_c (V ≤ level in D), green: E, black: true ROA, red: D, B_ε"
                  + (", orange: X_I" if XI is not None else ""),
                  fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ============================================================================ compositional
+def write_compositional_report(out: Path, system, cert, provenance: dict | None = None):
+    """Write ``report.md`` and ``subsystems.png`` of a compositional certificate
+    (:class:`nlyap_opt.certification.compositional.CompositionalCertificate`): the status,
+    what is certified, one row per subsystem, the checks, the assumptions, the numeric
+    environment, and per subsystem the projection of the certified set onto its states."""
+    out = Path(out)
+    names = system.state_names
+    lines = [f"# {system.name}: compositional certificate", "",
+             f"**Status: {cert.summary()}**", ""]
+    if cert.certified:
+        box = ", ".join(f"{names[k]} ∈ [{lo:g}, {hi:g}]"
+                        for k, (lo, hi) in enumerate(cert.domain_box))
+        lines += [
+            "## What is certified", "",
+            f"Ω_c = {{x : Σ_i w_i x_iᵀ P_i x_i ≤ c}} with c = {cert.level:.6g} lies in the box "
+            f"D ({box}), and dV/dt ≤ −{cert.decay:.4g} V on it: Ω_c is forward invariant and "
+            "every solution that starts in it converges exponentially to the origin"
+            + (" (the dynamics known to the certificate only through sampled values and a "
+               "bound on their second derivatives)" if cert.setting == "data" else "") + ".",
+            "",
+            f"Each subsystem's box was cut into {cert.split} piece(s) per axis, one exact local "
+            "test per piece.", "",
+            "## Subsystems", "",
+            "| # | states | neighbours | w_i | α_i | β_ij | half-widths of Ω_c along its "
+            "states |",
+            "|---|---|---|---|---|---|---|"]
+        for i, (w, p) in enumerate(zip(cert.weights, cert.pieces)):
+            inv = np.diag(np.linalg.inv(np.asarray(p.P, dtype=float)))
+            half = np.sqrt(cert.level / w * inv)
+            nb = ", ".join(str(j + 1) for j in p.neighbours) or "–"
+            beta = ", ".join(f"{b:.3g}" for b in p.beta) or "–"
+            lines.append(f"| {i + 1} | {', '.join(names[k] for k in p.states)} | {nb} | "
+                         f"{w:.4g} | {p.alpha:.4g} | {beta} | "
+                         + ", ".join(f"{names[k]}: {h:.3g}" for k, h in zip(p.states, half))
+                         + " |")
+    else:
+        lines += ["## Why not certified", "", cert.reason or "–"]
+    if cert.checks:
+        lines += ["", "## Checks", ""] + [f"- {k}: {v}" for k, v in cert.checks.items()]
+    lines += ["", "## Assumptions", ""] + [f"- {a}" for a in cert.assumptions]
+    if provenance:
+        lines += ["", "## Numeric environment (what determined these numbers)", "",
+                  "The same input gives the same certificate bit for bit on the same "
+                  "fingerprint; re-checking the certificate gives the same verdict anywhere.",
+                  ""] + describe(provenance)
+    lines += ["", "## Times (s)", "", f"- certification: {cert.seconds:.2f}"]
+    if cert.certified:
+        lines += ["", "![subsystems](subsystems.png)"]
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+    if cert.certified:
+        try:
+            plot_subsystems(out / "subsystems.png", system, cert)
+        except Exception as err:  # a plot must never lose a certificate
+            raise_if_interrupted(err)
+            print(f"warning: subsystems.png not written: {err}")
+
+
+#: at most this many subsystems are drawn in ``subsystems.png``
+PLOTTED_SUBSYSTEMS = 25
+
+
+def plot_subsystems(path, system, cert):
+    """Per subsystem (the first :data:`PLOTTED_SUBSYSTEMS`), the projection of the certified
+    set onto its states — exactly the ellipse ``w_i x_iᵀ P_i x_i ≤ c`` (the other terms of V
+    are ≥ 0 and vanish at 0) — inside the box D; a subsystem of one state is an interval, of
+    more than two the slice of its first two states."""
+    plt = deps.pyplot()
+    pieces = cert.pieces[:PLOTTED_SUBSYSTEMS]
+    cols = min(5, len(pieces))
+    rows = (len(pieces) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False)
+    names = system.state_names
+    box = cert.domain_box
+    t = np.linspace(0, 2 * np.pi, 241)
+    for ax, (i, (w, p)) in zip(axes.ravel(), enumerate(zip(cert.weights, pieces))):
+        P = np.asarray(p.P, dtype=float)
+        ks = list(p.states)
+        if len(ks) == 1:
+            h = np.sqrt(cert.level / (w * P[0, 0]))
+            ax.plot([-h, h], [0, 0], lw=4, color="tab:green")
+            ax.set_xlim(box[ks[0]] * 1.05)
+            ax.set_yticks([])
+            ax.axvline(box[ks[0], 0], color="k")
+            ax.axvline(box[ks[0], 1], color="k")
+        else:
+            # the projection of {w xᵀPx ≤ c} onto two coordinates is {yᵀ S⁻¹ y ≤ c/w},
+            # S the 2x2 block of P⁻¹ (the shadow of an ellipsoid is an ellipse)
+            S = np.linalg.inv(P)[:2, :2]
+            L = np.linalg.cholesky(S * cert.level / w)
+            e = L @ np.vstack([np.cos(t), np.sin(t)])
+            ax.fill(e[0], e[1], color="tab:green", alpha=0.35, label="certified (projection)")
+            ax.plot(e[0], e[1], color="tab:green")
+            bx, by = box[ks[0]], box[ks[1]]
+            ax.plot([bx[0], bx[1], bx[1], bx[0], bx[0]], [by[0], by[0], by[1], by[1], by[0]],
+                    color="k", lw=1, label="box D")
+            ax.set_ylabel(names[ks[1]])
+            ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel(names[ks[0]])
+        ax.set_title(f"subsystem {i + 1}", fontsize=9)
+    for ax in axes.ravel()[len(pieces):]:
+        ax.axis("off")
+    more = len(cert.pieces) - len(pieces)
+    fig.suptitle(f"{system.name}: projections of the certified set"
+                 + (f" (first {len(pieces)} of {len(cert.pieces)} subsystems)" if more else ""),
+                 fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -131,3 +131,26 @@ def test_a_radius_below_the_inner_balls_level_is_skipped_before_the_bound(vdp):
                              log=lambda m: None)
     assert not cert.certified
     assert "ε = 1.5: candidate level" in cert.reason and "inner ball's level" in cert.reason
+
+
+def test_the_inner_ellipse_bound_is_computed_once_per_closed_loop(vdp, monkeypatch):
+    """``cannot_beat`` then ``least_level`` on the same problem (a CEGIS iterate) reuse one
+    :func:`inner_ellipse_bound`; another radius computes its own, with the same answers as a
+    fresh ``VolumeToBeat``."""
+    from dataclasses import replace
+
+    import nlyap_opt.certification.certificate as certificate
+    s, problem = vdp
+    calls = []
+    real = certificate.inner_ellipse_bound
+    monkeypatch.setattr(certificate, "inner_ellipse_bound",
+                        lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    beat = VolumeToBeat(1.0, BOX, N, "x")
+    why = beat.cannot_beat(problem, 0.5)
+    least = beat.least_level(problem)
+    assert len(calls) == 1
+    other = replace(problem, inner=problem.inner / 2)
+    assert beat.least_level(other) == VolumeToBeat(1.0, BOX, N, "x").least_level(other)
+    assert len(calls) == 3
+    assert (why, least) == (VolumeToBeat(1.0, BOX, N, "x").cannot_beat(problem, 0.5),
+                            VolumeToBeat(1.0, BOX, N, "x").least_level(problem))

@@ -983,6 +983,10 @@ class VolumeToBeat:
     n: int
     label: str
     ellipses: InnerEllipseCache | None = None
+    #: the last :func:`inner_ellipse_bound` computed, with the system, controller and
+    #: radius it is of (a CEGIS iterate asks :meth:`cannot_beat` and :meth:`least_level`
+    #: about the same closed loop)
+    _memo: list = field(default_factory=list, init=False, repr=False, compare=False)
 
     def bound(self, problem: RoaProblem, level: float) -> float:
         """An upper bound of the grid volume of a certificate of ``problem`` at any level up to
@@ -1009,7 +1013,13 @@ class VolumeToBeat:
             return np.einsum("ij,jk,ik->i", pts, Pe, pts) <= float(res["level"]) * (1 + 1e-9)
         if not problem.known and not getattr(problem.system, "has_model", False):
             return None
-        return inner_ellipse_bound(problem.system, problem.controller, problem.inner, pts)
+        for system, controller, inner, n, ell in self._memo:
+            if system is problem.system and controller is problem.controller \
+                    and inner == problem.inner and n == len(pts):
+                return ell
+        ell = inner_ellipse_bound(problem.system, problem.controller, problem.inner, pts)
+        self._memo[:] = [(problem.system, problem.controller, problem.inner, len(pts), ell)]
+        return ell
 
     def least_level(self, problem: RoaProblem) -> float:
         """A level below which no level of ``problem`` can win: :meth:`bound` is below

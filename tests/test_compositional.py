@@ -569,13 +569,20 @@ def test_cli_run_without_known_dynamics_certifies_from_samples(tmp_path, capsys)
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "blackbox_oscillators.toml"
 
 
-def _simulator(hessian=0.2, shift=0.0, depends=True) -> systems.System:
-    """The example's three oscillators as a callable, with other declarations or ``f(0)``."""
+def _simulator(hessian=0.2, shift=0.0, depends=True, lie=0.0) -> systems.System:
+    """The example's three oscillators as a callable, with other declarations or ``f(0)``;
+    ``lie``: a2' also reads c1 (declared: a1, a2 only)."""
     ex = systems.load_spec(EXAMPLE)
     decl = ex.declarations
     fun = ex._callable
+
+    def f(X, U):
+        F = fun(X, U) + shift
+        F[:, 1] += lie * X[:, 4]
+        return F
+
     return systems.System.from_callable(
-        "oscillators", lambda X, U: fun(X, U) + shift, nx=6, state_box=ex.state_box,
+        "oscillators", f, nx=6, state_box=ex.state_box,
         state_names=ex.state_names, subsystems=ex.subsystems,
         declarations=None if hessian is None else systems.Declarations(
             hessian=hessian, depends_on=dict(decl.depends_on) if depends else None))
@@ -602,6 +609,7 @@ def test_a_simulator_is_certified_from_its_declarations(rng):
     ({}, "known", "needs the model f"),
     ({"hessian": None}, "data", "declare hessian"),
     ({"hessian": 0.1}, "data", "refutes its declared hessian"),
+    ({"lie": 1e-6}, "data", "refutes its declared depends_on: a2'"),
 ])
 def test_a_simulator_without_the_declarations_it_needs_is_refused(kw, setting, words):
     with pytest.raises(ConfigError, match=words):

@@ -97,12 +97,12 @@ ASSUMPTIONS = [
     "only smooth operations defined everywhere; checked)",
 ]
 
-#: how the local inequalities learn the Jacobian of f: ``"known"``, from the model's Jacobian
+#: how the local inequalities enclose the Jacobian of f: ``"known"``, from the model's Jacobian
 #: graph (interval arithmetic); ``"data"``, from values of f at finite-difference points and
 #: a bound on f's second derivatives (the unknown-dynamics setting of ``nlyap run`` without
 #: ``--known-dynamics``)
 SETTINGS = ("known", "data")
-#: sub-boxes per axis of each subsystem's box that the data setting tries, in order
+#: pieces per axis of each subsystem's box that a run tries (both settings)
 DATA_SPLITS = (1, 2, 4)
 #: the most pieces (``split^m``) of one subsystem's box; a larger split is not tried (and a
 #: certificate that asks for one is refused)
@@ -187,7 +187,7 @@ class CompositionalCertificate:
     seconds: float = 0.0
     #: ``"known"`` or ``"data"`` (:data:`SETTINGS`)
     setting: str = "known"
-    #: data setting: each subsystem's box is cut into ``split`` pieces along every axis
+    #: each subsystem's box is cut into ``split`` pieces along every axis
     split: int = 1
 
     @property
@@ -579,7 +579,8 @@ def _values(system, parts, idx: list[int], i: int, pts: np.ndarray
 
 
 def _refute_hessian(system, parts, idx, i, H, s, pts, Flo, Fhi) -> None:
-    """Raise :class:`ConfigError` when the simulator's values refute the declared bound:
+    """Raise :class:`ConfigError` when the simulator's values refute its declarations (then
+    :func:`_refute_dependencies`). The declared bound:
     the second divided difference ``2[(f(p⁺) − f(s))/a − (f(s) − f(p⁻))/b]/(a + b)`` equals
     ``∂²_j f_k`` at some point of the stencil, so beyond ``H[k][j][j]`` plus what the
     declared sample error (and float rounding) can move it, the declaration is false."""
@@ -604,6 +605,34 @@ def _refute_hessian(system, parts, idx, i, H, s, pts, Flo, Fhi) -> None:
                 f"{system.state_names[parts[i][k]]}' along {system.state_names[idx[j]]} near "
                 f"({at}) is {d2[r, k]:.4g}, beyond H = {H[k, j, j]:.4g}; declare a larger "
                 "hessian (H ≥ every |second derivative| of f on the box)")
+    _refute_dependencies(system, parts, idx, i, s, centre, eps)
+
+
+def _refute_dependencies(system, parts, idx, i, s, centre, eps: float) -> None:
+    """Raise :class:`ConfigError` when the simulator refutes its declared ``depends_on``:
+    at the slice centres ``s``, every state a derivative ``f_k`` of subsystem ``i`` is
+    declared not to read is moved to a (seeded) random value in the box; ``f_k`` must not
+    change beyond twice the declared sample error (and float rounding)."""
+    reads = _declared_states(system)
+    rng = np.random.default_rng(0)
+    lo, hi = system.state_box[:, 0], system.state_box[:, 1]
+    for r, k in enumerate(parts[i]):
+        others = [v for v in range(system.nx) if v not in reads[k]]
+        if not others:
+            continue
+        X = np.zeros((len(s), system.nx))
+        X[:, idx] = s
+        X[:, others] = lo[others] + (hi[others] - lo[others]) * rng.random((len(s), len(others)))
+        F = np.asarray(system.evaluate(X), dtype=float)[:, k]
+        diff = np.abs(F - centre[:, r])
+        allowed = 2 * eps + 1e-12 * (np.abs(F) + np.abs(centre[:, r])) + 1e-300
+        if np.any(~(diff <= allowed)):
+            q = int(np.argmax(np.where(np.isnan(diff), np.inf, diff - allowed)))
+            raise ConfigError(
+                f"the simulator refutes its declared depends_on: {system.state_names[k]}' "
+                f"changes by {diff[q]:.3g} when states it is declared not to read "
+                f"({', '.join(system.state_names[v] for v in others)}) move; declare every "
+                f"state {system.state_names[k]}' reads")
 
 
 def _estimated_A(system) -> np.ndarray:

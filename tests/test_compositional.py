@@ -569,23 +569,30 @@ def test_cli_run_without_known_dynamics_certifies_from_samples(tmp_path, capsys)
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "blackbox_oscillators.toml"
 
 
-def _simulator(hessian=0.2, shift=0.0, depends=True, lie=0.0) -> systems.System:
+def _simulator(hessian=0.2, shift=0.0, depends=True, lie=0.0, mixed=0.0, noise=None,
+               fail=None) -> systems.System:
     """The example's three oscillators as a callable, with other declarations or ``f(0)``;
-    ``lie``: a2' also reads c1 (declared: a1, a2 only)."""
+    ``lie``: a2' also reads c1 (declared: a1, a2 only); ``mixed``: a1' gains
+    ``mixed·a1·a2`` (pure second derivatives 0); ``noise``: the declared sample error;
+    ``fail``: an exception the simulator raises away from the origin."""
     ex = systems.load_spec(EXAMPLE)
     decl = ex.declarations
     fun = ex._callable
 
     def f(X, U):
+        if fail is not None and np.any(X != 0):
+            raise fail
         F = fun(X, U) + shift
         F[:, 1] += lie * X[:, 4]
+        F[:, 0] += mixed * X[:, 0] * X[:, 1]
         return F
 
     return systems.System.from_callable(
         "oscillators", f, nx=6, state_box=ex.state_box,
         state_names=ex.state_names, subsystems=ex.subsystems,
         declarations=None if hessian is None else systems.Declarations(
-            hessian=hessian, depends_on=dict(decl.depends_on) if depends else None))
+            hessian=hessian, depends_on=dict(decl.depends_on) if depends else None,
+            sample_error=noise))
 
 
 def test_a_simulator_is_certified_from_its_declarations(rng):
@@ -610,6 +617,9 @@ def test_a_simulator_is_certified_from_its_declarations(rng):
     ({"hessian": None}, "data", "declare hessian"),
     ({"hessian": 0.1}, "data", "refutes its declared hessian"),
     ({"lie": 1e-6}, "data", "refutes its declared depends_on: a2'"),
+    ({"mixed": 1.0}, "data", "second difference of a1' along a1 and a2"),
+    ({"noise": 1e-6}, "data", "cannot show"),
+    ({"fail": ZeroDivisionError("boom")}, "data", "failed .ZeroDivisionError: boom."),
 ])
 def test_a_simulator_without_the_declarations_it_needs_is_refused(kw, setting, words):
     with pytest.raises(ConfigError, match=words):
@@ -654,3 +664,16 @@ def test_recheck_refuses_numbers_that_are_not_json_numbers(tmp_path, edit):
     (out / "certificate.json").write_text(json.dumps(d))
     with pytest.raises(ConfigError, match="malformed"):
         recheck_compositional(out)
+
+
+def test_recheck_refuses_a_split_beyond_the_total_pieces():
+    """A split whose pieces over all subsystems pass MAX_TOTAL_PIECES (lyznet_10d at 4 per
+    axis: 5 boxes of 4⁴) is refused before any work; the run's own split is proved."""
+    from nlyap_opt.certification.compositional import MAX_TOTAL_PIECES
+    s = systems.get("lyznet_10d")
+    cert = certify_compositional(s, setting="data", **QUIET)
+    assert cert.certified and 5 * 4 ** 4 > MAX_TOTAL_PIECES
+    args = (s, cert.pieces, cert.weights, cert.level, cert.decay)
+    ok, checks, why = check_compositional(*args, setting="data", split=4)
+    assert not ok and "pieces in all" in why
+    assert check_compositional(*args, setting="data", split=cert.split)[0]

@@ -50,6 +50,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
@@ -126,8 +127,8 @@ ASSUMPTIONS_DATA = [
 
 ASSUMPTIONS_DECLARED = [
     "f is the system's f, known to this certificate only through the simulator's values at "
-    "finite-difference points of each subsystem's box (each within the declared "
-    "sample_error of f, or exact when none is declared)",
+    "finite-difference points of each subsystem's box, taken as exact (no sample_error may "
+    "be declared)",
     "f is twice continuously differentiable on the domain box D with "
     "|d2 f_k / dy_a dy_b| <= H for every k, a, b (declared hessian; 0 along the variables "
     "f_k is declared not to depend on)",
@@ -287,6 +288,10 @@ def _refusal(system, parts, setting: str = "known") -> str:
             return ("the compositional certificate of a simulator needs a bound on f's second "
                     "derivatives: declare hessian (H), and depends_on for the states each "
                     "derivative reads")
+        if decl.sample_error:
+            return ("the compositional certificate needs f(0) = 0 exactly, which a simulator "
+                    f"with a sample error ({decl.sample_error:g} declared) cannot show: give "
+                    "the model ([rhs]), or a simulator whose values are exact")
     if system.nu:
         return (f"the compositional method is for systems without inputs; {system.name!r} has "
                 f"{system.nu} (close the loop in f first)")
@@ -447,6 +452,7 @@ def _difference_jacobian(system, parts, idx, i: int, H: np.ndarray, slo, shi):
         return None, None, f"{name}: f_i is not finite on its box"
     if not getattr(system, "has_model", False):
         _refute_hessian(system, parts, idx, i, H, s, pts, Flo, Fhi)
+        _refute_curvature(system, parts, idx, i, H)
     rho = up_sum(np.maximum(shi - s, s - slo))                     # (nS, m)
     Jlo = np.zeros((nS, ni, m))
     Jhi = np.zeros((nS, ni, m))
@@ -528,16 +534,21 @@ def _piece_enclosures(system, parts, nbrs, i: int, H: np.ndarray | None, split: 
     if H is None:
         Jlo, Jhi, why = _interval_jacobian(system, parts, nbrs, i, slo, shi)
     else:
-        Jlo, Jhi, why = _difference_jacobian(system, parts, idx, i, np.asarray(H, dtype=float),
-                                             slo, shi)
+        with np.errstate(all="ignore"):
+            Jlo, Jhi, why = _difference_jacobian(system, parts, idx, i,
+                                                 np.asarray(H, dtype=float), slo, shi)
     if Jlo is None:
         return None, why
     K = TAYLOR_SLICES
     Jlo, Jhi = Jlo.reshape(K, nb, ni, m), Jhi.reshape(K, nb, ni, m)
     # the means over the slices, rounded outward: a K-term float sum is within
     # γ_K Σ|terms| of the exact one; division by K = 16 is exact but for underflow
-    lo_mean = dn(dn_sum(np.sum(Jlo, axis=0) - _sum_error(Jlo)) / K)
-    hi_mean = up(up_sum(np.sum(Jhi, axis=0) + _sum_error(Jhi)) / K)
+    with np.errstate(all="ignore"):
+        lo_mean = dn(dn_sum(np.sum(Jlo, axis=0) - _sum_error(Jlo)) / K)
+        hi_mean = up(up_sum(np.sum(Jhi, axis=0) + _sum_error(Jhi)) / K)
+    if not (np.all(np.isfinite(lo_mean)) and np.all(np.isfinite(hi_mean))):
+        return None, (f"{_subsystem_name(system, parts, i)}: the Jacobian enclosure is not "
+                      "finite (second-derivative bound or values too large)")
     out = []
     zero = Fraction(0)
     for b in range(nb):
@@ -571,11 +582,32 @@ def _values(system, parts, idx: list[int], i: int, pts: np.ndarray
                 np.asarray(val.hi, dtype=float).reshape(len(pts), -1))
     X = np.zeros((len(pts), system.nx))
     X[:, idx] = pts
-    F = np.asarray(system.evaluate(X), dtype=float)[:, list(parts[i])]
+    F = _simulate(system, X)[:, list(parts[i])]
     eps = float(system.declarations.sample_error or 0.0)
     if eps == 0.0:
         return F, F.copy()
     return dn_sum(F - eps), up_sum(F + eps)
+
+
+def _simulate(system, X: np.ndarray) -> np.ndarray:
+    """``f`` of a simulator at the states ``X``: a :class:`ConfigError` naming the problem
+    when it raises, returns complex numbers, or returns NaN or infinity."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", np.exceptions.ComplexWarning)
+            F = np.asarray(system.evaluate(X), dtype=float)
+    except (KeyboardInterrupt, ConfigError):
+        raise
+    except (Exception, SystemExit) as err:   # the user's code: any failure is the simulator's
+        raise ConfigError(f"the simulator of {system.name!r} failed ({type(err).__name__}: "
+                          f"{err}) when called on {len(X)} state"
+                          f"{'' if len(X) == 1 else 's'}; fix the simulator") from None
+    if not np.all(np.isfinite(F)):
+        k = int(np.argmax(~np.all(np.isfinite(F), axis=1)))
+        at = ", ".join(f"{n}={v:.4g}" for n, v in zip(system.state_names, X[k]))
+        raise ConfigError(f"the simulator of {system.name!r} returned NaN or infinity at "
+                          f"({at}); the compositional certificate needs f finite on the box")
+    return F
 
 
 def _refute_hessian(system, parts, idx, i, H, s, pts, Flo, Fhi) -> None:
@@ -608,6 +640,67 @@ def _refute_hessian(system, parts, idx, i, H, s, pts, Flo, Fhi) -> None:
     _refute_dependencies(system, parts, idx, i, s, centre, eps)
 
 
+#: seeded random points of a subsystem's box at which a simulator's second differences
+#: (pure and mixed) are compared with its declared bound
+REFUTE_POINTS = 64
+
+
+def _refute_curvature(system, parts, idx, i: int, H: np.ndarray) -> None:
+    """Raise :class:`ConfigError` when the simulator's second differences refute ``H`` at
+    :data:`REFUTE_POINTS` seeded random points ``z`` of subsystem ``i``'s box (steps ``h``
+    of 1/16 of the box, the stencils inside it): ``(f(z+h_j) − 2f(z) + f(z−h_j))/h_j²`` is
+    ``∂²_j f_k`` at some point, ``Δ_jl f / (4 h_j h_l)`` (the four corners ``z ± h_j ± h_l``)
+    is ``∂_j∂_l f_k`` at some point; beyond ``H[k][j][l]`` and the float slack, the
+    declaration is false (this refutes, it never proves)."""
+    box = system.state_box[idx]
+    m, ni = len(idx), len(parts[i])
+    h = (box[:, 1] - box[:, 0]) / 16
+    rng = np.random.default_rng(1)
+    z = (box[:, 0] + h) + (box[:, 1] - box[:, 0] - 2 * h) * rng.random((REFUTE_POINTS, m))
+    offsets = [np.zeros(m)]
+    for j in range(m):
+        for sj in (1, -1):
+            e = np.zeros(m)
+            e[j] = sj * h[j]
+            offsets.append(e)
+    pairs = [(j, q) for j in range(m) for q in range(j + 1, m)]
+    for j, q in pairs:
+        for sj, sq in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+            e = np.zeros(m)
+            e[j], e[q] = sj * h[j], sq * h[q]
+            offsets.append(e)
+    offs = np.array(offsets)
+    pts = np.clip((z[:, None, :] + offs[None]).reshape(-1, m), box[:, 0], box[:, 1])
+    lo, hi = _values(system, parts, idx, i, pts)
+    F = (0.5 * (lo + hi)).reshape(REFUTE_POINTS, len(offs), ni)
+    A = np.abs(F)
+    bad = []
+    with np.errstate(all="ignore"):
+        for j in range(m):
+            fp, fm, f0 = F[:, 1 + 2 * j], F[:, 2 + 2 * j], F[:, 0]
+            d = (fp - 2 * f0 + fm) / h[j] ** 2
+            slack = 1e-12 * (A[:, 1 + 2 * j] + 2 * A[:, 0] + A[:, 2 + 2 * j]) / h[j] ** 2
+            bad.append((d, slack, H[:, j, j], j, j))
+        base = 1 + 2 * m
+        for n, (j, q) in enumerate(pairs):
+            c = F[:, base + 4 * n: base + 4 * n + 4]
+            d = (c[:, 0] - c[:, 1] - c[:, 2] + c[:, 3]) / (4 * h[j] * h[q])
+            slack = 1e-12 * A[:, base + 4 * n: base + 4 * n + 4].sum(axis=1) / (4 * h[j] * h[q])
+            bad.append((d, slack, np.maximum(H[:, j, q], H[:, q, j]), j, q))
+    for d, slack, Hjq, j, q in bad:
+        excess = np.abs(d) - Hjq[None, :] - slack
+        if np.any(excess > 1e-9 * np.maximum(1.0, Hjq[None, :])):
+            r, k = np.unravel_index(int(np.argmax(excess)), excess.shape)
+            at = ", ".join(f"{system.state_names[v]}={z[r, a]:.4g}" for a, v in enumerate(idx))
+            along = system.state_names[idx[j]] + ("" if j == q else
+                                                  f" and {system.state_names[idx[q]]}")
+            raise ConfigError(
+                f"the simulator refutes its declared hessian: a second difference of "
+                f"{system.state_names[parts[i][k]]}' along {along} near ({at}) is "
+                f"{d[r, k]:.4g}, beyond H = {Hjq[k]:.4g}; declare a larger hessian "
+                "(H ≥ every |second derivative| of f on the box, mixed ones included)")
+
+
 def _refute_dependencies(system, parts, idx, i, s, centre, eps: float) -> None:
     """Raise :class:`ConfigError` when the simulator refutes its declared ``depends_on``:
     at the slice centres ``s``, every state a derivative ``f_k`` of subsystem ``i`` is
@@ -623,7 +716,7 @@ def _refute_dependencies(system, parts, idx, i, s, centre, eps: float) -> None:
         X = np.zeros((len(s), system.nx))
         X[:, idx] = s
         X[:, others] = lo[others] + (hi[others] - lo[others]) * rng.random((len(s), len(others)))
-        F = np.asarray(system.evaluate(X), dtype=float)[:, k]
+        F = _simulate(system, X)[:, k]
         diff = np.abs(F - centre[:, r])
         allowed = 2 * eps + 1e-12 * (np.abs(F) + np.abs(centre[:, r])) + 1e-300
         if np.any(~(diff <= allowed)):
@@ -639,12 +732,18 @@ def _estimated_A(system) -> np.ndarray:
     """The linearisation of a simulator at the origin by central differences (a float
     estimate that only chooses the ``P_i``; nothing is proved with it)."""
     n = system.nx
-    h = 1e-6 * np.maximum(1.0, np.max(np.abs(system.state_box), axis=1))
+    box = system.state_box
+    h = np.minimum(1e-6 * np.maximum(1.0, np.max(np.abs(box), axis=1)),
+                   0.25 * np.min(np.abs(box), axis=1))
     X = np.zeros((2 * n, n))
     X[np.arange(n), np.arange(n)] = h
     X[n + np.arange(n), np.arange(n)] = -h
-    F = np.asarray(system.evaluate(X), dtype=float)
-    return ((F[:n] - F[n:]) / (2 * h[:, None])).T
+    F = _simulate(system, X)
+    A = ((F[:n] - F[n:]) / (2 * h[:, None])).T
+    if not np.all(np.isfinite(A)):
+        raise ConfigError(f"the linearisation of {system.name!r} at the origin (central "
+                          "differences of the simulator) is not finite")
+    return A
 
 
 def _local_bounds(system, parts, nbrs, i: int, P, setting: str, hessian=None,
@@ -682,7 +781,7 @@ def _equilibrium_refusal(system) -> str:
     the rational 0 in every component. Neither a float evaluation nor a substitution into
     the graph can prove it (both round; ``((x² + 10¹⁶) + 1) − 10¹⁶`` folds to 0 at 0)."""
     if not getattr(system, "has_model", False):
-        f0 = system.evaluate(np.zeros((1, system.nx)))[0]
+        f0 = _simulate(system, np.zeros((1, system.nx)))[0]
         if np.any(f0 != 0.0):
             return (f"the origin is not an exact equilibrium of the simulator (max |f(0)| = "
                     f"{float(np.max(np.abs(f0))):.3g}); the compositional certificate needs "
@@ -705,11 +804,14 @@ def _hessian_refusal(system, parts, nbrs, pieces: list[Piece], setting: str, spl
         return f"unknown setting {setting!r} (one of {', '.join(SETTINGS)})"
     if isinstance(split, bool) or split not in DATA_SPLITS:
         return f"split must be one of {', '.join(map(str, DATA_SPLITS))}, got {split!r}"
-    for i, p in enumerate(pieces):
-        m = len(p.states) + sum(len(parts[j]) for j in p.neighbours)
+    dims = [len(p.states) + sum(len(parts[j]) for j in p.neighbours) for p in pieces]
+    for i, m in enumerate(dims):
         if split ** m > MAX_PIECES:
             return (f"subsystem {i + 1}: split {split} cuts its {m}-dimensional box into "
                     f"{split ** m} pieces, more than {MAX_PIECES}")
+    if split > 1 and sum(split ** m for m in dims) > MAX_TOTAL_PIECES:
+        return (f"split {split} cuts the subsystems' boxes into "
+                f"{sum(split ** m for m in dims)} pieces in all, more than {MAX_TOTAL_PIECES}")
     if setting == "known":
         if any(p.hessian is not None for p in pieces):
             return "a certificate of the known setting holds second-derivative bounds"
@@ -801,8 +903,11 @@ def check_compositional(system, pieces: list[Piece], weights, level: float,
     if why:
         return False, {**checks, "second derivatives": why}, why
     if setting == "data":
-        checks["second derivatives"] = ("proved (each stored H bounds the interval enclosure "
-                                        "of f's second derivatives on its subsystem's box)")
+        checks["second derivatives"] = (
+            "proved (each stored H bounds the interval enclosure of f's second derivatives on "
+            "its subsystem's box)" if graph else
+            "declared (each stored H is at least the declared hessian where depends_on allows; "
+            "not refuted by the simulator's second differences)")
     for i, p in enumerate(pieces):
         if alphas[i] < 0 or any(b < 0 for b in betas[i]):
             why = f"subsystem {i + 1}: α and β must be ≥ 0"

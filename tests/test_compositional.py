@@ -677,3 +677,20 @@ def test_recheck_refuses_a_split_beyond_the_total_pieces():
     ok, checks, why = check_compositional(*args, setting="data", split=4)
     assert not ok and "pieces in all" in why
     assert check_compositional(*args, setting="data", split=cert.split)[0]
+
+
+def test_a_large_simulator_is_bound_by_seeded_points_not_a_grid():
+    """Past 12 variables a callable's binding evaluates it at CALLABLE_POINTS seeded points
+    (2^d grid nodes would be millions): the same binding twice, another f another binding."""
+    from nlyap_opt.certification.certificate import CALLABLE_POINTS, system_binding
+    rows = []
+
+    def make(scale):
+        def f(X, U):
+            rows.append(len(X))
+            return -scale * X
+        return systems.System.from_callable("wide", f, nx=16, state_box=[[-1, 1]] * 16)
+
+    a = system_binding(make(1.0))
+    assert rows == [1, CALLABLE_POINTS]        # the equilibrium check, then the binding
+    assert system_binding(make(1.0)) == a and system_binding(make(2.0)) != a

@@ -155,6 +155,9 @@ def _graph(F: ca.Function) -> list:
 
 #: nodes per axis of the grid on which a black-box callable's values enter its fingerprint
 CALLABLE_NODES = 3
+#: beyond this many grid nodes (2 per axis past 12 variables), a callable's fingerprint uses
+#: this many seeded points of its box instead
+CALLABLE_POINTS = 3 ** 8
 
 
 def _system_parts(system) -> dict:
@@ -182,8 +185,12 @@ def _system_parts(system) -> dict:
         else:   # a callable: its values on a small grid of its sampling box, 12 digits
             box = np.asarray(system.sampling_box, dtype=float)
             n = CALLABLE_NODES if CALLABLE_NODES ** len(box) <= 3 ** 8 else 2
-            axes = [np.linspace(lo, hi, n) for lo, hi in box]
-            pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(box))
+            if n ** len(box) <= CALLABLE_POINTS:
+                axes = [np.linspace(lo, hi, n) for lo, hi in box]
+                pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(box))
+            else:   # beyond 12 variables: seeded points (PCG64: the same on every machine)
+                u = np.random.default_rng(0).random((CALLABLE_POINTS, len(box)))
+                pts = box[:, 0] + (box[:, 1] - box[:, 0]) * u
             vals = system.evaluate(pts[:, :system.nx], pts[:, system.nx:] if system.nu
                                    else None)
             parts["f"] = [_floats(box), [f"{v:.12e}" for v in np.asarray(vals).ravel()]]

@@ -443,7 +443,7 @@ def test_data_enclosure_holds_the_mean_jacobian_and_needs_the_hessian_bound(spli
         _structure,
         hessian_bound,
     )
-    from nlyap_opt.certification.roa import _split_boxes
+    from nlyap_opt.certification.roa import split_boxes
     s = _coupled()
     parts = s.subsystems
     nbrs = _structure(s, parts)
@@ -457,7 +457,7 @@ def test_data_enclosure_holds_the_mean_jacobian_and_needs_the_hessian_bound(spli
         box = s.state_box[idx]
         lo, hi = box[None, :, 0].copy(), box[None, :, 1].copy()
         if split > 1:
-            lo, hi, _ = _split_boxes(lo, hi, list(range(m)), split)
+            lo, hi, _ = split_boxes(lo, hi, list(range(m)), split)
         for H_used, must_hold in ((H, True), (None, True), (np.zeros_like(H), False)):
             encl, why = _piece_enclosures(s, parts, nbrs, i, H_used, split)
             assert len(encl) == len(lo), why

@@ -17,9 +17,9 @@ from nlyap_opt.certification.certificate import RoaProblem
 from nlyap_opt.certification.roa import (
     SaturatedLoop,
     TaylorDecrease,
-    _split_boxes,
     mean_value_form,
     quadratic_form,
+    split_boxes,
 )
 from nlyap_opt.design.control import (
     lqr,
@@ -55,7 +55,7 @@ def test_pieces_cover_each_box():
     (shared float edges, the outer edges the box's own)."""
     lo = np.array([[-1.0, 0.1, -0.3], [-2.0, -0.7, 0.2]])
     hi = np.array([[0.5, 0.3, 0.9], [1.0, 0.1, 0.25]])
-    plo, phi, pieces = _split_boxes(lo, hi, [0, 2], 3)
+    plo, phi, pieces = split_boxes(lo, hi, [0, 2], 3)
     assert pieces == 9 and plo.shape == (18, 3)
     rng = np.random.default_rng(0)
     for i in range(2):

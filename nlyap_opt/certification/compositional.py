@@ -59,6 +59,7 @@ import casadi as ca
 import numpy as np
 from scipy.linalg import eigh, solve_continuous_lyapunov
 
+from ..kernel import rounding
 from ..kernel.errors import ConfigError, UnsupportedOperationError
 from ..kernel.exact import (
     float_down,
@@ -70,7 +71,7 @@ from ..kernel.exact import (
 )
 from ..kernel.jsonio import read_file_bytes, save_timings, split_timings
 from ..kernel.provenance import fingerprint
-from ..kernel.rounding import FOLD, dn, dn_sum, gamma, up, up_roundings, up_sum
+from ..kernel.rounding import FOLD, dn, dn_sum, up, up_roundings, up_sum
 from ..kernel.walker import compile_function, evaluate, exact_values
 from ..learned.interval_sup import interval_arithmetic
 from .certificate import (
@@ -80,7 +81,7 @@ from .certificate import (
     system_binding,
     write_json_atomic,
 )
-from .roa import TAYLOR_SLICES, _split_boxes, mean_value_form, sliced_enclosure
+from .roa import TAYLOR_SLICES, mean_value_form, sliced_enclosure, split_boxes
 
 __all__ = ["FORMAT", "VERSION", "Piece", "CompositionalCertificate", "certify_compositional",
            "check_compositional", "recheck_compositional", "save_compositional",
@@ -422,7 +423,7 @@ def _slices(box: np.ndarray, split: int) -> tuple[np.ndarray, np.ndarray, int]:
     lo, hi = box[None, :, 0].copy(), box[None, :, 1].copy()
     nb = 1
     if split > 1:
-        lo, hi, nb = _split_boxes(lo, hi, list(range(m)), split)
+        lo, hi, nb = split_boxes(lo, hi, list(range(m)), split)
     K = TAYLOR_SLICES
     t = (np.arange(K + 1) / K)[:, None, None]              # k/16: exact
     a_lo, b_lo = t[:-1] * lo[None], t[1:] * lo[None]
@@ -566,7 +567,7 @@ def _sum_error(terms: np.ndarray) -> np.ndarray:
     """An upper bound of ``|fl(Σ_k t_k) − Σ_k t_k|`` for numpy's sum over axis 0:
     ``γ_K Σ|t_k|`` (Higham), with the rounding of ``Σ|t_k|`` and of the product covered."""
     K = terms.shape[0]
-    return up_roundings(gamma(K) * np.sum(np.abs(terms), axis=0), K + 1)
+    return up_roundings(rounding.gamma(K) * np.sum(np.abs(terms), axis=0), K + 1)
 
 
 def _values(system, parts, idx: list[int], i: int, pts: np.ndarray
@@ -1163,11 +1164,9 @@ def _decay(pieces: list[Piece], w: np.ndarray) -> float:
 
 # ============================================================================ files
 def save_compositional(cert: CompositionalCertificate, system, out: str | Path) -> Path:
-    """Write ``out/certificate.json`` (timings in ``timings.json`` beside it), and the
-    human-readable ``report.md`` and ``subsystems.png``
+    """Write ``out/certificate.json`` (timings in ``timings.json`` beside it); ``nlyap run``
+    adds ``report.md`` and ``subsystems.png``
     (:func:`nlyap_opt.workflow.report.write_compositional_report`)."""
-    from ..workflow.report import write_compositional_report  # lazy: the report layer
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     d = cert.to_dict()
@@ -1178,7 +1177,6 @@ def save_compositional(cert: CompositionalCertificate, system, out: str | Path) 
     clean, timings = split_timings(d)
     write_json_atomic(out / "certificate.json", clean)
     save_timings(out / "timings.json", timings)
-    write_compositional_report(out, system, cert, d["provenance"])
     return out / "certificate.json"
 
 

@@ -88,6 +88,7 @@ __all__ = [
     "axis_count", "LevelCandidate", "candidate_level", "certify_level", "certify_inner_blowup",
     "quadratic_form", "quadratic_containment", "quadratic_inner_ball", "inner_ellipse_bound",
     "centre_lyapunov_matrix", "mean_value_form", "sliced_enclosure", "seeded_jacobian",
+    "split_boxes",
     "TaylorDecrease", "SaturatedLoop", "sector_lyapunov_matrix",
     "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "InnerForm",
     "InnerFormKind",
@@ -508,7 +509,7 @@ def sliced_enclosure(H: ca.Function, box: np.ndarray | None, weights: list[Fract
         lo_b, hi_b = (np.asarray(b, dtype=float) for b in boxes)
     pieces = 1
     if split is not None and split[0] and split[1] > 1:
-        lo_b, hi_b, pieces = _split_boxes(lo_b, hi_b, *split)
+        lo_b, hi_b, pieces = split_boxes(lo_b, hi_b, *split)
     args = [Interval(lo_b, hi_b)]
     for j in range(1, H.n_in()):        # the seeds, at the identity
         eye = np.tile(np.eye(H.size1_in(j)).ravel(order="F"), (K * pieces, 1))
@@ -541,7 +542,7 @@ def sliced_enclosure(H: ca.Function, box: np.ndarray | None, weights: list[Fract
     return C, R
 
 
-def _split_boxes(lo: np.ndarray, hi: np.ndarray, axes: list[int], k: int):
+def split_boxes(lo: np.ndarray, hi: np.ndarray, axes: list[int], k: int):
     """Each row box of ``(lo, hi)`` cut into ``k`` pieces along each of ``axes``: ``(lo',
     hi', pieces)`` with the ``pieces = k^len(axes)`` pieces of box ``i`` in rows ``i·pieces``
     onwards. The edges are ``lo + (hi − lo)·j/k`` in floats with the first and last set to
@@ -762,7 +763,7 @@ class SaturatedLoop:
         lo, hi = whole
         pieces = 1
         if split is not None:
-            lo, hi, pieces = _split_boxes(lo, hi, *split)
+            lo, hi, pieces = split_boxes(lo, hi, *split)
         n, m = self.n, self.m
         eye = np.tile(np.eye(m).ravel(order="F"), (pieces, 1))
         sl = np.tile([float_down(v) for v in s_lo], (pieces, 1))

@@ -581,6 +581,10 @@ def _run_compositional(args, system) -> int:
     _check_writable(Path(out), "--out", directory=True)
     cert = certify_compositional(system, setting="known" if args.known_dynamics else "data")
     path = save_compositional(cert, system, out)
+    from ..workflow.report import write_compositional_report  # lazy: matplotlib, heavy
+
+    write_compositional_report(Path(out), system, cert,
+                               json.loads(path.read_text())["provenance"])
     print(cert.summary())
     print(f"wrote {path}")
     return 0 if cert.certified else 2

@@ -54,6 +54,18 @@ def _fmt_vec(v) -> str:
     return "(" + ", ".join(_fmt(a) for a in np.ravel(v)) + ")"
 
 
+def _nonnegative(name: str, v) -> float:
+    if isinstance(v, bool):
+        raise ConfigError(f"declared {name} must be a number, got {v!r}")
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        raise ConfigError(f"declared {name} must be a number, got {v!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise ConfigError(f"declared {name} must be a finite number >= 0, got {v}")
+    return v
+
+
 def _positive(name: str, v) -> float:
     try:
         v = float(v)
@@ -75,9 +87,11 @@ class Declarations:
         :math:`\|f(z_a) - f(z_b)\|_2 \le K_f \|z_a - z_b\|_2`, or one per state derivative
         ``k`` with :math:`|f_k(z_a) - f_k(z_b)| \le K_k \|z_a - z_b\|_2`, for all
         :math:`z = (x, u)` in the sampling box :math:`X \times U`.
-    hessian : float, optional
+    hessian : float or sequence of float, optional
         :math:`H`: ``f`` is :math:`C^2` on :math:`X \times U` with
-        :math:`|\partial^2 f_k / \partial z_i \partial z_j| \le H` for all ``k, i, j``.
+        :math:`|\partial^2 f_k / \partial z_i \partial z_j| \le H` for all ``k, i, j``; or
+        one bound per state derivative ``k`` (``H_k ≥ 0``, 0 for a linear component) with
+        :math:`|\partial^2 f_k / \partial z_i \partial z_j| \le H_k`.
     input_matrix : (nx, nu) array_like, optional
         Known ``B`` of a control-affine ``f(x, u) = f_0(x) + B u``.
     sample_error : float, optional
@@ -103,7 +117,7 @@ class Declarations:
     """
 
     lipschitz: float | tuple[float, ...] | None = None
-    hessian: float | None = None
+    hessian: float | tuple[float, ...] | None = None
     input_matrix: tuple[tuple[float, ...], ...] | None = None
     sample_error: float | None = None
     depends_on: tuple[tuple[int | str, tuple[int | str, ...]], ...] | None = None
@@ -123,7 +137,15 @@ class Declarations:
                 lip = tuple(_positive("lipschitz (K_f) entry", v) for v in lip)
             object.__setattr__(self, "lipschitz", lip)
         if self.hessian is not None:
-            object.__setattr__(self, "hessian", _positive("hessian (H)", self.hessian))
+            h = self.hessian
+            if np.ndim(h) == 0:
+                h = _positive("hessian (H)", h)
+            else:
+                if np.ndim(h) != 1 or len(h) == 0:
+                    raise ConfigError("declared hessian must be a number or a list with one "
+                                      f"number per state, got {h!r}")
+                h = tuple(_nonnegative("hessian (H) entry", v) for v in h)
+            object.__setattr__(self, "hessian", h)
         if self.sample_error is not None:
             e = self.sample_error
             if isinstance(e, bool) or not isinstance(e, (int, float)) or not np.isfinite(e) \
@@ -153,6 +175,16 @@ class Declarations:
         return (self.lipschitz is None and self.hessian is None and self.input_matrix is None
                 and self.sample_error is None and self.depends_on is None)
 
+    def hessian_of(self, k: int) -> float | None:
+        """The declared bound on the second derivatives of ``f_k`` (``None``: not declared)."""
+        h = self.hessian
+        return h[k] if isinstance(h, tuple) else h
+
+    def hessian_max(self) -> float | None:
+        """The declared bound on every second derivative of ``f`` (the largest per-state one)."""
+        h = self.hessian
+        return max(h) if isinstance(h, tuple) else h
+
     @property
     def B(self) -> np.ndarray | None:
         """The declared input matrix as an ``(nx, nu)`` array (``None`` if not declared)."""
@@ -163,6 +195,11 @@ class Declarations:
         if isinstance(self.lipschitz, tuple) and len(self.lipschitz) != nx:
             raise ConfigError(
                 f"declared lipschitz has {len(self.lipschitz)} entries; give one number, or one "
+                f"per state ({nx})"
+            )
+        if isinstance(self.hessian, tuple) and len(self.hessian) != nx:
+            raise ConfigError(
+                f"declared hessian has {len(self.hessian)} entries; give one number, or one "
                 f"per state ({nx})"
             )
         if self.depends_on is not None:
@@ -253,7 +290,14 @@ class Declarations:
                     f"Lipschitz constant (declared): ‖f(z_a) − f(z_b)‖₂ ≤ K_f·‖z_a − z_b‖₂ {dom},"
                     f" with K_f = {_fmt(self.lipschitz)}"
                 )
-        if self.hessian is not None:
+        if isinstance(self.hessian, tuple):
+            names = list(state_names or [f"x{i + 1}" for i in range(len(self.hessian))])
+            hs = ", ".join(f"{n}': {_fmt(h)}" for n, h in zip(names, self.hessian))
+            out.append(
+                "Second-derivative bound per component (declared): f is twice continuously "
+                f"differentiable on X × U with |∂²f_k/∂z_i∂z_j| ≤ H_k for all i, j, with H = {hs}"
+            )
+        elif self.hessian is not None:
             out.append(
                 "Second-derivative bound (declared): f is twice continuously differentiable on "
                 f"X × U with |∂²f_k/∂z_i∂z_j| ≤ H = {_fmt(self.hessian)} for all k, i, j"
@@ -287,7 +331,8 @@ class Declarations:
     def to_dict(self) -> dict:
         """Plain-JSON form (``None`` entries kept)."""
         lip = list(self.lipschitz) if isinstance(self.lipschitz, tuple) else self.lipschitz
-        return {"lipschitz": lip, "hessian": self.hessian,
+        hes = list(self.hessian) if isinstance(self.hessian, tuple) else self.hessian
+        return {"lipschitz": lip, "hessian": hes,
                 "input_matrix": None if self.B is None else self.B.tolist(),
                 "sample_error": self.sample_error,
                 "depends_on": None if self.depends_on is None
@@ -448,6 +493,10 @@ def check_declarations(
     # ---- second differences: lower bounds of max |∂²f_k/∂z_i∂z_j|
     best2 = (0.0, None)
     any2 = False
+    Hd = declarations.hessian
+    # the declared bound of each component (the last axis of V), and the worst excess over it
+    Hk = None if Hd is None else np.broadcast_to(np.asarray(Hd, dtype=float), V.shape[-1:])
+    worst = (0.0, None, 0.0)
     for i in range(d):
         for j in range(i, d):
             if i == j:
@@ -486,15 +535,20 @@ def check_declarations(
             if est.flat[m] > best2[0]:
                 idx = np.unravel_index(m, est.shape)
                 best2 = (float(est.flat[m]), (i, j, idx[-1], idx[:-1]))
+            if Hk is not None:
+                exc = est - Hk * (1 + RTOL)
+                m = int(np.argmax(exc))
+                if exc.flat[m] > worst[0]:
+                    idx = np.unravel_index(m, exc.shape)
+                    worst = (float(exc.flat[m]), (i, j, idx[-1], idx[:-1]), float(est.flat[m]))
     out["second_difference"] = best2[0] if any2 else None
-    H = declarations.hessian
-    if H is not None and best2[0] > H * (1 + RTOL):
-        i, j, k, idx = best2[1]
+    if worst[1] is not None:
+        i, j, k, idx = worst[1]
         base = [ax[t] for ax, t in zip(axes, idx)]
         raise ConfigError(
-            f"{pre}declared H = {_fmt(H)} is below the second-difference estimate "
-            f"{_fmt(best2[0])} of |∂²f_{k}/∂{znames[i]}∂{znames[j]}| near z = {_fmt_vec(base)}; "
-            f"declare H ≥ {_fmt(best2[0])} (a second difference equals a second derivative "
+            f"{pre}declared H = {_fmt(float(Hk[k]))} is below the second-difference estimate "
+            f"{_fmt(worst[2])} of |∂²f_{k}/∂{znames[i]}∂{znames[j]}| near z = {_fmt_vec(base)}; "
+            f"declare H ≥ {_fmt(worst[2])} (a second difference equals a second derivative "
             "somewhere in its stencil) or check the data"
         )
 
@@ -678,9 +732,10 @@ def probe_declarations(
     # ---- H: second differences along the stencil's axis
     dd = np.maximum(np.abs(Vp - 2.0 * V0 + Vm) - 4.0 * tau, 0.0) / (s * s)[:, None]
     out["second_difference"] = float(dd.max())
-    H = declarations.hessian
-    if H is not None:
-        r, k = np.unravel_index(int(np.argmax(dd)), dd.shape)
+    if declarations.hessian is not None:
+        Hk = np.broadcast_to(np.asarray(declarations.hessian, dtype=float), dd.shape[-1:])
+        r, k = np.unravel_index(int(np.argmax(dd - Hk * (1 + RTOL))), dd.shape)
+        H = float(Hk[k])
         if dd[r, k] > H * (1 + RTOL):
             raise refute(f"declared H = {_fmt(H)}", dd[r, k], int(r), zm[r], zp[r],
                          f"|f_{k}(z+) - 2 f_{k}(z) + f_{k}(z-)| / s² estimates "

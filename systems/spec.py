@@ -23,7 +23,7 @@ A spec file gives a system in one of three ways: the right-hand side as expressi
 
     [declared]                          # assumptions, listed verbatim in the certificate
     lipschitz = 120.0                   # K_f, or one number per state
-    hessian = 80.0                      # H: |∂²f_k/∂z_i∂z_j| <= H
+    hessian = 80.0                      # H: |∂²f_k/∂z_i∂z_j| <= H (or one per state)
     input_matrix = [[0.0], [26.666666666666668]]  # control-affine f = f0(x) + B u
     sample_error = 1e-6                 # data within 1e-6 of f (2-norm); default: exact
     depends_on = { omega = ["theta", "omega", "torque"] }  # f_k reads only these variables

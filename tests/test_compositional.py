@@ -605,6 +605,13 @@ def test_a_simulator_is_certified_from_its_declarations(rng):
     # every stored bound is the declared H, 0 where depends_on rules a variable out
     H0 = cert.pieces[0].hessian          # a1' reads a1, a2, c1, c2; a2' only a1, a2
     assert H0.shape == (2, 4, 4) and H0[0].max() == 0.2 and np.all(H0[1][2:, :] == 0)
+    # the example declares one H per state derivative (0 for the linear ones): the linear
+    # rows then pay nothing, and the decay rate is far larger than with one H for all
+    ex = systems.load_spec(EXAMPLE)
+    per = certify_compositional(ex, setting="data", **QUIET)
+    assert per.certified and np.all(per.pieces[0].hessian[1] == 0)
+    assert per.pieces[0].hessian[0].max() == ex.declarations.hessian_of(0) == 0.15
+    assert per.decay > 10 * cert.decay
     X = _points_in(cert, 4000, rng)
     assert np.all(_vdot(s, cert, X) <= -cert.decay * cert.V(X) * (1 - 1e-9))
     # without depends_on every derivative may read every state: one 6-D box per subsystem

@@ -401,3 +401,25 @@ def test_jacobian_from_slice_uses_declared_b(bb, tmp_path):
                                      declarations=bb.DECLARED)
     with pytest.raises(ConfigError, match="on the boundary of the sample grid along 'x1'"):
         jacobian_from_data(pe)
+
+
+def test_declared_hessian_per_component(pend_samples):
+    """One H per state derivative: θ' = ω is linear (H = 0 holds), ω' has |∂²f/∂θ²| up to
+    19.62; each component is checked against its own bound, and the shapes are validated."""
+    d = Declarations(hessian=[0.0, 19.7])
+    check_declarations(pend_samples, pend_samples.values, d)
+    assert d.hessian_of(0) == 0.0 and d.hessian_max() == 19.7
+    assert d.to_dict()["hessian"] == [0.0, 19.7]
+    assert "theta': 0, omega': 19.7" in d.describe(["theta", "omega"])[0]
+    with pytest.raises(ConfigError, match=r"declared H = 10 is below .*∂²f_1/∂theta∂theta"):
+        check_declarations(pend_samples, pend_samples.values, Declarations(hessian=[100.0, 10.0]),
+                           names=pend_samples.names)
+    with pytest.raises(ConfigError, match=r"declared H = 0 is below .*∂²f_1"):
+        check_declarations(pend_samples, pend_samples.values, Declarations(hessian=[19.7, 0.0]),
+                           names=pend_samples.names)
+    for bad, words in (([1.0, -1.0], ">= 0"), ([True, 1.0], "must be a number"),
+                       ([[1.0]], "one number per state")):
+        with pytest.raises(ConfigError, match=words):
+            Declarations(hessian=bad)
+    with pytest.raises(ConfigError, match="declared hessian has 3 entries"):
+        Declarations(hessian=[1.0, 2.0, 3.0]).validate(2, 1)

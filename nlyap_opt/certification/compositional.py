@@ -131,8 +131,8 @@ ASSUMPTIONS_DECLARED = [
     "finite-difference points of each subsystem's box, taken as exact (no sample_error may "
     "be declared)",
     "f is twice continuously differentiable on the domain box D with "
-    "|d2 f_k / dy_a dy_b| <= H for every k, a, b (declared hessian; 0 along the variables "
-    "f_k is declared not to depend on)",
+    "|d2 f_k / dy_a dy_b| <= H (or H_k, declared per component) for every k, a, b (declared "
+    "hessian; 0 along the variables f_k is declared not to depend on)",
     "f_k reads only the states declared in depends_on (every state when it is not declared), "
     "and f(0) = 0 exactly (the simulator returns 0 at the origin)",
 ]
@@ -384,8 +384,8 @@ def hessian_bound(system, parts, nbrs, i: int) -> tuple[np.ndarray | None, str]:
     if not getattr(system, "has_model", False):
         idx = _block_indices(parts, nbrs, i)
         reads = _declared_states(system)
-        H = float(system.declarations.hessian)
-        return np.array([[[H if idx[a] in reads[k] and idx[b] in reads[k] else 0.0
+        decl = system.declarations
+        return np.array([[[decl.hessian_of(k) if idx[a] in reads[k] and idx[b] in reads[k] else 0.0
                            for b in range(len(idx))] for a in range(len(idx))]
                          for k in parts[i]]), ""
     idx, y, fi = _block_function(system, parts, nbrs, i)

@@ -385,7 +385,7 @@ def _option_second_order(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: di
     H = None
     if not em.has_f:
         decl = getattr(em.system, "declarations", None)
-        H = None if decl is None else decl.hessian
+        H = None if decl is None else decl.hessian_max()
         if H is None:
             raise _Skip("needs a bound on the second derivatives of f: declare hessian (H) "
                         f"(system {em.system.name!r} has no model)")
@@ -397,8 +397,8 @@ def _option_second_order(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: di
         # variable z_i that f_k is declared not to depend on (Declarations.depends_on)
         D2p, n = interval_sup(em.D2_phi, em.box, counts, red)
         deps = declared_dependencies(em.system, d)
-        Hk = np.array([[H if k not in deps or i in deps[k] else 0.0 for i in range(d)]
-                       for k in em.comp])
+        Hk = np.array([[decl.hessian_of(k) if k not in deps or i in deps[k] else 0.0
+                        for i in range(d)] for k in em.comp])
         D = np.vectorize(add_up)(Hk, np.max(D2p, axis=0))
     else:
         D2, n = interval_sup(em.D2_e, em.box, counts, red)
@@ -411,7 +411,10 @@ def _option_second_order(em: ErrorModel, grid: Grid, alpha: AlphaResult, ctx: di
     eta = add_up(alpha.alpha_upper, term)
     how = ("here rigorous from the CasADi model by interval evaluation of the diagonal "
            f"Hessian of f − φ on {n} sub-boxes") if H is None else \
-        (f"declared by the user: |∂²f_k/∂z_i∂z_j| ≤ H = {H:.6g}; D = H + the interval sup of "
+        (("declared by the user: |∂²f_k/∂z_i∂z_j| ≤ "
+          + (f"H_k per component (the largest {H:.6g})"
+             if isinstance(em.system.declarations.hessian, tuple) else f"H = {H:.6g}"))
+         + "; D = H + the interval sup of "
          f"|∂²φ_k/∂z_i²| on {n} sub-boxes"
          + ("; H is 0 along the variables f_k is declared not to depend on (depends_on)"
             if deps else ""))

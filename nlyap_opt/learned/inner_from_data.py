@@ -278,7 +278,7 @@ def prove_inner_ellipse_from_data(system, controller: Network | None, inner: flo
     if not (np.isfinite(inner) and inner > 0):
         return _fail(f"not proved: the inner radius must be positive, got {inner}", n)
     decl = getattr(system, "declarations", None)
-    H = None if decl is None else decl.hessian
+    H = None if decl is None else decl.hessian_max()
     if H is None:
         return _fail("not available: condition (c) from data needs a declared second-"
                      "derivative bound (declare hessian H); it rests on the paper's "

@@ -277,13 +277,16 @@ class Declarations:
         """One sentence per declaration, as the certificate and the report list them."""
         out: list[str] = []
         dom = "for all z = (x, u) in the sampling box X × U"
+
+        def per_state(values) -> str:     # "x1': 1, x2': 2"
+            names = list(state_names or [f"x{i + 1}" for i in range(len(values))])
+            return ", ".join(f"{n}': {_fmt(v)}" for n, v in zip(names, values))
+
         if self.lipschitz is not None:
             if isinstance(self.lipschitz, tuple):
-                names = list(state_names or [f"x{i + 1}" for i in range(len(self.lipschitz))])
-                ks = ", ".join(f"{n}': {_fmt(k)}" for n, k in zip(names, self.lipschitz))
                 out.append(
                     "Lipschitz constant per component (declared): |f_k(z_a) − f_k(z_b)| ≤ K_k·"
-                    f"‖z_a − z_b‖₂ {dom}, with K = {ks}"
+                    f"‖z_a − z_b‖₂ {dom}, with K = {per_state(self.lipschitz)}"
                 )
             else:
                 out.append(
@@ -291,11 +294,10 @@ class Declarations:
                     f" with K_f = {_fmt(self.lipschitz)}"
                 )
         if isinstance(self.hessian, tuple):
-            names = list(state_names or [f"x{i + 1}" for i in range(len(self.hessian))])
-            hs = ", ".join(f"{n}': {_fmt(h)}" for n, h in zip(names, self.hessian))
             out.append(
                 "Second-derivative bound per component (declared): f is twice continuously "
-                f"differentiable on X × U with |∂²f_k/∂z_i∂z_j| ≤ H_k for all i, j, with H = {hs}"
+                "differentiable on X × U with |∂²f_k/∂z_i∂z_j| ≤ H_k for all i, j, with H = "
+                + per_state(self.hessian)
             )
         elif self.hessian is not None:
             out.append(

@@ -326,6 +326,29 @@ def _subsystem_name(system, parts, i: int) -> str:
     return f"subsystem {i + 1} ({', '.join(system.state_names[k] for k in parts[i])})"
 
 
+def _block_jacobian(system, parts, nbrs, i: int):
+    """``(idx, y, S, J, why)``: subsystem ``i``'s variables and symbol ``y``, a symbolic
+    seed ``S`` and ``J = ∂f_i/∂y · S`` (``n_i × m``; the seed keeps CasADi from folding
+    ``f``'s constants into the derivative, see
+    :func:`~nlyap_opt.certification.roa.seeded_jacobian`); ``why`` is not empty when the
+    graph of ``f_i`` or ``J`` holds a non-smooth or partial operation (the walker's checked
+    operations, constant arguments excepted) or one the walker does not evaluate."""
+    idx, y, fi = _block_function(system, parts, nbrs, i)
+    m = len(idx)
+    S = ca.SX.sym("S", m, m)
+    J = ca.jtimes(fi, y, S)
+    name = _subsystem_name(system, parts, i)
+    try:
+        checked = compile_function(ca.Function(f"local_{i}", [y, S], [fi, J])).checked
+    except UnsupportedOperationError as err:
+        return idx, y, S, J, f"{name}: {err}"
+    if checked:
+        return idx, y, S, J, (f"{name}: f uses non-smooth or partial operations; the "
+                              "compositional method needs f continuously differentiable "
+                              "on all of D")
+    return idx, y, S, J, ""
+
+
 def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
     r"""``(N, "")`` with :math:`\nabla V_i \cdot f_i(y) \le y^\top N y` on subsystem
     ``i``'s box ``Y_i`` (its states, then its neighbours' in order), or ``(None, why)``.
@@ -340,18 +363,14 @@ def _local_bound(system, parts, nbrs, i: int, P) -> tuple[list | None, str]:
     is non-smooth or partial (the walker's checked operations, constant arguments
     excepted): the mean-value form needs ``f`` continuously differentiable on ``D``.
     """
-    idx, y, fi = _block_function(system, parts, nbrs, i)
+    idx, y, S, J, why = _block_jacobian(system, parts, nbrs, i)
+    if why:
+        return None, why
     m, ni = len(idx), len(parts[i])
-    # the rows of the neighbours' states are 0: V_i reads x_i only (a symbolic seed S: no
-    # float folding of f's constants in the derivative, see seeded_jacobian)
-    S = ca.SX.sym("S", m, m)
-    JS = ca.densify(ca.vertcat(ca.jtimes(fi, y, S), ca.SX.zeros(m - ni, m)))
+    # the rows of the neighbours' states are 0: V_i reads x_i only
+    JS = ca.densify(ca.vertcat(J, ca.SX.zeros(m - ni, m)))
     name = _subsystem_name(system, parts, i)
     try:
-        if compile_function(ca.Function(f"local_{i}", [y, S], [fi, JS])).checked:
-            return None, (f"{name}: f uses non-smooth or partial operations; the "
-                          "compositional method needs f continuously differentiable "
-                          "on all of D")
         CR = sliced_enclosure(ca.Function(f"jac_{i}", [y, S], [JS]), system.state_box[idx],
                               [Fraction(1, TAYLOR_SLICES)] * TAYLOR_SLICES)
     except UnsupportedOperationError as err:
@@ -481,16 +500,13 @@ def _interval_jacobian(system, parts, nbrs, i: int, slo, shi):
     the Jacobian graph of ``f_i`` (a symbolic seed, evaluated at the identity:
     :func:`~nlyap_opt.certification.roa.seeded_jacobian`) on each slice box, widened by
     CasADi's constant-folding allowance; or ``(None, None, why)`` (as :func:`_local_bound`)."""
-    idx, y, fi = _block_function(system, parts, nbrs, i)
+    idx, y, S, J, why = _block_jacobian(system, parts, nbrs, i)
+    if why:
+        return None, None, why
     m, ni = len(idx), len(parts[i])
-    S = ca.SX.sym("S", m, m)
-    JS = ca.densify(ca.jtimes(fi, y, S))                       # (ni, m)
+    JS = ca.densify(J)                                          # (ni, m)
     name = _subsystem_name(system, parts, i)
     try:
-        if compile_function(ca.Function(f"local_{i}", [y, S], [fi, JS])).checked:
-            return None, None, (f"{name}: f uses non-smooth or partial operations; the "
-                                "compositional method needs f continuously differentiable "
-                                "on all of D")
         Interval, ia = interval_arithmetic()
         eye = np.tile(np.eye(m).ravel(order="F"), (len(slo), 1))
         res = evaluate(ca.Function(f"jac_{i}", [y, S], [JS]),

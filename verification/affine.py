@@ -56,13 +56,13 @@ from .interval import (
     _PI,
     Interval,
     IntervalArithmetic,
-    fp_ignore,
     _guard,
     _mm,
     _mul,
     _period_index,
     _sq,
     _sub,
+    fp_ignore,
     to_shape,
 )
 
@@ -376,14 +376,31 @@ class _Relax:
         self.f, self.df, self.slope, self.crit, self.pieces = f, df, slope, crit, pieces
 
 
-def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
-    """``f(x) ∈ α x + β ± δ`` over the range of ``x``; interval fallback where needed."""
-    rng = x.to_interval()
-    lo, hi = rng.lo, rng.hi
+def relaxation(op: int, lo, hi):
+    """A sound linear relaxation ``f(t) - α t ∈ [dl, dh]`` for ``t`` in ``[lo, hi]``.
+
+    ``op``: a CasADi unary operation code; ``None`` when it has no relaxation here (see
+    :class:`AffineArithmetic`). Else ``(alpha, dl, dh, ok)`` of the shape of ``lo``:
+    float slopes ``α`` and
+    rigorous bounds ``dl <= f(t) - α t <= dh`` over the range (real arithmetic), where
+    ``ok``; elsewhere (two inflection points in the range, infinite ends) nothing is
+    claimed and ``α = 0``. Used by the forward forms (:func:`_relax_unary`) and by the
+    backward bound propagation (:mod:`verification.backward`).
+    """
+    rel = _RELAX.get(op)
+    if rel is None:
+        return None
+    return _relaxation(rel, lo, hi)
+
+
+def _relaxation(rel: _Relax, lo, hi):
+    """:func:`relaxation` for the relaxation ``rel``."""
     ok, q_lo, q_hi, cvx_l, cvx_r = rel.pieces(lo, hi)
-    ok &= np.isfinite(lo) & np.isfinite(hi)
-    if x.g is None or not ok.any():
-        return Affine.from_interval(_IA.unary(op, rng))
+    ok = ok & np.isfinite(lo) & np.isfinite(hi)
+    shape = np.shape(lo)
+    if not ok.any():
+        z = np.zeros(shape)
+        return z, z, z, ok
     # work on finite stand-ins where not ok (results replaced by the interval fallback)
     tl = np.where(ok, lo, 0.0).ravel()
     th = np.where(ok, hi, 1.0).ravel()
@@ -391,8 +408,8 @@ def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
     fh = rel.f(th, th)
     alpha = rel.slope(tl, th, 0.5 * fl[0] + 0.5 * fl[1], 0.5 * fh[0] + 0.5 * fh[1])
     alpha = np.where(ok.ravel() & np.isfinite(alpha), alpha, 0.0)
-    q_lo = to_shape(q_lo, lo.shape).ravel()
-    q_hi = to_shape(q_hi, lo.shape).ravel()
+    q_lo = to_shape(q_lo, shape).ravel()
+    q_hi = to_shape(q_hi, shape).ravel()
     # pieces: left [tl, min(th, q_lo)], sliver [q_lo, q_hi] ∩ [tl, th], right [max(tl, q_hi), th]
     has_l = (tl < q_lo) & ok.ravel()
     has_r = (th > q_hi) & ok.ravel()
@@ -414,7 +431,7 @@ def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
             fa = _f_at(rel, a_new, a, fa)
             a = a_new
         if not isinstance(cvx, (bool, np.bool_)):
-            cvx = to_shape(cvx, lo.shape).ravel()[rows]
+            cvx = to_shape(cvx, shape).ravel()[rows]
         plo, phi = _piece(rel, a, b, al, cvx, fa, fb)
         dl[rows] = np.minimum(dl[rows], plo)
         dh[rows] = np.maximum(dh[rows], phi)
@@ -429,11 +446,25 @@ def _relax_unary(rel: _Relax, op: int, x: Affine) -> Affine:
         sl, sh = _sub(vl, vh, pl, ph)
         dl[rows] = np.minimum(dl[rows], sl)
         dh[rows] = np.maximum(dh[rows], sh)
-    shape = lo.shape
     alpha = alpha.reshape(shape)
     dl = dl.reshape(shape)
     dh = dh.reshape(shape)
-    ok &= np.isfinite(dl) & np.isfinite(dh) & (dl <= dh)
+    ok = ok & np.isfinite(dl) & np.isfinite(dh) & (dl <= dh)
+    return np.where(ok, alpha, 0.0), dl, dh, ok
+
+
+def _relax_unary(rel: _Relax, op: int, x: Affine, relaxed=None) -> Affine:
+    """``f(x) ∈ α x + β ± δ`` over the range of ``x``; interval fallback where needed.
+
+    ``relaxed``: the ``(alpha, dl, dh, ok)`` of :func:`relaxation` on the range of ``x``
+    when the caller has it already.
+    """
+    rng = x.to_interval()
+    if x.g is None:
+        return Affine.from_interval(_IA.unary(op, rng))
+    alpha, dl, dh, ok = _relaxation(rel, rng.lo, rng.hi) if relaxed is None else relaxed
+    if not ok.any():
+        return Affine.from_interval(_IA.unary(op, rng))
     # β, δ: centre and radius of [dl, dh] (outward)
     beta = 0.5 * dl + 0.5 * dh
     beta = np.where(ok, beta, 0.0)
@@ -638,8 +669,12 @@ class AffineArithmetic:
             return Affine(v, None, e)
         return Affine.from_interval(iv)
 
-    def unary(self, op: int, a) -> Affine:
-        """Affine image of ``op(a)`` (relaxed, or by intervals on the range of ``a``)."""
+    def unary(self, op: int, a, relaxed=None) -> Affine:
+        """Affine image of ``op(a)`` (relaxed, or by intervals on the range of ``a``).
+
+        ``relaxed``: :func:`relaxation` of ``op`` on the range of ``a`` when the caller
+        has computed it already (the backward propagation keeps it).
+        """
         a = _aff(a)
         with fp_ignore():
             if op == ca.OP_ASSIGN:
@@ -652,7 +687,7 @@ class AffineArithmetic:
                 return _sq_aff(a)
             rel = _RELAX.get(op)
             if rel is not None and a.g is not None:
-                return _relax_unary(rel, op, a)
+                return _relax_unary(rel, op, a, relaxed)
             return Affine.from_interval(_IA.unary(op, a.to_interval()))
 
     def binary(self, op: int, a, b) -> Affine:

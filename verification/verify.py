@@ -69,6 +69,7 @@ from nlyap_opt.kernel.errors import ConfigError, DimensionError
 from nlyap_opt.kernel.walker import NUMPY, compile_function, evaluate, op_name
 
 from .affine import Affine, AffineArithmetic, tight_ranges
+from .backward import backward_bounds
 from .interval import (
     CheckedIntervalArithmetic,
     Interval,
@@ -444,12 +445,12 @@ def _enclose_all(problem, lo, hi, mean_value: bool, affine: bool = False,
             enc, chk_b = both[:B], chk[:B]
             aux = None
             if affine:
-                enc, aux = _with_affine(problem, lo, hi, enc, chk_b)
+                enc, aux = _with_affine(problem, lo, hi, enc, chk_b, affine == "backward")
             return enc, both[B:], None, chk_b, chk[B:], aux
         both = _rows(evaluate(problem.function,
                               [Interval(np.vstack([lo, c]), np.vstack([hi, c]))], _IA)[0],
                      2 * B)
-        enc, aux = (_with_affine(problem, lo, hi, both[:B], None) if affine
+        enc, aux = (_with_affine(problem, lo, hi, both[:B], None, affine == "backward") if affine
                     else (both[:B], None))
         return enc, both[B:], None, None, None, aux
     chk = chk_c = None
@@ -479,7 +480,7 @@ def _enclose_all(problem, lo, hi, mean_value: bool, affine: bool = False,
         enc = Interval(np.where(bad, nat.lo, enc.lo), np.where(bad, nat.hi, enc.hi))
     aux = None
     if affine:
-        enc, aux = _with_affine(problem, lo, hi, enc, chk)
+        enc, aux = _with_affine(problem, lo, hi, enc, chk, affine == "backward")
     if second_order:
         enc = _with_second_order(problem, lo, hi, enc, Fc, aux[1] if aux else None, chk,
                                  second_order == "affine")
@@ -672,7 +673,7 @@ def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=No
     return Interval(lo_new, hi_new)
 
 
-def _with_affine(problem, lo, hi, enc: Interval, chk):
+def _with_affine(problem, lo, hi, enc: Interval, chk, backward: bool = False):
     """``enc`` intersected with the affine-arithmetic ranges (columns with valid checks).
 
     Affine arithmetic encloses every operation it evaluates, across jumps too (non-smooth
@@ -718,7 +719,39 @@ def _with_affine(problem, lo, hi, enc: Interval, chk):
         keep |= chk.jump | chk.maybe
     if keep.any():
         both = Interval(np.where(keep, enc.lo, both.lo), np.where(keep, enc.hi, both.hi))
+    if backward:
+        both = _with_backward(problem, lo, hi, both, lag, keep)
     return both, (sens, lag)
+
+
+def _with_backward(problem, lo, hi, enc: Interval, lag, keep) -> Interval:
+    """``enc`` intersected with backward linear bounds on the boxes it leaves undecided.
+
+    Constraints are bounded from below and properties from above (the sides the decision
+    rule reads), by :func:`verification.backward.backward_bounds`; columns in ``keep``
+    (kinks, jumps, domains: the checked path's rule) are left as they are.
+    """
+    m = problem.n_constraints
+    pos = enc.hi[:, m:] < 0
+    if lag is not None:
+        pos = pos | lag
+    done = np.all(pos, axis=1)
+    if m:
+        done |= np.any(enc.lo[:, :m] > 0, axis=1)
+    rows = np.flatnonzero(~done)
+    if not len(rows):
+        return enc
+    K = enc.lo.shape[1]
+    low, _ = backward_bounds(problem.function, lo[rows], hi[rows],
+                             np.diag(np.where(np.arange(K) < m, 1.0, -1.0)))
+    new_lo, new_hi = enc.lo.copy(), enc.hi.copy()
+    blo = np.maximum(enc.lo[rows, :m], low[:m].T)
+    bhi = np.minimum(enc.hi[rows, m:], -low[m:].T)
+    k = keep[rows] if np.ndim(keep) else np.zeros((len(rows), K), bool)
+    # both bounds are sound: an empty meet cannot happen, and would keep enc's bound
+    new_lo[rows, :m] = np.where(~k[:, :m] & (blo <= enc.hi[rows, :m]), blo, enc.lo[rows, :m])
+    new_hi[rows, m:] = np.where(~k[:, m:] & (bhi >= enc.lo[rows, m:]), bhi, enc.hi[rows, m:])
+    return Interval(new_lo, new_hi)
 
 
 def _centres(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -761,6 +794,7 @@ def verify_interval(
     batch: int = 8192,
     mean_value: bool | None = None,
     affine: bool = True,
+    backward: bool = False,
     presearch: int = 500,
     presearch_boundary: int = 0,
     stop_at_first: bool = True,
@@ -785,6 +819,11 @@ def verify_interval(
     the interval Jacobian's smear; ``None`` (default): on every box without ``affine``,
     with it on the boxes the other bounds leave undecided (the boxes to split);
     ``False`` with ``affine``: split where the affine bounds are most sensitive.
+    ``backward`` (with ``affine``; off by default): also bound each constraint from below
+    and each property from above by backward linear bound propagation
+    (:mod:`verification.backward`, CROWN style, recorded in the affine pass) and keep the
+    tighter bound: fewer boxes on deep networks (a 2-30-30 tanh V on Van der Pol: 818
+    boxes instead of 1 294) at about twice the cost of the affine pass per box.
     ``second_order``: on the boxes those leave undecided, also the second-order centred
     form of the properties (:func:`_second_order_enclosure`; one more pass, over the
     properties' Hessian graphs; for ``checked`` problems only where a box is proved free
@@ -823,7 +862,7 @@ def verify_interval(
             problem, hessian_coordinates(problem),
             lambda p: verify_interval(
                 p, resolution=resolution, max_boxes=max_boxes, batch=batch,
-                mean_value=mean_value, affine=affine, presearch=presearch,
+                mean_value=mean_value, affine=affine, backward=backward, presearch=presearch,
                 presearch_boundary=presearch_boundary,
                 stop_at_first=stop_at_first, seed=seed, initial_boxes=initial_boxes,
                 executor=executor, n_tasks=n_tasks, progress=progress,
@@ -852,14 +891,15 @@ def verify_interval(
     if executor is not None:
         return _verify_distributed(problem, executor, n_tasks, t0, resolution=resolution,
                                    max_boxes=max_boxes, batch=batch, mean_value=mean_value,
-                                   affine=affine, presearch=presearch,
+                                   affine=affine, backward=backward, presearch=presearch,
                                    presearch_boundary=presearch_boundary,
                                    stop_at_first=stop_at_first, keep_leaves=keep_leaves, seed=seed,
                                    initial_boxes=initial_boxes, second_order=second_order)
     with _single_thread_blas(), fp_ignored():
         return _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
                              stop_at_first, keep_leaves, seed, initial_boxes, progress,
-                             affine, second_order, boxes, hand_back,
+                             affine and ("backward" if backward else True), second_order,
+                             boxes, hand_back,
                              int(hand_back_below) if hand_back else 0, presearch_boundary)
 
 

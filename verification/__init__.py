@@ -42,7 +42,8 @@ def verify(problem: VerificationProblem, *, backend: str = "interval",
         ``"dreal"``: optional; δ-SAT boxes are confirmed by interval evaluation.
     **options
         Backend options. Interval: ``resolution`` (smallest box width; below it a box is
-        ``unknown``), ``max_boxes``, ``batch``, ``mean_value``, ``presearch``,
+        ``unknown``), ``max_boxes``, ``batch``, ``mean_value``, ``affine``, ``backward``
+        (backward linear bound propagation, off by default), ``second_order``, ``presearch``,
         ``stop_at_first``, ``keep_leaves``, ``executor`` (any
         ``concurrent.futures.Executor``: a process pool or a Dask client's executor),
         ``n_tasks``. dReal: ``precision``.

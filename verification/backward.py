@@ -16,8 +16,8 @@ linear in the node's arguments:
 - ``t²`` uses the tangent at the range's centre below and the secant above (two different
   slopes, picked by the sign of ``Λ_y``);
 - a product ``a b`` of two varying values uses the plane through the ranges' centres
-  ``b_c a + a_c b`` with the offset ``a b − b_c a − a_c b`` bounded at the four corners
-  of the ranges (a bilinear function takes its extremes there); with one factor that does
+  ``b_c a + a_c b`` with the offset ``a b − b_c a − a_c b = (a − a_c)(b − b_c) − a_c b_c``
+  enclosed by interval arithmetic on the ranges; with one factor that does
   not vary with the input beyond an interval ``c ± e``: ``Λ_a = c Λ_y`` and
   ``−|Λ_y| e |a|`` in the offset;
 - every other operation (and a product of two varying matrices) is *concretised*: its
@@ -475,13 +475,13 @@ def _mul_step(P: _Pass, n: _Node, L) -> None:
         fin = np.isfinite(al) & np.isfinite(ah) & np.isfinite(bl) & np.isfinite(bh)
         sa = np.where(fin, sa, 0.0)
         sb = np.where(fin, sb, 0.0)
-        k_low = np.full(shape, _INF)
-        k_up = np.full(shape, -_INF)
-        for p in (al, ah):  # a b - sa a - sb b is bilinear: its extremes are at corners
-            for q in (bl, bh):
-                wl, wh = _diff(_diff(_point_mul(p, q), _point_mul(sa, p)), _point_mul(sb, q))
-                k_low = np.minimum(k_low, np.where(wl == wl, wl, -_INF))
-                k_up = np.maximum(k_up, np.where(wh == wh, wh, _INF))
+        # a b - sa a - sb b = (a - sb)(b - sa) - sa sb exactly (real arithmetic): one
+        # interval product of the shifted ranges, less the product of the two floats
+        da = _IA.binary(ca.OP_SUB, Interval(al, ah), Interval(sb, sb))
+        db = _IA.binary(ca.OP_SUB, Interval(bl, bh), Interval(sa, sa))
+        k = _IA.binary(ca.OP_SUB, _IA.binary(ca.OP_MUL, da, db), Interval(*_point_mul(sa, sb)))
+        k_low = np.where(k.lo == k.lo, k.lo, -_INF)
+        k_up = np.where(k.hi == k.hi, k.hi, _INF)
         y = n.rng()  # where a range is unbounded: slopes 0 and the product's own range
         k_low = np.where(fin, k_low, np.broadcast_to(y.lo, shape))
         k_up = np.where(fin, k_up, np.broadcast_to(y.hi, shape))

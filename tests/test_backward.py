@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from nlyap_opt.kernel.walker import evaluate
-from verification import lyapunov_problem, verify
+from verification import VerificationProblem, lyapunov_problem, verify
 from verification.affine import Affine, AffineArithmetic
 from verification.backward import backward_bounds
 
@@ -161,3 +161,25 @@ def test_the_verifier_option_keeps_verdicts_and_needs_no_more_boxes(a, status):
     assert plain.status == crown.status == status
     if status == "verified":
         assert crown.boxes <= plain.boxes
+
+
+def test_a_product_of_two_varying_matrices_is_not_taken_for_a_constant():
+    # x x' and x' x (both factors vary) are leaves with input coefficients: their range is
+    # c ± (Σ|g| + e), not c ± e (found by a review: the bound was 0.4375 where F is 0.25)
+    x = ca.MX.sym("x", 2)
+    lo, hi = np.array([[0.5, 0.5]]), np.array([[1.0, 1.0]])
+    for out in (ca.mtimes(x.T, x) * x[0], ca.mtimes(ca.mtimes(x, x.T), x)):
+        F = ca.Function("F", [x], [out])
+        K = out.numel()
+        low, _ = backward_bounds(F, lo, hi, np.eye(K))
+        assert np.all(low[:, 0] <= 0.25), low  # F = (0.25, 0.25) at (0.5, 0.5)
+
+
+def test_the_verifier_with_backward_bounds_finds_a_false_property():
+    x = ca.MX.sym("x", 2)
+    u = (x[0] - 0.1) ** 2
+    w = 1 + 1e-9 * x[1]
+    prod = ca.mtimes(ca.horzcat(u, u), ca.vertcat(w, w))
+    p = 1e-20 - prod * (2 + x[1])  # > 0 on the line x0 = 0.1: the property p < 0 is false
+    problem = VerificationProblem(x, [[-1.0, 1.0], [-1.0, 1.0]], [], [p])
+    assert verify(problem, backward=True).status == "counterexample"

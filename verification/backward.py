@@ -245,7 +245,7 @@ _TAPE = _Tape()
 
 def _small_power(b: Affine) -> int | None:
     """The exponent ``k`` in ``1..8`` of ``a**b`` when ``b`` is that exact integer."""
-    if np.ndim(b.c) or np.any(b.e):
+    if b.g is not None or np.ndim(b.c) or np.any(b.e):
         return None
     v = float(b.c)
     return int(v) if v == np.floor(v) and 1 <= v <= 8 else None
@@ -393,7 +393,7 @@ class _Pass:
             err = 2.0 * U * np.abs(La) + ETA
             if width is not None:
                 err = err + np.abs(L) * width
-            err = up_roundings(err, 4)
+            err = np.where(L == 0, 0.0, up_roundings(err, 4))  # Λ = 0: La = 0 exactly
         self.add_res(_resid(err, np.broadcast_to(a.mag(), La.shape[1:])))
         self.give(a, La)
 
@@ -457,12 +457,22 @@ def _sq_minus(t, s):
     return _diff(_point_mul(t, t), _point_mul(s, t))[1]
 
 
+def _centre_radius(n: _Node):
+    """``(c, e)`` with ``[c - e, c + e]`` holding the value of leaf ``n`` on the box.
+
+    A leaf's form may still have input coefficients (a product of two varying matrices,
+    and whatever is computed from it): its range is then the whole of
+    ``c ± (Σ|g_i| + e)``, not ``c ± e``.
+    """
+    val = n.val if n.val.g is None else Affine.from_interval(n.rng())
+    return to_shape(val.c, val.shape), to_shape(val.e, val.shape)
+
+
 def _mul_step(P: _Pass, n: _Node, L) -> None:
     a, b = n.args
     if not _var(b) or not _var(a):
         v, c = (a, b) if _var(a) else (b, a)  # v varies, c = centre ± radius
-        cc = to_shape(c.val.c, c.val.shape)
-        ce = to_shape(c.val.e, c.val.shape)
+        cc, ce = _centre_radius(c)
         P.times(v, L, cc, ce)
         return
     ra, rb = a.rng(), b.rng()
@@ -493,19 +503,15 @@ def _mul_step(P: _Pass, n: _Node, L) -> None:
 def _matmul_step(P: _Pass, n: _Node, L) -> None:
     a, b = n.args
     if not _var(a):  # y = A X: Λ_X = Aᵀ Λ_y
-        A = a.val
-        cA = np.swapaxes(to_shape(A.c, A.shape), -1, -2)
-        eA = np.swapaxes(to_shape(A.e, A.shape), -1, -2)
-        r = A.shape[-2]
+        cA, eA = (np.swapaxes(v, -1, -2) for v in _centre_radius(a))
+        r = a.val.shape[-2]
         with fp_ignore():
             LX = cA @ L
             R = up_roundings((gamma(r + 2) * np.abs(cA) + eA) @ np.abs(L), r + 4)
         x = b
     else:  # y = X A: Λ_X = Λ_y Aᵀ
-        A = b.val
-        cA = np.swapaxes(to_shape(A.c, A.shape), -1, -2)
-        eA = np.swapaxes(to_shape(A.e, A.shape), -1, -2)
-        c = A.shape[-1]
+        cA, eA = (np.swapaxes(v, -1, -2) for v in _centre_radius(b))
+        c = b.val.shape[-1]
         with fp_ignore():
             LX = L @ cA
             R = up_roundings(np.abs(L) @ (gamma(c + 2) * np.abs(cA) + eA), c + 4)

@@ -16,6 +16,7 @@ from verification import (
     VerificationProblem,
     closed_loop_problem,
     evaluate_smtlib,
+    lyapunov_problem,
     to_smtlib,
     verify,
 )
@@ -421,3 +422,18 @@ def test_values_from_constants_are_computed_once_per_graph_and_arithmetic():
             assert ck.jump.all()  # the kink is reported on every pass
     y1, y2 = ([float(f(p)) for p in pts] for f in (f1, f2))  # CasADi's own evaluation
     assert np.all(np.abs(np.subtract(y1, y2)) > 0.1)
+
+
+@pytest.mark.parametrize("options", [{}, {"affine": False, "mean_value": False},
+                                     {"backward": True}, {"second_order": True},
+                                     {"presearch": 0}])
+def test_structurally_zero_constraints_and_properties_keep_their_columns(options):
+    # CasADi stores no entry for MX(1, 1) or the Lie derivative of f = 0: F had fewer
+    # entries than constraints + properties and the verifier read the columns shifted
+    # (a false "verified", found by a review)
+    x = ca.MX.sym("x", 2)
+    p = VerificationProblem(x, [[-1, 1], [-1, 1]], [ca.MX(1, 1)], [x[0] - 0.5])
+    assert verify(p, **options).status == "counterexample"
+    V = ca.sumsqr(x)
+    q = lyapunov_problem(x, V, ca.jtimes(V, x, ca.MX(2, 1)), inner=0.1, outer=1.0)
+    assert verify(q, **options).status == "counterexample"  # V̇ = 0 is not < 0

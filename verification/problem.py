@@ -101,6 +101,10 @@ class VerificationProblem:
         for e in exprs:
             if e.shape != (1, 1):
                 raise DimensionError(f"constraints and properties must be scalars, got {e.shape}")
+        # a structural zero (CasADi stores no entry for it: ``MX(1, 1)``, the Lie derivative
+        # of a zero f) must keep its column: the verifier reads constraints and properties
+        # by position in F
+        exprs = [ca.densify(e) for e in exprs]
         self.n_constraints = len(self.constraints)
         self.n_properties = len(self.properties)
         self.constraint_names = list(self.constraint_names
@@ -113,8 +117,8 @@ class VerificationProblem:
         self.jacobian = ca.Function("J", [self.x], [J])
         # one pass gives both (shared subexpressions): the verifier's hot path
         self.function_jacobian = ca.Function("FJ", [self.x], [F, J])
-        self.constraints = list(self.constraints)
-        self.properties = list(self.properties)
+        self.constraints = exprs[:self.n_constraints]
+        self.properties = exprs[self.n_constraints:]
         self._build_checked(exprs, J)
 
     def _build_checked(self, exprs, J) -> None:

@@ -166,7 +166,7 @@ class System:
         u = ca.SX(0, 1) if u is None else u
         if not isinstance(u, ca.SX) or not (u.is_empty() or u.is_valid_input()):
             raise TypeError("u must be a column of casadi.SX symbols or None")
-        f = ca.SX(f)
+        f = ca.densify(ca.SX(f))  # a structural zero (x_k' = 0) keeps its row in evaluations
         if f.shape != (x.numel(), 1):
             raise DimensionError(
                 f"f must have shape ({x.numel()}, 1) to match x, got {f.shape}; "
@@ -467,7 +467,7 @@ class System:
             if not 0 <= i < self.nx:
                 raise ConfigError(f"known_rhs index {i} is out of range for {self.nx} states")
             e = expr(self.x, self.u) if callable(expr) else expr
-            e = ca.SX(e)
+            e = ca.densify(ca.SX(e))
             if e.shape != (1, 1):
                 raise DimensionError(f"known_rhs[{i}] must be a scalar expression, got {e.shape}")
             if ca.Function("k", [self.x, self.u], [e], {"allow_free": True}).has_free():

@@ -273,3 +273,11 @@ def test_cli_config_file_and_errors(tmp_path, capsys):
     assert _cli(["learn-dynamics", "van_der_pol", "--config", str(cfg), "--out",
                  str(out)]) == 3
     assert "steps" in capsys.readouterr().err
+
+
+def test_a_controller_function_with_a_structural_zero_has_all_its_outputs():
+    x = ca.MX.sym("x", 2)
+    k = ca.Function("k", [x], [ca.vertcat(0.5 * x[0], ca.MX(1, 1))])  # u_1 = 0, not stored
+    rng = check_input_range(k, [[-1, 1], [-1, 1]], [[-1, 1], [-1, 1]])
+    assert rng.shape == (2, 2)
+    assert np.all(rng[1] == 0.0) and rng[0, 0] <= -0.5 and rng[0, 1] >= 0.5

@@ -409,3 +409,30 @@ def test_a_rise_of_v_counts_only_if_the_refined_step_keeps_it(lam, kept):
         assert (rise > 0).all()                                   # the coarse step's artefact
     out = _confirmed_rises(run, f, Xi, rise[None, :], dt=0.01, tol=1e-9)
     assert ((out > 1e-9).all() if kept else (out < 0).all()), out
+
+
+def test_structural_zeros_keep_their_places_in_f_and_in_the_filter():
+    # x_0' = 0 stored as a structural zero, and an input that does not enter f (0·u_1 folds
+    # away): evaluations and the CLF-QP filter read by position (found by a review: the
+    # zero row vanished, a simulation converged that stays put, the filter crashed)
+    import types
+
+    x = ca.SX.sym("x", 2)
+    s0 = systems.System("zero_row", x, None, ca.vertcat(ca.SX(1, 1), -x[1]),
+                        state_box=[[-1, 1], [-1, 1]])
+    assert np.array_equal(s0.evaluate(np.array([[1.0, 1.0]])), [[0.0, -1.0]])
+    u = ca.SX.sym("u", 2)
+    s = systems.System("unused_input", x, u,
+                       ca.vertcat(x[1], -x[0] - x[1] + u[0] + 0 * u[1]),
+                       state_box=[[-1, 1], [-1, 1]], input_box=[[-2, 2], [-2, 2]])
+    V = quadratic_lyapunov(np.array([[1.5, 0.5], [0.5, 1.0]]))
+    problem = types.SimpleNamespace(V_expr=V.casadi, input_box=s.input_box, dynamics=None,
+                                    controller=linear_controller(s, np.array([[0.5, 0.5],
+                                                                              [0.0, 0.0]])))
+    run = types.SimpleNamespace(problem=problem, system=s,
+                                certificate=types.SimpleNamespace(inner_ellipse=None))
+    flt = ClfQpFilter(run, lambda X: np.zeros((len(X), 2)))
+    pts = np.array([[0.5, 0.5], [-0.3, 0.2]])
+    a = flt.pieces(pts)[0]
+    assert a.shape == (2, 2) and np.all(a[:, 1] == 0.0)
+    assert flt(pts).shape == (2, 2)

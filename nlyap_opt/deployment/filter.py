@@ -188,7 +188,10 @@ class ClfQpFilter:
         a = ca.mtimes(G.T, grad)
         e = ca.dot(grad, f0) + margin
         d = -(e + ca.dot(a, kappa))
-        self._pieces = ca.Function("clf_qp_pieces", [x], [a, e, d, kappa],
+        # dense: an input that does not enter f leaves a structural zero in a (read by
+        # position below)
+        self._pieces = ca.Function("clf_qp_pieces", [x],
+                                   [ca.densify(v) for v in (a, e, d, kappa)],
                                    ["x"], ["a", "e", "d", "kappa"])
         box = problem.input_box if which == "learned" else sysm.input_box
         self.box = np.asarray(box, dtype=float).reshape(nu, 2)

@@ -72,6 +72,9 @@ def _as_function(obj, n_in: int, what: str) -> ca.Function:
     if isinstance(obj, ca.Function):
         if obj.n_in() != 1 or obj.nnz_in(0) != n_in:
             raise DimensionError(f"{what} Function must take one input of size {n_in}")
+        if obj.n_out() and not obj.sparsity_out(0).is_dense():  # read by position: densify
+            x = ca.MX.sym("x", obj.size_in(0))
+            return ca.Function(what, [x], [ca.densify(obj(x))])
         return obj
     if callable(getattr(obj, "casadi", None)) \
             and getattr(obj, "nx", getattr(obj, "n_in", None)) == n_in:

@@ -88,15 +88,6 @@ def enclosures() -> None:
     print()
 
 
-def _cpu(fn, repeat):
-    best, res = np.inf, None
-    for _ in range(repeat):
-        c = time.process_time()
-        res = fn()
-        best = min(best, time.process_time() - c)
-    return best, res
-
-
 def queries(repeat: int) -> None:
     import distributed_verify as dv
     import verify as bv
@@ -125,8 +116,8 @@ def queries(repeat: int) -> None:
     print("|---|---|---|---|---|---|---|")
     for label, p in rows:
         verify(p)  # compile
-        ca_, r = _cpu(lambda p=p: verify(p), repeat)
-        cb, rb = _cpu(lambda p=p: verify(p, backward=True), repeat)
+        (_, ca_), r = bv._timed(lambda p=p: verify(p), repeat)  # best CPU seconds
+        (_, cb), rb = bv._timed(lambda p=p: verify(p, backward=True), repeat)
         print(f"| {label} | {r.status} | {r.boxes} | {ca_:.3f} | {rb.status} | {rb.boxes} | "
               f"{cb:.3f} |")
     print()

@@ -632,6 +632,19 @@ def _second_order_enclosure(problem, lo: np.ndarray, hi: np.ndarray, Fp: Interva
     return Interval(np.where(ok, lo_b, -np.inf), np.where(ok, hi_b, np.inf))
 
 
+def _undecided_rows(enc: Interval, m: int, lag) -> np.ndarray:
+    """Rows of the boxes that ``enc`` (``m`` constraint columns first) leaves undecided:
+    no constraint ``> 0`` on the box, and some property not proved ``< 0`` (by ``enc``
+    or, where ``lag`` says so, on the region's part of the box)."""
+    pos = enc.hi[:, m:] < 0
+    if lag is not None:
+        pos = pos | lag
+    done = np.all(pos, axis=1)
+    if m:
+        done |= np.any(enc.lo[:, :m] > 0, axis=1)
+    return np.flatnonzero(~done)
+
+
 def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=None,
                        affine_hessian: bool = False, _pass: int = 0) -> Interval:
     """``enc`` intersected with :func:`_second_order_enclosure` on the property columns of
@@ -648,13 +661,7 @@ def _with_second_order(problem, lo, hi, enc: Interval, Fc: Interval, lag, chk=No
     it cannot decide widens to both branches, still an enclosure).
     """
     m = problem.n_constraints
-    pos = enc.hi[:, m:] < 0
-    if lag is not None:
-        pos = pos | lag
-    done = np.all(pos, axis=1)
-    if m:
-        done |= np.any(enc.lo[:, :m] > 0, axis=1)
-    rows = np.flatnonzero(~done)
+    rows = _undecided_rows(enc, m, lag)
     if not len(rows):
         return enc
     Fp = Interval(Fc.lo[rows, m:], Fc.hi[rows, m:])
@@ -732,13 +739,7 @@ def _with_backward(problem, lo, hi, enc: Interval, lag, keep) -> Interval:
     (kinks, jumps, domains: the checked path's rule) are left as they are.
     """
     m = problem.n_constraints
-    pos = enc.hi[:, m:] < 0
-    if lag is not None:
-        pos = pos | lag
-    done = np.all(pos, axis=1)
-    if m:
-        done |= np.any(enc.lo[:, :m] > 0, axis=1)
-    rows = np.flatnonzero(~done)
+    rows = _undecided_rows(enc, m, lag)
     if not len(rows):
         return enc
     K = enc.lo.shape[1]

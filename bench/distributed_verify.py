@@ -135,13 +135,16 @@ def cartpole_certificate():
     return replace(base, V=quadratic_lyapunov(cand.P), inner=cert.inner), cert.level
 
 
-def certificate_rows(workers, repeat, model=(), saved=None, keep=None):
+def certificate_rows(workers, repeat, model=(), saved=None, keep=None, proof=False):
     """Seconds of ``nlyap verify --certificate`` on query (D): serial, then on clusters of
     ``workers`` (:func:`nlyap_opt.certification.certificate.recheck_certificate` of the saved
     certificate, inside :func:`nlyap_opt.distributed.parallel.verifying_on` as the CLI runs it); the
     model on
     ``model`` workers; ``saved``: the directory of a saved certificate to re-check instead
-    (not certified here); ``keep``: a directory to save the certificate into."""
+    (not certified here); ``keep``: a directory to save the certificate into; ``proof``:
+    record the re-check's proof (its checks' bisection trees,
+    :class:`nlyap_opt.distributed.parallel.Proofs`) by a serial re-check first, and time
+    every row with it, as ``nlyap verify --certificate DIR --proof FILE`` runs."""
     import contextlib
     import tempfile
 
@@ -150,7 +153,7 @@ def certificate_rows(workers, repeat, model=(), saved=None, keep=None):
         recheck_certificate,
         save_certificate,
     )
-    from nlyap_opt.distributed.parallel import verifying_on
+    from nlyap_opt.distributed.parallel import Proofs, proving, verifying_on
 
     if saved is None:
         problem, level = cartpole_certificate()
@@ -167,8 +170,19 @@ def certificate_rows(workers, repeat, model=(), saved=None, keep=None):
                 raise SystemExit(f"query (D): {path} does not re-check ({cert.reason})")
             level = cert.level
 
+        proofs = None
+        if proof:
+            proofs = Proofs(record=True)
+            t = time.perf_counter()
+            with proving(proofs):
+                recheck_certificate(path, log=lambda m: None)
+            proofs.record = False
+            print(f"(D) proof recorded by a serial re-check in {time.perf_counter() - t:.2f} s "
+                  f"({len(proofs.trees)} bisected checks); every row below starts from it")
+
         def once():  # reads the artifacts again: no compiled check is reused between timings
-            return recheck_certificate(path, log=lambda m: None)
+            with proving(proofs):
+                return recheck_certificate(path, log=lambda m: None)
 
         rows = [("serial", *_best(once, repeat))]
         for w in workers:
@@ -292,6 +306,9 @@ def main(argv=None):
                        help="keep query (D)'s certificate in DIR")
     where.add_argument("--certificate", metavar="DIR",
                        help="re-check the certificate saved in DIR as query (D)")
+    ap.add_argument("--proof", action="store_true",
+                    help="query (D) with a proof: recorded by a serial re-check, then used "
+                         "by every row (nlyap verify --certificate DIR --proof FILE)")
     args = ap.parse_args(argv)
     print("command: python bench/distributed_verify.py " + " ".join(sys.argv[1:] if argv is None
                                                                    else argv))
@@ -300,7 +317,7 @@ def main(argv=None):
         if args.save_certificate:
             Path(args.save_certificate).mkdir(parents=True, exist_ok=True)
         certificate_rows(args.workers, args.repeat, args.model, saved=args.certificate,
-                         keep=args.save_certificate)
+                         keep=args.save_certificate, proof=args.proof)
         print(f"after (D): load average {os.getloadavg()[0]:.2f}")
     if args.certificate_only:
         return

@@ -248,6 +248,8 @@ class VerificationResult:
     open : (k, n, 2) ndarray or None  ``hand_back``: halves still to decide, not evaluated
                                     (the status is then ``unknown`` unless a counterexample
                                     was found)
+    partition : dict or None        ``partition``: the bisection tree a verified run decided
+                                    (``verification.verify.partition_leaves`` gives its leaves)
     """
 
     status: QueryStatus
@@ -260,6 +262,7 @@ class VerificationResult:
     leaves: list | None = None
     backend: str = "interval"
     open: np.ndarray | None = None
+    partition: dict | None = None
 
     def __post_init__(self):
         self.status = QueryStatus(self.status)   # a word that is no status: ValueError

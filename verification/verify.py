@@ -810,6 +810,7 @@ def verify_interval(
     hand_back: bool = False,
     hand_back_below: int = 0,
     precondition: bool = False,
+    partition: bool = False,
 ) -> VerificationResult:
     """Decide ``problem`` with interval branch-and-prune; see :func:`verification.verify`.
 
@@ -855,7 +856,14 @@ def verify_interval(
     Hessian ``H`` at the root box's centre, where it is definite
     (:mod:`verification.precondition`: for a stiff loop, the decrease becomes about ``±|z|²``;
     the result is stated about ``problem``; ``resolution`` then applies to widths in ``z``).
+    ``partition``: a verified result records the bisection tree it decided, in
+    ``result.partition`` (``{"initial_boxes": k, "codes": int8 array}``, see
+    :func:`partition_leaves`): a later check of the same problem can start from its leaves
+    (``boxes=partition_leaves(...)``) instead of searching for them again.
     """
+    if partition and (boxes is not None or hand_back or executor is not None or precondition):
+        raise ValueError("partition records a run from the root box's grid: it excludes "
+                         "boxes, hand_back, executor and precondition")
     if precondition:
         if boxes is not None or hand_back or keep_leaves:
             raise ValueError("precondition excludes boxes, hand_back and keep_leaves")
@@ -901,13 +909,14 @@ def verify_interval(
                              stop_at_first, keep_leaves, seed, initial_boxes, progress,
                              affine and ("backward" if backward else True), second_order,
                              boxes, hand_back,
-                             int(hand_back_below) if hand_back else 0, presearch_boundary)
+                             int(hand_back_below) if hand_back else 0, presearch_boundary,
+                             partition)
 
 
 def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presearch,
                   stop_at_first, keep_leaves, seed, initial_boxes, progress, affine=False,
                   second_order=False, boxes=None, hand_back=False, hand_back_below=0,
-                  presearch_boundary=0):
+                  presearch_boundary=0, partition=False):
     box = problem.box
     compile_function(problem.function_jacobian)
     rng = np.random.default_rng(seed)
@@ -930,6 +939,9 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
             # batch
         queue_lo, queue_hi = boxes[:, :, 0].copy(), boxes[:, :, 1].copy()
     depth_q = np.zeros(len(queue_lo), dtype=int)
+    # partition: the node number of each queued box (the grid's cells first), and per
+    # bisected node its split dimension and its children's numbers
+    tree = _Tree(len(queue_lo)) if partition else None
     undecided: list[np.ndarray] = []
     opened: list[np.ndarray] = []  # hand_back: halves not evaluated here
     leaves: list[dict] | None = [] if keep_leaves else None
@@ -941,6 +953,8 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
             break
         lo, hi, dq = queue_lo[:batch], queue_hi[:batch], depth_q[:batch]
         queue_lo, queue_hi, depth_q = queue_lo[batch:], queue_hi[batch:], depth_q[batch:]
+        if tree is not None:
+            ids, tree.queue = tree.queue[:batch], tree.queue[batch:]
         n_boxes += len(lo)
         max_depth = max(max_depth, int(dq.max()))
         enc, Fc, J, chk, chk_c, aux = _enclose_all(problem, lo, hi, mean_value, affine,
@@ -1029,6 +1043,8 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
         right_lo = lo_s.copy()
         right_lo[rows, dim] = mid
         d = dq[split] + 1
+        if tree is not None:
+            tree.split(ids[split], dim)
         if over:  # hand_back: the halves go to another task, unevaluated
             opened.append(np.stack([np.concatenate([lo_s, right_lo]),
                                     np.concatenate([left_hi, hi_s])], axis=-1))
@@ -1048,8 +1064,125 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
         return VerificationResult("counterexample", found[0], found, und, n_boxes, max_depth,
                                   seconds, leaves, open=opn if hand_back else None)
     status = "unknown" if len(und) or len(opn) else "verified"
-    return VerificationResult(status, None, [], und, n_boxes, max_depth, seconds, leaves,
-                              open=opn if hand_back else None)
+    res = VerificationResult(status, None, [], und, n_boxes, max_depth, seconds, leaves,
+                             open=opn if hand_back else None)
+    if tree is not None and status == "verified":
+        res.partition = {"initial_boxes": int(initial_boxes), "codes": tree.codes()}
+    return res
+
+
+class _Tree:
+    """The bisection tree of one serial run (``verify_interval(partition=True)``).
+
+    Nodes are numbered as they are made: the first grid's cells ``0 .. k-1``, then the two
+    halves of each bisected box, left then right. ``queue`` holds the numbers of the boxes
+    queued, in the verifier's queue order.
+    """
+
+    def __init__(self, cells: int):
+        self.queue = np.arange(cells, dtype=np.int64)
+        self.cells = cells
+        self.made = cells
+        self.parents: list[np.ndarray] = []
+        self.dims: list[np.ndarray] = []
+        self.lefts: list[np.ndarray] = []
+
+    def split(self, ids: np.ndarray, dim: np.ndarray) -> None:
+        """The boxes ``ids`` are bisected along ``dim``; their halves go to the queue's
+        front as the verifier puts them (all left halves, then all right halves)."""
+        s = len(ids)
+        left = self.made + np.arange(s, dtype=np.int64)
+        self.made += 2 * s
+        self.parents.append(ids)
+        self.dims.append(np.asarray(dim, dtype=np.int64))
+        self.lefts.append(left)
+        self.queue = np.concatenate([left, left + s, self.queue])
+
+    def codes(self) -> np.ndarray:
+        """The tree in breadth-first order: per node ``-1`` (a leaf) or its split
+        dimension; the cells first, then each level's children: the left halves of the
+        level before's bisected nodes in its order, then their right halves."""
+        dim_of = np.full(self.made, -1, dtype=np.int64)
+        left_of = np.zeros(self.made, dtype=np.int64)
+        right_of = np.zeros(self.made, dtype=np.int64)
+        if self.parents:
+            p = np.concatenate(self.parents)
+            dim_of[p] = np.concatenate(self.dims)
+            left = np.concatenate(self.lefts)
+            left_of[p] = left
+            right_of[p] = left + np.concatenate([np.full(len(x), len(x)) for x in self.lefts])
+        level = np.arange(self.cells, dtype=np.int64)
+        out = []
+        while len(level):
+            c = dim_of[level]
+            out.append(c)
+            sp = level[c >= 0]
+            level = np.concatenate([left_of[sp], right_of[sp]])
+        return np.concatenate(out).astype(np.int8)
+
+
+#: the most numbers (nodes times states) in a tree :func:`partition_leaves` decodes: 8
+#: million nodes in 4-D, 16 times the default box budget of a check (a level of the tree
+#: then needs at most 256 MB)
+MAX_PARTITION_ENTRIES = 1 << 25
+
+#: the most levels per state of a tree: a float side is halved to nothing within this
+MAX_PARTITION_LEVELS = 1130
+
+
+def partition_leaves(box: np.ndarray, initial_boxes: int, codes: np.ndarray) -> np.ndarray:
+    """The leaf boxes ``(k, n, 2)`` of a bisection tree of ``box`` (``result.partition``).
+
+    The tree starts from the verifier's first grid of ``initial_boxes`` cells and bisects
+    each node coded ``d >= 0`` at the midpoint of side ``d``, as the verifier does, so the
+    leaves are the boxes a serial run decided, and together they cover ``box`` whatever
+    the codes say: a code can change which boxes are checked, never what they cover.
+
+    Raises
+    ------
+    ValueError
+        The codes are not a whole tree of ``box``: a code outside ``-1 .. n-1``, too few
+        or too many codes, more nodes than :data:`MAX_PARTITION_ENTRIES` over ``n``, or
+        more levels than :data:`MAX_PARTITION_LEVELS` times ``n``.
+    """
+    box = np.asarray(box, dtype=float)
+    n = len(box)
+    codes = np.asarray(codes)
+    if codes.ndim != 1 or codes.dtype.kind not in "iu":
+        raise ValueError("partition codes must be a 1-D integer array")
+    if len(codes) * max(n, 1) > MAX_PARTITION_ENTRIES:
+        raise ValueError(f"a partition of {len(codes)} nodes in {n}-D is more than the "
+                         f"{MAX_PARTITION_ENTRIES // max(n, 1)} that are decoded")
+    if len(codes) and (int(codes.min()) < -1 or int(codes.max()) >= n):
+        raise ValueError(f"partition codes must lie in -1 .. {n - 1} for a {n}-D box")
+    lo, hi = _initial_boxes(box, int(initial_boxes))
+    level = np.stack([lo, hi], axis=-1)
+    at = 0
+    out = []
+    depth = 0
+    while len(level):
+        depth += 1
+        if depth > MAX_PARTITION_LEVELS * n + 1:
+            raise ValueError(f"the partition is deeper than {MAX_PARTITION_LEVELS * n} levels")
+        m = len(level)
+        if at + m > len(codes):
+            raise ValueError(f"the partition's codes end after {len(codes)} nodes, inside "
+                             "the tree")
+        c = codes[at:at + m]
+        at += m
+        split = c >= 0
+        out.append(level[~split])
+        parent = level[split]
+        k = len(parent)
+        rows = np.arange(k)
+        dim = c[split].astype(np.intp)
+        mid = 0.5 * (parent[rows, dim, 0] + parent[rows, dim, 1])  # as the verifier splits
+        level = np.concatenate([parent, parent])  # left halves, then right halves
+        level[rows, dim, 1] = mid
+        level[k + rows, dim, 0] = mid
+    if at != len(codes):
+        raise ValueError(f"the partition has {len(codes) - at} codes after its tree ends")
+    return np.concatenate(out)
 
 
 def _run_sub(problem, kwargs):
@@ -1085,7 +1218,7 @@ def _verify_distributed(problem, executor, n_tasks, t0, **kwargs) -> Verificatio
 # ============================================================================ options in files
 #: keyword options of :func:`verify_interval` that are run-time objects, not settings a file
 #: (a run configuration, a certificate) can hold
-RUNTIME_OPTIONS = ("executor", "progress", "boxes", "hand_back", "hand_back_below")
+RUNTIME_OPTIONS = ("executor", "progress", "boxes", "hand_back", "hand_back_below", "partition")
 
 
 def file_options() -> dict[str, tuple]:

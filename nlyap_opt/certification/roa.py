@@ -1327,12 +1327,20 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                 break
         res_a = None
         if res_b.status == "verified":
-            res_a = None if taylor is None else taylor.check(c, box, inner)
+            prob_a = None
+            if taylor is not None and not taylor_only and parallel.proving_active():
+                # a re-check with a proof: a decrease check it holds the tree of was
+                # bisected when it was recorded (the closed form did not decide it then)
+                prob_a = lyapunov_problem(x, V, lie, inner=inner, domain=D, level=c,
+                                          margin=margin, box=box, check_positive=False)
+            skip = prob_a is not None and parallel.recorded(prob_a)
+            res_a = None if taylor is None or skip else taylor.check(c, box, inner)
             if res_a is None and taylor_only:   # undecided here: no bisection asked for
                 res_a = VerificationResult(QueryStatus.UNKNOWN, backend="taylor")
             if res_a is None:
-                prob_a = lyapunov_problem(x, V, lie, inner=inner, domain=D, level=c,
-                                          margin=margin, box=box, check_positive=False)
+                if prob_a is None:
+                    prob_a = lyapunov_problem(x, V, lie, inner=inner, domain=D, level=c,
+                                              margin=margin, box=box, check_positive=False)
                 res_a = parallel.check(prob_a, **opts)
         hist.append({"level": c, "containment": res_b.status,
                      "decrease": None if res_a is None else res_a.status,

@@ -45,6 +45,7 @@ import asyncio
 import contextlib
 import contextvars
 import copy
+import hashlib
 import heapq
 import inspect
 import logging
@@ -54,6 +55,7 @@ import re
 import socket
 import threading
 import time
+import zipfile
 from collections.abc import Iterator
 
 import casadi as ca
@@ -62,13 +64,20 @@ import numpy as np
 import verification
 from verification.precondition import hessian_coordinates, solve_preconditioned
 from verification.problem import VerificationResult
-from verification.verify import confirm_points, split_box, verify_interval
+from verification.verify import (
+    MAX_PARTITION_ENTRIES,
+    confirm_points,
+    partition_leaves,
+    split_box,
+    verify_interval,
+)
 
 from ..kernel import deps
 from ..kernel.errors import BackendUnavailableError, ConfigError
 from ..kernel.walker import NUMPY, Program, compile_function, evaluate
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
+           "Proofs", "proving", "proving_active", "recorded",
            "SimulatedCluster", "model_speedups", "task_defaults", "pass_boxes",
            "parse_scheduler", "client_workers", "cpu_cores", "check_connect_timeout",
            "MAX_LOCAL_WORKERS", "DEFAULT_CONNECT_TIMEOUT"]
@@ -931,7 +940,7 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
                        initial_boxes: int = 256, task_boxes: int | None = None,
                        tasks_per_worker: int | None = None, root_boxes: int | None = None,
                        min_task_boxes: int | None = None, stats: dict | None = None,
-                       **options):
+                       start: np.ndarray | None = None, **options):
     """Decide ``problem`` with the interval verifier on a Dask cluster, load-balanced.
 
     The hard boxes of a Lyapunov problem are few (near the level set, near the inner
@@ -1010,6 +1019,12 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         instruction of the graphs: thin passes are mostly that). On more than two workers,
         until every worker has been busy once (the ramp-up), a quarter of it: workers
         that would otherwise wait pay the thinner passes, and the open set widens sooner.
+    start : (k, n, 2) ndarray, optional
+        The leaf boxes of a partition of the root box that a serial run decided
+        (:class:`Proofs`): they are dealt at once, in strided shares, into four tasks per
+        worker, and no root task runs (no pre-search, no first grid). A leaf that is not
+        decided is bisected on as usual. The verdict is about the leaves' union: they must
+        cover the box (:func:`verification.verify.partition_leaves` gives such leaves).
     stats : dict, optional
         Filled with ``tasks`` (count), ``root_cpu`` (CPU seconds of step 1),
         ``cpu_by_worker`` (CPU seconds of the other tasks per worker process: the load
@@ -1040,7 +1055,7 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
 
     known = set(inspect.signature(verify_interval).parameters) - {
         "problem", "executor", "n_tasks", "progress", "boxes", "hand_back", "hand_back_below",
-        "precondition"}  # tasks start from boxes: coordinates are changed before (check)
+        "precondition", "partition"}  # tasks start from boxes; coordinates change before
     for name in options:
         if name not in known:
             raise TypeError(f"verify_distributed() got an unknown option {name!r}; options: "
@@ -1166,11 +1181,21 @@ def verify_distributed(problem, client, *, resolution: float | None = None,
         deal(merged, target - state["running"])
 
     try:
-        root = {k: v for k, v in options.items() if k != "initial_boxes"}
-        runner.submit(_root_task, root, presearch, initial_boxes if batched else 1,
-                      min(root_boxes, max_boxes) if batched else 0)
-        _, out = runner.next()
-        opened = absorb(out)
+        if start is not None and batched:  # a recorded partition: its leaves, dealt at once
+            tally["root_cpu"] = 0.0
+            for chunk in _deal_boxes(np.asarray(start, dtype=float), 4 * n_workers):
+                tally["starts"].append(len(chunk))
+                key = runner.submit(_box_task, chunk, len(chunk) + task_boxes, options, True)
+                offsets[key] = _depth(chunk, root_w)
+                state["running"] += 1
+            state["ramped"] = True
+            opened = np.zeros((0, problem.n, 2))
+        else:
+            root = {k: v for k, v in options.items() if k != "initial_boxes"}
+            runner.submit(_root_task, root, presearch, initial_boxes if batched else 1,
+                          min(root_boxes, max_boxes) if batched else 0)
+            _, out = runner.next()
+            opened = absorb(out)
         if not (found and stop_at_first):
             if not batched and len(opened):  # fixed split, scheduled as workers free up
                 parts = 1 << max(0, math.ceil(math.log2(4 * target)))
@@ -1258,14 +1283,34 @@ def check(problem, **options):
     """
 
     client = _CLUSTER.get()
-    if client is None:
+    proofs = _PROOFS.get()
+    if client is None and (proofs is None or options.get("backend", "interval") != "interval"):
         return verification.verify(problem, **options)
     if options.get("precondition"):  # coordinates z = Mx first, then the cluster on them
         return solve_preconditioned(problem, hessian_coordinates(problem),
                                     lambda p: check(p, **_preconditioned_options(options)),
                                     confirm_points)
     opts = {k: v for k, v in options.items() if k not in ("n_tasks", "executor", "progress")}
+    start = proofs.leaves(problem) if proofs is not None else None
+    if client is None:  # serially, with a recorded partition or recording one
+        if start is not None:
+            res = verify_interval(problem, **dict(opts, boxes=start, presearch=0))
+            if res.status == "verified":
+                proofs.used += 1
+                return res
+        if proofs.record:
+            res = verification.verify(problem, **options, partition=True)
+            if res.partition is not None:
+                proofs.add(problem, res.partition)
+            return res
+        return verification.verify(problem, **options)
     st: dict = {}
+    if start is not None:
+        res = verify_distributed(problem, client, stats=st, start=start, **opts)
+        if res.status == "verified":
+            proofs.used += 1
+            return res
+        st = {}
     res = verify_distributed(problem, client, stats=st, **opts)
     if res.status == "verified":
         return res
@@ -1275,6 +1320,157 @@ def check(problem, **options):
         # first steps (same seed, grid and batch), which stops there with this very result
         return res
     return verification.verify(problem, **options)
+
+
+#: the :class:`Proofs` that :func:`check` records into or starts from (:func:`proving`)
+_PROOFS: contextvars.ContextVar = contextvars.ContextVar("nlyap_proofs", default=None)
+
+
+class Proofs:
+    """The bisection trees of verified checks, by problem: a re-check's *proof* file.
+
+    A serial check records the tree it decided (``verify_interval(partition=True)``); a
+    later check of the same problem (the same graphs, box and number of conditions,
+    :meth:`key`) starts from that tree's leaves instead of searching for them again: about
+    half the boxes, and all of them known at once, so a cluster deals them out evenly from
+    the start. Nothing in a proof is trusted: the leaves are rebuilt by bisecting the
+    problem's own box as the verifier does (:func:`verification.verify.partition_leaves`),
+    so they cover it whatever the file says, and every leaf is decided again by the
+    verifier's rules. A leaf that is not decided is bisected on; a check whose leaves do
+    not all hold is decided again from the root box, as without a proof. A proof can make a
+    re-check faster or slower, never change what it proves. A check with a recorded tree
+    was bisected when it was recorded, so the closed-form attempt that precedes a decrease
+    check's bisection (:func:`recorded`) is skipped: it did not decide that check then.
+
+    Parameters
+    ----------
+    record : bool
+        Record the trees of the checks run serially under :func:`proving`.
+    """
+
+    FORMAT = "nlyap-proof-1"  # breadth-first codes, left halves before right halves
+
+    def __init__(self, record: bool = False):
+        self.record = bool(record)
+        self.trees: dict[str, tuple[int, np.ndarray]] = {}
+        self.asked = 0  # checks that looked for a tree
+        self.used = 0  # checks decided from a recorded tree
+
+    @staticmethod
+    def key(problem) -> str:
+        """The problem's identity: a hash of its box, its counts of states, constraints and
+        properties, and its conditions' values (7 significant digits) at 8 seeded points of
+        the box. The values do not depend on how CasADi stores the graphs (another version
+        or machine finds the same key unless a value rounds the other way there); a key
+        shared by two problems can only cost time (see the class)."""
+        box = np.ascontiguousarray(problem.box, dtype=np.float64)
+        lo, hi = box[:, 0], box[:, 1]
+        points = lo + (hi - lo) * np.random.default_rng(20261128).random((8, problem.n))
+        with np.errstate(all="ignore"):
+            values = np.asarray(evaluate(problem.function, [points])[0], dtype=float)
+        h = hashlib.sha256()
+        h.update(box.tobytes())
+        h.update(f"{problem.n},{problem.n_constraints},{problem.n_properties};".encode())
+        h.update(",".join(f"{v:.6e}" for v in values.ravel()).encode())
+        return h.hexdigest()
+
+    def add(self, problem, partition: dict) -> None:
+        """Keep ``result.partition`` of a verified check of ``problem``."""
+        self.trees[self.key(problem)] = (int(partition["initial_boxes"]),
+                                         np.asarray(partition["codes"], dtype=np.int8))
+
+    def has(self, problem) -> bool:
+        """Whether a tree of ``problem`` is recorded."""
+        return self.key(problem) in self.trees
+
+    def leaves(self, problem) -> np.ndarray | None:
+        """The leaf boxes of ``problem``'s recorded tree, or ``None`` if there is none."""
+        self.asked += 1
+        tree = self.trees.get(self.key(problem))
+        if tree is None:
+            return None
+        try:
+            return partition_leaves(problem.box, *tree)
+        except ValueError:  # not a tree of this box: the check searches as without it
+            return None
+
+    def save(self, path) -> None:
+        """Write the trees to ``path`` (a ``.npz`` file of integer arrays)."""
+        keys = sorted(self.trees)
+        arrays = {"format": np.frombuffer(self.FORMAT.encode(), dtype=np.uint8)}
+        for i, k in enumerate(keys):
+            initial, codes = self.trees[k]
+            arrays[f"key{i}"] = np.frombuffer(k.encode(), dtype=np.uint8)
+            arrays[f"initial{i}"] = np.asarray([initial], dtype=np.int64)
+            arrays[f"codes{i}"] = codes
+        with open(path, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+
+    @classmethod
+    def load(cls, path) -> Proofs:
+        """Read a proof file written by :meth:`save`.
+
+        Raises
+        ------
+        ConfigError
+            The file is not a readable proof file (one line naming the problem).
+        """
+        fix = "write it again with 'nlyap verify --certificate DIR --save-proof FILE'"
+        out = cls()
+        try:
+            with zipfile.ZipFile(path) as zf:  # sizes as declared, before anything is inflated
+                infos = zf.infolist()
+                if len(infos) > 3 * 4096 + 1 or \
+                        sum(i.file_size for i in infos) > 2 * MAX_PARTITION_ENTRIES:
+                    raise ConfigError(f"{path} holds more than a proof file of this tool "
+                                      f"does ({fix})")
+            with np.load(path, allow_pickle=False) as z:
+                names = set(z.files)
+                if "format" not in names or bytes(z["format"].astype(np.uint8)) != \
+                        cls.FORMAT.encode():
+                    raise ConfigError(f"{path} is not a proof file of this tool ({fix})")
+                n = sum(1 for f in names if f.startswith("key"))
+                for i in range(n):
+                    key = bytes(z[f"key{i}"].astype(np.uint8)).decode("ascii")
+                    initial = z[f"initial{i}"]
+                    codes = z[f"codes{i}"]
+                    if not re.fullmatch(r"[0-9a-f]{64}", key) or initial.shape != (1,) or \
+                            initial.dtype.kind not in "iu" or not 1 <= int(initial[0]) <= 2**20 \
+                            or codes.dtype != np.int8 or codes.ndim != 1 or \
+                            len(codes) > MAX_PARTITION_ENTRIES:
+                        raise ConfigError(f"{path}: entry {i} is not a bisection tree ({fix})")
+                    out.trees[key] = (int(initial[0]), codes)
+        except ConfigError:
+            raise
+        except (OSError, ValueError, KeyError, UnicodeDecodeError, EOFError,
+                zipfile.BadZipFile) as err:
+            raise ConfigError(f"cannot read the proof file {path}: {err} ({fix})") from None
+        return out
+
+
+def proving_active() -> bool:
+    """Whether :func:`check` runs under :func:`proving` with proofs to start from."""
+    proofs = _PROOFS.get()
+    return proofs is not None and not proofs.record
+
+
+def recorded(problem) -> bool:
+    """Whether the :class:`Proofs` of :func:`proving` hold a tree of ``problem``: a check
+    that was bisected when they were recorded (a closed-form attempt before the
+    bisection, which did not decide it then, can be skipped)."""
+    proofs = _PROOFS.get()
+    return proofs is not None and not proofs.record and proofs.has(problem)
+
+
+@contextlib.contextmanager
+def proving(proofs: Proofs | None) -> Iterator:
+    """Within this block, :func:`check` starts from the trees of ``proofs`` (and, with
+    ``record``, records the trees of the checks it runs serially); ``None``: no proofs."""
+    token = _PROOFS.set(proofs)
+    try:
+        yield proofs
+    finally:
+        _PROOFS.reset(token)
 
 
 # ------------------------------------------------------------ a check ahead of its turn

@@ -46,7 +46,9 @@ from ..design.control import lqr
 from ..distributed.parallel import (
     DEFAULT_CONNECT_TIMEOUT,
     MAX_LOCAL_WORKERS,
+    Proofs,
     dask_client,
+    proving,
     verify_distributed,
     verifying_on,
 )
@@ -453,11 +455,15 @@ def _verify_certificate(args) -> int:
         raise UsageError("--certificate re-checks with the interval verifier and the options "
                          f"saved in the certificate; drop {', '.join(verifier)}")
     path, _ = read_certificate_file(args.certificate)  # a readable JSON file, or one line
+    proofs = _proofs(args)
 
     if is_compositional_file(path):
         if args.workers is not None or args.scheduler is not None:
             raise UsageError("a compositional certificate is re-checked without Dask; drop "
                              "--workers/--scheduler")
+        if proofs is not None:
+            raise UsageError("a compositional certificate is re-checked without bisection; "
+                             "drop --proof/--save-proof")
         cert = recheck_compositional(path, system=system, allow_factory=args.allow_factory)
         print(cert.summary())
         if args.json:
@@ -470,17 +476,48 @@ def _verify_certificate(args) -> int:
 
         with dask_client(args.workers, args.scheduler,
                          connect_timeout=_connect_timeout(args)) as client, \
-                verifying_on(client):
+                verifying_on(client), proving(proofs):
             cert = recheck_certificate(path, system=system)
     else:
-        cert = recheck_certificate(path, system=system)
+        with proving(proofs):
+            cert = recheck_certificate(path, system=system)
     print(cert.summary())
+    if args.proof:
+        print(f"proof: {proofs.used} of {proofs.asked} bisected checks started from the "
+              f"trees of {args.proof}" + ("" if proofs.used == proofs.asked else
+                                          " (the others searched from the root box)"))
+    if args.save_proof:
+        if cert.status is CertStatus.CERTIFIED:
+            try:
+                proofs.save(args.save_proof)
+            except OSError as err:
+                raise ConfigError(f"cannot write the proof file {args.save_proof}: "
+                                  f"{err.strerror or err}; give a writable path") from None
+            print(f"proof: the trees of {len(proofs.trees)} bisected checks written to "
+                  f"{args.save_proof} (re-check with --proof {args.save_proof})")
+        else:
+            print("proof: not written (the certificate did not re-check)")
     if args.json:
         _write_json(args.json, cert.to_dict() if hasattr(cert, "to_dict") else
                     {"status": cert.status.value, "summary": cert.summary()})
     if cert.status is CertStatus.CERTIFIED:
         return 0
     return 1 if cert.status is CertStatus.COUNTEREXAMPLE else 2
+
+
+def _proofs(args) -> Proofs | None:
+    """The :class:`Proofs` of ``--proof FILE`` (read) or ``--save-proof FILE`` (recording)."""
+    if args.proof and args.save_proof:
+        raise UsageError("give --proof FILE (start from a proof) or --save-proof FILE (record "
+                         "one), not both")
+    if args.save_proof:
+        if args.workers is not None or args.scheduler is not None:
+            raise UsageError("--save-proof records the checks' trees in a serial re-check; "
+                             "drop --workers/--scheduler (then re-check on them with --proof)")
+        return Proofs(record=True)
+    if args.proof:
+        return Proofs.load(args.proof)
+    return None
 
 
 def _check_verify_args(args) -> None:
@@ -507,6 +544,9 @@ def _check_verify_args(args) -> None:
 def cmd_verify(args) -> int:
     if args.certificate:
         return _verify_certificate(args)
+    if args.proof or args.save_proof:
+        raise UsageError("--proof and --save-proof apply to a re-check: give --certificate "
+                         "DIR")
     _check_verify_args(args)
     eta, margin, smoothing = args.eta or 0.0, args.margin or 0.0, args.smoothing or 0.0
     s = systems.get(args.system)
@@ -690,6 +730,13 @@ def _add_verify(add) -> None:
     sp.add_argument("--precision", type=positive, help="delta of the dreal backend")
     sp.add_argument("--progress", action="store_true", help="show a progress bar")
     sp.add_argument("--json", help="write status, seconds, boxes, counterexample here")
+    sp.add_argument("--save-proof", dest="save_proof", metavar="FILE",
+                    help="with --certificate: record the bisection trees of the checks "
+                         "(a serial re-check) in FILE (.npz), for faster re-checks")
+    sp.add_argument("--proof", metavar="FILE",
+                    help="with --certificate: start each check from its tree in FILE (the "
+                         "leaves are rebuilt from the certificate's own boxes and all decided "
+                         "again: a proof can only make the re-check faster or slower)")
     _dask_args(sp)
     sp.set_defaults(func=cmd_verify)
 

@@ -41,7 +41,7 @@ import numpy as np
 from nlyap_opt.kernel.errors import ConfigError, DimensionError
 from nlyap_opt.kernel.grid import GridNodes
 from nlyap_opt.kernel.grid import norm2_up as _norm2_up
-from nlyap_opt.kernel.jsonio import read_file_bytes
+from nlyap_opt.kernel.jsonio import read_file_bytes, read_npz
 
 __all__ = ["SampleSet", "load_samples", "save_samples", "sample_function", "RTOL_GRID"]
 
@@ -362,32 +362,21 @@ def _magnitudes(path: Path, name: str, a: np.ndarray) -> np.ndarray:
 
 def _read_npz(path: Path, nx: int, nu: int):
     """Arrays ``x``, ``u``, ``xdot`` of an npz file, read without pickle and checked."""
-    data = read_file_bytes(path, "sample file")
-    if not data.startswith((b"PK\x03\x04", b"PK\x05\x06")):  # numpy.savez writes a zip
-        kind = "text" if data[:512].isascii() else "binary data"
-        raise ConfigError(f"{path}: is not an npz file (an npz is a zip archive; this file "
-                          f"holds {kind}); write it with numpy.savez(path, x=..., u=..., "
-                          "xdot=...), or give a csv file the suffix .csv")
-    try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-            keys = set(npz.files)
-            need = {"x", "xdot"} | ({"u"} if nu else set())
-            extra = keys - need - {"u"}
-            if need - keys or extra:
-                raise ConfigError(
-                    f"{path}: an npz sample file holds arrays 'x' (N, {nx}), 'u' (N, {nu}) "
-                    f"and 'xdot' (N, {nx}); got {sorted(keys)}"
-                )
-            x = _real_array(path, "x", npz["x"])
-            xdot = _real_array(path, "xdot", npz["xdot"])
-            u = _real_array(path, "u", npz["u"]) if "u" in keys else np.zeros((len(x), 0))
-    except ConfigError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - zipfile, zlib, format and pickle errors alike
-        msg = " ".join(str(exc).split())[:200]
-        raise ConfigError(f"{path}: cannot be read as an npz sample file (truncated or corrupt: "
-                          f"{type(exc).__name__}{': ' + msg if msg else ''}); write it again "
-                          "with numpy.savez(path, x=..., u=..., xdot=...)") from None
+    npz = read_npz(path, "npz sample file",
+                   "write it again with numpy.savez(path, x=..., u=..., xdot=...)",
+                   not_npz_fix="write it with numpy.savez(path, x=..., u=..., xdot=...), or "
+                               "give a csv file the suffix .csv")
+    keys = set(npz)
+    need = {"x", "xdot"} | ({"u"} if nu else set())
+    extra = keys - need - {"u"}
+    if need - keys or extra:
+        raise ConfigError(
+            f"{path}: an npz sample file holds arrays 'x' (N, {nx}), 'u' (N, {nu}) "
+            f"and 'xdot' (N, {nx}); got {sorted(keys)}"
+        )
+    x = _real_array(path, "x", npz["x"])
+    xdot = _real_array(path, "xdot", npz["xdot"])
+    u = _real_array(path, "u", npz["u"]) if "u" in keys else np.zeros((len(x), 0))
     return x, u, xdot
 
 

@@ -6,6 +6,8 @@ tree are the boxes the serial run decided; a proof never turns a failing check i
 verified one; a proof file is read without trusting it.
 """
 
+import io
+import os
 import zipfile
 
 import numpy as np
@@ -13,7 +15,7 @@ import pytest
 
 import systems
 from nlyap_opt.design.control import quadratic_lyapunov
-from nlyap_opt.distributed.parallel import Proofs, check, proving, recorded
+from nlyap_opt.distributed.parallel import Proofs, check, proving
 from nlyap_opt.interface.cli import main
 from nlyap_opt.kernel.errors import ConfigError
 from verification import closed_loop_problem
@@ -87,13 +89,13 @@ def test_check_records_then_starts_from_the_tree():
     use = Proofs()
     use.trees = rec.trees
     with proving(use):
-        assert recorded(prob)
+        assert use.has(prob)
         again = check(prob)
     assert again.status == "verified" and use.used == 1 and use.asked == 1
     assert again.boxes < first.boxes  # the leaves only
     other = _problem(outer=0.9)  # another problem: no tree of it, searched as without
     with proving(use):
-        assert not recorded(other)
+        assert not use.has(other)
         assert check(other).status == "verified"
     assert use.used == 1 and use.asked == 2
 
@@ -112,6 +114,48 @@ def test_a_proof_never_verifies_a_failing_check():
             assert check(bad).status == "counterexample"
 
 
+def test_a_tree_past_the_box_budget_is_not_used():
+    prob = _problem()
+    rec = Proofs(record=True)
+    with proving(rec):
+        check(prob)
+    [(_, codes)] = rec.trees.values()
+    use = Proofs()
+    use.trees = rec.trees
+    budget = len(codes) // 2  # the search the tree stands for needs twice as many boxes
+    plain = check(prob, max_boxes=budget)
+    with proving(use):
+        res = check(prob, max_boxes=budget, backend="interval")
+    assert plain.status == res.status == "unknown" and use.used == 0
+    with proving(use):
+        assert check(prob, backend="interval").status == "verified" and use.used == 1
+
+
+def test_a_forged_tree_cannot_cost_a_certificate_the_closed_form_proves():
+    import casadi as ca
+
+    from nlyap_opt.certification.roa import certify_level, quadratic_form
+
+    class Forged(Proofs):  # a tree for every check: the whole box as its one leaf
+        def leaves(self, problem, max_boxes=None):
+            self.asked += 1
+            return None if self.key(problem) in self.failed else problem.box[None].copy()
+
+    x = ca.SX.sym("x", 2)
+    Vnet = quadratic_lyapunov(np.array([[1.5, 0.5], [0.5, 1.0]]))
+    V = Vnet.casadi(x)
+    rhs = ca.mtimes(ca.DM(np.array([[0.0, 1.0], [-1.0, -1.0]])), x)
+    lie = ca.mtimes(ca.jacobian(V, x), rhs)
+    kw = dict(level=1.0, inner=0.01, outer=2.0, margin=0.0, quadratic=quadratic_form(Vnet),
+              rhs=rhs, verify_options={"max_boxes": 300}, log=lambda m: None, max_tries=1)
+    plain = certify_level(x, V, lie, **kw)
+    forged = Forged()
+    with proving(forged):
+        again = certify_level(x, V, lie, **kw)
+    assert plain.status == again.status == "certified" and again.level == plain.level
+    assert forged.asked >= 1 and forged.used == 0  # tried, failed, then the closed form
+
+
 def test_proof_files_round_trip_and_hostile_files_are_refused(tmp_path):
     prob = _problem()
     rec = Proofs(record=True)
@@ -127,23 +171,49 @@ def test_proof_files_round_trip_and_hostile_files_are_refused(tmp_path):
     assert i0 == i1 and np.array_equal(c0, c1) and c1.dtype == np.int8
     junk = tmp_path / "junk.npz"
     junk.write_text("not a zip")
-    with pytest.raises(ConfigError, match="cannot read the proof file"):
+    with pytest.raises(ConfigError, match="is not an npz file"):
         Proofs.load(junk)
+    with pytest.raises(ConfigError, match="cannot read the proof file"):
+        Proofs.load(tmp_path / "missing.npz")
+    fifo = tmp_path / "fifo.npz"  # a pipe: refused without waiting on it
+    os.mkfifo(fifo)
+    with pytest.raises(ConfigError, match="not a regular file"):
+        Proofs.load(fifo)
     other = tmp_path / "other.npz"
     np.savez(other, codes=np.zeros(3, np.int8))
     with pytest.raises(ConfigError, match="not a proof file"):
         Proofs.load(other)
-    wrong = tmp_path / "wrong.npz"
-    np.savez(wrong, format=np.frombuffer(Proofs.FORMAT.encode(), np.uint8),
-             key0=np.frombuffer(b"x" * 64, np.uint8), initial0=np.array([4]),
-             codes0=np.zeros(3, np.int8))
-    with pytest.raises(ConfigError, match="entry 0 is not a bisection tree"):
-        Proofs.load(wrong)
-    big = tmp_path / "big.npz"  # declares more than a proof holds: refused before inflating
-    with zipfile.ZipFile(big, "w", zipfile.ZIP_DEFLATED) as zf:
-        zf.writestr("codes0.npy", b"\0" * (2 * MAX_PARTITION_ENTRIES + 1))
-    with pytest.raises(ConfigError, match="holds more than"):
-        Proofs.load(big)
+    fmt = np.frombuffer(Proofs.FORMAT.encode(), np.uint8)
+    for bad in ({"key0": np.frombuffer(b"x" * 64, np.uint8), "initial0": np.array([4]),
+                 "codes0": np.zeros(3, np.int8)},
+                {"key0": np.frombuffer(b"a" * 64, np.uint8), "initial0": np.array([4.0]),
+                 "codes0": np.zeros(3, np.int8)},
+                {"key0": np.frombuffer(b"a" * 64, np.uint8).reshape(8, 8),
+                 "initial0": np.array([4]), "codes0": np.zeros(3, np.int8)}):
+        wrong = tmp_path / "wrong.npz"
+        np.savez(wrong, format=fmt, **bad)
+        with pytest.raises(ConfigError, match="entry 0 is not a bisection tree"):
+            Proofs.load(wrong)
+    lying = tmp_path / "lying.npz"  # a header that declares 10**12 codes in a few bytes
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {"descr": "|i1", "fortran_order": False,
+                                               "shape": (10**12,)})
+    with zipfile.ZipFile(lying, "w") as zf:
+        zf.writestr("format.npy", _npy(fmt))
+        zf.writestr("codes0.npy", head.getvalue() + b"\0" * 8)
+    with pytest.raises(ConfigError, match="declares more data than it holds"):
+        Proofs.load(lying)
+    odd = tmp_path / "odd.npz"  # compressed as numpy never writes
+    with zipfile.ZipFile(odd, "w", zipfile.ZIP_BZIP2) as zf:
+        zf.writestr("format.npy", _npy(fmt))
+    with pytest.raises(ConfigError, match="not an array as numpy.savez writes one"):
+        Proofs.load(odd)
+
+
+def _npy(a) -> bytes:
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, a)
+    return buf.getvalue()
 
 
 def test_cli_saves_and_uses_a_proof(fast_run, tmp_path, capsys):
@@ -162,6 +232,9 @@ def test_cli_saves_and_uses_a_proof(fast_run, tmp_path, capsys):
                  ["verify", "--certificate", str(d), "--save-proof", str(proof), "--workers",
                   "2"],
                  ["verify", "--system", "van_der_pol", "--proof", str(proof)],
+                 ["verify", "--certificate", str(d), "--save-proof", str(d / "certificate.json")],
+                 ["verify", "--certificate", str(d), "--save-proof",
+                  str(tmp_path / "no" / "dir" / "p.npz")],
                  ["verify", "--certificate", str(d), "--proof", str(tmp_path / "none.npz")]):
         assert main(argv) == 3
         err = capsys.readouterr().err.strip()

@@ -856,10 +856,11 @@ def verify_interval(
     Hessian ``H`` at the root box's centre, where it is definite
     (:mod:`verification.precondition`: for a stiff loop, the decrease becomes about ``±|z|²``;
     the result is stated about ``problem``; ``resolution`` then applies to widths in ``z``).
-    ``partition``: a verified result records the bisection tree it decided, in
-    ``result.partition`` (``{"initial_boxes": k, "codes": int8 array}``, see
-    :func:`partition_leaves`): a later check of the same problem can start from its leaves
-    (``boxes=partition_leaves(...)``) instead of searching for them again.
+    ``partition``: a verified result records the bisection tree it decided (up to 127
+    states: a node's side is coded in one byte), in ``result.partition``
+    (``{"initial_boxes": k, "codes": int8 array}``, see :func:`partition_leaves`): a later
+    check of the same problem can start from its leaves (``boxes=partition_leaves(...)``)
+    instead of searching for them again.
     """
     if partition and (boxes is not None or hand_back or executor is not None or precondition):
         raise ValueError("partition records a run from the root box's grid: it excludes "
@@ -941,7 +942,7 @@ def _verify_local(problem, t0, resolution, max_boxes, batch, mean_value, presear
     depth_q = np.zeros(len(queue_lo), dtype=int)
     # partition: the node number of each queued box (the grid's cells first), and per
     # bisected node its split dimension and its children's numbers
-    tree = _Tree(len(queue_lo)) if partition else None
+    tree = _Tree(len(queue_lo)) if partition and problem.n <= 127 else None  # a byte a side
     undecided: list[np.ndarray] = []
     opened: list[np.ndarray] = []  # hand_back: halves not evaluated here
     leaves: list[dict] | None = [] if keep_leaves else None

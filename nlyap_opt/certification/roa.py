@@ -1327,14 +1327,16 @@ def certify_level(x, V, lie, *, level: float, inner: float, outer=None, margin: 
                 break
         res_a = None
         if res_b.status == "verified":
-            prob_a = None
+            prob_a = res_a = None
             if taylor is not None and not taylor_only and parallel.proving_active():
                 # a re-check with a proof: a decrease check it holds the tree of was
-                # bisected when it was recorded (the closed form did not decide it then)
+                # bisected when it was recorded (the closed form did not decide it then),
+                # so its leaves come first; if they do not all hold, as without a proof
                 prob_a = lyapunov_problem(x, V, lie, inner=inner, domain=D, level=c,
                                           margin=margin, box=box, check_positive=False)
-            skip = prob_a is not None and parallel.recorded(prob_a)
-            res_a = None if taylor is None or skip else taylor.check(c, box, inner)
+                res_a = parallel.from_proof(prob_a, **opts)
+            if res_a is None and taylor is not None:
+                res_a = taylor.check(c, box, inner)
             if res_a is None and taylor_only:   # undecided here: no bisection asked for
                 res_a = VerificationResult(QueryStatus.UNKNOWN, backend="taylor")
             if res_a is None:

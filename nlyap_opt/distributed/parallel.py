@@ -75,10 +75,11 @@ from verification.verify import (
 
 from ..kernel import deps
 from ..kernel.errors import BackendUnavailableError, ConfigError
+from ..kernel.jsonio import read_npz
 from ..kernel.walker import NUMPY, Program, compile_function, evaluate
 
 __all__ = ["dask_client", "verify_distributed", "verifying_on", "check", "ahead", "Ahead",
-           "Proofs", "proving", "proving_active", "recorded",
+           "Proofs", "proving", "proving_active", "from_proof",
            "SimulatedCluster", "model_speedups", "task_defaults", "pass_boxes",
            "parse_scheduler", "client_workers", "cpu_cores", "check_connect_timeout",
            "MAX_LOCAL_WORKERS", "DEFAULT_CONNECT_TIMEOUT"]
@@ -1291,14 +1292,12 @@ def check(problem, **options):
         return solve_preconditioned(problem, hessian_coordinates(problem),
                                     lambda p: check(p, **_preconditioned_options(options)),
                                     confirm_points)
-    opts = {k: v for k, v in options.items() if k not in ("n_tasks", "executor", "progress")}
-    start = proofs.leaves(problem) if proofs is not None else None
-    if client is None:  # serially, with a recorded partition or recording one
-        if start is not None:
-            res = verify_interval(problem, **dict(opts, boxes=start, presearch=0))
-            if res.status == "verified":
-                proofs.used += 1
-                return res
+    opts = {k: v for k, v in options.items()
+            if k not in ("n_tasks", "executor", "progress", "backend")}
+    res = from_proof(problem, **options)
+    if res is not None:
+        return res
+    if client is None:  # serially, recording a tree or without one
         if proofs.record:
             res = verification.verify(problem, **options, partition=True)
             if res.partition is not None:
@@ -1306,12 +1305,6 @@ def check(problem, **options):
             return res
         return verification.verify(problem, **options)
     st: dict = {}
-    if start is not None:
-        res = verify_distributed(problem, client, stats=st, start=start, **opts)
-        if res.status == "verified":
-            proofs.used += 1
-            return res
-        st = {}
     res = verify_distributed(problem, client, stats=st, **opts)
     if res.status == "verified":
         return res
@@ -1339,9 +1332,11 @@ class Proofs:
     so they cover it whatever the file says, and every leaf is decided again by the
     verifier's rules. A leaf that is not decided is bisected on; a check whose leaves do
     not all hold is decided again from the root box, as without a proof. A proof can make a
-    re-check faster or slower, never change what it proves. A check with a recorded tree
-    was bisected when it was recorded, so the closed-form attempt that precedes a decrease
-    check's bisection (:func:`recorded`) is skipped: it did not decide that check then.
+    re-check faster or slower, never make a false condition verified. A tree of more nodes
+    than the check's box budget is not used. A decrease check with a recorded tree was
+    bisected when it was recorded, so its leaves come before the closed-form attempt that
+    precedes bisection (:func:`from_proof`); if they do not all hold, both follow as
+    without a proof.
 
     Parameters
     ----------
@@ -1355,6 +1350,7 @@ class Proofs:
         self.record = bool(record)
         self.trees: dict[str, tuple[int, np.ndarray]] = {}
         self.asked = 0  # checks that looked for a tree
+        self.failed: set[str] = set()  # keys whose leaves did not all hold
         self.used = 0  # checks decided from a recorded tree
 
     @staticmethod
@@ -1384,11 +1380,15 @@ class Proofs:
         """Whether a tree of ``problem`` is recorded."""
         return self.key(problem) in self.trees
 
-    def leaves(self, problem) -> np.ndarray | None:
-        """The leaf boxes of ``problem``'s recorded tree, or ``None`` if there is none."""
+    def leaves(self, problem, max_boxes: int | None = None) -> np.ndarray | None:
+        """The leaf boxes of ``problem``'s recorded tree: ``None`` if there is none, if its
+        leaves did not all hold before (:attr:`failed`: the same leaves would be decided
+        the same way), or if it has more than ``max_boxes`` nodes."""
         self.asked += 1
-        tree = self.trees.get(self.key(problem))
-        if tree is None:
+        key = self.key(problem)
+        tree = self.trees.get(key)
+        if tree is None or key in self.failed or \
+                (max_boxes is not None and len(tree[1]) > max_boxes):
             return None
         try:
             return partition_leaves(problem.box, *tree)
@@ -1423,50 +1423,69 @@ class Proofs:
             The file is not a readable proof file (one line naming the problem).
         """
         fix = "write it again with 'nlyap verify --certificate DIR --save-proof FILE'"
-        out = cls()
         try:
-            with zipfile.ZipFile(path) as zf:  # sizes as declared, before anything is inflated
-                infos = zf.infolist()
-                if len(infos) > 3 * 4096 + 1 or \
-                        sum(i.file_size for i in infos) > 2 * MAX_PARTITION_ENTRIES:
-                    raise ConfigError(f"{path} holds more than a proof file of this tool "
-                                      f"does ({fix})")
-            with np.load(path, allow_pickle=False) as z:
-                names = set(z.files)
-                if "format" not in names or bytes(z["format"].astype(np.uint8)) != \
-                        cls.FORMAT.encode():
-                    raise ConfigError(f"{path} is not a proof file of this tool ({fix})")
-                n = sum(1 for f in names if f.startswith("key"))
-                for i in range(n):
-                    key = bytes(z[f"key{i}"].astype(np.uint8)).decode("ascii")
-                    initial = z[f"initial{i}"]
-                    codes = z[f"codes{i}"]
-                    if not re.fullmatch(r"[0-9a-f]{64}", key) or initial.shape != (1,) or \
-                            initial.dtype.kind not in "iu" or not 1 <= int(initial[0]) <= 2**20 \
-                            or codes.dtype != np.int8 or codes.ndim != 1 or \
-                            len(codes) > MAX_PARTITION_ENTRIES:
-                        raise ConfigError(f"{path}: entry {i} is not a bisection tree ({fix})")
-                    out.trees[key] = (int(initial[0]), codes)
-        except ConfigError:
-            raise
-        except (OSError, ValueError, KeyError, UnicodeDecodeError, EOFError,
-                zipfile.BadZipFile) as err:
-            raise ConfigError(f"cannot read the proof file {path}: {err} ({fix})") from None
+            z = read_npz(path, "proof file", fix, limit=4 * MAX_PARTITION_ENTRIES)
+        except OSError as err:
+            raise ConfigError(f"cannot read the proof file {path}: {err.strerror or err} "
+                              f"({fix})") from None
+
+        def text(name: str) -> str | None:
+            a = z.get(name)
+            if a is None or a.dtype != np.uint8 or a.ndim != 1 or not a.size <= 64:
+                return None
+            return bytes(a).decode("latin-1")
+
+        if text("format") != cls.FORMAT:
+            raise ConfigError(f"{path} is not a proof file of this tool ({fix})")
+        n = (len(z) - 1) // 3
+        if set(z) != {"format"} | {f"{w}{i}" for i in range(n)
+                                   for w in ("key", "initial", "codes")}:
+            raise ConfigError(f"{path}: its arrays are not those of a proof file ({fix})")
+        out = cls()
+        for i in range(n):
+            key, initial, codes = text(f"key{i}"), z[f"initial{i}"], z[f"codes{i}"]
+            if key is None or not re.fullmatch(r"[0-9a-f]{64}", key) or \
+                    initial.shape != (1,) or initial.dtype != np.int64 or \
+                    not 1 <= int(initial[0]) <= 2**20 or codes.dtype != np.int8 or \
+                    codes.ndim != 1 or len(codes) > MAX_PARTITION_ENTRIES:
+                raise ConfigError(f"{path}: entry {i} is not a bisection tree ({fix})")
+            out.trees[key] = (int(initial[0]), codes)
         return out
+
+
+def from_proof(problem, **options) -> VerificationResult | None:
+    """``problem`` decided from the leaves of its tree in the :class:`Proofs` of
+    :func:`proving` (on the cluster of :func:`verifying_on`, if any): the verified result,
+    or ``None`` when there is no tree, it was tried before, or its leaves do not all hold
+    (the caller then decides the check as without a proof). A tree of more nodes than
+    ``max_boxes`` is not used (the search it stands for would have stopped there)."""
+    proofs = _PROOFS.get()
+    if proofs is None or proofs.record or options.get("precondition") or \
+            options.get("backend", "interval") != "interval":
+        return None
+    opts = {k: v for k, v in options.items()
+            if k not in ("n_tasks", "executor", "progress", "backend")}
+    max_boxes = opts.get("max_boxes", inspect.signature(verify_interval)
+                         .parameters["max_boxes"].default)
+    start = proofs.leaves(problem, max_boxes)
+    if start is None:
+        return None
+    client = _CLUSTER.get()
+    if client is None:
+        res = verify_interval(problem, **dict(opts, boxes=start, presearch=0))
+    else:
+        res = verify_distributed(problem, client, start=start, **opts)
+    if res.status != "verified":
+        proofs.failed.add(proofs.key(problem))
+        return None
+    proofs.used += 1
+    return res
 
 
 def proving_active() -> bool:
     """Whether :func:`check` runs under :func:`proving` with proofs to start from."""
     proofs = _PROOFS.get()
     return proofs is not None and not proofs.record
-
-
-def recorded(problem) -> bool:
-    """Whether the :class:`Proofs` of :func:`proving` hold a tree of ``problem``: a check
-    that was bisected when they were recorded (a closed-form attempt before the
-    bisection, which did not decide it then, can be skipped)."""
-    proofs = _PROOFS.get()
-    return proofs is not None and not proofs.record and proofs.has(problem)
 
 
 @contextlib.contextmanager

@@ -514,6 +514,14 @@ def _proofs(args) -> Proofs | None:
         if args.workers is not None or args.scheduler is not None:
             raise UsageError("--save-proof records the checks' trees in a serial re-check; "
                              "drop --workers/--scheduler (then re-check on them with --proof)")
+        out = Path(args.save_proof)
+        if out.suffix != ".npz":
+            raise UsageError(f"--save-proof {out}: a proof file is an .npz file; give a "
+                             "path ending in .npz")
+        if out.is_dir() or not os.access(out.parent if str(out.parent) else ".", os.W_OK) \
+                or (out.exists() and not os.access(out, os.W_OK)):
+            raise UsageError(f"--save-proof {out}: cannot write there; give a writable "
+                             "file path")
         return Proofs(record=True)
     if args.proof:
         return Proofs.load(args.proof)
@@ -736,7 +744,7 @@ def _add_verify(add) -> None:
     sp.add_argument("--proof", metavar="FILE",
                     help="with --certificate: start each check from its tree in FILE (the "
                          "leaves are rebuilt from the certificate's own boxes and all decided "
-                         "again: a proof can only make the re-check faster or slower)")
+                         "again: a proof never makes a false condition verified)")
     _dask_args(sp)
     sp.set_defaults(func=cmd_verify)
 

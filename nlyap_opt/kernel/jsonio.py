@@ -1,4 +1,5 @@
-"""Reading configuration files, and keeping wall-clock timings out of hashed artifacts.
+"""Reading configuration and data files, and keeping wall-clock timings out of hashed
+artifacts.
 
 A core module (it imports only :mod:`nlyap_opt.kernel.errors`), so that every layer that reads a
 configuration file (the run configuration, the dynamics configuration) shares one reader.
@@ -13,15 +14,20 @@ hashed, never trusted for anything but display); :func:`load_with_timings` puts 
 
 from __future__ import annotations
 
+import io
 import json
+import math
 import os
 import stat
+import zipfile
 from pathlib import Path
+
+import numpy as np
 
 from .errors import ConfigError
 
 __all__ = ["MAX_INPUT_BYTES", "TIMINGS_FILE", "load_with_timings", "read_file_bytes",
-           "read_json_object", "save_timings", "split_timings"]
+           "read_json_object", "read_npz", "save_timings", "split_timings"]
 
 #: the largest file any reader of this package reads (a spec, sample, network, configuration
 #: or certificate file): a larger one is refused before it fills the memory
@@ -65,6 +71,86 @@ def read_file_bytes(path: str | Path, what: str, limit: int = MAX_INPUT_BYTES) -
         return b"".join(chunks)
     finally:
         os.close(fd)
+
+#: the most arrays :func:`read_npz` reads from one file
+MAX_NPZ_ARRAYS = 1 << 14
+
+_NPY_HEADERS = {(1, 0): np.lib.format.read_array_header_1_0,
+                (2, 0): np.lib.format.read_array_header_2_0}
+
+
+def read_npz(path: str | Path, what: str, fix: str, *, limit: int = MAX_INPUT_BYTES,
+             not_npz_fix: str | None = None) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` file (``numpy.savez``), none of its sizes trusted.
+
+    The file is read by :func:`read_file_bytes` (a regular file of at most ``limit``
+    bytes). Every entry must be an unencrypted ``.npy`` file, stored or deflated (what
+    numpy writes), of a type without Python objects, whose declared shape fits the bytes
+    the zip declares for it; the declared sizes together are at most ``limit``. Only then
+    is an array unpacked (``allow_pickle=False``).
+
+    Parameters
+    ----------
+    path : str or Path
+    what : str
+        The kind of file, for messages (``"proof file"``).
+    fix : str
+        What the user can do, appended to every message.
+    limit : int, optional
+        Bytes, on the file and on its arrays together.
+    not_npz_fix : str, optional
+        The fix for a file that is no zip archive at all (default ``fix``).
+
+    Returns
+    -------
+    dict
+        Array name (without ``.npy``) to array.
+
+    Raises
+    ------
+    ConfigError
+        Anything above, or an archive that cannot be read (one line each).
+    OSError
+        The file is missing or unreadable.
+    """
+    data = read_file_bytes(path, what, limit)
+    if not data.startswith((b"PK\x03\x04", b"PK\x05\x06")):  # numpy.savez writes a zip
+        kind = "text" if data[:512].isascii() else "binary data"
+        raise ConfigError(f"{path}: is not an npz file (an npz is a zip archive; this file "
+                          f"holds {kind}); {not_npz_fix or fix}")
+    out: dict[str, np.ndarray] = {}
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            infos = zf.infolist()
+            if len(infos) > MAX_NPZ_ARRAYS or sum(i.file_size for i in infos) > limit:
+                raise ConfigError(f"{path}: holds more arrays or bytes than a {what} of "
+                                  f"this tool does; {fix}")
+            for info in infos:
+                if info.flag_bits & 1 or info.compress_type not in (
+                        zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED) or \
+                        not info.filename.endswith(".npy"):
+                    raise ConfigError(f"{path}: entry {info.filename!r} is not an array as "
+                                      f"numpy.savez writes one; {fix}")
+                with zf.open(info) as fh:
+                    header = _NPY_HEADERS.get(np.lib.format.read_magic(fh))
+                    if header is None:
+                        raise ConfigError(f"{path}: entry {info.filename!r} has a .npy "
+                                          f"format version this tool does not read; {fix}")
+                    shape, _, dtype = header(fh)
+                    if dtype.hasobject or \
+                            math.prod(shape) * dtype.itemsize > info.file_size:
+                        raise ConfigError(f"{path}: entry {info.filename!r} declares more "
+                                          f"data than it holds, or Python objects; {fix}")
+                with zf.open(info) as fh:
+                    out[info.filename[:-4]] = np.lib.format.read_array(fh, allow_pickle=False)
+    except ConfigError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - zipfile, zlib and format errors alike
+        msg = " ".join(str(exc).split())[:200]
+        raise ConfigError(f"{path}: cannot be read as an {what} (truncated or corrupt: "
+                          f"{type(exc).__name__}{': ' + msg if msg else ''}); {fix}") from None
+    return out
+
 
 #: the file beside a run's stage files that holds their wall-clock timings
 TIMINGS_FILE = "timings.json"

@@ -1282,6 +1282,11 @@ def check(problem, **options):
     box budget may differ too: a cluster run may prove within ``max_boxes`` what a serial
     run leaves ``unknown`` there (never the reverse for a property that fails: that is
     decided serially).
+
+    Under :func:`proving`, a check first tries the leaves of its recorded tree
+    (:func:`from_proof`), serially or on the cluster; a serial check under recording
+    proofs records its tree. Either way a preconditioned check goes through its changed
+    coordinates as on a cluster, so that the tree is the one of the problem bisected.
     """
 
     client = _CLUSTER.get()
@@ -1349,9 +1354,19 @@ class Proofs:
     def __init__(self, record: bool = False):
         self.record = bool(record)
         self.trees: dict[str, tuple[int, np.ndarray]] = {}
-        self.asked = 0  # checks that looked for a tree
+        self.looked: set[str] = set()  # keys of the checks that looked for a tree
         self.failed: set[str] = set()  # keys whose leaves did not all hold
-        self.used = 0  # checks decided from a recorded tree
+        self.decided: set[str] = set()  # keys of the checks decided from their tree
+
+    @property
+    def asked(self) -> int:
+        """The number of checks (distinct problems) that looked for a tree."""
+        return len(self.looked)
+
+    @property
+    def used(self) -> int:
+        """The number of checks (distinct problems) decided from their tree."""
+        return len(self.decided)
 
     @staticmethod
     def key(problem) -> str:
@@ -1384,8 +1399,8 @@ class Proofs:
         """The leaf boxes of ``problem``'s recorded tree: ``None`` if there is none, if its
         leaves did not all hold before (:attr:`failed`: the same leaves would be decided
         the same way), or if it has more than ``max_boxes`` nodes."""
-        self.asked += 1
         key = self.key(problem)
+        self.looked.add(key)
         tree = self.trees.get(key)
         if tree is None or key in self.failed or \
                 (max_boxes is not None and len(tree[1]) > max_boxes):
@@ -1431,7 +1446,7 @@ class Proofs:
 
         def text(name: str) -> str | None:
             a = z.get(name)
-            if a is None or a.dtype != np.uint8 or a.ndim != 1 or not a.size <= 64:
+            if a is None or a.dtype != np.uint8 or a.ndim != 1 or a.size > 64:
                 return None
             return bytes(a).decode("latin-1")
 
@@ -1475,10 +1490,11 @@ def from_proof(problem, **options) -> VerificationResult | None:
         res = verify_interval(problem, **dict(opts, boxes=start, presearch=0))
     else:
         res = verify_distributed(problem, client, start=start, **opts)
+    key = proofs.key(problem)
     if res.status != "verified":
-        proofs.failed.add(proofs.key(problem))
+        proofs.failed.add(key)
         return None
-    proofs.used += 1
+    proofs.decided.add(key)
     return res
 
 

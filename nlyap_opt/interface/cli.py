@@ -485,7 +485,7 @@ def _verify_certificate(args) -> int:
     if args.proof:
         print(f"proof: {proofs.used} of {proofs.asked} bisected checks started from the "
               f"trees of {args.proof}" + ("" if proofs.used == proofs.asked else
-                                          " (the others searched from the root box)"))
+                                          " (the others were decided as without a proof)"))
     if args.save_proof:
         if cert.status is CertStatus.CERTIFIED:
             try:

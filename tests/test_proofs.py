@@ -100,6 +100,27 @@ def test_check_records_then_starts_from_the_tree():
     assert use.used == 1 and use.asked == 2
 
 
+def test_on_a_cluster_the_leaves_are_dealt_at_once():
+    from nlyap_opt.distributed.parallel import SimulatedCluster, verify_distributed, verifying_on
+
+    prob = _problem()
+    r = verify_interval(prob, partition=True)
+    leaves = partition_leaves(prob.box, r.partition["initial_boxes"], r.partition["codes"])
+    sim = SimulatedCluster(4)
+    st: dict = {}
+    res = verify_distributed(prob, sim, start=leaves, stats=st)
+    assert res.status == "verified" and res.boxes == len(leaves)  # each leaf once, no more
+    assert st["tasks"] == 16 and sum(st["starts"]) == len(leaves)  # four tasks per worker
+    use = Proofs()
+    use.add(prob, r.partition)
+    bad = _problem(outer=3.0)
+    use.add(bad, r.partition)  # a forged tree for a false check
+    with verifying_on(SimulatedCluster(4)), proving(use):
+        assert check(prob).status == "verified"
+        assert check(bad).status == "counterexample"
+    assert use.used == 1 and use.asked == 2 and len(use.failed) == 1
+
+
 def test_a_proof_never_verifies_a_failing_check():
     good = _problem(outer=0.8)
     r = verify_interval(good, partition=True)

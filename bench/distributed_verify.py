@@ -48,6 +48,7 @@ use) and the load average, which the figures depend on.
                                        [--no-certificate | --certificate-only]
                                        [--model 4 8 16]
                                        [--save-certificate DIR | --certificate DIR]
+                                       [--proof | --proof-file FILE]
 """
 
 from __future__ import annotations
@@ -135,7 +136,8 @@ def cartpole_certificate():
     return replace(base, V=quadratic_lyapunov(cand.P), inner=cert.inner), cert.level
 
 
-def certificate_rows(workers, repeat, model=(), saved=None, keep=None, proof=False):
+def certificate_rows(workers, repeat, model=(), saved=None, keep=None, proof=False,
+                     proof_file=None):
     """Seconds of ``nlyap verify --certificate`` on query (D): serial, then on clusters of
     ``workers`` (:func:`nlyap_opt.certification.certificate.recheck_certificate` of the saved
     certificate, inside :func:`nlyap_opt.distributed.parallel.verifying_on` as the CLI runs it); the
@@ -144,7 +146,8 @@ def certificate_rows(workers, repeat, model=(), saved=None, keep=None, proof=Fal
     (not certified here); ``keep``: a directory to save the certificate into; ``proof``:
     record the re-check's proof (its checks' bisection trees,
     :class:`nlyap_opt.distributed.parallel.Proofs`) by a serial re-check first, and time
-    every row with it, as ``nlyap verify --certificate DIR --proof FILE`` runs."""
+    every row with it, as ``nlyap verify --certificate DIR --proof FILE`` runs;
+    ``proof_file``: the same with the proof read from that file (recorded elsewhere)."""
     import contextlib
     import tempfile
 
@@ -171,7 +174,11 @@ def certificate_rows(workers, repeat, model=(), saved=None, keep=None, proof=Fal
             level = cert.level
 
         proofs = None
-        if proof:
+        if proof_file:
+            proofs = Proofs.load(proof_file)
+            print(f"(D) proof read from {proof_file} ({len(proofs.trees)} bisected checks); "
+                  "every row below starts from it")
+        elif proof:
             proofs = Proofs(record=True)
             t = time.perf_counter()
             with proving(proofs):
@@ -189,6 +196,8 @@ def certificate_rows(workers, repeat, model=(), saved=None, keep=None, proof=Fal
             with dask_client(workers=w) as client, verifying_on(client):
                 client.submit(sum, [1]).result()  # workers up
                 rows.append((w, *_best(once, repeat)))
+                print(f"(D) {w} workers, every run: "
+                      + ", ".join(f"{t:.2f}" for t in _best.last) + " s", flush=True)
         modelled = {}
         other = 0.0
         if model:
@@ -277,11 +286,15 @@ def machine() -> str:
 
 
 def _best(fn, repeat):
+    """The least seconds of ``repeat`` calls and the last result (``_best.last``: every
+    call's seconds)."""
     best, res = np.inf, None
+    _best.last = []
     for _ in range(repeat):
         t = time.perf_counter()
         res = fn()
-        best = min(best, time.perf_counter() - t)
+        _best.last.append(time.perf_counter() - t)
+        best = min(best, _best.last[-1])
     return best, res
 
 
@@ -306,9 +319,13 @@ def main(argv=None):
                        help="keep query (D)'s certificate in DIR")
     where.add_argument("--certificate", metavar="DIR",
                        help="re-check the certificate saved in DIR as query (D)")
-    ap.add_argument("--proof", action="store_true",
-                    help="query (D) with a proof: recorded by a serial re-check, then used "
-                         "by every row (nlyap verify --certificate DIR --proof FILE)")
+    proof = ap.add_mutually_exclusive_group()
+    proof.add_argument("--proof", action="store_true",
+                       help="query (D) with a proof: recorded by a serial re-check, then used "
+                            "by every row (nlyap verify --certificate DIR --proof FILE)")
+    proof.add_argument("--proof-file", metavar="FILE",
+                       help="query (D) with the proof in FILE (nlyap verify --certificate DIR "
+                            "--save-proof FILE, here or on another machine)")
     args = ap.parse_args(argv)
     print("command: python bench/distributed_verify.py " + " ".join(sys.argv[1:] if argv is None
                                                                    else argv))
@@ -317,7 +334,8 @@ def main(argv=None):
         if args.save_certificate:
             Path(args.save_certificate).mkdir(parents=True, exist_ok=True)
         certificate_rows(args.workers, args.repeat, args.model, saved=args.certificate,
-                         keep=args.save_certificate, proof=args.proof)
+                         keep=args.save_certificate, proof=args.proof,
+                         proof_file=args.proof_file)
         print(f"after (D): load average {os.getloadavg()[0]:.2f}")
     if args.certificate_only:
         return

@@ -7,6 +7,7 @@ verified one; a proof file is read without trusting it.
 """
 
 import io
+import json
 import os
 import zipfile
 
@@ -243,11 +244,15 @@ def test_cli_saves_and_uses_a_proof(fast_run, tmp_path, capsys):
     assert main(["verify", "--certificate", str(d), "--save-proof", str(proof)]) == 0
     out = capsys.readouterr().out
     assert "written to" in out and proof.exists()
-    assert main(["verify", "--certificate", str(d), "--proof", str(proof)]) == 0
+    js = tmp_path / "out.json"
+    assert main(["verify", "--certificate", str(d), "--proof", str(proof), "--json",
+                 str(js)]) == 0
     out = capsys.readouterr().out
     n = len(Proofs.load(proof).trees)
     assert n >= 1  # the decrease check, at least, is bisected
     assert f"proof: {n} of {n} bisected checks started" in out
+    said = json.loads(js.read_text())["proof"]
+    assert said["checks"] == said["started_from_proof"] == n and said["file"] == str(proof)
     for argv in (["verify", "--certificate", str(d), "--proof", str(proof), "--save-proof",
                   str(proof)],
                  ["verify", "--certificate", str(d), "--save-proof", str(proof), "--workers",

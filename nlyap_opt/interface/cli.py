@@ -482,27 +482,42 @@ def _verify_certificate(args) -> int:
         with proving(proofs):
             cert = recheck_certificate(path, system=system)
     print(cert.summary())
+    said = _proof_outcome(args, proofs, cert.status is CertStatus.CERTIFIED)
+    if args.json:
+        out = cert.to_dict() if hasattr(cert, "to_dict") else \
+            {"status": cert.status.value, "summary": cert.summary()}
+        if said is not None:
+            out["proof"] = said
+        _write_json(args.json, out)
+    if cert.status is CertStatus.CERTIFIED:
+        return 0
+    return 1 if cert.status is CertStatus.COUNTEREXAMPLE else 2
+
+
+def _proof_outcome(args, proofs: Proofs | None, certified: bool) -> dict | None:
+    """After a re-check: the proof written (``--save-proof``, if it re-checked) and what
+    was said about it; the ``proof`` entry of ``--json`` (``None`` without a proof)."""
+    if proofs is None:
+        return None
     if args.proof:
         print(f"proof: {proofs.used} of {proofs.asked} bisected checks started from the "
               f"trees of {args.proof}" + ("" if proofs.used == proofs.asked else
                                           " (the others were decided as without a proof)"))
+    recorded = None
     if args.save_proof:
-        if cert.status is CertStatus.CERTIFIED:
+        if certified:
             try:
                 proofs.save(args.save_proof)
             except OSError as err:
                 raise ConfigError(f"cannot write the proof file {args.save_proof}: "
                                   f"{err.strerror or err}; give a writable path") from None
-            print(f"proof: the trees of {len(proofs.trees)} bisected checks written to "
+            recorded = len(proofs.trees)
+            print(f"proof: the trees of {recorded} bisected checks written to "
                   f"{args.save_proof} (re-check with --proof {args.save_proof})")
         else:
             print("proof: not written (the certificate did not re-check)")
-    if args.json:
-        _write_json(args.json, cert.to_dict() if hasattr(cert, "to_dict") else
-                    {"status": cert.status.value, "summary": cert.summary()})
-    if cert.status is CertStatus.CERTIFIED:
-        return 0
-    return 1 if cert.status is CertStatus.COUNTEREXAMPLE else 2
+    return {"file": str(args.proof or args.save_proof), "recorded": recorded,
+            "checks": proofs.asked, "started_from_proof": proofs.used}
 
 
 def _proofs(args) -> Proofs | None:

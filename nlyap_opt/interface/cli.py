@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import difflib
 import json
 import os
@@ -22,6 +23,7 @@ import sys
 import threading
 import traceback
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -487,16 +489,41 @@ def _verify_certificate(args) -> int:
         out = cert.to_dict() if hasattr(cert, "to_dict") else \
             {"status": cert.status.value, "summary": cert.summary()}
         if said is not None:
-            out["proof"] = said
+            out["proof"] = said.to_json()
         _write_json(args.json, out)
     if cert.status is CertStatus.CERTIFIED:
         return 0
     return 1 if cert.status is CertStatus.COUNTEREXAMPLE else 2
 
 
-def _proof_outcome(args, proofs: Proofs | None, certified: bool) -> dict | None:
+@dataclass(frozen=True)
+class ProofOutcome:
+    """What a re-check did with its proof: the ``proof`` entry of ``nlyap verify --json``.
+
+    Attributes
+    ----------
+    file : str
+        The ``--proof`` or ``--save-proof`` file.
+    recorded : int or None
+        Trees written (``--save-proof``, when the certificate re-checked), else ``None``.
+    checks : int
+        Bisected checks that looked for a tree (distinct problems).
+    started_from_proof : int
+        Those decided from their tree's leaves.
+    """
+
+    file: str
+    recorded: int | None
+    checks: int
+    started_from_proof: int
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _proof_outcome(args, proofs: Proofs | None, certified: bool) -> ProofOutcome | None:
     """After a re-check: the proof written (``--save-proof``, if it re-checked) and what
-    was said about it; the ``proof`` entry of ``--json`` (``None`` without a proof)."""
+    was said about it (``None`` without a proof)."""
     if proofs is None:
         return None
     if args.proof:
@@ -516,8 +543,8 @@ def _proof_outcome(args, proofs: Proofs | None, certified: bool) -> dict | None:
                   f"{args.save_proof} (re-check with --proof {args.save_proof})")
         else:
             print("proof: not written (the certificate did not re-check)")
-    return {"file": str(args.proof or args.save_proof), "recorded": recorded,
-            "checks": proofs.asked, "started_from_proof": proofs.used}
+    return ProofOutcome(str(args.proof or args.save_proof), recorded, proofs.asked,
+                        proofs.used)
 
 
 def _proofs(args) -> Proofs | None:

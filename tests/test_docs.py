@@ -84,6 +84,7 @@ def test_spec_file_blocks_load(page, line, code, tmp_path):
     assert s.has_model
 
 
+@pytest.mark.slow  # `make docs` (CI's second step) runs every gallery example too
 @pytest.mark.parametrize("example", sorted((DOCS / "gallery").glob("plot_*.py")),
                          ids=lambda p: p.name)
 def test_gallery_examples_run(example, monkeypatch):

@@ -90,13 +90,13 @@ def test_check_records_then_starts_from_the_tree():
     use = Proofs()
     use.trees = rec.trees
     with proving(use):
-        assert use.has(prob)
+        assert Proofs.key(prob) in use.trees
         again = check(prob)
     assert again.status == "verified" and use.used == 1 and use.asked == 1
     assert again.boxes < first.boxes  # the leaves only
     other = _problem(outer=0.9)  # another problem: no tree of it, searched as without
     with proving(use):
-        assert not use.has(other)
+        assert Proofs.key(other) not in use.trees
         assert check(other).status == "verified"
     assert use.used == 1 and use.asked == 2
 
@@ -159,7 +159,7 @@ def test_a_forged_tree_cannot_cost_a_certificate_the_closed_form_proves():
     from nlyap_opt.certification.roa import certify_level, quadratic_form
 
     class Forged(Proofs):  # a tree for every check: the whole box as its one leaf
-        def leaves(self, problem, max_boxes=None):
+        def leaves(self, problem, max_boxes=None, *, key=None):
             self.looked.add(self.key(problem))
             return None if self.key(problem) in self.failed else problem.box[None].copy()
 
@@ -260,7 +260,8 @@ def test_cli_saves_and_uses_a_proof(fast_run, tmp_path, capsys):
                  ["verify", "--system", "van_der_pol", "--proof", str(proof)],
                  ["verify", "--certificate", str(d), "--save-proof", str(d / "certificate.json")],
                  ["verify", "--certificate", str(d), "--save-proof",
-                  str(tmp_path / "no" / "dir" / "p.npz")],
+                  str(proof / "p.npz")],  # under a file, not a directory
+                 ["verify", "--certificate", str(d), "--save-proof", ""],
                  ["verify", "--certificate", str(d), "--proof", str(tmp_path / "none.npz")]):
         assert main(argv) == 3
         err = capsys.readouterr().err.strip()

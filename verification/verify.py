@@ -1177,7 +1177,9 @@ def partition_leaves(box: np.ndarray, initial_boxes: int, codes: np.ndarray) -> 
         k = len(parent)
         rows = np.arange(k)
         dim = c[split].astype(np.intp)
-        mid = 0.5 * (parent[rows, dim, 0] + parent[rows, dim, 1])  # as the verifier splits
+        # the verifier's split (_verify_local), on stacked bounds: one copy a level instead
+        # of four (a third of the decoding time); tests check the leaves are its boxes
+        mid = 0.5 * (parent[rows, dim, 0] + parent[rows, dim, 1])
         level = np.concatenate([parent, parent])  # left halves, then right halves
         level[rows, dim, 1] = mid
         level[k + rows, dim, 0] = mid

@@ -1297,8 +1297,7 @@ def check(problem, **options):
         return solve_preconditioned(problem, hessian_coordinates(problem),
                                     lambda p: check(p, **_preconditioned_options(options)),
                                     confirm_points)
-    opts = {k: v for k, v in options.items()
-            if k not in ("n_tasks", "executor", "progress", "backend")}
+    opts = {k: v for k, v in options.items() if k not in _LOCAL_OPTIONS}
     res = from_proof(problem, **options)
     if res is not None:
         return res
@@ -1320,6 +1319,9 @@ def check(problem, **options):
         return res
     return verification.verify(problem, **options)
 
+
+#: options of :func:`check` for a serial verification only, not handed to cluster tasks
+_LOCAL_OPTIONS = ("n_tasks", "executor", "progress", "backend")
 
 #: the :class:`Proofs` that :func:`check` records into or starts from (:func:`proving`)
 _PROOFS: contextvars.ContextVar = contextvars.ContextVar("nlyap_proofs", default=None)
@@ -1391,15 +1393,13 @@ class Proofs:
         self.trees[self.key(problem)] = (int(partition["initial_boxes"]),
                                          np.asarray(partition["codes"], dtype=np.int8))
 
-    def has(self, problem) -> bool:
-        """Whether a tree of ``problem`` is recorded."""
-        return self.key(problem) in self.trees
-
-    def leaves(self, problem, max_boxes: int | None = None) -> np.ndarray | None:
+    def leaves(self, problem, max_boxes: int | None = None, *,
+               key: str | None = None) -> np.ndarray | None:
         """The leaf boxes of ``problem``'s recorded tree: ``None`` if there is none, if its
         leaves did not all hold before (:attr:`failed`: the same leaves would be decided
-        the same way), or if it has more than ``max_boxes`` nodes."""
-        key = self.key(problem)
+        the same way), or if it has more than ``max_boxes`` nodes (``key``: its
+        :meth:`key`, if known)."""
+        key = self.key(problem) if key is None else key
         self.looked.add(key)
         tree = self.trees.get(key)
         if tree is None or key in self.failed or \
@@ -1478,11 +1478,11 @@ def from_proof(problem, **options) -> VerificationResult | None:
     if proofs is None or proofs.record or options.get("precondition") or \
             options.get("backend", "interval") != "interval":
         return None
-    opts = {k: v for k, v in options.items()
-            if k not in ("n_tasks", "executor", "progress", "backend")}
+    opts = {k: v for k, v in options.items() if k not in _LOCAL_OPTIONS}
     max_boxes = opts.get("max_boxes", inspect.signature(verify_interval)
                          .parameters["max_boxes"].default)
-    start = proofs.leaves(problem, max_boxes)
+    key = proofs.key(problem)
+    start = proofs.leaves(problem, max_boxes, key=key)
     if start is None:
         return None
     client = _CLUSTER.get()
@@ -1490,7 +1490,6 @@ def from_proof(problem, **options) -> VerificationResult | None:
         res = verify_interval(problem, **dict(opts, boxes=start, presearch=0))
     else:
         res = verify_distributed(problem, client, start=start, **opts)
-    key = proofs.key(problem)
     if res.status != "verified":
         proofs.failed.add(key)
         return None

@@ -320,11 +320,12 @@ def _spec_system(path: str, allow_factory: bool = True) -> str:
 def _check_paths(args) -> None:
     """Refuse missing inputs and unusable outputs before any work starts."""
     _check_dask_args(args)
-    for attr in ("config", "lyapunov", "controller", "dynamics", "certificate", "out", "json"):
+    for attr in ("config", "lyapunov", "controller", "dynamics", "certificate", "out", "json",
+                 "proof", "save_proof"):
         value = getattr(args, attr, None)
         if isinstance(value, str) and not value.strip():
-            raise UsageError(f"--{attr} is given an empty path; give a path, or leave the "
-                             "option out")
+            raise UsageError(f"--{attr.replace('_', '-')} is given an empty path; give a path, "
+                             "or leave the option out")
     if getattr(args, "system", None) is not None:
         if _is_spec(args.system) and args.command == "verify" and \
                 not args.allow_factory and Path(args.system).is_file():
@@ -534,6 +535,7 @@ def _proof_outcome(args, proofs: Proofs | None, certified: bool) -> ProofOutcome
     if args.save_proof:
         if certified:
             try:
+                Path(args.save_proof).parent.mkdir(parents=True, exist_ok=True)
                 proofs.save(args.save_proof)
             except OSError as err:
                 raise ConfigError(f"cannot write the proof file {args.save_proof}: "
@@ -560,10 +562,7 @@ def _proofs(args) -> Proofs | None:
         if out.suffix != ".npz":
             raise UsageError(f"--save-proof {out}: a proof file is an .npz file; give a "
                              "path ending in .npz")
-        if out.is_dir() or not os.access(out.parent if str(out.parent) else ".", os.W_OK) \
-                or (out.exists() and not os.access(out, os.W_OK)):
-            raise UsageError(f"--save-proof {out}: cannot write there; give a writable "
-                             "file path")
+        _check_writable(out, "--save-proof", directory=False)
         return Proofs(record=True)
     if args.proof:
         return Proofs.load(args.proof)

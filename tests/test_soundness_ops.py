@@ -530,3 +530,42 @@ def test_if_else_guarded_partial_op():
     assert res.status == "counterexample"
     assert res.counterexample.property == "domain of OP_SQRT"
     assert -0.5 < res.counterexample.point[0] < 0
+
+
+def _sparse_ratio():
+    """MX ``y / x`` with ``y = (x0, structural 0)``: CasADi's result is ``(1, structural 0)``."""
+    x = ca.MX.sym("x", 2)
+    y = ca.vertcat(x[0], ca.MX(1, 1))
+    return x, y / x
+
+
+def test_mx_elementwise_op_is_applied_on_the_results_nonzeros_only():
+    x, q = _sparse_ratio()
+    root = ca.sqrt(ca.vertcat(x[0], ca.MX(1, 1)))
+    f = ca.Function("f", [x], [ca.vertcat(q, ca.fabs(q) - 3.0 * root)])
+    pts = np.array([[0.7, 0.0], [0.3, 2.0], [1.5, -0.5]])
+    want = np.array(f(pts.T)).T  # CasADi's dense values (structural zeros as 0)
+    prog = compile_function(f)
+    with np.errstate(all="raise"):  # no 0/0 is computed at the structural zero
+        got = prog([pts])[0]
+    nz = np.array(f.sparsity_out(0).find())
+    assert np.array_equal(got, want[:, nz])
+    box = Interval(pts.min(0)[None, :] - 0.1, pts.max(0)[None, :] + 0.1)
+    enc = compile_function(f)([box], IntervalArithmetic())[0]
+    assert np.all(enc.lo <= got.min(0)) and np.all(got.max(0) <= enc.hi)
+
+
+def test_structural_zero_over_a_vanishing_denominator_is_no_counterexample():
+    """y / x at a structural zero of y is 0 even where x = 0: verified, never exit 1."""
+    x, q = _sparse_ratio()
+    problem = VerificationProblem(x, np.array([[0.5, 1.0], [-1.0, 1.0]]), [],
+                                  [ca.sum1(q) - 1.5])
+    assert verify(problem).status == "verified"
+    assert confirm_points(problem, np.array([[0.75, 0.0], [0.5, 0.0]])) == []
+    # the nonzero entry's own denominator does vanish on this box: a domain counterexample
+    bad = VerificationProblem(x, np.array([[-1.0, 1.0], [0.5, 1.0]]), [],
+                              [ca.sum1(q) - 1.5])
+    res = verify(bad)
+    assert res.status != "verified"
+    if res.status == "counterexample":
+        assert res.counterexample.property == "domain of OP_DIV"

@@ -410,6 +410,35 @@ class Program:
             return _unary(op, o, ins[0])
         return _binary(op, o, ins[0], ins[1])
 
+    def _on_nonzeros(self, k, op, o, ins, consts, node):
+        """Step of an elementwise MX op whose result has structural zeros, or ``None``.
+
+        CasADi computes such an op on the result's nonzeros only (``y / x`` with a
+        structural zero in ``y`` is a structural zero, whatever ``x`` is there). The dense
+        registers hold ``0`` at structural zeros, so the op is applied to the result's
+        nonzeros alone: a partial op is not evaluated, nor checked, outside them.
+        """
+        sp = node.sparsity()
+        if sp.is_dense():
+            return None
+        out = _Sp(sp)
+        rows, cols = out.rows, out.cols
+        picks = []
+        for j in range(len(ins)):
+            shape = (node.dep(j).size1(), node.dep(j).size2())
+            if shape == out.shape:
+                picks.append(lambda x: x[..., rows, cols])
+            elif shape == (1, 1):
+                picks.append(lambda x: x[..., 0, :])
+            else:
+                return None
+        feeds = None
+        if op in CHECKED_OPS and not _statically_safe(op, [consts.get(j) for j in ins]):
+            self.checked = True
+            m = self._feeds[k] if self._feeds is not None else -1
+            feeds = np.array([j for j in range(self.n_out) if (m >> j) & 1], dtype=np.intp)
+        return _mx_on_nonzeros(op, o, ins, picks, out, feeds)
+
     # -- SX: every register a batch of scalars
     def _compile_sx(self):
         f = self.fun
@@ -479,10 +508,11 @@ class Program:
             elif op == ca.OP_INPUT:
                 off = int(node.info().get("offset", 0))
                 steps.append(_mx_input(o[0], i[0], off, _Sp(node.sparsity())))
-            elif op in UNARY_OPS:
-                steps.append(self._elementwise(k, op, o[0], [i[0]], consts, 2))
-            elif op in BINARY_OPS:
-                steps.append(self._elementwise(k, op, o[0], [i[0], i[1]], consts, 2))
+            elif op in UNARY_OPS or op in BINARY_OPS:
+                ins = [i[0]] if op in UNARY_OPS else [i[0], i[1]]
+                sparse = self._on_nonzeros(k, op, o[0], ins, consts, node)
+                steps.append(sparse if sparse is not None
+                             else self._elementwise(k, op, o[0], ins, consts, 2))
             elif op == ca.OP_MTIMES:
                 steps.append(_mx_mtimes(o[0], i[0], i[1], i[2], z_in))
             elif op == ca.OP_DOT:
@@ -628,6 +658,36 @@ def _checked(op, o, ins, feeds, base):
         if chk is not None:
             chk(op, feeds, base, args, y)
         r[o] = y
+    return checked_step
+
+
+def _mx_on_nonzeros(op, o, ins, picks, out, feeds):
+    """Elementwise MX step on the nonzeros of the result's sparsity ``out`` only.
+
+    ``picks[j]`` takes argument ``j``'s entries there (shape ``(..., nnz)``, or
+    ``(..., 1)`` for a scalar argument); ``feeds`` as in :func:`_checked`, or ``None``
+    when the op reports no checks.
+    """
+    unary = len(ins) == 1
+
+    def apply(r, ctx):
+        ar = ctx[0]
+        args = [ar.structural(pick, r[j]) for pick, j in zip(picks, ins)]
+        y = ar.unary(op, args[0]) if unary else ar.binary(op, args[0], args[1])
+        return ar, args, y
+
+    if feeds is None:
+        def step(r, ctx):
+            ar, _, y = apply(r, ctx)
+            r[o] = out.from_nz(ar, y)
+        return step
+
+    def checked_step(r, ctx):
+        ar, args, y = apply(r, ctx)
+        chk = getattr(ar, "check", None)
+        if chk is not None:
+            chk(op, feeds, 1, tuple(args), y)
+        r[o] = out.from_nz(ar, y)
     return checked_step
 
 

@@ -241,9 +241,12 @@ def _log_det_descent(X, cons, start: np.ndarray | None = None, *, rounds: int,
     installed = set(cp.installed_solvers())
     best = start
     logdet = np.linalg.slogdet(start)[1] if start is not None else np.inf
-    W = np.linalg.inv(start) if start is not None else np.eye(X.shape[0])
+    # one problem with the tangent W as a parameter: cvxpy compiles it once
+    # and each round only substitutes W
+    W = cp.Parameter(X.shape)
+    W.value = np.linalg.inv(start) if start is not None else np.eye(X.shape[0])
+    prob = cp.Problem(cp.Minimize(cp.trace(W @ X)), cons)
     for _ in range(rounds):
-        prob = cp.Problem(cp.Minimize(cp.trace(W @ X)), cons)
         new = None
         for solver in [s for s in solvers if s in installed]:
             try:
@@ -262,7 +265,7 @@ def _log_det_descent(X, cons, start: np.ndarray | None = None, *, rounds: int,
         if not new_logdet < logdet:
             break
         done = logdet - new_logdet < tol
-        best, logdet, W = new, new_logdet, np.linalg.inv(new)
+        best, logdet, W.value = new, new_logdet, np.linalg.inv(new)
         if done:
             break
     return best

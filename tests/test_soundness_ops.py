@@ -569,3 +569,60 @@ def test_structural_zero_over_a_vanishing_denominator_is_no_counterexample():
     assert res.status != "verified"
     if res.status == "counterexample":
         assert res.counterexample.property == "domain of OP_DIV"
+
+
+def test_project_and_sparsity_cast_keep_casadis_nonzeros():
+    """``project`` drops the entries outside its pattern and ``sparsity_cast`` reads the
+    nonzeros in the new pattern: a walker that kept the dense value verified ``x0 - 0.5 < 0``
+    on a box where ``x0 >= 1`` (``sum1(project(x, [x0]))`` read as ``x0 + x1``)."""
+    x = ca.MX.sym("x", 2)
+    s = ca.sum1(ca.project(x, ca.Sparsity.triplet(2, 1, [0], [0])))   # s = x0
+    res = verify(VerificationProblem(x, np.array([[1.0, 2.0], [-3.0, -2.0]]), [], [s - 0.5]))
+    assert res.status == "counterexample" and res.counterexample.point[0] >= 1.0
+    assert verify(VerificationProblem(x, np.array([[1.0, 2.0], [-3.0, -2.0]]), [],
+                                      [s - 2.5])).status == "verified"
+    diag = ca.project(ca.horzcat(x, 2 * x), ca.Sparsity.diag(2))
+    cast = ca.sparsity_cast(diag, ca.Sparsity.triplet(2, 2, [0, 1], [0, 0]))
+    outs = [ca.cos(diag), ca.mtimes(cast, ca.DM([1.0, 1.0])), s]
+    pts = np.random.default_rng(3).uniform(-2.0, 2.0, size=(20, 2))
+    for e in outs:
+        f = ca.Function("f", [x], [e])
+        got = compile_function(f)([pts])[0]
+        want = np.array([np.array(f(p).nonzeros()) for p in pts])
+        np.testing.assert_allclose(got, want, rtol=1e-14, atol=0)
+        enc = compile_function(f)([Interval(pts, pts.copy())], IntervalArithmetic())[0]
+        assert np.all(enc.lo <= want) and np.all(want <= enc.hi)
+
+
+def test_a_value_that_meets_only_structural_zeros_of_a_product_is_not_used():
+    """``[1, 0]·(x0, log x1)``: CasADi's product is ``x0``; ``log x1`` for ``x1 < 0`` takes
+    no part (no NaN, no domain counterexample); so do the entries of a dot product that
+    the other factor does not hold."""
+    x = ca.MX.sym("x", 2)
+    A = ca.DM(ca.Sparsity.triplet(1, 2, [0], [0]), [1.0])
+    s = ca.mtimes(A, ca.vertcat(x[0], ca.log(x[1])))
+    box = np.array([[0.0, 1.0], [-2.0, -1.0]])
+    with np.errstate(invalid="ignore"):  # log(-1.5) is computed, as CasADi does, not used
+        assert compile_function(ca.Function("f", [x], [s]))([np.array([[0.5, -1.5]])])[0] \
+            == 0.5
+    assert verify(VerificationProblem(x, box, [], [s - 2.0])).status == "verified"
+    # xᵀAy over A's nonzeros only (A = diag(2, structural 0))
+    v = ca.vertcat(x[0], ca.log(x[1]))
+    q = ca.bilin(ca.DM(ca.Sparsity.triplet(2, 2, [0], [0]), [2.0]), v, v)   # 2 x0²
+    assert verify(VerificationProblem(x, box, [], [q - 2.5])).status == "verified"
+    # the entry it does use must be defined: log(x0 - 0.5) on x0 in [0, 1] is not
+    t = ca.mtimes(A, ca.vertcat(ca.log(x[0] - 0.5), x[1]))
+    assert verify(VerificationProblem(x, box, [], [t - 2.0])).status != "verified"
+
+
+def test_registers_of_values_without_nonzeros_exist():
+    z = ca.MX.sym("z")
+    f = ca.Function("g", [z], [-ca.vertcat(z, ca.MX(2, 1))])
+    assert compile_function(f)([np.array([[2.0]])])[0].tolist() == [[-2.0]]
+
+
+def test_a_checked_problem_whose_jacobian_folds_to_a_constant():
+    x = ca.MX.sym("x", 2)
+    p = ca.atan2(x[1] - x[1], x[0]) - 3.5          # atan2 jumps on its branch cut
+    assert verify(VerificationProblem(x, np.array([[-1.0, 1.0], [0.0, 1.0]]), [],
+                                      [p])).status == "verified"

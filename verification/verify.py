@@ -165,7 +165,7 @@ def _checked_eval(problem: VerificationProblem, lo: np.ndarray, hi: np.ndarray,
     ar = CheckedIntervalArithmetic(B, K + (1 if jacobian else 0))
     outs = evaluate(fun, [Interval(lo, hi)], ar)
     ar.collect(outs[:K])
-    return _columns(outs[:K], B), (outs[K] if jacobian else None), _Checks(ar, K)
+    return _columns(outs[:K], B), (_rows(outs[K], B) if jacobian else None), _Checks(ar, K)
 
 
 class _Checks:

@@ -322,6 +322,15 @@ class _Sp:
         return arith.structural(lambda x: _scatter(x, rows, cols, shape), v)
 
 
+def _top_register(fun: ca.Function, k: int) -> int:
+    """The largest register instruction ``k`` reads or writes (``-1`` if none); an input's
+    own numbers (input, nonzero) and an output's are not registers."""
+    op = fun.instruction_id(k)
+    regs = [] if op == ca.OP_INPUT else list(fun.instruction_input(k))
+    regs += [] if op == ca.OP_OUTPUT else list(fun.instruction_output(k))
+    return max(regs + [-1])
+
+
 def _slice_indices(info: dict, n_hint: int | None = None) -> np.ndarray:
     """Nonzero index vector of a Get/SetNonzeros node from its ``info()``."""
     if "nz" in info:
@@ -355,7 +364,10 @@ class Program:
         self.n_out = fun.n_out()
         self.sp_in = [_Sp(fun.sparsity_in(i)) for i in range(self.n_in)]
         self.sp_out = [_Sp(fun.sparsity_out(i)) for i in range(self.n_out)]
-        self.n_registers = fun.sz_w()
+        # registers by index (``sz_w`` counts the doubles of an MX work vector, which
+        # leaves out registers of values without nonzeros)
+        self.n_registers = max([fun.sz_w()] + [_top_register(fun, k) + 1
+                                              for k in range(fun.n_instructions())])
         self.ops: list[int] = []
         #: True when some operation needs a per-box check (see :data:`CHECKED_OPS`): an
         #: arithmetic with a ``check`` method is then told about it (steps built below)
@@ -514,20 +526,34 @@ class Program:
                 steps.append(sparse if sparse is not None
                              else self._elementwise(k, op, o[0], ins, consts, 2))
             elif op == ca.OP_MTIMES:
-                steps.append(_mx_mtimes(o[0], i[0], i[1], i[2], z_in))
+                px, py = _product_patterns(node.dep(1).sparsity(), node.dep(2).sparsity())
+                steps.append(_mx_mtimes(o[0], i[0], i[1], i[2], z_in, px, py))
             elif op == ca.OP_DOT:
-                steps.append(_mx_dot(o[0], i[0], i[1]))
+                pa = None
+                if i[0] != i[1]:
+                    sa, sb = node.dep(0).sparsity(), node.dep(1).sparsity()
+                    both = sa * sb  # the entries CasADi multiplies
+                    if both.nnz() < max(sa.nnz(), sb.nnz()):
+                        pa = _Sp(both)
+                steps.append(_mx_dot(o[0], i[0], i[1], pa))
             elif op == ca.OP_BILIN:  # xᵀ A y with inputs [A, x, y]
-                steps.append(_mx_bilin(o[0], i[0], i[1], i[2]))
+                sA, sx = node.dep(0).sparsity(), node.dep(1).sparsity()
+                pA, py = _product_patterns(sA, node.dep(2).sparsity())
+                rx, cx = (np.asarray(v, dtype=np.intp) for v in sx.get_triplet())
+                used = np.isin(rx, np.asarray(sA.get_triplet()[0], dtype=np.intp))
+                steps.append(_mx_bilin(o[0], i[0], i[1], i[2],
+                                       (pA, _keep(sx, rx, cx, used), py)))
             elif op == ca.OP_TRANSPOSE:
                 steps.append(_mx_struct(o[0], [i[0]], lambda a: a.swapaxes(-1, -2)))
             elif op == ca.OP_RESHAPE:
                 steps.append(_mx_reshape(o[0], i[0], _Sp(node.dep(0).sparsity()),
                                          _Sp(node.sparsity())))
-            elif op in (ca.OP_PROJECT, ca.OP_SPARSITY_CAST):
-                if node.size() != node.dep(0).size():
-                    raise UnsupportedOperationError("sparsity cast that changes the shape")
-                steps.append(_mx_struct(o[0], [i[0]], lambda a: a))
+            elif op == ca.OP_PROJECT:  # the argument's entries at the node's pattern
+                sp = _Sp(node.sparsity())
+                steps.append(_mx_reshape(o[0], i[0], sp, sp))
+            elif op == ca.OP_SPARSITY_CAST:  # the argument's nonzeros, in the node's pattern
+                steps.append(_mx_reshape(o[0], i[0], _Sp(node.dep(0).sparsity()),
+                                         _Sp(node.sparsity())))
             elif op == ca.OP_VERTCAT:
                 steps.append(_mx_struct(o[0], i, lambda *a: _concat(a, -2)))
             elif op == ca.OP_HORZCAT:
@@ -763,7 +789,43 @@ def _mx_output(ind, seg, src, sp):
     return step
 
 
-def _mx_mtimes(o, z, x, y, z_is_zero=False):
+def _product_patterns(sx: ca.Sparsity, sy: ca.Sparsity):
+    """Patterns ``(px, py)`` that the factors of ``x y`` are projected onto, or ``None``.
+
+    CasADi multiplies nonzeros only: a nonzero ``x_ik`` whose row ``k`` of ``y`` is
+    structurally zero (or ``y_kj`` whose column ``k`` of ``x`` is) takes no part, so
+    a value there that is not finite (``log`` of a negative number) must not reach the
+    product as ``0 · nan``. The projection drops them (``None``: nothing to drop).
+    """
+    rx, cx = (np.asarray(v, dtype=np.intp) for v in sx.get_triplet())
+    ry, cy = (np.asarray(v, dtype=np.intp) for v in sy.get_triplet())
+    if sx.size2() != sy.size1():  # a scalar factor (no inner dimension to match)
+        return None, None
+    used_x = np.isin(cx, ry)  # x_ik meets some y_kj
+    used_y = np.isin(ry, cx)
+    return _keep(sx, rx, cx, used_x), _keep(sy, ry, cy, used_y)
+
+
+def _keep(sp: ca.Sparsity, rows, cols, used):
+    """The pattern of ``sp``'s nonzeros marked ``used`` (``None`` when that is all)."""
+    if used.all():
+        return None
+    return _Sp(ca.Sparsity.triplet(sp.size1(), sp.size2(), rows[used].tolist(),
+                                   cols[used].tolist()))
+
+
+def _project(ar, sp, v):
+    """``v`` (a dense register) with the entries outside pattern ``sp`` set to 0."""
+    return v if sp is None else sp.from_nz(ar, sp.to_nz(ar, v))
+
+
+def _mx_mtimes(o, z, x, y, z_is_zero=False, px=None, py=None):
+    if px is not None or py is not None:
+        def step(r, ctx):
+            ar = ctx[0]
+            prod = ar.matmul(_project(ar, px, r[x]), _project(ar, py, r[y]))
+            r[o] = prod if z_is_zero else ar.binary(ca.OP_ADD, r[z], prod)
+        return step
     if z_is_zero:  # z + x y with z = +0: adding zero is exact (same shape (r, c))
         def step(r, ctx):
             r[o] = ctx[0].matmul(r[x], r[y])
@@ -775,7 +837,7 @@ def _mx_mtimes(o, z, x, y, z_is_zero=False):
     return step
 
 
-def _mx_dot(o, a, b):
+def _mx_dot(o, a, b, both=None):
     # dot(v, v) (``sumsqr``: V = ‖N(x) − N(0)‖², ‖x‖², ‖∇V‖²) as a sum of squares: an
     # interval arithmetic then encloses it by ``[0, ...]`` instead of the product of two
     # independent copies of ``v`` (e.g. [-0.75, 5] for ‖x‖² on [-1, 1] × [0.5, 2]); one
@@ -787,16 +849,20 @@ def _mx_dot(o, a, b):
             nonneg = getattr(ar, "nonneg", None)  # a sum of squares is >= 0 (e.g. under sqrt)
             if nonneg is not None:
                 total = nonneg(total)
-        else:
-            total = ar.sum(ar.binary(ca.OP_MUL, r[a], r[b]), (-2, -1))
+        else:  # over the entries both hold (``both``: where that is not all of them)
+            total = ar.sum(ar.binary(ca.OP_MUL, _project(ar, both, r[a]),
+                                     _project(ar, both, r[b])), (-2, -1))
         r[o] = ar.structural(lambda v: v[..., None, None], total)
     return step
 
 
-def _mx_bilin(o, A, x, y):
+def _mx_bilin(o, A, x, y, patterns=(None, None, None)):
+    pA, px, py = patterns  # as for a product (:func:`_product_patterns`)
+
     def step(r, ctx):
         ar = ctx[0]
-        prod = ar.binary(ca.OP_MUL, r[x], ar.matmul(r[A], r[y]))
+        prod = ar.binary(ca.OP_MUL, _project(ar, px, r[x]),
+                         ar.matmul(_project(ar, pA, r[A]), _project(ar, py, r[y])))
         r[o] = ar.structural(lambda v: v[..., None, None], ar.sum(prod, (-2, -1)))
     return step
 

@@ -38,6 +38,7 @@ Examples
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 import os
 import platform
@@ -124,8 +125,20 @@ def _cpu() -> dict:
     return info
 
 
+#: modules whose BLAS libraries the pipeline calls: loaded before the libraries are listed,
+#: so that the list does not depend on what the process imported first (a re-check that
+#: never imports the SDP solvers would otherwise list fewer libraries than the run)
+_BLAS_MODULES = ("numpy", "scipy.linalg", "scs")
+
+
 def _blas() -> list[dict]:
-    """numpy's and SciPy's BLAS libraries: library, version, kernel and threads."""
+    """The BLAS libraries of numpy, SciPy and the SDP solver SCS: library, version, kernel
+    and threads."""
+    for name in _BLAS_MODULES:
+        try:
+            importlib.import_module(name)
+        except ImportError:  # an optional solver that is not installed lists nothing
+            pass
     out = []
     for lib in threadpool_info():
         if lib.get("user_api") != "blas":

@@ -267,6 +267,30 @@ def test_true_roa_estimate_says_which_states_it_could_not_decide():
     assert not open_.any() and mask.sum() == 1
 
 
+def test_a_lightly_damped_loop_is_simulated_long_enough_to_converge():
+    """x'' = −x − 0.1x' decays at 0.05 per s: 60 s of simulated time leave most states of
+    the box undecided; the horizon from its slowest mode (SLOW_FACTOR·ln(r/tol)/σ, r the
+    box's largest norm) decides them, and a well-damped loop keeps its horizon."""
+    import casadi as ca
+
+    import systems
+    from nlyap_opt.certification.roa import TRUE_ROA_TIME, true_roa_horizon, true_roa_mask
+    from nlyap_opt.kernel.simulate import SLOW_FACTOR
+
+    x = ca.SX.sym("x", 2)
+    box = np.array([[-2.0, 2.0], [-2.0, 2.0]])
+    light = systems.System("test_light", x, None, ca.vertcat(x[1], -x[0] - 0.1 * x[1]),
+                           state_box=box)
+    t = true_roa_horizon(light, None, box)
+    assert t == pytest.approx(SLOW_FACTOR * np.log(np.sqrt(8) / 1e-3) / 0.05, rel=1e-6)
+    _, short = true_roa_mask(light, None, box, 9, t_final=TRUE_ROA_TIME, undecided=True)
+    mask, open_ = true_roa_mask(light, None, box, 9, t_final=t, undecided=True)
+    assert short.sum() > 40 and not open_.any() and mask.all()     # a linear loop: all
+    damped = systems.System("test_damped", x, None, ca.vertcat(x[1], -x[0] - 2 * x[1]),
+                            state_box=box)
+    assert true_roa_horizon(damped, None, box) == TRUE_ROA_TIME
+
+
 def test_simulation_inside_the_domain_counts_only_states_that_never_leave_it():
     """x' = Ax, A = [[−0.2, 1], [−1, −0.2]] (a contracting spiral): x(t) = e^{−0.2t}R(t)x₀
     in closed form. On the box D = [−1, 1] × [−0.5, 0.5] a state counts as converged with

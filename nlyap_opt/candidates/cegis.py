@@ -44,7 +44,14 @@ from ..kernel.determinism import deterministic_torch
 from ..kernel.domain import Ball, as_domain, parse_set
 from ..kernel.errors import InputRangeError
 from ..kernel.network import Network
-from ..kernel.simulate import STIFF_STEP, Integration, integration, linear_modes, simulate
+from ..kernel.simulate import (
+    STIFF_STEP,
+    Integration,
+    horizon,
+    integration,
+    linear_modes,
+    simulate,
+)
 from .learning import LearnerState, LyapunovLearner, TrainConfig, label_boundary_states, sample_ball
 from .quadratic import LEARNED_SEARCH_STATES
 
@@ -580,7 +587,9 @@ def _train_round(learner, cfg: CegisConfig, it: int, eta: float, margin: float, 
 
 def _setup(system, controller, dynamics, cfg: CegisConfig, D, X: np.ndarray, V0, log):
     """The learner before training, the model's closed loop for the training simulations,
-    their integration and whether V is trained with the Lyapunov-risk terms: the gain scan
+    their integration, whether V is trained with the Lyapunov-risk terms and the simulated
+    horizon (``cegis.sim_time``, longer for a loop with a slow mode:
+    :func:`nlyap_opt.kernel.simulate.horizon`): the gain scan
     (``cegis.gain_scan``), the integration for the loop's fastest mode
     (:func:`nlyap_opt.kernel.simulate.integration`: RK4 at a step it is stable for, ROS2 at
     ``cegis.sim_dt`` for a very stiff loop) and,
@@ -601,6 +610,11 @@ def _setup(system, controller, dynamics, cfg: CegisConfig, D, X: np.ndarray, V0,
         log(f"  cegis: the training simulations step {how.dt:.3g} s, not cegis.sim_dt = "
             f"{cfg.sim_dt:g} s: the model's closed loop has a mode of speed "
             f"{STIFF_STEP / how.dt:.4g} at the origin")
+    t = horizon(cfg.sim_time, A, D.max_norm(), cfg.sim_tol)
+    if t > cfg.sim_time:
+        log(f"  cegis: the training simulations run {t:.4g} s, not cegis.sim_time = "
+            f"{cfg.sim_time:g} s: the model's closed loop has a slow mode at the origin "
+            f"(decay rate {linear_modes(A)[1]:.3g} per s)")
     risk = cfg.fit_fallback and cfg.train.w_fit > 0 and stiffness(A) > STIFF_RATIO
     if risk:
         slow, fast = linear_modes(A)[1], linear_modes(A)[0]
@@ -613,7 +627,7 @@ def _setup(system, controller, dynamics, cfg: CegisConfig, D, X: np.ndarray, V0,
                                   replace(cfg.train, **LYAPUNOV_RISK), V=V0)
         if gain is not None:
             learner.set_gain(gain)
-    return learner, rhs_np, how, risk
+    return learner, rhs_np, how, risk, t
 
 
 def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log, V0, beat):
@@ -626,9 +640,11 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     scale = D.max_norm()    # the ball's radius; jitter of extra states is relative to it
     X, S = _samples(cfg, D, XI, rng, n)
     rim = np.zeros((0, n))   # boundary states fed back when ∂D limits the level
-    learner, rhs_np, how, risk = _setup(system, controller, dynamics, cfg, D, X, V0, log)
+    learner, rhs_np, how, risk, sim_time = _setup(system, controller, dynamics, cfg, D, X, V0,
+                                                  log)
     X, weights, targets, rates = _fit_targets(
-        replace(cfg, train=learner.config) if risk else cfg, D, X, rhs_np, rng, scale, log, how)
+        replace(cfg, sim_time=sim_time, **({"train": learner.config} if risk else {})),
+        D, X, rhs_np, rng, scale, log, how)
     areas = _AreaGrid(D, cfg.area_points)
     cex = np.zeros((0, n))
     best: CegisResult | None = None

@@ -79,7 +79,7 @@ from ..kernel.exact import (
 from ..kernel.network import Network
 from ..kernel.rounding import EPS, FOLD
 from ..kernel.sampling import sample_ball, sample_sphere
-from ..kernel.simulate import integration, jacobian_at_origin, simulate
+from ..kernel.simulate import horizon, integration, jacobian_at_origin, simulate
 from ..kernel.symbolic import closed_loop
 from ..kernel.walker import REAL, compile_function, evaluate, exact_values
 from ..learned.interval_sup import interval_arithmetic
@@ -90,7 +90,8 @@ __all__ = [
     "centre_lyapunov_matrix", "mean_value_form", "sliced_enclosure", "seeded_jacobian",
     "split_boxes",
     "TaylorDecrease", "SaturatedLoop", "sector_lyapunov_matrix",
-    "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "InnerForm",
+    "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "true_roa_horizon",
+    "InnerForm",
     "InnerFormKind",
 ]
 
@@ -2170,6 +2171,23 @@ def grid_points(box: np.ndarray, n: int) -> tuple[np.ndarray, tuple]:
 TRUE_ROA_TIME = 60.0
 
 
+def _loop_rhs(system, feedback):
+    """The closed loop ``x' = f(x, feedback(x))`` on a batch of states."""
+    def rhs(z):
+        return system.evaluate(z, None if feedback is None else feedback(z))
+    return rhs
+
+
+def true_roa_horizon(system, feedback, box: np.ndarray, t_final: float = TRUE_ROA_TIME,
+                     tol: float = 1e-3) -> float:
+    """The horizon :func:`true_roa_mask` is given for ``t_final`` requested: ``t_final``,
+    longer for a closed loop with a slow mode at the origin
+    (:func:`nlyap_opt.kernel.simulate.horizon`, from the box's largest norm to ``tol``)."""
+    box = np.asarray(box, dtype=float)
+    A = jacobian_at_origin(_loop_rhs(system, feedback), len(box))
+    return horizon(t_final, A, float(np.linalg.norm(np.max(np.abs(box), axis=1))), tol)
+
+
 def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200,
                   t_final: float = TRUE_ROA_TIME,
                   dt: float = 0.02, tol: float = 1e-3, ellipse=None,
@@ -2186,9 +2204,7 @@ def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200,
     neither within ``t_final`` (the estimate counts them outside the ROA).
     """
 
-    def rhs(z):
-        return system.evaluate(z, None if feedback is None else feedback(z))
-
+    rhs = _loop_rhs(system, feedback)
     target = None
     if ellipse is not None:
         P, c = np.asarray(ellipse[0], dtype=float), float(ellipse[1])

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["STIFF_STEP", "IMPLICIT_RATIO", "Integration", "integration", "jacobian_at_origin",
-           "linear_modes", "rk4_step", "ros2_step", "simulate", "simulate_converges",
-           "stable_step", "trajectories"]
+__all__ = ["STIFF_STEP", "IMPLICIT_RATIO", "SLOW_FACTOR", "HORIZON_CAP", "Integration", "horizon",
+           "integration", "jacobian_at_origin", "linear_modes", "rk4_step", "ros2_step",
+           "simulate", "simulate_converges", "stable_step", "trajectories"]
 
 #: a fixed RK4 step h of a closed loop with linearisation A at the origin satisfies
 #: h·ρ(A) ≤ STIFF_STEP (ρ the spectral radius): every linear mode then lies well inside RK4's
@@ -42,6 +43,39 @@ def stable_step(dt: float, A) -> float:
     """
     rho = linear_modes(A)[0]
     return min(dt, STIFF_STEP / rho) if rho > 0 else dt
+
+
+#: a simulated horizon is at least this multiple of the time the slowest linear mode at the
+#: origin takes to shrink a state from the domain's size to the convergence tolerance
+#: (:func:`horizon`): a lightly damped loop (a pendulum with damping 0.1 decays at 0.05 per
+#: second) needs minutes of model time where a well-damped one needs seconds
+SLOW_FACTOR = 1.5
+#: ... and it is extended to at most this multiple of the configured one
+HORIZON_CAP = 10.0
+
+
+def horizon(t_final: float, A, radius: float, tol: float) -> float:
+    r"""``t_final``, extended for a slowly converging loop: at least
+    :data:`SLOW_FACTOR` · ``ln(radius / tol) / σ``, where ``σ`` is the decay rate of the
+    slowest mode of the linearisation ``A`` at the origin, and at most
+    :data:`HORIZON_CAP` · ``t_final``. Unchanged where ``A`` is not Hurwitz (nothing is
+    known of the rate) or the rate is fast enough.
+
+    Examples
+    --------
+    >>> horizon(30.0, np.array([[0.0, 1.0], [-2.0, -3.0]]), 3.0, 1e-3)   # σ = 1
+    30.0
+    >>> round(horizon(60.0, np.array([[0.0, 1.0], [-1.0, -0.1]]), 4.6, 1e-3), 1)  # σ = 0.05
+    253.0
+    """
+    A = np.asarray(A, dtype=float)
+    if not A.size or not np.all(np.isfinite(A)) or not radius > tol > 0:
+        return float(t_final)
+    ev = np.linalg.eigvals(A)
+    if not np.all(ev.real < 0):
+        return float(t_final)
+    need = SLOW_FACTOR * math.log(radius / tol) / float(np.min(-ev.real))
+    return float(min(max(t_final, need), HORIZON_CAP * t_final))
 
 
 #: RK4 at :func:`stable_step` takes ``ρ(A)·dt / STIFF_STEP`` steps per requested step ``dt``;

@@ -430,8 +430,10 @@ _TOP_DOCS = {
     "eval_box": "box of the area grid and of the simulated true ROA",
     "eval_points": "total point budget of that grid (per axis: the largest n with n^nx <= it)",
     "eval_time": "simulated horizon (s) of the true ROA on that grid: a state counts in it "
-                 "once it reaches the origin within this time (raise it for a closed loop "
-                 "that converges slowly)",
+                 "once it reaches the origin within this time; a closed loop whose slowest "
+                 "linear mode at the origin decays slowly is simulated longer (1.5·ln(r/tol)/σ "
+                 "for decay rate σ, r the grid box's largest norm, tol = 1e-3; at most 10 "
+                 "times this)",
     "dynamics": "learned-dynamics stage (nlyap_opt.learned.dynamics_config.DynamicsConfig)",
     "quadratic": "quadratic V = xᵀPx certified before the neural stage, under the initial "
                  "controller ('lyapunov': A_clᵀP + PA_cl = -I, 'round': min cond P, "
@@ -536,7 +538,9 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "sim_dt": "RK4 step of the training simulations",
         "sim_points": "learned φ: total nodes of a table of φ for the training simulations "
                       "(0: evaluate the network)",
-        "sim_time": "simulated horizon of the training states (convergence, cost)",
+        "sim_time": "simulated horizon of the training states (convergence, cost); "
+                    "longer for a model loop whose slowest linear mode decays slowly "
+                    "(1.5·ln(r/sim_tol)/σ, r the domain's largest norm; at most 10 times this)",
         "sim_tol": "a training state converges once ‖x‖ < sim_tol within sim_time",
         "sim_in_domain": "a training state whose simulated trajectory leaves the domain "
                          "counts as not converging (a certified set lies in D and is "

@@ -82,6 +82,7 @@ from ..certification.roa import (
     centre_lyapunov_matrix,
     grid_area,
     grid_points,
+    true_roa_horizon,
     true_roa_mask,
 )
 from ..design.control import lqr, quadratic_lyapunov, saturated_controller
@@ -323,6 +324,7 @@ class _Stages:
         self.out, self.log, self.system, self.known, self.cfg = out, log, system, known, cfg
         self.file = out / "stages.json"
         self.done: dict = {}
+        self.marks = 0          # stages computed (and recorded) by this call
         if self.file.exists():
             try:
                 done = json.loads(self.file.read_text())
@@ -365,6 +367,7 @@ class _Stages:
                  if (self.out / n).exists()}
         self.done[stage] = {"key": self.key(stage, *deps), "files": files}
         write_json_atomic(self.file, self.done)
+        self.marks += 1
 
 
 class _OutLock:
@@ -495,11 +498,22 @@ def _run(system, cfg: RunConfig, out: Path, known_dynamics: bool, log,
         _local_stage(ctx)
         ctx.eps = _inner_for_margin(system, ctx.controller, ctx.dynamics, ctx.eta, ctx.eps, D,
                                     region.auto_inner, log)
-    quad = _quadratic_stage(ctx)
-    sos = _sos_stage(ctx)
+    quad = _timed(_quadratic_stage, ctx, "quadratic", seconds)
+    sos = _timed(_sos_stage, ctx, "sos", seconds)
     cg = _cegis_stage(ctx, {"quadratic": quad, "sos": sos}, seconds)
     return _certificate_stage(ctx, cfg, cg, [c for c in (quad, sos) if c is not None],
                               seconds, client)
+
+
+def _timed(stage, ctx: _Context, name: str, seconds: dict):
+    """``stage(ctx)``, its wall seconds recorded under ``name`` when it computed (a stage
+    loaded from its finished files keeps the seconds of the call that computed it)."""
+    t = time.perf_counter()
+    n_marked = ctx.stages.marks
+    res = stage(ctx)
+    if ctx.stages.marks != n_marked:
+        seconds[name] = time.perf_counter() - t
+    return res
 
 
 def _check_setting(system, cfg: RunConfig, known_dynamics: bool) -> None:
@@ -1313,6 +1327,8 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     cache = out / "true_roa.npz"
     feedback = None if controller is None else (lambda z: controller.numpy(z))
     horizon = float(cfg.eval_time)
+    if getattr(system, "can_simulate", True):   # longer for a loop with a slow mode
+        horizon = true_roa_horizon(system, feedback, box, horizon)
     ckey = _hash([system.name, cfg.eval_box, n, None if controller is None
                   else controller.to_dict(), "undecided"]
                  + ([] if horizon == TRUE_ROA_TIME else [horizon]))
@@ -1338,12 +1354,11 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         tmp = out / ".true_roa.tmp.npz"
         np.savez_compressed(tmp, mask=true_mask, undecided=undecided, key=ckey)
         tmp.replace(cache)
-    in_d = np.ones(shape, dtype=bool)
-    if system.nu or cfg.domain is not None:
-        # the paper's comparison for controlled systems: within the disc; with a declared
-        # domain D, always within D (areas and shares on the same set)
-        in_d = problem.domain.contains(pts).reshape(shape)
-        true_mask = true_mask & in_d
+    # the true ROA within D, where every certificate lies (areas and shares on one set; a
+    # true ROA that reaches past D, e.g. over the corners of a box around a ball D, is
+    # not counted)
+    in_d = problem.domain.contains(pts).reshape(shape)
+    true_mask = true_mask & in_d
     cert_area = grid_area(omega, box)
     true_area = grid_area(true_mask, box)
     open_share = 0.0 if undecided is None else \
@@ -1357,12 +1372,12 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         # estimates that are right.)
         not_available.append(
             f"true ROA by simulation (only {reached} states of the "
-            f"evaluation grid in D reached the origin within eval_time = {horizon:g} s of "
+            f"evaluation grid in D reached the origin within {horizon:.4g} s of "
             f"simulated time, and {100 * open_share:.1f}% neither converged nor diverged: "
             "the closed loop converges too slowly for this estimate; raise eval_time)")
     elif open_share > 0:
         log(f"[certificate] {100 * open_share:.1f}% of the evaluation grid neither converged "
-            f"nor diverged within eval_time = {horizon:g} s of simulated time: counted outside "
+            f"nor diverged within {horizon:.4g} s of simulated time: counted outside "
             "the true ROA (the share may be an overestimate; raise eval_time if they converge "
             "slowly)")
     true_check = None

@@ -72,8 +72,9 @@ def winner_line(candidates: list) -> str | None:
              f"no level ({neural.get('reason') or neural['status']})")
     return (f"**The neural V did not beat the cheap candidate**: it certifies {n_vol}, "
             f"{win['V']} certifies {win['certified_volume']:.4g}; the certificate below is "
-            f"that of {win['V']}. More training (train.steps, cegis.iterations) or a "
-            "larger network (train.hidden) may change this.")
+            f"that of {win['V']}. More training (train.steps, cegis.iterations), a "
+            "larger network (train.hidden) or, where the log says that few training states "
+            "converge in simulation, a longer cegis.sim_time may change this.")
 
 
 def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, cg: dict):
@@ -150,11 +151,11 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   f"True ROA: simulated closed loop (true f) from a {cert['eval_grid']}^{n_x} "
                   f"grid over {np.asarray(cert['eval_box']).tolist()}"
                   + (", intersected with D" if cert.get("domain") is not None else
-                     ", intersected with the ball ‖x‖ ≤ r" if system.nu else "")
+                     ", intersected with the ball ‖x‖ ≤ r")
                   + f". Every certified grid point converges in simulation: "
                   f"{cert['certified_points_converge_in_simulation']}."
                   + (f" {100 * cert['true_roa_undecided']:.1f}% of the grid neither converged "
-                     f"nor diverged within the simulated horizon (eval_time = {horizon:g} s) "
+                     f"nor diverged within the simulated horizon of {horizon:.4g} s "
                      "and counts outside the true ROA: the share above may be an "
                      "overestimate; raise eval_time if they converge slowly (states that go "
                      "to another equilibrium or cycle stay undecided at any horizon)."

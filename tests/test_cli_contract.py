@@ -368,3 +368,24 @@ def test_a_stop_is_deferred_inside_casadis_wrapper_and_found_behind_a_wrapping_e
     plain.__context__ = RuntimeError("before")
     assert interruption(plain) is None
     raise_if_interrupted(plain)            # nothing to raise
+
+
+def test_no_progress_bar_goes_to_a_log_file(monkeypatch):
+    """Standard error that is not a terminal (a log file, a pipe) gets no carriage-return
+    progress bars; a terminal does."""
+    import io
+    import sys
+
+    from nlyap_opt.learned.phi_training import progress_bar
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    assert progress_bar(10, True, "φ[0]") is None
+    monkeypatch.setattr(sys, "stderr", Tty())
+    bar = progress_bar(10, True, "φ[0]")
+    assert bar is not None
+    bar.close()
+    assert progress_bar(10, False, "φ[0]") is None

@@ -13,6 +13,7 @@ grid, α) is :func:`nlyap_opt.learned.dynamics.learn_dynamics`.
 from __future__ import annotations
 
 import math
+import sys
 import time
 
 import numpy as np
@@ -270,7 +271,9 @@ def assemble(blocks, centre, radius, mu, sigma, prune: float = 0.0) -> Network:
 
 
 def progress_bar(total: int, enabled: bool, desc: str):
-    if not enabled or total <= 0:
+    """A progress bar on standard error, or ``None`` (not enabled, or standard error is not
+    a terminal: a log file gets no carriage-return updates)."""
+    if not enabled or total <= 0 or not sys.stderr.isatty():
         return None
     try:
         tqdm = deps.tqdm()

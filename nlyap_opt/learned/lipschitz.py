@@ -91,6 +91,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -562,7 +563,9 @@ def _solve_sdp(
         opts = dict(eps_abs=1e-7, eps_rel=1e-7, max_iters=200_000)
     else:
         opts = {}
-    prob.solve(solver=solver, verbose=verbose, **opts)
+    with warnings.catch_warnings():   # an inaccurate solution is re-certified by the caller
+        warnings.filterwarnings("ignore", message="Solution may be inaccurate")
+        prob.solve(solver=solver, verbose=verbose, **opts)
     if prob.status not in ("optimal", "optimal_inaccurate") or t.value is None:
         raise RuntimeError(f"{solver} returned status {prob.status!r}")
     return np.asarray(t.value, dtype=np.float64).reshape(-1), float(rho.value)

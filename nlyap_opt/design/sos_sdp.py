@@ -455,7 +455,9 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
             area = star_area(V, 1.0)
             history.append({"degree": stage, "round": it + 1, "sdp_level": ls.level,
                             "seconds": time.perf_counter() - t0, "area": area * area_scale})
-            say(f"[sos] degree {stage}, round {it + 1}: area ≈ {area * area_scale:.4g}")
+            say(f"[sos] degree {stage}, round {it + 1}: area of {{V ≤ 1}} ≈ "
+                f"{area * area_scale:.4g} (the SDP's estimate, before the level is verified "
+                "and cut to D)")
             if area > best[2] * (1 + 1e-3):
                 best, stalled = (V, full, area), 0
             else:

@@ -471,3 +471,21 @@ def test_a_fixed_inner_radius_is_refused_only_where_no_v_can_decrease():
     assert smin * 0.05 <= np.linalg.norm(A @ slow) < 0.01
     with pytest.raises(ConfigError, match="inner = 0.05 cannot work.*moves slower than η"):
         _inner_for_margin(s, None, None, 0.01, 0.05, Ball(4.0, 2), False, said.append)
+
+
+def test_a_centre_keeps_its_horizon():
+    """x' = −x³: a finite-difference linearisation gives −10⁻¹² (or +10⁻¹²), no rate: the
+    horizon is the configured one, not the 10× cap."""
+    import casadi as ca
+
+    import systems
+    from nlyap_opt.certification.roa import TRUE_ROA_TIME, true_roa_horizon
+    from nlyap_opt.kernel.simulate import horizon
+
+    x = ca.SX.sym("x", 2)
+    box = np.array([[-1.0, 1.0], [-1.0, 1.0]])
+    cubic = systems.System("test_cubic", x, None, ca.vertcat(-x[0] ** 3, -x[1]),
+                           state_box=box)
+    assert true_roa_horizon(cubic, None, box) == TRUE_ROA_TIME
+    assert horizon(30.0, np.diag([-1e-12, -1.0]), 3.0, 1e-3) == 30.0
+    assert horizon(30.0, np.diag([-0.01, -1.0]), 3.0, 1e-3) == 300.0       # the cap

@@ -626,3 +626,26 @@ def test_a_checked_problem_whose_jacobian_folds_to_a_constant():
     p = ca.atan2(x[1] - x[1], x[0]) - 3.5          # atan2 jumps on its branch cut
     assert verify(VerificationProblem(x, np.array([[-1.0, 1.0], [0.0, 1.0]]), [],
                                       [p])).status == "verified"
+
+
+def test_derivative_graphs_of_sparse_products_read_as_casadi():
+    """Two patterns of CasADi's derivatives: ``mac(a, b, zeros(pattern))`` computes only its
+    pattern's entries (the dense product's others are structural zeros), and an
+    ``addnonzeros`` with a repeated index adds every term (a single indexed write kept
+    one). Each once gave a false 'verified' of a wrong gradient bound."""
+    x = ca.MX.sym("x", 2)
+    R = ca.mac(x, x.T, ca.MX(ca.Sparsity.diag(2), 0))
+    pts = np.array([[1.0, 2.0], [-0.5, 1.5]])
+    for e in [R + 1, ca.dot(R, R), ca.mtimes(R.T, x), ca.bilin(R, x, x),
+              ca.gradient(ca.sumsqr(x[[0, 0]]), x), ca.gradient(ca.sumsqr(ca.MX.eye(2) * x[0]), x)]:
+        f = ca.Function("f", [x], [e])
+        want = np.array([np.array(ca.DM(f(p)).nonzeros()) for p in pts])
+        np.testing.assert_allclose(compile_function(f)([pts])[0], want, rtol=1e-14)
+    box = np.array([[0.99, 1.01], [0.99, 1.01]])
+    fx = ca.mtimes(ca.tril(ca.mtimes(x, x.T)), x)
+    g = ca.gradient(ca.sumsqr(fx), x)            # g[0] = 14 at (1, 1)
+    assert verify(VerificationProblem(x, box, [], [14.5 - g[0]])).status == "counterexample"
+    fx = ca.mtimes(ca.MX.eye(2) * x[0], x) + ca.mtimes(ca.DM([[1, 0], [1, 1]]), x)
+    g = ca.gradient(ca.sumsqr(fx), x)            # g[0] = 24 at (1, 1)
+    assert verify(VerificationProblem(x, box, [], [g[0] - 22.0])).status == "counterexample"
+    assert verify(VerificationProblem(x, box, [], [g[0] - 26.0])).status == "verified"

@@ -52,14 +52,18 @@ def stable_step(dt: float, A) -> float:
 SLOW_FACTOR = 1.5
 #: ... and it is extended to at most this multiple of the configured one
 HORIZON_CAP = 10.0
+#: decay rates at most this fraction of the fastest mode's speed (at least 1 per s) count
+#: as none: below the accuracy of a finite-difference linearisation
+_RATE_FLOOR = 1e-6
 
 
 def horizon(t_final: float, A, radius: float, tol: float) -> float:
     r"""``t_final``, extended for a slowly converging loop: at least
     :data:`SLOW_FACTOR` · ``ln(radius / tol) / σ``, where ``σ`` is the decay rate of the
     slowest mode of the linearisation ``A`` at the origin, and at most
-    :data:`HORIZON_CAP` · ``t_final``. Unchanged where ``A`` is not Hurwitz (nothing is
-    known of the rate) or the rate is fast enough.
+    :data:`HORIZON_CAP` · ``t_final``. Unchanged where ``A`` is not Hurwitz or its
+    slowest rate is below 10⁻⁶ of its fastest mode's speed (at least 1 per s): a centre,
+    of whose decay the linearisation tells nothing, or a rate fast enough.
 
     Examples
     --------
@@ -72,9 +76,12 @@ def horizon(t_final: float, A, radius: float, tol: float) -> float:
     if not A.size or not np.all(np.isfinite(A)) or not radius > tol > 0:
         return float(t_final)
     ev = np.linalg.eigvals(A)
-    if not np.all(ev.real < 0):
+    sigma = float(np.min(-ev.real)) if ev.size else 0.0
+    # a rate below what A can resolve (a finite-difference Jacobian of x' = -x³ is -1e-12)
+    # is no rate: a centre, whose decay the linearisation does not tell
+    if not sigma > _RATE_FLOOR * max(1.0, float(np.max(np.abs(ev)))):
         return float(t_final)
-    need = SLOW_FACTOR * math.log(radius / tol) / float(np.min(-ev.real))
+    need = SLOW_FACTOR * math.log(radius / tol) / sigma
     return float(min(max(t_final, need), HORIZON_CAP * t_final))
 
 

@@ -527,7 +527,8 @@ class Program:
                              else self._elementwise(k, op, o[0], ins, consts, 2))
             elif op == ca.OP_MTIMES:
                 px, py = _product_patterns(node.dep(1).sparsity(), node.dep(2).sparsity())
-                steps.append(_mx_mtimes(o[0], i[0], i[1], i[2], z_in, px, py))
+                pout = _result_pattern(node)
+                steps.append(_mx_mtimes(o[0], i[0], i[1], i[2], z_in, px, py, pout))
             elif op == ca.OP_DOT:
                 pa = None
                 if i[0] != i[1]:
@@ -814,17 +815,45 @@ def _keep(sp: ca.Sparsity, rows, cols, used):
                                    cols[used].tolist()))
 
 
+def _result_pattern(node) -> _Sp | None:
+    """The pattern of ``z + x y`` (``mac``) when the dense product has entries outside it.
+
+    CasADi computes a product's result on the nonzeros of its own pattern, which its
+    derivatives make smaller than the product's (``mac(a, b, zeros(pattern))``); the dense
+    product holds values at the other entries, which must read as structural zeros.
+    """
+    so = node.sparsity()
+    if so.is_dense():
+        return None
+    sz, sx, sy = (node.dep(j).sparsity() for j in range(3))
+
+    def mask(sp):
+        m = np.zeros((sp.size1(), sp.size2()), dtype=bool)
+        r, c = sp.get_triplet()
+        m[np.asarray(r, dtype=np.intp), np.asarray(c, dtype=np.intp)] = True
+        return m
+
+    if sx.size2() != sy.size1():  # a scalar factor: the product has the other's pattern
+        prod = mask(sx) if sy.numel() == 1 else mask(sy)
+    else:
+        prod = (mask(sx).astype(np.int64) @ mask(sy).astype(np.int64)) > 0
+    if prod.shape != mask(so).shape:
+        return _Sp(so)
+    outside = (prod | mask(sz)) & ~mask(so)
+    return _Sp(so) if outside.any() else None
+
+
 def _project(ar, sp, v):
     """``v`` (a dense register) with the entries outside pattern ``sp`` set to 0."""
     return v if sp is None else sp.from_nz(ar, sp.to_nz(ar, v))
 
 
-def _mx_mtimes(o, z, x, y, z_is_zero=False, px=None, py=None):
-    if px is not None or py is not None:
+def _mx_mtimes(o, z, x, y, z_is_zero=False, px=None, py=None, pout=None):
+    if px is not None or py is not None or pout is not None:
         def step(r, ctx):
             ar = ctx[0]
             prod = ar.matmul(_project(ar, px, r[x]), _project(ar, py, r[y]))
-            r[o] = prod if z_is_zero else ar.binary(ca.OP_ADD, r[z], prod)
+            r[o] = _project(ar, pout, prod if z_is_zero else ar.binary(ca.OP_ADD, r[z], prod))
         return step
     if z_is_zero:  # z + x y with z = +0: adding zero is exact (same shape (r, c))
         def step(r, ctx):
@@ -907,36 +936,44 @@ def _mx_getnz(o, a, nz, sp_in, sp_out):
     return step
 
 
+def _rounds(dst: np.ndarray, src: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(dst, src)`` pairs split into rounds without a repeated ``dst``: round ``k`` holds
+    the ``k``-th occurrence of each index, in order. CasADi adds (or assigns) repeated
+    indices one after the other; one fancy-indexed write would keep only one of them."""
+    seen: dict[int, int] = {}
+    parts: list[list[int]] = []
+    for i, d in enumerate(dst.tolist()):
+        k = seen.get(d, 0)
+        seen[d] = k + 1
+        if k == len(parts):
+            parts.append([])
+        parts[k].append(i)
+    return [(dst[np.asarray(p, dtype=np.intp)], src[np.asarray(p, dtype=np.intp)])
+            for p in parts]
+
+
 def _mx_setnz(o, y, x, nz, add, sp_out, sp_x):
     valid = nz >= 0
-    dst = nz[valid]
-    src = np.nonzero(valid)[0]
+    rounds = _rounds(nz[valid], np.nonzero(valid)[0])
 
-    def put(base, val):
-        (base, val), _ = _broadcast_batch([base, val], [1, 1])
-        out = base.clone() if _is_torch(base) else np.array(base, dtype=float)
-        if add:
-            out[..., dst] = out[..., dst] + val[..., src]
-        else:
-            out[..., dst] = val[..., src]
-        return out
+    def put_at(dst):
+        def put(b, s):
+            (b, s), _ = _broadcast_batch([b, s], [1, 1])
+            out = b.clone() if _is_torch(b) else np.array(b, dtype=float)
+            out[..., dst] = s
+            return out
+        return put
 
     def step(r, ctx):
         ar = ctx[0]
-        base = sp_out.to_nz(ar, r[y])
+        res = sp_out.to_nz(ar, r[y])
         val = sp_x.to_nz(ar, r[x])
-        if add:  # adding is arithmetic: do it with the arithmetic (rounding matters)
-            picked = ar.structural(lambda b: b[..., dst], base)
-            summed = ar.binary(ca.OP_ADD, picked, ar.structural(lambda v: v[..., src], val))
-
-            def put_sum(b, s):
-                (b, s), _ = _broadcast_batch([b, s], [1, 1])
-                out = b.clone() if _is_torch(b) else np.array(b, dtype=float)
-                out[..., dst] = s
-                return out
-            res = ar.structural(put_sum, base, summed)
-        else:
-            res = ar.structural(put, base, val)
+        for dst, src in rounds:
+            part = ar.structural(lambda v, src=src: v[..., src], val)
+            if add:  # adding is arithmetic: do it with the arithmetic (rounding matters)
+                part = ar.binary(ca.OP_ADD, ar.structural(lambda b, dst=dst: b[..., dst], res),
+                                 part)
+            res = ar.structural(put_at(dst), res, part)
         r[o] = sp_out.from_nz(ar, res)
     return step
 

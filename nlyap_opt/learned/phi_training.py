@@ -270,10 +270,19 @@ def assemble(blocks, centre, radius, mu, sigma, prune: float = 0.0) -> Network:
     return Network([Layer(W0, b0, "tanh"), Layer(W1, b1, "linear")])
 
 
+def _interactive() -> bool:
+    """Standard error is a terminal, or this runs in a Jupyter kernel (whose bars tqdm
+    draws as widgets)."""
+    err = sys.stderr
+    return bool(err is not None and getattr(err, "isatty", lambda: False)()) \
+        or "ipykernel" in sys.modules
+
+
 def progress_bar(total: int, enabled: bool, desc: str):
-    """A progress bar on standard error, or ``None`` (not enabled, or standard error is not
-    a terminal: a log file gets no carriage-return updates)."""
-    if not enabled or total <= 0 or not sys.stderr.isatty():
+    """A progress bar on standard error, or ``None`` (not enabled, or standard error is
+    neither a terminal nor a Jupyter kernel's: a log file gets no carriage-return
+    updates)."""
+    if not enabled or total <= 0 or not _interactive():
         return None
     try:
         tqdm = deps.tqdm()

@@ -155,12 +155,11 @@ def _run_files(d):
 
 def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_bytes(
         tmp_path, fast_run):
-    """The fast learned Van der Pol run three times at once, each run the others' load (a
-    busy machine): from the command line with one BLAS/OpenMP thread and with two threads,
-    and from Python in this process (the session's shared run, no progress bars). Every
-    hashed artifact (φ, bounds, V, CEGIS record) has the same sha256, and the two
-    command-line certificates the same content; only wall-clock timings (kept in
-    timings.json and seconds.json) differ."""
+    """The fast learned Van der Pol run twice at once, each run the other's load (a busy
+    machine): from the command line with one BLAS/OpenMP thread and from Python in this
+    process with the session's threads (the shared run, no progress bars). Every hashed
+    artifact (φ, bounds, V, CEGIS record) has the same sha256 and the certificates the same
+    content; only wall-clock timings (kept in timings.json and seconds.json) differ."""
     import os
     import subprocess
     import sys
@@ -173,7 +172,7 @@ def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_by
                                  "van_der_pol", "--preset", "fast", "--out", str(out)],
                                 env=env, text=True, stdout=log, stderr=subprocess.STDOUT), log
 
-    procs = [nlyap(tmp_path / "a", 1), nlyap(tmp_path / "b", 2)]
+    procs = [nlyap(tmp_path / "a", 1)]
     try:
         c, _ = fast_run("van_der_pol")   # meanwhile (or already run)
         codes = [p.wait(timeout=600) for p, _ in procs]
@@ -183,12 +182,10 @@ def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_by
                 p.kill()
                 p.wait()
             log.close()
-    for code, name in zip(codes, "ab"):
-        assert code == 0, (tmp_path / f"{name}.log").read_text()[-3000:]
+    assert codes == [0], (tmp_path / "a.log").read_text()[-3000:]
     files_a, cert_a = _run_files(tmp_path / "a")
-    files_b, cert_b = _run_files(tmp_path / "b")
-    files_c, _ = _run_files(c)
+    files_c, cert_c = _run_files(c)
     assert {"dynamics.json", "bounds.json", "V.json", "cegis.json"} <= set(files_a)
-    assert files_a == files_b == files_c
-    assert cert_a == cert_b
+    assert files_a == files_c
+    assert cert_a == cert_c
     assert json.loads((tmp_path / "a" / "timings.json").read_text())["cegis.json"]

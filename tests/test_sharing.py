@@ -285,7 +285,7 @@ def test_silent_scheduler_times_out(silent_listener):
     assert DEFAULT_CONNECT_TIMEOUT <= 10
     t0 = time.monotonic()
     with pytest.raises(ConfigError, match="no Dask scheduler answered"):
-        with dask_client(scheduler=f"127.0.0.1:{silent_listener}", connect_timeout=2):
+        with dask_client(scheduler=f"127.0.0.1:{silent_listener}", connect_timeout=0.5):
             pass
     assert time.monotonic() - t0 < 8
 
@@ -293,7 +293,7 @@ def test_silent_scheduler_times_out(silent_listener):
 def test_silent_scheduler_from_the_cli(silent_listener, tmp_path, capsys):
     t0 = time.monotonic()
     code = main(["verify", "--certificate", str(tmp_path), "--scheduler",
-                 f"127.0.0.1:{silent_listener}", "--connect-timeout", "2"])
+                 f"127.0.0.1:{silent_listener}", "--connect-timeout", "0.5"])
     # no certificate in tmp_path: the paths are checked first (exit 3 either way, fast)
     assert code == 3
     capsys.readouterr()
@@ -301,7 +301,7 @@ def test_silent_scheduler_from_the_cli(silent_listener, tmp_path, capsys):
     _certify(systems.get("van_der_pol"), out)
     t0 = time.monotonic()
     code = main(["verify", "--certificate", str(out), "--scheduler",
-                 f"127.0.0.1:{silent_listener}", "--connect-timeout", "2"])
+                 f"127.0.0.1:{silent_listener}", "--connect-timeout", "0.5"])
     assert code == 3 and time.monotonic() - t0 < 10
     assert "no Dask scheduler answered" in _one_line_error(capsys)
 

@@ -76,7 +76,7 @@ def horizon(t_final: float, A, radius: float, tol: float) -> float:
     if not A.size or not np.all(np.isfinite(A)) or not radius > tol > 0:
         return float(t_final)
     ev = np.linalg.eigvals(A)
-    sigma = float(np.min(-ev.real)) if ev.size else 0.0
+    sigma = float(np.min(-ev.real))
     # a rate below what A can resolve (a finite-difference Jacobian of x' = -x³ is -1e-12)
     # is no rate: a centre, whose decay the linearisation does not tell
     if not sigma > _RATE_FLOOR * max(1.0, float(np.max(np.abs(ev)))):

@@ -411,12 +411,19 @@ class Program:
                     live[reg] = live.get(reg, 0) | m
         return feeds
 
+    def _check_feeds(self, k, op, ins, consts) -> np.ndarray | None:
+        """The outputs instruction ``k`` feeds when its op must report checks
+        (:data:`CHECKED_OPS`, arguments not statically safe), else ``None``."""
+        if op not in CHECKED_OPS or _statically_safe(op, [consts.get(j) for j in ins]):
+            return None
+        self.checked = True
+        m = self._feeds[k] if self._feeds is not None else -1
+        return np.array([j for j in range(self.n_out) if (m >> j) & 1], dtype=np.intp)
+
     def _elementwise(self, k, op, o, ins, consts, base):
         """Step of an elementwise op; a checked step where :data:`CHECKED_OPS` asks."""
-        if op in CHECKED_OPS and not _statically_safe(op, [consts.get(j) for j in ins]):
-            self.checked = True
-            m = self._feeds[k] if self._feeds is not None else -1
-            feeds = np.array([j for j in range(self.n_out) if (m >> j) & 1], dtype=np.intp)
+        feeds = self._check_feeds(k, op, ins, consts)
+        if feeds is not None:
             return _checked(op, o, ins, feeds, base)
         if len(ins) == 1:
             return _unary(op, o, ins[0])
@@ -444,12 +451,7 @@ class Program:
                 picks.append(lambda x: x[..., 0, :])
             else:
                 return None
-        feeds = None
-        if op in CHECKED_OPS and not _statically_safe(op, [consts.get(j) for j in ins]):
-            self.checked = True
-            m = self._feeds[k] if self._feeds is not None else -1
-            feeds = np.array([j for j in range(self.n_out) if (m >> j) & 1], dtype=np.intp)
-        return _mx_on_nonzeros(op, o, ins, picks, out, feeds)
+        return _mx_on_nonzeros(op, o, ins, picks, out, self._check_feeds(k, op, ins, consts))
 
     # -- SX: every register a batch of scalars
     def _compile_sx(self):
@@ -956,11 +958,11 @@ def _mx_setnz(o, y, x, nz, add, sp_out, sp_x):
     valid = nz >= 0
     rounds = _rounds(nz[valid], np.nonzero(valid)[0])
 
-    def put_at(dst):
+    def put_at(dst, src=None):  # out[dst] = s, or s[src]
         def put(b, s):
             (b, s), _ = _broadcast_batch([b, s], [1, 1])
             out = b.clone() if _is_torch(b) else np.array(b, dtype=float)
-            out[..., dst] = s
+            out[..., dst] = s if src is None else s[..., src]
             return out
         return put
 
@@ -969,11 +971,12 @@ def _mx_setnz(o, y, x, nz, add, sp_out, sp_x):
         res = sp_out.to_nz(ar, r[y])
         val = sp_x.to_nz(ar, r[x])
         for dst, src in rounds:
-            part = ar.structural(lambda v, src=src: v[..., src], val)
             if add:  # adding is arithmetic: do it with the arithmetic (rounding matters)
                 part = ar.binary(ca.OP_ADD, ar.structural(lambda b, dst=dst: b[..., dst], res),
-                                 part)
-            res = ar.structural(put_at(dst), res, part)
+                                 ar.structural(lambda v, src=src: v[..., src], val))
+                res = ar.structural(put_at(dst), res, part)
+            else:
+                res = ar.structural(put_at(dst, src), res, val)
         r[o] = sp_out.from_nz(ar, res)
     return step
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from nlyap_opt.candidates.cegis import cost_targets
+from nlyap_opt.certification.certificate import NOT_CHECKED
 from nlyap_opt.kernel.errors import ConfigError
 from nlyap_opt.kernel.simulate import simulate
 
@@ -388,6 +389,14 @@ def test_winner_line_says_plainly_when_a_cheap_v_wins():
     failed = winner_line([row("neural (V.json)", "not certified", 0.0, False),
                           row("SOS (V_sos.json)", "certified", 1.5, True)])
     assert "certifies no level" in failed and "SOS (V_sos.json)" in failed
+    # never verified because it could not win: said so, not "certifies no level"
+    skipped = row("neural (V.json)", "not certified", 0.0, False)
+    skipped["reason"] = (f"{NOT_CHECKED}: at each inner radius tried (ε = 0.2) no "
+                         "certificate of it can beat the SOS (at ε = 0.2: volume bound 1.2 "
+                         "below its certified 1.5)")
+    unchecked = winner_line([skipped, row("SOS (V_sos.json)", "certified", 1.5, True)])
+    assert "it was not verified, since at each inner radius tried (ε = 0.2)" in unchecked
+    assert "certifies no level" not in unchecked and NOT_CHECKED not in unchecked
     won = winner_line([row("neural (V.json)", "certified", 4.0, True),
                        row("quadratic lyapunov (V_quadratic.json)", "certified", 3.0, False)])
     assert won.startswith("The neural V certifies a larger volume (4)")

@@ -9,6 +9,7 @@ import systems
 from nlyap_opt.candidates.cegis import CegisConfig, cegis
 from nlyap_opt.candidates.learning import TrainConfig
 from nlyap_opt.certification.certificate import (
+    NOT_CHECKED,
     LevelPolicy,
     RoaProblem,
     VolumeToBeat,
@@ -65,10 +66,33 @@ def test_radii_that_cannot_beat_are_skipped_and_the_rest_is_unchanged(vdp):
     assert plain.certified and low.certified and low.level == plain.level
     high = certify_candidate(problem, policy, beat=VolumeToBeat(1e3, BOX, N, "quadratic x"),
                              **quiet)
-    assert not high.certified and "cannot beat the quadratic x" in high.reason
+    assert not high.certified and "can beat the quadratic x" in high.reason
+    # said as what it is: not verified because it could not win, nothing found false
+    assert high.reason.startswith(NOT_CHECKED + ": at each inner radius tried (ε = 0.1, 0.2)")
     tried = high.history[-1]["inner_radius_search"]
     assert [t["status"] for t in tried] == ["skipped", "skipped"]
     assert [t["inner"] for t in tried] == [0.1, 0.2]
+
+
+def test_only_radii_skipped_for_the_volume_are_called_unchecked():
+    """A candidate is 'not checked' only when every radius was skipped because it could not
+    win; a radius refuted by counterexamples (or without a level) keeps the plain reason."""
+    from nlyap_opt.certification import certificate
+
+    beat = VolumeToBeat(5.0, BOX, N, "quadratic x")
+    lost = {"inner": 0.1, "status": "skipped",
+            "reason": "cannot beat the quadratic x: volume bound 4 below its certified 5"}
+    refuted = {"inner": 0.2, "status": "skipped",
+               "reason": "counterexamples refute every level above 0.3"}
+    empty = {"inner": 0.4, "status": "no positive candidate level"}
+    why = certificate._unchecked_reason([lost, {**lost, "inner": 0.05}], beat)
+    assert why == (NOT_CHECKED + ": at each inner radius tried (ε = 0.1, 0.05) no certificate "
+                   "of it can beat the quadratic x (at ε = 0.1: volume bound 4 below its "
+                   "certified 5)")
+    for tried in ([lost, refuted], [lost, empty], [refuted]):
+        why = certificate._unchecked_reason(tried, beat)
+        assert why.startswith("no inner radius left to check: ε = "), why
+    assert certificate._unchecked_reason([lost], None).startswith("no inner radius left")
 
 
 def test_cegis_does_not_verify_an_iterate_that_cannot_beat():

@@ -16,7 +16,12 @@ from nlyap_opt.candidates.quadratic import (
     quadratic_policy,
     volume_bound,
 )
-from nlyap_opt.certification.certificate import InnerEllipseCache, LevelPolicy, RoaProblem
+from nlyap_opt.certification.certificate import (
+    NOT_CHECKED,
+    InnerEllipseCache,
+    LevelPolicy,
+    RoaProblem,
+)
 from nlyap_opt.design.control import lqr, lyapunov_matrix, quadratic_lyapunov, saturated_controller
 from nlyap_opt.kernel.domain import Ball, as_domain
 from nlyap_opt.workflow.configs import get_config
@@ -211,9 +216,11 @@ def test_a_radius_whose_own_level_cannot_win_is_not_checked(monkeypatch):
     wide, lyap = pruned
     assert wide.certified and wide.volume == full[0].volume > full[1].volume
     assert not lyap.skipped and not lyap.certified
-    assert "cannot beat the quadratic wide" in lyap.certificate.reason
+    assert lyap.certificate.reason.startswith(NOT_CHECKED)      # nothing was found false
+    assert "no certificate of it can beat the quadratic wide" in lyap.certificate.reason
     tried = lyap.certificate.history[-1]["inner_radius_search"]
     assert tried and all(t["status"] == "skipped" for t in tried)
+    assert all(t["reason"].startswith("cannot beat the quadratic wide") for t in tried)
 
 
 def _wide_problem():

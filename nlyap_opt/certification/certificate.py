@@ -85,8 +85,14 @@ __all__ = [
     "sha256_file", "FORMAT", "VERSION", "system_fingerprint", "system_binding", "spec_factory",
     "status_text", "bound_system", "read_certificate_file", "LevelPolicy", "NEURAL_POLICY",
     "certify_candidate", "InnerEllipseCache", "VolumeToBeat",
-    "INNER_FACTORS",
+    "INNER_FACTORS", "NOT_CHECKED",
 ]
+
+#: the reason of a candidate that was not verified because no certificate of it could beat
+#: a certified one (:class:`VolumeToBeat`) starts with this: nothing was found false
+NOT_CHECKED = "not checked"
+#: how :meth:`VolumeToBeat.cannot_beat` starts its reason
+CANNOT_BEAT = "cannot beat"
 
 FORMAT = "nlyap-roa-certificate"
 VERSION = 4
@@ -1058,7 +1064,7 @@ class VolumeToBeat:
         ``""``."""
         b = self.bound(problem, level)
         if b < self.volume:
-            return (f"cannot beat the {self.label}: volume bound {b:.4g} below its certified "
+            return (f"{CANNOT_BEAT} the {self.label}: volume bound {b:.4g} below its certified "
                     f"{self.volume:.4g}")
         return ""
 
@@ -1206,15 +1212,28 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
         raise ConfigError(f"no inner radius to try inside the domain "
                           f"{problem.domain.describe()}")
     if first is None:       # every radius skipped before any check: a refusal, not an error
-        first = RoaCertificate(
-            CertStatus.NOT_CERTIFIED, "no inner radius left to check: "
-            + "; ".join(f"ε = {t['inner']:g}: {t['status']}"
-                        + (f" ({t['reason']})" if t["status"] == "skipped" else "")
-                        for t in tried), level=0.0,
-            assumptions=[], **_identity(problem))
+        first = RoaCertificate(CertStatus.NOT_CERTIFIED, _unchecked_reason(tried, beat),
+                               level=0.0, assumptions=[], **_identity(problem))
     if record:
         first.history = list(first.history) + [{"inner_radius_search": tried}]
     return first
+
+
+def _unchecked_reason(tried: list, beat: VolumeToBeat | None) -> str:
+    """Why :func:`certify_with_inner_search` checked no radius (each entry of ``tried`` was
+    skipped). Where every radius was skipped because no certificate of it could beat
+    ``beat``, the reason starts with :data:`NOT_CHECKED`: nothing was found false, the
+    candidate was only not worth verifying."""
+    if beat is not None and all(t["status"] == "skipped"
+                                and t.get("reason", "").startswith(CANNOT_BEAT)
+                                for t in tried):
+        radii = ", ".join(f"{t['inner']:g}" for t in tried)
+        first = tried[0]["reason"].split(": ", 1)[-1]
+        return (f"{NOT_CHECKED}: at each inner radius tried (ε = {radii}) no certificate of "
+                f"it can beat the {beat.label} (at ε = {tried[0]['inner']:g}: {first})")
+    return "no inner radius left to check: " + "; ".join(
+        f"ε = {t['inner']:g}: {t['status']}"
+        + (f" ({t['reason']})" if t["status"] == "skipped" else "") for t in tried)
 
 
 def _refuted_radius(problem: RoaProblem, dec, eps: float, refuted: list

@@ -6,7 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..certification.certificate import CertStatus, load_artifact, status_text
+from ..certification.certificate import (
+    NOT_CHECKED,
+    CertStatus,
+    load_artifact,
+    status_text,
+)
 from ..certification.roa import InnerForm, InnerFormKind, grid_points
 from ..kernel import deps
 from ..kernel.domain import Ball, parse_set
@@ -50,6 +55,13 @@ def status_line(cert: dict) -> str:
     return status_text(cert["status"], cert.get("assumptions_declared_by_user") or [])
 
 
+def _not_checked(row: dict) -> bool:
+    """Whether a row of ``certificate.json``'s ``candidates`` was never verified because no
+    certificate of it could beat a certified one (nothing about it was found false)."""
+    return row["status"] != CertStatus.CERTIFIED and \
+        str(row.get("reason") or "").startswith(NOT_CHECKED)
+
+
 def winner_line(candidates: list) -> str | None:
     """One sentence on which ``V`` won the comparison of certified volumes (``certificate.json``'s
     ``candidates``): said plainly when a cheap ``V`` (quadratic, SOS) beats the neural one;
@@ -67,11 +79,15 @@ def winner_line(candidates: list) -> str | None:
         best = max(others, key=lambda c: c["certified_volume"])
         return (f"The neural V certifies a larger volume ({neural['certified_volume']:.4g}) than "
                 f"the best cheap V, {best['V']} ({best['certified_volume']:.4g}).")
-    n_vol = (f"a smaller volume ({neural['certified_volume']:.4g})"
-             if neural["status"] == CertStatus.CERTIFIED else
-             f"no level ({neural.get('reason') or neural['status']})")
-    return (f"**The neural V did not beat the cheap candidate**: it certifies {n_vol}, "
-            f"{win['V']} certifies {win['certified_volume']:.4g}; the certificate below is "
+    why = neural.get("reason") or neural["status"]
+    if neural["status"] == CertStatus.CERTIFIED:
+        what = f"it certifies a smaller volume ({neural['certified_volume']:.4g})"
+    elif _not_checked(neural):
+        what = f"it was not verified, since {why.removeprefix(NOT_CHECKED + ': ')}"
+    else:
+        what = f"it certifies no level ({why})"
+    return (f"**The neural V did not beat the cheap candidate**: {what}; "
+            f"{win['V']} certifies {win['certified_volume']:.4g}, and the certificate below is "
             f"that of {win['V']}. More training (train.steps, cegis.iterations), a "
             "larger network (train.hidden) or, where the log says that few training states "
             "converge in simulation, a longer cegis.sim_time may change this.")
@@ -148,7 +164,11 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   "| certified area | true ROA area | certified ÷ true |", "|---|---|---|",
                   f"| {cert['certified_area']:.4g} | {cert['true_roa_area']:.4g} | "
                   f"{100 * cert['fraction_of_true_roa']:.1f}% |", "",
-                  f"True ROA: simulated closed loop (true f) from a {cert['eval_grid']}^{n_x} "
+                  "True ROA: simulated closed loop (true f"
+                  + (", under the certificate's controller κ: the ROA of this closed loop, "
+                     "not every state some input in U could bring to the origin"
+                     if system.nu else "")
+                  + f") from a {cert['eval_grid']}^{n_x} "
                   f"grid over {np.asarray(cert['eval_box']).tolist()}"
                   + (", intersected with D" if cert.get("domain") is not None else
                      ", intersected with the ball ‖x‖ ≤ r")
@@ -170,9 +190,12 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
         lines += ["## Best certificate (the larger certified volume wins)", "",
                   "| V | κ | status | level | ε | certified volume | winner |",
                   "|---|---|---|---|---|---|---|"]
-        lines += [f"| {c['V']} | {c['controller'] or '—'} | {c['status']} | "
-                  f"{c['level']:.6g} | {c['inner']:g} | {c['certified_volume']:.4g} | "
-                  f"{'**yes**' if c['winner'] else 'no'} |" for c in cert["candidates"]]
+        lines += [f"| {c['V']} | {c['controller'] or '—'} | "
+                  + (f"not checked (cannot beat the winner) | – | {c['inner']:g} | – | "
+                     if _not_checked(c) else
+                     f"{c['status']} | {c['level']:.6g} | {c['inner']:g} | "
+                     f"{c['certified_volume']:.4g} | ")
+                  + f"{'**yes**' if c['winner'] else 'no'} |" for c in cert["candidates"]]
         lines.append("")
     lines += ["## CEGIS history", "",
               "The candidate level is limited by the decrease (a state where V does not "

@@ -44,7 +44,10 @@ def test_fast_known_dynamics_run_is_certified(known_runs, name):
     saved = json.loads((d / "certificate.json").read_text())
     assert saved["status"] == "certified" and saved["level"] == cert["level"]
     assert saved["provenance"] == fingerprint()        # what determined these numbers
-    assert f"fingerprint: {fingerprint_id()}" in (d / "report.md").read_text()
+    report = (d / "report.md").read_text()
+    assert f"fingerprint: {fingerprint_id()}" in report
+    # with an input, the true ROA is said to be that of the certificate's closed loop
+    assert ("under the certificate's controller κ" in report) == bool(systems.get(name).nu)
     for f in ("V.json", "report.md", "roa.png", "cegis.json"):
         assert (d / f).exists(), f
     assert 0 < cert["certified_area"] <= cert["true_roa_area"] * 1.02

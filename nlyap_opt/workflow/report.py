@@ -167,7 +167,7 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   "True ROA: simulated closed loop (true f"
                   + (", under the certificate's controller κ: the ROA of this closed loop, "
                      "not every state some input in U could bring to the origin"
-                     if system.nu else "")
+                     if getattr(system, "nu", 0) else "")
                   + f") from a {cert['eval_grid']}^{n_x} "
                   f"grid over {np.asarray(cert['eval_box']).tolist()}"
                   + (", intersected with D" if cert.get("domain") is not None else

@@ -93,6 +93,12 @@ def test_only_radii_skipped_for_the_volume_are_called_unchecked():
         why = certificate._unchecked_reason(tried, beat)
         assert why.startswith("no inner radius left to check: ε = "), why
     assert certificate._unchecked_reason([lost], None).startswith("no inner radius left")
+    # the one predicate the report and the log read it by
+    assert certificate.unchecked("not certified", certificate._unchecked_reason([lost], beat))
+    assert not certificate.unchecked("not certified", certificate._unchecked_reason(
+        [lost, refuted], beat))
+    assert not certificate.unchecked("certified", NOT_CHECKED + ": stale")
+    assert not certificate.unchecked("not certified", None)
 
 
 def test_cegis_does_not_verify_an_iterate_that_cannot_beat():

@@ -85,7 +85,7 @@ __all__ = [
     "sha256_file", "FORMAT", "VERSION", "system_fingerprint", "system_binding", "spec_factory",
     "status_text", "bound_system", "read_certificate_file", "LevelPolicy", "NEURAL_POLICY",
     "certify_candidate", "InnerEllipseCache", "VolumeToBeat",
-    "INNER_FACTORS", "NOT_CHECKED",
+    "INNER_FACTORS", "NOT_CHECKED", "unchecked",
 ]
 
 #: the reason of a candidate that was not verified because no certificate of it could beat
@@ -1217,6 +1217,13 @@ def certify_candidate(problem: RoaProblem, policy: LevelPolicy = NEURAL_POLICY, 
     if record:
         first.history = list(first.history) + [{"inner_radius_search": tried}]
     return first
+
+
+def unchecked(status: str, reason: str | None) -> bool:
+    """Whether a candidate with this ``status`` and ``reason`` was never verified because no
+    certificate of it could beat a certified one (its reason starts with
+    :data:`NOT_CHECKED`): nothing about it was found false."""
+    return status != CertStatus.CERTIFIED and str(reason or "").startswith(NOT_CHECKED)
 
 
 def _unchecked_reason(tried: list, beat: VolumeToBeat | None) -> str:

@@ -74,6 +74,7 @@ from ..certification.certificate import (
     certify_with_inner_search,
     save_certificate,
     sha256_file,
+    unchecked,
     write_json_atomic,
 )
 from ..certification.roa import (
@@ -1277,7 +1278,9 @@ def _best_certificate(system, cfg, cert, problem, checked: list, log):
     _, win, wp, rec, row = best
     row["winner"] = True
     log(f"[certificate] best certificate: {'neural' if rec is None else rec.label} ("
-        + "; ".join(f"{r['V']} {r['status']} {r['certified_volume']:.4g}" for r in compared)
+        + "; ".join(f"{r['V']} " + ("not checked (cannot beat)" if unchecked(
+            r["status"], r["reason"]) else f"{r['status']} {r['certified_volume']:.4g}")
+            for r in compared)
         + ")")
     if rec is None:
         return cert, problem, None, compared

@@ -11,6 +11,7 @@ from ..certification.certificate import (
     CertStatus,
     load_artifact,
     status_text,
+    unchecked,
 )
 from ..certification.roa import InnerForm, InnerFormKind, grid_points
 from ..kernel import deps
@@ -55,13 +56,6 @@ def status_line(cert: dict) -> str:
     return status_text(cert["status"], cert.get("assumptions_declared_by_user") or [])
 
 
-def _not_checked(row: dict) -> bool:
-    """Whether a row of ``certificate.json``'s ``candidates`` was never verified because no
-    certificate of it could beat a certified one (nothing about it was found false)."""
-    return row["status"] != CertStatus.CERTIFIED and \
-        str(row.get("reason") or "").startswith(NOT_CHECKED)
-
-
 def winner_line(candidates: list) -> str | None:
     """One sentence on which ``V`` won the comparison of certified volumes (``certificate.json``'s
     ``candidates``): said plainly when a cheap ``V`` (quadratic, SOS) beats the neural one;
@@ -82,7 +76,7 @@ def winner_line(candidates: list) -> str | None:
     why = neural.get("reason") or neural["status"]
     if neural["status"] == CertStatus.CERTIFIED:
         what = f"it certifies a smaller volume ({neural['certified_volume']:.4g})"
-    elif _not_checked(neural):
+    elif unchecked(neural["status"], neural.get("reason")):
         what = f"it was not verified, since {why.removeprefix(NOT_CHECKED + ': ')}"
     else:
         what = f"it certifies no level ({why})"
@@ -192,7 +186,7 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   "|---|---|---|---|---|---|---|"]
         lines += [f"| {c['V']} | {c['controller'] or '—'} | "
                   + (f"not checked (cannot beat the winner) | – | {c['inner']:g} | – | "
-                     if _not_checked(c) else
+                     if unchecked(c["status"], c.get("reason")) else
                      f"{c['status']} | {c['level']:.6g} | {c['inner']:g} | "
                      f"{c['certified_volume']:.4g} | ")
                   + f"{'**yes**' if c['winner'] else 'no'} |" for c in cert["candidates"]]

@@ -320,3 +320,77 @@ def test_the_sos_programs_give_the_same_v_in_one_process_and_across_processes():
     assert json.dumps([V, level]) == here[0]
     assert [h["area"] for h in history] == [h["area"] for h in a.history]
     assert np.isfinite(level) and level > 0
+
+
+# --------------------------------------------------------------------------- strictness
+def test_the_vs_iteration_keeps_a_decrease_rate_relative_to_the_start():
+    """The V-s iteration asks -V̇ >= ε_vs ‖x‖² on its set, with ε_vs = strictness times the
+    start quadratic's least rate λ_min(-(AᵀP + PA)) at its level: on samples of
+    {V <= 1 - backoff} the SOS V's decrease rate stays above (most of) ε_vs, where without
+    the strictness it drops below it; the note says which ε_vs was used."""
+    from nlyap_opt.candidates import sos as sos_mod
+    from nlyap_opt.design.polynomial import Polynomial
+
+    vdp = systems.get("van_der_pol")
+    f = polynomial_closed_loop(vdp)
+    P = lqr(vdp).P
+    A = np.array([[0.0, -1.0], [1.0, -1.0]])   # x1' = -x2, x2' = x1 - x2 + x1² x2
+    assert sos_mod._start_rate(P, f) == pytest.approx(
+        np.linalg.eigvalsh(-(A.T @ P + P @ A))[0], rel=1e-12)
+    level_q = sos_sdp.sos_level(Polynomial.quadratic(P), f, radius=6.0).level
+
+    def least_rate(strictness):
+        res = sos_roa(vdp, degree=4, iterations=2, strictness=strictness, certify=False,
+                      log=None)
+        eps_vs = strictness * sos_mod._start_rate(P, f) / level_q
+        assert res.V.degree == 4
+        assert [n for n in res.notes if "strictness" in n] == [
+            f"V-s iteration with strictness {eps_vs:.3g} (a fraction {strictness:g} of "
+            "the starting V's decrease rate)"]
+        X = np.random.default_rng(0).uniform(-4, 4, size=(200000, 2))
+        X = X[(res.V(X) <= 0.99 * res.sdp_level) & (np.linalg.norm(X, axis=1) > 1e-2)]
+        h = 1e-6
+        grad = np.stack([(res.V(X + h * e) - res.V(X - h * e)) / (2 * h)
+                         for e in np.eye(2)], 1)
+        fx = np.stack([p(X) for p in f], axis=1)
+        assert len(X) > 1000
+        return float((-np.einsum("ij,ij->i", grad, fx) / np.sum(X**2, axis=1)).min()), eps_vs
+
+    least_rate(sos_mod.STRICTNESS)               # the default: its note
+    rate, eps_vs = least_rate(0.05)
+    assert rate >= 0.5 * eps_vs
+    plain = sos_roa(vdp, degree=4, iterations=2, strictness=0.0, certify=False, log=None)
+    X = np.random.default_rng(0).uniform(-4, 4, size=(200000, 2))
+    X = X[(plain.V(X) <= 0.99 * plain.sdp_level) & (np.linalg.norm(X, axis=1) > 1e-2)]
+    h = 1e-6
+    grad = np.stack([(plain.V(X + h * e) - plain.V(X - h * e)) / (2 * h) for e in np.eye(2)], 1)
+    fx = np.stack([p(X) for p in f], axis=1)
+    assert (-np.einsum("ij,ij->i", grad, fx) / np.sum(X**2, axis=1)).min() < 0.5 * eps_vs
+
+
+def test_a_zero_strictness_and_a_start_without_decrease_add_no_margin():
+    """strictness = 0 keeps the plain epsilon (no note); a start matrix whose quadratic does
+    not decrease at the origin has rate 0."""
+    from nlyap_opt.candidates import sos as sos_mod
+    from nlyap_opt.design.polynomial import Polynomial
+
+    res = sos_roa(systems.get("van_der_pol"), degree=4, iterations=1, strictness=0.0,
+                  certify=False, log=None)
+    assert not any("strictness" in n for n in res.notes)
+    unstable = [Polynomial.from_dict({(1, 0): 1.0}, 2), Polynomial.from_dict({(0, 1): 1.0}, 2)]
+    assert sos_mod._start_rate(np.eye(2), unstable) == 0.0
+
+
+def test_only_the_v_step_accepts_an_inaccurate_solution(monkeypatch):
+    """An ``optimal_inaccurate`` SDP counts as solved for the V step (a search direction)
+    and as failed for a level (what the verifier starts from)."""
+    import cvxpy as cp
+
+    class Prob:
+        status = cp.OPTIMAL_INACCURATE
+
+        def solve(self, solver):
+            pass
+
+    assert sos_sdp._solve(Prob(), "CLARABEL", inaccurate=True)
+    assert not sos_sdp._solve(Prob(), "CLARABEL")

@@ -211,8 +211,9 @@ def _stderr_held():
         os.close(saved)
 
 
-def _solve(prob, solver: str) -> bool:
-    """Solve; ``True`` only for status ``optimal`` (inaccurate solutions count as failures).
+def _solve(prob, solver: str, *, inaccurate: bool = False) -> bool:
+    """Solve; ``True`` for status ``optimal``, and for ``optimal_inaccurate`` only with
+    ``inaccurate`` (the V step, whose solution is a search direction, never a level).
 
     A solver that fails -- cvxpy's ``SolverError``, or a panic inside Clarabel's Rust code
     (eigenvalue failures on badly scaled SOS programs of degree 4 in 3-D) -- counts as an
@@ -232,7 +233,7 @@ def _solve(prob, solver: str) -> bool:
                 raise
             drop[0] = True
             return False
-    return prob.status == cp.OPTIMAL
+    return prob.status == cp.OPTIMAL or (inaccurate and prob.status == cp.OPTIMAL_INACCURATE)
 
 
 def _clean(c: np.ndarray, tol: float = 1e-10) -> np.ndarray:
@@ -375,7 +376,7 @@ def v_step(V: Polynomial, inside: np.ndarray, level: float, s: dict, f: list[Pol
         cons.append(monomial_matrix(outside, sp.monos) @ v >= level)
     Zout = monomial_matrix(targets, sp.monos)
     prob = cp.Problem(cp.Minimize(cp.sum(Zout @ v) / len(targets)), cons)
-    if not _solve(prob, solver):
+    if not _solve(prob, solver, inaccurate=True):
         return None
     coeffs = np.asarray(v.value).ravel()
     return Polynomial.from_dict(sp.poly(_clean(coeffs)), nx)

@@ -384,11 +384,14 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
         if eps_vs > epsilon:
             notes.append(f"V-s iteration with strictness {eps_vs:.3g} (a fraction "
                          f"{strictness:g} of the starting V's decrease rate)")
+        edge = None if keep_in is None else keep_in.sample_boundary(
+            _KEEP_IN_SAMPLES * nx, np.random.default_rng(0))
         kw = dict(t0=t0, multiplier_degree=multiplier_degree, epsilon=eps_vs,
-                  iterations=iterations, backoff=backoff, push=push, solver=solver, say=say)
+                  iterations=iterations, backoff=backoff, push=push, solver=solver, say=say,
+                  edge=edge)
         V, level = _vs_search(Vq, ls.level, f, degree, history, notes, radius, None, kw)
         if keep_in is not None and V.degree > 2:
-            V, level = _keep_inside(keep_in, V, level, Vq, ls.level, f, degree, history,
+            V, level = _keep_inside(V, level, Vq, ls.level, f, degree, history,
                                     notes, radius, kw)
     sdp_seconds = time.perf_counter() - t0
     res = SOSResult(SOSStatus.NOT_CERTIFIED, V.degree, V, level, 0.0, 0.0, notes, inner,
@@ -456,20 +459,21 @@ def _vs_search(Vq: Polynomial, level_q: float, f, degree: int, history: list, no
                                    [p.substituted(R).scaled(1.0 / R) for p in f], degree,
                                    history, notes, radius=radius / R, area_scale=R ** nx,
                                    outside=None if outside is None else outside / R,
-                                   **dict(kw, epsilon=kw["epsilon"] * R ** 2))
+                                   **dict(kw, epsilon=kw["epsilon"] * R ** 2,
+                                          edge=None if kw["edge"] is None else kw["edge"] / R))
         if Vy.degree > 2:
             V, level = Vy.substituted(1.0 / R), level_y
     return V, level
 
 
-def _keep_inside(region, V: Polynomial, level: float, Vq: Polynomial, level_q: float, f,
+def _keep_inside(V: Polynomial, level: float, Vq: Polynomial, level_q: float, f,
                  degree: int, history: list, notes: list, radius: float,
                  kw: dict) -> tuple[Polynomial, float]:
-    """``(V, level)``, or where its set crosses the boundary of ``region`` (on seeded
-    samples), the V–s iteration's result with its sets kept inside when that one's set
-    inside ``region`` is larger. A set across ∂D would be cut down by containment (b) when
+    """``(V, level)``, or where its set crosses the boundary of the domain (on its seeded
+    samples ``kw["edge"]``), the V–s iteration's result with its sets kept inside when that
+    one's set inside the domain is larger. A set across ∂D would be cut down by containment (b) when
     certified (Van der Pol on its box [-1.5, 1.5]²: certified area 4.10 -> 6.97)."""
-    out = region.sample_boundary(_KEEP_IN_SAMPLES * Vq.nx, np.random.default_rng(0))
+    out = kw["edge"]     # seeded samples of ∂D (sos_roa)
     edge = float(V(out).min())
     if edge >= level:
         return V, level

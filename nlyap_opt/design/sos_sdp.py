@@ -389,12 +389,16 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
                  say: Callable[[str], None],
                  area_scale: float = 1.0,
                  outside: np.ndarray | None = None,
-                 keep_margin: float = 0.2) -> tuple[Polynomial, float]:
+                 keep_margin: float = 0.2,
+                 edge: np.ndarray | None = None) -> tuple[Polynomial, float]:
     """V–s iteration with degree continuation 4, 6, ..., ``degree``; the best ``(V, level)``.
 
     ``V`` is kept scaled so that its SDP level is 1. Each round: the multiplier ``s`` at
     level ``1 - backoff`` (interior), the ``V`` step, the level of the new ``V`` by bisection.
-    The best iterate by area is returned; a stage ends when the area stops growing.
+    The best iterate by area is returned; a stage ends when the area stops growing. With
+    ``edge`` (samples of the boundary of the domain ``D`` the certificate must lie in) the
+    area is that of ``{V ≤ min(1, least V on edge)}``, the part of the set a certificate in
+    ``D`` can keep: a set grown across ``∂D`` does not count as growth.
     ``history`` and ``notes`` are appended to (areas times ``area_scale``: the data may be
     in scaled units). With ``outside`` (samples of the boundary of a domain ``D``), the
     sets grow inside ``D`` instead of across its boundary: each level (the quadratic's
@@ -419,6 +423,10 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
         scale = min(level, (1.0 - keep_margin) * edge)
         return scale, min(level, edge) / scale
 
+    def area_of(V: Polynomial) -> float:
+        top = 1.0 if edge is None else min(1.0, float(V(edge).min()))
+        return star_area(V, top)
+
     scale, full = capped(Vq, level_q)
     if not scale > 0:
         notes.append("the quadratic V is not positive on the domain's boundary")
@@ -427,7 +435,7 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
         say(f"[sos] the quadratic's level {level_q:.6g} capped at {scale:.6g} inside the "
             "domain")
     V = Vq.scaled(1.0 / scale)
-    best = (V, full, star_area(V, 1.0))
+    best = (V, full, area_of(V))
     s = level_of(V).backoff_multiplier
     for stage in range(4, degree + 1, 2):
         V = best[0]
@@ -453,12 +461,12 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
                              "the domain's boundary; stage ended")
                 break
             V, s = Vn.scaled(1.0 / scale), ls.backoff_multiplier
-            area = star_area(V, 1.0)
+            area = area_of(V)
             history.append({"degree": stage, "round": it + 1, "sdp_level": ls.level,
                             "seconds": time.perf_counter() - t0, "area": area * area_scale})
-            say(f"[sos] degree {stage}, round {it + 1}: area of {{V ≤ 1}} ≈ "
-                f"{area * area_scale:.4g} (the SDP's estimate, before the level is verified "
-                "and cut to D)")
+            say(f"[sos] degree {stage}, round {it + 1}: area of {{V ≤ 1}}"
+                f"{'' if edge is None else ' inside D'} ≈ {area * area_scale:.4g} (the SDP's "
+                "estimate, before the level is verified)")
             if area > best[2] * (1 + 1e-3):
                 best, stalled = (V, full, area), 0
             else:

@@ -380,15 +380,11 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     if ls.level <= 0:
         notes.append("no positive level is SOS-feasible for the quadratic V")
     elif degree > 2:
-        eps_vs = max(epsilon, strictness * _start_rate(P, f) / ls.level)
-        if eps_vs > epsilon:
-            notes.append(f"V-s iteration with strictness {eps_vs:.3g} (a fraction "
-                         f"{strictness:g} of the starting V's decrease rate)")
-        edge = None if keep_in is None else keep_in.sample_boundary(
-            _KEEP_IN_SAMPLES * nx, np.random.default_rng(0))
-        kw = dict(t0=t0, multiplier_degree=multiplier_degree, epsilon=eps_vs,
+        kw = dict(t0=t0, multiplier_degree=multiplier_degree,
+                  epsilon=_vs_strictness(P, f, ls.level, epsilon, strictness, notes),
                   iterations=iterations, backoff=backoff, push=push, solver=solver, say=say,
-                  edge=edge)
+                  edge=None if keep_in is None else keep_in.sample_boundary(
+                      _KEEP_IN_SAMPLES * nx, np.random.default_rng(0)))
         V, level = _vs_search(Vq, ls.level, f, degree, history, notes, radius, None, kw)
         if keep_in is not None and V.degree > 2:
             V, level = _keep_inside(V, level, Vq, ls.level, f, degree, history,
@@ -421,6 +417,17 @@ def sos_roa(system, *, degree: int = 2, inner: float = 0.1, controller=None, V0=
     say(f"[sos] degree {V.degree}: SDP level {level:.6g}, certified {res.certified_level:.6g} "
         f"({res.text}, {res.seconds:.2f} s)")
     return res
+
+
+def _vs_strictness(P: np.ndarray, f: list[Polynomial], level: float, epsilon: float,
+                   strictness: float, notes: list) -> float:
+    """The V–s iteration's ``ε_vs``: ``strictness`` times the start ``xᵀPx``'s decrease rate
+    at its SDP ``level`` (at least ``epsilon``); a note says when it is larger."""
+    eps_vs = max(epsilon, strictness * _start_rate(P, f) / level)
+    if eps_vs > epsilon:
+        notes.append(f"V-s iteration with strictness {eps_vs:.3g} (a fraction "
+                     f"{strictness:g} of the starting V's decrease rate)")
+    return eps_vs
 
 
 def _start_rate(P: np.ndarray, f: list[Polynomial]) -> float:

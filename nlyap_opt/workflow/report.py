@@ -166,6 +166,7 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   f"grid over {np.asarray(cert['eval_box']).tolist()}"
                   + (", intersected with D" if cert.get("domain") is not None else
                      ", intersected with the ball ‖x‖ ≤ r")
+                  + f", each state simulated for up to {horizon:.4g} s"
                   + f". Every certified grid point converges in simulation: "
                   f"{cert['certified_points_converge_in_simulation']}."
                   + (f" {100 * cert['true_roa_undecided']:.1f}% of the grid neither converged "

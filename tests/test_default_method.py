@@ -125,6 +125,40 @@ def test_default_method_fits_the_zubov_target_and_is_deterministic():
         np.testing.assert_array_equal(la.bias, lb.bias)
 
 
+def test_a_radius_raised_for_eta_is_listed_and_explains_a_failure():
+    """An ε raised from η is an assumption of the certificate; where nothing is certified
+    at it, the reason also says that a smaller η would let a smaller ε work (and which keys
+    lower η). An ε scaled with a local bound's ball, or the configured one, adds no such
+    advice."""
+    from types import SimpleNamespace
+
+    from nlyap_opt.certification.certificate import CertStatus, RoaCertificate
+    from nlyap_opt.workflow.pipeline import _say_raised_inner
+
+    def cert(status):
+        return RoaCertificate(status, "no level certified", "test", "learned", level=0.0,
+                              inner=0.4965, outer=3.0)
+
+    ctx = SimpleNamespace(eps=0.4965, eta=0.00241, bounds_file="bounds.json", r=3.0)
+    failed = cert(CertStatus.NOT_CERTIFIED)
+    _say_raised_inner(failed, ctx, 0.2)
+    assert failed.assumptions == ["inner radius ε = 0.4965 chosen by the tool (configured "
+                                  "0.2): with η = 0.00241 the robust margin η‖∇V‖ needs it"]
+    assert failed.reason == ("no level certified; ε was raised to 0.4965 (configured 0.2) "
+                             "for the robust margin of η = 0.00241: a smaller η lets a "
+                             "smaller ε work (dynamics.grid_counts, dynamics.steps)")
+    ok = cert(CertStatus.CERTIFIED)
+    _say_raised_inner(ok, ctx, 0.2)
+    assert ok.reason == "no level certified" and len(ok.assumptions) == 1
+    local = cert(CertStatus.NOT_CERTIFIED)
+    _say_raised_inner(local, SimpleNamespace(**{**vars(ctx), "bounds_file": "bounds_local.json"}),
+                      0.2)
+    assert local.reason == "no level certified" and "local bound" in local.assumptions[0]
+    same = cert(CertStatus.NOT_CERTIFIED)
+    _say_raised_inner(same, ctx, 0.4965)
+    assert same.reason == "no level certified" and same.assumptions == []
+
+
 def test_inner_radius_follows_from_eta_and_the_linearisation():
     """x' = −x (2-D): A_cl = −I, P = I/2, the robust term beats the linear decrease inside
     ‖x‖ < 2ηλ_max(P) = η; the tool's ε is INNER_MARGIN_FACTOR times that, only when larger

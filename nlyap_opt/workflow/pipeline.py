@@ -778,13 +778,7 @@ def _certificate_stage(ctx: _Context, cfg: RunConfig, cg: _CegisRecord,
             f"(its own grid; the whole sampling box has η = "
             f"{extra['dynamics_bound']['local']['global_eta']:.4g}): the verification ball "
             f"‖x‖ ≤ {ctx.r:.4g} lies in its states and κ of the ball in its inputs (proved)")
-    configured = float(cfg.view(_REGION).inner)
-    if ctx.eps != configured:      # raised by auto_inner from η: the certificate says so
-        cert.assumptions.append(
-            f"inner radius ε = {ctx.eps:.6g} chosen by the tool (configured {configured:g}): "
-            + (f"with η = {ctx.eta:.3g} the robust margin η‖∇V‖ needs it"
-               if ctx.bounds_file == "bounds.json" else
-               f"scaled with the verification ball of the local bound (‖x‖ ≤ {ctx.r:.4g})"))
+    _say_raised_inner(cert, ctx, float(cfg.view(_REGION).inner))
     if ctx.bounds_file != "bounds.json":
         files = dict(files or {}, bounds=ctx.bounds_file)
     path = save_certificate(cert, problem, out, extra, files=files)
@@ -792,6 +786,24 @@ def _certificate_stage(ctx: _Context, cfg: RunConfig, cg: _CegisRecord,
     write_report(out, system, cfg, summary, ctx.bounds, cg.to_json())
     _log_done(log, cert, summary, out)
     return RunResult(cert, cert.status, summary, out, cert.reason)
+
+
+def _say_raised_inner(cert, ctx: _Context, configured: float) -> None:
+    """Where the run's ε differs from the configured one (raised by ``auto_inner`` from η,
+    or scaled with a local bound's ball), the certificate lists it as an assumption; a run
+    that certified nothing at a radius raised for η also says, in its reason, that a
+    smaller η would let a smaller ε work."""
+    if ctx.eps == configured:
+        return
+    from_eta = ctx.bounds_file == "bounds.json"
+    cert.assumptions.append(
+        f"inner radius ε = {ctx.eps:.6g} chosen by the tool (configured {configured:g}): "
+        + (f"with η = {ctx.eta:.3g} the robust margin η‖∇V‖ needs it" if from_eta else
+           f"scaled with the verification ball of the local bound (‖x‖ ≤ {ctx.r:.4g})"))
+    if from_eta and not cert.certified:
+        cert.reason += (f"; ε was raised to {ctx.eps:.4g} (configured {configured:g}) for the "
+                        f"robust margin of η = {ctx.eta:.3g}: a smaller η lets a smaller ε "
+                        "work (dynamics.grid_counts, dynamics.steps)")
 
 
 def _save_seconds(out: Path, seconds: Mapping[str, float]) -> Mapping[str, float]:

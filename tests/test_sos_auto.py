@@ -427,3 +427,17 @@ def test_with_a_domain_the_iteration_measures_only_the_set_inside_it():
     assert max(h["area"] for h in free.history if h["degree"] == 4) > 2 * np.pi
     rounds = [h["area"] for h in inside.history if h["degree"] == 4]
     assert rounds and max(rounds) <= 1.02 * np.pi
+
+
+def test_a_fast_loop_keeps_its_v_steps_feasible():
+    """The strictness also asks V - ε‖x‖² ∈ Σ, so it is capped at half the start's
+    λ_min(P) at its level: a loop with modes near -1000 per s still gets a degree-4 V."""
+    from nlyap_opt.design.control import lyapunov_matrix
+    from nlyap_opt.design.polynomial import Polynomial
+
+    A = np.array([[-1000.0, 500.0], [-500.0, -1000.0]])
+    f = [Polynomial.from_dict({(1, 0): -1000.0, (0, 1): 500.0, (3, 0): 1.0}, 2),
+         Polynomial.from_dict({(1, 0): -500.0, (0, 1): -1000.0}, 2)]
+    res = sos_roa(systems.get("van_der_pol"), degree=4, iterations=2, f=f,
+                  V0=lyapunov_matrix(A), certify=False, log=None)
+    assert res.V.degree == 4

@@ -423,7 +423,11 @@ def _vs_strictness(P: np.ndarray, f: list[Polynomial], level: float, epsilon: fl
                    strictness: float, notes: list) -> float:
     """The V–s iteration's ``ε_vs``: ``strictness`` times the start ``xᵀPx``'s decrease rate
     at its SDP ``level`` (at least ``epsilon``); a note says when it is larger."""
-    eps_vs = max(epsilon, strictness * _start_rate(P, f) / level)
+    # the same ε asks V - ε‖x‖² ∈ Σ: at most half the start's own λ_min(P) at its level, so
+    # that the start stays feasible for a fast loop (a rate above 1000 λ_min(P))
+    P = 0.5 * (P + P.T)
+    cap = 0.5 * float(np.linalg.eigvalsh(P)[0]) / level
+    eps_vs = max(epsilon, min(strictness * _start_rate(P, f) / level, cap))
     if eps_vs > epsilon:
         notes.append(f"V-s iteration with strictness {eps_vs:.3g} (a fraction "
                      f"{strictness:g} of the starting V's decrease rate)")
@@ -437,6 +441,8 @@ def _start_rate(P: np.ndarray, f: list[Polynomial]) -> float:
     nx = len(P)
     unit = [tuple(int(i == j) for i in range(nx)) for j in range(nx)]
     A = np.array([[p.to_dict().get(e, 0.0) for e in unit] for p in f], dtype=float)
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(P))):
+        return 0.0
     lam = float(np.linalg.eigvalsh(-(A.T @ P + P @ A))[0])
     return lam if np.isfinite(lam) and lam > 0 else 0.0
 

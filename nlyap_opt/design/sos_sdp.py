@@ -379,6 +379,8 @@ def v_step(V: Polynomial, inside: np.ndarray, level: float, s: dict, f: list[Pol
     if not _solve(prob, solver, inaccurate=True):
         return None
     coeffs = np.asarray(v.value).ravel()
+    if not np.all(np.isfinite(coeffs)):      # an inaccurate step may return no usable V
+        return None
     return Polynomial.from_dict(sp.poly(_clean(coeffs)), nx)
 
 
@@ -448,7 +450,7 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
                         outside=outside)
             if Vn is None:
                 notes.append(f"degree {stage}, round {it + 1}: V step infeasible or "
-                             "inaccurate; stage ended")
+                             "failed; stage ended")
                 break
             ls = level_of(Vn, radius=radius)
             if ls.level <= 0 or not ls.backoff_multiplier:

@@ -421,9 +421,9 @@ def vs_iteration(Vq: Polynomial, level_q: float, f: list[Polynomial], degree: in
         """The level V is scaled by, and the full level in the scaled V's units."""
         if outside is None:
             return level, 1.0
-        edge = float(V(outside).min())
-        scale = min(level, (1.0 - keep_margin) * edge)
-        return scale, min(level, edge) / scale
+        least = float(V(outside).min())
+        scale = min(level, (1.0 - keep_margin) * least)
+        return scale, min(level, least) / scale
 
     def area_of(V: Polynomial) -> float:
         top = 1.0 if edge is None else min(1.0, float(V(edge).min()))

@@ -801,9 +801,10 @@ def _say_raised_inner(cert, ctx: _Context, configured: float) -> None:
         + (f"with η = {ctx.eta:.3g} the robust margin η‖∇V‖ needs it" if from_eta else
            f"scaled with the verification ball of the local bound (‖x‖ ≤ {ctx.r:.4g})"))
     if from_eta and not cert.certified:
-        cert.reason += (f"; ε was raised to {ctx.eps:.4g} (configured {configured:g}) for the "
-                        f"robust margin of η = {ctx.eta:.3g}: a smaller η lets a smaller ε "
-                        "work (dynamics.grid_counts, dynamics.steps)")
+        advice = (f"ε was raised to {ctx.eps:.4g} (configured {configured:g}) for the "
+                  f"robust margin of η = {ctx.eta:.3g}: a smaller η lets a smaller ε work "
+                  "(dynamics.grid_counts, dynamics.steps)")
+        cert.reason = f"{cert.reason}; {advice}" if cert.reason else advice
 
 
 def _save_seconds(out: Path, seconds: Mapping[str, float]) -> Mapping[str, float]:

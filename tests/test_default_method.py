@@ -279,6 +279,7 @@ def test_catalogue_van_der_pol_box_lying_mostly_in_the_roa(tmp_path):
     stays = simulate(rhs, pts, 60.0, 0.02, 1e-3, stay=D.contains)[0]
     ceiling = stays.sum() / roa.sum()
     assert 0.85 < ceiling < 0.95
+    assert cert["true_roa_stays_in_domain"] == pytest.approx(ceiling, abs=0.01)  # the report's
     assert 0.78 <= cert["fraction_of_true_roa"] <= ceiling + 0.005
 
 
@@ -293,13 +294,57 @@ def test_true_roa_estimate_says_which_states_it_could_not_decide():
     x = ca.SX.sym("x", 2)
     box = np.array([[-1.0, 1.0], [-1.0, 1.0]])
     slow = systems.System("test_slow", x, None, -x ** 3, state_box=box)
-    mask, open_ = true_roa_mask(slow, None, box, 11, undecided=True)
+    mask, open_, rest = true_roa_mask(slow, None, box, 11, undecided=True)
     assert TRUE_ROA_TIME == 60.0
     assert not mask[np.abs(np.linspace(-1, 1, 11)) > 0.2].any()
     assert open_.sum() == 11 * 11 - 1 and not open_[5, 5] and mask[5, 5]   # 0 itself
+    assert not rest.any()        # slow, not at rest: the Newton step is x/3 > 10⁻³ long
     fast_out = systems.System("test_diverge", x, None, x, state_box=box)
-    mask, open_ = true_roa_mask(fast_out, None, box, 11, undecided=True)
-    assert not open_.any() and mask.sum() == 1
+    mask, open_, rest = true_roa_mask(fast_out, None, box, 11, undecided=True)
+    assert not open_.any() and not rest.any() and mask.sum() == 1
+
+
+def test_true_roa_estimate_tells_states_at_rest_at_another_equilibrium():
+    """The damped pendulum θ'' = −sin θ − 0.5θ' on [−7, 7]²: states that settle at θ = ±2π
+    (stable: eigenvalues −0.25 ± 0.97i) are decided outside the ROA, not 'undecided'; the
+    saddles θ = ±π attract only a curve; a periodic orbit is never claimed at rest."""
+    import casadi as ca
+
+    import systems
+    from nlyap_opt.certification.roa import true_roa_mask
+    from nlyap_opt.kernel.simulate import at_other_equilibrium
+
+    x = ca.SX.sym("x", 2)
+    box = np.array([[-7.0, 7.0], [-7.0, 7.0]])
+    pend = systems.System("test_pend", x, None, ca.vertcat(x[1], -ca.sin(x[0]) - 0.5 * x[1]),
+                          state_box=box)
+    mask, open_, rest = true_roa_mask(pend, None, box, 21, undecided=True)
+    assert rest.sum() > 100 and not (rest & mask).any() and not open_.any()
+    c = -7 + 14 * (np.arange(21) + 0.5) / 21                         # cell centres
+    th, om = np.meshgrid(c, c, indexing="ij")
+    slow = np.abs(om) < 1.0
+    assert mask[(np.abs(th) < 1.0) & slow].all() and rest[(np.abs(th) > 6.0) & slow].all()
+    # a centre (x'' = −x): every state lies on a cycle, none at rest; the origin itself no
+    centre = lambda z: np.stack([z[:, 1], -z[:, 0]], axis=1)    # noqa: E731
+    pts = np.array([[1.0, 0.0], [0.0, 0.0], [3.0, 1.0]])
+    assert not at_other_equilibrium(centre, pts).any()
+    # x' = x − x³ rests at ±1 (rate −2); a state 10⁻² from it is not yet within tol
+    bist = lambda z: z - z ** 3                                  # noqa: E731
+    got = at_other_equilibrium(bist, np.array([[1.0 + 1e-5], [-1.0], [1.01], [0.0], [1e-4]]))
+    assert got.tolist() == [True, True, False, False, False]
+
+
+def test_report_names_states_at_rest_elsewhere_apart_from_undecided_ones():
+    """The report's true-ROA paragraph: states at rest at another equilibrium are decided
+    (no 'overestimate' warning); only undecided ones ask for a longer eval_time."""
+    from nlyap_opt.workflow.report import _outside_states
+
+    rest = _outside_states({"true_roa_elsewhere": 0.633, "true_roa_undecided": 0.0}, 60.0)
+    assert "63.3% of the grid in D came to rest at another stable equilibrium" in rest
+    assert "overestimate" not in rest and "eval_time" not in rest
+    both = _outside_states({"true_roa_elsewhere": 0.1, "true_roa_undecided": 0.02}, 550.0)
+    assert "2.0% of the grid in D neither converged" in both and "550 s" in both
+    assert _outside_states({"true_roa_undecided": 0.0}, 60.0) == ""   # an older certificate
 
 
 def test_a_lightly_damped_loop_is_simulated_long_enough_to_converge():
@@ -318,8 +363,8 @@ def test_a_lightly_damped_loop_is_simulated_long_enough_to_converge():
                            state_box=box)
     t = true_roa_horizon(light, None, box)
     assert t == pytest.approx(SLOW_FACTOR * np.log(np.sqrt(8) / 1e-3) / 0.05, rel=1e-6)
-    _, short = true_roa_mask(light, None, box, 9, t_final=TRUE_ROA_TIME, undecided=True)
-    mask, open_ = true_roa_mask(light, None, box, 9, t_final=t, undecided=True)
+    _, short, _ = true_roa_mask(light, None, box, 9, t_final=TRUE_ROA_TIME, undecided=True)
+    mask, open_, _ = true_roa_mask(light, None, box, 9, t_final=t, undecided=True)
     assert short.sum() > 40 and not open_.any() and mask.all()     # a linear loop: all
     damped = systems.System("test_damped", x, None, ca.vertcat(x[1], -x[0] - 2 * x[1]),
                             state_box=box)
@@ -357,6 +402,32 @@ def test_simulation_inside_the_domain_counts_only_states_that_never_leave_it():
     h = np.maximum(np.abs(x1), 2.0 * np.abs(x2)).max(axis=1)
     np.testing.assert_allclose(peak, h, atol=1e-3)
     assert np.all((h > 1.0 + 1e-3) <= (excess > 0))
+    # the report's bound: true_roa_stays on the same loop as a System, same verdicts
+    import casadi as ca
+
+    import systems
+    from nlyap_opt.certification.roa import true_roa_stays
+
+    z = ca.SX.sym("z", 2)
+    spiral = systems.System("test_spiral", z, None, ca.mtimes(ca.DM(A), z),
+                            state_box=np.array([[-1.0, 1.0], [-1.0, 1.0]]))
+    stays = true_roa_stays(spiral, None, X, D)
+    np.testing.assert_array_equal(stays[clear], excess[clear] < 0)
+    assert true_roa_stays(spiral, None, np.zeros((0, 2)), D).shape == (0,)
+
+
+def test_report_gives_the_bound_the_domain_puts_on_every_certificate():
+    """The share of the true ROA within D that reaches the origin without leaving D is
+    printed as the bound of every certificate in D; the controller advice only with inputs;
+    nothing for an older certificate without the entry."""
+    from nlyap_opt.workflow.report import _stays_line
+
+    line = _stays_line({"true_roa_stays_in_domain": 0.971}, controlled=True)[0]
+    assert line.startswith("Of the true ROA within D, 97.1% reach the origin without leaving D")
+    assert "controller" in line
+    assert "controller" not in _stays_line({"true_roa_stays_in_domain": 0.5}, False)[0]
+    assert _stays_line({"true_roa_stays_in_domain": 1.0}, False)[0].startswith("Every state")
+    assert _stays_line({}, True) == []
 
 
 @pytest.mark.slow  # two small pipeline runs (about 7 s idle)

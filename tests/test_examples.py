@@ -56,6 +56,9 @@ def test_model_examples_certify_and_recheck(name, tmp_path, capsys):
     assert all(v in ("verified", "certified") for v in cert["checks"].values())
     assert cert["certified_points_converge_in_simulation"]
     assert 0 < cert["fraction_of_true_roa"] <= 1.0 + 1e-9
+    # no certified set (in D, forward invariant) holds more than the states that stay in D
+    assert cert["fraction_of_true_roa"] <= cert["true_roa_stays_in_domain"] + 1e-9
+    assert cert["true_roa_undecided"] >= 0 and cert["true_roa_elsewhere"] >= 0
     assert (out / "roa.png").stat().st_size > 10_000          # 3-D: the slice x3 = 0
     assert recheck_certificate(out, log=lambda m: None).certified
 

@@ -79,7 +79,13 @@ from ..kernel.exact import (
 from ..kernel.network import Network
 from ..kernel.rounding import EPS, FOLD
 from ..kernel.sampling import sample_ball, sample_sphere
-from ..kernel.simulate import horizon, integration, jacobian_at_origin, simulate
+from ..kernel.simulate import (
+    at_other_equilibrium,
+    horizon,
+    integration,
+    jacobian_at_origin,
+    simulate,
+)
 from ..kernel.symbolic import closed_loop
 from ..kernel.walker import REAL, compile_function, evaluate, exact_values
 from ..learned.interval_sup import interval_arithmetic
@@ -91,6 +97,7 @@ __all__ = [
     "split_boxes",
     "TaylorDecrease", "SaturatedLoop", "sector_lyapunov_matrix",
     "certify_inner_ellipse", "grid_area", "inner_ball_level", "true_roa_mask", "true_roa_horizon",
+    "true_roa_stays",
     "InnerForm",
     "InnerFormKind",
 ]
@@ -2188,6 +2195,40 @@ def true_roa_horizon(system, feedback, box: np.ndarray, t_final: float = TRUE_RO
     return horizon(t_final, A, float(np.linalg.norm(np.max(np.abs(box), axis=1))), tol)
 
 
+def _true_loop(system, feedback, nx: int, dt: float, ellipse):
+    """What the true-ROA simulations share: the closed loop's right-hand side, the target
+    set (the certified ellipse ``(P, c)``, or ``None``) and the integration (a stiff closed
+    loop, a fast mode at the origin, gets a step RK4 is stable for, or ROS2: an unstable
+    fast mode would count converging states outside the true ROA)."""
+    rhs = _loop_rhs(system, feedback)
+    target = None
+    if ellipse is not None:
+        P, c = np.asarray(ellipse[0], dtype=float), float(ellipse[1])
+
+        def target(z):
+            return np.einsum("ij,jk,ik->i", z, P, z) <= c
+
+    return rhs, target, integration(dt, jacobian_at_origin(rhs, nx))
+
+
+def true_roa_stays(system, feedback, pts: np.ndarray, domain, t_final: float = TRUE_ROA_TIME,
+                   dt: float = 0.02, tol: float = 1e-3, ellipse=None) -> np.ndarray:
+    """Per state of ``pts``: does its simulated closed loop reach the origin (or the
+    certified ellipse) without leaving ``domain`` (a :class:`nlyap_opt.kernel.domain.Region`)?
+
+    A certified sublevel set lies in the domain and is forward invariant, so it holds only
+    such states: their share of the true ROA within the domain bounds what any certificate
+    there can reach. Same simulation as :func:`true_roa_mask` (a trajectory that leaves the
+    domain stops and counts as not reaching the origin).
+    """
+    pts = np.asarray(pts, dtype=float)
+    if not len(pts):
+        return np.zeros(0, bool)
+    rhs, target, how = _true_loop(system, feedback, pts.shape[1], dt, ellipse)
+    return simulate(rhs, pts, t_final, how.dt, tol, target=target, stay=domain.contains,
+                    jacobian=how.jacobian)[0]
+
+
 def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200,
                   t_final: float = TRUE_ROA_TIME,
                   dt: float = 0.02, tol: float = 1e-3, ellipse=None,
@@ -2200,24 +2241,17 @@ def true_roa_mask(system, feedback, box: np.ndarray, n: int = 200,
     ``‖x‖ < tol`` or, given ``ellipse = (P, c)`` (a certified quadratic ROA of this closed
     loop, :func:`certify_inner_ellipse`), once ``xᵀPx ≤ c`` (it is then dropped from the
     integration); as diverged once it leaves ``1e6`` or becomes non-finite. With
-    ``undecided``, returns ``(mask, undecided_mask)``: the second marks the states that did
-    neither within ``t_final`` (the estimate counts them outside the ROA).
+    ``undecided``, returns ``(mask, undecided_mask, elsewhere_mask)``: the third marks the
+    states that came to rest at another asymptotically stable equilibrium
+    (:func:`nlyap_opt.kernel.simulate.at_other_equilibrium`), the second those that did
+    neither of the three within ``t_final``; the estimate counts both outside the ROA.
     """
-
-    rhs = _loop_rhs(system, feedback)
-    target = None
-    if ellipse is not None:
-        P, c = np.asarray(ellipse[0], dtype=float), float(ellipse[1])
-
-        def target(z):
-            return np.einsum("ij,jk,ik->i", z, P, z) <= c
-
     pts, shape = grid_points(box, n)
-    # a stiff closed loop (a fast mode at the origin) gets a step RK4 is stable for: an
-    # unstable fast mode would count converging states outside the true ROA
-    how = integration(dt, jacobian_at_origin(rhs, pts.shape[1]))
-    done, _, open_ = simulate(rhs, pts, t_final, how.dt, tol, target=target,
-                              return_undecided=True, jacobian=how.jacobian)
-    if undecided:
-        return done.reshape(shape), open_.reshape(shape)
-    return done.reshape(shape)
+    rhs, target, how = _true_loop(system, feedback, pts.shape[1], dt, ellipse)
+    done, _, open_, x_end = simulate(rhs, pts, t_final, how.dt, tol, target=target,
+                                     return_undecided=True, jacobian=how.jacobian, final=True)
+    if not undecided:
+        return done.reshape(shape)
+    elsewhere = np.zeros_like(open_)
+    elsewhere[open_] = at_other_equilibrium(rhs, x_end[open_], tol)
+    return done.reshape(shape), (open_ & ~elsewhere).reshape(shape), elsewhere.reshape(shape)

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["STIFF_STEP", "IMPLICIT_RATIO", "SLOW_FACTOR", "HORIZON_CAP", "Integration", "horizon",
-           "integration", "jacobian_at_origin", "linear_modes", "rk4_step", "ros2_step",
-           "simulate", "simulate_converges", "stable_step", "trajectories"]
+__all__ = ["STIFF_STEP", "IMPLICIT_RATIO", "SLOW_FACTOR", "HORIZON_CAP", "Integration",
+           "at_other_equilibrium", "horizon", "integration", "jacobian_at_origin", "linear_modes",
+           "rk4_step", "ros2_step", "simulate", "simulate_converges", "stable_step", "trajectories"]
 
 #: a fixed RK4 step h of a closed loop with linearisation A at the origin satisfies
 #: h·ρ(A) ≤ STIFF_STEP (ρ the spectral radius): every linear mode then lies well inside RK4's
@@ -163,7 +163,8 @@ def simulate(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
              return_undecided: bool = False,
              stay: Callable[[np.ndarray], np.ndarray] | None = None,
              track: Callable[[np.ndarray], np.ndarray] | None = None,
-             jacobian: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+             jacobian: np.ndarray | None = None,
+             final: bool = False) -> tuple[np.ndarray, ...]:
     r"""Integrate ``x' = rhs(x)`` from every row of ``x0`` at once: fixed-step RK4, or ROS2
     (:func:`ros2_step`) with ``jacobian`` given (see :func:`integration`).
 
@@ -196,6 +197,8 @@ def simulate(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
     peak : (N,) float, only with ``track``
         The largest ``track(x(t))`` from ``t = 0`` until the state converged, stopped or
         ``t_final`` (after ``undecided`` when both are asked for).
+    x_end : (N, nx) float, only with ``final``
+        The state where each trajectory stopped (converged, left, or at ``t_final``); last.
     """
     x = np.array(x0, dtype=float)
     if jacobian is None:
@@ -232,7 +235,55 @@ def simulate(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,
             alive[idx[conv | blow]] = False
     cost[~np.isfinite(cost)] = np.inf
     out = (done, cost) + ((alive & ~done,) if return_undecided else ())
-    return out + ((peak,) if peak is not None else ())
+    return out + ((peak,) if peak is not None else ()) + ((x,) if final else ())
+
+
+def at_other_equilibrium(rhs: Callable[[np.ndarray], np.ndarray], x: np.ndarray,
+                         tol: float = 1e-3, h: float = 1e-6) -> np.ndarray:
+    r"""Per state of the batch ``x``: does it rest at an asymptotically stable equilibrium
+    other than the origin?
+
+    A state whose simulation neither converged to the origin nor diverged may be slow, on a
+    periodic orbit, or at rest at another attractor, where it stays at any horizon. This
+    tells the last case apart: with the Jacobian ``J`` of ``rhs`` at ``x`` (central
+    differences, step ``h``), the Newton step ``δ = −J⁻¹ rhs(x)`` to the nearby equilibrium
+    ``x* ≈ x + δ`` is at most ``tol`` long, ``x*`` lies at least ``100·tol`` from the origin,
+    and every eigenvalue of ``J`` has a real part below ``−10⁻⁶·max(1, max|λ|)`` (``x*``
+    attracts its neighbourhood, so the trajectory stays there and does not reach the
+    origin). States near a saddle, a non-hyperbolic point or on a cycle are not claimed. A
+    simulation estimate, as the true ROA it serves; no certificate rests on it.
+
+    Examples
+    --------
+    >>> rhs = lambda z: np.stack([z[:, 1], -np.sin(z[:, 0]) - 0.5 * z[:, 1]], axis=1)
+    >>> at_other_equilibrium(rhs, np.array([[2 * np.pi, 0.0], [np.pi, 0.0], [0.0, 0.0]]))
+    array([ True, False, False])
+    """
+    x = np.asarray(x, dtype=float)
+    N, n = x.shape
+    if not N:
+        return np.zeros(0, bool)
+    with np.errstate(all="ignore"):
+        f = rhs(x)
+        J = np.empty((N, n, n))
+        for j in range(n):
+            e = np.zeros(n)
+            e[j] = h
+            J[:, :, j] = (rhs(x + e) - rhs(x - e)) / (2 * h)
+        ok = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
+        ok &= np.abs(np.linalg.det(np.where(ok[:, None, None], J, np.eye(n)))) > 0
+        out = np.zeros(N, bool)
+        idx = np.nonzero(ok)[0]
+        if not len(idx):
+            return out
+        delta = -np.linalg.solve(J[idx], f[idx][:, :, None])[:, :, 0]
+        ev = np.linalg.eigvals(J[idx])
+        # decay rates below _RATE_FLOOR of the fastest mode are finite-difference noise
+        stable = np.max(ev.real, axis=1) < -_RATE_FLOOR * np.maximum(np.max(np.abs(ev), axis=1), 1)
+        near = np.linalg.norm(delta, axis=1) <= tol
+        away = np.linalg.norm(x[idx] + delta, axis=1) >= 100 * tol
+        out[idx] = stable & near & away
+    return out
 
 
 def simulate_converges(rhs: Callable[[np.ndarray], np.ndarray], x0, t_final: float = 30.0,

@@ -85,6 +85,7 @@ from ..certification.roa import (
     grid_points,
     true_roa_horizon,
     true_roa_mask,
+    true_roa_stays,
 )
 from ..design.control import lqr, quadratic_lyapunov, saturated_controller
 from ..design.polynomial import Polynomial
@@ -832,7 +833,10 @@ def _log_done(log, cert: RoaCertificate, summary: dict, out: Path) -> None:
         log(f"[done] status: {status_line(summary)}; certified area "
             f"{summary['certified_area']:.4g} = "
             f"{100 * summary['fraction_of_true_roa']:.1f}% of the true ROA "
-            f"({summary['true_roa_area']:.4g}); see {out / 'report.md'}")
+            f"({summary['true_roa_area']:.4g}"
+            + ("" if (stays := summary.get("true_roa_stays_in_domain")) is None or stays >= 1
+               else f"; at most {100 * stays:.1f}% can stay in D")
+            + f"); see {out / 'report.md'}")
     else:
         log(f"[done] status: {cert.status.value}: {cert.reason}; see {out / 'report.md'}")
 
@@ -1318,6 +1322,8 @@ class _Areas:
     certified_area: float
     true_roa_area: float | None
     true_roa_undecided: float | None
+    true_roa_elsewhere: float | None
+    true_roa_stays_in_domain: float | None
     true_roa_time: float
     fraction_of_true_roa: float | None
     certified_points_converge_in_simulation: bool | None
@@ -1346,10 +1352,11 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     if getattr(system, "can_simulate", True):   # longer for a loop with a slow mode
         horizon = true_roa_horizon(system, feedback, box, horizon)
     ckey = _hash([system.name, cfg.eval_box, n, None if controller is None
-                  else controller.to_dict(), "undecided"]
+                  else controller.to_dict(), "undecided", "elsewhere",
+                  problem.domain.to_dict()]
                  + ([] if horizon == TRUE_ROA_TIME else [horizon]))
     not_available = []
-    true_mask = undecided = None
+    true_mask = undecided = elsewhere = stays = None
     if not getattr(system, "can_simulate", True):
         not_available.append("true ROA by simulation (no model and no simulator of f)")
         true_mask = np.zeros(shape, dtype=bool)
@@ -1357,7 +1364,8 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         try:
             with np.load(cache) as z:
                 if str(z["key"]) == ckey:
-                    true_mask, undecided = z["mask"], z["undecided"]
+                    true_mask, undecided, elsewhere, stays = (
+                        z["mask"], z["undecided"], z["elsewhere"], z["stays"])
         except (OSError, ValueError, KeyError):
             log("warning: true_roa.npz is unreadable; simulating again")
     if true_mask is None:
@@ -1365,10 +1373,18 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
             + ("" if getattr(system, "has_model", True) else " (simulating the black box)"))
         ie = cert.inner_ellipse
         ell = (ie.P, ie.level) if ie is not None and ie.certified else None
-        true_mask, undecided = true_roa_mask(system, feedback, box, n, t_final=horizon,
-                                             ellipse=ell, undecided=True)
+        true_mask, undecided, elsewhere = true_roa_mask(system, feedback, box, n,
+                                                        t_final=horizon, ellipse=ell,
+                                                        undecided=True)
+        # of the true ROA within D, the states that reach the origin without leaving D
+        reach = true_mask.ravel() & problem.domain.contains(pts)
+        stays = np.zeros(reach.shape, bool)
+        stays[reach] = true_roa_stays(system, feedback, pts[reach], problem.domain,
+                                      t_final=horizon, ellipse=ell)
+        stays = stays.reshape(shape)
         tmp = out / ".true_roa.tmp.npz"
-        np.savez_compressed(tmp, mask=true_mask, undecided=undecided, key=ckey)
+        np.savez_compressed(tmp, mask=true_mask, undecided=undecided, elsewhere=elsewhere,
+                            stays=stays, key=ckey)
         tmp.replace(cache)
     # the true ROA within D, where every certificate lies (areas and shares on one set; a
     # true ROA that reaches past D, e.g. over the corners of a box around a ball D, is
@@ -1377,15 +1393,17 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     true_mask = true_mask & in_d
     cert_area = grid_area(omega, box)
     true_area = grid_area(true_mask, box)
-    open_share = 0.0 if undecided is None else \
-        float(np.count_nonzero(undecided & in_d)) / max(int(np.count_nonzero(in_d)), 1)
+    open_share, rest_share = (
+        0.0 if m is None else
+        float(np.count_nonzero(m & in_d)) / max(int(np.count_nonzero(in_d)), 1)
+        for m in (undecided, elsewhere))
     open_count = 0 if undecided is None else int(np.count_nonzero(undecided & in_d))
     reached = int(np.count_nonzero(true_mask))
     if undecided is not None and (not reached or reached < TOO_FEW_CONVERGED * open_count):
         # no state, or far fewer states than remain undecided, reached the origin: an area
         # of 0 (or of a sliver of the ROA) would be a wrong figure. (States that go to
-        # another attractor also stay undecided, so a ratio closer to 1 would refuse
-        # estimates that are right.)
+        # a periodic orbit also stay undecided, so a ratio closer to 1 would refuse
+        # estimates that are right; those at rest at another stable equilibrium are decided.)
         not_available.append(
             f"true ROA by simulation (only {reached} states of the "
             f"evaluation grid in D reached the origin within {horizon:.4g} s of "
@@ -1393,9 +1411,9 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
             "the closed loop converges too slowly for this estimate; raise eval_time)")
     elif open_share > 0:
         log(f"[certificate] {100 * open_share:.1f}% of the evaluation grid neither converged "
-            f"nor diverged within {horizon:.4g} s of simulated time: counted outside "
-            "the true ROA (the share may be an overestimate; raise eval_time if they converge "
-            "slowly)")
+            f"nor diverged nor came to rest at another equilibrium within {horizon:.4g} s of "
+            "simulated time: counted outside the true ROA (the share may be an overestimate; "
+            "raise eval_time if they converge slowly)")
     true_check = None
     if not getattr(system, "has_model", True):
         not_available.append("check of the same V and κ against the true f (no model of f)")
@@ -1413,6 +1431,9 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         certified_area=cert_area,
         true_roa_area=true_area if simulated else None,
         true_roa_undecided=open_share if simulated else None,
+        true_roa_elsewhere=rest_share if simulated else None,
+        true_roa_stays_in_domain=(float(np.count_nonzero(stays & true_mask)) / reached
+                                  if reached else None) if simulated else None,
         true_roa_time=horizon,
         fraction_of_true_roa=(cert_area / true_area if true_area else 0.0) if simulated
         else None,

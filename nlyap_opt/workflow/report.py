@@ -87,6 +87,33 @@ def winner_line(candidates: list) -> str | None:
             "converge in simulation, a longer cegis.sim_time may change this.")
 
 
+def _stays_line(cert: dict, controlled: bool) -> list[str]:
+    """The bound D puts on every certificate: the share of the true ROA within D whose
+    trajectories reach the origin without leaving D (none for an older certificate)."""
+    stays = cert.get("true_roa_stays_in_domain")
+    if stays is None:
+        return []
+    return [f"Of the true ROA within D, {100 * stays:.1f}% reach the origin without leaving "
+            "D: no certificate in D can hold more (a certified set lies in D and no "
+            "trajectory leaves it). A larger D"
+            + (", or a controller that keeps more states in D," if controlled else "")
+            + " can raise this bound." if stays < 1 else
+            "Every state of the true ROA within D reaches the origin without leaving D.", ""]
+
+
+def _outside_states(cert: dict, horizon: float) -> str:
+    """The true ROA's states in D that did not reach the origin but did not diverge either:
+    at rest at another stable equilibrium (outside the ROA at any horizon), or undecided
+    within ``horizon`` (slow, or a periodic orbit: the share may be an overestimate)."""
+    rest, left = cert.get("true_roa_elsewhere"), cert.get("true_roa_undecided")
+    return ((f" {100 * rest:.1f}% of the grid in D came to rest at another stable "
+             "equilibrium (outside the ROA of the origin)." if rest else "")
+            + (f" {100 * left:.1f}% of the grid in D neither converged nor diverged within "
+               f"the simulated horizon of {horizon:.4g} s and counts outside the true ROA: the "
+               "share above may be an overestimate; raise eval_time if they converge slowly "
+               "(states on a periodic orbit stay undecided at any horizon)." if left else ""))
+
+
 def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, cg: dict):
     """Write ``report.md`` (parameters, what is certified under which assumptions, times)
     and ``roa.png``."""
@@ -158,6 +185,7 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   "| certified area | true ROA area | certified ÷ true |", "|---|---|---|",
                   f"| {cert['certified_area']:.4g} | {cert['true_roa_area']:.4g} | "
                   f"{100 * cert['fraction_of_true_roa']:.1f}% |", "",
+                  *_stays_line(cert, bool(getattr(system, "nu", 0))),
                   "True ROA: simulated closed loop (true f"
                   + (", under the certificate's controller κ: the ROA of this closed loop, "
                      "not every state some input in U could bring to the origin"
@@ -169,12 +197,7 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
                   + f", each state simulated for up to {horizon:.4g} s"
                   + f". Every certified grid point converges in simulation: "
                   f"{cert['certified_points_converge_in_simulation']}."
-                  + (f" {100 * cert['true_roa_undecided']:.1f}% of the grid neither converged "
-                     f"nor diverged within the simulated horizon of {horizon:.4g} s "
-                     "and counts outside the true ROA: the share above may be an "
-                     "overestimate; raise eval_time if they converge slowly (states that go "
-                     "to another equilibrium or cycle stay undecided at any horizon)."
-                     if cert.get("true_roa_undecided") else ""), ""]
+                  + _outside_states(cert, horizon), ""]
     tc = cert.get("true_dynamics_check")
     if tc:
         lines += ["## Check against the true dynamics (benchmark, not part of the certificate)",

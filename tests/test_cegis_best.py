@@ -41,6 +41,32 @@ def test_learner_state_resumes_training_exactly():
     assert all(torch.equal(a, b) for a, b in zip(saved.V.values(), again.V.values()))
 
 
+def test_later_rounds_train_at_their_own_learning_rate():
+    """``lr`` of a train call replaces train.lr for that call only (0: Adam moves nothing);
+    CEGIS's rounds after the first get train.lr · cegis.later_lr."""
+    from types import SimpleNamespace
+
+    from nlyap_opt.candidates.cegis import _train_round
+
+    s = systems.get("van_der_pol")
+    learner = LyapunovLearner(s, None, None, _train_config())
+    rng = np.random.default_rng(0)
+    X, S = rng.uniform(-1.5, 1.5, (500, 2)), rng.uniform(-1.5, 1.5, (100, 2))
+    before = learner.export()[0].numpy(X)
+    learner.train(X, S, 0.0, steps=20, lr=0.0)
+    assert np.array_equal(learner.export()[0].numpy(X), before)
+    learner.train(X, S, 0.0, steps=20)                 # the configured lr moves V
+    assert not np.array_equal(learner.export()[0].numpy(X), before)
+    seen = []
+    fake = SimpleNamespace(config=SimpleNamespace(lr=0.02),
+                           train=lambda *a, **k: seen.append((k["steps"], k["lr"])))
+    cfg = CegisConfig(inner=0.1, outer=1.0, steps=7, later_lr=0.25, first_steps=9,
+                      train=TrainConfig(w_inward=0.0))
+    for it in range(3):
+        _train_round(fake, cfg, it, 0.0, 0.0, X, S, np.zeros((0, 2)), None, None, None)
+    assert seen == [(9, 0.02), (7, 0.005), (7, 0.005)]
+
+
 @pytest.mark.slow
 def test_best_iterate_never_loses_area_and_resumes_after_a_bad_round(monkeypatch):
     """A training round that wrecks V (iteration 3, weights perturbed after training) does

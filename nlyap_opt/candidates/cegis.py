@@ -69,6 +69,7 @@ class CegisConfig:
     neighbours: int = 8
     first_steps: int | None = None   # training steps of the first iteration (default: train.steps)
     steps: int = 500                 # training steps of later iterations
+    later_lr: float = 1.0            # their learning rate, as a fraction of train.lr
     verify_every: int = 1            # run the verifier every k-th iteration (and the last);
     # in between, the sampled violations of the candidate level are the counterexamples
     target_fraction: float = 0.99    # stop when certified level >= this fraction of candidate
@@ -578,11 +579,12 @@ def _train_round(learner, cfg: CegisConfig, it: int, eta: float, margin: float, 
                  weights, targets, rates, D=None):
     """One round of training (``first_steps`` in the first iteration)."""
     steps = (cfg.first_steps or cfg.train.steps) if it == 0 else cfg.steps
+    lr = learner.config.lr * (1.0 if it == 0 else cfg.later_lr)
     pointwise = eta if (eta > 0 and cfg.margin_mode == "pointwise") else 0.0
     normals = outward_normals(D, S) if cfg.train.w_inward and D is not None else None
     return learner.train(X, S, 0.0 if pointwise else margin, cex if len(cex) else None,
                          steps=steps, inside_weight=weights, eta_pointwise=pointwise,
-                         targets=targets, target_rates=rates, sphere_normals=normals)
+                         targets=targets, target_rates=rates, sphere_normals=normals, lr=lr)
 
 
 def _setup(system, controller, dynamics, cfg: CegisConfig, D, X: np.ndarray, V0, log):

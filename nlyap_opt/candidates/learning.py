@@ -502,7 +502,8 @@ class LyapunovLearner:
               inside_weight: np.ndarray | None = None, progress=None,
               eta_pointwise: float = 0.0, targets: np.ndarray | None = None,
               target_rates: np.ndarray | None = None,
-              sphere_normals: np.ndarray | None = None) -> TrainInfo:
+              sphere_normals: np.ndarray | None = None,
+              lr: float | None = None) -> TrainInfo:
         """Run ``steps`` Adam steps; returns the last loss terms.
 
         Runs with ``config.threads`` torch threads and deterministic algorithms (restored on
@@ -513,7 +514,8 @@ class LyapunovLearner:
         derivative (the pointwise robust margin for learned dynamics). ``targets`` (per
         state) adds ``w_fit · mean (V(x) − target)²``. ``sphere_normals`` (outward unit
         normals of ``∂D`` at ``sphere``) adds ``w_inward · mean relu(n·g/‖g‖)`` for a
-        trained controller.
+        trained controller. ``lr`` (default ``config.lr``) is this call's learning rate (the
+        start of its cosine schedule).
         """
         cfg = self.config
         X = torch.as_tensor(states, dtype=torch.float64)
@@ -529,12 +531,17 @@ class LyapunovLearner:
         NS = None if sphere_normals is None or not cfg.w_inward or self.controller is None \
             or not cfg.train_controller else torch.as_tensor(sphere_normals, dtype=torch.float64)
         steps = cfg.steps if steps is None else steps
+        lr = cfg.lr if lr is None else float(lr)
+        for group in self.opt.param_groups:
+            group["lr"] = lr
         with deterministic_torch(cfg.threads):
-            return self._train(X, W, S, T, R, CE, margin, steps, progress, eta_pointwise, NS)
+            return self._train(X, W, S, T, R, CE, margin, steps, progress, eta_pointwise, NS,
+                               lr)
 
     def _train(self, X, W, S, T, R, CE, margin, steps, progress,
-               eta_pointwise, NS=None) -> TrainInfo:
+               eta_pointwise, NS=None, lr: float | None = None) -> TrainInfo:
         cfg = self.config
+        lr = cfg.lr if lr is None else lr
         t0 = time.perf_counter()
         info = TrainInfo()
         it = -1
@@ -545,7 +552,7 @@ class LyapunovLearner:
         for it in range(steps):
             if cfg.lr_schedule == "cosine":
                 for group in self.opt.param_groups:
-                    group["lr"] = cfg.lr * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * it / steps)))
+                    group["lr"] = lr * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * it / steps)))
             idx = torch.randint(0, len(X), (min(cfg.batch, len(X)),), generator=gen)
             xb, wb = X[idx], W[idx]
             nb = len(idx)

@@ -388,7 +388,7 @@ _RULES: dict[str, dict[str, dict]] = {
     "cegis": {
         "iterations": _COUNT, "samples": _COUNT, "sphere_samples": _COUNT,
         "max_counterexamples": _COUNT, "neighbours": _NONNEG, "first_steps": _COUNT,
-        "steps": _COUNT, "verify_every": _COUNT, "target_fraction": _UNIT,
+        "steps": _COUNT, "later_lr": _POS, "verify_every": _COUNT, "target_fraction": _UNIT,
         "min_iterations": _COUNT, "plateau": _NONNEG, "area_points": {"lo": 4}, "seed": _NONNEG,
         "inner_samples": _NONNEG, "boundary_samples": _NONNEG, "sim_dt": _POS,
         "boundary_feedback": _NONNEG,
@@ -512,6 +512,8 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "neighbours": "jittered copies added around each counterexample",
         "first_steps": "training steps of the first iteration (null: train.steps)",
         "steps": "training steps of each later iteration",
+        "later_lr": "the learning rate of each later iteration, as a fraction of train.lr "
+                    "(fine-tuning the trained V and κ; 1: each round starts at train.lr)",
         "verify_every": "run the verifier every k-th iteration and the last; in between "
                         "the sampled violations are the counterexamples",
         "target_fraction": "stop once the certified level reaches this fraction of the "

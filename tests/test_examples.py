@@ -113,3 +113,21 @@ def test_pendulum_csv_runs_end_to_end_from_the_written_samples(tmp_path, capsys)
     # δ is the covering radius of the file's grid: half the cell diagonal (2-norm)
     h = 8.0 / 200
     assert b["delta"] == pytest.approx(0.5 * (2 * h * h) ** 0.5, rel=1e-12)
+
+
+def test_a_one_state_system_certifies_and_gets_its_picture(tmp_path, capsys):
+    """x' = −x + x³ on [−2, 2] (ROA (−1, 1)): a one-state spec runs end to end; the
+    certified interval lies in the true ROA; roa.png shows V and x' along the interval
+    (the 2-D phase portrait has no second axis)."""
+    spec = tmp_path / "cubic_1d.toml"
+    spec.write_text('name = "cubic_1d"\nstates = ["x"]\nstate_box = [[-2.0, 2.0]]\n\n'
+                    '[rhs]\nx = "-x + x^3"\n')
+    out = tmp_path / "out"
+    assert main(["run", str(spec), "--known-dynamics", "--config",
+                 str(_config(tmp_path, FAST_KNOWN)), "--out", str(out)]) == 0
+    cert = json.loads((out / "certificate.json").read_text())
+    assert cert["status"] == "certified" and cert["certified_points_converge_in_simulation"]
+    assert 1.0 < cert["certified_area"] < 2.0 and cert["true_roa_area"] == pytest.approx(2.0,
+                                                                                         abs=0.01)
+    assert "roa.png not written" not in capsys.readouterr().out
+    assert (out / "roa.png").stat().st_size > 10_000

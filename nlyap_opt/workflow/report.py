@@ -260,6 +260,8 @@ def plot_roa(path, system, cert: dict, out: Path):
     ctrl = Network.load(cfile) if system.nu and cfile.exists() else None
     box = np.asarray(cert["eval_box"], dtype=float)
     nx = len(box)
+    if nx == 1:
+        return _plot_1d(path, plt, system, cert, out, V, D, ctrl)
     n = 300
 
     def lift(p2):  # 2-D points of the slice -> states (others 0)
@@ -312,14 +314,60 @@ def plot_roa(path, system, cert: dict, out: Path):
     ax.set_ylim(box[1])
     ax.set_xlabel(system.state_names[0])
     ax.set_ylabel(system.state_names[1])
-    frac = cert.get("fraction_of_true_roa")
-    share = "true ROA not available" if frac is None else \
-        f"certified {100 * frac:.1f}% of the true ROA"
+    share = _share_text(cert)
     where = "" if nx == 2 else f" (slice {', '.join(system.state_names[2:])} = 0)"
     ax.set_title(f"{system.name}: {cert['status']} — {share}{where}\n"
                  "blue: Ω_c (V ≤ level in D), green: E, black: true ROA, red: D, B_ε"
                  + (", orange: X_I" if XI is not None else ""),
                  fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _share_text(cert: dict) -> str:
+    frac = cert.get("fraction_of_true_roa")
+    return "true ROA not available" if frac is None else \
+        f"certified {100 * frac:.1f}% of the true ROA"
+
+
+def _plot_1d(path, plt, system, cert: dict, out: Path, V, D, ctrl):
+    """The picture of a one-state run: V and the closed loop's x' along the evaluation
+    interval, the certified set (V ≤ level in D), the true ROA, D and B_ε."""
+    lo, hi = np.asarray(cert["eval_box"], dtype=float)[0]
+    x = np.linspace(lo, hi, 1001)[:, None]
+    v = V.numpy(x)[:, 0]
+    fig, (ax, ay) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    ax.plot(x[:, 0], v, color="tab:blue", lw=1.5, label="V")
+    lv = cert["level"]
+    if lv > 0 and cert["status"] == CertStatus.CERTIFIED:
+        ax.axhline(lv, color="tab:blue", ls=":", lw=1, label="level")
+        ax.fill_between(x[:, 0], 0, 1, where=(v <= lv) & D.contains(x),
+                        transform=ax.get_xaxis_transform(), color="tab:blue", alpha=0.25,
+                        label="Ω_c")
+    npz = out / "true_roa.npz"
+    if npz.exists() and cert.get("true_roa_area") is not None:
+        m = np.load(npz)["mask"].ravel()
+        xt = lo + (hi - lo) * (np.arange(len(m)) + 0.5) / len(m)
+        ax.plot(xt[m], np.zeros(int(m.sum())), "k|", ms=4, label="true ROA")
+    if getattr(system, "can_simulate", True):
+        with np.errstate(all="ignore"):
+            F = system.evaluate(x, None if ctrl is None else ctrl.numpy(x))[:, 0]
+        ay.plot(x[:, 0], F, color="0.3", lw=1.2)
+        ay.axhline(0.0, color="0.6", lw=0.6)
+        ay.set_ylabel(f"{system.state_names[0]}' (closed loop)")
+    for a in (ax, ay):
+        for b in D.bounding_box()[0]:
+            a.axvline(b, color="r", ls="--", lw=1)
+        for b in (-cert["inner_radius"], cert["inner_radius"]):
+            a.axvline(b, color="r", ls=":", lw=1)
+    ax.set_xlim(lo, hi)
+    ax.set_ylabel("V")
+    ax.legend(fontsize=8, loc="upper center")
+    ay.set_xlabel(system.state_names[0])
+    share = _share_text(cert)
+    ax.set_title(f"{system.name}: {cert['status']} — {share}\n"
+                 "blue: Ω_c (V ≤ level in D), black: true ROA, red: D, B_ε", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -72,7 +72,7 @@ from .declarations import Declarations, check_declarations
 from .samples import load_samples, sample_function
 
 __all__ = ["load_spec", "parse_expression", "to_casadi", "default_run_settings", "centre_dimension",
-           "FUNCTIONS", "ITERATIONS_3D",
+           "unstable_modes", "FUNCTIONS", "ITERATIONS_3D",
            "SYMPY_TO_CASADI", "SPEC_KEYS"]
 
 #: allowed function names -> (SymPy function, number of arguments; None: two or more)
@@ -1025,6 +1025,38 @@ def centre_dimension(system: System) -> int:
         rank = np.linalg.matrix_rank(np.hstack([A - lam * np.eye(n), B]), tol=1e3 * tol)
         count += min(alg, n - rank)
     return count
+
+
+def unstable_modes(system: System) -> list[complex]:
+    r"""The eigenvalues of the linearisation ``A = ∂f/∂x(0, u_eq)`` with a positive real part
+    that no input can move (empty for a system without a model).
+
+    An eigenvalue :math:`\lambda` with :math:`\mathrm{Re}\,\lambda >` :data:`CENTRE_TOL`
+    ``·max(1, ‖A‖)`` counts when :math:`\mathrm{rank}[A - \lambda I,\ B] < n` (Hautus: no
+    state feedback moves it); for an autonomous system, every such eigenvalue. With one of
+    them the origin is unstable under every feedback (Lyapunov's indirect method): no
+    region of attraction exists.
+
+    Examples
+    --------
+    >>> import casadi as ca
+    >>> x = ca.SX.sym("x", 2)
+    >>> saddle = System("saddle", x, None, ca.vertcat(x[1], x[0] - 0.5 * x[1]),
+    ...                 state_box=[[-1.0, 1.0], [-1.0, 1.0]])
+    >>> [round(v.real, 4) for v in unstable_modes(saddle)]
+    [0.7808]
+    """
+    if not getattr(system, "has_model", False):
+        return []
+    A = np.asarray(system.A, dtype=float)
+    n = A.shape[0]
+    B = np.asarray(system.B, dtype=float).reshape(n, -1) if system.nu else np.zeros((n, 0))
+    if not np.all(np.isfinite(A)) or not np.all(np.isfinite(B)):
+        return []
+    tol = CENTRE_TOL * max(1.0, float(np.linalg.norm(A, 2)))
+    return [complex(lam) for lam in np.linalg.eigvals(A) if lam.real > tol
+            and np.linalg.matrix_rank(np.hstack([A - lam * np.eye(n), B]),
+                                      tol=1e3 * tol) < n]
 
 
 def _merge_centre_settings(out: dict, system: System, inradius: float) -> None:

@@ -426,3 +426,40 @@ def test_probe_points_is_a_dynamics_config_key():
     assert dynamics_config("van_der_pol", {}).probe_points == 30000
     with pytest.raises(ConfigError, match="probe_points"):
         dynamics_config("van_der_pol", {"probe_points": -1})
+
+
+@pytest.mark.parametrize("body,words", [
+    # a saddle (eigenvalues 0.78, −1.28), no input
+    ('states = ["x", "y"]\nstate_box = [[-2, 2], [-2, 2]]\n[rhs]\nx = "y"\n'
+     'y = "x - x^3 - 0.5*y"', ["eigenvalue(s) 0.7808", "declare an input"]),
+    # an unstable focus 0.1 ± i, no input
+    ('states = ["x", "y"]\nstate_box = [[-2, 2], [-2, 2]]\n[rhs]\nx = "0.1*x + y"\n'
+     'y = "-x + 0.1*y"', ["0.1+1i", "0.1-1i"]),
+    # x1' = x1 is unstable and the input enters only x2
+    ('states = ["x1", "x2"]\ninputs = ["u"]\nstate_box = [[-1, 1], [-1, 1]]\n'
+     'input_box = [[-1, 1]]\nu_eq = [0.0]\n[rhs]\nx1 = "x1"\nx2 = "-x2 + u"',
+     ["under every feedback", "eigenvalue 1 cannot be moved by the inputs"]),
+])
+@pytest.mark.parametrize("known", [True, False])
+def test_run_refuses_an_origin_no_feedback_can_stabilise(body, words, known, tmp_path,
+                                                         capsys):
+    """No region of attraction exists when ∂f/∂x(0) has an eigenvalue with a positive real
+    part that no input moves (Lyapunov's indirect method): the run stops at once, exit 3,
+    one line naming the eigenvalues and the fix, whichever f it would learn."""
+    code = main(["run", str(_spec(tmp_path, body)), "--out", str(tmp_path / "out")]
+                + (["--known-dynamics"] if known else []))
+    err = capsys.readouterr().err
+    _one_line_exit3(code, err)
+    assert "is unstable" in err and all(w in err for w in words), err
+    assert not (tmp_path / "out" / "quadratic.json").exists()
+
+
+def test_an_unstable_origin_an_input_can_move_is_not_refused():
+    """x1' = x1 + u: unstable open loop, but the input moves the mode (Hautus rank 1)."""
+    from systems.spec import unstable_modes
+
+    x, u = ca.SX.sym("x", 1), ca.SX.sym("u", 1)
+    s = systems.System("ctrl", x, u, x + u, state_box=[[-1, 1]], input_box=[[-1, 1]])
+    assert unstable_modes(s) == []
+    s0 = systems.System("free", x, None, x, state_box=[[-1, 1]])
+    assert unstable_modes(s0) == [1.0]

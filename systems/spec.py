@@ -935,14 +935,7 @@ def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
                  "inner": inradius / 10.0, "auto_inner": True, "controller_scale": None,
                  "eval_box": box.tolist()}
     if system.nu:
-        ub = system.input_box
-        c = float(np.min(np.minimum(-ub[:, 0], ub[:, 1])))
-        if not c > 0 or np.any(np.abs(system.u_eq) >= c):
-            raise ConfigError(
-                f"the input box {ub.tolist()} of {system.name!r} leaves no symmetric range "
-                f"[-C, C] around u_eq = {system.u_eq.tolist()}; give controller_scale in [run]"
-            )
-        out["controller_scale"] = c
+        out["controller_scale"] = _input_scale(system)
     if system.samples is not None:
         smp = system.samples
         if smp.input_slice:
@@ -1025,6 +1018,25 @@ def centre_dimension(system: System) -> int:
         rank = np.linalg.matrix_rank(np.hstack([A - lam * np.eye(n), B]), tol=1e3 * tol)
         count += min(alg, n - rank)
     return count
+
+
+def _input_scale(system: System) -> float | list[float]:
+    """The default ``C`` of the controller ``u = C·tanh(Kx + b)``: per input, the largest
+    range ``[−C_i, C_i]`` inside its box (one number when all inputs get the same). The
+    range must hold ``u_eq`` inside (``C·tanh(b) = u_eq``); where it cannot, the error names
+    the input and the fix (its box shifted by its ``u_eq``)."""
+    ub, ueq = system.input_box, np.asarray(system.u_eq, dtype=float).ravel()
+    c = np.minimum(-ub[:, 0], ub[:, 1])
+    for i in range(system.nu):
+        if not c[i] > abs(ueq[i]):
+            name = system.input_names[i]
+            lo, hi = (float(v) - ueq[i] for v in ub[i])
+            raise ConfigError(
+                f"input {name!r} of {system.name!r}: the controller u = C·tanh(Kx + b) ranges "
+                f"over [-C, C], which must lie in its box {ub[i].tolist()} and hold its u_eq "
+                f"= {ueq[i]:.6g} inside, and no C does; write the model in u − u_eq (box "
+                f"[{lo:.6g}, {hi:.6g}], u_eq = 0) or give controller_scale in [run]")
+    return float(c[0]) if np.all(c == c[0]) else [float(v) for v in c]
 
 
 def unstable_modes(system: System) -> list[complex]:

@@ -104,6 +104,27 @@ def test_make_config_without_a_preset():
         make_config("inverted_pendulum", preset=None, overrides={"controller_scale": None})
 
 
+def test_default_controller_scale_is_per_input_and_a_shifted_box_is_named():
+    """C_i = the largest [−C_i, C_i] inside input i's box (one number when all agree); an
+    input whose box holds no such range around its u_eq is named with the shifted box."""
+    import casadi as ca
+
+    import systems
+    from systems.spec import default_run_settings
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 2)
+    f = ca.vertcat(x[0] + u[0], x[1] + u[1] - 1.0)    # u_eq = (0, 1)
+
+    def sys_(ub, ueq=(0.0, 1.0)):
+        return systems.System("two", x, u, f, state_box=[[-1, 1], [-1, 1]], input_box=ub,
+                              u_eq=list(ueq))
+
+    assert default_run_settings(sys_([[-2, 2], [-8, 9]]))["controller_scale"] == [2.0, 8.0]
+    assert default_run_settings(sys_([[-3, 2], [-2, 5]]))["controller_scale"] == 2.0
+    with pytest.raises(ConfigError, match=r"input 'u2'.*box \[-2, 2\], u_eq = 0"):
+        default_run_settings(sys_([[-2, 2], [-1, 3]]))
+
+
 def test_system_without_a_preset_says_what_is_possible():
     import casadi as ca
 

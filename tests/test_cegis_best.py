@@ -10,7 +10,7 @@ from certcheck import assert_reverifies
 
 import systems
 from nlyap_opt.candidates import cegis as cegis_module
-from nlyap_opt.candidates.cegis import RESUME_BELOW, CegisConfig, cegis
+from nlyap_opt.candidates.cegis import RESUME_BELOW, RESUME_LR, CegisConfig, cegis
 from nlyap_opt.candidates.learning import LyapunovLearner, TrainConfig
 
 
@@ -64,7 +64,27 @@ def test_later_rounds_train_at_their_own_learning_rate():
                       train=TrainConfig(w_inward=0.0))
     for it in range(3):
         _train_round(fake, cfg, it, 0.0, 0.0, X, S, np.zeros((0, 2)), None, None, None)
-    assert seen == [(9, 0.02), (7, 0.005), (7, 0.005)]
+    _train_round(fake, cfg, 3, 0.0, 0.0, X, S, np.zeros((0, 2)), None, None, None,
+                 lr_scale=RESUME_LR ** 2)                # after two resumptions
+    assert seen == [(9, 0.02), (7, 0.005), (7, 0.005), (7, 0.005 * RESUME_LR ** 2)]
+
+
+def test_a_budget_that_ends_on_a_growing_certificate_is_extended():
+    """cegis.extend: verify_every more iterations at a time, up to iterations + extend, only
+    while the last verifier call gained more than plateau (the loop asks only then)."""
+    from nlyap_opt.candidates.cegis import _extended
+
+    said = []
+    cfg = CegisConfig(inner=0.1, outer=1.0, iterations=8, extend=3, verify_every=3)
+    assert _extended(8, cfg, 1.8, 1.4, said.append) == (11, False)
+    assert "3 more iteration(s), 11 in all" in said[-1]
+    assert _extended(11, cfg, 1.9, 1.8, said.append) == (11, True) and len(said) == 1
+    assert _extended(8, CegisConfig(inner=0.1, outer=1.0, iterations=8, extend=4,
+                                    verify_every=3), 2.0, 1.0, said.append) == (11, False)
+    assert _extended(11, CegisConfig(inner=0.1, outer=1.0, iterations=8, extend=4,
+                                     verify_every=3), 2.0, 1.0, said.append) == (12, False)
+    assert _extended(5, CegisConfig(inner=0.1, outer=1.0, iterations=5), 2.0, 1.0,
+                     said.append) == (5, True)                    # extend 0: as before
 
 
 @pytest.mark.slow
@@ -78,9 +98,12 @@ def test_best_iterate_never_loses_area_and_resumes_after_a_bad_round(monkeypatch
     calls = []
     train = LyapunovLearner.train
 
+    rates = []
+
     def wrecking_train(self, *args, **kwargs):
         info = train(self, *args, **kwargs)
         calls.append(len(calls))
+        rates.append(kwargs["lr"])
         if len(calls) == 4:        # iteration 3, the last of the second window
             gen = torch.Generator().manual_seed(0)
             with torch.no_grad():
@@ -112,6 +135,9 @@ def test_best_iterate_never_loses_area_and_resumes_after_a_bad_round(monkeypatch
     assert h[3]["candidate_area"] < RESUME_BELOW * h[best_before]["area"]
     assert h[3]["resumed_from"] == best_before
     assert h[4]["candidate_area"] > h[3]["candidate_area"]
+    # the rounds after a resumption train at RESUME_LR times the rate (once per resumption)
+    lr, n = _train_config().lr, [sum("resumed_from" in e for e in h[:i]) for i in range(6)]
+    assert rates == [lr * RESUME_LR ** k for k in n] and n[4] >= 1
     # bookkeeping: resumed only after a verifier call, where the candidate set collapsed
     # below RESUME_BELOW of the best certified area
     best = 0.0
@@ -146,3 +172,19 @@ def test_candidate_area_is_the_grid_area_of_the_sublevel_set_in_the_domain():
     cut = 2 * (0.5 * np.sqrt(0.75) + np.arcsin(0.5))      # ∫_{-1/2}^{1/2} 2√(1−t²) dt
     assert abs(cegis_module.candidate_area(V, 1.0, grid, in_d, shape, box) - cut) < 0.02
     assert cegis_module.candidate_area(V, 0.0, grid, in_d, shape, box) == 0.0
+
+
+@pytest.mark.slow
+def test_cegis_runs_the_extended_iterations():
+    """With plateau −1 every certified last call counts as growing: iterations 2 + extend 2
+    run 4 iterations (the budget grows by verify_every = 1 twice), each verified."""
+    s = systems.get("van_der_pol")
+    said = []
+    cfg = CegisConfig(inner=0.3, outer=1.5, iterations=2, extend=2, verify_every=1,
+                      plateau=-1.0, steps=100, samples=3000, sphere_samples=500,
+                      inner_samples=300, boundary_samples=1000, sim_dt=0.05,
+                      train=_train_config(), area_points=6400)
+    res = cegis(s, None, None, cfg, log=said.append)
+    assert res.certified and [e["iteration"] for e in res.history] == [0, 1, 2, 3]
+    assert sum("more iteration(s)" in m for m in said) == 2
+    assert all(e["boxes"] > 0 for e in res.history)

@@ -70,6 +70,9 @@ class CegisConfig:
     first_steps: int | None = None   # training steps of the first iteration (default: train.steps)
     steps: int = 500                 # training steps of later iterations
     later_lr: float = 1.0            # their learning rate, as a fraction of train.lr
+    # at most this many more iterations, verify_every at a time, while the verifier call of
+    # the last one certified an area more than `plateau` above the best before it
+    extend: int = 0
     verify_every: int = 1            # run the verifier every k-th iteration (and the last);
     # in between, the sampled violations of the candidate level are the counterexamples
     target_fraction: float = 0.99    # stop when certified level >= this fraction of candidate
@@ -303,6 +306,9 @@ DOMAIN_TARGET_POWER = 8
 #: lowered it (power system, true f: 8.3 → 8.0 → 9.2), and resuming at every dip keeps
 #: returning to an early iterate
 RESUME_BELOW = 0.9
+#: ... and each such resumption multiplies the learning rate of the later rounds by this
+#: (their steps collapsed V once: smaller ones fine-tune the best iterate instead)
+RESUME_LR = 0.5
 
 
 def _level_settled(source: str, area: float, prev_area: float, plateau: float,
@@ -521,6 +527,32 @@ def _verify_window(pending: list, here: _Iterate, log, beat: VolumeToBeat | None
                                least=(least, beat.label) if least > 0 else None)
 
 
+def _record_and_log(chosen: _Iterate, here: _Iterate, cert: RoaCertificate, area: float,
+                    run: tuple, log) -> None:
+    """History entries and log lines of the verified iterate ``chosen`` and, when another,
+    of the current one ``here`` (its sampled violations only); ``run`` = (system,
+    dynamics, cfg, D)."""
+    _record(chosen, cert, area)
+    if chosen is not here:
+        _record(here, _unverified(here, *run), 0.0)
+    _log_iterate(log, chosen, cert.certified)
+    if chosen is not here:
+        _log_iterate(log, here, False)
+
+
+def _extended(limit: int, cfg: CegisConfig, area: float, prev_area: float, log
+              ) -> tuple[int, bool]:
+    """The iteration budget after the verifier call of its last iteration certified
+    ``area``, more than ``plateau`` above the best before (``prev_area``): ``verify_every``
+    more iterations, up to ``iterations + extend`` in all; and whether this iteration is
+    still the last."""
+    new = min(limit + cfg.verify_every, cfg.iterations + cfg.extend)
+    if new > limit:
+        log(f"  cegis: the last verified area grew ({prev_area:.4g} -> {area:.4g}); "
+            f"{new - limit} more iteration(s), {new} in all (cegis.extend)")
+    return new, new == limit
+
+
 def _log_iterate(log, x: _Iterate, certified: bool) -> None:
     e = x.entry
     log(f"  cegis iteration {e['iteration']}: loss {e['loss']:.4g}, candidate level "
@@ -543,13 +575,16 @@ def _add_counterexamples(cex: np.ndarray, new: np.ndarray, cfg: CegisConfig, sca
     return np.vstack([cex, new])[-cfg.max_counterexamples:]
 
 
-def _resume(learner: LyapunovLearner, best: tuple, area: float, x: _Iterate, log) -> None:
-    """Training goes on from the best certified iterate ``best`` = (iteration, state)."""
+def _resume(learner: LyapunovLearner, best: tuple, area: float, x: _Iterate, log,
+            lr_factor: float) -> None:
+    """Training goes on from the best certified iterate ``best`` = (iteration, state), the
+    later rounds at ``lr_factor`` times their learning rate."""
     x.entry["resumed_from"] = best[0]
     learner.load_state(best[1])
     log(f"  cegis: the candidate set of iteration {x.entry['iteration']} "
         f"({x.entry['candidate_area']:.4g}) is below {RESUME_BELOW:g} of the best certified "
-        f"area ({area:.4g}); training goes on from iteration {best[0]}")
+        f"area ({area:.4g}); training goes on from iteration {best[0]}, later rounds at "
+        f"{lr_factor:g}× their learning rate")
 
 
 class _AreaGrid:
@@ -576,10 +611,11 @@ def outward_normals(D, pts: np.ndarray) -> np.ndarray:
 
 
 def _train_round(learner, cfg: CegisConfig, it: int, eta: float, margin: float, X, S, cex,
-                 weights, targets, rates, D=None):
-    """One round of training (``first_steps`` in the first iteration)."""
+                 weights, targets, rates, D=None, lr_scale: float = 1.0):
+    """One round of training (``first_steps`` in the first iteration; the later ones at
+    ``train.lr · later_lr · lr_scale``)."""
     steps = (cfg.first_steps or cfg.train.steps) if it == 0 else cfg.steps
-    lr = learner.config.lr * (1.0 if it == 0 else cfg.later_lr)
+    lr = learner.config.lr * (1.0 if it == 0 else cfg.later_lr * lr_scale)
     pointwise = eta if (eta > 0 and cfg.margin_mode == "pointwise") else 0.0
     normals = outward_normals(D, S) if cfg.train.w_inward and D is not None else None
     return learner.train(X, S, 0.0 if pointwise else margin, cex if len(cex) else None,
@@ -654,9 +690,13 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     pending: list[_Iterate] = []   # iterates since the last verifier call
     history = []
     margin, M, smoothing = 0.0, None, 0.0
-    for it in range(cfg.iterations):
+    limit = cfg.iterations   # grows by `extend` while the last verifier call still gains
+    for it in range(cfg.iterations + cfg.extend):
+        if it >= limit:
+            break
         info = _train_round(learner, cfg, it, eta, margin, X, np.vstack([S, rim]), cex,
-                            weights, targets, rates, D)
+                            weights, targets, rates, D,
+                            RESUME_LR ** sum("resumed_from" in h for h in history))
         V, ctrl = learner.export()
         problem = RoaProblem(system, V, ctrl, dynamics, inner=cfg.inner, outer=cfg.outer,
                              eta=eta, margin_mode=cfg.margin_mode,
@@ -673,7 +713,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         M, margin, smoothing = dec.M, dec.margin, dec.smoothing
         cand = candidate_level(dec.x, dec.V, dec.lie, inner=cfg.inner, domain=D,
                                margin=dec.margin, seed=cfg.seed + it)
-        last = it == cfg.iterations - 1
+        last = it == limit - 1
         here = _new_iterate(it, info, problem, cand, (margin, M, smoothing), cfg, eta, areas,
                             learner, beat, log)
         entry = here.entry
@@ -688,17 +728,14 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         # falsifier only: the sampled violations that limit the candidate
         cert = cert or _unverified(chosen, system, dynamics, cfg, D)
         area = cert.area(areas.box, areas.count) if cert.certified else 0.0
-        _record(chosen, cert, area)
-        if chosen is not here:
-            _record(here, _unverified(here, system, dynamics, cfg, D), 0.0)
-        _log_iterate(log, chosen, cert.certified)
-        if chosen is not here:
-            _log_iterate(log, here, False)
+        _record_and_log(chosen, here, cert, area, (system, dynamics, cfg, D), log)
         prev_area = best.area if best is not None else 0.0
         if cert.certified and (best is None or area > best.area):
             best = CegisResult(CertStatus.CERTIFIED, chosen.V, chosen.ctrl, cert.level,
                                *chosen.margins[:2], area, history, 0.0, chosen.margins[2])
             best_state = (chosen.entry["iteration"], chosen.state)
+        if last and cert.certified and area > (1 + cfg.plateau) * prev_area:
+            limit, last = _extended(limit, cfg, area, prev_area, log)
         # the stop rule judges the current V: an earlier iterate verified in its place says
         # nothing about where training stands now
         if chosen is here and cert.certified \
@@ -712,7 +749,8 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
             # after a verifier call (the window's most promising iterate proved): the current
             # V has collapsed (its candidate set, which bounds what it can certify, is well
             # below the best certified area), so training goes on from the best iterate
-            _resume(learner, best_state, best.area, here, log)
+            _resume(learner, best_state, best.area, here, log,
+                    RESUME_LR ** (1 + sum("resumed_from" in h for h in history)))
         elif cand.source == "sphere" and cfg.boundary_feedback and not last:
             rim = _feed_boundary(cfg, V, D, cand, rim, len(S), rng, entry, log)
         cex = _add_counterexamples(cex, cert.counterexamples, cfg, scale, rng,

@@ -287,7 +287,8 @@ DEFAULT_TRAIN: dict = {
 #: iterate when the current one collapsed; training states near the model's ROA
 #: boundary; simulations on a table of φ (learned f, <= 3-D)
 DEFAULT_CEGIS: dict = {
-    "iterations": 8, "steps": 1000, "verify_every": 3, "sim_time": 30.0, "sim_dt": 0.04,
+    "iterations": 8, "extend": 3, "steps": 1000, "verify_every": 3, "sim_time": 30.0,
+    "sim_dt": 0.04,
     "sim_points": 90601, "inner_samples": 2000, "boundary_samples": 20000,
     "sim_in_domain": True, "best_iterate": True, "gain_scan": True, "fit_fallback": True,
 }
@@ -388,7 +389,8 @@ _RULES: dict[str, dict[str, dict]] = {
     "cegis": {
         "iterations": _COUNT, "samples": _COUNT, "sphere_samples": _COUNT,
         "max_counterexamples": _COUNT, "neighbours": _NONNEG, "first_steps": _COUNT,
-        "steps": _COUNT, "later_lr": _POS, "verify_every": _COUNT, "target_fraction": _UNIT,
+        "steps": _COUNT, "later_lr": _POS, "extend": _NONNEG, "verify_every": _COUNT,
+        "target_fraction": _UNIT,
         "min_iterations": _COUNT, "plateau": _NONNEG, "area_points": {"lo": 4}, "seed": _NONNEG,
         "inner_samples": _NONNEG, "boundary_samples": _NONNEG, "sim_dt": _POS,
         "boundary_feedback": _NONNEG,
@@ -512,6 +514,9 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "neighbours": "jittered copies added around each counterexample",
         "first_steps": "training steps of the first iteration (null: train.steps)",
         "steps": "training steps of each later iteration",
+        "extend": "at most this many more iterations, verify_every at a time, while the "
+                  "verifier call of the last one certified an area more than plateau above "
+                  "the best before it (the budget ended on a growing certificate)",
         "later_lr": "the learning rate of each later iteration, as a fraction of train.lr "
                     "(fine-tuning the trained V and κ; 1: each round starts at train.lr)",
         "verify_every": "run the verifier every k-th iteration and the last; in between "

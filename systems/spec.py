@@ -65,6 +65,7 @@ import tomllib
 
 from nlyap_opt.kernel.errors import ConfigError
 from nlyap_opt.kernel.jsonio import read_file_bytes
+from nlyap_opt.kernel.rounding import EPS
 from nlyap_opt.kernel.walker import OP_TABLE
 
 from .base import System
@@ -1028,8 +1029,13 @@ def _input_scale(system: System) -> float | list[float]:
     ub, ueq = system.input_box, np.asarray(system.u_eq, dtype=float).ravel()
     c = np.minimum(-ub[:, 0], ub[:, 1])
     for i in range(system.nu):
+        name = system.input_names[i]
+        if not ub[i, 0] < ueq[i] < ub[i, 1]:
+            raise ConfigError(
+                f"input {name!r} of {system.name!r}: its u_eq = {ueq[i]:.6g} is not inside its "
+                f"box {ub[i].tolist()}; the input that holds the equilibrium must be one the "
+                "actuator can give with room to spare: fix u_eq or the input box")
         if not c[i] > abs(ueq[i]):
-            name = system.input_names[i]
             lo, hi = (float(v) - ueq[i] for v in ub[i])
             raise ConfigError(
                 f"input {name!r} of {system.name!r}: the controller u = C·tanh(Kx + b) ranges "
@@ -1039,15 +1045,21 @@ def _input_scale(system: System) -> float | list[float]:
     return float(c[0]) if np.all(c == c[0]) else [float(v) for v in c]
 
 
+#: :func:`unstable_modes` counts eigenvalues with a real part above this times
+#: ``max(1, ‖A‖)`` (or ``eps^(1/n)`` times it, when larger)
+UNSTABLE_TOL = 1e-6
+
+
 def unstable_modes(system: System) -> list[complex]:
     r"""The eigenvalues of the linearisation ``A = ∂f/∂x(0, u_eq)`` with a positive real part
     that no input can move (empty for a system without a model).
 
-    An eigenvalue :math:`\lambda` with :math:`\mathrm{Re}\,\lambda >` :data:`CENTRE_TOL`
-    ``·max(1, ‖A‖)`` counts when :math:`\mathrm{rank}[A - \lambda I,\ B] < n` (Hautus: no
-    state feedback moves it); for an autonomous system, every such eigenvalue. With one of
-    them the origin is unstable under every feedback (Lyapunov's indirect method): no
-    region of attraction exists.
+    An eigenvalue :math:`\lambda` with :math:`\mathrm{Re}\,\lambda >`
+    ``max(UNSTABLE_TOL, eps^(1/n))·max(1, ‖A‖)`` (well above what rounding does to a
+    defective eigenvalue on the imaginary axis) counts when
+    :math:`\mathrm{rank}[A - \lambda I,\ B] < n` (Hautus: no state feedback moves it); for
+    an autonomous system, every such eigenvalue. With one of them the origin is unstable
+    under every feedback (Lyapunov's indirect method): no region of attraction exists.
 
     Examples
     --------
@@ -1065,10 +1077,15 @@ def unstable_modes(system: System) -> list[complex]:
     B = np.asarray(system.B, dtype=float).reshape(n, -1) if system.nu else np.zeros((n, 0))
     if not np.all(np.isfinite(A)) or not np.all(np.isfinite(B)):
         return []
-    tol = CENTRE_TOL * max(1.0, float(np.linalg.norm(A, 2)))
+    # a refusal only on a clear case: rounding moves an eigenvalue of a Jordan block of
+    # size k by about eps^(1/k)·‖A‖ (a nilpotent 2×2 A gets eigenvalues ±2e-8)
+    scale = max(1.0, float(np.linalg.norm(A, 2)))
+    tol = max(UNSTABLE_TOL, EPS ** (1.0 / n)) * scale
+    norms = np.linalg.norm(B, axis=0)
+    Bn = B[:, norms > 0] / norms[norms > 0] * scale   # the rank test in B's directions
     return [complex(lam) for lam in np.linalg.eigvals(A) if lam.real > tol
-            and np.linalg.matrix_rank(np.hstack([A - lam * np.eye(n), B]),
-                                      tol=1e3 * tol) < n]
+            and np.linalg.matrix_rank(np.hstack([A - lam * np.eye(n), Bn]),
+                                      tol=1e3 * CENTRE_TOL * scale) < n]
 
 
 def _merge_centre_settings(out: dict, system: System, inradius: float) -> None:

@@ -3,6 +3,8 @@ training resumes from the best certified iterate, and no certified area is ever 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -188,3 +190,10 @@ def test_cegis_runs_the_extended_iterations():
     assert res.certified and [e["iteration"] for e in res.history] == [0, 1, 2, 3]
     assert sum("more iteration(s)" in m for m in said) == 2
     assert all(e["boxes"] > 0 for e in res.history)
+    # verify_every 2, 3 iterations: the verifier at 1 and 2 (the first budget's last); the
+    # extension's window {3, 4} is verified once, at 4, not at 3 as a count from 0 would
+    said.clear()
+    res = cegis(s, None, None, replace(cfg, iterations=3, verify_every=2),
+                log=said.append)
+    verified = [e["iteration"] for e in res.history if e["boxes"] > 0]
+    assert len(res.history) == 5 and verified == [1, 2, 4], verified

@@ -123,6 +123,8 @@ def test_default_controller_scale_is_per_input_and_a_shifted_box_is_named():
     assert default_run_settings(sys_([[-3, 2], [-2, 5]]))["controller_scale"] == 2.0
     with pytest.raises(ConfigError, match=r"input 'u2'.*box \[-2, 2\], u_eq = 0"):
         default_run_settings(sys_([[-2, 2], [-1, 3]]))
+    with pytest.raises(ConfigError, match=r"input 'u2'.*u_eq = 1 is not inside its box"):
+        default_run_settings(sys_([[-2, 2], [1, 3]]))              # u_eq on the edge
 
 
 def test_system_without_a_preset_says_what_is_possible():

@@ -463,3 +463,13 @@ def test_an_unstable_origin_an_input_can_move_is_not_refused():
     assert unstable_modes(s) == []
     s0 = systems.System("free", x, None, x, state_box=[[-1, 1]])
     assert unstable_modes(s0) == [1.0]
+    # an input that enters at 1e-7 still moves the mode (the rank test in B's direction)
+    assert unstable_modes(systems.System("weak", x, u, x + 1e-7 * u, state_box=[[-1, 1]],
+                                         input_box=[[-1, 1]])) == []
+    # a nilpotent linearisation (a centre): rounding gives its eigenvalues ±2e-8, not a
+    # refusal (x' = 3x + 9y − x³, y' = −x − 3y − y³, A² = 0)
+    z = ca.SX.sym("z", 2)
+    nil = systems.System("nil", z, None, ca.vertcat(3 * z[0] + 9 * z[1] - z[0] ** 3,
+                                                    -z[0] - 3 * z[1] - z[1] ** 3),
+                         state_box=[[-1, 1], [-1, 1]])
+    assert unstable_modes(nil) == []

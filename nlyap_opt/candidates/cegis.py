@@ -690,7 +690,9 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
     pending: list[_Iterate] = []   # iterates since the last verifier call
     history = []
     margin, M, smoothing = 0.0, None, 0.0
-    limit = cfg.iterations   # grows by `extend` while the last verifier call still gains
+    # the budget (grows by `extend` while the last verifier call still gains) and the
+    # iteration after the last verifier call (windows of verify_every count from it)
+    limit, since = cfg.iterations, 0
     for it in range(cfg.iterations + cfg.extend):
         if it >= limit:
             break
@@ -722,9 +724,9 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         history.append(entry)
         pending = [*pending, here] if cfg.best_iterate else [here]
         chosen, cert = here, None
-        if last or (it + 1) % cfg.verify_every == 0:
+        if last or (it + 1 - since) % cfg.verify_every == 0:
             chosen, cert = _verify_window(pending, here, log, beat)
-            pending = []
+            pending, since = [], it + 1
         # falsifier only: the sampled violations that limit the candidate
         cert = cert or _unverified(chosen, system, dynamics, cfg, D)
         area = cert.area(areas.box, areas.count) if cert.certified else 0.0
@@ -734,8 +736,6 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
             best = CegisResult(CertStatus.CERTIFIED, chosen.V, chosen.ctrl, cert.level,
                                *chosen.margins[:2], area, history, 0.0, chosen.margins[2])
             best_state = (chosen.entry["iteration"], chosen.state)
-        if last and cert.certified and area > (1 + cfg.plateau) * prev_area:
-            limit, last = _extended(limit, cfg, area, prev_area, log)
         # the stop rule judges the current V: an earlier iterate verified in its place says
         # nothing about where training stands now
         if chosen is here and cert.certified \
@@ -744,6 +744,8 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
                 and _level_settled(chosen.cand.source, area, prev_area, cfg.plateau,
                                    cfg.boundary_feedback > 0):
             break
+        if last and cert.certified and area > (1 + cfg.plateau) * prev_area:
+            limit, last = _extended(limit, cfg, area, prev_area, log)
         if cfg.best_iterate and best is not None and not last and not pending \
                 and entry["candidate_area"] < RESUME_BELOW * best.area:
             # after a verifier call (the window's most promising iterate proved): the current

@@ -847,7 +847,8 @@ def _log_done(log, cert: RoaCertificate, summary: dict, out: Path) -> None:
             f"{100 * summary['fraction_of_true_roa']:.1f}% of the true ROA "
             f"({summary['true_roa_area']:.4g}"
             + ("" if (stays := summary.get("true_roa_stays_in_domain")) is None or stays >= 1
-               else f"; at most {100 * stays:.1f}% can stay in D")
+               else f"; no certificate in D can exceed {100 * stays:.1f}%, the share that "
+                    "stays in D")
             + f"); see {out / 'report.md'}")
     else:
         log(f"[done] status: {cert.status.value}: {cert.reason}; see {out / 'report.md'}")

@@ -73,7 +73,7 @@ from .declarations import Declarations, check_declarations
 from .samples import load_samples, sample_function
 
 __all__ = ["load_spec", "parse_expression", "to_casadi", "default_run_settings", "centre_dimension",
-           "unstable_modes", "FUNCTIONS", "ITERATIONS_3D",
+           "unstable_modes", "unstable_origin", "FUNCTIONS", "ITERATIONS_3D",
            "SYMPY_TO_CASADI", "SPEC_KEYS"]
 
 #: allowed function names -> (SymPy function, number of arguments; None: two or more)
@@ -980,6 +980,36 @@ CENTRE_TOL = 1e-9
 CENTRE_INNER_FRACTION = 1.0 / 6.0
 
 
+def _linearisation(system: System) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(A, B)`` of the model at ``(0, u_eq)`` (``B`` with no columns for an autonomous
+    system); ``None`` without a model or with a non-finite entry."""
+    if not getattr(system, "has_model", False):
+        return None
+    A = np.asarray(system.A, dtype=float)
+    n = A.shape[0]
+    B = np.asarray(system.B, dtype=float).reshape(n, -1) if system.nu else np.zeros((n, 0))
+    if not np.all(np.isfinite(A)) or not np.all(np.isfinite(B)):
+        return None
+    return A, B
+
+
+def unstable_origin(system: System) -> str | None:
+    """The one-line refusal of a system whose origin no feedback can stabilise
+    (:func:`unstable_modes`), or ``None``."""
+    unstable = unstable_modes(system)
+    if not unstable:
+        return None
+    lams = ", ".join(f"{lam.real:.4g}" + (f"{lam.imag:+.4g}i" if lam.imag else "")
+                     for lam in unstable)
+    return (f"the origin of {system.name!r} is unstable"
+            + (" under every feedback" if system.nu else "")
+            + f": ∂f/∂x(0) has eigenvalue(s) {lams} with a positive real part"
+            + (" that no input moves" if system.nu else "")
+            + ", so no region of attraction exists; check the signs of the right-hand side"
+            + (" and which states the inputs enter" if system.nu else
+               ", or declare an input that acts on that mode"))
+
+
 def centre_dimension(system: System) -> int:
     r"""The number of eigenvalues of the linearisation ``A = ∂f/∂x(0, u_eq)`` on the
     imaginary axis that no input can move (0 for a system without a model).
@@ -999,13 +1029,11 @@ def centre_dimension(system: System) -> int:
     >>> centre_dimension(systems.load_spec("examples/fossil_poly1.toml"))  # doctest: +SKIP
     1
     """
-    if not getattr(system, "has_model", False):
+    AB = _linearisation(system)
+    if AB is None:
         return 0
-    A = np.asarray(system.A, dtype=float)
+    A, B = AB
     n = A.shape[0]
-    B = np.asarray(system.B, dtype=float).reshape(n, -1) if system.nu else np.zeros((n, 0))
-    if not np.all(np.isfinite(A)) or not np.all(np.isfinite(B)):
-        return 0
     tol = CENTRE_TOL * max(1.0, float(np.linalg.norm(A, 2)))
     axis = [lam for lam in np.linalg.eigvals(A) if abs(lam.real) <= tol]
     if not system.nu:
@@ -1070,13 +1098,11 @@ def unstable_modes(system: System) -> list[complex]:
     >>> [round(v.real, 4) for v in unstable_modes(saddle)]
     [0.7808]
     """
-    if not getattr(system, "has_model", False):
+    AB = _linearisation(system)
+    if AB is None:
         return []
-    A = np.asarray(system.A, dtype=float)
+    A, B = AB
     n = A.shape[0]
-    B = np.asarray(system.B, dtype=float).reshape(n, -1) if system.nu else np.zeros((n, 0))
-    if not np.all(np.isfinite(A)) or not np.all(np.isfinite(B)):
-        return []
     # a refusal only on a clear case: rounding moves an eigenvalue of a Jordan block of
     # size k by about eps^(1/k)·‖A‖ (a nilpotent 2×2 A gets eigenvalues ±2e-8)
     scale = max(1.0, float(np.linalg.norm(A, 2)))

@@ -438,7 +438,7 @@ def test_probe_points_is_a_dynamics_config_key():
     # x1' = x1 is unstable and the input enters only x2
     ('states = ["x1", "x2"]\ninputs = ["u"]\nstate_box = [[-1, 1], [-1, 1]]\n'
      'input_box = [[-1, 1]]\nu_eq = [0.0]\n[rhs]\nx1 = "x1"\nx2 = "-x2 + u"',
-     ["under every feedback", "eigenvalue 1 cannot be moved by the inputs"]),
+     ["under every feedback", "eigenvalue(s) 1 with a positive real part that no input moves"]),
 ])
 @pytest.mark.parametrize("known", [True, False])
 def test_run_refuses_an_origin_no_feedback_can_stabilise(body, words, known, tmp_path,

@@ -1112,13 +1112,11 @@ def _check_controller(rc: RunConfig, s, where: str) -> None:
                     "stabilise it; drop the inputs if the other states are stable without "
                     "them (an autonomous system with a centre is supported), or let an input "
                     "reach the centre") from None
-            why = " ".join(str(err).split())
-            if systems.spec.unstable_modes(s):   # no weights can help: say the mode
-                raise ConfigError(f"{where}: the origin of {s.name} is unstable under every "
-                                  f"feedback, so no region of attraction exists: {why}"
-                                  ) from None
+            unstable = systems.spec.unstable_origin(s)   # no weights can help: say so
+            if unstable:
+                raise ConfigError(f"{where}: {unstable}") from None
             raise ConfigError(f"{where}: no LQR start for {s.name} with these lqr weights "
-                              f"({why}); use moderate weights") from None
+                              f"({' '.join(str(err).split())}); use moderate weights") from None
 
 
 def check_lqr_weights(system, Q=None, R=None, *, where: str = "lqr",

@@ -206,6 +206,27 @@ def test_corrupt_stage_files_are_recomputed(known_runs, tmp_path):
     assert res.certified and res.summary["level"] == cert["level"]   # deterministic rerun
 
 
+def test_a_true_roa_cache_with_the_right_key_but_wrong_arrays_is_simulated_again(
+        known_runs, tmp_path):
+    """true_roa.npz is checked, not trusted: its key alone does not make arrays of another
+    shape (or type) the true ROA; the run simulates again and reports the same figures."""
+    import numpy as np
+
+    d, cert = _copy_run(known_runs, tmp_path)
+    with np.load(d / "true_roa.npz") as z:
+        key, mask = str(z["key"]), z["mask"]
+    bad = np.ones((3, 3), bool)
+    np.savez_compressed(d / "true_roa.npz", mask=bad, undecided=bad, elsewhere=bad, stays=bad,
+                        key=key)
+    logs = []
+    res = run("van_der_pol", get_config("van_der_pol", "fast"), d, known_dynamics=True,
+              log=logs.append)
+    assert any("true ROA by simulation" in m for m in logs)
+    assert res.summary["true_roa_area"] == cert["true_roa_area"]
+    with np.load(d / "true_roa.npz") as z:
+        assert np.array_equal(z["mask"], mask)
+
+
 def test_second_run_into_a_locked_directory_is_refused(known_runs, tmp_path):
     import subprocess
     import sys

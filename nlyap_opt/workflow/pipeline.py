@@ -1367,9 +1367,10 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     elif cache.exists():
         try:
             with np.load(cache) as z:
-                if str(z["key"]) == ckey:
-                    true_mask, undecided, elsewhere, stays = (
-                        z["mask"], z["undecided"], z["elsewhere"], z["stays"])
+                saved = [z[k] for k in ("mask", "undecided", "elsewhere", "stays")] \
+                    if str(z["key"]) == ckey else []
+                if saved and all(a.shape == shape and a.dtype == bool for a in saved):
+                    true_mask, undecided, elsewhere, stays = saved
         except (OSError, ValueError, KeyError):
             log("warning: true_roa.npz is unreadable; simulating again")
     if true_mask is None:

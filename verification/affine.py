@@ -376,7 +376,7 @@ class _Relax:
         self.f, self.df, self.slope, self.crit, self.pieces = f, df, slope, crit, pieces
 
 
-def relaxation(op: int, lo, hi):
+def relaxation(op: int, lo, hi, alpha=None):
     """A sound linear relaxation ``f(t) - α t ∈ [dl, dh]`` for ``t`` in ``[lo, hi]``.
 
     ``op``: a CasADi unary operation code; ``None`` when it has no relaxation here (see
@@ -384,17 +384,23 @@ def relaxation(op: int, lo, hi):
     float slopes ``α`` and
     rigorous bounds ``dl <= f(t) - α t <= dh`` over the range (real arithmetic), where
     ``ok``; elsewhere (two inflection points in the range, infinite ends) nothing is
-    claimed and ``α = 0``. Used by the forward forms (:func:`_relax_unary`) and by the
-    backward bound propagation (:mod:`verification.backward`).
+    claimed and ``α = 0``. ``alpha`` (float array of the shape of ``lo``): these slopes
+    instead of the Chebyshev ones (any finite float is sound: the bounds ``dl``, ``dh``
+    are those of ``f(t) - α t`` for the slope given; a non-finite slope is not ``ok``).
+    Used by the forward forms (:func:`_relax_unary`) and by the backward bound
+    propagation (:mod:`verification.backward`, whose optimised slopes come in ``alpha``).
     """
     rel = _RELAX.get(op)
     if rel is None:
         return None
-    return _relaxation(rel, lo, hi)
+    if alpha is None:
+        return _relaxation(rel, lo, hi)
+    with np.errstate(all="ignore"):  # any slope: the critical points may be infinite
+        return _relaxation(rel, lo, hi, alpha)
 
 
-def _relaxation(rel: _Relax, lo, hi):
-    """:func:`relaxation` for the relaxation ``rel``."""
+def _relaxation(rel: _Relax, lo, hi, given=None):
+    """:func:`relaxation` for the relaxation ``rel`` (``given``: its ``alpha``)."""
     ok, q_lo, q_hi, cvx_l, cvx_r = rel.pieces(lo, hi)
     ok = ok & np.isfinite(lo) & np.isfinite(hi)
     shape = np.shape(lo)
@@ -406,7 +412,11 @@ def _relaxation(rel: _Relax, lo, hi):
     th = np.where(ok, hi, 1.0).ravel()
     fl = rel.f(tl, tl)  # enclosures of f at the ends of the range
     fh = rel.f(th, th)
-    alpha = rel.slope(tl, th, 0.5 * fl[0] + 0.5 * fl[1], 0.5 * fh[0] + 0.5 * fh[1])
+    if given is None:
+        alpha = rel.slope(tl, th, 0.5 * fl[0] + 0.5 * fl[1], 0.5 * fh[0] + 0.5 * fh[1])
+    else:
+        alpha = np.array(np.broadcast_to(given, shape), dtype=float).ravel()
+        ok = ok & np.isfinite(alpha).reshape(shape)
     alpha = np.where(ok.ravel() & np.isfinite(alpha), alpha, 0.0)
     q_lo = to_shape(q_lo, shape).ravel()
     q_hi = to_shape(q_hi, shape).ravel()

@@ -46,11 +46,16 @@ rearrangements) add nothing. Relaxations and corner bounds are rigorous in real
 arithmetic over the forward ranges, which enclose the registers' real values. A NaN or an
 unbounded range where ``Λ ≠ 0`` makes the bound ``−inf`` (nothing claimed).
 
-Scope
------
-The slopes are fixed (the relaxations' Chebyshev slopes, the centre planes of products),
-not optimised per box as α-CROWN does, and intermediate ranges come from the forward
-forms, not from backward passes of their own.
+Slopes
+------
+By default the slopes are fixed: the relaxations' Chebyshev slopes (one slope for both
+sides), the tangent at the range's centre for ``t²``, the centre planes of products. With
+``slope_steps`` the slopes of ``tanh``, ``exp``, ``sin``, ``cos``, ``sqrt``, ``1/x`` (a lower
+and an upper one) and the tangent points of ``t²`` are optimised per box and direction
+(:mod:`verification.slopes`), as α-CROWN does; any float slope is sound, because each
+offset is computed rigorously for the slope given, so the optimiser's own arithmetic needs
+no care. Intermediate ranges come from the forward forms, not from backward passes of
+their own; the product planes stay fixed.
 """
 
 from __future__ import annotations
@@ -119,7 +124,8 @@ class _Node:
         return np.where(m == m, m, _INF)
 
 
-def _var(n: _Node) -> bool:
+def is_varying(n: _Node) -> bool:
+    """Whether node ``n`` varies with the input (it has a backward rule; else a leaf)."""
     return n.kind is not None
 
 
@@ -164,7 +170,7 @@ class _Tape:
         a = self._node(a)
         if op == ca.OP_ASSIGN:
             return a
-        if not _var(a):
+        if not is_varying(a):
             return self._leaf(_AA.unary(op, a.val), a.batched)
         if op in (ca.OP_NEG, ca.OP_TWICE):
             return self._new(_AA.unary(op, a.val), "scale", [a],
@@ -176,12 +182,12 @@ class _Tape:
             relaxed = relaxation(op, r.lo, r.hi)
         if relaxed is None:
             return self._leaf(_AA.unary(op, a.val), True)
-        return self._new(_AA.unary(op, a.val, relaxed), "relax", [a], relaxed)
+        return self._new(_AA.unary(op, a.val, relaxed), "relax", [a], (op,) + tuple(relaxed))
 
     def binary(self, op: int, a, b) -> _Node:
         a = self._node(a)
         b = self._node(b)
-        if not (_var(a) or _var(b)):
+        if not (is_varying(a) or is_varying(b)):
             return self._leaf(_AA.binary(op, a.val, b.val), a.batched or b.batched)
         if op in (ca.OP_ADD, ca.OP_SUB):
             return self._new(_AA.binary(op, a.val, b.val), "add", [a, b],
@@ -190,7 +196,7 @@ class _Tape:
             return self._new(_AA.binary(op, a.val, b.val), "mul", [a, b])
         if op == ca.OP_DIV:  # a / b = a · (1/b), as the forward forms relax it
             return self.binary(ca.OP_MUL, a, self.unary(ca.OP_INV, b))
-        if op in (ca.OP_POW, ca.OP_CONSTPOW) and _var(a) and not _var(b):
+        if op in (ca.OP_POW, ca.OP_CONSTPOW) and is_varying(a) and not is_varying(b):
             k = _small_power(b.val)
             if k is not None:
                 return self._ipow(a, k)
@@ -208,14 +214,14 @@ class _Tape:
         a = self._node(a)
         b = self._node(b)
         val = _AA.matmul(a.val, b.val)
-        if _var(a) != _var(b) and a.val.ndim >= 2 and b.val.ndim >= 2:
+        if is_varying(a) != is_varying(b) and a.val.ndim >= 2 and b.val.ndim >= 2:
             return self._new(val, "matmul", [a, b])
         return self._leaf(val, a.batched or b.batched)
 
     def sum(self, a, axis=None) -> _Node:
         a = self._node(a)
         val = _AA.sum(a.val, axis)
-        if not _var(a):
+        if not is_varying(a):
             return self._leaf(val, a.batched)
         nd = a.val.ndim
         axes = tuple(range(nd)) if axis is None else (
@@ -229,7 +235,7 @@ class _Tape:
         nodes = [self._node(x) for x in args]
         val = _AA.structural(fn, *[n.val for n in nodes])
         batched = any(n.batched for n in nodes)
-        if not any(_var(n) for n in nodes):
+        if not any(is_varying(n) for n in nodes):
             return self._leaf(val, batched)
         maps = _struct_map(fn, nodes, val.shape)
         if maps is None:
@@ -263,7 +269,8 @@ def _diff(a: tuple, b: tuple):
     return r.lo, r.hi
 
 
-def _tail(n: _Node) -> tuple[int, ...]:
+def tail_shape(n: _Node) -> tuple[int, ...]:
+    """The shape of one box's value of node ``n`` (without the boxes' axis)."""
     return tuple(n.val.shape[1:]) if n.batched else tuple(n.val.shape)
 
 
@@ -276,7 +283,7 @@ def _struct_map(fn, nodes, out_shape):
     """
     arrays, spans, off = [], [], 0
     for n in nodes:
-        tail = _tail(n)
+        tail = tail_shape(n)
         size = int(np.prod(tail, dtype=np.int64))
         ids = np.arange(off + 1, off + size + 1, dtype=float)
         arrays.append(ids.reshape(((1,) if n.batched else ()) + tail))
@@ -358,13 +365,13 @@ class _Pass:
 
     def give(self, n: _Node, L) -> None:
         """Hand ``Λ`` (``(m, B) + tail``, broadcastable to ``n``) to node ``n``."""
-        if not _var(n):  # concretise on the leaf's range
+        if not is_varying(n):  # concretise on the leaf's range
             r = n.rng()
             shape = L.shape[1:]
             self.add_low(_lower_dot(L, np.broadcast_to(r.lo, shape),
                                     np.broadcast_to(r.hi, shape)))
             return
-        tail = _tail(n)
+        tail = tail_shape(n)
         full = L.shape[:2] + tail
         if L.shape != full:  # sum over the axes ``n`` was broadcast along (float sums)
             extra = L.ndim - len(full)
@@ -398,8 +405,14 @@ class _Pass:
         self.give(a, La)
 
 
-def _step(P: _Pass, n: _Node, L) -> None:
-    """Replace ``Λ_n·n`` by a bound linear in ``n``'s arguments (module docstring)."""
+def _step(P: _Pass, n: _Node, L, slopes: dict | None = None) -> None:
+    """Replace ``Λ_n·n`` by a bound linear in ``n``'s arguments (module docstring).
+
+    ``slopes``: per node id, the slopes of :mod:`verification.slopes` (``relax``: the
+    lower and upper slopes; ``sq``: the tangent points; ``mul`` of two varying values: the
+    planes' slopes ``(sa, sb)`` below and above), ``(m, B) + tail`` each, instead of the
+    fixed ones.
+    """
     k = n.kind
     if k == "input":
         P.add_low(_lower_dot(L, P.lo, P.hi))
@@ -415,16 +428,19 @@ def _step(P: _Pass, n: _Node, L) -> None:
                              L.shape[:1] + a.val.shape)
         P.give(a, La)
     elif k == "relax":
+        if slopes is not None and id(n) in slopes:
+            _relax_given(P, n, L, *slopes[id(n)])
+            return
         a = n.args[0]
-        alpha, dl, dh, ok = n.data
+        _, alpha, dl, dh, ok = n.data
         r = n.rng()
         P.add_low(_lower_dot(L, np.where(ok, dl, r.lo), np.where(ok, dh, r.hi)))
         if ok.any():
             P.times(a, L, alpha)
     elif k == "sq":
-        _sq_step(P, n, L)
+        _sq_step(P, n, L, slopes[id(n)][0] if slopes is not None and id(n) in slopes else None)
     elif k == "mul":
-        _mul_step(P, n, L)
+        _mul_step(P, n, L, slopes.get(id(n)) if slopes is not None else None)
     elif k == "matmul":
         _matmul_step(P, n, L)
     elif k == "struct":
@@ -433,13 +449,35 @@ def _step(P: _Pass, n: _Node, L) -> None:
         raise AssertionError(k)
 
 
-def _sq_step(P: _Pass, n: _Node, L) -> None:
+def _relax_given(P: _Pass, n: _Node, L, alpha_l, alpha_u) -> None:
+    """The ``relax`` step with slopes ``alpha_l`` below (where ``Λ >= 0``) and
+    ``alpha_u`` above (where ``Λ < 0``): each with the rigorous offset of
+    :func:`~verification.affine.relaxation` for that slope; where one is not ``ok``,
+    slope 0 and the node's range."""
+    a = n.args[0]
+    op = n.data[0]
+    ra, r = a.rng(), n.rng()
+    shape = L.shape
+    lo, hi = np.broadcast_to(ra.lo, shape), np.broadcast_to(ra.hi, shape)
+    with fp_ignore():
+        s_l, dl, _, ok_l = relaxation(op, lo, hi, alpha_l)
+        s_u, _, dh, ok_u = relaxation(op, lo, hi, alpha_u)
+    kl = np.where(ok_l, dl, np.broadcast_to(r.lo, shape))
+    ku = np.where(ok_u, dh, np.broadcast_to(r.hi, shape))
+    P.add_low(_lower_dot(L, kl, ku))
+    P.times(a, L, np.where(L >= 0, np.where(ok_l, s_l, 0.0), np.where(ok_u, s_u, 0.0)))
+
+
+def _sq_step(P: _Pass, n: _Node, L, points=None) -> None:
+    """``t²``: the tangent at ``points`` (``(m, B) + tail``; default: the range's centre)
+    below, the secant above."""
     a = n.args[0]
     r = a.rng()
     with fp_ignore():
         lo, hi = r.lo, r.hi
-        p = np.minimum(np.maximum(0.5 * lo + 0.5 * hi, lo), hi)
-        s_low = 2.0 * p  # tangent at p: t² - 2 p t = (t - p)² - p² >= -p²
+        p = np.minimum(np.maximum(0.5 * lo + 0.5 * hi, lo), hi) if points is None else \
+            np.where(np.isfinite(points), points, 0.0)
+        s_low = 2.0 * p  # tangent at p: t² - 2 p t = (t - p)² - p² >= -p² (any float p)
         k_low = -up(p * p)
         s_up = lo + hi  # secant slope (any float: t² - s t is convex, its max at an end)
         k_up = np.maximum(_sq_minus(lo, s_up), _sq_minus(hi, s_up))
@@ -457,7 +495,7 @@ def _sq_minus(t, s):
     return _diff(_point_mul(t, t), _point_mul(s, t))[1]
 
 
-def _centre_radius(n: _Node):
+def centre_radius(n: _Node):
     """``(c, e)`` with ``[c - e, c + e]`` holding the value of leaf ``n`` on the box.
 
     A leaf's form may still have input coefficients (a product of two varying matrices,
@@ -468,21 +506,47 @@ def _centre_radius(n: _Node):
     return to_shape(val.c, val.shape), to_shape(val.e, val.shape)
 
 
-def _mul_step(P: _Pass, n: _Node, L) -> None:
+def _mul_step(P: _Pass, n: _Node, L, planes=None) -> None:
+    """``a b``: one factor constant (a centre and radius), or the planes of
+    :func:`mul_planes` (``planes``: the slopes ``(sa, sb)`` below, then above)."""
     a, b = n.args
-    if not _var(b) or not _var(a):
-        v, c = (a, b) if _var(a) else (b, a)  # v varies, c = centre ± radius
-        cc, ce = _centre_radius(c)
+    if not is_varying(b) or not is_varying(a):
+        v, c = (a, b) if is_varying(a) else (b, a)  # v varies, c = centre ± radius
+        cc, ce = centre_radius(c)
         P.times(v, L, cc, ce)
         return
+    if planes is None:
+        sa, sb, k_low, k_up = mul_planes(n)
+    else:  # a plane below (where Λ >= 0) and one above (where Λ < 0)
+        sa_l, sb_l, k_low, _ = mul_planes(n, planes[0], planes[1])
+        sa_u, sb_u, _, k_up = mul_planes(n, planes[2], planes[3])
+        sa, sb = np.where(L >= 0, sa_l, sa_u), np.where(L >= 0, sb_l, sb_u)
+    P.add_low(_lower_dot(L, k_low, k_up))
+    P.times(a, L, sa)
+    P.times(b, L, sb)
+
+
+def mul_planes(n: _Node, sa=None, sb=None):
+    """``(sa, sb, k_low, k_up)`` of a product ``a b`` of two varying values: the plane
+    ``sa a + sb b`` (default: through the ranges' centres; ``sa``, ``sb`` given: any
+    floats, broadcast with the ranges) and rigorous bounds ``[k_low, k_up]`` of
+    ``a b − sa a − sb b`` over the ranges (slopes 0 and the product's range where a range
+    or a slope is not finite)."""
+    a, b = n.args
     ra, rb = a.rng(), b.rng()
     with fp_ignore():
-        shape = np.broadcast_shapes(ra.lo.shape, rb.lo.shape)
+        shape = np.broadcast_shapes(ra.lo.shape, rb.lo.shape, np.shape(sa) if sa is not None
+                                    else (), np.shape(sb) if sb is not None else ())
         al, ah = np.broadcast_to(ra.lo, shape), np.broadcast_to(ra.hi, shape)
         bl, bh = np.broadcast_to(rb.lo, shape), np.broadcast_to(rb.hi, shape)
-        sa = np.minimum(np.maximum(0.5 * bl + 0.5 * bh, bl), bh)  # slope for a: b's centre
-        sb = np.minimum(np.maximum(0.5 * al + 0.5 * ah, al), ah)
         fin = np.isfinite(al) & np.isfinite(ah) & np.isfinite(bl) & np.isfinite(bh)
+        if sa is None:
+            sa = np.minimum(np.maximum(0.5 * bl + 0.5 * bh, bl), bh)  # b's centre
+            sb = np.minimum(np.maximum(0.5 * al + 0.5 * ah, al), ah)
+        else:
+            sa = np.broadcast_to(np.asarray(sa, dtype=float), shape)
+            sb = np.broadcast_to(np.asarray(sb, dtype=float), shape)
+            fin = fin & np.isfinite(sa) & np.isfinite(sb)
         sa = np.where(fin, sa, 0.0)
         sb = np.where(fin, sb, 0.0)
         # a b - sa a - sb b = (a - sb)(b - sa) - sa sb exactly (real arithmetic): one
@@ -495,22 +559,20 @@ def _mul_step(P: _Pass, n: _Node, L) -> None:
         y = n.rng()  # where a range is unbounded: slopes 0 and the product's own range
         k_low = np.where(fin, k_low, np.broadcast_to(y.lo, shape))
         k_up = np.where(fin, k_up, np.broadcast_to(y.hi, shape))
-    P.add_low(_lower_dot(L, k_low, k_up))
-    P.times(a, L, sa)
-    P.times(b, L, sb)
+    return sa, sb, k_low, k_up
 
 
 def _matmul_step(P: _Pass, n: _Node, L) -> None:
     a, b = n.args
-    if not _var(a):  # y = A X: Λ_X = Aᵀ Λ_y
-        cA, eA = (np.swapaxes(v, -1, -2) for v in _centre_radius(a))
+    if not is_varying(a):  # y = A X: Λ_X = Aᵀ Λ_y
+        cA, eA = (np.swapaxes(v, -1, -2) for v in centre_radius(a))
         r = a.val.shape[-2]
         with fp_ignore():
             LX = cA @ L
             R = up_roundings((gamma(r + 2) * np.abs(cA) + eA) @ np.abs(L), r + 4)
         x = b
     else:  # y = X A: Λ_X = Λ_y Aᵀ
-        cA, eA = (np.swapaxes(v, -1, -2) for v in _centre_radius(b))
+        cA, eA = (np.swapaxes(v, -1, -2) for v in centre_radius(b))
         c = b.val.shape[-1]
         with fp_ignore():
             LX = L @ cA
@@ -540,7 +602,8 @@ def _struct_step(P: _Pass, n: _Node, L) -> None:
 
 
 def backward_bounds(fun: ca.Function, lo: np.ndarray, hi: np.ndarray,
-                    directions: np.ndarray) -> tuple[np.ndarray, Affine]:
+                    directions: np.ndarray, slope_steps: int = 0,
+                    decided=None) -> tuple[np.ndarray, Affine]:
     """Lower bounds of ``d·F(x)`` over boxes for each direction ``d``, and ``F``'s forms.
 
     Parameters
@@ -551,6 +614,16 @@ def backward_bounds(fun: ca.Function, lo: np.ndarray, hi: np.ndarray,
         The boxes.
     directions : (m, K) ndarray
         Directions ``d`` (``e_k`` bounds output ``k`` from below, ``-e_k`` from above).
+    slope_steps : int, optional
+        ``0`` (default): the fixed slopes. ``k > 0``: also optimise the slopes of the
+        relaxations (one lower and one upper slope per ``tanh``, ``exp``, ... entry, one
+        tangent point per ``t²`` entry, per box and direction) by ``k`` gradient steps on
+        a floating-point model of the bound (:mod:`verification.slopes`, as α-CROWN does),
+        run the rigorous pass again with them and keep the larger of the two bounds.
+    decided : callable, optional
+        With ``slope_steps``: ``decided(low)`` for bounds ``low`` ``(m, B)`` says per box
+        whether they are enough; the optimisation stops once the model's bounds are enough
+        for every box.
 
     Returns
     -------
@@ -563,22 +636,34 @@ def backward_bounds(fun: ca.Function, lo: np.ndarray, hi: np.ndarray,
     lo = np.asarray(lo, dtype=float)
     hi = np.asarray(hi, dtype=float)
     D = np.asarray(directions, dtype=float)
-    B = len(lo)
     _TAPE.start()
     try:
         out = _TAPE._node(evaluate(fun, [_TAPE.input(lo, hi)], _TAPE)[0])
         nodes = _TAPE.nodes
     finally:
         _TAPE.start()  # drop the references of this pass
-    m = len(D)
+    low = _bound(nodes, out, D, lo, hi, None)
+    if slope_steps > 0 and nodes and len(lo):
+        from .slopes import optimise_slopes  # lazy: torch, only when slopes are optimised
+
+        slopes = optimise_slopes(nodes, out, D, lo, hi, int(slope_steps), decided)
+        if slopes:
+            low = np.maximum(low, _bound(nodes, out, D, lo, hi, slopes))
+    return low, out.val
+
+
+def _bound(nodes, out: _Node, D, lo, hi, slopes) -> np.ndarray:
+    """One rigorous backward pass over the recorded ``nodes`` (``slopes``: see
+    :func:`_step`); the lower bounds ``(m, B)``."""
+    m, B = len(D), len(lo)
     P = _Pass(m, B, lo, hi)
-    K = int(np.prod(_tail(out), dtype=np.int64))
-    L0 = np.broadcast_to(D[:, None, :], (m, B, K)).reshape((m, B) + _tail(out))
+    K = int(np.prod(tail_shape(out), dtype=np.int64))
+    L0 = np.broadcast_to(D[:, None, :], (m, B, K)).reshape((m, B) + tail_shape(out))
     P.give(out, L0)
     for n in reversed(nodes):
         L = P.lam.pop(id(n), None)
         if L is not None:
-            _step(P, n, L)
+            _step(P, n, L, slopes)
     with fp_ignore():
         low = dn_sum(P.low - P.res)
-    return np.where(low == low, low, -_INF), out.val
+    return np.where(low == low, low, -_INF)

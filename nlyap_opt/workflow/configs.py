@@ -64,7 +64,7 @@ from typing import Any
 import numpy as np
 
 import systems
-from verification.verify import file_options
+from verification.verify import file_options, option_conflict
 
 from ..candidates.quadratic import QUADRATIC_CANDIDATES
 from ..candidates.sos import SOSConfig, choose_degree
@@ -628,6 +628,9 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
         "affine": "intersect the interval enclosures with affine-form ranges",
         "backward": "with affine: also backward linear bound propagation (CROWN style); "
                     "fewer boxes on deep networks, about twice the cost per box",
+        "slope_steps": "with backward: optimise the relaxations' slopes per box by this many "
+                       "gradient steps on the boxes the fixed slopes leave undecided "
+                       "(α-CROWN style; 0: fixed slopes)",
         "presearch": "sampled points (with gradient ascent) searched for a counterexample "
                      "before bisection (0: none)",
         "presearch_boundary": "where those find none, points moved onto the region's "
@@ -1024,6 +1027,9 @@ def _check_values(rc: RunConfig, where: str) -> None:
                 _check_value(sch[name][sub], sv, where)
     for opt, ov in rc.cegis.verify_options.items():
         _check_value(sch["cegis.verify_options"][opt], ov, where)
+    conflict = option_conflict(rc.cegis.verify_options)
+    if conflict:
+        raise ConfigError(f"{where}: cegis.verify_options: {conflict}")
 
 
 def _check_region(rc: RunConfig, s, where: str) -> None:

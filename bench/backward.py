@@ -5,14 +5,16 @@ Part 1, enclosures: seeded random tanh networks V (two hidden layers of 32 in 4-
 of 30 in 2-D) and one-layer tanh controllers (16 units, weights scaled by 0.3), closed
 with the cartpole's, the planar quadrotor's and Van der Pol's true f; 1000 random boxes of
 side ``w`` in [-0.5, 0.5]^n. Printed: the median over boxes of (upper bound - largest of
-34 sampled values) of V and of ∇V·f, for the forward affine forms and for their meet with
-the backward bound, and the seconds of one pass of each over the 1000 boxes.
+34 sampled values) of V and of ∇V·f, for the forward affine forms, for their meet with
+the backward bound, and for the backward bound with ``--slope-steps`` optimisation steps
+of its slopes (α-CROWN style), and the seconds of one pass of each over the 1000 boxes.
 
 Part 2, verification: the queries of ``bench/verify.py`` (seed-paper networks, the
-200-neuron φ, the 2-30-30 V, the 4-D coupled oscillators) with the default verifier and
-with ``backward=True``: boxes and CPU seconds (best of ``--repeat``).
+200-neuron φ, the 2-30-30 V, the 4-D coupled oscillators) with the default verifier, with
+``backward=True`` and with ``backward=True, slope_steps=K``: boxes and CPU seconds (best
+of ``--repeat``).
 
-    python bench/backward.py [--repeat 3] [--part 1 2]
+    python bench/backward.py [--repeat 3] [--part 1 2] [--slope-steps 20]
 """
 
 from __future__ import annotations
@@ -46,11 +48,12 @@ def _net(rng, sizes, scale=1.0) -> Network:
     return Network(layers)
 
 
-def enclosures() -> None:
+def enclosures(steps: int) -> None:
     rng = np.random.default_rng(1)
-    print("| system | V, κ | w | V: affine | V: with backward | ∇V·f: affine | "
-          "∇V·f: with backward | s affine | s backward |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print(f"| system | V, κ | w | V: affine | V: with backward | V: {steps} slope steps | "
+          f"∇V·f: affine | ∇V·f: with backward | ∇V·f: {steps} slope steps | s affine | "
+          "s backward | s slopes |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, Vs, Ks in (("cartpole", [4, 32, 32, 1], [4, 16, 1]),
                          ("planar_quadrotor", [6, 32, 32, 1], [6, 16, 2]),
                          ("van_der_pol", [2, 30, 30, 1], None)):
@@ -73,22 +76,26 @@ def enclosures() -> None:
             t = time.perf_counter()
             low, _ = backward_bounds(F, lo, hi, -np.eye(2))
             tb = time.perf_counter() - t
+            t = time.perf_counter()
+            opt, _ = backward_bounds(F, lo, hi, -np.eye(2), slope_steps=steps)
+            to = time.perf_counter() - t
             pts = lo[:, None, :] + (hi - lo)[:, None, :] * rng.uniform(size=(B, S, n))
             pts = np.concatenate([pts, lo[:, None], hi[:, None]], axis=1)
             vals = np.array(F(pts.reshape(-1, n).T)).T.reshape(B, S + 2, 2).max(axis=1)
             gaps = []
             for k in range(2):
-                if np.any(-low[k] < vals[:, k]):
+                if np.any(-low[k] < vals[:, k]) or np.any(-opt[k] < vals[:, k]):
                     raise SystemExit("backward bound below a sampled value: unsound")
                 gaps += [np.median(aff.hi[:, k] - vals[:, k]),
-                         np.median(np.minimum(aff.hi[:, k], -low[k]) - vals[:, k])]
+                         np.median(np.minimum(aff.hi[:, k], -low[k]) - vals[:, k]),
+                         np.median(np.minimum(aff.hi[:, k], -opt[k]) - vals[:, k])]
             arch = "-".join(map(str, Vs)) + (", " + "-".join(map(str, Ks)) if Ks else "")
-            print(f"| {name} | {arch} | {w:g} | {gaps[0]:.3g} | {gaps[1]:.3g} | {gaps[2]:.3g} | "
-                  f"{gaps[3]:.3g} | {ta:.3f} | {tb:.3f} |")
+            print(f"| {name} | {arch} | {w:g} | " + " | ".join(f"{g:.3g}" for g in gaps)
+                  + f" | {ta:.3f} | {tb:.3f} | {to:.3f} |")
     print()
 
 
-def queries(repeat: int) -> None:
+def queries(repeat: int, steps: int) -> None:
     import distributed_verify as dv
     import verify as bv
 
@@ -112,14 +119,17 @@ def queries(repeat: int) -> None:
     rows.append(("(iii) V 2-30-30, 0.97 of the candidate level",
                  lyapunov_problem(cl.x, Vx, lie, inner=0.2, outer=2.5, level=0.97 * cand.level)))
     rows.append(("4-D coupled oscillators (16 tanh units)", dv.problem_4d()))
-    print("| query | verdict | boxes | CPU s | with backward: verdict | boxes | CPU s |")
-    print("|---|---|---|---|---|---|---|")
+    print("| query | verdict | boxes | CPU s | with backward: verdict | boxes | CPU s | "
+          f"with {steps} slope steps: verdict | boxes | CPU s |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for label, p in rows:
         verify(p)  # compile
         (_, ca_), r = bv._timed(lambda p=p: verify(p), repeat)  # best CPU seconds
         (_, cb), rb = bv._timed(lambda p=p: verify(p, backward=True), repeat)
+        (_, co), ro = bv._timed(lambda p=p: verify(p, backward=True, slope_steps=steps),
+                                repeat)
         print(f"| {label} | {r.status} | {r.boxes} | {ca_:.3f} | {rb.status} | {rb.boxes} | "
-              f"{cb:.3f} |")
+              f"{cb:.3f} | {ro.status} | {ro.boxes} | {co:.3f} |")
     print()
 
 
@@ -127,14 +137,17 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--part", type=int, nargs="*", default=[1, 2], choices=[1, 2])
+    ap.add_argument("--slope-steps", type=int, default=20,
+                    help="optimisation steps of the slopes in the third variant")
     args = ap.parse_args(argv)
     from distributed_verify import machine
 
-    print(f"`python bench/backward.py --repeat {args.repeat}` on {machine()}\n")
+    print(f"`python bench/backward.py --repeat {args.repeat} --slope-steps {args.slope_steps}`"
+          f" on {machine()}\n")
     if 1 in args.part:
-        enclosures()
+        enclosures(args.slope_steps)
     if 2 in args.part:
-        queries(args.repeat)
+        queries(args.repeat, args.slope_steps)
 
 
 if __name__ == "__main__":

@@ -43,7 +43,8 @@ def verify(problem: VerificationProblem, *, backend: str = "interval",
     **options
         Backend options. Interval: ``resolution`` (smallest box width; below it a box is
         ``unknown``), ``max_boxes``, ``batch``, ``mean_value``, ``affine``, ``backward``
-        (backward linear bound propagation, off by default), ``second_order``, ``presearch``,
+        (backward linear bound propagation, off by default), ``slope_steps`` (with
+        ``backward``: optimised slopes, 0 by default), ``second_order``, ``presearch``,
         ``stop_at_first``, ``keep_leaves``, ``executor`` (any
         ``concurrent.futures.Executor``: a process pool or a Dask client's executor),
         ``n_tasks``. dReal: ``precision``.

@@ -79,6 +79,21 @@ def case(name: str) -> tuple[str, float | None, dict]:
     return target, peer, {}
 
 
+def _bad_case(name: str) -> str | None:
+    """Why ``name`` is not a case (``None``: it is one)."""
+    if name.endswith(".toml"):
+        return None if (ROOT / name).is_file() or Path(name).is_file() else \
+            f"--cases: no spec file {name!r}"
+    if name.endswith("@large"):
+        system = name[:-len("@large")]
+        return None if system in LARGE_SHARES else (
+            f"--cases: {name!r}: no large preset for {system!r}; NAME@large takes one of "
+            f"{', '.join(LARGE_SHARES)}")
+    return None if name in CASES else (
+        f"--cases: unknown case {name!r}; use one of {', '.join(CASES)}, NAME@large "
+        f"(NAME: {', '.join(LARGE_SHARES)}) or a spec file's path (examples/X.toml)")
+
+
 def _machine() -> str:
     return (f"{platform.node()}: {platform.processor() or platform.machine()}, "
             f"{os.cpu_count()} CPUs, Python {platform.python_version()}")
@@ -128,6 +143,14 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=None, help="train.seed of every run")
     ap.add_argument("--out", default=None, help="keep the runs here (default: a temp dir)")
     args = ap.parse_args()
+    for name in args.cases.split(","):
+        bad = _bad_case(name)
+        if bad:
+            ap.error(bad)
+    for setting in args.settings.split(","):
+        if setting not in ("known", "learned"):
+            ap.error(f"--settings: unknown setting {setting!r}; use known, learned or both "
+                     "(comma-separated)")
     base = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="nlyap_default_"))
     print(f"machine: {_machine()}; load average {os.getloadavg()[0]:.1f} at the start")
     print("| case | f | status | share % | stays in D % | peer % | wall s | CPU s | load | "

@@ -197,3 +197,46 @@ def test_cegis_runs_the_extended_iterations():
                 log=said.append)
     verified = [e["iteration"] for e in res.history if e["boxes"] > 0]
     assert len(res.history) == 5 and verified == [1, 2, 4], verified
+
+
+def test_a_last_iteration_without_a_certificate_still_verifies_its_window(monkeypatch):
+    """When the budget's last iterate cannot be checked (its controller leaves the input
+    box: InputRangeError), the iterates since the last verifier call are verified after the
+    loop instead of being dropped: verify_every 5 and 3 iterations put no verifier call
+    before the last, so without that the run would certify nothing."""
+    from nlyap_opt.certification.certificate import RoaProblem
+    from nlyap_opt.kernel.errors import InputRangeError
+
+    exported, bad = [], set()
+    export = LyapunovLearner.export
+    decrease = RoaProblem.decrease
+
+    def tracked_export(self):
+        V, ctrl = export(self)
+        exported.append(V)
+        if len(exported) == 3:  # iteration 2, the last
+            bad.add(id(V))
+        return V, ctrl
+
+    def failing_decrease(self, *args, **kwargs):
+        if id(self.V) in bad:
+            raise InputRangeError("κ leaves the input box (planted)")
+        return decrease(self, *args, **kwargs)
+
+    monkeypatch.setattr(LyapunovLearner, "export", tracked_export)
+    monkeypatch.setattr(RoaProblem, "decrease", failing_decrease)
+    s = systems.get("van_der_pol")
+    cfg = CegisConfig(inner=0.3, outer=1.5, iterations=3, steps=100, verify_every=5,
+                      samples=3000, sphere_samples=500, inner_samples=300,
+                      boundary_samples=1000, sim_dt=0.05, train=_train_config(),
+                      area_points=6400, best_iterate=True)
+    said = []
+    res = cegis(s, None, None, cfg, log=said.append)
+    h = res.history
+    assert [e["iteration"] for e in h] == [0, 1, 2] and "planted" in h[2]["status"]
+    verified = [e for e in h if e.get("boxes", 0) > 0]
+    assert len(verified) == 1 and verified[0]["iteration"] in (0, 1)
+    assert verified[0]["candidate_area"] == max(e["candidate_area"] for e in h[:2])
+    assert res.certified and res.area == verified[0]["area"] > 0
+    assert any("is verified now" in m for m in said)
+    assert_reverifies(s, res.V, res.level, inner=0.3, outer=1.5, half=1.5)

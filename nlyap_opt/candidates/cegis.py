@@ -757,7 +757,29 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
             rim = _feed_boundary(cfg, V, D, cand, rim, len(S), rng, entry, log)
         cex = _add_counterexamples(cex, cert.counterexamples, cfg, scale, rng,
                                    None if chosen is here else cand.violations)
+    if pending:  # the budget's last iterate had no certificate to check: its window's best
+        best = _verify_leftover(pending, best, areas, log, beat)
     return _result(best, learner, history, time.perf_counter() - t0, (margin, M, smoothing))
+
+
+def _verify_leftover(pending: list, best: CegisResult | None, areas: _AreaGrid, log,
+                     beat: VolumeToBeat | None) -> CegisResult | None:
+    """The window left open when the budget's last iteration had nothing to verify (its
+    controller leaves the input box): its most promising iterate is verified now, and
+    wins when it certifies more than ``best``."""
+    log(f"  cegis: the last iteration had no certificate to check; the window since the "
+        f"last verifier call (iterations {pending[0].entry['iteration']} to "
+        f"{pending[-1].entry['iteration']}) is verified now")
+    chosen, cert = _verify_window(pending, pending[-1], log, beat)
+    if cert is None:
+        return best
+    area = cert.area(areas.box, areas.count) if cert.certified else 0.0
+    _record(chosen, cert, area)
+    _log_iterate(log, chosen, cert.certified)
+    if cert.certified and (best is None or area > best.area):
+        return CegisResult(CertStatus.CERTIFIED, chosen.V, chosen.ctrl, cert.level,
+                           *chosen.margins[:2], area, [], 0.0, chosen.margins[2])
+    return best
 
 
 def _new_iterate(it: int, info, problem: RoaProblem, cand, margins: tuple, cfg: CegisConfig,

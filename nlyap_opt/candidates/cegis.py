@@ -757,8 +757,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
             rim = _feed_boundary(cfg, V, D, cand, rim, len(S), rng, entry, log)
         cex = _add_counterexamples(cex, cert.counterexamples, cfg, scale, rng,
                                    None if chosen is here else cand.violations)
-    if pending:  # the budget's last iterate had no certificate to check: its window's best
-        best = _verify_leftover(pending, best, areas, log, beat)
+    best = _verify_leftover(pending, best, areas, log, beat)
     return _result(best, learner, history, time.perf_counter() - t0, (margin, M, smoothing))
 
 
@@ -766,7 +765,9 @@ def _verify_leftover(pending: list, best: CegisResult | None, areas: _AreaGrid, 
                      beat: VolumeToBeat | None) -> CegisResult | None:
     """The window left open when the budget's last iteration had nothing to verify (its
     controller leaves the input box): its most promising iterate is verified now, and
-    wins when it certifies more than ``best``."""
+    wins when it certifies more than ``best`` (no window left open: ``best``)."""
+    if not pending:
+        return best
     log(f"  cegis: the last iteration had no certificate to check; the window since the "
         f"last verifier call (iterations {pending[0].entry['iteration']} to "
         f"{pending[-1].entry['iteration']}) is verified now")

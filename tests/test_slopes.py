@@ -126,3 +126,16 @@ def test_slope_steps_without_backward_bounds_are_refused():
         check_file_options({"slope_steps": 5}, "certificate.json", "re-run the check")
     with pytest.raises(ConfigError, match="slope_steps.*>= 0"):
         check_file_options({"backward": True, "slope_steps": -1}, "x.json", "fix it")
+
+
+def test_relaxations_that_never_reach_the_output_are_left_alone():
+    # |tanh(x0)| is concretised (no backward rule for fabs): the tanh's slopes move nothing,
+    # and the optimisation must stop instead of asking for a gradient (found by a review)
+    x = ca.MX.sym("x", 2)
+    F = ca.Function("F", [x], [ca.fabs(ca.tanh(x[0])) + x[1] + ca.log(2 + ca.tanh(x[1]))])
+    rng = np.random.default_rng(5)
+    lo, hi = _boxes(rng, 40, 2, wmax=0.3)
+    D = np.vstack([np.eye(1), -np.eye(1)])
+    fixed, _ = backward_bounds(F, lo, hi, D)
+    opt, _ = backward_bounds(F, lo, hi, D, slope_steps=5)
+    assert np.array_equal(opt, fixed)

@@ -367,6 +367,9 @@ def optimise_slopes(nodes, out, D, lo, hi, steps: int, decided=None) -> dict[int
                     kept[id(n)] = [torch.where(sel, v, k) for v, k in zip(vals, kept[id(n)])]
             if it == steps or (decided is not None and decided(best.numpy()).all()):
                 break
-            (-torch.where(good, low, 0.0).sum()).backward()
+            objective = -torch.where(good, low, 0.0).sum()
+            if not objective.requires_grad:  # every relaxed node reaches the output only
+                break                        # through a concretised one: nothing to move
+            objective.backward()
             opt.step()
     return {k: tuple(v.numpy() for v in vals) for k, vals in kept.items()}

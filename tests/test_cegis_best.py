@@ -240,3 +240,34 @@ def test_a_last_iteration_without_a_certificate_still_verifies_its_window(monkey
     assert res.certified and res.area == verified[0]["area"] > 0
     assert any("is verified now" in m for m in said)
     assert_reverifies(s, res.V, res.level, inner=0.3, outer=1.5, half=1.5)
+
+
+def test_a_window_whose_first_choice_falls_short_verifies_the_runner_up(monkeypatch):
+    """The window's most promising iterate (largest candidate set) is refuted by the
+    verifier (planted: its search starts far below its candidate level, below the inner
+    ball): the next most promising one, whose candidate set can still beat the best, is
+    verified too and wins; both entries record their own verification."""
+    real = cegis_module.certify_roa
+    calls = []
+
+    def first_refuted(problem, level, **kwargs):
+        calls.append(level)
+        return real(problem, level * (1e-6 if len(calls) == 1 else 1.0), **kwargs)
+
+    monkeypatch.setattr(cegis_module, "certify_roa", first_refuted)
+    s = systems.get("van_der_pol")
+    cfg = CegisConfig(inner=0.3, outer=1.5, iterations=3, min_iterations=3, steps=100,
+                      verify_every=3, samples=3000, sphere_samples=500, inner_samples=300,
+                      boundary_samples=1000, sim_dt=0.05, train=_train_config(),
+                      area_points=6400, best_iterate=True)
+    said = []
+    res = cegis(s, None, None, cfg, log=said.append)
+    h = res.history
+    verified = [e for e in h if e.get("boxes", 0) > 0 or "verify_seconds" in e
+                and e["reason"] != "not verified (candidate only)"]
+    assert len(calls) == 2 and len(verified) == 2, (calls, h)
+    first, second = sorted(verified, key=lambda e: -e["candidate_area"])
+    assert first["status"] == "not certified" and first["area"] == 0.0
+    assert second["status"] == "certified" and res.area == second["area"] > 0
+    assert any("is verified too" in m for m in said)
+    assert_reverifies(s, res.V, res.level, inner=0.3, outer=1.5, half=1.5)

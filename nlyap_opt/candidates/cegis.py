@@ -459,6 +459,7 @@ class _Iterate:
     entry: dict                  # its history entry (completed by _record)
     margins: tuple               # (margin, M, smoothing) of its decrease condition
     state: LearnerState | None   # the learner's state after it (best_iterate)
+    verified: bool = False       # its entry holds a verifier call's result
 
 
 def candidate_area(V: Network, level: float, grid: np.ndarray, in_d: np.ndarray, shape,
@@ -504,11 +505,19 @@ def _unverified(x: _Iterate, system, dynamics, cfg: CegisConfig, D) -> RoaCertif
                           domain=D)
 
 
-def _verify_window(pending: list, here: _Iterate, log, beat: VolumeToBeat | None = None
+def _verify_window(pending: list, here: _Iterate, log, beat: VolumeToBeat | None = None,
+                   best_area: float = 0.0, areas: _AreaGrid | None = None
                    ) -> tuple[_Iterate, RoaCertificate | None]:
     """Verify the most promising iterate of ``pending`` (the iterates since the last call);
     ``None`` when its candidate level is not positive or it cannot beat the cheap
-    certificate (``skipped``). In more than
+    certificate (``skipped``). When it certifies no more than ``best_area`` (the best
+    certified area so far; measured on ``areas``) — its candidate level held a violation
+    the samples missed — the next most promising iterate whose candidate set is larger
+    than both is verified too, and so on: the window's result is the first that certifies
+    more than ``best_area``, else the one that certified most (the others' entries record
+    their own verification); only up to
+    :data:`~nlyap_opt.candidates.quadratic.LEARNED_SEARCH_STATES` states, where a
+    verification costs seconds. In more than
     :data:`~nlyap_opt.candidates.quadratic.LEARNED_SEARCH_STATES` states, where each level
     check costs minutes, the level search does not go below the least level that can still
     beat it (:meth:`VolumeToBeat.least_level`; the counterexamples of the levels below it
@@ -518,13 +527,44 @@ def _verify_window(pending: list, here: _Iterate, log, beat: VolumeToBeat | None
         log(f"  cegis: iteration {chosen.entry['iteration']} has the largest candidate "
             f"set since the last verification ({chosen.entry['candidate_area']:.4g} "
             f"against {here.entry['candidate_area']:.4g}); it is the one verified")
-    if not chosen.cand.level > 0 or chosen.entry["skipped"]:
-        return chosen, None
-    least = beat.least_level(chosen.problem) \
-        if beat is not None and chosen.problem.system.nx > LEARNED_SEARCH_STATES else 0.0
-    return chosen, certify_roa(chosen.problem, chosen.cand.level, search=True,
-                               check_inner_ellipse=False, log=lambda m: log("  " + m),
-                               least=(least, beat.label) if least > 0 else None)
+    cert = _verify_iterate(chosen, log, beat)
+    if cert is None or areas is None or len(pending) == 1 or \
+            chosen.problem.system.nx > LEARNED_SEARCH_STATES:
+        return chosen, cert
+    done = [(chosen, cert, cert.area(areas.box, areas.count) if cert.certified else 0.0)]
+    while done[-1][2] <= best_area:
+        bar = max(best_area, max(a for _, _, a in done))
+        rest = [x for x in pending if all(x is not y for y, _, _ in done)
+                and x.entry["candidate_area"] > bar and not x.entry["skipped"]]
+        if not rest:
+            break
+        nxt = _most_promising(rest)
+        log(f"  cegis: iteration {done[-1][0].entry['iteration']} certified no more than "
+            f"the best so far ({best_area:.4g}); iteration {nxt.entry['iteration']}, whose "
+            f"candidate set ({nxt.entry['candidate_area']:.4g}) could, is verified too")
+        c = _verify_iterate(nxt, log, beat)
+        if c is None:
+            break
+        done.append((nxt, c, c.area(areas.box, areas.count) if c.certified else 0.0))
+    win = done[-1] if done[-1][2] > best_area else max(reversed(done), key=lambda d: d[2])
+    for x, c, a in done:
+        if x is not win[0]:
+            _record(x, c, a)
+            x.verified = True
+            _log_iterate(log, x, c.certified)
+    return win[0], win[1]
+
+
+def _verify_iterate(x: _Iterate, log, beat: VolumeToBeat | None) -> RoaCertificate | None:
+    """The verifier's search for the largest certified level of iterate ``x`` from its
+    candidate level (``None``: not positive, or ``x`` cannot beat the cheap certificate)."""
+    if not x.cand.level > 0 or x.entry["skipped"]:
+        return None
+    least = beat.least_level(x.problem) \
+        if beat is not None and x.problem.system.nx > LEARNED_SEARCH_STATES else 0.0
+    return certify_roa(x.problem, x.cand.level, search=True, check_inner_ellipse=False,
+                       log=lambda m: log("  " + m),
+                       least=(least, beat.label) if least > 0 else None)
 
 
 def _record_and_log(chosen: _Iterate, here: _Iterate, cert: RoaCertificate, area: float,
@@ -533,10 +573,10 @@ def _record_and_log(chosen: _Iterate, here: _Iterate, cert: RoaCertificate, area
     of the current one ``here`` (its sampled violations only); ``run`` = (system,
     dynamics, cfg, D)."""
     _record(chosen, cert, area)
-    if chosen is not here:
+    if chosen is not here and not here.verified:  # (verified: recorded by _verify_window)
         _record(here, _unverified(here, *run), 0.0)
     _log_iterate(log, chosen, cert.certified)
-    if chosen is not here:
+    if chosen is not here and not here.verified:
         _log_iterate(log, here, False)
 
 
@@ -725,7 +765,8 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         pending = [*pending, here] if cfg.best_iterate else [here]
         chosen, cert = here, None
         if last or (it + 1 - since) % cfg.verify_every == 0:
-            chosen, cert = _verify_window(pending, here, log, beat)
+            chosen, cert = _verify_window(pending, here, log, beat,
+                                          best.area if best is not None else 0.0, areas)
             pending, since = [], it + 1
         # falsifier only: the sampled violations that limit the candidate
         cert = cert or _unverified(chosen, system, dynamics, cfg, D)
@@ -771,7 +812,8 @@ def _verify_leftover(pending: list, best: CegisResult | None, areas: _AreaGrid, 
     log(f"  cegis: the last iteration had no certificate to check; the window since the "
         f"last verifier call (iterations {pending[0].entry['iteration']} to "
         f"{pending[-1].entry['iteration']}) is verified now")
-    chosen, cert = _verify_window(pending, pending[-1], log, beat)
+    chosen, cert = _verify_window(pending, pending[-1], log, beat,
+                                  best.area if best is not None else 0.0, areas)
     if cert is None:
         return best
     area = cert.area(areas.box, areas.count) if cert.certified else 0.0

@@ -247,14 +247,28 @@ def test_a_window_whose_first_choice_falls_short_verifies_the_runner_up(monkeypa
     verifier (planted: its search starts far below its candidate level, below the inner
     ball): the next most promising one, whose candidate set can still beat the best, is
     verified too and wins; both entries record their own verification."""
+    from nlyap_opt.certification.certificate import CertStatus
+
     real = cegis_module.certify_roa
-    calls = []
+    add = cegis_module._add_counterexamples
+    calls, fed = [], []
+    planted = np.array([[0.77, -0.77]])
 
     def first_refuted(problem, level, **kwargs):
         calls.append(level)
-        return real(problem, level * (1e-6 if len(calls) == 1 else 1.0), **kwargs)
+        cert = real(problem, level, **kwargs)
+        if len(calls) == 1:  # a violation the samples missed, planted
+            cert = replace(cert, status=CertStatus.NOT_CERTIFIED, reason="planted",
+                           level=0.0, counterexamples=planted)
+        return cert
+
+    def spy(cex, new, cfg, scale, rng, extra=None):
+        fed.append(np.vstack([np.reshape(new, (-1, 2))] +
+                             ([] if extra is None else [np.reshape(extra, (-1, 2))])))
+        return add(cex, new, cfg, scale, rng, extra)
 
     monkeypatch.setattr(cegis_module, "certify_roa", first_refuted)
+    monkeypatch.setattr(cegis_module, "_add_counterexamples", spy)
     s = systems.get("van_der_pol")
     cfg = CegisConfig(inner=0.3, outer=1.5, iterations=3, min_iterations=3, steps=100,
                       verify_every=3, samples=3000, sphere_samples=500, inner_samples=300,
@@ -270,4 +284,61 @@ def test_a_window_whose_first_choice_falls_short_verifies_the_runner_up(monkeypa
     assert first["status"] == "not certified" and first["area"] == 0.0
     assert second["status"] == "certified" and res.area == second["area"] > 0
     assert any("is verified too" in m for m in said)
+    # the loser's real counterexample is fed back to training with the winner's
+    assert any((f == planted).all(axis=1).any() for f in fed)
     assert_reverifies(s, res.V, res.level, inner=0.3, outer=1.5, half=1.5)
+
+
+def test_a_window_whose_runner_up_gains_nothing_keeps_its_first_choice(monkeypatch):
+    """With fake verifications: when neither the first choice nor the runner-up certifies
+    more than the best so far, the window's result is the first choice (as without the
+    rule: the stop rule and the counterexamples fed back do not change), the runner-up's
+    entry records its own verification, and its counterexamples are kept for training; a
+    runner-up that beats the best wins; in more than 3 states no runner-up is tried."""
+    from types import SimpleNamespace as NS
+
+    from nlyap_opt.certification.certificate import CertStatus
+
+    def fake_cert(it, area):
+        return NS(status=CertStatus.CERTIFIED if area else CertStatus.NOT_CERTIFIED,
+                  certified=bool(area), reason="fake", level=1.0 if area else 0.0,
+                  seconds=0.1, checks={}, history=[{"boxes": 7}],
+                  counterexamples=np.full((1, 2), float(it)), area=lambda box, n: area or 0.0)
+
+    def iterate(it, cand_area, certifies, nx=2):
+        x = cegis_module._Iterate(
+            V=None, ctrl=None, problem=NS(system=NS(nx=nx)), cand=NS(level=1.0),
+            entry={"iteration": it, "skipped": "", "candidate_area": cand_area, "loss": 0.0,
+                   "candidate_level": 1.0, "candidate_source": "decrease"},
+            margins=(0.0, 1.0, 0.0), state=None)
+        x.problem.plan = (it, certifies)
+        return x
+
+    calls = []
+
+    def fake_certify(problem, level, **kwargs):
+        calls.append(problem.plan[0])
+        return fake_cert(*problem.plan)
+
+    monkeypatch.setattr(cegis_module, "certify_roa", fake_certify)
+    areas = NS(box=None, count=None)
+    # first choice (iteration 1) refuted, runner-up (0) certifies 0.8 <= best 1.0
+    window = [iterate(0, 3.0, 0.8), iterate(1, 5.0, None)]
+    win, cert = cegis_module._verify_window(window, window[1], lambda m: None, None, 1.0,
+                                            areas)
+    assert calls == [1, 0] and win is window[1] and not cert.certified
+    assert window[0].verified and window[0].entry["area"] == 0.8 and not window[1].verified
+    assert (win.lost == 0.0).all() and win.lost.shape == (1, 2)
+    # the runner-up beats the best: it wins, the refuted first choice keeps its record
+    calls.clear()
+    window = [iterate(0, 3.0, 2.5), iterate(1, 5.0, None)]
+    win, cert = cegis_module._verify_window(window, window[1], lambda m: None, None, 1.0,
+                                            areas)
+    assert calls == [1, 0] and win is window[0] and cert.certified
+    assert window[1].verified and window[1].entry["status"] == "not certified"
+    assert (win.lost == 1.0).all()
+    # 4 states: the first choice only
+    calls.clear()
+    window = [iterate(0, 3.0, 2.5, nx=4), iterate(1, 5.0, None, nx=4)]
+    win, _ = cegis_module._verify_window(window, window[1], lambda m: None, None, 1.0, areas)
+    assert calls == [1] and win is window[1]

@@ -460,6 +460,8 @@ class _Iterate:
     margins: tuple               # (margin, M, smoothing) of its decrease condition
     state: LearnerState | None   # the learner's state after it (best_iterate)
     verified: bool = False       # its entry holds a verifier call's result
+    lost: np.ndarray | None = None   # (window's result) the counterexamples of the
+    #                                  iterates verified before it that lost
 
 
 def candidate_area(V: Network, level: float, grid: np.ndarray, in_d: np.ndarray, shape,
@@ -546,12 +548,16 @@ def _verify_window(pending: list, here: _Iterate, log, beat: VolumeToBeat | None
         if c is None:
             break
         done.append((nxt, c, c.area(areas.box, areas.count) if c.certified else 0.0))
-    win = done[-1] if done[-1][2] > best_area else max(reversed(done), key=lambda d: d[2])
-    for x, c, a in done:
-        if x is not win[0]:
-            _record(x, c, a)
-            x.verified = True
-            _log_iterate(log, x, c.certified)
+    # a runner-up that beats the best wins; else the first choice, as without the rule
+    win = done[-1] if done[-1][2] > best_area else done[0]
+    losers = [(x, c, a) for x, c, a in done if x is not win[0]]
+    for x, c, a in losers:
+        _record(x, c, a)
+        x.verified = True
+        _log_iterate(log, x, c.certified)
+    if losers:  # their real counterexamples are fed back too
+        n = win[0].problem.system.nx
+        win[0].lost = np.vstack([np.reshape(c.counterexamples, (-1, n)) for _, c, _ in losers])
     return win[0], win[1]
 
 
@@ -613,6 +619,17 @@ def _add_counterexamples(cex: np.ndarray, new: np.ndarray, cfg: CegisConfig, sca
     jitter = new[:, None, :] + 0.01 * scale * rng.standard_normal((len(new), cfg.neighbours, n))
     new = np.vstack([new, jitter.reshape(-1, n)])
     return np.vstack([cex, new])[-cfg.max_counterexamples:]
+
+
+def _extra_states(chosen: _Iterate, here: _Iterate, cand) -> np.ndarray | None:
+    """The states fed back besides the verified iterate's counterexamples: the current
+    iterate's sampled violations when another was verified (``cand``: its candidate), and
+    the counterexamples of the window's iterates verified before ``chosen`` that lost."""
+    parts = [] if chosen is here else [cand.violations]
+    if chosen.lost is not None:
+        parts.append(chosen.lost)
+    parts = [np.reshape(p, (-1, chosen.problem.system.nx)) for p in parts if p is not None]
+    return np.vstack(parts) if parts else None
 
 
 def _resume(learner: LyapunovLearner, best: tuple, area: float, x: _Iterate, log,
@@ -797,7 +814,7 @@ def _cegis(system, controller, dynamics, cfg, eta, dynamics_box, input_box, log,
         elif cand.source == "sphere" and cfg.boundary_feedback and not last:
             rim = _feed_boundary(cfg, V, D, cand, rim, len(S), rng, entry, log)
         cex = _add_counterexamples(cex, cert.counterexamples, cfg, scale, rng,
-                                   None if chosen is here else cand.violations)
+                                   _extra_states(chosen, here, cand))
     best = _verify_leftover(pending, best, areas, log, beat)
     return _result(best, learner, history, time.perf_counter() - t0, (margin, M, smoothing))
 

@@ -269,6 +269,15 @@ def _diff(a: tuple, b: tuple):
     return r.lo, r.hi
 
 
+def broadcast_axes(shape: tuple, tail: tuple) -> tuple[int, ...]:
+    """The axes of a ``Λ`` of ``shape`` (``(m, B) + ...``) to sum for a node of per-box
+    shape ``tail`` that was broadcast to it: the leading extra axes and those where the
+    node has length 1."""
+    extra = len(shape) - 2 - len(tail)
+    return tuple(range(2, 2 + extra)) + tuple(
+        2 + extra + i for i, t in enumerate(tail) if t == 1 and shape[2 + extra + i] != 1)
+
+
 def tail_shape(n: _Node) -> tuple[int, ...]:
     """The shape of one box's value of node ``n`` (without the boxes' axis)."""
     return tuple(n.val.shape[1:]) if n.batched else tuple(n.val.shape)
@@ -374,9 +383,7 @@ class _Pass:
         tail = tail_shape(n)
         full = L.shape[:2] + tail
         if L.shape != full:  # sum over the axes ``n`` was broadcast along (float sums)
-            extra = L.ndim - len(full)
-            axes = tuple(range(2, 2 + extra)) + tuple(
-                2 + extra + i for i, t in enumerate(tail) if t == 1 and L.shape[2 + extra + i] != 1)
+            axes = broadcast_axes(tuple(L.shape), tail)
             k = int(np.prod([L.shape[a] for a in axes], dtype=np.int64))
             with fp_ignore():
                 summed = np.sum(L, axis=axes, keepdims=True)

@@ -37,7 +37,7 @@ import numpy as np
 from nlyap_opt.kernel import deps
 from nlyap_opt.kernel.determinism import deterministic_torch
 
-from .backward import centre_radius, is_varying, tail_shape
+from .backward import broadcast_axes, centre_radius, is_varying, tail_shape
 from .interval import fp_ignore
 
 __all__ = ["optimise_slopes", "GRID", "LEARNING_RATE"]
@@ -204,9 +204,7 @@ class _Model:
         tail = tail_shape(n)
         full = tuple(L.shape[:2]) + tail
         if tuple(L.shape) != full:
-            extra = L.dim() - len(full)
-            axes = tuple(range(2, 2 + extra)) + tuple(
-                2 + extra + i for i, t in enumerate(tail) if t == 1 and L.shape[2 + extra + i] != 1)
+            axes = broadcast_axes(tuple(L.shape), tail)
             L = L.sum(dim=axes, keepdim=True).reshape(full)
         prev = self.lam.get(id(n))
         self.lam[id(n)] = L if prev is None else prev + L

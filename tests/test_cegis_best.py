@@ -22,6 +22,13 @@ def _train_config() -> TrainConfig:
                        lr_schedule="cosine")
 
 
+def _small_config(**kw) -> CegisConfig:
+    """A small, fast CEGIS on Van der Pol (inner 0.3, outer 1.5) with ``kw`` on top."""
+    return CegisConfig(inner=0.3, outer=1.5, steps=100, samples=3000, sphere_samples=500,
+                       inner_samples=300, boundary_samples=1000, sim_dt=0.05,
+                       train=_train_config(), area_points=6400, **kw)
+
+
 def test_learner_state_resumes_training_exactly():
     """Training k steps after load_state(s) gives the same weights as training k steps
     right after s was taken (weights, gain and Adam's moments are all restored)."""
@@ -115,10 +122,7 @@ def test_best_iterate_never_loses_area_and_resumes_after_a_bad_round(monkeypatch
 
     monkeypatch.setattr(LyapunovLearner, "train", wrecking_train)
     s = systems.get("van_der_pol")
-    cfg = CegisConfig(inner=0.3, outer=1.5, iterations=6, min_iterations=6, steps=100,
-                      verify_every=2, samples=3000, sphere_samples=500, inner_samples=300,
-                      boundary_samples=1000, sim_dt=0.05, train=_train_config(),
-                      area_points=6400, best_iterate=True)
+    cfg = _small_config(iterations=6, min_iterations=6, verify_every=2, best_iterate=True)
     res = cegis(s, None, None, cfg, log=lambda m: None)
     h = res.history
     assert len(h) == 6 and res.certified
@@ -182,10 +186,7 @@ def test_cegis_runs_the_extended_iterations():
     run 4 iterations (the budget grows by verify_every = 1 twice), each verified."""
     s = systems.get("van_der_pol")
     said = []
-    cfg = CegisConfig(inner=0.3, outer=1.5, iterations=2, extend=2, verify_every=1,
-                      plateau=-1.0, steps=100, samples=3000, sphere_samples=500,
-                      inner_samples=300, boundary_samples=1000, sim_dt=0.05,
-                      train=_train_config(), area_points=6400)
+    cfg = _small_config(iterations=2, extend=2, verify_every=1, plateau=-1.0)
     res = cegis(s, None, None, cfg, log=said.append)
     assert res.certified and [e["iteration"] for e in res.history] == [0, 1, 2, 3]
     assert sum("more iteration(s)" in m for m in said) == 2
@@ -226,10 +227,7 @@ def test_a_last_iteration_without_a_certificate_still_verifies_its_window(monkey
     monkeypatch.setattr(LyapunovLearner, "export", tracked_export)
     monkeypatch.setattr(RoaProblem, "decrease", failing_decrease)
     s = systems.get("van_der_pol")
-    cfg = CegisConfig(inner=0.3, outer=1.5, iterations=3, steps=100, verify_every=5,
-                      samples=3000, sphere_samples=500, inner_samples=300,
-                      boundary_samples=1000, sim_dt=0.05, train=_train_config(),
-                      area_points=6400, best_iterate=True)
+    cfg = _small_config(iterations=3, verify_every=5, best_iterate=True)
     said = []
     res = cegis(s, None, None, cfg, log=said.append)
     h = res.history
@@ -270,10 +268,7 @@ def test_a_window_whose_first_choice_falls_short_verifies_the_runner_up(monkeypa
     monkeypatch.setattr(cegis_module, "certify_roa", first_refuted)
     monkeypatch.setattr(cegis_module, "_add_counterexamples", spy)
     s = systems.get("van_der_pol")
-    cfg = CegisConfig(inner=0.3, outer=1.5, iterations=3, min_iterations=3, steps=100,
-                      verify_every=3, samples=3000, sphere_samples=500, inner_samples=300,
-                      boundary_samples=1000, sim_dt=0.05, train=_train_config(),
-                      area_points=6400, best_iterate=True)
+    cfg = _small_config(iterations=3, min_iterations=3, verify_every=3, best_iterate=True)
     said = []
     res = cegis(s, None, None, cfg, log=said.append)
     h = res.history

@@ -20,11 +20,21 @@ from pathlib import Path
 SEED_SYSTEMS = ("van_der_pol", "unicycle_path_following", "inverted_pendulum")
 
 
-def _seeds(text: str) -> list[int]:
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(s) for s in text.split(",")]
+def parse_seeds(text: str) -> list[int]:
+    """``"0-4"`` → 0, 1, 2, 3, 4; ``"0,3"`` → 0, 3; ``"2"`` → 2. Raises ValueError
+    (with what was wrong) for anything else."""
+    try:
+        if "-" in text:
+            a, b = text.split("-")
+            seeds = list(range(int(a), int(b) + 1))
+        else:
+            seeds = [int(s) for s in text.split(",")]
+    except ValueError:
+        raise ValueError(f"{text!r} is not a seed list: give K, K1,K2,... or A-B "
+                         "(integers >= 0)") from None
+    if not seeds or min(seeds) < 0:
+        raise ValueError(f"{text!r}: give at least one seed, each an integer >= 0")
+    return seeds
 
 
 def main() -> None:
@@ -37,7 +47,10 @@ def main() -> None:
     ap.add_argument("--systems", default=",".join(SEED_SYSTEMS))
     ap.add_argument("--settings", default="known,learned")
     args = ap.parse_args()
-    seeds = _seeds(args.seeds)
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as err:
+        ap.error(f"--seeds: {err}")
     summary = []
     print("| system | f | seed | status | level | share % | seconds |")
     print("|---|---|---|---|---|---|---|")

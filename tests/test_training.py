@@ -102,7 +102,8 @@ def _assert_stop_rule(history, cfg):
                 and h["level"] >= cfg.target_fraction * h["candidate_level"]
                 and i + 1 >= cfg.min_iterations
                 and ((h["candidate_source"] == "sphere" and not cfg.boundary_feedback)
-                     or (best > 0 and h["area"] <= (1 + cfg.plateau) * best)))
+                     or (best > 0 and (1 - cfg.plateau) * best <= h["area"]
+                         <= (1 + cfg.plateau) * best)))
         if i < len(history) - 1:
             assert not stop, (i, h)
         elif len(history) < cfg.iterations:
@@ -121,8 +122,12 @@ def test_stop_rule_goes_on_while_decrease_violations_limit_a_growing_level():
     assert not _level_settled("decrease", 1.0, 0.0, 0.01)     # first certified level
     assert not _level_settled("decrease", 1.02, 1.0, 0.01)    # grew by 2 %
     assert _level_settled("decrease", 1.01, 1.0, 0.01)        # grew by 1 %: settled
-    assert _level_settled("decrease", 0.9, 1.0, 0.01)         # shrank
+    assert _level_settled("decrease", 0.995, 1.0, 0.01)       # within 1 % below
+    # more than plateau below the best: the current V is behind it and may still grow
+    assert not _level_settled("decrease", 0.9, 1.0, 0.01)
+    assert not _level_settled("sphere", 0.984, 1.0, 0.01)
     assert not _level_settled("decrease", 1.005, 1.0, 0.0)
+    assert _level_settled("decrease", 1.0, 1.0, 0.0)
 
 
 def test_falsifier_first_cegis_verifies_what_it_returns():

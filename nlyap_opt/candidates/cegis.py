@@ -78,13 +78,14 @@ class CegisConfig:
     target_fraction: float = 0.99    # stop when certified level >= this fraction of candidate
     min_iterations: int = 1          # ... but not before this many iterations (best area kept)
     # ... and, when the candidate is limited by sampled decrease violations (source
-    # "decrease", which more training may remove), only once the certified area grew by less
-    # than this fraction over the best earlier one
+    # "decrease", which more training may remove), only once the certified area is within
+    # this fraction of the best earlier one (grew by less; an area further below it is a V
+    # behind the best, which may still grow)
     plateau: float = 0.01
     # a candidate level limited by ∂D (source "sphere"): this many states of ∂D with the
     # smallest V (from a fresh sample of 4·sphere_samples) and the level-limiting point
-    # join the containment training states, and CEGIS goes on until the certified area
-    # grows by less than ``plateau``; 0: stop at the first such certified level
+    # join the containment training states, and CEGIS goes on until the certified area is
+    # within ``plateau`` of the best earlier one; 0: stop at the first such certified level
     boundary_feedback: int = 200
     # the verifier (every verify_every-th iteration) proves the iterate with the largest
     # candidate set D ∩ {V ≤ candidate level} since its last call, not only the last one;
@@ -318,12 +319,15 @@ def _level_settled(source: str, area: float, prev_area: float, plateau: float,
     A candidate limited by sampled decrease violations (``"decrease"``) may grow when training
     removes them; one limited by the domain's boundary (``"sphere"``) may grow when training
     raises ``V`` where it is smallest on ``∂D`` (``boundary_feedback``; without it, it cannot
-    grow and CEGIS stops). Otherwise CEGIS goes on until the certified area stops growing: by
-    less than ``plateau`` (a fraction) over the best earlier certified area.
+    grow and CEGIS stops). Otherwise CEGIS goes on until the certified area stops changing:
+    within ``plateau`` (a fraction) of the best earlier certified area. An area more than
+    that below it is no plateau: the current V is behind the best one (after a collapse,
+    or a resumption from the best), and later rounds may still grow it past the best, which
+    is kept whatever they give.
     """
     if source == "sphere" and not boundary_feedback:
         return True
-    return prev_area > 0 and area <= (1 + plateau) * prev_area
+    return prev_area > 0 and (1 - plateau) * prev_area <= area <= (1 + plateau) * prev_area
 
 
 def _boundary_minima(V: Network, D, n: int, count: int, rng) -> np.ndarray:

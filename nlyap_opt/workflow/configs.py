@@ -525,8 +525,9 @@ _FIELD_DOCS: dict[str, dict[str, str]] = {
                            "candidate level",
         "min_iterations": "... but not before this many iterations (the best area is kept)",
         "plateau": "a level limited by sampled decrease violations (or by ∂D, with "
-                   "boundary_feedback) stops CEGIS only once the certified area grows by "
-                   "less than this fraction",
+                   "boundary_feedback) stops CEGIS only once the certified area is within "
+                   "this fraction of the best earlier one (neither grew by more nor is "
+                   "further behind)",
         "boundary_feedback": "a level limited by containment on ∂D: this many states of ∂D "
                              "with the smallest V (and the level-limiting point) join the "
                              "containment training and CEGIS goes on (0: it stops there)",

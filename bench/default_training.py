@@ -124,8 +124,8 @@ def run_case(target: str, known: bool, out: Path, overrides: dict | None = None
     t = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
-    _, _, usage = os.wait4(proc.pid, 0)
-    proc.returncode = 0   # reaped by wait4; Popen must not wait for it again
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)   # reaped: Popen must not wait
     seconds = time.perf_counter() - t
     cpu = usage.ru_utime + usage.ru_stime
     path = out / "certificate.json"
@@ -195,6 +195,11 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="keep the runs here (default: a temp dir)")
     args = ap.parse_args()
     cases, settings = args.cases.split(","), args.settings.split(",")
+    for given, what in ((cases, "--cases"), (settings, "--settings")):
+        twice = sorted({x for x in given if given.count(x) > 1})
+        if twice:
+            ap.error(f"{what}: {', '.join(twice)} given twice (their runs would share a "
+                     "directory); give each once")
     for name in cases:
         bad = _bad_case(name)
         if bad:

@@ -22,7 +22,8 @@ SEED_SYSTEMS = ("van_der_pol", "unicycle_path_following", "inverted_pendulum")
 
 def parse_seeds(text: str) -> list[int]:
     """``"0-4"`` → 0, 1, 2, 3, 4; ``"0,3"`` → 0, 3; ``"2"`` → 2. Raises ValueError
-    (with what was wrong) for anything else."""
+    (with what was wrong) for anything else, and for a seed named twice (its runs would
+    share a directory)."""
     try:
         if "-" in text:
             a, b = text.split("-")
@@ -34,6 +35,8 @@ def parse_seeds(text: str) -> list[int]:
                          "(integers >= 0)") from None
     if not seeds or min(seeds) < 0:
         raise ValueError(f"{text!r}: give at least one seed, each an integer >= 0")
+    if len(set(seeds)) < len(seeds):
+        raise ValueError(f"{text!r} names a seed twice: give each seed once")
     return seeds
 
 

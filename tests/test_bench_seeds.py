@@ -34,6 +34,8 @@ def test_seed_lists(bench):
     for bad in ("", "x", "1-x", "4-2", "-1", "1,,2", "0-1-2"):
         with pytest.raises(ValueError, match="seed"):
             parse(bad)
+    with pytest.raises(ValueError, match="twice"):
+        parse("1,2,1")
 
 
 def test_spread_counts_an_uncertified_seed_as_zero(bench):

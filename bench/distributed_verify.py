@@ -33,7 +33,9 @@ worker counts this machine has. *Modelled* rows (``--model 4 8 16``) come from
 W virtual workers; the cost of a task is the boxes it processed (deterministic) or its CPU seconds
 here (which include each walker pass's fixed cost). For (D) the CPU model adds the recheck's
 CPU seconds outside the tasks (loading, building the checks) to every worker count and
-prints, per check, its modelled seconds on one and on the most workers. As on a cluster,
+prints, per check, its modelled seconds on one and on the most workers; it runs ``--repeat``
+times (one run's CPU outside the tasks may hold a full garbage collection of this
+process) and the run of the median speed-up is printed. As on a cluster,
 condition (c) runs beside (a) and (b) (and a saved shell form's two checks side by side):
 their tasks share the virtual workers in modelled time. The model leaves out the
 scheduler's latency per task (a few ms) and contention between the workers for memory and
@@ -215,15 +217,26 @@ def certificate_rows(workers, repeat, model=(), saved=None, keep=None, proof=Fal
                     sim.compile_seconds
                 per_check[(sim.cost, sim.workers)] = list(sim.calls)
 
-            for cost in ("boxes", "cpu"):
-                m = model_speedups(run, model, cost=cost)
-                if cost == "cpu":  # the CPU outside the tasks, on every worker count
-                    other = max(0.0, cpu_total[1] - m[1]["work"])
-                    one = other + m[1]["makespan"]
-                    for w, row in m.items():
-                        row["speedup"] = one / (other + row["makespan"])
-                        row["efficiency"] = row["speedup"] / w
-                modelled[cost] = m
+            modelled["boxes"] = model_speedups(run, model, cost="boxes")
+            # by CPU s, ``repeat`` times: one run's CPU outside the tasks can hold a full
+            # garbage collection of this process (about 0.1 s beside some 0.15 s); the run
+            # of the median speed-up on the most workers is the one printed
+            tries = []
+            for _ in range(max(1, repeat)):
+                m = model_speedups(run, model, cost="cpu")
+                # the CPU outside the tasks, on every worker count
+                other = max(0.0, cpu_total[1] - m[1]["work"])
+                one = other + m[1]["makespan"]
+                for w, row in m.items():
+                    row["speedup"] = one / (other + row["makespan"])
+                    row["efficiency"] = row["speedup"] / w
+                tries.append((m[max(m)]["speedup"], other, m, dict(per_check)))
+            tries.sort(key=lambda t: t[0])
+            _, other, modelled["cpu"], per_check = tries[(len(tries) - 1) // 2]
+            if len(tries) > 1:
+                print(f"(D) MODELLED on {max(modelled['cpu'])} workers by CPU s, each of "
+                      f"{len(tries)} runs: " + ", ".join(f"{t[0]:.2f}" for t in tries)
+                      + "; the median run is printed")
     print(f"(D) cartpole certificate (round quadratic, level {level:.6g}, ε = "
           f"{cert.inner:g}, (c) by the {cert.inner_ellipse.form} form): "
           "nlyap verify --certificate, conditions (a), (b), (c) re-checked")

@@ -339,3 +339,47 @@ def test_partial_and_non_smooth_operations_are_used_where_a_checked_walk_clears_
     assert t.check(big, whole, 0.0) is None
     assert t.contracts(small / 4, whole, 0.0) in (True, False)   # decided without an error
     assert not t.contracts(big, whole, 0.0)
+
+
+def test_condition_c_decides_the_whole_set_test_once_and_builds_a_form_only_when_needed(
+        monkeypatch):
+    """Condition (c) (:func:`certify_inner_ellipse`): the whole-set Jacobian test does not
+    depend on the form, so it runs once however many forms are tried; where it proves
+    ``S ≺ 0`` on ``E`` no form's interval problem is built (its graphs cost a re-check's
+    client about 0.02 s on the cartpole, outside every task); where it does not, each form
+    goes to its own check, as before."""
+    import systems
+    from nlyap_opt.certification import roa
+    from nlyap_opt.distributed import parallel
+    from verification.problem import VerificationProblem
+
+    P = np.array([[1.5, -0.5], [-0.5, 1.0]])
+    s = systems.get("van_der_pol")
+    calls, built, checked = [], [], []
+    monkeypatch.setattr(roa, "VerificationProblem", lambda *a, **k: built.append(a[4:6])
+                        or VerificationProblem(*a, **k))
+    real_check = parallel.check
+    monkeypatch.setattr(parallel, "check", lambda prob, **k: checked.append(
+        list(prob.property_names)) or real_check(prob, **k))
+
+    real = TaylorDecrease.contracts
+    monkeypatch.setattr(TaylorDecrease, "contracts", lambda self, *a: calls.append(a)
+                        or real(self, *a))
+    out = roa.certify_inner_ellipse(s, None, 0.3)
+    assert out["status"] == "certified" and out["result"].backend == "taylor"
+    assert out["form"] == "minors" and len(calls) == 1 and built == [] and checked == []
+
+    # the test fails: every form (minors, then Frobenius) has its own check; the whole-set
+    # test ran once for both
+    calls.clear()
+    monkeypatch.setattr(TaylorDecrease, "contracts", lambda self, *a: calls.append(a) or False)
+    monkeypatch.setattr(parallel, "check", lambda prob, **k: checked.append(
+        list(prob.property_names)) or roa.VerificationResult(roa.QueryStatus.UNKNOWN))
+    out = roa.certify_inner_ellipse(s, None, 0.3, P=P, form="frobenius")
+    assert len(calls) == 1 and checked == [["frobenius1"]] and out["status"] != "certified"
+    checked.clear()
+    calls.clear()
+    roa.certify_inner_ellipse(s, None, 0.3, P=P)
+    # E's test once (minors and Frobenius); then the shell form's small ellipse has its own
+    assert len(calls) >= 1 and [c[0] for c in calls].count(calls[0][0]) == 1
+    assert [c[0][:-1] for c in checked[:2]] == ["minors", "frobenius"]

@@ -1763,18 +1763,21 @@ def _inner_ellipse(cl, J, P, inner, verify_options, only: InnerForm | None = Non
         return {"status": f"inner ellipse not proved (the {only.to_str()} form does not apply "
                           "to this P)", "verdict": InnerStatus.NOT_PROVED, "P": P,
                 "level": c_q, "box": a, "result": None, "form": only.to_str()}
+    contracts = None
     for form in [f for f in order if f in forms]:
         if forms[form] is None:
             out = _inner_shell(cl, J, P, inner, verify_options, saturated=saturated)
         else:
-            props = forms[form]
-            prob = VerificationProblem(cl.x, box, [Vq - c_q], props, ["ellipse"],
-                                       [f"{form}{k}" for k in range(1, len(props) + 1)])
-            res = None
-            if whole.contracts(c_q, _whole_space(n), lam):  # S ≺ 0 on E
+            if contracts is None:  # S ≺ 0 on E, whichever form states it (decided once)
+                contracts = whole.contracts(c_q, _whole_space(n), lam)
+            if contracts:
                 res = VerificationResult(QueryStatus.VERIFIED, backend="taylor")
-            if res is None:
-                res = parallel.check(prob, **(verify_options or {}))
+            else:  # the form's own check (its problem built only when it is needed)
+                props = forms[form]
+                res = parallel.check(VerificationProblem(
+                    cl.x, box, [Vq - c_q], props, ["ellipse"],
+                    [f"{form}{k}" for k in range(1, len(props) + 1)]),
+                    **(verify_options or {}))
             out = {"status": "certified" if res.success else f"inner ellipse {res.status}",
                    "verdict": verdict_of(res.status), "P": P, "level": c_q, "box": a,
                    "result": res, "form": form}

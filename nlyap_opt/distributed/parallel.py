@@ -811,17 +811,23 @@ class _SimFuture:
 
 def _compile_seconds(problem) -> float:
     """CPU seconds to compile ``problem``'s graphs for the walker afresh: what each worker
-    process pays before its first task of the problem. They are then compiled (cached) in
-    this process, so that no task's CPU seconds here include them."""
+    process pays before its first task of the problem (the median of three timings: one
+    can hold a full garbage collection of this process's heap, about 0.1 s beside 0.03 s
+    of compiling for the cartpole certificate, which a worker's small heap does not cost).
+    They are then compiled (cached) in this process, so that no task's CPU seconds here
+    include them."""
     names = ("function", "jacobian", "function_jacobian", "function_checked",
              "function_jacobian_checked")
     funs = [getattr(problem, n, None) for n in names]
     funs = [f for f in funs + list(getattr(problem, "_second_order", None) or ())
             if isinstance(f, ca.Function)]
-    t = time.thread_time()
-    for f in funs:
-        Program(f)
-    seconds = time.thread_time() - t
+    times = []
+    for _ in range(3):
+        t = time.thread_time()
+        for f in funs:
+            Program(f)
+        times.append(time.thread_time() - t)
+    seconds = sorted(times)[1]
     for f in funs:
         compile_function(f)
     return seconds

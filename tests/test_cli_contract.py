@@ -91,6 +91,8 @@ def _patch_command(monkeypatch, exc):
     (json.JSONDecodeError("Expecting value", "{", 1), 3, ["malformed JSON"]),
     (SystemExit(1), 4, ["internal error"]),
     (MemoryError(), 3, ["out of memory", "--config"]),
+    (OSError(28, "No space left on device"), 3, ["No space left", "free space"]),
+    (OSError(5, "Input/output error"), 4, ["internal error"]),
 ])
 def test_exceptions_map_to_exit_codes(monkeypatch, capsys, exc, code, words):
     _patch_command(monkeypatch, exc)
@@ -389,3 +391,12 @@ def test_no_progress_bar_goes_to_a_log_file(monkeypatch):
     assert bar is not None
     bar.close()
     assert progress_bar(10, False, "φ[0]") is None
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full on this system")
+def test_a_full_device_is_the_users_to_fix(capsys):
+    """A write the file system refuses after the file opened (no space left: ``/dev/full``)
+    is exit 3 with what to do, not an internal error."""
+    assert main(["lqr", "van_der_pol", "--json", "/dev/full"]) == 3
+    lines = _err_lines(capsys)
+    assert len(lines) == 1 and "No space left" in lines[0] and "free space" in lines[0]

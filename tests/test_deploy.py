@@ -150,6 +150,27 @@ def test_a_trajectory_that_leaves_is_reported(cartpole_run):
     assert any("left the certified set" in f for f in res.failures)
 
 
+def test_a_step_too_coarse_is_not_a_contradiction(vdp_run, tmp_path, capsys):
+    """RK4 at --dt 5 blows up on Van der Pol's closed loop: the trajectories that seem to
+    leave are integrated again in finer steps, where they stay and converge (kept so, and
+    counted); with more of them than are integrated again, the step is refused (exit 3,
+    lower --dt), never reported as a contradiction of the certificate (exit 1)."""
+    from nlyap_opt.deployment.deploy import REFINE_AT_MOST
+
+    run = load_run(vdp_run, **QUIET)
+    res = simulate_run(run, points=5, horizon=20.0, dt=5.0)
+    assert not res.violated and res.converged.all() and res.refined >= 1
+    assert "integrated again" in res.summary()
+    fine = simulate_run(run, points=5, horizon=20.0, dt=5.0 / 64)
+    np.testing.assert_allclose(res.inside[-1], fine.inside[-1], rtol=0, atol=1e-9)  # at t = 20
+    with pytest.raises(ConfigError, match="too coarse"):
+        simulate_run(run, points=4 * REFINE_AT_MOST, horizon=20.0, dt=5.0)
+    assert main(["simulate", str(vdp_run), "--dt", "5", "--horizon", "20", "--points",
+                 str(4 * REFINE_AT_MOST), "--out", str(tmp_path / "o")]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--dt 5 is too coarse" in err[0] and "lower --dt" in err[0]
+
+
 def test_simulate_refuses_bad_input(vdp_run, tmp_path, capsys):
     cases = [
         ["simulate", str(tmp_path / "nope"), "--out", str(tmp_path / "o")],

@@ -174,7 +174,9 @@ class SimulationResult:
     ``stayed`` (in the certified set at every step), ``monotone`` (``V`` did not increase
     by more than ``1e-6·c`` over a step that starts in ``Ω_c∖B_ε``) and ``converged``
     (``‖x(T)‖ ≤ tol``; with learned φ: reached ``B_ε``, where the certificate stops
-    speaking about φ).
+    speaking about φ). ``refined``: trajectories that left the set or raised ``V`` at the
+    step asked for and not when integrated again in finer steps (kept as integrated again:
+    the step was too coarse for them).
     """
 
     dynamics: str
@@ -186,6 +188,7 @@ class SimulationResult:
     monotone: np.ndarray
     converged: np.ndarray
     tol: float
+    refined: int = 0
     failures: list[str] = field(default_factory=list)
 
     @property
@@ -202,7 +205,10 @@ class SimulationResult:
         return (f"{n} trajectories from inside the certified set ({self.dynamics} dynamics): "
                 f"{int(self.stayed.sum())} stayed inside, {int(self.monotone.sum())} with V "
                 f"non-increasing on Ω_c∖B_ε, {int(self.converged.sum())} converged; "
-                f"{self.outside.shape[1]} from outside (no claim)")
+                f"{self.outside.shape[1]} from outside (no claim)"
+                + (f"; {self.refined} integrated again in {RISE_REFINE} sub-steps per step "
+                   "(at the step asked for they left the set or raised V: lower --dt)"
+                   if self.refined else ""))
 
     def save(self, path: str | Path, **extra) -> None:
         """``trajectories.npz``: the arrays above (and ``extra`` ones)."""
@@ -234,6 +240,81 @@ def _confirmed_rises(run: CertifiedRun, f, Xi: np.ndarray, rise: np.ndarray, dt:
     out = rise.copy()
     out[jj, kk] = v1 - run.V(x0)
     return out
+
+
+def _judged(run: CertifiedRun, f, Xi: np.ndarray, h: float):
+    """``(inside, V, rise)`` of trajectories ``Xi`` (steps of ``h``): in the certified set at
+    each sample, ``V`` there, and ``V``'s rise over each step that starts in ``Ω_c∖B_ε``
+    (``-inf`` elsewhere), confirmed by :func:`_confirmed_rises`."""
+    flat = Xi.reshape(-1, Xi.shape[-1])
+    finite = np.isfinite(flat).all(axis=1)
+    inside = np.zeros(len(flat), bool)
+    Vf = np.full(len(flat), np.inf)
+    inside[finite] = run.contains(flat[finite])
+    Vf[finite] = run.V(flat[finite])
+    in_omega = np.zeros(len(flat), bool)
+    in_omega[finite] = run.in_omega(flat[finite])
+    inside, Vt = inside.reshape(Xi.shape[:2]), Vf.reshape(Xi.shape[:2])
+    norms = np.linalg.norm(Xi, axis=2)
+    step_from = in_omega.reshape(Xi.shape[:2])[:-1] & (norms[:-1] >= run.certificate.inner)
+    with np.errstate(invalid="ignore"):   # inf - inf after a blow-up: no rise claimed
+        rise = np.where(step_from, Vt[1:] - Vt[:-1], -np.inf)
+    rise = _confirmed_rises(run, f, Xi, rise, dt=h, tol=1e-6 * run.level)
+    return inside, Vt, rise
+
+
+def _refined_trajectories(f, x0: np.ndarray, h: float, steps: int, sub: int) -> np.ndarray:
+    """The trajectories from ``x0`` integrated with ``sub`` RK4 sub-steps per step of
+    ``h``, kept at the ``steps + 1`` times of the coarse grid."""
+    out = np.empty((steps + 1,) + x0.shape)
+    out[0] = x = x0
+    for k in range(steps):
+        out[k + 1] = x = trajectories(f, x, h, sub)[-1]
+    return out
+
+
+#: at most this many trajectories that seem to contradict the certificate are integrated
+#: again (each costs 72 times its first integration)
+REFINE_AT_MOST = 8
+
+
+def _integrate_again(run: CertifiedRun, f, x_in, bad, h: float, steps: int, arrays,
+                     dt: float) -> int:
+    """Integrate the first :data:`REFINE_AT_MOST` trajectories of ``bad`` (which left the
+    set or raised ``V`` at the step ``h``) again, with :data:`RISE_REFINE` and with
+    ``RISE_REFINE // 8`` sub-steps per step, and put the finer one into ``arrays`` (``Xi,
+    inside, V, rise``, updated in place). A contradiction must be the flow's, not the
+    integrator's: one stands where the finer integration still shows it and the two
+    integrations agree (to 10⁻³, relatively) up to it. Returns the number of those
+    trajectories that no longer contradict anything.
+
+    Raises
+    ------
+    ConfigError
+        No contradiction stands, but one was not resolved (the two integrations disagree)
+        or not integrated again: the step ``dt`` is too coarse for this closed loop.
+    """
+    Xi, inside, Vt, rise = arrays
+    pick = bad[:REFINE_AT_MOST]
+    fine = _refined_trajectories(f, x_in[pick], h, steps, RISE_REFINE)
+    half = _refined_trajectories(f, x_in[pick], h, steps, RISE_REFINE // 8)
+    f_in, f_V, f_rise = _judged(run, f, fine, h)
+    risen = np.vstack([f_rise > 1e-6 * run.level, np.zeros((1, len(pick)), bool)])
+    wrong = ~f_in | risen                      # (steps + 1, k): a contradiction at a sample
+    upto = np.cumsum(np.cumsum(wrong, axis=0), axis=0) <= 1   # samples up to the first one
+    with np.errstate(invalid="ignore"):
+        agree = (np.abs(fine - half) <= 1e-3 * (1.0 + np.abs(fine))).all(axis=2)
+    resolved = (agree | ~upto).all(axis=0)
+    contradicts = wrong.any(axis=0)
+    Xi[:, pick], inside[:, pick], Vt[:, pick], rise[:, pick] = fine, f_in, f_V, f_rise
+    if not (contradicts & resolved).any() and \
+            (len(bad) > len(pick) or (contradicts & ~resolved).any()):
+        again = "their finer integrations disagree" if (contradicts & ~resolved).any() else \
+            f"the {len(pick)} integrated again in finer steps do not"
+        raise ConfigError(f"--dt {dt:g} is too coarse for this closed loop: {len(bad)} "
+                          f"trajectories left the certified set or raised V with it, and "
+                          f"{again}; lower --dt")
+    return int((~contradicts).sum())
 
 
 def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = None,
@@ -274,23 +355,16 @@ def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = 
     n_out = points // 4 if outside is None else outside
     x_out = run.sample(n_out, rng, inside=False) if n_out else np.zeros((0, run.system.nx))
     steps = int(np.ceil(horizon / dt))
+    h = horizon / steps
     X = trajectories(f, np.vstack([x_in, x_out]), horizon, steps)
     Xi, Xo = X[:, :points], X[:, points:]
-    flat = Xi.reshape(-1, Xi.shape[-1])
-    finite = np.isfinite(flat).all(axis=1)
-    inside = np.zeros(len(flat), bool)
-    Vf = np.full(len(flat), np.inf)
-    inside[finite] = run.contains(flat[finite])
-    Vf[finite] = run.V(flat[finite])
-    inside = inside.reshape(Xi.shape[:2])
-    Vt = Vf.reshape(Xi.shape[:2])
+    inside, Vt, rise = _judged(run, f, Xi, h)
+    bad = np.flatnonzero(~inside.all(axis=0) | (rise > 1e-6 * run.level).any(axis=0))
+    refined = 0
+    if len(bad):
+        refined = _integrate_again(run, f, x_in, bad, h, steps, (Xi, inside, Vt, rise), dt)
     c, eps = run.level, run.certificate.inner
     norms = np.linalg.norm(Xi, axis=2)
-    in_omega = np.zeros(len(flat), bool)
-    in_omega[finite] = run.in_omega(flat[finite])
-    step_from = in_omega.reshape(Xi.shape[:2])[:-1] & (norms[:-1] >= eps)
-    rise = np.where(step_from, Vt[1:] - Vt[:-1], -np.inf)
-    rise = _confirmed_rises(run, f, Xi, rise, dt=horizon / steps, tol=1e-6 * c)
     monotone = ~(rise > 1e-6 * c).any(axis=0)
     stayed = inside.all(axis=0)
     tol = 1e-2 * eps if tol is None else tol
@@ -298,8 +372,8 @@ def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = 
         converged = (norms <= eps).any(axis=0)
     else:
         converged = norms[-1] <= tol
-    res = SimulationResult(which, np.linspace(0.0, steps * (horizon / steps), steps + 1), Xi,
-                           Xo, Vt, stayed, monotone, converged, tol)
+    res = SimulationResult(which, np.linspace(0.0, steps * h, steps + 1), Xi, Xo, Vt, stayed,
+                           monotone, converged, tol, refined=refined)
     for k in np.flatnonzero(~stayed)[:3]:
         j = int(np.argmin(inside[:, k]))
         res.failures.append(f"trajectory {k} from {x_in[k].tolist()} left the certified set at "

@@ -16,6 +16,7 @@ import argparse
 import contextlib
 import dataclasses
 import difflib
+import errno
 import json
 import os
 import signal
@@ -894,6 +895,10 @@ def _classify(err: BaseException, command: str | None) -> tuple[int, str]:
     if isinstance(err, OSError) and err.filename is not None:
         return 3, (f"{err.filename}: {err.strerror or _one_line(err)}; check the path "
                    "(and its permissions)")
+    if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        # a write that the file system refused (no file name: it failed after the open)
+        return 3, (f"writing an output failed: {err.strerror or _one_line(err)}; free space "
+                   "(or raise the quota) on that file system, or write to another one")
     return 4, f"{type(err).__name__}: {_one_line(err)}; rerun with --debug for the traceback"
 
 

@@ -150,6 +150,7 @@ def test_system_without_a_preset_says_what_is_possible():
     ({"train": {"lr": float("nan")}}, ["train.lr", "NaN"]),
     ({"train": {"lr": float("inf")}}, ["train.lr", "Infinity"]),
     ({"inner": 1.0}, ["0 < inner < outer"]),
+    ({"outer": 1e200}, ["outer = 1e+200 is beyond 1e+100", "rescale"]),
     ({"train": {"time_budget": 60.0}}, ["time_budget", "wall-clock budgets were removed"]),
     ({"cegis": {"verify_options": {"max_boxes": 0}}}, ["max_boxes", ">= 1"]),
     ({"train": {"threads": 1.0}}, ["train.threads", "integer"]),

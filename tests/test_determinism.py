@@ -189,3 +189,16 @@ def test_the_same_run_twice_under_other_thread_counts_and_load_gives_the_same_by
     assert files_a == files_c
     assert cert_a == cert_c
     assert json.loads((tmp_path / "a" / "timings.json").read_text())["cegis.json"]
+
+
+def test_a_diverged_training_stops_with_what_to_do():
+    """States of order 1e100 make the loss NaN at the first step (Adam would carry it into
+    every weight): the learner stops with a one-line error naming the fix, not an internal
+    error later (the history's JSON refused the NaN)."""
+    from nlyap_opt.kernel.errors import ConfigError
+
+    L = LyapunovLearner(systems.get("van_der_pol"), None, None,
+                        TrainConfig(hidden=[6], features=3, steps=5, batch=64, seed=0))
+    rng = np.random.default_rng(0)
+    with pytest.raises(ConfigError, match=r"training diverged at step 1: the loss is nan"):
+        L.train(sample_ball(200, 2, 1e100, rng), sample_sphere(50, 2, 1e100, rng), 0.0)

@@ -341,6 +341,16 @@ class LearnerState:
     G: torch.Tensor | None
 
 
+def _finite_loss(loss: float, it: int, X) -> None:
+    """Stop a training whose loss became NaN or infinite at step ``it`` (Adam carries it into
+    every weight: there is no way back), with what to do."""
+    if not np.isfinite(loss):
+        raise ConfigError(
+            f"training diverged at step {it + 1}: the loss is {loss} (training states up to "
+            f"‖x‖ = {float(X.norm(dim=1).max()):.3g}); rescale the system's states so that "
+            "the domain is of order 1, or lower train.lr")
+
+
 class LyapunovLearner:
     """Trains ``V`` (and ``κ``) on a vector field ``g(x, u)`` given in torch.
 
@@ -600,6 +610,7 @@ class LyapunovLearner:
             self.opt.step()
             info = TrainInfo(loss.item(), dec.item(), inside.item(), outside.item(),
                              None if T is None else fit.item())
+            _finite_loss(info.loss, it, X)
             if progress is not None and (it % 100 == 0 or it == steps - 1):
                 progress(it, info)
         info.steps, info.seconds = it + 1, time.perf_counter() - t0

@@ -50,6 +50,10 @@ inner_radius = number(lambda v: 0 <= v <= RADIUS_MAX,
                       f"a finite number >= 0 and <= {RADIUS_MAX:g}")
 outer_radius = number(lambda v: 0 < v <= RADIUS_MAX,
                       f"a finite number > 0 and <= {RADIUS_MAX:g}")
+#: the longest --time-limit (a year: the interval timer takes seconds a C time_t holds)
+TIME_LIMIT_MAX = 366 * 24 * 3600.0
+time_limit_seconds = number(lambda v: 0 < v <= TIME_LIMIT_MAX,
+                            f"a finite number of seconds in (0, {TIME_LIMIT_MAX:g}]")
 connect_timeout_arg = number(lambda v: 0 < v <= 3600, "a finite number of seconds in (0, 3600]")
 
 
@@ -102,7 +106,8 @@ def workers(text: str) -> int:
 
 def time_limit_arg(sp) -> None:
     """Add ``--time-limit SECONDS`` (a guard that stops the command, exit 5) to ``sp``."""
-    sp.add_argument("--time-limit", type=positive, metavar="SECONDS", dest="time_limit",
+    sp.add_argument("--time-limit", type=time_limit_seconds, metavar="SECONDS",
+                    dest="time_limit",
                     help="stop after SECONDS of wall time with exit code 5, keeping the "
                          "finished stages (the same command resumes); results never depend "
                          "on it: every training budget is a count of steps")

@@ -1036,6 +1036,11 @@ def _check_values(rc: RunConfig, where: str) -> None:
 def _check_region(rc: RunConfig, s, where: str) -> None:
     """``inner`` against ``outer`` or the domain; the initial set inside the domain."""
     inner, outer = rc.inner, rc.outer
+    limit = systems.base.BOX_LIMIT
+    if outer is not None and outer > limit:
+        raise ConfigError(f"{where}: outer = {outer:g} is beyond {limit:g} (squares of the "
+                          "states must stay finite); rescale the system's states, or lower "
+                          "outer")
     if outer is not None and not inner < outer:
         raise ConfigError(f"{where}: need 0 < inner < outer, got inner = {inner:g}, "
                           f"outer = {outer:g}; make inner smaller than outer")

@@ -396,8 +396,13 @@ def test_no_progress_bar_goes_to_a_log_file(monkeypatch):
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full on this system")
 def test_a_full_device_is_the_users_to_fix(capsys):
-    """A write the file system refuses after the file opened (no space left: ``/dev/full``)
-    is exit 3 with what to do, not an internal error."""
-    assert main(["lqr", "van_der_pol", "--json", "/dev/full"]) == 3
-    lines = _err_lines(capsys)
-    assert len(lines) == 1 and "No space left" in lines[0] and "free space" in lines[0]
+    """A write the file system refuses after the file opened (no space left: ``/dev/full``;
+    a file of ``/proc`` that takes no text) is exit 3 naming the file, not an internal
+    error."""
+    for path, why in (("/dev/full", "No space left"), ("/proc/version", "")):
+        if not os.path.exists(path):
+            continue
+        assert main(["lqr", "van_der_pol", "--json", path]) == 3
+        lines = _err_lines(capsys)
+        assert len(lines) == 1 and f"cannot write --json {path}" in lines[0], lines
+        assert why in lines[0] and "writable file" in lines[0]

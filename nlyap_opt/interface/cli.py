@@ -361,8 +361,13 @@ def _check_paths(args) -> None:
 
 def _write_json(path: str | None, data: dict) -> None:
     if path:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        Path(path).write_text(json.dumps(data, indent=1, allow_nan=False))
+        text = json.dumps(data, indent=1, allow_nan=False)
+        try:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            Path(path).write_text(text)
+        except OSError as err:  # e.g. a full disk, or a file of /proc that takes no text
+            raise ConfigError(f"cannot write --json {path}: {err.strerror or err}; give a "
+                              "writable file") from None
         print(f"wrote {path}")
 
 

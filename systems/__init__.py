@@ -34,13 +34,14 @@ from .catalogue import (
 from .declarations import Declarations, check_declarations
 from .jacobian import JacobianBound, jacobian_from_data
 from .samples import SampleSet, load_samples, sample_function, save_samples
+from .spec import check_spec
 from .spec import default_run_settings as _default
 from .spec import load_spec as _load_spec
 
 __all__ = ["System", "SEED_SYSTEMS", "get", "names", "register", "REGISTRY", "CATALOGUE",
            "ModelUnavailableError",
            "Declarations", "check_declarations", "SampleSet", "load_samples", "save_samples",
-           "sample_function", "load_spec", "default_run_settings", "JacobianBound",
+           "sample_function", "load_spec", "check_spec", "default_run_settings", "JacobianBound",
            "jacobian_from_data"]
 
 REGISTRY: dict[str, Callable[..., System]] = {

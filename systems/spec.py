@@ -72,7 +72,8 @@ from .base import System
 from .declarations import Declarations, check_declarations
 from .samples import load_samples, sample_function
 
-__all__ = ["load_spec", "parse_expression", "to_casadi", "default_run_settings", "centre_dimension",
+__all__ = ["load_spec", "check_spec", "parse_expression", "to_casadi", "default_run_settings",
+           "centre_dimension",
            "unstable_modes", "unstable_origin", "FUNCTIONS", "ITERATIONS_3D",
            "SYMPY_TO_CASADI", "SPEC_KEYS"]
 
@@ -731,8 +732,35 @@ def load_spec(path, *, allow_factory: bool = True) -> System:
         missing ``u_eq``, bad sample files, declarations the samples contradict).
     """
     path = Path(path)
+    spec = _read_spec(path)
+    if "factory" in spec and not allow_factory:
+        raise ConfigError(f"{path} defines its system with factory = "
+                          f"{_short(str(spec['factory']), 80)}, Python code that is run only "
+                          "when asked; read it, then allow it (nlyap verify --allow-factory)")
     try:
-        spec = tomllib.loads(read_file_bytes(path, "system spec").decode("utf-8"))
+        return _load_spec(path, spec)
+    except OverflowError as exc:  # a number of hundreds of digits anywhere in the file
+        raise ConfigError(f"{path}: a number is too large for a float ({exc}); give values "
+                          "below 1.8e308") from None
+
+
+def check_spec(path) -> System | None:
+    """Check a TOML spec file as :func:`load_spec` does, running no code: the
+    :class:`~systems.base.System` of an expression or sample-file spec, ``None`` for a
+    ``factory`` spec once the file's own entries are checked (the factory, Python code, is
+    neither imported nor run). Raises :class:`ConfigError` as :func:`load_spec` does."""
+    path = Path(path)
+    spec = _read_spec(path)
+    if "factory" in spec:
+        _check_factory_entries(path, spec)
+        return None
+    return load_spec(path, allow_factory=False)
+
+
+def _read_spec(path: Path) -> dict:
+    """The TOML table of a spec file, or the one-line error of why it cannot be read."""
+    try:
+        return tomllib.loads(read_file_bytes(path, "system spec").decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"system spec {str(path)!r} not found; check the path") from None
     except IsADirectoryError:
@@ -748,15 +776,6 @@ def load_spec(path, *, allow_factory: bool = True) -> System:
     except ValueError as exc:  # an integer of thousands of digits (Python's own limit)
         raise ConfigError(f"{path}: cannot be read ({' '.join(str(exc).split())[:120]}); "
                           "fix the file") from None
-    if "factory" in spec and not allow_factory:
-        raise ConfigError(f"{path} defines its system with factory = "
-                          f"{_short(str(spec['factory']), 80)}, Python code that is run only "
-                          "when asked; read it, then allow it (nlyap verify --allow-factory)")
-    try:
-        return _load_spec(path, spec)
-    except OverflowError as exc:  # a number of hundreds of digits anywhere in the file
-        raise ConfigError(f"{path}: a number is too large for a float ({exc}); give values "
-                          "below 1.8e308") from None
 
 
 def _check_name(path, name) -> None:
@@ -770,19 +789,32 @@ def _check_name(path, name) -> None:
                    f"directory runs/NAME), got {name!r}; rename the system")
 
 
-def _load_spec(path: Path, spec: dict) -> System:
+def _common_entries(path: Path, spec: dict) -> tuple:
+    """``(name, run, declarations)``: the keys, the name, the ``[run]`` table and the
+    ``[declared]`` one, checked as every spec's."""
     _check_keys(path, spec, SPEC_KEYS[""], "")
     name = spec.get("name", path.stem)
     _check_name(path, name)
     run = spec.get("run", {})
     if not isinstance(run, dict):
         raise _err(path, "run", "must be a table of run-config overrides")
-    decl = _declarations(path, spec)
+    return name, run, _declarations(path, spec)
+
+
+def _check_factory_entries(path: Path, spec: dict) -> tuple:
+    """:func:`_common_entries` of a ``factory`` spec, which takes no entry that defines the
+    system: checked before the factory is imported."""
+    out = _common_entries(path, spec)
+    clash = sorted(set(spec) - {"name", "description", "factory", "declared", "run"})
+    if clash:
+        raise _err(path, "factory", f"the factory defines the system; remove {clash} "
+                   "(a factory spec takes only name, description, declared and run)")
+    return out
+
+
+def _load_spec(path: Path, spec: dict) -> System:
     if "factory" in spec:
-        clash = sorted(set(spec) - {"name", "description", "factory", "declared", "run"})
-        if clash:
-            raise _err(path, "factory", f"the factory defines the system; remove {clash} "
-                       "(a factory spec takes only name, description, declared and run)")
+        name, run, decl = _check_factory_entries(path, spec)
         system = _call_factory(path, spec["factory"], _load_factory(path, spec["factory"]))
         if decl is not None:
             if system.declarations is not None:
@@ -804,6 +836,7 @@ def _load_spec(path: Path, spec: dict) -> System:
         system.source = str(path)
         return _quick_check(system, path)
 
+    name, run, decl = _common_entries(path, spec)
     states = _names(path, spec, "states", True)
     inputs = _names(path, spec, "inputs", False)
     if not states:

@@ -494,7 +494,7 @@ CLI_CASES = [
     _c("spec is a device", ["systems", "--check", "/dev/zero"], ["not a regular file"]),
     _c("certificate is a device", ["verify", "--certificate", "/dev/zero"],
        ["not a regular file"]),
-    _c("spec run table nan", ["systems", "--check", "{nanrun}"], ["not finite", "nan"]),
+    _c("spec run table nan", ["systems", "--check", "{nanrun}"], ["finite", "nan"]),
     _c("cfg duplicate key", RUN, ["outer", "appears twice"], '{"outer": 1.0, "outer": 2.0}'),
     _c("cfg count beyond 2^53", RUN, ["train.steps", "2^53"], {"train": {"steps": 10**30}}),
     _c("run seeds huge", ["run", "van_der_pol", "--seeds", "99999999999999999999"],
@@ -531,6 +531,26 @@ def test_systems_check_reads_a_factory_spec_without_running_it_and_any_name_load
     assert main(["systems", "--check", str(g)]) == 0
     assert json.loads(capsys.readouterr().out)["name"] == "my-system"
     assert systems.load_spec(g).A.tolist() == [[-1.0]]
+
+
+def test_systems_check_refuses_what_run_refuses_and_runs_nothing(tmp_path, capsys):
+    """``systems --check`` checks what ``config``/``run`` check before anything runs: a
+    factory spec that also defines the system (refused without importing the factory,
+    ``os:abort`` here) and a ``[run]`` table with a value out of range."""
+    from nlyap_opt.interface.cli import main
+
+    f = tmp_path / "both.toml"
+    f.write_text('name = "t"\nfactory = "os:abort"\nstates = ["x"]\n'
+                 'state_box = [[-1.0, 1.0]]\n[rhs]\nx = "-x"\n')
+    g = tmp_path / "neg.toml"
+    g.write_text('name = "t_neg"\nstates = ["x"]\nstate_box = [[-1.0, 1.0]]\n'
+                 '[rhs]\nx = "-x"\n[run]\nouter = -1.0\n')
+    for path, words in ((f, ["factory defines the system", "remove"]),
+                        (g, ["outer must be a finite number > 0", "correct"])):
+        for command in (["systems", "--check"], ["config"]):
+            assert main(command + [str(path)]) == 3
+            err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+            assert len(err) == 1 and all(w in err[0] for w in words), (command, err)
 
 
 def test_cli_table_has_over_100_cases():

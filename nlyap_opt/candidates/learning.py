@@ -341,14 +341,15 @@ class LearnerState:
     G: torch.Tensor | None
 
 
-def _finite_loss(loss: float, it: int, X) -> None:
-    """Stop a training whose loss became NaN or infinite at step ``it`` (Adam carries it into
-    every weight: there is no way back), with what to do."""
-    if not np.isfinite(loss):
-        raise ConfigError(
-            f"training diverged at step {it + 1}: the loss is {loss} (training states up to "
-            f"‖x‖ = {float(X.norm(dim=1).max()):.3g}); rescale the system's states so that "
-            "the domain is of order 1, or lower train.lr")
+def _finite_loss(info: TrainInfo, it: int, X) -> TrainInfo:
+    """``info``, or stop a training whose loss became NaN or infinite at step ``it`` (Adam
+    carries it into every weight: there is no way back), with what to do."""
+    if np.isfinite(info.loss):
+        return info
+    raise ConfigError(
+        f"training diverged at step {it + 1}: the loss is {info.loss} (training states up to "
+        f"‖x‖ = {float(X.norm(dim=1).max()):.3g}); rescale the system's states so that the "
+        "domain is of order 1, or lower train.lr")
 
 
 class LyapunovLearner:
@@ -608,9 +609,9 @@ class LyapunovLearner:
             self.opt.zero_grad()
             loss.backward()
             self.opt.step()
-            info = TrainInfo(loss.item(), dec.item(), inside.item(), outside.item(),
-                             None if T is None else fit.item())
-            _finite_loss(info.loss, it, X)
+            info = _finite_loss(TrainInfo(loss.item(), dec.item(), inside.item(),
+                                          outside.item(), None if T is None else fit.item()),
+                                it, X)
             if progress is not None and (it % 100 == 0 or it == steps - 1):
                 progress(it, info)
         info.steps, info.seconds = it + 1, time.perf_counter() - t0

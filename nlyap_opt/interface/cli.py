@@ -310,7 +310,11 @@ def _spec_system(path: str, allow_factory: bool = True) -> str:
     if not p.is_file():
         raise UsageError(f"system file {p}: no such file; check the path (or pass a "
                          "catalogue name, see 'nlyap systems')")
-    s = systems.load_spec(p, allow_factory=allow_factory)
+    return _register_spec(systems.load_spec(p, allow_factory=allow_factory), p)
+
+
+def _register_spec(s, p) -> str:
+    """Register the system ``s`` of spec file ``p`` for this process; its name."""
     if s.name in systems.CATALOGUE:   # another spec file of this process may be replaced
         raise UsageError(f"system file {p} names its system {s.name!r}, which is a catalogue "
                          "system; choose another name in the file")
@@ -380,14 +384,15 @@ def _load_network(path: str, option: str):
 def cmd_systems(args) -> int:
     if args.check:
         if _is_spec(args.check):
-            factory = spec_factory(args.check)
-            if factory is not None:  # Python code: --check reads files, it runs nothing
-                print(json.dumps({"spec": str(args.check), "factory": factory,
+            s = systems.check_spec(args.check)
+            if s is None:  # Python code: --check reads files, it runs nothing
+                print(json.dumps({"spec": str(args.check), "factory": spec_factory(args.check),
                                   "note": "the system is built by Python code, which --check "
                                           "does not run; `nlyap run FILE` imports it"},
                                  indent=1))
                 return 0
-            s = systems.load_spec(args.check, allow_factory=False)
+            # its [run] table, as `nlyap config FILE` checks it
+            make_config(_register_spec(s, args.check), None)
         else:
             s = systems.get(args.check)
         try:

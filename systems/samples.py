@@ -325,6 +325,10 @@ def _read_csv(path: Path, columns: Sequence[str] | None) -> tuple[list[str], np.
     if not data:
         raise ConfigError(f"{path}: the csv has a header but no data rows; write one row per "
                           "sample below it")
+    odd = next(((r, c) for r, row in enumerate(data) for c in row if "_" in c), None)
+    if odd is not None:  # float() reads 1_0 as 10: a typo would pass as a number
+        raise ConfigError(f"{path}: sample row {odd[0] + 1} holds {odd[1].strip()!r}, not a "
+                          "plain number (no '_' between digits); fix the data")
     try:
         arr = np.array([[float(c) for c in row] for row in data], dtype=float)
     except ValueError as exc:
@@ -349,14 +353,14 @@ SAMPLE_LIMIT = 1e100
 
 
 def _magnitudes(path: Path, name: str, a: np.ndarray) -> np.ndarray:
-    """``a``, unless a finite value exceeds :data:`SAMPLE_LIMIT` in magnitude (named by its
-    first row)."""
+    """``a``, unless a finite value exceeds :data:`SAMPLE_LIMIT` in magnitude (the first one
+    named, with its sample row counted from 1)."""
     with np.errstate(invalid="ignore"):
         big = np.isfinite(a) & (np.abs(a) > SAMPLE_LIMIT)
     if np.any(big):
-        row = int(np.argwhere(big)[0][0])
-        raise ConfigError(f"{path}: {name} holds {a[np.argwhere(big)[0][0]].ravel()[0]:g} "
-                          f"(row {row}), beyond ±{SAMPLE_LIMIT:g}; rescale the samples")
+        at = tuple(np.argwhere(big)[0])
+        raise ConfigError(f"{path}: {name} holds {a[at]:g} (sample row {at[0] + 1}), beyond "
+                          f"±{SAMPLE_LIMIT:g}; rescale the samples")
     return a
 
 
@@ -408,7 +412,9 @@ def load_samples(path, *, states: Sequence[str], inputs: Sequence[str] = (),
     inputs = [unicodedata.normalize("NFKC", str(s)) for s in inputs]
     nx, nu = len(states), len(inputs)
     if not path.is_file():
-        raise ConfigError(f"sample file {str(path)!r} not found; check the path")
+        raise ConfigError(f"sample file {str(path)!r} " + (
+            "is not a regular file (a directory, pipe or device); give the csv or npz file"
+            if path.exists() else "not found; check the path"))
     if path.suffix.lower() == ".npz":
         x, u, xdot = _read_npz(path, nx, nu)
         x = x.reshape(len(x), -1) if x.ndim == 1 and nx == 1 else x
@@ -420,6 +426,9 @@ def load_samples(path, *, states: Sequence[str], inputs: Sequence[str] = (),
                     f"{path}: array {nm!r} has shape {a.shape}; expected ({x.shape[0]}, {w})"
                 )
         pts, val = np.hstack([x, u.reshape(len(x), nu)]), xdot
+        if not len(pts):
+            raise ConfigError(f"{path}: the npz sample file holds no samples (its arrays have "
+                              "0 rows); write one row per sample")
     elif path.suffix.lower() == ".csv":
         names, arr = _read_csv(path, columns)
         want = states + inputs + [f"{s}_dot" for s in states]

@@ -259,11 +259,37 @@ def _truncated(p, X):
      ["is not an npz file", "holds text", "suffix .csv"]),
     (lambda p, X: np.save(p.with_suffix(".npy"), X) or p.with_suffix(".npy").rename(p),
      ["is not an npz file", "binary data"]),
-], ids=["truncated", "corrupt", "complex", "text", "boolean", "plain-text", "npy"])
+    (lambda p, X: np.savez(p, x=X[:0], xdot=-X[:0]), ["holds no samples", "0 rows"]),
+    (lambda p, X: np.savez(p, x=X, xdot=np.where(np.arange(X.size).reshape(X.shape) == 15,
+                                                    1e300, -X)),
+     ["xdot holds 1e+300 (sample row 8)", "rescale"]),
+], ids=["truncated", "corrupt", "complex", "text", "boolean", "plain-text", "npy", "empty",
+        "huge"])
 def test_bad_npz_exits_3_with_the_fix(write, words, tmp_path, capsys):
     code, err = _check(_npz_spec(tmp_path, write), capsys)
     _one_line_exit3(code, err)
     assert all(w in err for w in words), err
+
+
+@pytest.mark.parametrize("row,words", [
+    ("0,1_0", ["sample row 2 holds '1_0'", "not a plain number"]),
+    ("0,1e300", ["holds 1e+300 (sample row 2)", "rescale"]),
+])
+def test_csv_fields_that_are_no_plain_number_exit_3(row, words, tmp_path, capsys):
+    """The value and the sample row the message names are the offending ones (1e300 in
+    the second row was reported as another field of another row); a field with '_',
+    which Python's float() reads (1_0 as 10), is not a number of a data file."""
+    (tmp_path / "d.csv").write_text(f"x,x_dot\n1,-1\n{row}\n-1,1\n")
+    code, err = _check(_spec(tmp_path, 'states = ["x"]\n[samples]\nfile = "d.csv"\n'), capsys)
+    _one_line_exit3(code, err)
+    assert all(w in err for w in words), err
+
+
+def test_a_sample_path_that_is_no_file_is_not_called_missing(tmp_path, capsys):
+    (tmp_path / "d.csv").mkdir()
+    code, err = _check(_spec(tmp_path, 'states = ["x"]\n[samples]\nfile = "d.csv"\n'), capsys)
+    _one_line_exit3(code, err)
+    assert "not a regular file" in err and "not found" not in err
 
 
 def test_csv_not_utf8_exits_3(tmp_path, capsys):

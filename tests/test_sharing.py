@@ -207,6 +207,7 @@ def vdp_certificate(tmp_path):
      "inner_ellipse.box_half_widths"),
     (lambda d: d["inner_ellipse"].__setitem__("proved", False), "inner_ellipse.proved"),
     (lambda d: d.__setitem__("assumptions_declared_by_user", []), "assumptions_declared"),
+    (lambda d: d.__setitem__("decrease_condition", "nothing"), "decrease_condition"),
 ])
 def test_an_edited_number_is_refused_with_its_field(vdp_certificate, edit, field, capsys):
     d = json.loads(vdp_certificate.read_text())

@@ -1593,6 +1593,8 @@ def _not_as_proved(saved: RoaCertificate, new: RoaCertificate) -> list[str]:
     # what the proof says of itself: the same words as the re-check's, and no stored check
     # that did not hold beside a certified status
     field("reason", saved.reason, new.reason, saved.reason == new.reason)
+    field("decrease_condition", saved.decrease_condition, new.decrease_condition,
+          saved.decrease_condition == new.decrease_condition)
     saved_checks = saved.checks if isinstance(saved.checks, dict) else {}
     for name, verdict in saved_checks.items():
         proved = new.checks.get(name)

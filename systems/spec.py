@@ -203,8 +203,12 @@ def _parse_unevaluated(text: str, symbols: dict) -> sympy.Expr:
     try:
         tree = ast.parse(src, mode="eval")
     except SyntaxError as exc:
+        if "too many nested" in str(exc.msg):   # the parser's own depth limit
+            raise _too_deep(text) from None
         col = _column(text, (exc.offset or 1) - 1)
-        raise _ExprError(f"syntax error at column {col + 1} in {text!r} ({exc.msg})") from None
+        raise _ExprError(f"syntax error at column {col + 1} in {_short(text, 120)} "
+                         f"({exc.msg}); write one arithmetic expression of the states, inputs "
+                         "and parameters (no ';', '=' or statements)") from None
     return _node(tree.body, symbols, text)
 
 

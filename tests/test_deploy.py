@@ -347,7 +347,7 @@ def test_nominal_files_are_data_not_code(tmp_path, capsys, cartpole_run):
     assert main(["simulate", str(cartpole_run), "--filter", "clf-qp", "--nominal", str(py),
                  "--out", str(out)]) == 3
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "not valid JSON" in err[0]
+    assert len(err) == 1 and f"nominal controller {py} is not valid JSON" in err[0], err
     assert not (tmp_path / "HACKED").exists()
     bad = tmp_path / "bad.json"
     for d, msg in [({"format": "nlyap-nominal-controller", "K": [[1, 2]]}, "K must be 1 x 4"),

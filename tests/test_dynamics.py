@@ -223,6 +223,19 @@ def test_config_file_grid_spacing_replaces_default_counts(tmp_path):
     assert g.counts.tolist() == [7, 13] and g.spacing.tolist() == [0.5, 0.25]
 
 
+def test_a_config_without_a_grid_says_where_to_give_one(tmp_path):
+    """A system with no dynamics preset (a spec file's) and no grid in the config: the
+    message names the system, the two keys and --config, with an example of the right
+    length (one count per axis of the sampling box)."""
+    from nlyap_opt.learned.dynamics import make_grid
+
+    cfg = load_config(None, "van_der_pol")
+    cfg = {**cfg.to_dict(), "grid_counts": None, "grid_spacing": None}
+    with pytest.raises(ConfigError, match=r"'van_der_pol' has no grid.*'grid_counts'.*"
+                                          r"\[11, 11\].*'grid_spacing' in --config FILE"):
+        make_grid(systems.get("van_der_pol"), cfg)
+
+
 # ----------------------------------------------------------------------------- one config
 @pytest.mark.parametrize("over, match", [
     ({"hiden": 10}, r"'hiden' \(did you mean 'hidden'\?\)"),

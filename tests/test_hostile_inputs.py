@@ -499,3 +499,17 @@ def test_an_unstable_origin_an_input_can_move_is_not_refused():
                                                     -z[0] - 3 * z[1] - z[1] ** 3),
                          state_box=[[-1, 1], [-1, 1]])
     assert unstable_modes(nil) == []
+
+
+@pytest.mark.parametrize("rhs,words", [
+    ("-x; -x", ["syntax error at column 3", "no ';', '=' or statements"]),
+    ("(" * 300 + "x" + ")" * 300, ["nested too deeply", "split it"]),
+    ("-x + " + "sin(" * 300 + "x" + ")" * 300, ["nested too deeply", "split it"]),
+], ids=["two-statements", "parentheses", "calls"])
+def test_an_expression_that_does_not_parse_says_what_to_write(rhs, words, tmp_path, capsys):
+    """A syntax error names the fix; Python's parser limit on nesting is the depth message,
+    not a syntax error at column 201."""
+    code, err = _check(_spec(tmp_path, f'states = ["x"]\nstate_box = [[-1.0, 1.0]]\n'
+                                       f'[rhs]\nx = "{rhs}"\n'), capsys)
+    _one_line_exit3(code, err)
+    assert all(w in err for w in words), err

@@ -122,6 +122,19 @@ def test_factory_given_with_allow_factory_rechecks(factory_certificate, capsys):
     assert recheck_certificate(out, system=spec, allow_factory=True, **QUIET).certified
 
 
+def test_a_spec_file_gone_or_replaced_by_a_directory_is_named_as_such(tmp_path, capsys):
+    spec = _spec(tmp_path)
+    out = tmp_path / "cert"
+    _certify(systems.load_spec(spec), out)
+    spec.unlink()
+    assert main(["verify", "--certificate", str(out)]) == 3
+    assert "which does not exist" in _one_line_error(capsys)
+    spec.mkdir()
+    assert main(["verify", "--certificate", str(out)]) == 3
+    err = _one_line_error(capsys)
+    assert "is not a regular file" in err and "--system FILE.toml" in err, err
+
+
 # ============================================================ a certificate binds its system
 def test_recheck_against_an_edited_system_is_refused(tmp_path, capsys):
     spec = _spec(tmp_path)

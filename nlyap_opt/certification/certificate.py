@@ -1483,8 +1483,10 @@ def _recheck_system(saved: RoaCertificate, d: dict, path: Path, system, allow_fa
     if src:
         src = Path(str(src))
         if not src.is_file():
+            what = "is not a regular file (a directory, pipe or device)" if src.exists() \
+                else "does not exist"
             raise ConfigError(f"certificate {path} is about system {saved.system!r} from "
-                              f"{src}, which does not exist; restore the spec file or pass "
+                              f"{src}, which {what}; restore the spec file or pass "
                               "--system FILE.toml")
         factory = spec_factory(src)
         if factory is not None:

@@ -85,7 +85,7 @@ def load_nominal(path: str | Path, nx: int, nu: int) -> Callable[[np.ndarray], n
     ``(N, nx) -> (N, nu)`` function.
     """
 
-    d = read_json_object(path)
+    d = read_json_object(path, "nominal controller")
     fmt = d.get("format")
     if fmt == NETWORK_FORMAT:
         net = Network.from_dict(d, source=str(path))

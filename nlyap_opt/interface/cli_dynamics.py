@@ -54,7 +54,7 @@ def register_cli(sub) -> None:
 
     sp = sub.add_parser("learn-dynamics",
                         help="learn φ ≈ f on a grid and compute α, δ, K_f, K_φ, η")
-    sp.add_argument("system", help="catalogue system name")
+    sp.add_argument("system", help="catalogue system name or system spec file (.toml)")
     sp.add_argument("--config", help="JSON file overriding the default configuration")
     sp.add_argument("--out", required=True, help="directory for dynamics.json and bounds.json")
     sp.add_argument("--fast", action="store_true", help="tiny configuration (seconds)")

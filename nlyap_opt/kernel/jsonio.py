@@ -239,12 +239,14 @@ def _unique_keys(pairs: list) -> dict:
     return seen
 
 
-def read_json_object(path: str | Path) -> dict:
+def read_json_object(path: str | Path, what: str = "config") -> dict:
     """A configuration file: a JSON object (else :class:`ConfigError` saying why).
 
     Parameters
     ----------
     path : str or Path
+    what : str
+        What the file is, as messages name it (default ``"config"``).
 
     Returns
     -------
@@ -258,27 +260,27 @@ def read_json_object(path: str | Path) -> dict:
     """
     p = Path(path)
     if p.is_dir():
-        raise ConfigError(f"config {path} is a directory; pass the JSON file inside it")
+        raise ConfigError(f"{what} {path} is a directory; pass the JSON file inside it")
     try:
-        data = read_file_bytes(p, "config")
+        data = read_file_bytes(p, what)
     except OSError as err:
-        raise ConfigError(f"cannot read config {path}: {err.strerror or err}; "
+        raise ConfigError(f"cannot read {what} {path}: {err.strerror or err}; "
                           "check the path") from None
     try:
         obj = json.loads(data.decode("utf-8"), object_pairs_hook=_unique_keys)
     except RecursionError:
-        raise ConfigError(f"config {path} is nested too deeply to read; fix the file") \
+        raise ConfigError(f"{what} {path} is nested too deeply to read; fix the file") \
             from None
     except UnicodeDecodeError:
-        raise ConfigError(f"config {path} is not a text file; pass a JSON file") from None
+        raise ConfigError(f"{what} {path} is not a text file; pass a JSON file") from None
     except json.JSONDecodeError as err:
-        raise ConfigError(f"config {path} is not valid JSON ({err}); fix the file") from None
+        raise ConfigError(f"{what} {path} is not valid JSON ({err}); fix the file") from None
     except ConfigError as err:
-        raise ConfigError(f"config {path}: {err}") from None
+        raise ConfigError(f"{what} {path}: {err}") from None
     except ValueError as err:  # an integer of thousands of digits (Python's own limit)
-        raise ConfigError(f"config {path} cannot be read ({' '.join(str(err).split())[:120]}); "
+        raise ConfigError(f"{what} {path} cannot be read ({' '.join(str(err).split())[:120]}); "
                           "fix the file") from None
     if not isinstance(obj, dict):
-        raise ConfigError(f"config {path} must hold a JSON object {{...}}, "
+        raise ConfigError(f"{what} {path} must hold a JSON object {{...}}, "
                           f"got a {type(obj).__name__}")
     return obj

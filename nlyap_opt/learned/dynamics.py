@@ -726,7 +726,9 @@ def make_grid(system, cfg: dict) -> Grid:
         return Grid(box, cfg["grid_counts"])
     if cfg.get("grid_spacing") is not None:
         return Grid.from_spacing(box, cfg["grid_spacing"])
-    raise ConfigError("config needs 'grid_counts' (nodes per axis) or 'grid_spacing'")
+    raise ConfigError(f"the dynamics config of {system.name!r} has no grid (no preset gives "
+                      "one): set 'grid_counts' (nodes per axis of its sampling box, e.g. "
+                      f"{[11] * box.shape[0]}) or 'grid_spacing' in --config FILE")
 
 
 # ============================================================================ training

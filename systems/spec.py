@@ -744,8 +744,12 @@ def load_spec(path, *, allow_factory: bool = True) -> System:
     try:
         return _load_spec(path, spec)
     except OverflowError as exc:  # a number of hundreds of digits anywhere in the file
-        raise ConfigError(f"{path}: a number is too large for a float ({exc}); give values "
-                          "below 1.8e308") from None
+        raise _too_large(path, exc) from None
+
+
+def _too_large(path: Path, exc: OverflowError) -> ConfigError:
+    return ConfigError(f"{path}: a number is too large for a float ({exc}); give values "
+                       "below 1.8e308")
 
 
 def check_spec(path) -> System | None:
@@ -755,10 +759,13 @@ def check_spec(path) -> System | None:
     neither imported nor run). Raises :class:`ConfigError` as :func:`load_spec` does."""
     path = Path(path)
     spec = _read_spec(path)
-    if "factory" in spec:
+    if "factory" not in spec:
+        return load_spec(path, allow_factory=False)
+    try:
         _check_factory_entries(path, spec)
-        return None
-    return load_spec(path, allow_factory=False)
+    except OverflowError as exc:  # a number of hundreds of digits, e.g. in [declared]
+        raise _too_large(path, exc) from None
+    return None
 
 
 def _read_spec(path: Path) -> dict:

@@ -165,6 +165,10 @@ def test_a_step_too_coarse_is_not_a_contradiction(vdp_run, tmp_path, capsys):
     np.testing.assert_allclose(res.inside[-1], fine.inside[-1], rtol=0, atol=1e-9)  # at t = 20
     with pytest.raises(ConfigError, match="too coarse"):
         simulate_run(run, points=4 * REFINE_AT_MOST, horizon=20.0, dt=5.0)
+    # a run that claims nothing (a safety filter's unfiltered nominal) is not integrated
+    # again, and its step is not judged
+    raw = simulate_run(run, points=4 * REFINE_AT_MOST, horizon=20.0, dt=5.0, confirm=False)
+    assert raw.violated and raw.refined == 0
     assert main(["simulate", str(vdp_run), "--dt", "5", "--horizon", "20", "--points",
                  str(4 * REFINE_AT_MOST), "--out", str(tmp_path / "o")]) == 3
     err = capsys.readouterr().err.strip().splitlines()

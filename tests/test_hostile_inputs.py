@@ -513,3 +513,12 @@ def test_an_expression_that_does_not_parse_says_what_to_write(rhs, words, tmp_pa
                                        f'[rhs]\nx = "{rhs}"\n'), capsys)
     _one_line_exit3(code, err)
     assert all(w in err for w in words), err
+
+
+def test_a_factory_spec_with_a_huge_number_is_checked_without_running_it(tmp_path, capsys):
+    """``systems --check`` checks a factory spec's own entries (here a [declared] integer of
+    401 digits) without importing the factory (os:abort would end the process)."""
+    body = 'name = "tf"\nfactory = "os:abort"\n[declared]\nlipschitz = 1' + "0" * 400 + "\n"
+    code, err = _check(_spec(tmp_path, body), capsys)
+    _one_line_exit3(code, err)
+    assert "too large for a float" in err

@@ -369,3 +369,24 @@ def test_status_line_names_the_declared_assumptions(tmp_path):
 
     d = json.loads(path.read_text())
     assert status_line(d).startswith("certified under the declared assumptions")
+
+
+def test_the_decrease_condition_may_show_the_stored_beta_digits(vdp_certificate):
+    """``decrease_condition`` states β to 6 digits: a β re-derived within the tolerance of
+    the stored one may round the other way, and the stored words (with the stored β) still
+    describe the proof; other words are refused."""
+    import dataclasses
+
+    from nlyap_opt.certification.certificate import _not_as_proved
+
+    new = recheck_certificate(vdp_certificate, **QUIET)
+    text = "∇V·φ(x, κ(x)) < −β with β = M·η = {} (rounded up)"
+    new = dataclasses.replace(new, margin=0.1234565000000001,
+                              decrease_condition=text.format("0.123457"))
+    saved = dataclasses.replace(new, margin=0.1234564999999999,
+                                decrease_condition=text.format("0.123456"))
+    assert _not_as_proved(saved, new) == []
+    for other in ("0.123458", "nothing"):
+        edited = dataclasses.replace(saved, decrease_condition=text.format(other)
+                                     if other[0].isdigit() else other)
+        assert any(p.startswith("decrease_condition") for p in _not_as_proved(edited, new))

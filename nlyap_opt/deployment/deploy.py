@@ -279,14 +279,16 @@ REFINE_AT_MOST = 8
 
 
 def _integrate_again(run: CertifiedRun, f, x_in, bad, h: float, steps: int, arrays,
-                     dt: float) -> int:
+                     dt: float) -> tuple[int, list[int]]:
     """Integrate the first :data:`REFINE_AT_MOST` trajectories of ``bad`` (which left the
     set or raised ``V`` at the step ``h``) again, with :data:`RISE_REFINE` and with
     ``RISE_REFINE // 8`` sub-steps per step, and put the finer one into ``arrays`` (``Xi,
     inside, V, rise``, updated in place). A contradiction must be the flow's, not the
     integrator's: one stands where the finer integration still shows it and the two
-    integrations agree (to 10⁻³, relatively) up to it. Returns the number of those
-    trajectories that no longer contradict anything.
+    integrations agree (``|a − b| ≤ 10⁻³(1 + |a|)`` per coordinate) up to it, the sample
+    that ends a step over which ``V`` rose included. Returns the number of those
+    trajectories that no longer contradict anything, and the indices of those whose
+    contradiction stands.
 
     Raises
     ------
@@ -299,7 +301,8 @@ def _integrate_again(run: CertifiedRun, f, x_in, bad, h: float, steps: int, arra
     fine = _refined_trajectories(f, x_in[pick], h, steps, RISE_REFINE)
     half = _refined_trajectories(f, x_in[pick], h, steps, RISE_REFINE // 8)
     f_in, f_V, f_rise = _judged(run, f, fine, h)
-    risen = np.vstack([f_rise > 1e-6 * run.level, np.zeros((1, len(pick)), bool)])
+    # a rise over the step j -> j + 1 is shown at its end, sample j + 1
+    risen = np.vstack([np.zeros((1, len(pick)), bool), f_rise > 1e-6 * run.level])
     wrong = ~f_in | risen                      # (steps + 1, k): a contradiction at a sample
     upto = np.cumsum(np.cumsum(wrong, axis=0), axis=0) <= 1   # samples up to the first one
     with np.errstate(invalid="ignore"):
@@ -314,13 +317,20 @@ def _integrate_again(run: CertifiedRun, f, x_in, bad, h: float, steps: int, arra
         raise ConfigError(f"--dt {dt:g} is too coarse for this closed loop: {len(bad)} "
                           f"trajectories left the certified set or raised V with it, and "
                           f"{again}; lower --dt")
-    return int((~contradicts).sum())
+    return int((~contradicts).sum()), [int(k) for k in pick[contradicts & resolved]]
+
+
+def _first(mask: np.ndarray, confirmed: list[int], n: int = 3) -> list[int]:
+    """The first ``n`` trajectories of ``mask``, those in ``confirmed`` (integrated again,
+    their contradiction standing) first."""
+    return ([k for k in confirmed if mask[k]] +
+            [int(k) for k in np.flatnonzero(mask) if k not in confirmed])[:n]
 
 
 def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = None,
                  horizon: float = 20.0, dt: float = 0.01, dynamics: str | None = None,
                  seed: int = 0, feedback: Callable | None = None,
-                 tol: float | None = None) -> SimulationResult:
+                 tol: float | None = None, confirm: bool = True) -> SimulationResult:
     """Closed-loop trajectories from ``points`` seeded samples of the certified set.
 
     Parameters
@@ -339,6 +349,10 @@ def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = 
         its own).
     tol : float, optional
         Convergence radius (default ``10⁻²·`` the inner radius ε).
+    confirm : bool
+        Integrate trajectories that leave the set or raise ``V`` again in finer steps
+        (:func:`_integrate_again`); ``False`` for a run that claims nothing (the unfiltered
+        nominal controller of a safety filter).
     """
 
     if points < 1 or not (horizon > 0 and dt > 0):
@@ -360,9 +374,10 @@ def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = 
     Xi, Xo = X[:, :points], X[:, points:]
     inside, Vt, rise = _judged(run, f, Xi, h)
     bad = np.flatnonzero(~inside.all(axis=0) | (rise > 1e-6 * run.level).any(axis=0))
-    refined = 0
-    if len(bad):
-        refined = _integrate_again(run, f, x_in, bad, h, steps, (Xi, inside, Vt, rise), dt)
+    refined, confirmed = 0, []
+    if len(bad) and confirm:
+        refined, confirmed = _integrate_again(run, f, x_in, bad, h, steps,
+                                              (Xi, inside, Vt, rise), dt)
     c, eps = run.level, run.certificate.inner
     norms = np.linalg.norm(Xi, axis=2)
     monotone = ~(rise > 1e-6 * c).any(axis=0)
@@ -374,14 +389,14 @@ def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = 
         converged = norms[-1] <= tol
     res = SimulationResult(which, np.linspace(0.0, steps * h, steps + 1), Xi, Xo, Vt, stayed,
                            monotone, converged, tol, refined=refined)
-    for k in np.flatnonzero(~stayed)[:3]:
+    for k in _first(~stayed, confirmed):
         j = int(np.argmin(inside[:, k]))
         res.failures.append(f"trajectory {k} from {x_in[k].tolist()} left the certified set at "
                             f"t = {res.t[j]:.4g} (x = {Xi[j, k].tolist()})")
-    for k in np.flatnonzero(~monotone)[:3]:
+    for k in _first(~monotone, confirmed):
         res.failures.append(f"trajectory {k} from {x_in[k].tolist()}: V rose by "
                             f"{np.max(rise[:, k]):.3g} over one step in Ω_c∖B_ε")
-    for k in np.flatnonzero(~converged)[:3]:
+    for k in _first(~converged, []):
         res.failures.append(f"trajectory {k} from {x_in[k].tolist()} has not converged by "
                             f"t = {horizon:g} (‖x‖ = {norms[-1, k]:.3g})")
     return res

@@ -83,7 +83,7 @@ def cmd_simulate(args) -> int:
     if args.filter:
         nominal = load_nominal(args.nominal, run.system.nx, run.system.nu)
         filt = ClfQpFilter(run, nominal, decay=args.decay, dynamics=which)
-        nominal_res = simulate_run(run, feedback=nominal, outside=0, **opts)
+        nominal_res = simulate_run(run, feedback=nominal, outside=0, confirm=False, **opts)
         res = simulate_run(run, feedback=filt, **opts)
         title = (f"{run.system.name}: nominal {Path(args.nominal).name} through the CLF-QP "
                  f"filter (orange: unfiltered)")

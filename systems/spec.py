@@ -626,15 +626,24 @@ def _declarations(path, spec: dict) -> Declarations | None:
         raise _err(path, "declared", str(exc)) from None
 
 
-def _load_factory(path: Path, ref) -> Callable:
+def _factory_reference(path: Path, ref) -> tuple[str, str, Path | None]:
+    """``(module, function, file)`` of a ``factory`` entry, checked without importing
+    anything (``file``: the ``.py`` file it names, else ``None``)."""
     if not isinstance(ref, str) or ref.count(":") != 1:
         raise _err(path, "factory", f"must be \"module:function\" or \"file.py:function\", "
                    f"got {ref!r}")
     mod, fn = ref.split(":")
-    if mod.endswith(".py"):
-        file = (path.parent / mod).resolve()
-        if not file.is_file():
-            raise _err(path, "factory", f"file {str(file)!r} not found")
+    if not mod.endswith(".py"):
+        return mod, fn, None
+    file = (path.parent / mod).resolve()
+    if not file.is_file():
+        raise _err(path, "factory", f"file {str(file)!r} not found")
+    return mod, fn, file
+
+
+def _load_factory(path: Path, ref) -> Callable:
+    mod, fn, file = _factory_reference(path, ref)
+    if file is not None:
         modname = f"_nlyap_spec_{file.stem}_{abs(hash(str(file)))}"
         spec = importlib.util.spec_from_file_location(modname, file)
         module = importlib.util.module_from_spec(spec)
@@ -820,6 +829,7 @@ def _check_factory_entries(path: Path, spec: dict) -> tuple:
     if clash:
         raise _err(path, "factory", f"the factory defines the system; remove {clash} "
                    "(a factory spec takes only name, description, declared and run)")
+    _factory_reference(path, spec["factory"])
     return out
 
 

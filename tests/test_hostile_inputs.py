@@ -522,3 +522,14 @@ def test_a_factory_spec_with_a_huge_number_is_checked_without_running_it(tmp_pat
     code, err = _check(_spec(tmp_path, body), capsys)
     _one_line_exit3(code, err)
     assert "too large for a float" in err
+
+
+@pytest.mark.parametrize("ref,words", [
+    ("gone.py:make", ["gone.py", "not found"]),
+    ("no_colon", ["module:function"]),
+])
+def test_systems_check_refuses_a_factory_reference_run_would_refuse(ref, words, tmp_path,
+                                                                    capsys):
+    code, err = _check(_spec(tmp_path, f'name = "tf"\nfactory = "{ref}"\n'), capsys)
+    _one_line_exit3(code, err)
+    assert all(w in err for w in words), err

@@ -358,3 +358,17 @@ def test_sx_files_rebuild_exactly_or_are_refused_and_huge_numbers_are_one_line_e
     (tmp_path / "certificate.json").write_text('{"level": ' + "9" * 5000 + "}")
     with pytest.raises(ConfigError, match="cannot be read"):
         recheck_certificate(tmp_path, **QUIET)
+
+
+def test_an_atomic_write_onto_a_directory_names_the_file(tmp_path):
+    """A directory where a run's JSON file goes: one error naming that file (not the
+    temporary one the write goes through), and no temporary file left behind."""
+    from nlyap_opt.certification.certificate import write_json_atomic
+    from nlyap_opt.kernel.errors import ConfigError
+
+    (tmp_path / "certificate.json").mkdir()
+    with pytest.raises(ConfigError, match=r"cannot write .*certificate\.json: .*remove what"):
+        write_json_atomic(tmp_path / "certificate.json", {"a": 1})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["certificate.json"]
+    write_json_atomic(tmp_path / "other.json", {"a": 1})
+    assert (tmp_path / "other.json").read_text().startswith("{")

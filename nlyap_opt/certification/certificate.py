@@ -1791,7 +1791,12 @@ def write_json_atomic(path: str | Path, data) -> None:
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(data, indent=1, allow_nan=False, default=_jsonable))
-    tmp.replace(path)
+    try:
+        tmp.replace(path)
+    except OSError as err:  # e.g. a directory where the file goes
+        tmp.unlink(missing_ok=True)
+        raise ConfigError(f"cannot write {path}: {err.strerror or err}; remove what is in its "
+                          "place or write to another directory") from None
 
 
 def _jsonable(o):

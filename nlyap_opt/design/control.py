@@ -475,6 +475,13 @@ def lqr(system, Q=None, R=None, *, dynamics: Network | None = None) -> LQRResult
         raise ValueError("R must be positive definite")
     _check_stabilisable(A, B)
     K, S, E = _lqr(A, B, Q, R)
+    cl = np.linalg.eigvals(A - B @ K)
+    if not np.all(np.isfinite(cl)) or np.max(cl.real) >= 0:
+        # (A, B) is stabilisable, so the exact LQR gain stabilises: the solver lost accuracy
+        raise NotStabilizableError(
+            f"the LQR gain computed with these weights does not stabilise the linearisation "
+            f"(closed-loop eigenvalues {cl}): the Riccati solver lost accuracy; use moderate "
+            "weights (Q and R between about 1e-6 and 1e6)")
     P = lyapunov_matrix(A - B @ K)
     return LQRResult(K, S, P, np.asarray(E), A, B, Q, R)
 

@@ -375,9 +375,22 @@ def _write_json(path: str | None, data: dict) -> None:
         print(f"wrote {path}")
 
 
+#: per option that reads a network: the ``meta.kind`` this tool writes into such a file, and
+#: the file's name in a run directory
+_NETWORK_KINDS = {"--lyapunov": ("lyapunov", "V.json"),
+                  "--controller": ("controller", "controller.json"),
+                  "--dynamics": ("dynamics", "dynamics.json")}
+
+
 def _load_network(path: str, option: str):
     with _reading(f"{option} {path}"):
-        return Network.load(path)
+        net = Network.load(path)
+    kind = net.meta.get("kind") if isinstance(net.meta, dict) else None
+    want, name = _NETWORK_KINDS.get(option, (None, ""))
+    if kind is not None and want is not None and kind != want:
+        raise UsageError(f"{option} {path} is a network of kind {kind!r} (its meta says so), "
+                         f"not a {want} network; pass the {want} file ({name} of a run)")
+    return net
 
 
 # ============================================================================ commands

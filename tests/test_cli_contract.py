@@ -406,3 +406,22 @@ def test_a_full_device_is_the_users_to_fix(capsys):
         lines = _err_lines(capsys)
         assert len(lines) == 1 and f"cannot write --json {path}" in lines[0], lines
         assert why in lines[0] and "writable file" in lines[0]
+
+
+def test_a_warning_is_one_line(tmp_path, capsys):
+    """A warning of the tool (a controller whose bias leaves the origin no equilibrium) is
+    printed as one 'nlyap: warning:' line, without the source line Python adds."""
+    import systems
+    from nlyap_opt.design.control import lqr, quadratic_lyapunov, saturated_controller
+
+    s = systems.get("inverted_pendulum")
+    res = lqr(s)
+    ctrl = saturated_controller(s, res.K, 20.0)
+    ctrl.layers[0].bias[:] = 0.3
+    V, C = quadratic_lyapunov(res.P).save(tmp_path / "V.json"), ctrl.save(tmp_path / "c.json")
+    main(["verify", "--system", "inverted_pendulum", "--lyapunov", str(V), "--controller",
+          str(C), "--inner", "0.4", "--outer", "1"])
+    err = capsys.readouterr().err.splitlines()
+    warned = [ln for ln in err if "not an equilibrium" in ln]
+    assert len(warned) == 1 and warned[0].startswith("nlyap: warning: the origin"), err
+    assert not any("closed_loop(" in ln or ".py:" in ln for ln in err), err

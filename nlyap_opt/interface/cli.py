@@ -925,6 +925,15 @@ def _classify(err: BaseException, command: str | None) -> tuple[int, str]:
     return 4, f"{type(err).__name__}: {_one_line(err)}; rerun with --debug for the traceback"
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as one line on standard error (``nlyap: warning: ...``), without the
+    source line Python prints beside it (``--debug`` keeps Python's format)."""
+    own = category.__module__.startswith(("nlyap_opt", "systems", "verification"))
+    text = " ".join(str(message).split())
+    print(f"nlyap: warning: {text if own else f'{category.__name__}: {text}'}",
+          file=sys.stderr if file is None else file)
+
+
 def _close_progress_bars() -> None:
     """Close progress bars an exception left open, so that the one-line message starts its
     own line (a bar stopped mid-line by --time-limit had the message appended to it)."""
@@ -1041,7 +1050,9 @@ def _main(argv: list[str] | None) -> int:
         if getattr(args, "portable", False):
             _enter_portable_mode(full_argv, may_restart)
         _check_paths(args)
-        with _time_guard(getattr(args, "time_limit", None)):
+        with _time_guard(getattr(args, "time_limit", None)), warnings.catch_warnings():
+            if not debug:
+                warnings.showwarning = _one_line_warning
             try:
                 return int(args.func(args) or 0)
             except Exception as exc:    # a stop that a C extension wrapped (SystemError)

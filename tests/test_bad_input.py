@@ -166,6 +166,9 @@ def files(tmp_path_factory):
     (d / "afile").write_text("x")
     paths["file"] = str(d / "afile")
     paths["missing"] = str(d / "nothing_here.json")
+    (d / "portfolio").mkdir()
+    (d / "portfolio" / "portfolio.json").write_text("{}")
+    paths["portfolio"] = str(d / "portfolio")
     (d / "nanrun.toml").write_text('name = "n"\nstates = ["x"]\nstate_box = [[-1.0, 1.0]]\n'
                                    '[rhs]\nx = "-x"\n[run]\nouter = nan\n')
     paths["nanrun"] = str(d / "nanrun.toml")
@@ -257,6 +260,13 @@ CLI_CASES = [
        ["--json", "file"]),
     # ---------------------------------------------------------------- verify: arguments
     _c("verify nothing", ["verify"], ["--system", "--lyapunov", "--inner", "--outer"]),
+    _c("simulate decay 0", ["simulate", "{dir}", "--filter", "clf-qp", "--nominal", "{V}",
+                            "--decay", "0", "--out", "{tmp}/s"], ["--decay", "(0, 1]"]),
+    _c("simulate decay negative", ["simulate", "{dir}", "--filter", "clf-qp", "--nominal",
+                                   "{V}", "--decay", "-1", "--out", "{tmp}/s"],
+       ["--decay", "(0, 1]"]),
+    _c("simulate a portfolio", ["simulate", "{portfolio}", "--out", "{tmp}/s"],
+       ["portfolio", "best"]),
     _c("verify V as controller", PEND_VERIFY + ["--controller", "{V}"],
        ["--controller", "kind 'lyapunov'", "controller.json"]),
     _c("verify V as dynamics", VERIFY + RADII + ["--dynamics", "{V}"],

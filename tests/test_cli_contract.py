@@ -425,3 +425,28 @@ def test_a_warning_is_one_line(tmp_path, capsys):
     warned = [ln for ln in err if "not an equilibrium" in ln]
     assert len(warned) == 1 and warned[0].startswith("nlyap: warning: the origin"), err
     assert not any("closed_loop(" in ln or ".py:" in ln for ln in err), err
+
+
+def test_verify_says_what_an_unknown_needs_and_what_a_dynamics_file_is_about(tmp_path,
+                                                                             capsys):
+    """With --inner 0 the decrease cannot be decided at the origin: the undecided line
+    names what to change (it said 'at resolution None'). With --dynamics the result is about
+    the learned φ: a note says so, and how to make it one about f."""
+    import numpy as np
+
+    import systems
+    from nlyap_opt.design.control import lyapunov_matrix, quadratic_lyapunov
+    from nlyap_opt.kernel.network import Layer, Network
+
+    s = systems.get("van_der_pol")
+    V = quadratic_lyapunov(lyapunov_matrix(s.A)).save(tmp_path / "V.json")
+    base = ["verify", "--system", "van_der_pol", "--lyapunov", str(V), "--outer", "0.5"]
+    assert main(base + ["--inner", "0"]) == 2
+    out = capsys.readouterr().out
+    assert "undecided at the default resolution" in out and "--inner" in out, out
+    phi = Network([Layer(np.asarray(s.A, dtype=float), [0.0, 0.0])])
+    phi.meta = {"kind": "dynamics"}
+    dyn = phi.save(tmp_path / "dynamics.json")
+    assert main(base + ["--inner", "0.1", "--dynamics", str(dyn)]) == 0
+    err = capsys.readouterr().err
+    assert "along the learned φ" in err and "give --eta" in err, err

@@ -155,6 +155,9 @@ def load_run(path: str | Path, *, log=print) -> CertifiedRun:
     path = Path(path)
     cfile = path / "certificate.json" if path.is_dir() else path
     if not cfile.is_file():
+        if (path / "portfolio.json").is_file():
+            raise ConfigError(f"{path} is the directory of a portfolio (`nlyap run --seeds`): "
+                              f"pass its best run, {path / 'best'}, or one seed's directory")
         raise ConfigError(f"{path}: no certificate.json there; pass the directory of a "
                           "finished `nlyap run`")
     cert, problem = recheck_run(cfile, log=log)

@@ -628,6 +628,11 @@ def cmd_verify(args) -> int:
     dyn = _load_network(args.dynamics, "--dynamics") if args.dynamics else None
     if margin and dyn is None:
         print("note: --margin without --dynamics tightens the true-f condition", file=sys.stderr)
+    if dyn is not None:
+        print(f"note: dV/dt is along the learned φ of --dynamics {args.dynamics}" + (
+            f", with the robust term of ‖f − φ‖ ≤ η = {eta:g}" if eta else
+            ": a statement about φ, not the true f (give --eta, a bound of ‖f − φ‖, for "
+            "one about f)"), file=sys.stderr)
     with _reading("verify"):
         problem = closed_loop_problem(s, V, ctrl, dyn, inner=args.inner, outer=args.outer,
                                       level=args.level, margin=margin, eta=eta,
@@ -663,7 +668,11 @@ def cmd_verify(args) -> int:
             print(f"  counterexample x = {c.point.tolist()} violates {c.property}: "
                   f"value in [{c.value_lower:.6g}, {c.value_upper:.6g}]")
     if res.status is QueryStatus.UNKNOWN:
-        print(f"  {len(res.undecided)} boxes undecided at resolution {args.resolution}")
+        at = "the default resolution" if args.resolution is None else \
+            f"resolution {args.resolution:g}"
+        print(f"  {len(res.undecided)} boxes undecided at {at} (or when the box budget ran "
+              "out); a larger --inner leaves out the origin, where dV/dt tends to 0, and a "
+              "finer --resolution bisects further")
     _write_json(args.json, res.to_dict())
     return {QueryStatus.VERIFIED: 0, QueryStatus.COUNTEREXAMPLE: 1}.get(res.status, 2)
 

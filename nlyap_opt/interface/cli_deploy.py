@@ -25,7 +25,7 @@ from ..deployment.deploy import load_run, plot_simulation, simulate_run
 from ..deployment.export import export_c, export_onnx
 from ..deployment.filter import ClfQpFilter, load_nominal
 from ..kernel.errors import UsageError
-from .cli_args import nonneg as _nonneg
+from .cli_args import number as _number
 from .cli_args import positive as _positive
 from .cli_args import seed as _seed
 from .cli_args import workers as _count
@@ -59,8 +59,6 @@ def cmd_simulate(args) -> int:
         raise UsageError("--decay is the safety filter's share of κ's decrease; add "
                          "--filter clf-qp --nominal FILE, or drop --decay")
     args.decay = _DECAY_DEFAULT if args.decay is None else args.decay
-    if not 0 < args.decay <= 1:
-        raise UsageError(f"--decay must lie in (0, 1], got {args.decay:g}")
     if args.nominal and not args.filter:
         raise UsageError("--nominal FILE is the controller the safety filter keeps safe; add "
                          "--filter clf-qp")
@@ -140,6 +138,8 @@ def cmd_export(args) -> int:
     return 0
 
 
+_decay_share = _number(lambda v: 0 < v <= 1, "a finite number in (0, 1]")
+
 #: ``--decay`` when not given
 _DECAY_DEFAULT = 0.5
 
@@ -167,7 +167,7 @@ def register_cli(sub) -> None:
     sp.add_argument("--nominal", metavar="FILE",
                     help="nominal controller: JSON {\"format\": \"nlyap-nominal-controller\", "
                          "\"K\": [[...]], \"u0\": [...]} (u = u0 - K x) or a network file")
-    sp.add_argument("--decay", type=_nonneg, default=None,
+    sp.add_argument("--decay", type=_decay_share, default=None,
                     help="with --filter: λ in (0, 1], the filtered input keeps λ times κ's "
                          f"proven decrease (default {_DECAY_DEFAULT})")
     sp.add_argument("--out", required=True, help="directory for the files (created)")

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from nlyap_opt.kernel.errors import UnknownNameError
+from nlyap_opt.kernel.errors import ConfigError, UnknownNameError
 
 from .base import ModelUnavailableError, System
 from .catalogue import (
@@ -65,6 +65,10 @@ def register(name: str, factory: Callable[..., System]) -> None:
     """Add a system factory (a callable returning a :class:`System`) to the registry."""
     if name in REGISTRY:
         raise ValueError(f"a system named {name!r} is registered already")
+    if not callable(factory):
+        raise ConfigError(f"register({name!r}, factory): factory must be a callable "
+                          f"returning a System, got {type(factory).__name__} (for a System s, "
+                          "pass lambda: s)")
     REGISTRY[name] = factory
 
 

@@ -31,6 +31,7 @@ import contextlib
 import hashlib
 import json
 import math
+import os
 import time
 from dataclasses import dataclass, field, replace
 from enum import Enum
@@ -366,6 +367,12 @@ class RoaProblem:
     initial_set: Region | None = None
 
     def __post_init__(self):
+        if not hasattr(self.system, "nx"):
+            raise ConfigError(f"system must be a System (e.g. systems.get(name)), got "
+                              f"{type(self.system).__name__} {str(self.system)[:40]!r}")
+        if not (isinstance(self.V, Network) or callable(getattr(self.V, "casadi", None))):
+            raise ConfigError(f"V must be a Network (e.g. Network.load(path)), got "
+                              f"{type(self.V).__name__} {str(self.V)[:40]!r}")
         nx = self.system.nx
         self.inner = _finite("inner radius", self.inner, low=0.0)
         if self.domain is None:
@@ -1353,6 +1360,9 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
     :func:`recheck_certificate`.
     """
 
+    if not isinstance(path, (str, os.PathLike)):
+        raise ConfigError(f"path must be a certificate.json file or its directory (a str or "
+                          f"Path), got {type(path).__name__} {str(path)[:40]!r}")
     path, d = read_certificate_file(path)
     saved = RoaCertificate.from_dict(d)
     problem_d = d.get("problem")

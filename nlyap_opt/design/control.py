@@ -18,7 +18,12 @@ import numpy as np
 from scipy.linalg import solve_continuous_are, solve_continuous_lyapunov
 
 from ..kernel import deps
-from ..kernel.errors import DimensionError, NotStabilizableError, raise_if_interrupted
+from ..kernel.errors import (
+    ConfigError,
+    DimensionError,
+    NotStabilizableError,
+    raise_if_interrupted,
+)
 from ..kernel.network import Layer, Network
 from ..kernel.symbolic import learned_rhs
 
@@ -90,13 +95,22 @@ class LQRResult:
 
 
 def _matrix(M, n, what):
-    M = np.atleast_2d(np.asarray(M, dtype=float))
+    """``M`` as a symmetric ``(n, n)`` float matrix (a scalar times the identity), else a
+    :class:`ConfigError` naming ``what``."""
+    try:
+        M = np.atleast_2d(np.asarray(M, dtype=float))
+    except (TypeError, ValueError):
+        raise ConfigError(f"{what} must be a matrix of numbers (or a scalar), got "
+                          f"{str(M)[:40]!r}; pass a numpy array or nested lists") from None
     if M.shape == (1, 1) and n > 1:
         M = M[0, 0] * np.eye(n)
     if M.shape != (n, n):
         raise DimensionError(f"{what} must be ({n}, {n}) (or a scalar), got {M.shape}")
+    if not np.all(np.isfinite(M)):
+        raise ConfigError(f"{what} has entries that are not finite (NaN or inf); pass finite "
+                          "numbers")
     if not np.allclose(M, M.T):
-        raise ValueError(f"{what} must be symmetric")
+        raise ConfigError(f"{what} must be symmetric; pass (M + Mᵀ)/2 if that is meant")
     return M
 
 
@@ -463,6 +477,9 @@ def lqr(system, Q=None, R=None, *, dynamics: Network | None = None) -> LQRResult
     >>> lqr(systems.get("inverted_pendulum")).K.round(5).tolist()
     [[1.97725, 0.97624]]
     """
+    if not hasattr(system, "nx"):
+        raise ConfigError(f"lqr needs a System (e.g. systems.get(name)), got "
+                          f"{type(system).__name__} {str(system)[:40]!r}")
     A, B = linearisation(system, dynamics)
     nx, nu = system.nx, system.nu
     Q = np.eye(nx) if Q is None else _matrix(Q, nx, "Q")
@@ -472,7 +489,8 @@ def lqr(system, Q=None, R=None, *, dynamics: Network | None = None) -> LQRResult
                          A, B, Q, np.zeros((0, 0)))
     R = np.eye(nu) if R is None else _matrix(R, nu, "R")
     if np.min(np.linalg.eigvalsh(R)) <= 0:
-        raise ValueError("R must be positive definite")
+        raise ConfigError(f"R must be positive definite (its least eigenvalue is "
+                          f"{np.min(np.linalg.eigvalsh(R)):.3g}); pass a positive weight")
     _check_stabilisable(A, B)
     K, S, E = _lqr(A, B, Q, R)
     cl = np.linalg.eigvals(A - B @ K)
@@ -525,7 +543,14 @@ def linear_controller(system, K) -> Network:
 
 def quadratic_lyapunov(P) -> Network:
     """``V(x) = xᵀPx`` as a network: ``‖Lᵀx‖²`` with ``P = L Lᵀ`` (sum-of-squares head)."""
-    P = np.asarray(P, dtype=float)
-    L = np.linalg.cholesky(0.5 * (P + P.T))
+    if np.ndim(P) != 2 or np.shape(P)[0] != np.shape(P)[1]:
+        raise DimensionError(f"P must be a square matrix, got shape {np.shape(P)}")
+    P = _matrix(P, np.shape(P)[0], "P")
+    try:
+        L = np.linalg.cholesky(0.5 * (P + P.T))
+    except np.linalg.LinAlgError:
+        raise ConfigError(f"P must be positive definite (its least eigenvalue is "
+                          f"{np.min(np.linalg.eigvalsh(P)):.3g}); V = xᵀPx is no Lyapunov "
+                          "function candidate otherwise") from None
     return Network([Layer(L.T, np.zeros(len(P)), "linear")], head={"type": "sum_of_squares"},
                    meta={"kind": "lyapunov", "form": "x'Px"})

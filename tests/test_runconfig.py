@@ -233,3 +233,14 @@ def test_stage_records_round_trip_and_refuse_bad_content(tmp_path):
     assert (quad.label, quad.file, quad.P) == ("quadratic round", "V_quadratic.json", [[1.0]])
     with pytest.raises(ConfigError, match="cannot be read"):
         pipeline._CheapRecord.of_stage("sos", {"kind": "sos"}, path)
+
+
+def test_a_stages_file_that_is_a_directory_is_refused_before_any_stage(tmp_path):
+    """``stages.json`` replaced by a directory: refused when the run starts (it was found
+    only when the first stage was recorded, after that stage's work), naming the file."""
+    from nlyap_opt.kernel.errors import ConfigError
+
+    (tmp_path / "stages.json").mkdir()
+    with pytest.raises(ConfigError, match=r"stages\.json is not a regular file.*--out"):
+        pipeline._Stages(tmp_path, "inverted_pendulum", True,
+                         make_config("inverted_pendulum", "fast"), lambda m: None)

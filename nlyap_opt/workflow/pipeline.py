@@ -327,6 +327,9 @@ class _Stages:
         self.file = out / "stages.json"
         self.done: dict = {}
         self.marks = 0          # stages computed (and recorded) by this call
+        if self.file.exists() and not self.file.is_file():   # found now, not after a stage
+            raise ConfigError(f"{self.file} is not a regular file (a directory?); remove it "
+                              "or write to another --out")
         if self.file.exists():
             try:
                 done = json.loads(self.file.read_text())

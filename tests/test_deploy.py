@@ -175,6 +175,26 @@ def test_a_step_too_coarse_is_not_a_contradiction(vdp_run, tmp_path, capsys):
     assert len(err) == 1 and "--dt 5 is too coarse" in err[0] and "lower --dt" in err[0]
 
 
+def test_the_default_horizon_follows_a_slow_closed_loop(vdp_run, monkeypatch):
+    """Without --horizon a closed loop whose slowest mode at the origin decays slowly is
+    simulated long enough to converge (a damped Duffing oscillator with damping 0.5 ended
+    'not converged' at 20 s): 1.5·ln(R/tol)/σ, at most ten times 20 s; a fast loop keeps
+    20 s."""
+    import math
+
+    from nlyap_opt.deployment.deploy import SIM_HORIZON, CertifiedRun, default_horizon
+
+    run = load_run(vdp_run, **QUIET)
+    assert default_horizon(run) == SIM_HORIZON        # Van der Pol's loop decays fast enough
+    box = run.sample_box()
+    R, tol = float(np.linalg.norm(np.max(np.abs(box), axis=1))), 1e-2 * run.certificate.inner
+    for sigma in (0.05, 0.001):
+        monkeypatch.setattr(CertifiedRun, "vector_field",
+                            lambda self, which, feedback=None, s=sigma: (lambda x: -s * x))
+        want = min(max(SIM_HORIZON, 1.5 * math.log(R / tol) / sigma), 10 * SIM_HORIZON)
+        assert default_horizon(run) == pytest.approx(want, rel=1e-6) and want > SIM_HORIZON
+
+
 def test_simulate_refuses_bad_input(vdp_run, tmp_path, capsys):
     cases = [
         ["simulate", str(tmp_path / "nope"), "--out", str(tmp_path / "o")],

@@ -29,7 +29,7 @@ import numpy as np
 from ..certification.certificate import RoaCertificate, RoaProblem, recheck_run, sha256_file
 from ..kernel import deps
 from ..kernel.errors import ConfigError
-from ..kernel.simulate import trajectories
+from ..kernel.simulate import horizon, jacobian_at_origin, trajectories
 from ..kernel.symbolic import learned_rhs
 from ..kernel.walker import evaluate
 
@@ -328,6 +328,27 @@ def _first(mask: np.ndarray, confirmed: list[int], n: int = 3) -> list[int]:
     their contradiction standing) first."""
     return ([k for k in confirmed if mask[k]] +
             [int(k) for k in np.flatnonzero(mask) if k not in confirmed])[:n]
+
+
+#: ``nlyap simulate``'s horizon where none is given, before :func:`default_horizon` extends it
+SIM_HORIZON = 20.0
+
+
+def default_horizon(run: CertifiedRun, dynamics: str | None = None) -> float:
+    """:data:`SIM_HORIZON`, extended for a closed loop whose slowest linear mode at the
+    origin needs longer to bring the certified set's states to the convergence tolerance of
+    :func:`simulate_run` (:func:`nlyap_opt.kernel.simulate.horizon`: at most ten times as
+    long). ``dynamics`` as in :func:`simulate_run`."""
+    avail = run.dynamics_available()
+    if not avail:
+        return SIM_HORIZON
+    which = dynamics or avail[0]
+    f = run.vector_field(which)
+    box = run.sample_box()
+    eps = run.certificate.inner
+    tol = eps if which == "learned" else 1e-2 * eps
+    A = jacobian_at_origin(f, run.system.nx)
+    return horizon(SIM_HORIZON, A, float(np.linalg.norm(np.max(np.abs(box), axis=1))), tol)
 
 
 def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = None,

@@ -21,7 +21,13 @@ import json
 import sys
 from pathlib import Path
 
-from ..deployment.deploy import load_run, plot_simulation, simulate_run
+from ..deployment.deploy import (
+    SIM_HORIZON,
+    default_horizon,
+    load_run,
+    plot_simulation,
+    simulate_run,
+)
 from ..deployment.export import export_c, export_onnx
 from ..deployment.filter import ClfQpFilter, load_nominal
 from ..kernel.errors import UsageError
@@ -49,6 +55,18 @@ def _log(msg: str) -> None:
     print(f"[re-check] {msg.strip()}")
 
 
+def _check_steps(args, horizon: float) -> None:
+    """Refuse a step longer than ``horizon`` or more stored states than memory holds."""
+    if args.dt > horizon:
+        raise UsageError(f"--dt {args.dt:g} is longer than --horizon {horizon:g}; give a "
+                         "step below the horizon")
+    steps = horizon / args.dt
+    if steps * args.points > MAX_STORED_STATES:
+        raise UsageError(f"{args.points} trajectories of {steps:.3g} steps would keep "
+                         f"{steps * args.points:.3g} states (at most {MAX_STORED_STATES:.0e}); "
+                         "lower --points or --horizon, or raise --dt")
+
+
 def cmd_simulate(args) -> int:
     """Simulate from the certified set; check the certificate's promises (exit 0/1/2)."""
 
@@ -62,16 +80,16 @@ def cmd_simulate(args) -> int:
     if args.nominal and not args.filter:
         raise UsageError("--nominal FILE is the controller the safety filter keeps safe; add "
                          "--filter clf-qp")
-    if args.dt > args.horizon:
-        raise UsageError(f"--dt {args.dt:g} is longer than --horizon {args.horizon:g}; give a "
-                         "step below the horizon")
-    steps = args.horizon / args.dt
-    if steps * args.points > MAX_STORED_STATES:
-        raise UsageError(f"{args.points} trajectories of {steps:.3g} steps would keep "
-                         f"{steps * args.points:.3g} states (at most {MAX_STORED_STATES:.0e}); "
-                         "lower --points or --horizon, or raise --dt")
+    _check_steps(args, args.horizon or SIM_HORIZON)
     run = load_run(_run_dir(args.run_dir), log=_log)
     which = "true" if args.true else "learned" if args.learned else None
+    if args.horizon is None:
+        args.horizon = default_horizon(run, which)
+        if args.horizon > SIM_HORIZON:
+            print(f"simulating {args.horizon:.4g} s, not {SIM_HORIZON:g} s: the closed loop "
+                  "converges slowly at the origin (its slowest linear mode); --horizon sets "
+                  "the time")
+            _check_steps(args, args.horizon)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     opts = dict(points=args.points, horizon=args.horizon, dt=args.dt, dynamics=which,
@@ -155,7 +173,9 @@ def register_cli(sub) -> None:
     sp.add_argument("--points", type=_count, default=200,
                     help="starting points in the certified set (default 200; a quarter as "
                          "many outside, for contrast)")
-    sp.add_argument("--horizon", type=_positive, default=20.0, help="simulated time (20)")
+    sp.add_argument("--horizon", type=_positive, default=None,
+                    help="simulated time (default 20 s, longer where the closed loop's "
+                         "slowest mode at the origin needs it to converge)")
     sp.add_argument("--dt", type=_positive, default=0.01, help="RK4 step (0.01)")
     sp.add_argument("--seed", type=_seed, default=0, help="sampling seed (0)")
     g = sp.add_mutually_exclusive_group()

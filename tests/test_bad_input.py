@@ -169,6 +169,10 @@ def files(tmp_path_factory):
     (d / "portfolio").mkdir()
     (d / "portfolio" / "portfolio.json").write_text("{}")
     paths["portfolio"] = str(d / "portfolio")
+    for name, file in (("otherrun", "certificate.json"), ("otherportfolio", "portfolio.json")):
+        (d / name).mkdir()
+        (d / name / file).write_text(json.dumps({"system": "inverted_pendulum"}))
+        paths[name] = str(d / name)
     (d / "nanrun.toml").write_text('name = "n"\nstates = ["x"]\nstate_box = [[-1.0, 1.0]]\n'
                                    '[rhs]\nx = "-x"\n[run]\nouter = nan\n')
     paths["nanrun"] = str(d / "nanrun.toml")
@@ -260,6 +264,11 @@ CLI_CASES = [
        ["--json", "file"]),
     # ---------------------------------------------------------------- verify: arguments
     _c("verify nothing", ["verify"], ["--system", "--lyapunov", "--inner", "--outer"]),
+    _c("run into another system's run", ["run", "van_der_pol", "--out", "{otherrun}"],
+       ["holds a run of system 'inverted_pendulum'", "another --out"]),
+    _c("run into another system's portfolio", ["run", "van_der_pol", "--seeds", "2",
+                                               "--out", "{otherportfolio}"],
+       ["portfolio.json", "'inverted_pendulum'"]),
     _c("simulate decay 0", ["simulate", "{dir}", "--filter", "clf-qp", "--nominal", "{V}",
                             "--decay", "0", "--out", "{tmp}/s"], ["--decay", "(0, 1]"]),
     _c("simulate decay negative", ["simulate", "{dir}", "--filter", "clf-qp", "--nominal",

@@ -712,6 +712,19 @@ def _run_compositional(args, system) -> int:
     return 0 if cert.certified else 2
 
 
+def _refuse_other_systems_run(out: Path, name: str) -> None:
+    """Refuse an ``--out`` that holds the run (or portfolio) of another system: it would be
+    overwritten stage by stage, and its other files left beside the new run's."""
+    for file in ("certificate.json", "portfolio.json"):
+        try:
+            other = json.loads((out / file).read_text()).get("system")
+        except (OSError, ValueError, AttributeError, RecursionError):
+            continue   # none, or unreadable: the run's own checks decide what to redo
+        if isinstance(other, str) and other != name:
+            raise UsageError(f"--out {out} holds a run of system {other!r} ({file}), not "
+                             f"{name!r}; give another --out, or remove that directory")
+
+
 def cmd_run(args) -> int:
     from ..workflow.pipeline import run  # lazy: torch (the pipeline trains), heavy
 
@@ -721,6 +734,7 @@ def cmd_run(args) -> int:
     cfg = _run_config(args, learned=not args.known_dynamics)
     out = args.out or f"runs/{args.system}{'_known' if args.known_dynamics else ''}"
     _check_writable(Path(out), "--out", directory=True)
+    _refuse_other_systems_run(Path(out), system.name)
     if args.seeds is not None:  # a portfolio of seeded candidates on Dask, the best kept
         from ..workflow.portfolio import run_portfolio  # lazy: torch and Dask, heavy
 

@@ -640,3 +640,15 @@ def test_load_spec_without_factories_decides_on_the_bytes_it_parses(tmp_path):
                  "[parameters]\nk = " + "9" * 5000 + "\n")
     with pytest.raises(ConfigError, match="cannot be read"):
         systems.load_spec(g)
+
+
+def test_run_into_a_directory_whose_certificate_is_a_pipe_does_not_wait(tmp_path, capsys):
+    """The check for another system's run reads certificate.json as every input is read:
+    a pipe there is not waited on (the run went on and was stopped by the tripwire)."""
+    import os
+
+    from nlyap_opt.interface.cli import main
+
+    os.mkfifo(tmp_path / "certificate.json")
+    assert main(["run", "van_der_pol", "--preset", "fast", "--out", str(tmp_path)]) == 4
+    assert "TRIPWIRE" in capsys.readouterr().err

@@ -352,7 +352,7 @@ def default_horizon(run: CertifiedRun, dynamics: str | None = None) -> float:
 
 
 def simulate_run(run: CertifiedRun, *, points: int = 200, outside: int | None = None,
-                 horizon: float = 20.0, dt: float = 0.01, dynamics: str | None = None,
+                 horizon: float = SIM_HORIZON, dt: float = 0.01, dynamics: str | None = None,
                  seed: int = 0, feedback: Callable | None = None,
                  tol: float | None = None, confirm: bool = True) -> SimulationResult:
     """Closed-loop trajectories from ``points`` seeded samples of the certified set.

@@ -56,6 +56,7 @@ from ..distributed.parallel import (
     verifying_on,
 )
 from ..kernel.errors import ConfigError, NlyapError, UsageError, interruption
+from ..kernel.jsonio import read_file_bytes
 from ..kernel.network import Network
 from ..kernel.provenance import (
     PORTABLE_FLAG,
@@ -716,8 +717,8 @@ def _refuse_other_systems_run(out: Path, name: str) -> None:
     """Refuse an ``--out`` that holds the run (or portfolio) of another system: it would be
     overwritten stage by stage, and its other files left beside the new run's."""
     for file in ("certificate.json", "portfolio.json"):
-        try:
-            other = json.loads((out / file).read_text()).get("system")
+        try:   # read as every input is (a pipe is refused, not waited on)
+            other = json.loads(read_file_bytes(out / file, "run file")).get("system")
         except (OSError, ValueError, AttributeError, RecursionError):
             continue   # none, or unreadable: the run's own checks decide what to redo
         if isinstance(other, str) and other != name:

@@ -767,12 +767,12 @@ def check_spec(path) -> System | None:
     ``factory`` spec once the file's own entries are checked (the factory, Python code, is
     neither imported nor run). Raises :class:`ConfigError` as :func:`load_spec` does."""
     path = Path(path)
-    spec = _read_spec(path)
-    if "factory" not in spec:
-        return load_spec(path, allow_factory=False)
+    spec = _read_spec(path)     # read once: what is checked is what was read
     try:
+        if "factory" not in spec:
+            return _load_spec(path, spec)
         _check_factory_entries(path, spec)
-    except OverflowError as exc:  # a number of hundreds of digits, e.g. in [declared]
+    except OverflowError as exc:  # a number of hundreds of digits anywhere in the file
         raise _too_large(path, exc) from None
     return None
 

@@ -12,7 +12,8 @@ from nlyap_opt.kernel.errors import NlyapError
 
 
 @pytest.mark.parametrize("call, words", [
-    (lambda: quadratic_lyapunov(np.array([[1.0, 2.0], [0.0, 1.0]])), ["P must be symmetric"]),
+    (lambda: quadratic_lyapunov(np.array([[1.0, 2.0], [0.0, 1.0]])),
+     ["P must be positive definite", "(P + Pᵀ)/2"]),
     (lambda: quadratic_lyapunov(-np.eye(2)), ["P must be positive definite", "-1"]),
     (lambda: quadratic_lyapunov(np.ones(2)), ["P must be a square matrix", "(2,)"]),
     (lambda: quadratic_lyapunov("abc"), ["P must be a square matrix"]),
@@ -28,7 +29,8 @@ from nlyap_opt.kernel.errors import NlyapError
     (lambda: recheck_certificate(123), ["certificate.json file or its directory"]),
     (lambda: systems.register("api_errors_zz", systems.get("van_der_pol")),
      ["factory must be a callable", "lambda: s"]),
-], ids=["P-asymmetric", "P-negative", "P-vector", "P-text", "R-negative", "Q-nan", "Q-text",
+], ids=["P-asymmetric-indefinite", "P-negative", "P-vector", "P-text", "R-negative", "Q-nan",
+        "Q-text",
         "lqr-name", "problem-system", "problem-V", "recheck-int", "register-system"])
 def test_wrong_arguments_raise_the_tools_errors(call, words):
     with pytest.raises(NlyapError) as err:
@@ -36,3 +38,12 @@ def test_wrong_arguments_raise_the_tools_errors(call, words):
     msg = str(err.value)
     assert "\n" not in msg and all(w in msg for w in words), msg
     assert "api_errors_zz" not in systems.names()
+
+
+def test_an_asymmetric_p_is_its_symmetric_part():
+    """xᵀPx depends on (P + Pᵀ)/2 only: an asymmetric P with a positive definite symmetric
+    part is that V, not an error."""
+    P = np.array([[2.0, 1.0], [0.0, 2.0]])
+    x = np.array([[0.3, -0.7], [1.0, 2.0]])
+    np.testing.assert_allclose(quadratic_lyapunov(P).numpy(x)[:, 0],
+                               np.einsum("ni,ij,nj->n", x, P, x), rtol=1e-12)

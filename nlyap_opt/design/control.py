@@ -545,12 +545,18 @@ def quadratic_lyapunov(P) -> Network:
     """``V(x) = xᵀPx`` as a network: ``‖Lᵀx‖²`` with ``P = L Lᵀ`` (sum-of-squares head)."""
     if np.ndim(P) != 2 or np.shape(P)[0] != np.shape(P)[1]:
         raise DimensionError(f"P must be a square matrix, got shape {np.shape(P)}")
-    P = _matrix(P, np.shape(P)[0], "P")
     try:
-        L = np.linalg.cholesky(0.5 * (P + P.T))
+        P = np.asarray(P, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError("P must be a matrix of numbers") from None
+    if not np.all(np.isfinite(P)):
+        raise ConfigError("P has entries that are not finite (NaN or inf); pass finite numbers")
+    S = 0.5 * (P + P.T)     # xᵀPx is xᵀSx: only the symmetric part matters
+    try:
+        L = np.linalg.cholesky(S)
     except np.linalg.LinAlgError:
-        raise ConfigError(f"P must be positive definite (its least eigenvalue is "
-                          f"{np.min(np.linalg.eigvalsh(P)):.3g}); V = xᵀPx is no Lyapunov "
+        raise ConfigError(f"P must be positive definite (the least eigenvalue of (P + Pᵀ)/2 is "
+                          f"{np.min(np.linalg.eigvalsh(S)):.3g}); V = xᵀPx is no Lyapunov "
                           "function candidate otherwise") from None
     return Network([Layer(L.T, np.zeros(len(P)), "linear")], head={"type": "sum_of_squares"},
                    meta={"kind": "lyapunov", "form": "x'Px"})

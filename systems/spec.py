@@ -650,10 +650,11 @@ def _load_factory(path: Path, ref) -> Callable:
         sys.modules[modname] = module
         try:
             spec.loader.exec_module(module)
-        except Exception as exc:
+        except (Exception, SystemExit) as exc:  # sys.exit() in the file: a failure too
             del sys.modules[modname]
             raise _err(path, "factory", f"importing {str(file)!r} failed: "
-                       f"{type(exc).__name__}: {exc}") from None
+                       f"{type(exc).__name__}: {_short(' '.join(str(exc).split()), 200)[1:-1]}"
+                       "; fix the file (it is imported to build the system)") from None
     else:
         try:
             module = importlib.import_module(mod)
@@ -681,7 +682,8 @@ def _call_factory(path: Path, ref: str, factory: Callable) -> System:
                        "without parameters")
     try:
         system = factory()
-    except Exception as exc:  # noqa: BLE001 - the user's code: any failure is an input error
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - the user's code: any failure
+        # (sys.exit() included: its code must not become the command's) is an input error
         msg = " ".join(str(exc).split())
         raise _err(path, "factory", f"{ref!r} raised {type(exc).__name__}"
                    f"{': ' + _short(msg, 200)[1:-1] if msg else ''}; fix the factory (it is "

@@ -508,6 +508,12 @@ CLI_CASES = [
     _c("learn NaN", LEARN, ["lr"], '{"lr": NaN}'),
     _c("learn bad model", ["learn-dynamics", "van_der_pol", "--model", "quadratic",
                            "--out", "{tmp}/l"], ["--model", "invalid choice"]),
+    # a seed beyond what torch seeds with was exit 4; an empty --bound was ignored
+    _c("learn huge seed", ["learn-dynamics", "van_der_pol", "--seed", "9" * 23, "--out",
+                           "{tmp}/l"], ["--seed", "at most"]),
+    _c("learn huge config seed", LEARN, ["seed", "2^53"], {"seed": 10**23}),
+    _c("learn empty bound", ["learn-dynamics", "van_der_pol", "--bound", "", "--out",
+                             "{tmp}/l"], ["bound_model", "'best'"]),
     # ---------------------------------------------------------------- config
     _c("config unknown system", ["config", "cartpoll"], ["unknown system"]),
     _c("config no system", ["config"], ["system", "--keys"]),

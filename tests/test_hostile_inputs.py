@@ -174,12 +174,17 @@ def _factory_file(tmp_path):
             return a
         def wrong():
             return 42
+        def exits():
+            import sys
+            sys.exit(0)
     """))
 
 
 @pytest.mark.parametrize("fn,words", [("raises", ["raised RuntimeError: boom"]),
                                        ("needs", ["needs the arguments ['a']"]),
-                                       ("wrong", ["returned int"])])
+                                       ("wrong", ["returned int"]),
+                                       # sys.exit(0) must not become the command's exit 0
+                                       ("exits", ["raised SystemExit: 0"])])
 def test_bad_factory_exits_3_naming_it(fn, words, tmp_path, capsys):
     """The factory is run by the commands that build the system (``lqr`` here; ``systems
     --check`` reads the spec without running it)."""
@@ -188,6 +193,14 @@ def test_bad_factory_exits_3_naming_it(fn, words, tmp_path, capsys):
     err = capsys.readouterr().err
     _one_line_exit3(code, err)
     assert f"'fac.py:{fn}'" in err and all(w in err for w in words)
+
+
+def test_a_factory_file_that_exits_on_import_exits_3(tmp_path, capsys):
+    (tmp_path / "quits.py").write_text("import sys\nsys.exit(0)\n")
+    code = main(["lqr", str(_spec(tmp_path, 'factory = "quits.py:make"\n'))])
+    err = capsys.readouterr().err
+    _one_line_exit3(code, err)
+    assert "quits.py' failed: SystemExit: 0; fix the file" in err
 
 
 def test_spec_not_utf8_exits_3(tmp_path, capsys):

@@ -17,7 +17,7 @@ import systems
 from ..learned import dynamics_stage as stages
 from ..learned.dynamics_config import MODELS, load_dynamics_config
 from ..learned.error_models import BOUND_OPTIONS, format_table
-from .cli_args import time_limit_arg
+from .cli_args import seed, time_limit_arg
 
 __all__ = ["register_cli", "cmd_learn_dynamics"]
 
@@ -28,7 +28,7 @@ def cmd_learn_dynamics(args) -> int:
     over: dict = {}
     if args.model:
         over["model"] = args.model
-    if args.bound:
+    if args.bound is not None:
         over["bound_model"] = args.bound
     if args.seed is not None:
         over["seed"] = args.seed
@@ -61,7 +61,7 @@ def register_cli(sub) -> None:
     sp.add_argument("--model", choices=list(MODELS),
                     help="learned-dynamics model (the config key dynamics.model)")
     sp.add_argument("--bound", help=f"bound option: best or one of {', '.join(BOUND_OPTIONS)}")
-    sp.add_argument("--seed", type=int, help="seed of the training-node draw and of φ "
+    sp.add_argument("--seed", type=seed, help="seed of the training-node draw and of φ "
                     "(the config key dynamics.seed)")
     sp.add_argument("--no-progress", action="store_true", dest="no_progress",
                     help="no progress bars")

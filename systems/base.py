@@ -411,6 +411,11 @@ class System:
         self.x, self.u = x, u
         self.nx, self.nu = x.numel(), u.numel()
         self.state_box = _box(state_box, self.nx, "state_box")
+        if np.any(self.state_box[:, 0] >= 0) or np.any(self.state_box[:, 1] <= 0):
+            raise ConfigError(
+                f"the state box {self.state_box.tolist()} of {name!r} does not contain the "
+                "origin in its interior; the equilibrium x = 0 must be inside X (widen the "
+                "box, or shift the state so that the equilibrium is at 0)")
         if self.nu and input_box is None:
             raise ValueError(f"system {name!r} has inputs: give input_box (nu={self.nu})")
         self.input_box = _box(input_box, self.nu, "input_box") if self.nu else np.zeros((0, 2))
@@ -508,6 +513,19 @@ class System:
         u = np.asarray(u_eq, dtype=float).ravel()
         if u.shape != (self.nu,) or not np.all(np.isfinite(u)):
             raise ConfigError(f"u_eq must be {self.nu} finite numbers, got {u_eq!r}")
+        return self._u_eq_in_box(u)
+
+    def _u_eq_in_box(self, u: np.ndarray) -> np.ndarray:
+        """``u``, refused where an input's ``u_eq`` lies outside its box: the actuator
+        could not hold the equilibrium, and nothing certified about ``f(x, u_eq + …)``
+        would be about the system as declared."""
+        box = self.input_box
+        for i in range(self.nu):
+            if not box[i, 0] <= u[i] <= box[i, 1]:
+                raise ConfigError(
+                    f"input {self.input_names[i]!r} of {self.name!r}: its equilibrium value "
+                    f"u_eq = {u[i]:.6g} lies outside its box {box[i].tolist()}, so the actuator "
+                    "cannot hold the equilibrium; fix u_eq or the input box")
         return u
 
     def _check_equilibrium(self, resid, tol: float, where: str) -> None:
@@ -613,7 +631,8 @@ class System:
     # ------------------------------------------------------------------ derived
     def _equilibrium_input(self, u_eq) -> np.ndarray:
         zero = np.zeros(self.nx)
-        if u_eq is None and self.nu:  # solve f(0, u) = 0 in the least-squares sense
+        solved = u_eq is None and self.nu
+        if solved:  # solve f(0, u) = 0 in the least-squares sense
 
             u = ca.SX.sym("u", self.nu)
             r = self.f_fun(zero, u)
@@ -632,11 +651,14 @@ class System:
                 f"{resid.tolist()}; the equilibrium x = 0 must lie where every expression "
                 "is defined (check square roots, logarithms and divisions there)")
         if np.max(np.abs(resid), initial=0.0) > EQUILIBRIUM_TOL:
+            fix = ("no input holds the origin at rest: shift the state so that the "
+                   "equilibrium is at x = 0" if solved else "declare the right u_eq (or leave "
+                   "it out to have it solved), or shift the state so that the equilibrium is "
+                   "at x = 0")
             raise EquilibriumError(
-                f"the origin is not an equilibrium of {self.name!r}: f(0, u_eq={u_eq}) = {resid}; "
-                "shift the state so that the equilibrium is at x = 0"
-            )
-        return u_eq
+                f"the origin is not an equilibrium of {self.name!r}: f(0, u_eq={u_eq}) = "
+                f"{resid}; {fix}")
+        return self._u_eq_in_box(u_eq)
 
     def evaluate(self, x, u=None) -> np.ndarray:
         """Evaluate ``f`` on a batch, float64.

@@ -884,6 +884,10 @@ def _load_spec(path: Path, spec: dict) -> System:
     if not nu and u_eq is not None and np.size(u_eq):
         raise _err(path, "u_eq", "the system has no inputs; remove it")
     if u_eq is not None:
+        if not isinstance(u_eq, list) or not all(
+                isinstance(a, (int, float)) and not isinstance(a, bool) for a in u_eq):
+            raise _err(path, "u_eq", f"must be a list of {nu} numbers (not strings or "
+                       f"booleans), e.g. u_eq = [0.0], got {_short(u_eq)}")
         try:
             u_eq = np.array(u_eq, dtype=float).ravel()
         except (TypeError, ValueError):
@@ -981,12 +985,7 @@ def default_run_settings(system: System, *, grid_budget: int = 200_000) -> dict:
     >>> d["domain"], d["inner"], d["controller_scale"], d["dynamics"]["grid_counts"]
     ({'type': 'box', 'box': [[-4.0, 4.0], [-4.0, 4.0]]}, 0.4, 20.0, [57, 57, 57])
     """
-    box = system.state_box
-    if np.any(box[:, 0] >= 0) or np.any(box[:, 1] <= 0):
-        raise ConfigError(
-            f"the state box {box.tolist()} of {system.name!r} does not contain the origin in "
-            "its interior; the equilibrium x = 0 must be inside X"
-        )
+    box = system.state_box  # it holds the origin inside (checked by System)
     inradius = float(np.min(np.minimum(-box[:, 0], box[:, 1])))
     out: dict = {"outer": None, "domain": {"type": "box", "box": box.tolist()},
                  "inner": inradius / 10.0, "auto_inner": True, "controller_scale": None,

@@ -280,6 +280,9 @@ CLI_CASES = [
        ["--controller", "kind 'lyapunov'", "controller.json"]),
     _c("verify V as dynamics", VERIFY + RADII + ["--dynamics", "{V}"],
        ["--dynamics", "kind 'lyapunov'", "dynamics.json"]),
+    # a network without a kind, of the wrong shape: the learned-φ note printed before the error
+    _c("verify dynamics of the wrong shape", VERIFY + RADII + ["--dynamics", "{V3}"],
+       ["dynamics"]),
     _c("verify no radii", VERIFY, ["--inner", "--outer"]),
     _c("verify inner > outer", [*VERIFY, "--inner", "2", "--outer", "1"],
        ["--inner", "--outer"]),

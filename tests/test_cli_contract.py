@@ -72,6 +72,28 @@ def test_verify_exit_codes_follow_the_verdict(vfiles, which, radii, extra, code,
     assert [ln for ln in _err_lines(capsys) if not ln.startswith("note:")] == []
 
 
+def test_a_counterexample_is_printed_in_the_terms_of_its_condition(vfiles, capsys):
+    """V > 0 is checked as -V < 0: the line gave -V's value (positive: it read as if V > 0
+    held there). A decrease counterexample gives dV/dt + β, which must be negative."""
+    from nlyap_opt.kernel.network import Layer, Network
+
+    d = vfiles[2]
+    shifted = Network([Layer(np.eye(2), np.zeros(2), "square"),
+                       Layer(np.ones((1, 2)), [-0.5], "linear")]).save(d / "Vshift.json")
+    assert main(["verify", "--system", "van_der_pol", "--lyapunov", str(shifted), "--inner",
+                 "0.1", "--outer", "0.5"]) == 1
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if "counterexample x" in ln)
+    assert "violates V > 0: V(x) in [" in line
+    lo, hi = (float(v) for v in line.split("V(x) in [")[1].rstrip("]").split(","))
+    assert lo <= hi < 0   # V = ‖x‖² - 0.5 < 0 on ‖x‖ <= 0.5
+    assert main(["verify", "--system", "van_der_pol", "--lyapunov", vfiles[1], "--inner",
+                 "0.2", "--outer", "2.5", "--margin", "0.01"]) == 1
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if "counterexample x" in ln)
+    assert "violates decrease: dV/dt + 0.01 in [" in line and line.endswith("(must be < 0)")
+    lo = float(line.split("in [")[1].split(",")[0])
+    assert lo >= 0
+
+
 def _patch_command(monkeypatch, exc):
     def boom(args):
         raise exc

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import systems
+from baselines.lqr import quadratic_lyapunov
 from nlyap_opt.interface.cli import main
 from nlyap_opt.kernel.errors import ConfigError
 from nlyap_opt.kernel.walker import OP_TABLE
@@ -546,3 +547,89 @@ def test_systems_check_refuses_a_factory_reference_run_would_refuse(ref, words, 
     code, err = _check(_spec(tmp_path, f'name = "tf"\nfactory = "{ref}"\n'), capsys)
     _one_line_exit3(code, err)
     assert all(w in err for w in words), err
+
+
+# ============================================================================ u_eq
+_PEND = '''states = ["th", "om"]
+inputs = ["u"]
+state_box = [[-1.0, 1.0], [-1.0, 1.0]]
+input_box = [[-6.0, 6.0]]
+u_eq = {ueq}
+[rhs]
+th = "om"
+om = "sin(th) - om + u + 1.0"
+'''
+
+
+@pytest.mark.parametrize("ueq,words", [('"-1"', ["u_eq", "not strings"]),
+                                       ('["-1"]', ["u_eq", "not strings"]),
+                                       ("[true]", ["u_eq", "booleans"]),
+                                       ("-1.0", ["u_eq", "a list of 1 numbers"])])
+def test_u_eq_must_be_a_list_of_numbers(ueq, words, tmp_path, capsys):
+    """A string or boolean was read as a number (``[true]`` as 1.0), unlike the boxes."""
+    code, err = _check(_spec(tmp_path, _PEND.format(ueq=ueq)), capsys)
+    _one_line_exit3(code, err)
+    assert all(w in err for w in words), err
+
+
+def test_a_wrong_u_eq_is_named_as_the_fix(tmp_path, capsys):
+    code = main(["lqr", str(_spec(tmp_path, _PEND.format(ueq="[0.5]")))])
+    err = capsys.readouterr().err
+    _one_line_exit3(code, err)
+    assert "not an equilibrium" in err and "declare the right u_eq" in err
+
+
+def test_u_eq_outside_the_input_box_is_refused_by_every_command(tmp_path, capsys):
+    """verify used to check the closed loop at an input the actuator cannot give (config and
+    systems --check refused it)."""
+    p = _spec(tmp_path, _PEND.replace("+ 1.0", "+ 10.0").format(ueq="[-10.0]"))
+    with pytest.raises(ConfigError, match=r"u_eq = -10 lies outside its box \[-6.0, 6.0\]"):
+        systems.load_spec(p)
+    V = tmp_path / "V.json"
+    quadratic_lyapunov(np.eye(2)).save(V)
+    code = main(["verify", "--system", str(p), "--lyapunov", str(V), "--inner", "0.2",
+                 "--outer", "0.9"])
+    err = capsys.readouterr().err
+    _one_line_exit3(code, err)
+    assert "fix u_eq or the input box" in err
+
+
+def test_a_state_box_without_the_origin_is_refused_by_every_command(tmp_path, capsys):
+    """verify read such a spec (run and config refused it)."""
+    p = _spec(tmp_path, _PEND.format(ueq="[-1.0]").replace(
+        "state_box = [[-1.0, 1.0], [-1.0, 1.0]]", "state_box = [[0.5, 1.0], [-1.0, 1.0]]"))
+    V = tmp_path / "V.json"
+    quadratic_lyapunov(np.eye(2)).save(V)
+    code = main(["verify", "--system", str(p), "--lyapunov", str(V), "--inner", "0.2",
+                 "--outer", "0.9"])
+    err = capsys.readouterr().err
+    _one_line_exit3(code, err)
+    assert "does not contain the origin in its interior" in err
+
+
+@pytest.mark.parametrize("command", [["config"], ["learn-dynamics", "--out", "o"], ["lqr"]])
+def test_a_directory_or_device_given_as_the_system_is_named_so(command, tmp_path,
+                                                              monkeypatch, capsys):
+    """A bare directory name was looked up as a catalogue name ("unknown system 'smp'"), and
+    /dev/null or a fifo was "no such file"."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "smp").mkdir()
+    for name, words in (("smp", "is a directory"), ("/dev/null", "not a regular file")):
+        code = main([command[0], name, *command[1:]])
+        err = capsys.readouterr().err
+        _one_line_exit3(code, err)
+        assert words in err, err
+    # a catalogue name stays one even where a directory of that name exists
+    (tmp_path / "van_der_pol").mkdir()
+    assert main(["config", "van_der_pol"]) == 0
+
+
+def test_verify_of_a_system_without_a_model_asks_for_dynamics(tmp_path, capsys):
+    """The message pointed at Python (system.has_model), not at the option to pass."""
+    V = tmp_path / "V.json"
+    quadratic_lyapunov(np.eye(2)).save(V)
+    code = main(["verify", "--system", str(ROOT / "examples" / "blackbox_pendulum.toml"),
+                 "--allow-factory", "--lyapunov", str(V), "--inner", "0.1", "--outer", "1"])
+    err = capsys.readouterr().err
+    _one_line_exit3(code, err)
+    assert "black-box callable" in err and "pass --dynamics" in err

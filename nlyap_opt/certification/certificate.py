@@ -238,6 +238,19 @@ def spec_factory(path: str | Path) -> str | None:
     return None if "factory" not in spec else str(spec["factory"])
 
 
+def _box_argument(name: str, value, n: int) -> np.ndarray:
+    """``value`` as an ``(n, 2)`` array of finite rows ``[lo, hi]`` with ``lo < hi``."""
+    try:
+        b = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        b = None
+    if b is None or b.shape != (n, 2) or not np.all(np.isfinite(b)) or \
+            np.any(b[:, 0] >= b[:, 1]):
+        raise ConfigError(f"{name} must be {n} rows [lo, hi] of finite numbers with lo < hi, "
+                          f"got {str(value)[:80]}")
+    return b
+
+
 def _finite(name: str, value, *, low: float | None = None, strict: bool = False) -> float:
     try:
         v = float(value)
@@ -374,6 +387,7 @@ class RoaProblem:
             raise ConfigError(f"V must be a Network (e.g. Network.load(path)), got "
                               f"{type(self.V).__name__} {str(self.V)[:40]!r}")
         nx = self.system.nx
+        self._check_parts()
         self.inner = _finite("inner radius", self.inner, low=0.0)
         if self.domain is None:
             self.outer = _finite("outer radius", self.outer, low=0.0, strict=True)
@@ -404,11 +418,40 @@ class RoaProblem:
         else:
             if self.dynamics_box is None:
                 raise ConfigError("learned dynamics need dynamics_box (the box of ‖f − φ‖ ≤ η)")
-            self.dynamics_box = np.asarray(self.dynamics_box, dtype=float).reshape(nx, 2)
+            self.dynamics_box = _box_argument("dynamics_box", self.dynamics_box, nx)
             if self.system.nu:
                 if self.input_box is None:
                     raise ConfigError("learned dynamics with inputs need input_box (U)")
-                self.input_box = np.asarray(self.input_box, dtype=float).reshape(-1, 2)
+                self.input_box = _box_argument("input_box", self.input_box, self.system.nu)
+
+    def _check_parts(self) -> None:
+        """The networks are of their kinds and sizes (their ``meta`` kind, where saved
+        with one), the radii are numbers, and ``verify_options`` are the verifier's."""
+        sysm = self.system
+        for name, net, kind in (("V", self.V, "lyapunov"), ("controller", self.controller,
+                                                            "controller"),
+                                ("dynamics", self.dynamics, "dynamics")):
+            if net is None or name == "V" and not isinstance(net, Network):
+                continue
+            if not isinstance(net, Network):
+                raise ConfigError(f"{name} must be a Network (Network.load(path)) or None, got "
+                                  f"{type(net).__name__}")
+            saved = net.meta.get("kind")
+            if saved is not None and saved != kind:
+                raise ConfigError(f"{name} is a network of kind {saved!r} (its meta says so), "
+                                  f"not a {kind} network; pass the {kind} network")
+        if self.controller is not None and (self.controller.n_in != sysm.nx
+                                            or self.controller.n_out != sysm.nu):
+            raise DimensionError(
+                f"controller must map R^{sysm.nx} -> R^{sysm.nu} (system {sysm.name!r}"
+                f"{', which has no inputs: pass controller=None' if not sysm.nu else ''}), "
+                f"got R^{self.controller.n_in} -> R^{self.controller.n_out}")
+        for name in ("inner", "outer"):
+            v = getattr(self, name)
+            if isinstance(v, (bool, str, bytes)):
+                raise ConfigError(f"{name} must be a number, got {v!r}")
+        self.verify_options = check_file_options(
+            self.verify_options, "RoaProblem", "pass options of verification.verify_interval")
 
     @property
     def known(self) -> bool:
@@ -684,6 +727,7 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     RoaCertificate
         ``CERTIFIED`` only when every condition was verified by the interval verifier.
     """
+    _check_certify_args(problem, inner_ellipse, ellipses, log)
     level = _finite("level", level, low=0.0, strict=True)
     # (c) does not depend on the level: on a cluster it runs beside (a) and (b), whose
     # narrow checks leave workers idle, when the level is expected to hold (a re-check);
@@ -694,6 +738,21 @@ def certify_roa(problem: RoaProblem, level: float, *, search: bool = False,
     with job or contextlib.nullcontext():
         return _certify_roa(problem, level, search, follow_violations, job, log, taylor_only,
                             least)
+
+
+def _check_certify_args(problem, inner_ellipse, ellipses, log) -> None:
+    """One line naming the argument of :func:`certify_roa` that is not of its type."""
+    for name, value, kind, how in (
+            ("problem", problem, RoaProblem, "RoaProblem(system, V, ...)"),
+            ("inner_ellipse", inner_ellipse, InnerEllipse, "a saved certificate's ellipse"),
+            ("ellipses", ellipses, InnerEllipseCache, "InnerEllipseCache()")):
+        if (value is not None or name == "problem") and not isinstance(value, kind):
+            raise ConfigError(f"certify_roa: {name} must be {how}"
+                              f"{' or None' if name != 'problem' else ''}, got "
+                              f"{type(value).__name__}")
+    if not callable(log):
+        raise ConfigError(f"certify_roa: log must be a function of one string (print, or "
+                          f"lambda m: None for silence), got {log!r}")
 
 
 def _certify_roa(problem: RoaProblem, level: float, search: bool, follow_violations: bool,

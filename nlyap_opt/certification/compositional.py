@@ -299,10 +299,7 @@ def _refusal(system, parts, setting: str = "known") -> str:
     if parts is None:
         return (f"system {system.name!r} declares no subsystems; give "
                 "System(..., subsystems=[(0, 1), (2, 3), ...])")
-    box = system.state_box
-    if not np.all((box[:, 0] < 0) & (box[:, 1] > 0)):
-        return "the compositional method needs the origin inside the state box (lower < 0 < upper)"
-    return ""
+    return ""  # (a System's state box holds the origin inside: checked when it is built)
 
 
 def _block_indices(parts, nbrs, i: int) -> list[int]:

@@ -297,7 +297,10 @@ def _check_writable(path: Path, option: str, directory: bool) -> None:
 
 
 def _is_spec(name: str) -> bool:
-    return name.endswith(".toml") or os.sep in name or Path(name).is_file()
+    """Whether ``name`` means a file: a ``.toml`` or a path, a file, or something else on
+    disk that is no catalogue name (a directory or a pipe: refused as a spec, by name)."""
+    return name.endswith(".toml") or os.sep in name or Path(name).is_file() or \
+        (name not in systems.names() and os.path.lexists(name))
 
 
 def _spec_system(path: str, allow_factory: bool = True) -> str:
@@ -308,6 +311,9 @@ def _spec_system(path: str, allow_factory: bool = True) -> str:
         raise UsageError(f"system file {p} is a directory; pass a system spec file (.toml) "
                          "or a catalogue name (a run's directory is re-checked with "
                          "'nlyap verify --certificate DIR')")
+    if os.path.exists(p) and not p.is_file():
+        raise UsageError(f"system file {p} is not a regular file (a pipe, device or socket); "
+                         "pass a system spec file (.toml)")
     if not p.is_file():
         raise UsageError(f"system file {p}: no such file; check the path (or pass a "
                          "catalogue name, see 'nlyap systems')")
@@ -627,6 +633,16 @@ def cmd_verify(args) -> int:
     V = _load_network(args.lyapunov, "--lyapunov")
     ctrl = _load_network(args.controller, "--controller") if args.controller else None
     dyn = _load_network(args.dynamics, "--dynamics") if args.dynamics else None
+    if dyn is None and not s.has_model:
+        raise UsageError(f"system {args.system!r} is given by "
+                         f"{'samples' if s.kind == 'samples' else 'a black-box callable'}, "
+                         "not a model the verifier can bound; pass --dynamics DYN.json (a "
+                         "learned φ, e.g. a run's dynamics.json) with --eta, its error bound")
+    with _reading("verify"):
+        problem = closed_loop_problem(s, V, ctrl, dyn, inner=args.inner, outer=args.outer,
+                                      level=args.level, margin=margin, eta=eta,
+                                      smoothing=smoothing, strict=False)
+    # the notes once the problem is built: an input error stays the one line printed
     if margin and dyn is None:
         print("note: --margin without --dynamics tightens the true-f condition", file=sys.stderr)
     if dyn is not None:
@@ -634,10 +650,6 @@ def cmd_verify(args) -> int:
             f", with the robust term of ‖f − φ‖ ≤ η = {eta:g}" if eta else
             ": a statement about φ, not the true f (give --eta, a bound of ‖f − φ‖, for "
             "one about f)"), file=sys.stderr)
-    with _reading("verify"):
-        problem = closed_loop_problem(s, V, ctrl, dyn, inner=args.inner, outer=args.outer,
-                                      level=args.level, margin=margin, eta=eta,
-                                      smoothing=smoothing, strict=False)
     opts = {}
     if args.backend == "interval":
         opts = {"resolution": args.resolution, "progress": args.progress}
@@ -665,9 +677,13 @@ def cmd_verify(args) -> int:
         if c.property.startswith("domain of"):
             print(f"  counterexample x = {c.point.tolist()}: the dynamics or V is undefined "
                   f"there ({c.property})")
+        elif c.property == "V>0":  # the property checked is -V < 0
+            print(f"  counterexample x = {c.point.tolist()} violates V > 0: V(x) in "
+                  f"[{-c.value_upper:.6g}, {-c.value_lower:.6g}]")
         else:
             print(f"  counterexample x = {c.point.tolist()} violates {c.property}: "
-                  f"value in [{c.value_lower:.6g}, {c.value_upper:.6g}]")
+                  f"dV/dt{extra} + {margin:g} in [{c.value_lower:.6g}, {c.value_upper:.6g}] "
+                  "(must be < 0)")
     if res.status is QueryStatus.UNKNOWN:
         at = "the default resolution" if args.resolution is None else \
             f"resolution {args.resolution:g}"

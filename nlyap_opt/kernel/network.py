@@ -40,6 +40,7 @@ from __future__ import annotations
 import difflib
 import json
 import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -256,8 +257,22 @@ class Network:
                     math.isfinite(eps) and eps >= 0):
                 raise NetworkFileError(f"head eps must be a finite number >= 0, got {eps!r}")
             self.head = {"type": kind, "eps": float(eps)}
+        if isinstance(self.layers, (str, bytes, dict)) or not hasattr(self.layers, "__len__"):
+            raise DimensionError(f"layers must be a list of Layer, got "
+                                 f"{type(self.layers).__name__}; e.g. "
+                                 "Network([Layer(W1, b1, 'tanh'), Layer(W2, b2)])")
+        self.layers = list(self.layers)
         if not self.layers:
             raise DimensionError("a network needs at least one layer")
+        for k, layer in enumerate(self.layers):
+            if not isinstance(layer, Layer):
+                raise DimensionError(f"layer {k} is a {type(layer).__name__}, not a Layer; "
+                                     "build it with Layer(weight, bias, activation) (or read "
+                                     "a saved network with Network.load)")
+        if not isinstance(self.meta, dict):
+            raise NetworkFileError(f"meta must be a dict (saved with the network), got "
+                                   f"{type(self.meta).__name__}; pass e.g. meta={{'kind': "
+                                   "'lyapunov'}}")
         for k in range(1, len(self.layers)):
             a, b = self.layers[k - 1], self.layers[k]
             if b.weight.shape[1] != a.weight.shape[0]:
@@ -333,7 +348,12 @@ class Network:
         -------
         (..., n_out) ndarray
         """
-        z = np.asarray(z, dtype=float)
+        try:
+            z = np.asarray(z, dtype=float)
+        except (TypeError, ValueError):
+            raise DimensionError(f"network input must be an array of numbers of shape (N, "
+                                 f"{self.n_in}) or ({self.n_in},), got "
+                                 f"{type(z).__name__}") from None
         if z.ndim == 0 or z.shape[-1] != self.n_in:
             raise DimensionError(
                 f"network input must have shape (N, {self.n_in}) or ({self.n_in},), got "
@@ -391,9 +411,18 @@ class Network:
 
     def save(self, path: str | Path) -> Path:
         """Write the network as JSON (exact float64 decimals)."""
-        path = Path(path)
+        path = _network_path(path, "save")
+        try:
+            text = json.dumps(self.to_dict(), allow_nan=False, indent=1)
+        except (TypeError, ValueError) as err:
+            raise NetworkFileError(f"cannot save the network: its meta holds a value JSON "
+                                   f"cannot write ({_one_line(err)}); keep meta to finite "
+                                   "numbers, strings, booleans, lists and dicts") from None
+        if path.is_dir():
+            raise NetworkFileError(f"cannot save the network to {path}: it is a directory; "
+                                   "give a file path (e.g. DIR/V.json)")
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), allow_nan=False, indent=1))
+        path.write_text(text)
         return path
 
     @classmethod
@@ -424,7 +453,7 @@ class Network:
         ``data``, when given, is the file's content already read (and hashed) by the
         caller: it is parsed instead of reading ``path`` again, which is then only named in
         messages."""
-        path = Path(path)
+        path = _network_path(path, "load")
         try:
             if data is None:
                 data = read_file_bytes(path, "network file")
@@ -452,6 +481,14 @@ class Network:
             raise NetworkFileError(f"{path} cannot be read ({_one_line(err)}); re-save it "
                                    "with Network.save") from None
         return cls.from_dict(d, str(path))
+
+
+def _network_path(path, what: str) -> Path:
+    """``path`` as a :class:`~pathlib.Path`, or one line naming what a path is."""
+    if not isinstance(path, (str, os.PathLike)) or isinstance(path, bytes) or path == "":
+        raise NetworkFileError(f"Network.{what} needs a file path (a str or pathlib.Path), "
+                               f"got {path!r}")
+    return Path(path)
 
 
 def _refuse_constant(name: str):

@@ -59,6 +59,7 @@ def closed_loop(system, controller: Network | None = None, dynamics: Network | N
         If the origin is not an equilibrium of the closed loop, raise
         :class:`EquilibriumError` (training) or only warn (verification of user networks).
     """
+    _check_closed_loop_args(system, controller, dynamics, x)
     x = ca.MX.sym("x", system.nx) if x is None else x
     sym = ca.SX if isinstance(x, ca.SX) else ca.MX   # u of x's type (an SX x with MX u fails)
     if controller is None:
@@ -172,10 +173,39 @@ def learned_rhs(system, dynamics: Network, x, u):
                         for i in range(system.nx)])
 
 
+def _check_closed_loop_args(system, controller, dynamics, x) -> None:
+    """One line naming the argument of :func:`closed_loop` that is not what it takes."""
+    if not all(hasattr(system, a) for a in ("nx", "nu", "u_eq", "f_fun")):
+        raise DimensionError(f"closed_loop needs a System (systems.get(name) or "
+                             f"systems.load_spec(path)), got {type(system).__name__}")
+    for name, net in (("controller", controller), ("dynamics", dynamics)):
+        if net is not None and not isinstance(net, Network):
+            raise DimensionError(f"{name} must be a Network (Network.load(path) reads a saved "
+                                 f"one) or None, got {type(net).__name__}")
+    if x is not None and not (isinstance(x, (ca.MX, ca.SX)) and x.is_symbolic()
+                              and x.shape == (system.nx, 1)):
+        raise DimensionError(f"x must be a CasADi symbol of shape ({system.nx}, 1) (e.g. "
+                             f"casadi.MX.sym('x', {system.nx})), got "
+                             f"{type(x).__name__}{getattr(x, 'shape', '')}")
+
+
 def lie_derivative(V: ca.MX, x: ca.MX, rhs: ca.MX) -> ca.MX:
-    r"""Lie derivative :math:`\nabla V(x) \cdot g(x)` of a scalar expression ``V``."""
+    r"""Lie derivative :math:`\nabla V(x) \cdot g(x)` of a scalar expression ``V``.
+
+    ``V``, ``x`` (a column of symbols) and ``rhs`` (a column as long as ``x``) are CasADi
+    expressions of one kind (all ``MX`` or all ``SX``).
+    """
+    kinds = {type(a) for a in (V, x, rhs)}
+    if not kinds <= {ca.MX, ca.SX} or len(kinds) != 1:
+        raise DimensionError("V, x and rhs must be CasADi expressions of one kind (all MX or "
+                             f"all SX), got {', '.join(type(a).__name__ for a in (V, x, rhs))}")
     if V.shape != (1, 1):
         raise DimensionError(f"V must be scalar, got shape {V.shape}")
+    if not x.is_symbolic() or x.shape[1] != 1:
+        raise DimensionError(f"x must be a column of symbols, got shape {x.shape}")
+    if rhs.shape != x.shape:
+        raise DimensionError(f"rhs has shape {rhs.shape} but x has {x.shape}; give one "
+                             "derivative per state")
     return ca.dot(ca.gradient(V, x), rhs)
 
 

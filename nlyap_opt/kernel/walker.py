@@ -37,7 +37,7 @@ import numpy as np
 from scipy.special import erf as _erf
 
 from . import deps
-from .errors import UnsupportedOperationError
+from .errors import DimensionError, UnsupportedOperationError
 
 __all__ = [
     "ArrayArithmetic", "Program", "compile_function", "evaluate", "op_name", "NUMPY", "OpInfo",
@@ -1079,17 +1079,39 @@ def evaluate(fun: ca.Function | Program, args: Sequence, arith=NUMPY) -> list:
     list
         One value per output, of shape ``(..., nnz_out_j)``.
     """
+    if not isinstance(fun, (ca.Function, Program)):
+        raise DimensionError(f"evaluate needs a casadi.Function, got {type(fun).__name__}; "
+                             "build one with casadi.Function(name, [x], [expression])")
     prog = fun if isinstance(fun, Program) else compile_function(fun)
+    if arith is None or isinstance(arith, (str, bytes, int, float)):
+        raise DimensionError(f"arith must be an arithmetic (the default NUMPY, "
+                             f"ArrayArithmetic('torch'), an interval arithmetic), got {arith!r}")
+    if isinstance(args, (str, bytes, np.ndarray)) or not hasattr(args, "__len__") or \
+            len(args) != prog.n_in:
+        raise DimensionError(f"Function {prog.fun.name()!r} takes {prog.n_in} input(s): pass a "
+                             "list of one array per input, got "
+                             f"{_describe_args(args)}")
     if arith is NUMPY or getattr(arith, "name", "") == "numpy":
-        args = [np.asarray(a, dtype=float) for a in args]
+        try:
+            args = [np.asarray(a, dtype=float) for a in args]
+        except (TypeError, ValueError):
+            raise DimensionError(f"the inputs of Function {prog.fun.name()!r} must be arrays "
+                                 "of numbers") from None
     for a, sp in zip(args, prog.sp_in):
-        if a.shape[-1] != sp.nnz:
-            raise ValueError(
+        shape = getattr(a, "shape", ())
+        if not shape or shape[-1] != sp.nnz:
+            raise DimensionError(
                 f"input of Function {prog.fun.name()!r} needs a trailing dimension of "
                 f"{sp.nnz} (nonzeros of a {sp.shape[0]}x{sp.shape[1]} input), got shape "
-                f"{tuple(a.shape)}"
+                f"{tuple(shape)}"
             )
     return prog(args, arith)
+
+
+def _describe_args(args) -> str:
+    if isinstance(args, (list, tuple)):
+        return f"{len(args)} array(s)"
+    return type(args).__name__
 
 
 # --------------------------------------------------------------------------- exact values

@@ -376,8 +376,10 @@ def _is_real(v) -> bool:
 
 def _int(cfg, key, lo):
     v = getattr(cfg, key)
-    if not _is_int(v) or v < lo or v > 2**53:  # beyond 2^53: an edit or a typo, no budget
-        _fail(key, v, f"an integer >= {lo} and <= 2^53")
+    if not _is_int(v) or v < lo:
+        _fail(key, v, f"an integer >= {lo}")
+    if v > 2**53:  # an edit or a typo, no budget (torch cannot seed with it)
+        _fail(key, v, "an integer <= 2^53")
     setattr(cfg, key, int(v))
 
 

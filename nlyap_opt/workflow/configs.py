@@ -51,6 +51,7 @@ import difflib
 import functools
 import json
 import math
+import os
 import types
 import typing
 import warnings
@@ -1510,6 +1511,9 @@ def make_config(system: str, preset: str | None = "large", overrides: dict | Non
     """
     if not isinstance(system, str):
         raise ConfigError(f"system must be a name (str), got {system!r}")
+    if file is not None and (isinstance(file, bytes) or not isinstance(file, (str, os.PathLike))):
+        raise ConfigError(f"file must be the path of a JSON config file (a str or "
+                          f"pathlib.Path), got {file!r}")
     s = systems.get(system)  # UnknownNameError listing the catalogue
     if preset is None:
         cfg = copy.deepcopy(_GENERIC)

@@ -418,6 +418,10 @@ def _alive(pid: int) -> bool:
 
 
 def _out_dir(out) -> Path:
+    if isinstance(out, bytes) or not isinstance(out, (str, os.PathLike)) or \
+            not str(out).strip():
+        raise ConfigError(f"out must be the path of a directory (a str or pathlib.Path, not "
+                          f"empty), got {out!r}; pass e.g. 'runs/my_system'")
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} is a file; pass a directory (new or of an earlier run)")

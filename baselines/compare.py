@@ -36,6 +36,7 @@ from nlyap_opt.design.control import (
     saturated_controller,
 )
 from nlyap_opt.kernel import deps
+from nlyap_opt.kernel.jsonio import write_atomic, write_figure
 from nlyap_opt.kernel.network import Network
 from nlyap_opt.workflow.configs import domain_of
 from nlyap_opt.workflow.pipeline import run
@@ -242,7 +243,7 @@ def _neural_rows(system, cfg: dict, V, sat, out: Path, log) -> list[CompareRow]:
 
 def _write(out, system, rows: list[CompareRow], true_area, true_mask, box, cfg, D):
     public = [r.to_json() for r in rows]
-    (out / "comparison.json").write_text(json.dumps(
+    write_atomic(out / "comparison.json", json.dumps(
         {"system": system.name, "true_roa_area": true_area, "rows": public}, indent=1,
         default=float))
     lines = [f"# {system.name}: certified regions of attraction", "",
@@ -263,7 +264,7 @@ def _write(out, system, rows: list[CompareRow], true_area, true_mask, box, cfg, 
     notes = [r for r in public if r.get("notes")]
     if notes:
         lines += ["", "Notes:"] + [f"- {r['method']}: {r['notes']}" for r in notes]
-    (out / "comparison.md").write_text("\n".join(lines) + "\n")
+    write_atomic(out / "comparison.md", "\n".join(lines) + "\n")
     _plot(out / "comparison.png", system, rows, true_mask, box, cfg, D)
 
 
@@ -306,5 +307,5 @@ def _plot(path, system, rows, true_mask, box, cfg, D):
     ax.set_title(f"{system.name}: certified sets (every curve verified) vs true ROA",
                  fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path)
     plt.close(fig)

@@ -177,8 +177,9 @@ def parse_expression(text: str, symbols: dict[str, sympy.Expr]) -> sympy.Expr:
 
 
 def _too_deep(text) -> _ExprError:
-    return _ExprError(f"is nested too deeply to parse ({len(str(text))} characters); split it "
-                      "with parameters or simplify it")
+    return _ExprError(f"is too long or nested too deeply to parse ({len(str(text))} "
+                      "characters; a sum of thousands of terms is as deep as thousands of "
+                      "parentheses); split it with parameters or simplify it")
 
 
 def _parse(text: str, symbols: dict) -> sympy.Expr:

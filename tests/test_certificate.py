@@ -367,7 +367,7 @@ def test_an_atomic_write_onto_a_directory_names_the_file(tmp_path):
     from nlyap_opt.kernel.errors import ConfigError
 
     (tmp_path / "certificate.json").mkdir()
-    with pytest.raises(ConfigError, match=r"cannot write .*certificate\.json: .*remove what"):
+    with pytest.raises(ConfigError, match=r"certificate\.json is a directory; give the path"):
         write_json_atomic(tmp_path / "certificate.json", {"a": 1})
     assert sorted(p.name for p in tmp_path.iterdir()) == ["certificate.json"]
     write_json_atomic(tmp_path / "other.json", {"a": 1})

@@ -421,13 +421,41 @@ def test_a_full_device_is_the_users_to_fix(capsys):
     """A write the file system refuses after the file opened (no space left: ``/dev/full``;
     a file of ``/proc`` that takes no text) is exit 3 naming the file, not an internal
     error."""
-    for path, why in (("/dev/full", "No space left"), ("/proc/version", "")):
+    for path, why in (("/dev/full", "--json /dev/full is not a regular file"),
+                      ("/proc/version", "cannot write --json /proc/version")):
         if not os.path.exists(path):
             continue
         assert main(["lqr", "van_der_pol", "--json", path]) == 3
         lines = _err_lines(capsys)
-        assert len(lines) == 1 and f"cannot write --json {path}" in lines[0], lines
-        assert why in lines[0] and "writable file" in lines[0]
+        assert len(lines) == 1 and why in lines[0], lines
+
+
+def test_outputs_are_written_whole_or_not_at_all(tmp_path, monkeypatch, capsys):
+    """A JSON output goes through a new file and a rename: a pipe there is refused at once
+    (it blocked), a symbolic link is replaced (its target, another run's file, was
+    overwritten), and a write that fails leaves the old file and no temporary one."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    assert main(["lqr", "van_der_pol", "--json", str(fifo)]) == 3
+    assert "not a regular file" in _err_lines(capsys)[0]
+    victim = tmp_path / "certificate.json"
+    victim.write_text("{}")
+    link = tmp_path / "link.json"
+    link.symlink_to(victim)
+    assert main(["lqr", "van_der_pol", "--json", str(link)]) == 0
+    assert victim.read_text() == "{}" and not link.is_symlink()
+    assert "K" in json.loads(link.read_text())
+    capsys.readouterr()
+
+    def full(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", full)
+    assert main(["lqr", "van_der_pol", "--json", str(victim)]) == 3
+    assert "No space left" in _err_lines(capsys)[0]
+    assert victim.read_text() == "{}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["certificate.json", "fifo",
+                                                         "link.json"]
 
 
 def test_a_warning_is_one_line(tmp_path, capsys):

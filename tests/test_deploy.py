@@ -273,6 +273,49 @@ def test_export_c_compiles_and_matches_python(which, request, tmp_path):
     assert 0.05 < py_m.mean() < 0.95      # both answers occur on the sample
 
 
+def test_the_header_strings_are_c_for_any_name(tmp_path):
+    """The header's strings (the system's name, the domain's JSON) were written by
+    json.dumps, whose \\ud83d escapes are not C: a non-BMP name broke every use of the
+    macro. Each literal, compiled and printed, gives the UTF-8 bytes of the text."""
+    from nlyap_opt.deployment.export import _c_string
+
+    cc = shutil.which("cc")
+    if cc is None:
+        pytest.skip("no C compiler (cc) on this machine")
+    texts = ["lin_\U0001F600", 'a"b\\c', "x??=y", "é\tz", '{"type": "ball"}']
+    src = tmp_path / "s.c"
+    src.write_text("#include <stdio.h>\nint main(void) {\n" + "".join(
+        f"  fputs({_c_string(t)}, stdout); putchar(0);\n" for t in texts) + "  return 0;\n}\n")
+    exe = tmp_path / "s"
+    subprocess.run([cc, "-std=c99", "-Wall", "-Werror", "-pedantic", str(src), "-o", str(exe)],
+                   check=True, capture_output=True)
+    out = subprocess.run([str(exe)], check=True, capture_output=True).stdout
+    assert out.split(b"\0")[:-1] == [t.encode("utf-8") for t in texts]
+
+
+def test_a_failed_export_leaves_the_old_pair(vdp_run, tmp_path, monkeypatch, capsys):
+    """nlyap.h and nlyap.c are written together: a full disk while writing nlyap.c left a new
+    header beside a truncated source; now both stay as they were."""
+    import builtins
+
+    out = tmp_path / "c"
+    out.mkdir()
+    (out / "nlyap.h").write_text("old h")
+    (out / "nlyap.c").write_text("old c")
+    real_open = builtins.open
+
+    def full_on_c(file, mode="r", *a, **k):
+        if "nlyap.c" in str(file) and "x" in mode:
+            raise OSError(28, "No space left on device")
+        return real_open(file, mode, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", full_on_c)
+    assert main(["export", str(vdp_run), "--format", "c", "--out", str(out)]) == 3
+    assert "No space left" in capsys.readouterr().err
+    assert (out / "nlyap.h").read_text() == "old h" and (out / "nlyap.c").read_text() == "old c"
+    assert sorted(p.name for p in out.iterdir()) == ["nlyap.c", "nlyap.h"]
+
+
 def test_export_onnx_refused_without_the_package(vdp_run, tmp_path, capsys, monkeypatch):
     import importlib.util
 
@@ -364,6 +407,21 @@ def _filter_feasible(cartpole_run, n):
                                    rtol=1e-6, atol=1e-6)
 
 
+def test_a_short_horizon_is_reported_in_a_few_lines_with_the_step_taken(vdp_run, tmp_path,
+                                                                       capsys):
+    """The first unconverged trajectories were printed as bare 'nlyap: ...' lines;
+    simulate.json recorded --dt where the step taken divides the horizon evenly."""
+    out = tmp_path / "s"
+    assert main(["simulate", str(vdp_run), "--points", "12", "--horizon", "0.015", "--dt",
+                 "0.01", "--out", str(out)]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert all(ln.startswith("nlyap: not converged: ") for ln in err), err
+    assert "12 trajectories have not reached" in err[-1] and "--horizon" in err[-1], err
+    summary = json.loads((out / "simulate.json").read_text())
+    assert summary["dt"] == pytest.approx(0.0075) and summary["dt_requested"] == 0.01
+    assert len(err) == len(summary["failures"]) + 1
+
+
 def test_nominal_files_are_data_not_code(tmp_path, capsys, cartpole_run):
     py = tmp_path / "nominal.py"
     py.write_text("import os\nos.system('touch HACKED')\n")
@@ -377,6 +435,12 @@ def test_nominal_files_are_data_not_code(tmp_path, capsys, cartpole_run):
     for d, msg in [({"format": "nlyap-nominal-controller", "K": [[1, 2]]}, "K must be 1 x 4"),
                    ({"format": "python", "code": "1"}, "'format' must be"),
                    ({"format": "nlyap-nominal-controller", "K": [["a", 0, 0, 0]]}, "numbers"),
+                   # float() takes "2" and true: they were read as 2.0 and 1.0
+                   ({"format": "nlyap-nominal-controller", "K": [["2", 0, 0, 0]]}, "strings"),
+                   ({"format": "nlyap-nominal-controller", "K": [[True, 0, 0, 0]]},
+                    "booleans"),
+                   ({"format": "nlyap-nominal-controller", "K": [[0, 0, 0, 0]],
+                     "u0": ["1"]}, "numbers only"),
                    ({"format": "nlyap-nominal-controller"}, "needs 'K'"),
                    ({"format": "nlyap-nominal-controller", "K": [[0, 0, 0, 0]], "x": 1},
                     "unknown keys")]:

@@ -633,3 +633,16 @@ def test_verify_of_a_system_without_a_model_asks_for_dynamics(tmp_path, capsys):
     err = capsys.readouterr().err
     _one_line_exit3(code, err)
     assert "black-box callable" in err and "pass --dynamics" in err
+
+
+def test_empty_names_are_refused_with_the_right_fix(capsys):
+    """systems --check '' listed the catalogue (exit 0); a required --out that is empty was
+    told to be left out."""
+    code = main(["systems", "--check", ""])
+    err = capsys.readouterr().err
+    _one_line_exit3(code, err)
+    assert "--check is given an empty name" in err
+    code = main(["export", "somewhere", "--format", "c", "--out", ""])
+    err = capsys.readouterr().err
+    _one_line_exit3(code, err)
+    assert "empty path" in err and "leave the option out" not in err

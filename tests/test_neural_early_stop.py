@@ -132,6 +132,7 @@ def test_the_bound_applies_to_learned_dynamics_where_c_is_proved_on_the_model(vd
 
     s, problem = vdp
     phi = quadratic_lyapunov(np.eye(2))        # any network: the bound does not read φ
+    phi.meta = {}                              # (not one saved as a V)
     learned = dataclasses.replace(problem, dynamics=phi, eta=0.01, dynamics_box=BOX)
     assert not learned.known and s.has_model
     beat = VolumeToBeat(0.0, BOX, N, "x")

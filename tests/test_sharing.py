@@ -122,6 +122,23 @@ def test_factory_given_with_allow_factory_rechecks(factory_certificate, capsys):
     assert recheck_certificate(out, system=spec, allow_factory=True, **QUIET).certified
 
 
+def test_simulate_and_export_take_the_system_as_verify_does(factory_certificate, tmp_path,
+                                                           capsys):
+    """simulate and export re-check the run first: a factory named in it is not run, and
+    the fix the message gives (--system FILE.toml --allow-factory) exists for them too."""
+    src, spec, out = factory_certificate
+    for extra in ([], ["--system", str(spec)]):
+        assert main(["export", str(out), "--format", "c", "--out", str(tmp_path / "e"),
+                     *extra]) == 3
+        assert "--allow-factory" in _one_line_error(capsys)
+        assert not (src / "factory_ran").exists()
+    assert main(["export", str(out), "--format", "c", "--out", str(tmp_path / "e"),
+                 "--system", str(spec), "--allow-factory"]) == 0, capsys.readouterr().err
+    assert (tmp_path / "e" / "nlyap.c").is_file() and (src / "factory_ran").exists()
+    assert main(["simulate", str(out), "--points", "4", "--out", str(tmp_path / "s"),
+                 "--system", str(spec), "--allow-factory"]) == 0, capsys.readouterr().err
+
+
 def test_a_spec_file_gone_or_replaced_by_a_directory_is_named_as_such(tmp_path, capsys):
     spec = _spec(tmp_path)
     out = tmp_path / "cert"
@@ -232,6 +249,23 @@ def test_an_edited_number_is_refused_with_its_field(vdp_certificate, edit, field
     again = recheck_certificate(vdp_certificate, **QUIET)
     assert not again.certified and field in again.reason, again.reason
     assert main(["verify", "--certificate", str(vdp_certificate)]) == 2
+
+
+@pytest.mark.parametrize("field, value, words", [
+    ("level", float("nan"), "its level is nan"),
+    ("eta", 0.1, "eta > 0 needs learned dynamics"),
+])
+def test_an_edit_that_states_no_problem_names_the_certificate(vdp_certificate, field, value,
+                                                               words, capsys):
+    """These edits ended in the Python API's words ("pass dynamics= or eta=0") or a bare
+    "level must be finite", naming neither the file nor a fix."""
+    d = json.loads(vdp_certificate.read_text())
+    d[field] = value
+    vdp_certificate.write_text(json.dumps(d))
+    assert main(["verify", "--certificate", str(vdp_certificate)]) == 3
+    err = _one_line_error(capsys)
+    assert f"certificate {vdp_certificate}" in err and words in err, err
+    assert "edited certificate.json" in err and "dynamics=" not in err
 
 
 def test_an_unedited_certificate_rechecks_with_its_numbers(vdp_certificate):

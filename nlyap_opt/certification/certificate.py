@@ -52,7 +52,7 @@ from ..distributed.parallel import ahead
 from ..kernel import sxjson
 from ..kernel.domain import Ball, Region, as_domain, parse_set
 from ..kernel.errors import ConfigError, DimensionError, InputRangeError, NetworkFileError
-from ..kernel.jsonio import MAX_INPUT_BYTES, read_file_bytes
+from ..kernel.jsonio import MAX_INPUT_BYTES, read_file_bytes, write_atomic
 from ..kernel.network import Network
 from ..kernel.provenance import fingerprint
 from ..kernel.symbolic import (
@@ -1495,16 +1495,23 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
     refusal = _binding_refusal(d, sysm)
     if refusal:
         return _refused_run(saved, refusal)
-    problem = RoaProblem(
-        sysm, nets["V"], nets.get("controller"), nets.get("dynamics"),
-        inner=saved.inner, outer=saved.outer, eta=saved.eta, domain=saved.domain,
-        initial_set=saved.initial_set,
-        margin_mode=problem_d.get("margin_mode", "pointwise"), smoothing=saved.smoothing,
-        dynamics_box=problem_d.get("dynamics_box"), input_box=problem_d.get("input_box"),
-        dynamics_assumptions=list(dyn_assumed),
-        verify_options=check_file_options(problem_d.get("verify_options"),
-                                          f"certificate {path}",
-                                          "rerun the command that wrote it"))
+    options = check_file_options(problem_d.get("verify_options"), f"certificate {path}",
+                                 "rerun the command that wrote it")
+    try:
+        problem = RoaProblem(
+            sysm, nets["V"], nets.get("controller"), nets.get("dynamics"),
+            inner=saved.inner, outer=saved.outer, eta=saved.eta, domain=saved.domain,
+            initial_set=saved.initial_set,
+            margin_mode=problem_d.get("margin_mode", "pointwise"), smoothing=saved.smoothing,
+            dynamics_box=problem_d.get("dynamics_box"), input_box=problem_d.get("input_box"),
+            dynamics_assumptions=list(dyn_assumed), verify_options=options)
+    except (ConfigError, DimensionError) as err:   # the Python API's words: the file's here
+        raise ConfigError(f"certificate {path} does not state a problem this tool can "
+                          f"re-check ({str(err).split(';')[0]}); an edited certificate.json? "
+                          "rerun the command that wrote it") from None
+    if not math.isfinite(saved.level):
+        raise ConfigError(f"certificate {path}: its level is {saved.level!r}, not a finite "
+                          "number; an edited certificate.json? rerun the command that wrote it")
     if saved.status is not CertStatus.CERTIFIED or saved.level <= 0:
         return _refused_run(saved, f"the certificate does not claim a level ({saved.status.value}: "
                         f"{saved.reason})")
@@ -1858,12 +1865,10 @@ def save_certificate(cert: RoaCertificate, problem: RoaProblem, out: str | Path,
 def write_json_atomic(path: str | Path, data) -> None:
     """Write JSON to ``path`` through a temporary file and a rename (never half-written)."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=1, allow_nan=False, default=_jsonable))
+    text = json.dumps(data, indent=1, allow_nan=False, default=_jsonable)
     try:
-        tmp.replace(path)
-    except OSError as err:  # e.g. a directory where the file goes
-        tmp.unlink(missing_ok=True)
+        write_atomic(path, text)   # a directory or a pipe there: a ConfigError naming it
+    except OSError as err:
         raise ConfigError(f"cannot write {path}: {err.strerror or err}; remove what is in its "
                           "place or write to another directory") from None
 

@@ -19,6 +19,7 @@ minimum over ``K`` at a point where ``V̇ < 0`` — a contradiction.
 
 from __future__ import annotations
 
+import io
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +30,7 @@ import numpy as np
 from ..certification.certificate import RoaCertificate, RoaProblem, recheck_run, sha256_file
 from ..kernel import deps
 from ..kernel.errors import ConfigError
+from ..kernel.jsonio import write_atomic, write_figure
 from ..kernel.simulate import horizon, jacobian_at_origin, trajectories
 from ..kernel.symbolic import learned_rhs
 from ..kernel.walker import evaluate
@@ -142,8 +144,13 @@ class CertifiedRun:
         return np.vstack(keep)[:n]
 
 
-def load_run(path: str | Path, *, log=print) -> CertifiedRun:
+def load_run(path: str | Path, *, system=None, allow_factory: bool = False,
+             log=print) -> CertifiedRun:
     """Open a run directory (or its ``certificate.json``) for use, after the re-check.
+
+    ``system`` and ``allow_factory``: as for
+    :func:`nlyap_opt.certification.certificate.recheck_certificate` (the system to re-check
+    against; a spec file's factory runs only with ``allow_factory``).
 
     Raises
     ------
@@ -160,7 +167,7 @@ def load_run(path: str | Path, *, log=print) -> CertifiedRun:
                               f"pass its best run, {path / 'best'}, or one seed's directory")
         raise ConfigError(f"{path}: no certificate.json there; pass the directory of a "
                           "finished `nlyap run`")
-    cert, problem = recheck_run(cfile, log=log)
+    cert, problem = recheck_run(cfile, system=system, allow_factory=allow_factory, log=log)
     if problem is None or not cert.certified:
         raise ConfigError(f"run {cfile.parent} holds no certified set that re-verifies "
                           f"({cert.status.value}: {cert.reason}); rerun `nlyap run` (see "
@@ -215,9 +222,11 @@ class SimulationResult:
 
     def save(self, path: str | Path, **extra) -> None:
         """``trajectories.npz``: the arrays above (and ``extra`` ones)."""
-        np.savez_compressed(path, t=self.t, inside=self.inside, outside=self.outside,
+        buf = io.BytesIO()
+        np.savez_compressed(buf, t=self.t, inside=self.inside, outside=self.outside,
                             V_inside=self.V_inside, stayed=self.stayed,
                             monotone=self.monotone, converged=self.converged, **extra)
+        write_atomic(path, buf.getvalue())
 
 
 #: a step over which V rose is integrated again in this many RK4 sub-steps before it counts
@@ -493,7 +502,6 @@ def plot_simulation(run: CertifiedRun, res: SimulationResult, out: str | Path,
     ax.legend(loc="upper right", fontsize=8)
     ax.set_title(res.summary(), fontsize=8, wrap=True)
     fig.tight_layout()
-    out = Path(out)
-    fig.savefig(out, dpi=110)
+    out = write_figure(fig, out)
     plt.close(fig)
     return out

@@ -51,7 +51,7 @@ import scipy.sparse as sp
 
 from ..kernel import deps
 from ..kernel.errors import ConfigError
-from ..kernel.jsonio import read_json_object
+from ..kernel.jsonio import read_json_object, write_atomic
 from ..kernel.network import FORMAT as NETWORK_FORMAT
 from ..kernel.network import Network
 from ..kernel.symbolic import learned_components_of, learned_rhs, robust_lie
@@ -105,6 +105,14 @@ def load_nominal(path: str | Path, nx: int, nu: int) -> Callable[[np.ndarray], n
     if extra:
         raise ConfigError(f"nominal controller {path}: unknown keys {extra}; allowed: "
                           "format, K, u0, description")
+    def numbers(v) -> bool:   # JSON numbers only: "2" and true are not (float() takes them)
+        if isinstance(v, list):
+            return all(numbers(a) for a in v)
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    if not numbers(d.get("K", [])) or not numbers(d.get("u0", [])):
+        raise ConfigError(f"nominal controller {path}: 'K' and 'u0' must hold numbers only "
+                          "(not strings or booleans); fix the file")
     try:
         K = np.array(d["K"], dtype=float)
         u0 = np.array(d.get("u0", np.zeros(nu)), dtype=float)
@@ -272,5 +280,4 @@ def write_linear_nominal(path: str | Path, K, u0=None, description: str = "") ->
          "u0": (np.zeros(len(K)) if u0 is None else np.asarray(u0, dtype=float)).tolist()}
     if description:
         d["description"] = description
-    Path(path).write_text(json.dumps(d, indent=1, allow_nan=False))
-    return Path(path)
+    return write_atomic(path, json.dumps(d, indent=1, allow_nan=False))

@@ -56,7 +56,7 @@ from ..distributed.parallel import (
     verifying_on,
 )
 from ..kernel.errors import ConfigError, NlyapError, UsageError, interruption
-from ..kernel.jsonio import read_file_bytes
+from ..kernel.jsonio import read_file_bytes, write_atomic
 from ..kernel.network import Network
 from ..kernel.provenance import (
     PORTABLE_FLAG,
@@ -81,6 +81,7 @@ from .cli_args import (
     outer_radius,
     plain_float,
     positive,
+    recheck_system_args,
     seeds,
     time_limit_arg,
     workers,
@@ -296,6 +297,14 @@ def _check_writable(path: Path, option: str, directory: bool) -> None:
                          "path")
 
 
+#: the commands whose --out is required (no default directory)
+_OUT_REQUIRED = ("simulate", "export", "learn-dynamics")
+
+#: the commands that re-check saved files (someone else's, maybe): a system spec's factory,
+#: Python code, runs there only with --allow-factory
+_RECHECKS = ("verify", "simulate", "export")
+
+
 def _is_spec(name: str) -> bool:
     """Whether ``name`` means a file: a ``.toml`` or a path, a file, or something else on
     disk that is no catalogue name (a directory or a pipe: refused as a spec, by name)."""
@@ -336,20 +345,22 @@ def _check_paths(args) -> None:
                  "proof", "save_proof"):
         value = getattr(args, attr, None)
         if isinstance(value, str) and not value.strip():
-            raise UsageError(f"--{attr.replace('_', '-')} is given an empty path; give a path, "
-                             "or leave the option out")
+            optional = not (attr == "out" and args.command in _OUT_REQUIRED)
+            raise UsageError(f"--{attr.replace('_', '-')} is given an empty path; give a path"
+                             + (", or leave the option out" if optional else ""))
     if getattr(args, "system", None) is not None:
-        if _is_spec(args.system) and args.command == "verify" and \
+        rechecks = args.command in _RECHECKS   # runs a factory only with --allow-factory
+        if _is_spec(args.system) and rechecks and \
                 not args.allow_factory and Path(args.system).is_file():
             factory = spec_factory(args.system)
             if factory is not None:
                 raise UsageError(f"--system {args.system} defines its system with factory = "
-                                 f"{factory!r}, Python code that verify runs only when asked: "
-                                 "read it, then add --allow-factory")
+                                 f"{factory!r}, Python code that {args.command} runs only when "
+                                 "asked: read it, then add --allow-factory")
         if _is_spec(args.system):   # --system FILE.toml / run FILE.toml
             args.system_file = str(Path(args.system).resolve())  # Dask workers load it
             args.system = _spec_system(
-                args.system, allow_factory=args.command != "verify" or args.allow_factory)
+                args.system, allow_factory=not rechecks or args.allow_factory)
         _catalogue_system(args.system)
     for attr in ("config", "lyapunov", "controller", "dynamics", "certificate"):
         value = getattr(args, attr, None)
@@ -375,8 +386,10 @@ def _write_json(path: str | None, data: dict) -> None:
         text = json.dumps(data, indent=1, allow_nan=False)
         try:
             Path(path).parent.mkdir(parents=True, exist_ok=True)
-            Path(path).write_text(text)
-        except OSError as err:  # e.g. a full disk, or a file of /proc that takes no text
+            write_atomic(path, text)
+        except ConfigError as err:  # a directory, pipe or device there
+            raise ConfigError(f"--json {err}") from None
+        except OSError as err:  # e.g. a full disk, or a directory of /proc
             raise ConfigError(f"cannot write --json {path}: {err.strerror or err}; give a "
                               "writable file") from None
         print(f"wrote {path}")
@@ -402,6 +415,9 @@ def _load_network(path: str, option: str):
 
 # ============================================================================ commands
 def cmd_systems(args) -> int:
+    if args.check is not None and not args.check.strip():
+        raise UsageError("--check is given an empty name; give a system spec file (.toml) or "
+                         "a catalogue name")
     if args.check:
         if _is_spec(args.check):
             s = systems.check_spec(args.check)
@@ -732,7 +748,7 @@ def _run_compositional(args, system) -> int:
 def _refuse_other_systems_run(out: Path, name: str) -> None:
     """Refuse an ``--out`` that holds the run (or portfolio) of another system: it would be
     overwritten stage by stage, and its other files left beside the new run's."""
-    for file in ("certificate.json", "portfolio.json"):
+    for file in ("certificate.json", "portfolio.json", "comparison.json"):
         try:   # read as every input is (a pipe is refused, not waited on)
             other = json.loads(read_file_bytes(out / file, "run file")).get("system")
         except (OSError, ValueError, AttributeError, RecursionError):
@@ -773,6 +789,7 @@ def cmd_compare(args) -> int:
     cfg = _run_config(args, learned=not args.no_neural)
     out = args.out or f"runs/compare_{args.system}"
     _check_writable(Path(out), "--out", directory=True)
+    _refuse_other_systems_run(Path(out), systems.get(args.system).name)
     rows = compare(args.system, cfg, out, include_neural=not args.no_neural)
     print((Path(out) / "comparison.md").read_text())
     return 0 if all(r.certified for r in rows if r.method.startswith("neural")) else 2
@@ -815,13 +832,7 @@ def _add_verify(add) -> None:
                     help="re-check DIR/certificate.json of a run (artifacts hashed, the system "
                          "bound, conditions verified again at the saved numbers); replaces the "
                          "options below but --system")
-    sp.add_argument("--system",
-                    help="catalogue name or spec file (TOML); with --certificate the system to "
-                         "re-check against (default: the catalogue system the certificate "
-                         "names, or the factory-free spec file it names)")
-    sp.add_argument("--allow-factory", action="store_true", dest="allow_factory",
-                    help="run the Python factory of the --system spec file (never run "
-                         "otherwise)")
+    recheck_system_args(sp)
     sp.add_argument("--lyapunov", help="V network JSON")
     sp.add_argument("--controller", help="controller network JSON (feeds the inputs)")
     sp.add_argument("--dynamics", help="learned dynamics network JSON (replaces f)")

@@ -111,3 +111,15 @@ def time_limit_arg(sp) -> None:
                     help="stop after SECONDS of wall time with exit code 5, keeping the "
                          "finished stages (the same command resumes); results never depend "
                          "on it: every training budget is a count of steps")
+
+
+def recheck_system_args(sp) -> None:
+    """``--system`` and ``--allow-factory`` of the commands that re-check a saved run
+    (``verify --certificate``, ``simulate``, ``export``)."""
+    sp.add_argument("--system",
+                    help="catalogue name or spec file (TOML): the system to re-check the run "
+                         "against (default: the catalogue system its certificate names, or "
+                         "the factory-free spec file it names)")
+    sp.add_argument("--allow-factory", action="store_true", dest="allow_factory",
+                    help="run the Python factory of the --system spec file (never run "
+                         "otherwise)")

@@ -31,8 +31,10 @@ from ..deployment.deploy import (
 from ..deployment.export import export_c, export_onnx
 from ..deployment.filter import ClfQpFilter, load_nominal
 from ..kernel.errors import UsageError
+from ..kernel.jsonio import write_atomic
 from .cli_args import number as _number
 from .cli_args import positive as _positive
+from .cli_args import recheck_system_args
 from .cli_args import seed as _seed
 from .cli_args import workers as _count
 
@@ -81,7 +83,11 @@ def cmd_simulate(args) -> int:
         raise UsageError("--nominal FILE is the controller the safety filter keeps safe; add "
                          "--filter clf-qp")
     _check_steps(args, args.horizon or SIM_HORIZON)
-    run = load_run(_run_dir(args.run_dir), log=_log)
+    run = load_run(_run_dir(args.run_dir), system=args.system,
+                   allow_factory=args.allow_factory, log=_log)
+    if args.filter and not run.system.nu:
+        raise UsageError(f"--filter clf-qp chooses the input of a controlled system, and "
+                         f"{run.system.name!r} has no inputs; drop --filter and --nominal")
     which = "true" if args.true else "learned" if args.learned else None
     if args.horizon is None:
         args.horizon = default_horizon(run, which)
@@ -114,7 +120,9 @@ def cmd_simulate(args) -> int:
                "dynamics": res.dynamics, "points": int(res.inside.shape[1]),
                "stayed": int(res.stayed.sum()), "monotone": int(res.monotone.sum()),
                "converged": int(res.converged.sum()), "horizon": args.horizon,
-               "dt": args.dt, "seed": args.seed, "failures": res.failures}
+               # the step taken: --dt, shortened to divide the horizon evenly
+               "dt": float(res.t[1] - res.t[0]) if len(res.t) > 1 else args.dt,
+               "dt_requested": args.dt, "seed": args.seed, "failures": res.failures}
     if nominal_res is not None:
         summary["filter"] = {"nominal": str(args.nominal), "decay": args.decay,
                              "unfiltered_stayed": int(nominal_res.stayed.sum()),
@@ -124,7 +132,7 @@ def cmd_simulate(args) -> int:
               f"{nominal_res.stayed.size} trajectories stayed in the certified set (no claim)")
         print(f"filtered: {filt.stats.qp} QPs, {filt.stats.fallback} answers replaced by κ, "
               f"{filt.stats.in_ellipse} states in E (κ)")
-    (out / "simulate.json").write_text(json.dumps(summary, indent=1, allow_nan=False))
+    write_atomic(out / "simulate.json", json.dumps(summary, indent=1, allow_nan=False))
     print(res.summary())
     print(f"wrote {out / 'trajectories.npz'}, {png} and {out / 'simulate.json'}")
     if res.violated:
@@ -134,8 +142,8 @@ def cmd_simulate(args) -> int:
               "this is a bug: please report it with the run directory", file=sys.stderr)
         return 1
     if not res.converged.all():
-        for f in res.failures:
-            print(f"nlyap: {f}", file=sys.stderr)
+        for f in res.failures:   # the first few (the count follows)
+            print(f"nlyap: not converged: {f}", file=sys.stderr)
         print(f"nlyap: not converged: {int((~res.converged).sum())} trajectories have not "
               f"reached ‖x‖ ≤ {res.tol:.3g} by t = {args.horizon:g}; rerun with a longer "
               "--horizon", file=sys.stderr)
@@ -150,7 +158,8 @@ def cmd_export(args) -> int:
         if importlib.util.find_spec("onnx") is None:
             raise UsageError("--format onnx needs the onnx package, which is not installed; "
                              "pip install 'nlyap_opt[onnx]' (or use --format c)")
-    run = load_run(_run_dir(args.run_dir), log=_log)
+    run = load_run(_run_dir(args.run_dir), system=args.system,
+                   allow_factory=args.allow_factory, log=_log)
     files = export_c(run, args.out) if args.format == "c" else export_onnx(run, args.out)
     print(f"wrote {', '.join(str(f) for f in files)} (certificate.json sha256 {run.sha256})")
     return 0
@@ -191,6 +200,7 @@ def register_cli(sub) -> None:
                     help="with --filter: λ in (0, 1], the filtered input keeps λ times κ's "
                          f"proven decrease (default {_DECAY_DEFAULT})")
     sp.add_argument("--out", required=True, help="directory for the files (created)")
+    recheck_system_args(sp)
     sp.set_defaults(func=cmd_simulate)
 
     sp = sub.add_parser("export", help="C99 or ONNX code of a run's V, κ and certified set",
@@ -201,5 +211,6 @@ def register_cli(sub) -> None:
                          "certified-set test; onnx: V.onnx and kappa.onnx (needs the onnx "
                          "package)")
     sp.add_argument("--out", required=True, help="directory for the files (created)")
+    recheck_system_args(sp)
     sp.set_defaults(func=cmd_export)
 

@@ -18,6 +18,7 @@ import io
 import json
 import math
 import os
+import secrets
 import stat
 import zipfile
 from pathlib import Path
@@ -156,6 +157,65 @@ def read_npz(path: str | Path, what: str, fix: str, *, limit: int = MAX_INPUT_BY
 TIMINGS_FILE = "timings.json"
 
 
+def write_atomic(path: str | Path, data: str | bytes) -> Path:
+    """Write ``data`` (text as UTF-8) to ``path`` through a new file beside it and a rename.
+
+    The file at ``path`` is then either the old one or the whole new one, never half written
+    (a full disk or an interrupt leaves the old file); a symbolic link at ``path`` is
+    replaced, not written through (the file it points to is left alone). The new file has
+    the permissions a plain write would give (``0o666`` less the umask).
+
+    Raises
+    ------
+    ConfigError
+        ``path`` is a directory, a pipe, a device or a socket (naming it).
+    OSError
+        The write or the rename failed (the new file is removed); callers name the option
+        or the output in their own words.
+    """
+    return write_files_atomic({path: data})[0]
+
+
+def write_figure(fig, path: str | Path, dpi: int = 110) -> Path:
+    """A Matplotlib figure written to ``path`` as PNG by :func:`write_atomic`."""
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=dpi, format="png")
+    return write_atomic(path, buf.getvalue())
+
+
+def write_files_atomic(files: dict) -> list[Path]:
+    """:func:`write_atomic` for files that belong together (``{path: data}``): every new
+    file is written before the first rename, so that a failed write (a full disk) leaves
+    all the old files; only a rename failing midway could leave some of them new."""
+    paths = [Path(p) for p in files]
+    for path in paths:
+        try:
+            mode = os.lstat(path).st_mode
+        except (FileNotFoundError, NotADirectoryError):   # open() below says what is wrong
+            continue
+        if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
+            kind = "a directory" if stat.S_ISDIR(mode) else \
+                "not a regular file (a pipe, device or socket)"
+            raise ConfigError(f"{path} is {kind}; give the path of a file to write")
+    temps: list[Path] = []
+    try:
+        for path, data in zip(paths, files.values()):
+            tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+            with open(tmp, "xb") as fh:
+                temps.append(tmp)
+                fh.write(data.encode("utf-8") if isinstance(data, str) else bytes(data))
+        for tmp, path in zip(list(temps), paths):
+            os.replace(tmp, path)
+            temps.remove(tmp)
+    finally:
+        for tmp in temps:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+    return paths
+
+
 def _is_timing(key) -> bool:
     return isinstance(key, str) and (key == "seconds" or key.endswith("_seconds"))
 
@@ -201,9 +261,7 @@ def save_timings(path: str | Path, timings: list) -> None:
     except (OSError, ValueError):
         store = {}
     store[path.name] = timings
-    tmp = tfile.with_name(f".{tfile.name}.tmp")
-    tmp.write_text(json.dumps(store, indent=1))
-    tmp.replace(tfile)
+    write_atomic(tfile, json.dumps(store, indent=1))
 
 
 def load_with_timings(path: str | Path) -> dict:

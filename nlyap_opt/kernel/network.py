@@ -58,7 +58,7 @@ from .errors import (
     NlyapError,
     UnsupportedLayerError,
 )
-from .jsonio import read_file_bytes
+from .jsonio import read_file_bytes, write_atomic
 
 __all__ = [
     "Activation", "Layer", "Network", "ACTIVATIONS", "HEADS", "TORCH_CONVERTERS", "from_torch",
@@ -422,8 +422,7 @@ class Network:
             raise NetworkFileError(f"cannot save the network to {path}: it is a directory; "
                                    "give a file path (e.g. DIR/V.json)")
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text)
-        return path
+        return write_atomic(path, text)
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "network") -> Network:

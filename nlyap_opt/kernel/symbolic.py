@@ -175,7 +175,7 @@ def learned_rhs(system, dynamics: Network, x, u):
 
 def _check_closed_loop_args(system, controller, dynamics, x) -> None:
     """One line naming the argument of :func:`closed_loop` that is not what it takes."""
-    if not all(hasattr(system, a) for a in ("nx", "nu", "u_eq", "f_fun")):
+    if not all(hasattr(system, a) for a in ("nx", "nu", "u_eq")):  # (f_fun: a model only)
         raise DimensionError(f"closed_loop needs a System (systems.get(name) or "
                              f"systems.load_spec(path)), got {type(system).__name__}")
     for name, net in (("controller", controller), ("dynamics", dynamics)):

@@ -36,6 +36,7 @@ import numpy as np
 from scipy.linalg import solve_continuous_lyapunov
 
 from ..kernel.errors import ConfigError
+from ..kernel.jsonio import write_atomic
 from ..kernel.network import Network
 from .dynamics import (
     AlphaResult,
@@ -131,7 +132,7 @@ class DynamicsStage:
         bpath = write_bounds(out / "bounds.json", self.bounds, seconds, str(net_path))
         d = json.loads(bpath.read_text())
         d["gate"] = self.gate()
-        bpath.write_text(json.dumps(d, indent=1, allow_nan=False, ensure_ascii=False))
+        write_atomic(bpath, json.dumps(d, indent=1, allow_nan=False, ensure_ascii=False))
         return net_path, bpath
 
 

@@ -65,7 +65,7 @@ import numpy as np
 
 from ..kernel.errors import ConfigError, DimensionError, UnknownNameError
 from ..kernel.grid import norm2_up
-from ..kernel.jsonio import save_timings, split_timings
+from ..kernel.jsonio import save_timings, split_timings, write_atomic
 from ..kernel.network import Network
 from ..kernel.rounding import add_up, mul_up, next_up
 from ..kernel.walker import evaluate
@@ -639,7 +639,7 @@ def write_bounds(path, bounds: BoundsResult, extra_seconds: dict | None = None,
                         "sha256": hashlib.sha256(Path(network_path).read_bytes()).hexdigest()}
     path.parent.mkdir(parents=True, exist_ok=True)
     d, timings = split_timings(d)   # a hashed artifact: wall-clock timings go beside it
-    path.write_text(json.dumps(_finite(d), indent=1, allow_nan=False, ensure_ascii=False))
+    write_atomic(path, json.dumps(_finite(d), indent=1, allow_nan=False, ensure_ascii=False))
     save_timings(path, timings)
     return path
 

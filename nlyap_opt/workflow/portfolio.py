@@ -42,6 +42,7 @@ from ..certification.certificate import sha256_file, write_json_atomic
 from ..distributed.parallel import DEFAULT_CONNECT_TIMEOUT, client_workers, cpu_cores, dask_client
 from ..kernel import deps
 from ..kernel.errors import ConfigError
+from ..kernel.jsonio import write_atomic
 from .configs import RunConfig, Section, check_dynamics_box, validate_config
 from .pipeline import run
 
@@ -481,9 +482,7 @@ def _write(res: PortfolioResult) -> None:
         lines.append(f"Best certificate: [{res.best.dir}/certificate.json]"
                      f"({res.best.dir}/certificate.json) (also `best/`), report "
                      f"[{res.best.dir}/report.md]({res.best.dir}/report.md).")
-    tmp = out / ".portfolio.md.tmp"
-    tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    tmp.replace(out / "portfolio.md")
+    write_atomic(out / "portfolio.md", "\n".join(lines) + "\n")
     link = out / "best"
     if link.is_symlink() or link.exists():
         if link.is_symlink() or link.is_file():

@@ -17,6 +17,7 @@ from ..certification.roa import InnerForm, InnerFormKind, grid_points
 from ..kernel import deps
 from ..kernel.domain import Ball, parse_set
 from ..kernel.errors import raise_if_interrupted
+from ..kernel.jsonio import write_atomic, write_figure
 from ..kernel.network import Network
 from ..kernel.provenance import describe
 
@@ -236,7 +237,7 @@ def write_report(out: Path, system, cfg: dict, cert: dict, bounds: dict | None, 
     lines += ["", "## Times (s)", ""] + [f"- {k}: {v:.1f}" for k, v in
                                          cert.get("seconds", {}).items()]
     lines += ["", "![ROA](roa.png)", ""]
-    (out / "report.md").write_text("\n".join(lines))
+    write_atomic(out / "report.md", "\n".join(lines))
     try:
         plot_roa(out / "roa.png", system, cert, out)
     except Exception as err:  # a plot must never lose a certificate
@@ -321,7 +322,7 @@ def plot_roa(path, system, cert: dict, out: Path):
                  + (", orange: X_I" if XI is not None else ""),
                  fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path)
     plt.close(fig)
 
 
@@ -369,7 +370,7 @@ def _plot_1d(path, plt, system, cert: dict, out: Path, V, D, ctrl):
     ax.set_title(f"{system.name}: {cert['status']} — {share}\n"
                  "blue: Ω_c (V ≤ level in D), black: true ROA, red: D, B_ε", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path)
     plt.close(fig)
 
 
@@ -422,7 +423,7 @@ def write_compositional_report(out: Path, system, cert, provenance: dict | None 
     lines += ["", "## Times (s)", "", f"- certification: {cert.seconds:.2f}"]
     if cert.certified:
         lines += ["", "![subsystems](subsystems.png)"]
-    (out / "report.md").write_text("\n".join(lines) + "\n")
+    write_atomic(out / "report.md", "\n".join(lines) + "\n")
     if cert.certified:
         try:
             plot_subsystems(out / "subsystems.png", system, cert)
@@ -480,5 +481,5 @@ def plot_subsystems(path, system, cert):
                  + (f" (first {len(pieces)} of {len(cert.pieces)} subsystems)" if more else ""),
                  fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path)
     plt.close(fig)

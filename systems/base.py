@@ -631,7 +631,7 @@ class System:
     # ------------------------------------------------------------------ derived
     def _equilibrium_input(self, u_eq) -> np.ndarray:
         zero = np.zeros(self.nx)
-        solved = u_eq is None and self.nu
+        solved = u_eq is None and bool(self.nu)
         if solved:  # solve f(0, u) = 0 in the least-squares sense
 
             u = ca.SX.sym("u", self.nu)
@@ -642,7 +642,12 @@ class System:
                 jac=lambda v: np.array(res(v)[1], dtype=float).reshape(self.nx, self.nu),
                 xtol=1e-15, ftol=1e-15, gtol=1e-15,
             )
-            u_eq = sol.x
+            # a solution on a box edge may come out an ulp outside it: clipped within 1e-12
+            # of the box's width (a solution farther out is refused below)
+            slack = 1e-12 * (self.input_box[:, 1] - self.input_box[:, 0])
+            u_eq = np.where(np.abs(sol.x - np.clip(sol.x, self.input_box[:, 0],
+                                                   self.input_box[:, 1])) <= slack,
+                            np.clip(sol.x, self.input_box[:, 0], self.input_box[:, 1]), sol.x)
         u_eq = np.zeros(0) if not self.nu else np.asarray(u_eq, dtype=float).reshape(self.nu)
         resid = np.array(self.f_fun(zero, u_eq), dtype=float).ravel()
         if not np.all(np.isfinite(resid)):
@@ -651,13 +656,13 @@ class System:
                 f"{resid.tolist()}; the equilibrium x = 0 must lie where every expression "
                 "is defined (check square roots, logarithms and divisions there)")
         if np.max(np.abs(resid), initial=0.0) > EQUILIBRIUM_TOL:
-            fix = ("no input holds the origin at rest: shift the state so that the "
-                   "equilibrium is at x = 0" if solved else "declare the right u_eq (or leave "
-                   "it out to have it solved), or shift the state so that the equilibrium is "
-                   "at x = 0")
+            shift = "shift the state so that the equilibrium is at x = 0"
+            fix = (shift if not self.nu else f"no input holds the origin at rest: {shift}"
+                   if solved else f"declare the right u_eq (or leave it out to have it "
+                   f"solved), or {shift}")
+            at = f"f(0, u_eq={u_eq})" if self.nu else "f(0)"
             raise EquilibriumError(
-                f"the origin is not an equilibrium of {self.name!r}: f(0, u_eq={u_eq}) = "
-                f"{resid}; {fix}")
+                f"the origin is not an equilibrium of {self.name!r}: {at} = {resid}; {fix}")
         return self._u_eq_in_box(u_eq)
 
     def evaluate(self, x, u=None) -> np.ndarray:

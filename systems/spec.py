@@ -653,19 +653,30 @@ def _load_factory(path: Path, ref) -> Callable:
             spec.loader.exec_module(module)
         except (Exception, SystemExit) as exc:  # sys.exit() in the file: a failure too
             del sys.modules[modname]
-            raise _err(path, "factory", f"importing {str(file)!r} failed: "
-                       f"{type(exc).__name__}: {_short(' '.join(str(exc).split()), 200)[1:-1]}"
-                       "; fix the file (it is imported to build the system)") from None
+            raise _err(path, "factory", f"importing {str(file)!r} failed: {_failure(exc)}; "
+                       "fix the file (it is imported to build the system)") from None
     else:
         try:
             module = importlib.import_module(mod)
         except ImportError as exc:
             raise _err(path, "factory", f"cannot import {mod!r} ({exc}); install it or use "
                        "\"file.py:function\" relative to the spec") from None
+        except (Exception, SystemExit) as exc:  # noqa: BLE001 - the module's own code failed
+            raise _err(path, "factory", f"importing {mod!r} failed: {_failure(exc)}; fix the "
+                       "module (it is imported to build the system)") from None
     f = getattr(module, fn, None)
     if not callable(f):
         raise _err(path, "factory", f"{mod!r} has no function {fn!r}")
     return f
+
+
+def _failure(exc: BaseException) -> str:
+    """``Type: message`` of an exception of the user's code, on one line, the message cut
+    to 200 characters (``Type`` alone without one: a bare ``sys.exit()``)."""
+    msg = " ".join(str(exc).split())
+    if len(msg) > 200:
+        msg = msg[:200] + f"… ({len(msg)} characters)"
+    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
 
 
 def _call_factory(path: Path, ref: str, factory: Callable) -> System:
@@ -685,9 +696,7 @@ def _call_factory(path: Path, ref: str, factory: Callable) -> System:
         system = factory()
     except (Exception, SystemExit) as exc:  # noqa: BLE001 - the user's code: any failure
         # (sys.exit() included: its code must not become the command's) is an input error
-        msg = " ".join(str(exc).split())
-        raise _err(path, "factory", f"{ref!r} raised {type(exc).__name__}"
-                   f"{': ' + _short(msg, 200)[1:-1] if msg else ''}; fix the factory (it is "
+        raise _err(path, "factory", f"{ref!r} raised {_failure(exc)}; fix the factory (it is "
                    "called without arguments and returns a systems.System)") from None
     if not isinstance(system, System):
         raise _err(path, "factory", f"{ref!r} returned {type(system).__name__}, not a "

@@ -113,3 +113,11 @@ def test_public_functions_name_the_wrong_argument(call, words, tmp_path, monkeyp
     msg = str(err.value)
     assert "\n" not in msg and all(w in msg for w in words), msg
     assert not any(tmp_path.iterdir())   # nothing written
+
+
+def test_numpy_scalars_are_verifier_options_as_pythons_numbers():
+    p = RoaProblem(PEND, V2, verify_options={"max_boxes": np.int64(1000),
+                                             "resolution": np.float64(1e-3),
+                                             "second_order": np.bool_(True)})
+    assert p.verify_options == {"max_boxes": 1000, "resolution": 1e-3, "second_order": True}
+    assert type(p.verify_options["max_boxes"]) is int

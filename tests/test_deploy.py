@@ -293,6 +293,20 @@ def test_the_header_strings_are_c_for_any_name(tmp_path):
     assert out.split(b"\0")[:-1] == [t.encode("utf-8") for t in texts]
 
 
+def test_an_exported_source_does_not_compile_beside_another_exports_header(vdp_run,
+                                                                           tmp_path):
+    cc = shutil.which("cc")
+    if cc is None:
+        pytest.skip("no C compiler (cc) on this machine")
+    out = tmp_path / "c"
+    assert main(["export", str(vdp_run), "--format", "c", "--out", str(out)]) == 0
+    h = out / "nlyap.h"
+    h.write_text(h.read_text().replace("#define NLYAP_EXPORT_", "#define NLYAP_EXPORT_0"))
+    r = subprocess.run([cc, "-std=c99", "-c", str(out / "nlyap.c"), "-o",
+                        str(tmp_path / "n.o")], capture_output=True, text=True)
+    assert r.returncode != 0 and "not the header of this nlyap.c" in r.stderr
+
+
 def test_a_failed_export_leaves_the_old_pair(vdp_run, tmp_path, monkeypatch, capsys):
     """nlyap.h and nlyap.c are written together: a full disk while writing nlyap.c left a new
     header beside a truncated source; now both stay as they were."""

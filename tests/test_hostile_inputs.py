@@ -646,3 +646,26 @@ def test_empty_names_are_refused_with_the_right_fix(capsys):
     err = capsys.readouterr().err
     _one_line_exit3(code, err)
     assert "empty path" in err and "leave the option out" not in err
+
+
+@pytest.mark.parametrize("body, words", [("import sys\nsys.exit(0)\n", "SystemExit"),
+                                         ("raise RuntimeError('at import')\n",
+                                          "RuntimeError: at import")])
+def test_a_factory_module_that_fails_on_import_exits_3(body, words, tmp_path, monkeypatch,
+                                                       capsys):
+    """factory = "module:function" (on the path): only ImportError was caught, so sys.exit(0)
+    at import ended the command with exit 0, and another error was an internal error."""
+    (tmp_path / "quits_mod.py").write_text(body)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "quits_mod", raising=False)
+    code = main(["lqr", str(_spec(tmp_path, 'factory = "quits_mod:make"\n'))])
+    err = capsys.readouterr().err
+    _one_line_exit3(code, err)
+    assert "importing 'quits_mod' failed" in err and words in err, err
+
+
+def test_an_autonomous_system_without_an_equilibrium_is_told_to_shift():
+    x = ca.SX.sym("x", 2)
+    with pytest.raises(Exception, match="shift the state") as err:
+        systems.System("noeq", x, None, ca.vertcat(-x[0] + 1, -x[1]), state_box=[[-1, 1]] * 2)
+    assert "u_eq" not in str(err.value)

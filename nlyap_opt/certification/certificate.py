@@ -450,8 +450,11 @@ class RoaProblem:
             v = getattr(self, name)
             if isinstance(v, (bool, str, bytes)):
                 raise ConfigError(f"{name} must be a number, got {v!r}")
+        opts = self.verify_options
+        if isinstance(opts, dict):   # numpy scalars (a config's np.int64) as Python's
+            opts = {k: v.item() if isinstance(v, np.generic) else v for k, v in opts.items()}
         self.verify_options = check_file_options(
-            self.verify_options, "RoaProblem", "pass options of verification.verify_interval")
+            opts, "RoaProblem", "pass options of verification.verify_interval")
 
     @property
     def known(self) -> bool:

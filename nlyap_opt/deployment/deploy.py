@@ -226,7 +226,9 @@ class SimulationResult:
         np.savez_compressed(buf, t=self.t, inside=self.inside, outside=self.outside,
                             V_inside=self.V_inside, stayed=self.stayed,
                             monotone=self.monotone, converged=self.converged, **extra)
-        write_atomic(path, buf.getvalue())
+        path = Path(path)   # as np.savez names it: .npz added where the name lacks it
+        write_atomic(path if path.suffix == ".npz" else path.with_name(path.name + ".npz"),
+                     buf.getvalue())
 
 
 #: a step over which V rose is integrated again in this many RK4 sub-steps before it counts

@@ -118,6 +118,8 @@ def export_c(run, out: str | Path) -> tuple[Path, Path]:
         f"#define NLYAP_NX {sysm.nx}", f"#define NLYAP_NU {sysm.nu}",
         f"#define NLYAP_SYSTEM {_c_string(sysm.name)}",
         f'#define NLYAP_CERTIFICATE_SHA256 "{run.sha256}"',
+        "/* nlyap.c compiles only beside the header of its own export */",
+        f"#define NLYAP_EXPORT_{run.sha256[:16]} 1",
         f"#define NLYAP_LEVEL {_c_double(cert.level)}  /* {cert.level!r} */",
         f"#define NLYAP_INNER_RADIUS {_c_double(cert.inner)}  /* {cert.inner!r} */",
         f"#define NLYAP_DOMAIN_JSON {_c_string(dom)}",
@@ -150,8 +152,11 @@ def export_c(run, out: str | Path) -> tuple[Path, Path]:
     # both or neither: a failed write (a full disk) leaves the old pair as it was
     write_files_atomic({h: "\n".join(lines),
                         c: f"/* certificate.json sha256 {run.sha256}; see nlyap.h */\n"
-                           '#include "nlyap.h"\n' + impl + "\n/* the API of nlyap.h */\n"
-                           + wrappers})
+                           '#include "nlyap.h"\n'
+                           f"#ifndef NLYAP_EXPORT_{run.sha256[:16]}\n"
+                           '#error "nlyap.h is not the header of this nlyap.c (another '
+                           'export): export both again"\n#endif\n' + impl
+                           + "\n/* the API of nlyap.h */\n" + wrappers})
     return c, h
 
 

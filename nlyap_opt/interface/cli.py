@@ -832,7 +832,9 @@ def _add_verify(add) -> None:
                     help="re-check DIR/certificate.json of a run (artifacts hashed, the system "
                          "bound, conditions verified again at the saved numbers); replaces the "
                          "options below but --system")
-    recheck_system_args(sp)
+    recheck_system_args(sp, "catalogue name or spec file (TOML); with --certificate the "
+                            "system to re-check against (default: the catalogue system the "
+                            "certificate names, or the factory-free spec file it names)")
     sp.add_argument("--lyapunov", help="V network JSON")
     sp.add_argument("--controller", help="controller network JSON (feeds the inputs)")
     sp.add_argument("--dynamics", help="learned dynamics network JSON (replaces f)")

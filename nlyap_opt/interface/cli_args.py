@@ -113,13 +113,14 @@ def time_limit_arg(sp) -> None:
                          "on it: every training budget is a count of steps")
 
 
-def recheck_system_args(sp) -> None:
+def recheck_system_args(sp, system_help: str | None = None) -> None:
     """``--system`` and ``--allow-factory`` of the commands that re-check a saved run
-    (``verify --certificate``, ``simulate``, ``export``)."""
+    (``verify --certificate``, ``simulate``, ``export``); ``system_help`` replaces the help
+    of ``--system`` (``verify``, where it is also the system to verify)."""
     sp.add_argument("--system",
-                    help="catalogue name or spec file (TOML): the system to re-check the run "
-                         "against (default: the catalogue system its certificate names, or "
-                         "the factory-free spec file it names)")
+                    help=system_help or "catalogue name or spec file (TOML): the system to "
+                         "re-check the run against (default: the catalogue system its "
+                         "certificate names, or the factory-free spec file it names)")
     sp.add_argument("--allow-factory", action="store_true", dest="allow_factory",
                     help="run the Python factory of the --system spec file (never run "
                          "otherwise)")

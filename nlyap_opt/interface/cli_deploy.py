@@ -21,6 +21,8 @@ import json
 import sys
 from pathlib import Path
 
+import systems
+
 from ..deployment.deploy import (
     SIM_HORIZON,
     default_horizon,
@@ -83,7 +85,7 @@ def cmd_simulate(args) -> int:
         raise UsageError("--nominal FILE is the controller the safety filter keeps safe; add "
                          "--filter clf-qp")
     _check_steps(args, args.horizon or SIM_HORIZON)
-    run = load_run(_run_dir(args.run_dir), system=args.system,
+    run = load_run(_run_dir(args.run_dir), system=_system(args),
                    allow_factory=args.allow_factory, log=_log)
     if args.filter and not run.system.nu:
         raise UsageError(f"--filter clf-qp chooses the input of a controlled system, and "
@@ -158,7 +160,7 @@ def cmd_export(args) -> int:
         if importlib.util.find_spec("onnx") is None:
             raise UsageError("--format onnx needs the onnx package, which is not installed; "
                              "pip install 'nlyap_opt[onnx]' (or use --format c)")
-    run = load_run(_run_dir(args.run_dir), system=args.system,
+    run = load_run(_run_dir(args.run_dir), system=_system(args),
                    allow_factory=args.allow_factory, log=_log)
     files = export_c(run, args.out) if args.format == "c" else export_onnx(run, args.out)
     print(f"wrote {', '.join(str(f) for f in files)} (certificate.json sha256 {run.sha256})")
@@ -169,6 +171,12 @@ _decay_share = _number(lambda v: 0 < v <= 1, "a finite number in (0, 1]")
 
 #: ``--decay`` when not given
 _DECAY_DEFAULT = 0.5
+
+
+def _system(args):
+    """The ``--system`` to re-check the run against (registered by the command line, a
+    spec file loaded under its own rules), or ``None``."""
+    return None if args.system is None else systems.get(args.system)
 
 
 def register_cli(sub) -> None:

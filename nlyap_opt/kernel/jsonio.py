@@ -161,14 +161,16 @@ def write_atomic(path: str | Path, data: str | bytes) -> Path:
     """Write ``data`` (text as UTF-8) to ``path`` through a new file beside it and a rename.
 
     The file at ``path`` is then either the old one or the whole new one, never half written
-    (a full disk or an interrupt leaves the old file); a symbolic link at ``path`` is
-    replaced, not written through (the file it points to is left alone). The new file has
-    the permissions a plain write would give (``0o666`` less the umask).
+    (a full disk, an interrupt or a crash leaves the old file: the new one is synced before
+    the rename); a symbolic link at ``path`` is replaced, not written through (the file it
+    points to is left alone). The new file keeps the old one's permissions, or gets those
+    of a plain write (``0o666`` less the umask).
 
     Raises
     ------
     ConfigError
-        ``path`` is a directory, a pipe, a device or a socket (naming it).
+        ``path`` is a directory, a pipe, a device or a socket, or a symbolic link to one
+        (naming it).
     OSError
         The write or the rename failed (the new file is removed); callers name the option
         or the output in their own words.
@@ -176,11 +178,23 @@ def write_atomic(path: str | Path, data: str | bytes) -> Path:
     return write_files_atomic({path: data})[0]
 
 
-def write_figure(fig, path: str | Path, dpi: int = 110) -> Path:
-    """A Matplotlib figure written to ``path`` as PNG by :func:`write_atomic`."""
-    buf = io.BytesIO()
-    fig.savefig(buf, dpi=dpi, format="png")
-    return write_atomic(path, buf.getvalue())
+def _target_mode(path: Path) -> int | None:
+    """The permission bits a new file at ``path`` keeps (``None``: a plain write's), after
+    refusing what is not a place for a file."""
+    try:
+        mode = os.lstat(path).st_mode
+    except (FileNotFoundError, NotADirectoryError):   # open() says what is wrong
+        return None
+    if stat.S_ISLNK(mode):
+        try:
+            mode = os.stat(path).st_mode    # what it points to: replaced only if a file
+        except OSError:
+            return None                     # a dangling link: replaced
+    if not stat.S_ISREG(mode):
+        kind = "a directory" if stat.S_ISDIR(mode) else \
+            "not a regular file (a pipe, device or socket)"
+        raise ConfigError(f"{path} is {kind}; give the path of a file to write")
+    return stat.S_IMODE(mode)
 
 
 def write_files_atomic(files: dict) -> list[Path]:
@@ -188,22 +202,19 @@ def write_files_atomic(files: dict) -> list[Path]:
     file is written before the first rename, so that a failed write (a full disk) leaves
     all the old files; only a rename failing midway could leave some of them new."""
     paths = [Path(p) for p in files]
-    for path in paths:
-        try:
-            mode = os.lstat(path).st_mode
-        except (FileNotFoundError, NotADirectoryError):   # open() below says what is wrong
-            continue
-        if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
-            kind = "a directory" if stat.S_ISDIR(mode) else \
-                "not a regular file (a pipe, device or socket)"
-            raise ConfigError(f"{path} is {kind}; give the path of a file to write")
+    modes = [_target_mode(p) for p in paths]
     temps: list[Path] = []
     try:
-        for path, data in zip(paths, files.values()):
-            tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+        for path, mode, data in zip(paths, modes, files.values()):
+            # the name stays short: a long output name must not become too long a name here
+            tmp = path.with_name(f".{path.name[:100]}.{secrets.token_hex(4)}.tmp")
             with open(tmp, "xb") as fh:
                 temps.append(tmp)
                 fh.write(data.encode("utf-8") if isinstance(data, str) else bytes(data))
+                fh.flush()
+                os.fsync(fh.fileno())
+            if mode is not None:
+                os.chmod(tmp, mode)
         for tmp, path in zip(list(temps), paths):
             os.replace(tmp, path)
             temps.remove(tmp)
@@ -214,6 +225,14 @@ def write_files_atomic(files: dict) -> list[Path]:
             except OSError:
                 pass
     return paths
+
+
+def write_figure(fig, path: str | Path, dpi: int = 110) -> Path:
+    """A Matplotlib figure written to ``path`` by :func:`write_atomic`, in the format of its
+    suffix (PNG without one)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=dpi, format=Path(path).suffix[1:].lower() or "png")
+    return write_atomic(path, buf.getvalue())
 
 
 def _is_timing(key) -> bool:

@@ -579,32 +579,31 @@ def test_a_wrong_u_eq_is_named_as_the_fix(tmp_path, capsys):
     assert "not an equilibrium" in err and "declare the right u_eq" in err
 
 
+def _verify_error(tmp_path, spec, capsys) -> str:
+    """The one line of exit 3 that ``nlyap verify --system spec`` ends with."""
+    V = tmp_path / "V.json"
+    quadratic_lyapunov(np.eye(2)).save(V)
+    code = main(["verify", "--system", str(spec), "--lyapunov", str(V), "--inner", "0.2",
+                 "--outer", "0.9"])
+    err = capsys.readouterr().err
+    _one_line_exit3(code, err)
+    return err
+
+
 def test_u_eq_outside_the_input_box_is_refused_by_every_command(tmp_path, capsys):
     """verify used to check the closed loop at an input the actuator cannot give (config and
     systems --check refused it)."""
     p = _spec(tmp_path, _PEND.replace("+ 1.0", "+ 10.0").format(ueq="[-10.0]"))
     with pytest.raises(ConfigError, match=r"u_eq = -10 lies outside its box \[-6.0, 6.0\]"):
         systems.load_spec(p)
-    V = tmp_path / "V.json"
-    quadratic_lyapunov(np.eye(2)).save(V)
-    code = main(["verify", "--system", str(p), "--lyapunov", str(V), "--inner", "0.2",
-                 "--outer", "0.9"])
-    err = capsys.readouterr().err
-    _one_line_exit3(code, err)
-    assert "fix u_eq or the input box" in err
+    assert "fix u_eq or the input box" in _verify_error(tmp_path, p, capsys)
 
 
 def test_a_state_box_without_the_origin_is_refused_by_every_command(tmp_path, capsys):
     """verify read such a spec (run and config refused it)."""
     p = _spec(tmp_path, _PEND.format(ueq="[-1.0]").replace(
         "state_box = [[-1.0, 1.0], [-1.0, 1.0]]", "state_box = [[0.5, 1.0], [-1.0, 1.0]]"))
-    V = tmp_path / "V.json"
-    quadratic_lyapunov(np.eye(2)).save(V)
-    code = main(["verify", "--system", str(p), "--lyapunov", str(V), "--inner", "0.2",
-                 "--outer", "0.9"])
-    err = capsys.readouterr().err
-    _one_line_exit3(code, err)
-    assert "does not contain the origin in its interior" in err
+    assert "does not contain the origin in its interior" in _verify_error(tmp_path, p, capsys)
 
 
 @pytest.mark.parametrize("command", [["config"], ["learn-dynamics", "--out", "o"], ["lqr"]])

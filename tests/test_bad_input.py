@@ -173,6 +173,10 @@ def files(tmp_path_factory):
         (d / name).mkdir()
         (d / name / file).write_text(json.dumps({"system": "inverted_pendulum"}))
         paths[name] = str(d / name)
+    (d / "otherstages").mkdir()    # a run interrupted before its certificate was written
+    (d / "otherstages" / "stages.json").write_text(json.dumps(
+        {"quadratic": {"key": "0", "files": {}, "seal": "0", "system": "inverted_pendulum"}}))
+    paths["otherstages"] = str(d / "otherstages")
     (d / "nanrun.toml").write_text('name = "n"\nstates = ["x"]\nstate_box = [[-1.0, 1.0]]\n'
                                    '[rhs]\nx = "-x"\n[run]\nouter = nan\n')
     paths["nanrun"] = str(d / "nanrun.toml")
@@ -269,6 +273,9 @@ CLI_CASES = [
     _c("run into another system's portfolio", ["run", "van_der_pol", "--seeds", "2",
                                                "--out", "{otherportfolio}"],
        ["portfolio.json", "'inverted_pendulum'"]),
+    _c("run into another system's interrupted run", ["run", "van_der_pol", "--out",
+                                                     "{otherstages}"],
+       ["stages of a run of system 'inverted_pendulum'", "another --out"]),
     _c("compare into another system's run", ["compare", "van_der_pol", "--preset", "fast",
                                              "--out", "{otherrun}"],
        ["holds a run of system 'inverted_pendulum'"]),
@@ -532,6 +539,9 @@ CLI_CASES = [
     _c("certificate is a device", ["verify", "--certificate", "/dev/zero"],
        ["not a regular file"]),
     _c("spec run table nan", ["systems", "--check", "{nanrun}"], ["finite", "nan"]),
+    # the value came from the spec's [run] table: named so (it said "run config")
+    _c("spec run table nan in run", ["run", "{nanrun}", "--out", "{tmp}/nr"],
+       ["nanrun.toml [run]", "outer"]),
     _c("cfg duplicate key", RUN, ["outer", "appears twice"], '{"outer": 1.0, "outer": 2.0}'),
     _c("cfg count beyond 2^53", RUN, ["train.steps", "2^53"], {"train": {"steps": 10**30}}),
     _c("run seeds huge", ["run", "van_der_pol", "--seeds", "99999999999999999999"],

@@ -112,7 +112,7 @@ def _patch_command(monkeypatch, exc):
     (PermissionError(13, "Permission denied", "/root/z"), 3, ["Permission denied"]),
     (json.JSONDecodeError("Expecting value", "{", 1), 3, ["malformed JSON"]),
     (SystemExit(1), 4, ["internal error"]),
-    (MemoryError(), 3, ["out of memory", "--config"]),
+    (MemoryError(), 3, ["out of memory in 'nlyap systems'", "smaller ones"]),
     (OSError(28, "No space left on device"), 3, ["No space left", "free space"]),
     (OSError(5, "Input/output error"), 4, ["internal error"]),
 ])

@@ -10,6 +10,7 @@ controller's values.
 import casadi as ca
 import numpy as np
 import pytest
+from forge import forge_stage_file
 
 import systems
 from nlyap_opt.design.control import saturated_controller
@@ -151,15 +152,11 @@ def test_run_verifies_on_a_smaller_ball_with_the_local_bound(tmp_path):
     assert recheck_certificate(d, log=lambda m: None).certified
     # a run directory whose local bound was written before bounds files named their φ
     # (recorded consistently in stages.json): resuming computes the bound again
-    import hashlib
     assert loc["network"]["sha256"] == cert["artifacts"]["dynamics"]["sha256"]
     old = dict(loc)
     old.pop("network")
     (d / "bounds_local.json").write_text(json.dumps(old))
-    st = json.loads((d / "stages.json").read_text())
-    st["local"]["files"]["bounds_local.json"] = hashlib.sha256(
-        (d / "bounds_local.json").read_bytes()).hexdigest()
-    (d / "stages.json").write_text(json.dumps(st))
+    forge_stage_file(d, "local", "bounds_local.json")
     res = run(s, cfg, d, log=logs.append)
     assert "network" in json.loads((d / "bounds_local.json").read_text())
     assert res.certified and recheck_certificate(d, log=lambda m: None).certified

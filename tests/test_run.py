@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 from certcheck import assert_fast_certificate
+from forge import forge_stage_file
 
 import systems
 from nlyap_opt.certification.roa import grid_points
@@ -174,16 +175,13 @@ def test_tampered_V_is_never_certified_on_resume(known_runs, tmp_path):
 @pytest.mark.slow  # ~50 s idle: a second learned run; the default tier stays under 5 min on 2 cores
 def test_tampered_V_with_forged_stage_record_is_not_certified(known_runs, tmp_path):
     """Even with stages.json forged to match a false V, the certificate stage re-verifies."""
-    from nlyap_opt.certification.certificate import sha256_file
 
     d, cert = _copy_run(known_runs, tmp_path)
     V = Network.load(d / "V.json")
     for layer in V.layers:
         layer.weight[...] *= -0.05           # flat V: containment fails at the saved level
     V.save(d / "V.json")
-    st = json.loads((d / "stages.json").read_text())
-    st["cegis"]["files"]["V.json"] = sha256_file(d / "V.json")
-    (d / "stages.json").write_text(json.dumps(st))
+    forge_stage_file(d, "cegis", "V.json")
     res = run("van_der_pol", get_config("van_der_pol", "fast"), d, known_dynamics=True,
               log=lambda m: None)
     if res.certified:  # only if the forged V happens to satisfy every condition itself
@@ -407,6 +405,31 @@ def test_recheck_refuses_an_edited_bounds_file_whose_hash_was_updated(learned_ru
     again = recheck_certificate(tmp_path / "run", log=lambda m: None)
     assert not again.certified and "cannot be read" in again.reason, again.reason
     assert words in again.reason, again.reason
+
+
+def test_recheck_refutes_a_bound_that_f_and_phi_contradict(learned_runs, tmp_path):
+    """bounds.json and certificate.json edited together (hashes updated) to η smaller than
+    ‖f − φ‖ somewhere: the certificate then proved decrease for φ only. The re-check compares
+    f and φ at seeded points of the bound's box and withdraws it (simulate/export too)."""
+    import hashlib
+    import shutil
+
+    from nlyap_opt.certification.certificate import bound_refutation, recheck_run
+
+    d, cert = learned_runs["van_der_pol"]
+    _, problem = recheck_run(d, log=lambda m: None)
+    assert bound_refutation(problem) == ""          # the run's own η holds at every point
+    shutil.copytree(d, tmp_path / "run")
+    c = json.loads((tmp_path / "run" / "certificate.json").read_text())
+    bf = tmp_path / "run" / c["artifacts"]["bounds"]["file"]
+    b = json.loads(bf.read_text())
+    b["eta"] = c["eta"] = 1e-12
+    bf.write_text(json.dumps(b))
+    c["artifacts"]["bounds"]["sha256"] = hashlib.sha256(bf.read_bytes()).hexdigest()
+    (tmp_path / "run" / "certificate.json").write_text(json.dumps(c))
+    again, prob = recheck_run(tmp_path / "run", log=lambda m: None)
+    assert prob is None and not again.certified
+    assert "‖f − φ‖ ≤ η = 1e-12" in again.reason and "does not hold" in again.reason
 
 
 def _edit_run(src, dst, edit):

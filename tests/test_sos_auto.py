@@ -11,6 +11,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 import pytest
+from forge import forge_stage_file
 
 import systems
 from nlyap_opt.candidates.sos import (
@@ -237,14 +238,11 @@ def test_a_finished_auto_stage_is_loaded_and_a_changed_degree_recomputes_it(auto
     run("van_der_pol", cfg, e, known_dynamics=True, log=logs.append)
     assert "[sos] loaded from" in "\n".join(logs)
     # a stage record of another degree (an older rule) is not reused
-    from nlyap_opt.certification.certificate import sha256_file
 
     rec = json.loads((e / "sos.json").read_text())
     rec["degree"] = 4
     (e / "sos.json").write_text(json.dumps(rec))
-    st = json.loads((e / "stages.json").read_text())
-    st["sos"]["files"]["sos.json"] = sha256_file(e / "sos.json")
-    (e / "stages.json").write_text(json.dumps(st))
+    forge_stage_file(e, "sos", "sos.json")
     logs.clear()
     run("van_der_pol", cfg, e, known_dynamics=True, log=logs.append)
     assert "sos.json holds degree 4, the run's degree is 6: the SOS stage is recomputed" in \

@@ -7,6 +7,7 @@ import shutil
 
 import numpy as np
 import pytest
+from forge import forge_stage_file
 
 import systems
 from nlyap_opt.candidates.sos import SOSConfig, certify_sos
@@ -225,15 +226,12 @@ def test_the_sos_certificate_rechecks_and_a_tampered_one_does_not(sos_run, tmp_p
 def test_a_malformed_sos_file_with_a_matching_hash_is_a_one_line_error(sos_run, tmp_path):
     """A V_sos.json whose content was replaced together with the stage record (hash
     matching) is still parsed, not trusted: a ConfigError naming the file and the fix."""
-    from nlyap_opt.certification.certificate import sha256_file
 
     d, cfg, _, _ = sos_run
     e = tmp_path / "copy2"
     shutil.copytree(d, e)
     (e / "V_sos.json").write_text(json.dumps({"exponents": [[1.5, 0]], "coefficients": [1]}))
-    st = json.loads((e / "stages.json").read_text())
-    st["sos"]["files"]["V_sos.json"] = sha256_file(e / "V_sos.json")
-    (e / "stages.json").write_text(json.dumps(st))
+    forge_stage_file(e, "sos", "V_sos.json")
     with pytest.raises(ConfigError, match=r"V_sos\.json cannot be read .*delete it and rerun"):
         run("van_der_pol", cfg, e, known_dynamics=True, log=lambda m: None)
 
@@ -460,14 +458,14 @@ def test_cegis_settings_do_not_recompute_the_cheap_stages(sos_run, tmp_path, log
     with pytest.raises(KeyboardInterrupt):
         run("van_der_pol", cfg2, e, known_dynamics=True, log=log)
     text = "\n".join(log.lines)
-    assert "[sos] loaded from" in text and "[cegis] configuration or earlier stage changed" in text
+    assert "[sos] loaded from" in text and "[cegis] configuration, system or earlier stage changed" in text
     cfg3 = make_config("van_der_pol", "fast", overrides={
         "sos": {"degree": 2}, "train": {"steps": 1},
         "cegis": {"iterations": 1, "steps": 2, "verify_options": {"batch": 512}}})
     log = log_until("[sos] ")
     with pytest.raises(KeyboardInterrupt):
         run("van_der_pol", cfg3, e, known_dynamics=True, log=log)
-    assert "[sos] configuration or earlier stage changed: recomputing" in "\n".join(log.lines)
+    assert "[sos] configuration, system or earlier stage changed: recomputing" in "\n".join(log.lines)
 
 
 def test_no_gram_matrix_starts_v_at_random(monkeypatch, tmp_path, log_until):

@@ -437,3 +437,27 @@ def test_structurally_zero_constraints_and_properties_keep_their_columns(options
     V = ca.sumsqr(x)
     q = lyapunov_problem(x, V, ca.jtimes(V, x, ca.MX(2, 1)), inner=0.1, outer=1.0)
     assert verify(q, **options).status == "counterexample"  # V̇ = 0 is not < 0
+
+
+def test_a_huge_network_is_verified_in_small_batches():
+    """A V of 10⁵ tanh neurons held tens of GB in a full batch of 8192 boxes; the batch is
+    cut so that the work vectors of a pass stay within MEMORY_NUMBERS (a usual network
+    keeps the whole batch)."""
+    import systems
+    from nlyap_opt.kernel.network import Layer, Network
+    from verification import closed_loop_problem
+    from verification.verify import MEMORY_NUMBERS, memory_batch
+
+    rng = np.random.default_rng(0)
+
+    def problem(width):
+        V = Network([Layer(rng.normal(size=(width, 2)) * 1e-3, np.zeros(width), "tanh"),
+                     Layer(rng.normal(size=(1, width)) * 1e-6, np.zeros(1))],
+                    head={"type": "sum_of_squares", "eps": 1.0})
+        return closed_loop_problem(systems.get("van_der_pol"), V, inner=0.3, outer=0.5)
+
+    assert memory_batch(problem(30)) >= 8192
+    big = problem(100_000)
+    cap = memory_batch(big)
+    assert 16 <= cap < 1000
+    assert cap * big.function_jacobian.sz_w() <= MEMORY_NUMBERS

@@ -928,6 +928,7 @@ def verify_interval(
                                 "affine": affine})
     if conflict:
         raise ValueError(conflict)
+    batch = min(int(batch), memory_batch(problem, second_order))
     if partition and (boxes is not None or hand_back or executor is not None or precondition):
         raise ValueError("partition records a run from the root box's grid: it excludes "
                          "boxes, hand_back, executor and precondition")
@@ -1285,6 +1286,32 @@ def _verify_distributed(problem, executor, n_tasks, t0, **kwargs) -> Verificatio
                                   leaves)
     return VerificationResult("unknown" if len(und) else "verified", None, [], und, boxes,
                               depth, seconds, leaves)
+
+
+# ============================================================================ memory
+#: the numbers (float64) a pass may hold over the walked graphs' work vectors: a batch of
+#: boxes is cut to ``MEMORY_NUMBERS // (largest work vector)`` (1 GiB of float64 for every
+#: copy the arithmetic keeps: bounds, affine coefficients)
+MEMORY_NUMBERS = 2**27
+
+
+def memory_batch(problem: VerificationProblem, second_order: bool = False) -> int:
+    """The most boxes a pass over ``problem``'s graphs may take: its work vectors (every
+    register of the walked Functions: a network's layers, their Jacobians) times the boxes
+    stay within :data:`MEMORY_NUMBERS` (at least 16 boxes).
+
+    Graphs of the usual sizes allow far more than the default batch (a 2-30-30 network on
+    Van der Pol: about 38 000 boxes); a network of 10⁵ neurons allows about 100, where a
+    full batch held tens of GB.
+    """
+    funs = [problem.function_jacobian_checked if problem.checked else problem.function_jacobian]
+    if second_order:
+        try:
+            funs += list(problem.second_order_functions)
+        except ValueError:   # an unpickled problem without them: not walked here either
+            pass
+    work = max(max(int(f.sz_w()), 1) for f in funs)
+    return max(16, MEMORY_NUMBERS // work)
 
 
 # ============================================================================ options in files

@@ -1456,7 +1456,7 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
                             f"{art['sha256'][:12]}…)")
         if art.get("kind") == "bounds":
             try:
-                eta, box, phi_sha = _bound_of(data)
+                eta, box, phi_sha = parse_bound(data)
                 bounded = (art["file"], phi_sha)
             except (ValueError, KeyError, TypeError, RecursionError, OverflowError) as err:
                 return _refused_run(saved, f"artifact {art['file']} cannot be read: "
@@ -1512,6 +1512,9 @@ def recheck_run(path: str | Path, *, system=None, allow_factory: bool = False,
         raise ConfigError(f"certificate {path} does not state a problem this tool can "
                           f"re-check ({str(err).split(';')[0]}); an edited certificate.json? "
                           "rerun the command that wrote it") from None
+    refusal = bound_refutation(problem)
+    if refusal:
+        return _refused_run(saved, refusal)
     if not math.isfinite(saved.level):
         raise ConfigError(f"certificate {path}: its level is {saved.level!r}, not a finite "
                           "number; an edited certificate.json? rerun the command that wrote it")
@@ -1741,7 +1744,7 @@ def load_artifact(path, kind: str = "network", data: bytes | None = None):
     raise ValueError(f"unknown artifact kind {kind!r} (network or sx)")
 
 
-def _bound_of(data: bytes) -> tuple[float, np.ndarray, str | None]:
+def parse_bound(data: bytes) -> tuple[float, np.ndarray, str | None]:
     """η, the ``(n, 2)`` box and the sha256 of the network φ it bounds (``None``: not
     recorded) of a ``bounds.json``'s bytes; ``ValueError`` (or ``KeyError``,
     ``TypeError``) names what is wrong."""
@@ -1791,6 +1794,60 @@ def _missing_pieces(saved: RoaCertificate, nets: dict, bounded: tuple | None,
         return (f"φ ({saved.artifacts['dynamics']['file']}, sha256 {want[:12]}…) is not the "
                 f"network that {name} bounds (sha256 {phi_sha[:12]}…)")
     return ""
+
+
+#: seeded points of the bound's box at which a re-check compares f and φ (a falsifier of
+#: ‖f − φ‖ ≤ η: it refutes a wrong bound, it proves nothing)
+BOUND_SPOT_CHECKS = 4096
+
+
+def bound_refutation(problem: RoaProblem) -> str:
+    """Why ``‖f − φ‖ ≤ η`` is false, or ``""``: ``f`` and ``φ`` compared where ``f`` is
+    known (a model or a simulator: :data:`BOUND_SPOT_CHECKS` seeded points of
+    ``dynamics_box × input_box``; samples: their nodes in that box).
+
+    A learned-dynamics certificate proves the decrease for ``φ`` with the robust term of η,
+    which says nothing about the true ``f`` unless the bound holds; a re-check cannot
+    recompute η (that needs the learning run's grid and constants), but a point where
+    ``f`` and ``φ`` differ by more than η refutes it: φ learned for another ``f`` (a spec
+    edited under the same name), an edited ``bounds.json``. Differences within rounding
+    (``10⁻⁹`` relative) are not counted.
+    """
+    sysm, phi = problem.system, problem.dynamics
+    if phi is None or problem.dynamics_box is None:
+        return ""
+    nx, nu = sysm.nx, sysm.nu
+    box = np.vstack([problem.dynamics_box,
+                     problem.input_box if nu and problem.input_box is not None
+                     else np.zeros((0, 2))])
+    if getattr(sysm, "kind", "model") == "samples":
+        smp = sysm.samples
+        if smp.offset > 0:   # values off the nodes: compared there, they would need a slope
+            return ""
+        Z = smp.points(np.arange(int(np.prod(smp.counts))))
+        F = np.asarray(smp.values, dtype=float)
+        keep = np.all((Z >= box[:, 0]) & (Z <= box[:, 1]), axis=1)
+        Z, F = Z[keep], F[keep]
+    elif getattr(sysm, "can_simulate", True) and box.shape[0] == nx + nu:
+        rng = np.random.default_rng(20261129)
+        Z = box[:, 0] + (box[:, 1] - box[:, 0]) * rng.random((BOUND_SPOT_CHECKS, nx + nu))
+        F = np.asarray(sysm.evaluate(Z[:, :nx], Z[:, nx:]), dtype=float)
+    else:
+        return ""
+    if not len(Z):
+        return ""
+    x, u = ca.MX.sym("x", nx), ca.MX.sym("u", nu)
+    G = evaluate(ca.Function("phi", [x, u], [learned_rhs(sysm, phi, x, u)]),
+                 [Z[:, :nx], Z[:, nx:]])[0]
+    err = np.linalg.norm(F - np.asarray(G, dtype=float).reshape(F.shape), axis=1)
+    tol = 1e-9 * (1.0 + problem.eta + np.max(np.abs(F), axis=1))
+    worst = int(np.argmax(err - tol))
+    if not err[worst] > problem.eta + tol[worst]:
+        return ""
+    return (f"the bound ‖f − φ‖ ≤ η = {problem.eta:.6g} the certificate rests on does not hold: "
+            f"‖f − φ‖ = {err[worst]:.6g} at (x, u) = {np.round(Z[worst], 6).tolist()} of its "
+            "box (φ learned for another f, an edited bounds.json, or a declared input "
+            "matrix that f does not have); rerun the run that wrote it")
 
 
 def _refused_run(saved: RoaCertificate, reason: str) -> tuple[RoaCertificate, None]:

@@ -756,6 +756,17 @@ def _refuse_other_systems_run(out: Path, name: str) -> None:
         if isinstance(other, str) and other != name:
             raise UsageError(f"--out {out} holds a run of system {other!r} ({file}), not "
                              f"{name!r}; give another --out, or remove that directory")
+    try:   # a run interrupted before its certificate: its stages name the system
+        stages = json.loads(read_file_bytes(out / "stages.json", "run file"))
+        others = {r.get("system") for r in stages.values() if isinstance(r, dict)}
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return
+    other = next((o for o in sorted(others - {name, None}, key=str) if isinstance(o, str)),
+                 None)
+    if other is not None:
+        raise UsageError(f"--out {out} holds the stages of a run of system {other!r} "
+                         f"(stages.json), not {name!r}; give another --out, or remove that "
+                         "directory")
 
 
 def cmd_run(args) -> int:
@@ -965,9 +976,13 @@ def _classify(err: BaseException, command: str | None) -> tuple[int, str]:
         msg = _one_line(err)
         return 3, msg if ";" in msg else f"{msg}; {see}"
     if isinstance(err, MemoryError):
-        return 3, ("this machine ran out of memory; lower the sizes of the run in --config "
-                   "(eval_points, cegis.area_points, cegis.samples, train.hidden, the "
-                   "dynamics grid) or use a machine with more memory")
+        if command in ("run", "compare", "learn-dynamics", None):
+            return 3, ("this machine ran out of memory; lower the sizes of the run in "
+                       "--config (eval_points, cegis.area_points, cegis.samples, train.hidden, "
+                       "the dynamics grid) or use a machine with more memory")
+        return 3, (f"this machine ran out of memory in 'nlyap {command}'; the networks or "
+                   "the system are too large for it: give smaller ones, or use a machine "
+                   "with more memory")
     if isinstance(err, OSError) and err.filename is not None:
         return 3, (f"{err.filename}: {err.strerror or _one_line(err)}; check the path "
                    "(and its permissions)")

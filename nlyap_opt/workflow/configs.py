@@ -1511,9 +1511,7 @@ def make_config(system: str, preset: str | None = "large", overrides: dict | Non
     """
     if not isinstance(system, str):
         raise ConfigError(f"system must be a name (str), got {system!r}")
-    if file is not None and (isinstance(file, bytes) or not isinstance(file, (str, os.PathLike))):
-        raise ConfigError(f"file must be the path of a JSON config file (a str or "
-                          f"pathlib.Path), got {file!r}")
+    _check_file_argument(file)
     s = systems.get(system)  # UnknownNameError listing the catalogue
     if preset is None:
         cfg = copy.deepcopy(_GENERIC)
@@ -1541,7 +1539,7 @@ def make_config(system: str, preset: str | None = "large", overrides: dict | Non
         )
     else:
         cfg = copy.deepcopy(PRESETS[system][preset])
-    where = "run config"
+    where = _spec_where(s) if preset is None else "run config"
     for src, over in ((file, None), (None, overrides)):
         if src is not None:
             where = f"config {src}"
@@ -1561,6 +1559,19 @@ def make_config(system: str, preset: str | None = "large", overrides: dict | Non
     cfg["system"], cfg["preset"] = system, preset
     validate_config(cfg, system, where=where)
     return RunConfig._build("", cfg)
+
+
+def _check_file_argument(file) -> None:
+    if file is not None and (isinstance(file, bytes) or not isinstance(file, (str, os.PathLike))):
+        raise ConfigError(f"file must be the path of a JSON config file (a str or "
+                          f"pathlib.Path), got {file!r}")
+
+
+def _spec_where(s) -> str:
+    """How errors name a configuration whose values came from a spec's ``[run]`` table."""
+    if not getattr(s, "run_overrides", None):
+        return "run config"
+    return f"{getattr(s, 'source', '') or f'system {s.name!r}'} [run] (run config)"
 
 
 def get_config(system: str, preset: str = "large", path: str | Path | None = None

@@ -39,7 +39,9 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import io
 import json
+import math
 import os
 import time
 from collections.abc import Mapping
@@ -72,8 +74,10 @@ from ..certification.certificate import (
     VolumeToBeat,
     certify_roa,
     certify_with_inner_search,
+    parse_bound,
     save_certificate,
     sha256_file,
+    system_fingerprint,
     unchecked,
     write_json_atomic,
 )
@@ -98,7 +102,13 @@ from ..distributed.parallel import (
 from ..distributed.parallel import check as parallel_check
 from ..kernel.domain import Ball
 from ..kernel.errors import ConfigError, NlyapError
-from ..kernel.jsonio import load_with_timings, save_timings, split_timings
+from ..kernel.jsonio import (
+    load_with_timings,
+    read_npz,
+    save_timings,
+    split_timings,
+    write_atomic,
+)
 from ..kernel.network import Network
 from ..kernel.provenance import fingerprint
 from ..kernel.sampling import sample_sphere
@@ -115,6 +125,16 @@ __all__ = ["run", "RunResult", "RunLockedError"]
 
 def _hash(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _seal(key: str, arrays: list) -> str:
+    """The sha256 of ``key`` and the arrays' shapes and bytes (a cache's own check)."""
+    h = hashlib.sha256(key.encode())
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape};".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 class RunLockedError(NlyapError, RuntimeError):
@@ -236,9 +256,18 @@ class _CegisRecord:
         try:
             if not isinstance(data, dict):
                 raise ValueError("not a JSON object")
-            return cls(**{**{f.name: data[f.name] for f in fields(cls) if f.name != "seconds"},
-                          "status": CertStatus(data["status"]),
-                          "seconds": data.get("seconds")})
+            rec = cls(**{**{f.name: data[f.name] for f in fields(cls) if f.name != "seconds"},
+                         "status": CertStatus(data["status"]),
+                         "seconds": data.get("seconds")})
+            for name in ("level", "smoothing", "margin", "M"):
+                v = getattr(rec, name)
+                if (v is not None or name in ("level", "smoothing")) and not (
+                        isinstance(v, (int, float)) and not isinstance(v, bool)
+                        and math.isfinite(v) and v >= 0):
+                    raise ValueError(f"{name} is {v!r}, not a finite number >= 0")
+            if not isinstance(rec.history, list):
+                raise ValueError("history is not a list")
+            return rec
         except (KeyError, TypeError, ValueError) as err:
             raise _record_error(path, err) from None
 
@@ -353,9 +382,17 @@ class _Stages:
         if rec is None:
             return False
         if rec.get("key") != self.key(stage, *deps):
-            self.log(f"[{stage}] configuration or earlier stage changed: recomputing")
+            self.log(f"[{stage}] configuration, system or earlier stage changed: recomputing")
             return False
-        for name, digest in rec.get("files", {}).items():
+        files = rec.get("files")
+        if not isinstance(files, dict) or not all(
+                isinstance(n, str) and isinstance(h, str) for n, h in files.items()) or \
+                rec.get("seal") != _hash([rec["key"], files]):
+            # the files' hashes are sealed with the key: a record whose list was emptied or
+            # edited would otherwise let the stage's files through unchecked
+            self.log(f"[{stage}] its record in stages.json was edited: recomputing the stage")
+            return False
+        for name, digest in files.items():
             f = self.out / name
             if not f.exists():
                 self.log(f"[{stage}] {name} is missing: recomputing the stage")
@@ -370,7 +407,11 @@ class _Stages:
     def mark(self, stage: str, *deps):
         files = {n: sha256_file(self.out / n) for n in _STAGE_FILES[stage]
                  if (self.out / n).exists()}
-        self.done[stage] = {"key": self.key(stage, *deps), "files": files}
+        key = self.key(stage, *deps)
+        # the system named in plain words too: a run of another system into this directory,
+        # interrupted before its certificate was written, is recognised (nlyap run --out)
+        self.done[stage] = {"key": key, "files": files, "seal": _hash([key, files]),
+                            "system": self.system.rsplit(":", 1)[0]}
         write_json_atomic(self.file, self.done)
         self.marks += 1
 
@@ -495,7 +536,10 @@ def _run(system, cfg: RunConfig, out: Path, known_dynamics: bool, log,
     _log_centre(system, cfg, log)
     region = cfg.view(_REGION)
     D, XI = domain_of(region, system.nx)
-    ctx = _Context(system, out, _Stages(out, system.name, known_dynamics, cfg, log), log,
+    # the stages' keys name the system by its fingerprint (equations, boxes, u_eq, data):
+    # a spec edited under the same name recomputes every stage
+    ctx = _Context(system, out, _Stages(out, f"{system.name}:{system_fingerprint(system)}",
+                                        known_dynamics, cfg, log), log,
                    D, XI, D.max_norm(), float(region.inner))
     seconds: dict[str, float] = {}
     if not known_dynamics:
@@ -601,6 +645,16 @@ class _Context:
                           dynamics_assumptions=assumed, **kw)
 
 
+def _finite_or_inf(bounds, path: Path) -> float:
+    """η of a bounds record: a number (``inf``, written as a string, when no bound was
+    found: the gate then stops the run), else a one-line error naming the file."""
+    eta = bounds.get("eta") if isinstance(bounds, dict) else None
+    if eta == "inf" or (isinstance(eta, (int, float)) and not isinstance(eta, bool)
+                        and not math.isnan(eta) and eta >= 0):
+        return float(eta)
+    raise _record_error(path, ValueError(f"eta is {eta!r}, not a number >= 0"))
+
+
 def _dynamics_stage(ctx: _Context, seconds: dict) -> RunResult | None:
     """Stage 1: φ and η (learned, or loaded); ``None``, or the result of a run the η gate
     stopped."""
@@ -616,7 +670,7 @@ def _dynamics_stage(ctx: _Context, seconds: dict) -> RunResult | None:
     # bounds.json is read back even when fresh: error_models.write_bounds writes a
     # normalised record (inf as a string), and the certificate quotes that record
     bounds = ctx.bounds = load_with_timings(out / "bounds.json")
-    ctx.eta = eta = float(bounds["eta"])
+    ctx.eta = eta = _finite_or_inf(bounds, out / "bounds.json")
     gate = bounds.get("gate") or {}
     if _gate_status(gate, out / "bounds.json") is not GateStatus.OK:
         reason = f"η = {eta:.4g} above eta_target {gate.get('eta_target')}: " \
@@ -628,6 +682,10 @@ def _dynamics_stage(ctx: _Context, seconds: dict) -> RunResult | None:
                        provenance=fingerprint())
         write_json_atomic(out / "certificate.json", summary)
         return RunResult(cert, CertStatus.NOT_CERTIFIED, summary, out, reason)
+    try:   # checked as a re-check checks it (a record whose hash was forged too)
+        parse_bound(json.dumps(bounds))
+    except (ValueError, KeyError, TypeError, RecursionError, OverflowError) as err:
+        raise _record_error(out / "bounds.json", err) from None
     grid_box = np.asarray(bounds["grid"]["box"], dtype=float)
     ctx.dyn_box = dyn_box = grid_box[: system.nx]
     # U of the bound: the grid's input rows (full model) or the system's (control-affine:
@@ -772,6 +830,7 @@ def _certificate_stage(ctx: _Context, cfg: RunConfig, cg: _CegisRecord,
         cert, problem, files, compared = _best_certificate(
             system, cfg, cert, problem, checked, log)
         extra = _areas_and_checks(system, cfg, cert, problem, out, log).to_json()
+        _refute_by_true_f(cert, extra.get("true_dynamics_check"), ctx.eta, log)
         if compared:
             extra["candidates"] = compared
     seconds["certificate"] = time.perf_counter() - t
@@ -1325,6 +1384,25 @@ def _best_certificate(system, cfg, cert, problem, checked: list, log):
     return win, wp, files, compared
 
 
+def _refute_by_true_f(cert: RoaCertificate, check: Mapping | None, eta, log) -> None:
+    """A certificate for learned dynamics that the true f contradicts is not certified.
+
+    The certificate proves ``∇V·φ + η‖∇V‖ < 0`` on its set, which implies ``∇V·f < 0``
+    wherever ``‖f − φ‖ ≤ η``; a confirmed point of that set where ``∇V·f ≥ 0`` therefore
+    shows that the bound η does not hold for this f (a spec edited after the dynamics were
+    learned, an edited bounds.json): the claim is withdrawn, saying so."""
+    if not cert.certified or not check or check.get("decrease_true_f") != "counterexample":
+        return   # (a verifier status is a str: its word compares equal)
+    at = check.get("counterexample")
+    cert.status = CertStatus.NOT_CERTIFIED
+    cert.reason = (f"the true f contradicts the bound η = {float(eta):.6g} the certificate "
+                   f"rests on: V and κ fail the decrease with f at x = {at} inside the set "
+                   "it covers, so ‖f − φ‖ ≤ η does not hold there (dynamics learned for "
+                   "another f, or an edited bounds.json); delete the run's dynamics.json and "
+                   "bounds.json and rerun")
+    log(f"[certificate] NOT CERTIFIED: {cert.reason}")
+
+
 @dataclass(frozen=True)
 class _Areas:
     """Certified and true-ROA areas on the evaluation grid, and the check of the same V
@@ -1362,7 +1440,8 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     horizon = float(cfg.eval_time)
     if getattr(system, "can_simulate", True):   # longer for a loop with a slow mode
         horizon = true_roa_horizon(system, feedback, box, horizon)
-    ckey = _hash([system.name, cfg.eval_box, n, None if controller is None
+    ckey = _hash([system.name, system_fingerprint(system), cfg.eval_box, n,
+                  None if controller is None
                   else controller.to_dict(), "undecided", "elsewhere",
                   problem.domain.to_dict()]
                  + ([] if horizon == TRUE_ROA_TIME else [horizon]))
@@ -1371,14 +1450,17 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
     if not getattr(system, "can_simulate", True):
         not_available.append("true ROA by simulation (no model and no simulator of f)")
         true_mask = np.zeros(shape, dtype=bool)
-    elif cache.exists():
-        try:
-            with np.load(cache) as z:
-                saved = [z[k] for k in ("mask", "undecided", "elsewhere", "stays")] \
-                    if str(z["key"]) == ckey else []
-                if saved and all(a.shape == shape and a.dtype == bool for a in saved):
-                    true_mask, undecided, elsewhere, stays = saved
-        except (OSError, ValueError, KeyError):
+    elif os.path.lexists(cache):
+        try:   # read as every input is: a pipe refused, sizes checked, no pickle
+            z = read_npz(cache, "true-ROA cache", "it is simulated again")
+            saved = [z[k] for k in ("mask", "undecided", "elsewhere", "stays")] \
+                if str(z["key"]) == ckey else []
+            if saved and all(a.shape == shape and a.dtype == bool for a in saved) and \
+                    str(z["seal"]) == _seal(ckey, saved):
+                true_mask, undecided, elsewhere, stays = saved
+            elif saved:
+                log("[certificate] true_roa.npz was edited: simulating again")
+        except (OSError, ValueError, KeyError, ConfigError):
             log("warning: true_roa.npz is unreadable; simulating again")
     if true_mask is None:
         log("[certificate] true ROA by simulation on the evaluation grid"
@@ -1394,10 +1476,11 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         stays[reach] = true_roa_stays(system, feedback, pts[reach], problem.domain,
                                       t_final=horizon, ellipse=ell)
         stays = stays.reshape(shape)
-        tmp = out / ".true_roa.tmp.npz"
-        np.savez_compressed(tmp, mask=true_mask, undecided=undecided, elsewhere=elsewhere,
-                            stays=stays, key=ckey)
-        tmp.replace(cache)
+        buf = io.BytesIO()
+        np.savez_compressed(buf, mask=true_mask, undecided=undecided, elsewhere=elsewhere,
+                            stays=stays, key=ckey,
+                            seal=_seal(ckey, [true_mask, undecided, elsewhere, stays]))
+        write_atomic(cache, buf.getvalue())
     # the true ROA within D, where every certificate lies (areas and shares on one set; a
     # true ROA that reaches past D, e.g. over the corners of a box around a ball D, is
     # not counted)
@@ -1436,6 +1519,8 @@ def _areas_and_checks(system, cfg, cert: RoaCertificate, problem: RoaProblem, ou
         res = parallel_check(prob)
         true_check = {"decrease_true_f": res.status,
                       "inner_ball_true_f": cert.inner_ellipse.status, "seconds": res.seconds}
+        if res.counterexample is not None:
+            true_check["counterexample"] = np.asarray(res.counterexample.point).tolist()
         log(f"[certificate] same V, κ against the true f: decrease {res.status}, "
             f"inner ball {cert.inner_ellipse.status}")
     simulated = not any(a.startswith("true ROA") for a in not_available)

@@ -476,21 +476,33 @@ def _write(res: PortfolioResult) -> None:
                      f"{num(None if r.share is None else 100 * r.share, '.1f')}"
                      f"{'' if r.share is None else ' %'} | {r.seconds:.1f} | [{r.dir}]({r.dir}/) |")
     lines.append("")
+    linked = _link_best(res)
     if res.best is None:
         lines.append("No seed certified.")
     else:
         lines.append(f"Best certificate: [{res.best.dir}/certificate.json]"
-                     f"({res.best.dir}/certificate.json) (also `best/`), report "
-                     f"[{res.best.dir}/report.md]({res.best.dir}/report.md).")
+                     f"({res.best.dir}/certificate.json)"
+                     + (" (also `best/`)" if linked else
+                        " (`best/` is not a link to it: a directory of that name, not "
+                        "written by this portfolio, is in the way)"
+                        if (out / "best").exists() else "")
+                     + f", report [{res.best.dir}/report.md]({res.best.dir}/report.md).")
     write_atomic(out / "portfolio.md", "\n".join(lines) + "\n")
-    link = out / "best"
+
+
+def _link_best(res: PortfolioResult) -> bool:
+    """``OUT/best``, a link to the best seed's directory; whether it is one now. A real
+    directory named best (not this tool's) is left alone: it is not the best seed."""
+    link = res.out / "best"
     if link.is_symlink() or link.exists():
         if link.is_symlink() or link.is_file():
             link.unlink()
-        else:  # a real directory named best: leave it, the JSON points to the seed
-            return
-    if res.best is not None:
-        try:
-            os.symlink(res.best.dir, link, target_is_directory=True)
-        except OSError:  # no symlinks here (some filesystems): portfolio.json points to it
-            pass
+        else:
+            return False
+    if res.best is None:
+        return False
+    try:
+        os.symlink(res.best.dir, link, target_is_directory=True)
+    except OSError:  # no symlinks here (some filesystems): portfolio.json points to it
+        return False
+    return True

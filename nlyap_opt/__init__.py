@@ -15,6 +15,7 @@ the heavy imports against Ctrl-C: :mod:`nlyap_opt.interface.entry`).
 import importlib
 
 from .kernel.errors import (
+    ArgumentTypeError,
     BackendUnavailableError,
     ConfigError,
     DimensionError,
@@ -34,7 +35,8 @@ __all__ = [
     "Layer", "Network", "from_torch", "load_network", "closed_loop", "lie_derivative",
     "evaluate", "NlyapError", "DimensionError", "EquilibriumError", "InputRangeError",
     "NetworkFileError", "NotStabilizableError", "UnknownNameError", "UnsupportedLayerError",
-    "UnsupportedOperationError", "BackendUnavailableError", "ConfigError", "__version__",
+    "UnsupportedOperationError", "BackendUnavailableError", "ConfigError", "ArgumentTypeError",
+    "__version__",
     "run", "make_config", "RoaProblem", "certify_roa", "recheck_certificate", "CertStatus",
 ]
 

@@ -17,9 +17,16 @@ Examples
 
 from __future__ import annotations
 
+import inspect
+import os
 from collections.abc import Callable
 
-from nlyap_opt.kernel.errors import ConfigError, UnknownNameError
+from nlyap_opt.kernel.errors import (
+    ArgumentTypeError,
+    ConfigError,
+    NlyapError,
+    UnknownNameError,
+)
 
 from .base import ModelUnavailableError, System
 from .catalogue import (
@@ -81,12 +88,29 @@ def get(name: str, **params) -> System:
     """Build the registered system ``name`` with optional parameter overrides."""
     try:
         factory = REGISTRY[name]
-    except KeyError:
+    except (KeyError, TypeError):   # TypeError: an unhashable name
         raise UnknownNameError(
             f"unknown system {name!r}; registered systems: {', '.join(REGISTRY)} "
             "(add one with systems.register)"
         ) from None
-    return factory(**params)
+    if not params:
+        return factory()
+    try:
+        sig = inspect.signature(factory)
+        sig.bind(**params)
+    except TypeError as err:   # a parameter the factory does not take
+        raise ConfigError(f"system {name!r} takes the parameters "
+                          f"{', '.join(sig.parameters) or 'none'}; {err}") from None
+    except ValueError:         # no signature to read: the call says
+        pass
+    try:
+        return factory(**params)
+    except (TypeError, ValueError) as err:   # e.g. a text where a number belongs
+        if isinstance(err, NlyapError):
+            raise
+        raise ConfigError(f"system {name!r} cannot be built with {params}: "
+                          f"{' '.join(str(err).split())}; pass numbers for its "
+                          "parameters") from None
 
 
 def load_spec(path, *, allow_factory: bool = True) -> System:
@@ -95,6 +119,9 @@ def load_spec(path, *, allow_factory: bool = True) -> System:
 
     Imports SymPy (the expression parser) only when called.
     """
+    if isinstance(path, bytes) or not isinstance(path, (str, os.PathLike)):
+        raise ArgumentTypeError(f"load_spec needs the path of a spec file (a str or "
+                                f"pathlib.Path), got {path!r}")
 
     return _load_spec(path, allow_factory=allow_factory)
 

@@ -28,7 +28,13 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from nlyap_opt.kernel import deps
-from nlyap_opt.kernel.errors import ConfigError, DimensionError, EquilibriumError, NlyapError
+from nlyap_opt.kernel.errors import (
+    ArgumentTypeError,
+    ConfigError,
+    DimensionError,
+    EquilibriumError,
+    NlyapError,
+)
 from nlyap_opt.kernel.simulate import trajectories
 from nlyap_opt.kernel.walker import ArrayArithmetic, compile_function, evaluate
 
@@ -48,15 +54,20 @@ class ModelUnavailableError(NlyapError, AttributeError):
 
 
 def _box(box, n: int, what: str) -> np.ndarray:
-    b = np.asarray(box, dtype=float)
+    try:
+        b = np.asarray(box, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{what} must be {n} rows [lower, upper] of numbers, got "
+                          f"{str(box)[:60]!r}") from None
     if b.shape != (n, 2):
         raise DimensionError(
             f"{what} must be an array of shape ({n}, 2) with rows (lower, upper), got {b.shape}"
         )
     if not np.all(np.isfinite(b)) or np.any(b[:, 0] >= b[:, 1]):
-        raise ValueError(f"{what} needs finite bounds with lower < upper on every row, got {b}")
+        raise ConfigError(f"{what} needs finite bounds with lower < upper on every row, got "
+                          f"{b.tolist()}")
     if np.any(np.abs(b) > BOX_LIMIT):
-        raise ValueError(f"{what} has a bound beyond ±{BOX_LIMIT:g} (squares and widths of "
+        raise ConfigError(f"{what} has a bound beyond ±{BOX_LIMIT:g} (squares and widths of "
                          f"such states overflow); rescale the states, got {b.tolist()}")
     return b
 
@@ -69,6 +80,8 @@ def _function_name(name: str) -> str:
     """``name`` as a CasADi Function name: itself where CasADi accepts it (a letter, then
     letters, digits and single underscores), else its letters and digits joined by ``_``
     after ``f_`` (``"my-system"`` → ``"f_my_system"``)."""
+    if not isinstance(name, str) or not name:
+        raise ArgumentTypeError(f"a system's name must be a non-empty str, got {name!r}")
     if ca.Function.check_name(name):
         return name
     parts = [p for p in re.split(r"[^0-9A-Za-z]+", name) if p]
@@ -162,10 +175,11 @@ class System:
         subsystems: Sequence[Sequence[int]] | None = None,
     ):
         if not isinstance(x, ca.SX) or not x.is_column() or not x.is_valid_input():
-            raise TypeError("x must be a column of casadi.SX symbols, e.g. ca.SX.sym('x', 2)")
+            raise ArgumentTypeError("x must be a column of casadi.SX symbols, e.g. "
+                                    "ca.SX.sym('x', 2)")
         u = ca.SX(0, 1) if u is None else u
         if not isinstance(u, ca.SX) or not (u.is_empty() or u.is_valid_input()):
-            raise TypeError("u must be a column of casadi.SX symbols or None")
+            raise ArgumentTypeError("u must be a column of casadi.SX symbols or None")
         f = ca.densify(ca.SX(f))  # a structural zero (x_k' = 0) keeps its row in evaluations
         if f.shape != (x.numel(), 1):
             raise DimensionError(
@@ -252,8 +266,12 @@ class System:
         (False, [[1.0, 2.0]])
         """
         if not callable(fun):
-            raise TypeError(f"fun must be a callable f(X, U) -> Xdot, got {type(fun).__name__}")
+            raise ArgumentTypeError(f"fun must be a callable f(X, U) -> Xdot, got "
+                                    f"{type(fun).__name__}")
         self = cls.__new__(cls)
+        for what, v in (("nx", nx), ("nu", nu)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+                raise ArgumentTypeError(f"{what} must be an int >= 0, got {v!r}")
         x, u = cls._given_symbols(symbols, int(nx), int(nu), kwargs)
         self._setup(name, x, u, "callable", state_box=state_box, input_box=input_box, **kwargs)
         self.subsystems = self._partition(subsystems)
@@ -311,7 +329,7 @@ class System:
         (:func:`~systems.declarations.check_declarations`).
         """
         if not isinstance(samples, SampleSet):
-            raise TypeError("samples must be a SampleSet (systems.samples.load_samples)")
+            raise ArgumentTypeError("samples must be a SampleSet (systems.samples.load_samples)")
         nx, nu = samples.nx, samples.nu
         checks = [("state_box", state_box, samples.box[:nx])]
         if not samples.input_slice:
@@ -396,16 +414,18 @@ class System:
             return cls.symbols(nx, nu, kwargs.get("state_names"), kwargs.get("input_names"))
         x, u = symbols
         if not isinstance(x, ca.SX) or x.shape != (nx, 1) or not x.is_valid_input():
-            raise TypeError(f"symbols[0] must be an SX column of {nx} symbols")
+            raise ArgumentTypeError(f"symbols[0] must be an SX column of {nx} symbols")
         if not isinstance(u, ca.SX) or u.shape[0] != nu or not (u.is_empty() or
                                                                u.is_valid_input()):
-            raise TypeError(f"symbols[1] must be an SX column of {nu} symbols")
+            raise ArgumentTypeError(f"symbols[1] must be an SX column of {nu} symbols")
         return x, u
 
     # ------------------------------------------------------------------ common set-up
     def _setup(self, name, x, u, kind, *, state_box, input_box=None, params=None,
                state_names=None, input_names=None, description="", declarations=None,
                run_overrides=None, source=""):
+        if not isinstance(name, str) or not name:
+            raise ArgumentTypeError(f"a system's name must be a non-empty str, got {name!r}")
         self.name = name
         self.kind = kind
         self.x, self.u = x, u
@@ -417,7 +437,7 @@ class System:
                 "origin in its interior; the equilibrium x = 0 must be inside X (widen the "
                 "box, or shift the state so that the equilibrium is at 0)")
         if self.nu and input_box is None:
-            raise ValueError(f"system {name!r} has inputs: give input_box (nu={self.nu})")
+            raise ConfigError(f"system {name!r} has inputs: give input_box (nu={self.nu})")
         self.input_box = _box(input_box, self.nu, "input_box") if self.nu else np.zeros((0, 2))
         self.params = dict(params or {})
         self.state_names = list(state_names or [f"x{i + 1}" for i in range(self.nx)])
@@ -426,7 +446,7 @@ class System:
             raise DimensionError("state_names/input_names must have nx/nu entries")
         self.description = description
         if declarations is not None and not isinstance(declarations, Declarations):
-            raise TypeError("declarations must be a systems.Declarations")
+            raise ArgumentTypeError("declarations must be a systems.Declarations")
         self.declarations = None if declarations is None else declarations.validate(
             self.nx, self.nu)
         if self.declarations is not None:  # depends_on names the system's own variables

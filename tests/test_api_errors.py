@@ -121,3 +121,30 @@ def test_numpy_scalars_are_verifier_options_as_pythons_numbers():
                                              "second_order": np.bool_(True)})
     assert p.verify_options == {"max_boxes": 1000, "resolution": 1e-3, "second_order": True}
     assert type(p.verify_options["max_boxes"]) is int
+
+
+X2S, U1S = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+
+
+@pytest.mark.parametrize("call, words", [
+    (lambda: systems.System(5, X2S, U1S, ca.vertcat(X2S[1], U1S), state_box=[[-1, 1]] * 2,
+                            input_box=[[-1, 1]]), ["name must be a non-empty str"]),
+    (lambda: systems.System("a", "x", U1S, ca.vertcat(X2S[1], U1S), state_box=[[-1, 1]] * 2,
+                            input_box=[[-1, 1]]), ["x must be a column of casadi.SX"]),
+    (lambda: systems.System("a", X2S, U1S, ca.vertcat(X2S[1], U1S), state_box="box",
+                            input_box=[[-1, 1]]), ["state_box must be 2 rows"]),
+    (lambda: systems.System.from_callable("c", 5, nx=2, state_box=[[-1, 1]] * 2),
+     ["fun must be a callable"]),
+    (lambda: systems.System.from_callable("c", lambda x, u: -x, nx="2",
+                                          state_box=[[-1, 1]] * 2), ["nx must be an int"]),
+    (lambda: systems.get("van_der_pol", mu="a"), ["cannot be built with", "numbers"]),
+    (lambda: systems.get("van_der_pol", zzz=1), ["takes the parameters mu", "zzz"]),
+    (lambda: systems.get(["a"]), ["unknown system"]),
+    (lambda: systems.load_spec(None), ["needs the path of a spec file"]),
+])
+def test_the_systems_package_names_the_wrong_argument(call, words):
+    """CasADi's NotImplementedError, numpy's ValueError and Python's TypeError came out."""
+    with pytest.raises(NlyapError) as err:
+        call()
+    msg = str(err.value)
+    assert "\n" not in msg and all(w in msg for w in words), msg

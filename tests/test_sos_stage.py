@@ -458,14 +458,16 @@ def test_cegis_settings_do_not_recompute_the_cheap_stages(sos_run, tmp_path, log
     with pytest.raises(KeyboardInterrupt):
         run("van_der_pol", cfg2, e, known_dynamics=True, log=log)
     text = "\n".join(log.lines)
-    assert "[sos] loaded from" in text and "[cegis] configuration, system or earlier stage changed" in text
+    assert "[sos] loaded from" in text
+    assert "[cegis] configuration, system or earlier stage changed" in text
     cfg3 = make_config("van_der_pol", "fast", overrides={
         "sos": {"degree": 2}, "train": {"steps": 1},
         "cegis": {"iterations": 1, "steps": 2, "verify_options": {"batch": 512}}})
     log = log_until("[sos] ")
     with pytest.raises(KeyboardInterrupt):
         run("van_der_pol", cfg3, e, known_dynamics=True, log=log)
-    assert "[sos] configuration, system or earlier stage changed: recomputing" in "\n".join(log.lines)
+    assert "[sos] configuration, system or earlier stage changed: recomputing" in \
+        "\n".join(log.lines)
 
 
 def test_no_gram_matrix_starts_v_at_random(monkeypatch, tmp_path, log_until):

@@ -77,6 +77,10 @@ class ConfigError(NlyapError, ValueError):
     """A configuration value is missing or out of range."""
 
 
+class ArgumentTypeError(NlyapError, TypeError):
+    """An argument of a public function is of the wrong type (a ``TypeError`` too)."""
+
+
 class UsageError(NlyapError, ValueError):
     """A command-line argument or an input file is invalid (``nlyap`` exits with code 3)."""
 

@@ -20,7 +20,9 @@ expressions in the system's symbols (:attr:`System.known_rhs`) for every kind.
 
 from __future__ import annotations
 
+import contextlib
 import re
+import sys
 from collections.abc import Callable, Sequence
 
 import casadi as ca
@@ -74,6 +76,16 @@ def _box(box, n: int, what: str) -> np.ndarray:
 
 #: the largest magnitude of a box bound (a state of 1e100 has a finite square; 1e308 not)
 BOX_LIMIT = 1e100
+
+
+@contextlib.contextmanager
+def user_code():
+    """Around a call of the user's Python code (a factory, a simulator): the numpy error
+    settings it changes are put back (``np.seterr(all="raise")`` in a simulator made the
+    tool's own rounding fail), and what it prints goes to standard error (standard output
+    carries the tool's results, e.g. ``nlyap config``'s JSON)."""
+    with np.errstate(), contextlib.redirect_stdout(sys.stderr):
+        yield
 
 
 def _function_name(name: str) -> str:
@@ -516,8 +528,8 @@ class System:
             i = list(self._known)[c]
             raise ConfigError(
                 f"the known component {self.state_names[i]}' of {self.name!r} disagrees with "
-                f"{where} at z = {z[r].tolist()}: expression {got[r, c]!r}, data "
-                f"{want[r, c]!r}; fix the expression or do not declare the component known"
+                f"{where} at z = {z[r].tolist()}: expression {float(got[r, c])!r}, data "
+                f"{float(want[r, c])!r}; fix the expression or do not declare the component known"
             )
 
     def _declared_u_eq(self, u_eq) -> np.ndarray:
@@ -714,7 +726,17 @@ class System:
             return evaluate(self._program, [x, u])[0]
         if self.kind == "samples":
             return self.samples.lookup(x, u)
-        out = np.asarray(self._callable(x, u), dtype=float)
+        with user_code():
+            raw = self._callable(x, u)
+        if np.iscomplexobj(raw):
+            raise ConfigError(f"the callable of {self.name!r} returned complex values; return "
+                              "real (float64) derivatives")
+        try:
+            out = np.asarray(raw, dtype=float)
+        except (TypeError, ValueError):
+            raise ConfigError(f"the callable of {self.name!r} returned "
+                              f"{type(raw).__name__}, not an array of numbers; return an "
+                              f"(N, {self.nx}) float64 array") from None
         if out.shape != x.shape:
             raise DimensionError(
                 f"the callable of {self.name!r} returned shape {out.shape} for {x.shape[0]} "

@@ -54,9 +54,25 @@ def _fmt_vec(v) -> str:
     return "(" + ", ".join(_fmt(a) for a in np.ravel(v)) + ")"
 
 
+def _numbers_only(name: str, v) -> None:
+    """Refuse booleans and text inside a declared value (``float()`` reads ``true`` as 1
+    and ``"34.5"`` as 34.5: as for boxes, a declaration is written as numbers)."""
+    if isinstance(v, np.ndarray):
+        ok = v.dtype.kind in "iuf"
+    elif isinstance(v, (list, tuple)):
+        for a in v:
+            _numbers_only(name, a)
+        return
+    else:
+        ok = isinstance(v, (int, float, np.integer, np.floating)) and \
+            not isinstance(v, (bool, np.bool_))
+    if not ok:
+        raise ConfigError(f"declared {name} must be written as numbers (not strings or "
+                          f"booleans), got {v!r}")
+
+
 def _nonnegative(name: str, v) -> float:
-    if isinstance(v, bool):
-        raise ConfigError(f"declared {name} must be a number, got {v!r}")
+    _numbers_only(name, v)
     try:
         v = float(v)
     except (TypeError, ValueError):
@@ -67,6 +83,7 @@ def _nonnegative(name: str, v) -> float:
 
 
 def _positive(name: str, v) -> float:
+    _numbers_only(name, v)
     try:
         v = float(v)
     except (TypeError, ValueError):
@@ -153,6 +170,7 @@ class Declarations:
                 raise ConfigError(f"declared sample_error must be a finite number >= 0, got {e!r}")
             object.__setattr__(self, "sample_error", float(e))
         if self.input_matrix is not None:
+            _numbers_only("input_matrix", self.input_matrix)
             try:
                 b = np.array(self.input_matrix, dtype=float)
             except (TypeError, ValueError):

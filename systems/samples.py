@@ -325,10 +325,11 @@ def _read_csv(path: Path, columns: Sequence[str] | None) -> tuple[list[str], np.
     if not data:
         raise ConfigError(f"{path}: the csv has a header but no data rows; write one row per "
                           "sample below it")
-    odd = next(((r, c) for r, row in enumerate(data) for c in row if "_" in c), None)
-    if odd is not None:  # float() reads 1_0 as 10: a typo would pass as a number
+    odd = next(((r, c) for r, row in enumerate(data) for c in row
+                if "_" in c or not c.isascii()), None)
+    if odd is not None:  # float() reads 1_0 as 10, and digits of other scripts: not data
         raise ConfigError(f"{path}: sample row {odd[0] + 1} holds {odd[1].strip()!r}, not a "
-                          "plain number (no '_' between digits); fix the data")
+                          "plain number (ASCII digits, no '_' between them); fix the data")
     try:
         arr = np.array([[float(c) for c in row] for row in data], dtype=float)
     except ValueError as exc:

@@ -68,7 +68,7 @@ from nlyap_opt.kernel.jsonio import read_file_bytes
 from nlyap_opt.kernel.rounding import EPS
 from nlyap_opt.kernel.walker import OP_TABLE
 
-from .base import System
+from .base import System, user_code
 from .declarations import Declarations, check_declarations
 from .samples import load_samples, sample_function
 
@@ -650,14 +650,16 @@ def _load_factory(path: Path, ref) -> Callable:
         module = importlib.util.module_from_spec(spec)
         sys.modules[modname] = module
         try:
-            spec.loader.exec_module(module)
+            with user_code():
+                spec.loader.exec_module(module)
         except (Exception, SystemExit) as exc:  # sys.exit() in the file: a failure too
             del sys.modules[modname]
             raise _err(path, "factory", f"importing {str(file)!r} failed: {_failure(exc)}; "
                        "fix the file (it is imported to build the system)") from None
     else:
         try:
-            module = importlib.import_module(mod)
+            with user_code():
+                module = importlib.import_module(mod)
         except ImportError as exc:
             raise _err(path, "factory", f"cannot import {mod!r} ({exc}); install it or use "
                        "\"file.py:function\" relative to the spec") from None
@@ -693,7 +695,8 @@ def _call_factory(path: Path, ref: str, factory: Callable) -> System:
                        "called without arguments; give them defaults or wrap it in a function "
                        "without parameters")
     try:
-        system = factory()
+        with user_code():
+            system = factory()
     except (Exception, SystemExit) as exc:  # noqa: BLE001 - the user's code: any failure
         # (sys.exit() included: its code must not become the command's) is an input error
         raise _err(path, "factory", f"{ref!r} raised {_failure(exc)}; fix the factory (it is "

@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import warnings
 from pathlib import Path
 
 import casadi as ca
@@ -288,6 +289,9 @@ def test_bad_npz_exits_3_with_the_fix(write, words, tmp_path, capsys):
 @pytest.mark.parametrize("row,words", [
     ("0,1_0", ["sample row 2 holds '1_0'", "not a plain number"]),
     ("0,1e300", ["holds 1e+300 (sample row 2)", "rescale"]),
+    # digits of other scripts: float() reads them, silently
+    ("0,\u0661.\u0660", ["sample row 2 holds", "ASCII digits"]),
+    ("0,\uff11.\uff10", ["sample row 2 holds", "ASCII digits"]),
 ])
 def test_csv_fields_that_are_no_plain_number_exit_3(row, words, tmp_path, capsys):
     """The value and the sample row the message names are the offending ones (1e300 in
@@ -668,3 +672,50 @@ def test_an_autonomous_system_without_an_equilibrium_is_told_to_shift():
     with pytest.raises(Exception, match="shift the state") as err:
         systems.System("noeq", x, None, ca.vertcat(-x[0] + 1, -x[1]), state_box=[[-1, 1]] * 2)
     assert "u_eq" not in str(err.value)
+
+
+def test_a_factory_that_prints_or_changes_numpy_settings_leaves_the_tool_alone(tmp_path,
+                                                                              capsys):
+    """A factory printing to stdout corrupted `nlyap config`'s JSON (exit 0), and one that
+    called np.seterr(all="raise") made the tool's own rounding fail (exit 4)."""
+    import json
+
+    (tmp_path / "noisy.py").write_text(textwrap.dedent("""
+        import casadi as ca
+        import numpy as np
+        import systems
+        np.seterr(all="raise")
+        print("hello from import")
+        def make():
+            print("hello from make")
+            np.seterr(all="raise")
+            x = ca.SX.sym("x", 2)
+            return systems.System("noisy", x, None, ca.vertcat(-x[0], -x[1]),
+                                  state_box=[[-1, 1], [-1, 1]])
+    """))
+    before = np.geterr()
+    assert main(["config", str(_spec(tmp_path, 'factory = "noisy.py:make"\n'))]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["system"] == "noisy"          # stdout: the JSON only
+    assert "hello from import" in out.err and "hello from make" in out.err
+    assert np.geterr() == before
+
+
+def test_a_simulator_that_returns_complex_values_is_refused_in_one_line():
+    """numpy's ComplexWarning (two more lines) came before the error."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")          # no warning on the way
+        with pytest.raises(ConfigError, match="returned complex values"):
+            systems.System.from_callable("cplx", lambda x, u: (-x).astype(complex), nx=2,
+                                         state_box=[[-1, 1], [-1, 1]])
+
+
+@pytest.mark.parametrize("kw", [{"lipschitz": True}, {"lipschitz": "34.5"},
+                                {"hessian": [True, 1.0]}, {"hessian": "1.0"},
+                                {"input_matrix": [["1"], [0.0]]}])
+def test_declarations_are_written_as_numbers(kw):
+    """`lipschitz = true` was read as K_f = 1 (then blamed as too small) and "34.5" as 34.5,
+    where boxes and u_eq refuse booleans and text."""
+    with pytest.raises(ConfigError, match="not strings or booleans"):
+        Declarations(**kw)
+    assert Declarations(lipschitz=np.float64(3.0), hessian=[0, 2]).hessian == (0.0, 2.0)

@@ -417,7 +417,7 @@ def test_declared_hessian_per_component(pend_samples):
     with pytest.raises(ConfigError, match=r"declared H = 0 is below .*∂²f_1"):
         check_declarations(pend_samples, pend_samples.values, Declarations(hessian=[19.7, 0.0]),
                            names=pend_samples.names)
-    for bad, words in (([1.0, -1.0], ">= 0"), ([True, 1.0], "must be a number"),
+    for bad, words in (([1.0, -1.0], ">= 0"), ([True, 1.0], "not strings or booleans"),
                        ([[1.0]], "one number per state")):
         with pytest.raises(ConfigError, match=words):
             Declarations(hessian=bad)

@@ -43,7 +43,7 @@ from nlyap_opt.kernel.walker import ArrayArithmetic, compile_function, evaluate
 from .declarations import Declarations, check_declarations
 from .samples import SampleSet
 
-__all__ = ["System", "ModelUnavailableError", "KINDS", "EQUILIBRIUM_TOL"]
+__all__ = ["System", "ModelUnavailableError", "KINDS", "EQUILIBRIUM_TOL", "check_box"]
 
 #: the kinds of system: a CasADi model, a black-box callable, samples on a grid
 KINDS = ("model", "callable", "samples")
@@ -55,7 +55,10 @@ class ModelUnavailableError(NlyapError, AttributeError):
     """The system has no CasADi model (a black-box callable or samples): ``f`` is unknown."""
 
 
-def _box(box, n: int, what: str) -> np.ndarray:
+def check_box(box, n: int, what: str) -> np.ndarray:
+    """``box`` as an ``(n, 2)`` float array of finite rows ``[lower, upper]`` with lower <
+    upper and bounds within ±:data:`BOX_LIMIT`; a one-line :class:`ConfigError` (or
+    :class:`DimensionError`) naming ``what`` otherwise."""
     try:
         b = np.asarray(box, dtype=float)
     except (TypeError, ValueError):
@@ -63,7 +66,7 @@ def _box(box, n: int, what: str) -> np.ndarray:
                           f"{str(box)[:60]!r}") from None
     if b.shape != (n, 2):
         raise DimensionError(
-            f"{what} must be an array of shape ({n}, 2) with rows (lower, upper), got {b.shape}"
+            f"{what} must be {n} rows [lower, upper] (one per variable), got shape {b.shape}"
         )
     if not np.all(np.isfinite(b)) or np.any(b[:, 0] >= b[:, 1]):
         raise ConfigError(f"{what} needs finite bounds with lower < upper on every row, got "
@@ -367,7 +370,7 @@ class System:
                     f"the samples of {name!r} hold a single input level {levels}; give "
                     "input_box (the inputs the controller may use)"
                 )
-            ubox = _box(input_box, nu, "input_box")
+            ubox = check_box(input_box, nu, "input_box")
             inside = (ubox[:, 0] <= samples.box[nx:, 0]) & (samples.box[nx:, 1] <= ubox[:, 1])
             if not np.all(inside):
                 raise ConfigError(
@@ -442,7 +445,7 @@ class System:
         self.kind = kind
         self.x, self.u = x, u
         self.nx, self.nu = x.numel(), u.numel()
-        self.state_box = _box(state_box, self.nx, "state_box")
+        self.state_box = check_box(state_box, self.nx, "state_box")
         if np.any(self.state_box[:, 0] >= 0) or np.any(self.state_box[:, 1] <= 0):
             raise ConfigError(
                 f"the state box {self.state_box.tolist()} of {name!r} does not contain the "
@@ -450,7 +453,8 @@ class System:
                 "box, or shift the state so that the equilibrium is at 0)")
         if self.nu and input_box is None:
             raise ConfigError(f"system {name!r} has inputs: give input_box (nu={self.nu})")
-        self.input_box = _box(input_box, self.nu, "input_box") if self.nu else np.zeros((0, 2))
+        self.input_box = (check_box(input_box, self.nu, "input_box") if self.nu
+                          else np.zeros((0, 2)))
         self.params = dict(params or {})
         self.state_names = list(state_names or [f"x{i + 1}" for i in range(self.nx)])
         self.input_names = list(input_names or [f"u{i + 1}" for i in range(self.nu)])

@@ -43,6 +43,7 @@ import numpy as np
 
 import systems
 from systems import System
+from systems.base import check_box
 from verification import VerificationProblem
 from verification.verify import check_file_options
 
@@ -238,19 +239,6 @@ def spec_factory(path: str | Path) -> str | None:
     return None if "factory" not in spec else str(spec["factory"])
 
 
-def _box_argument(name: str, value, n: int) -> np.ndarray:
-    """``value`` as an ``(n, 2)`` array of finite rows ``[lo, hi]`` with ``lo < hi``."""
-    try:
-        b = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        b = None
-    if b is None or b.shape != (n, 2) or not np.all(np.isfinite(b)) or \
-            np.any(b[:, 0] >= b[:, 1]):
-        raise ConfigError(f"{name} must be {n} rows [lo, hi] of finite numbers with lo < hi, "
-                          f"got {str(value)[:80]}")
-    return b
-
-
 def _finite(name: str, value, *, low: float | None = None, strict: bool = False) -> float:
     try:
         v = float(value)
@@ -418,11 +406,11 @@ class RoaProblem:
         else:
             if self.dynamics_box is None:
                 raise ConfigError("learned dynamics need dynamics_box (the box of ‖f − φ‖ ≤ η)")
-            self.dynamics_box = _box_argument("dynamics_box", self.dynamics_box, nx)
+            self.dynamics_box = check_box(self.dynamics_box, nx, "dynamics_box")
             if self.system.nu:
                 if self.input_box is None:
                     raise ConfigError("learned dynamics with inputs need input_box (U)")
-                self.input_box = _box_argument("input_box", self.input_box, self.system.nu)
+                self.input_box = check_box(self.input_box, self.system.nu, "input_box")
 
     def _check_parts(self) -> None:
         """The networks are of their kinds and sizes (their ``meta`` kind, where saved

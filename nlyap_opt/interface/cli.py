@@ -758,13 +758,12 @@ def _refuse_other_systems_run(out: Path, name: str) -> None:
                              f"{name!r}; give another --out, or remove that directory")
     try:   # a run interrupted before its certificate: its stages name the system
         stages = json.loads(read_file_bytes(out / "stages.json", "run file"))
-        others = {r.get("system") for r in stages.values() if isinstance(r, dict)}
+        others = sorted({r.get("system") for r in stages.values()
+                         if isinstance(r, dict) and isinstance(r.get("system"), str)} - {name})
     except (OSError, ValueError, AttributeError, RecursionError):
         return
-    other = next((o for o in sorted(others - {name, None}, key=str) if isinstance(o, str)),
-                 None)
-    if other is not None:
-        raise UsageError(f"--out {out} holds the stages of a run of system {other!r} "
+    if others:
+        raise UsageError(f"--out {out} holds the stages of a run of system {others[0]!r} "
                          f"(stages.json), not {name!r}; give another --out, or remove that "
                          "directory")
 

@@ -1088,9 +1088,10 @@ def evaluate(fun: ca.Function | Program, args: Sequence, arith=NUMPY) -> list:
                              f"ArrayArithmetic('torch'), an interval arithmetic), got {arith!r}")
     if isinstance(args, (str, bytes, np.ndarray)) or not hasattr(args, "__len__") or \
             len(args) != prog.n_in:
+        got = f"{len(args)} array(s)" if isinstance(args, (list, tuple)) else \
+            type(args).__name__
         raise DimensionError(f"Function {prog.fun.name()!r} takes {prog.n_in} input(s): pass a "
-                             "list of one array per input, got "
-                             f"{_describe_args(args)}")
+                             f"list of one array per input, got {got}")
     if arith is NUMPY or getattr(arith, "name", "") == "numpy":
         try:
             args = [np.asarray(a, dtype=float) for a in args]
@@ -1106,12 +1107,6 @@ def evaluate(fun: ca.Function | Program, args: Sequence, arith=NUMPY) -> list:
                 f"{tuple(shape)}"
             )
     return prog(args, arith)
-
-
-def _describe_args(args) -> str:
-    if isinstance(args, (list, tuple)):
-        return f"{len(args)} array(s)"
-    return type(args).__name__
 
 
 # --------------------------------------------------------------------------- exact values

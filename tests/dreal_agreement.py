@@ -1,7 +1,8 @@
 """The dReal agreement check, shared by the real-dReal test and the tests that show it can fail.
 
-δ-SAT is not a proof (PITFALLS P7): the refuted case must come back ``counterexample`` with a
-point that rigorous evaluation confirms; ``unknown`` is a wrong answer there.
+δ-SAT is not a proof (a δ-weakened formula may hold where the exact one does not): the
+refuted case must come back ``counterexample`` with a point that rigorous evaluation
+confirms; ``unknown`` is a wrong answer there.
 """
 
 import numpy as np

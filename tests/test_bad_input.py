@@ -52,7 +52,7 @@ def _bad_controller_bias():
     s = systems.get("unicycle_path_following")
     K = lqr(s).K
     ctrl = saturated_controller(s, K, 5.0)
-    ctrl.layers[0].bias[:] = 0.1974  # the seed's hand-typed bias (PITFALLS P4)
+    ctrl.layers[0].bias[:] = 0.1974  # the seed code's hand-typed bias, not the solved one
     return closed_loop(s, ctrl)
 
 

@@ -2,8 +2,9 @@
 
 The black-box pendulum (``examples/blackbox_pendulum.py``) and the same pendulum from a
 sample file must give the same grid, the same δ and the same η; δ must be the sample
-file's (including its offset from the regular nodes, PITFALLS P1), α must be measured on
-exactly the sample nodes, and what needs a model is skipped with a reason, never faked.
+file's (including its offset from the regular nodes: a δ of the nominal grid is too
+small), α must be measured on exactly the sample nodes, and what needs a model is skipped
+with a reason, never faked.
 """
 
 from __future__ import annotations

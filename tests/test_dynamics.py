@@ -67,7 +67,8 @@ def test_grid_batches_cover_every_node_once_with_bounded_memory():
         assert ax[0] == g.box[k, 0] and ax[-1] == g.box[k, 1]
     g2 = Grid.from_spacing([[-1.5, 1.5]], 1e-3)
     assert g2.counts.tolist() == [3001] and g2.delta == pytest.approx(5e-4, rel=1e-12)
-    # the paper's Van der Pol grid: spacing 1e-3 in 2-D has δ = 7.07e-4, not 5e-4 (PITFALLS P1)
+    # the paper's Van der Pol grid: spacing 1e-3 in 2-D has δ = 7.07e-4 (the half-diagonal),
+    # not 5e-4 (the half-spacing)
     assert Grid.from_spacing([[-1.5, 1.5]] * 2, 1e-3).delta == pytest.approx(7.0711e-4, rel=1e-4)
 
 
